@@ -1,0 +1,27 @@
+"""Linear surface reconstruction from discrete fundamental forms on triangle meshes.
+
+Reference implementation of the method of Sections 2.3-4 of *Linear Surface Reconstruction
+from Discrete Fundamental Forms on Triangle Meshes*: edge lengths (first form) and signed
+dihedral angles (second form) -> integrability check -> one sparse linear least-squares
+solve over vertex positions and per-face frames (the lift to 6D, Eq. 5).
+
+Conventions: ``vertices`` (n, 3) float64, ``faces`` (m, 3) int64 counter-clockwise seen from
+outside; ``edges`` (E, 2) unique pairs i < j sorted lexicographically; ``lengths``/``angles``
+(E,) aligned with ``edges``; dihedral angles in (-pi, pi], positive where convex.
+"""
+
+from .errors import SolverInputError
+from .forms import Forms, fundamental_forms
+from .integrability import IntegrabilityReport, check_integrability
+from .reconstruct import Constraints, Reconstruction, reconstruct
+
+__all__ = [
+    "Constraints",
+    "Forms",
+    "IntegrabilityReport",
+    "Reconstruction",
+    "SolverInputError",
+    "check_integrability",
+    "fundamental_forms",
+    "reconstruct",
+]

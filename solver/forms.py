@@ -1,0 +1,149 @@
+"""Discrete fundamental forms: edge lengths (first form) and signed dihedral angles (second).
+
+The dihedral angle of an interior edge is the signed angle between its two face normals, in
+(-pi, pi], positive where the surface is convex (every edge of a sphere with outward normals is
+positive); it is 0 on boundary edges. For edge ``[i, j]`` with face ``L`` left of ``i -> j`` and
+face ``R`` on the other side, ``phi = atan2(((n_L x n_R) . e), n_L . n_R)`` with ``e`` the unit
+vector from ``i`` to ``j``; this is the angle of ``R_x(phi)`` in the transition rotation of
+Section 2.3 of the paper.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .errors import (
+    AngleRangeError,
+    DegenerateFaceError,
+    EdgeMismatchError,
+    NonPositiveLengthError,
+    ShapeMismatchError,
+)
+from .serialization import JsonDataclass
+from .topology import MeshTopology, build_topology
+from .validation import as_indices, as_points, as_vector
+
+ANGLE_SLACK = 1e-12
+
+
+@dataclass
+class Forms(JsonDataclass):
+    """Discrete fundamental forms of a mesh.
+
+    Attributes:
+        faces: (m, 3) int64.
+        edges: (E, 2) int64, i < j, sorted lexicographically.
+        lengths: (E,) float64 edge lengths (first fundamental form).
+        angles: (E,) float64 signed dihedral angles in (-pi, pi], 0 on boundary edges.
+    """
+
+    faces: np.ndarray
+    edges: np.ndarray
+    lengths: np.ndarray
+    angles: np.ndarray
+
+    _array_fields = {"faces": np.int64, "edges": np.int64, "lengths": np.float64,
+                     "angles": np.float64}
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (m, 3) and areas (m,) of the faces; zero-area faces give a zero normal."""
+    cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                     vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    norm = np.linalg.norm(cross, axis=1)
+    safe = np.where(norm > 0, norm, 1.0)
+    return cross / safe[:, None], 0.5 * norm
+
+
+def dihedral_angles(vertices: np.ndarray, topology: MeshTopology,
+                    normals: np.ndarray) -> np.ndarray:
+    """Signed dihedral angle (E,) of every edge (0 on the boundary), see module docstring."""
+    angles = np.zeros(topology.n_edges)
+    inner = topology.interior_edges
+    left, right = topology.edge_faces[inner, 0], topology.edge_faces[inner, 1]
+    i, j = topology.edges[inner, 0], topology.edges[inner, 1]
+    direction = vertices[j] - vertices[i]
+    direction /= np.linalg.norm(direction, axis=1)[:, None]
+    n_l, n_r = normals[left], normals[right]
+    sin = np.einsum("ij,ij->i", np.cross(n_l, n_r), direction)
+    cos = np.einsum("ij,ij->i", n_l, n_r)
+    phi = np.arctan2(sin, cos)
+    angles[inner] = np.where(phi <= -np.pi, np.pi, phi)
+    return angles
+
+
+def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
+    """Edge lengths and signed dihedral angles of a mesh.
+
+    Args:
+        vertices: (n, 3) float coordinates.
+        faces: (m, 3) int, 0-based, counter-clockwise seen from outside.
+    Returns:
+        :class:`Forms` with edges (E, 2), lengths (E,), angles (E,).
+    Raises:
+        SolverInputError subclasses for malformed meshes, and DegenerateFaceError for a face
+        of zero area (its normal, hence the dihedral angles, is undefined).
+    """
+    V = as_points(vertices, "vertices")
+    topology = build_topology(faces, n_vertices=len(V))
+    normals, areas = face_normals(V, topology.faces)
+    edge_vectors = V[topology.edges[:, 1]] - V[topology.edges[:, 0]]
+    lengths = np.linalg.norm(edge_vectors, axis=1)
+    scale = float(lengths.max()) ** 2
+    zero = areas <= 1e-15 * scale
+    if zero.any():
+        t = int(np.flatnonzero(zero)[0])
+        raise DegenerateFaceError(
+            f"face {topology.faces[t].tolist()} has zero area; its normal is undefined",
+            field="faces", index=t)
+    return Forms(faces=topology.faces, edges=topology.edges, lengths=lengths,
+                 angles=dihedral_angles(V, topology, normals))
+
+
+def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: ArrayLike,
+                   n_vertices: int | None = None,
+                   ) -> tuple[MeshTopology, np.ndarray, np.ndarray]:
+    """Check forms against their connectivity; return (topology, lengths, angles).
+
+    Raises a typed error naming the first bad element: edges that are not the faces' edges
+    (sorted, i < j), lengths that are not finite or not positive, angles outside (-pi, pi],
+    arrays of the wrong length. The triangle inequality is checked by the callers that need
+    it (:func:`solver.frames.triangle_layouts`).
+    """
+    topology = build_topology(faces, n_vertices)
+    E = as_indices(edges, "edges", width=2)
+    expected = topology.edges
+    if len(E) != len(expected):
+        raise EdgeMismatchError(
+            f"the faces have {len(expected)} distinct edges but {len(E)} were given",
+            field="edges", details={"expected_count": len(expected)})
+    differs = (E != expected).any(axis=1)
+    if differs.any():
+        e = int(np.flatnonzero(differs)[0])
+        hint = " (write each edge as [i, j] with i < j)" if E[e, 0] > E[e, 1] else ""
+        raise EdgeMismatchError(
+            f"edge {E[e].tolist()} does not match the faces: row {e} of the sorted edge list of "
+            f"the faces is {expected[e].tolist()}{hint}", field="edges", index=e,
+            details={"expected": expected[e].tolist()})
+    L = as_vector(lengths, "lengths", size=len(expected))
+    A = as_vector(angles, "angles", size=len(expected))
+    if (L <= 0).any():
+        e = int(np.flatnonzero(L <= 0)[0])
+        raise NonPositiveLengthError(f"length {L[e]!r} of edge {E[e].tolist()} is not positive",
+                                     field="lengths", index=e)
+    outside = (A <= -np.pi - ANGLE_SLACK) | (A > np.pi + ANGLE_SLACK)
+    if outside.any():
+        e = int(np.flatnonzero(outside)[0])
+        raise AngleRangeError(f"angle {A[e]!r} of edge {E[e].tolist()} is outside (-pi, pi]",
+                              field="angles", index=e)
+    A = np.where(A <= -np.pi, np.pi, np.minimum(A, np.pi))
+    return topology, L, A
+
+
+def check_same_connectivity(faces_a: np.ndarray, faces_b: np.ndarray) -> None:
+    """Raise ShapeMismatchError unless two face arrays are identical."""
+    if faces_a.shape != faces_b.shape or not np.array_equal(faces_a, faces_b):
+        raise ShapeMismatchError("the two meshes must have the same faces", field="faces")

@@ -1,0 +1,111 @@
+"""Per-face 2D layouts, edge coefficients ``a`` and transition rotations ``R_ij`` (Sec. 2.3).
+
+Each face ``t = (v0, v1, v2)`` gets a 2D layout from its three edge lengths: ``v0`` at the
+origin, ``v1`` on the positive x axis, ``v2`` above it (counter-clockwise). Its local frame is
+``(t, t_perp) = (e_x, e_y)`` of that layout, optionally rotated by a per-face angle (the
+reconstruction does not depend on it, Sec. 3). A 3D frame ``f_t`` (3x3, columns b1, b2, b3)
+is "consistent with the layout" when ``x_n - x_m = f_t (a^1, a^2, 0)`` for every edge (Eq. 3)
+and ``b3`` is the outward normal.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import TriangleInequalityError
+from .rotations import rotation_x, rotation_z
+from .topology import MeshTopology
+
+TRIANGLE_SLACK = 1e-12
+
+
+def face_edge_lengths(topology: MeshTopology, lengths: np.ndarray) -> np.ndarray:
+    """(m, 3) length of half-edge k of each face (from corner k to corner k + 1)."""
+    return lengths[topology.halfedge_edge].reshape(-1, 3)
+
+
+def triangle_inequality_violations(face_lengths: np.ndarray) -> np.ndarray:
+    """(k,) int64 faces whose longest edge exceeds the sum of the other two."""
+    ordered = np.sort(face_lengths, axis=1)
+    slack = ordered[:, 0] + ordered[:, 1] - ordered[:, 2]
+    return np.flatnonzero(slack < -TRIANGLE_SLACK * ordered[:, 2])
+
+
+def triangle_areas(face_lengths: np.ndarray) -> np.ndarray:
+    """(m,) areas from edge lengths by Kahan's stable Heron formula (0 if degenerate)."""
+    c, b, a = np.sort(face_lengths, axis=1).T  # a >= b >= c
+    product = (a + (b + c)) * (c - (a - b)) * (c + (a - b)) * (a + (b - c))
+    return 0.25 * np.sqrt(np.maximum(product, 0.0))
+
+
+def triangle_layouts(face_lengths: np.ndarray, layout_angles: np.ndarray | None = None,
+                     check: bool = True) -> np.ndarray:
+    """2D corner positions (m, 3, 2) of each face in its local orthonormal frame.
+
+    Args:
+        face_lengths: (m, 3) from :func:`face_edge_lengths`.
+        layout_angles: optional (m,) rotation of each face's 2D frame (radians).
+        check: raise on triangle-inequality violations; with False, such faces are laid out
+            flat (zero area) and only approximate their lengths.
+    Raises:
+        TriangleInequalityError naming the first face whose lengths cannot form a triangle.
+    """
+    bad = triangle_inequality_violations(face_lengths) if check else np.zeros(0, np.int64)
+    if len(bad):
+        t = int(bad[0])
+        raise TriangleInequalityError(
+            f"edge lengths {face_lengths[t].tolist()} of face {t} violate the triangle "
+            f"inequality ({len(bad)} faces in all)", field="faces", index=t,
+            details={"faces": bad[:100].tolist()})
+    l01, l12, l20 = face_lengths.T
+    x2 = (l01**2 + l20**2 - l12**2) / (2.0 * l01)
+    y2 = 2.0 * triangle_areas(face_lengths) / l01
+    points = np.zeros((len(face_lengths), 3, 2))
+    points[:, 1, 0] = l01
+    points[:, 2, 0] = x2
+    points[:, 2, 1] = y2
+    if layout_angles is not None:
+        c, s = np.cos(layout_angles), np.sin(layout_angles)
+        rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (m, 2, 2)
+        points = np.einsum("tij,tkj->tki", rot, points)
+    return points
+
+
+def edge_coefficients(layouts: np.ndarray) -> np.ndarray:
+    """(m, 3, 2) coefficients ``a_{mn,T}``: layout vector of half-edge k of each face."""
+    return layouts[:, [1, 2, 0], :] - layouts
+
+
+def transition_rotations(topology: MeshTopology, coefficients: np.ndarray,
+                         angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Transition rotations of the interior edges.
+
+    For interior edge ``e = [i, j]`` with face ``L`` left of ``i -> j`` and face ``R`` on the
+    other side, ``R_LR = Rz(theta_L) Rx(phi_e) Rz(-theta_R)`` where ``theta_T`` is the angle
+    that turns face T's first frame axis onto the direction ``i -> j`` (Sec. 2.3). With an
+    immersion, ``f_R = f_L R_LR``.
+
+    Returns:
+        (interior_edges (k,) int64, rotations (k, 3, 3) float64).
+    """
+    inner = topology.interior_edges
+    h_left, h_right = topology.edge_halfedges[inner, 0], topology.edge_halfedges[inner, 1]
+    a = coefficients.reshape(-1, 2)
+    theta_left = np.arctan2(a[h_left, 1], a[h_left, 0])
+    # In face R the edge runs j -> i; the direction i -> j is that vector turned by pi.
+    theta_right = np.arctan2(a[h_right, 1], a[h_right, 0]) + np.pi
+    R = rotation_z(theta_left) @ rotation_x(angles[inner]) @ rotation_z(-theta_right)
+    return inner, R
+
+
+def layout_frames(vertices: np.ndarray, faces: np.ndarray, layouts: np.ndarray) -> np.ndarray:
+    """3D frames (m, 3, 3) that map each face's layout onto its embedding (Eq. 3).
+
+    Columns b1, b2 solve ``[x1 - x0, x2 - x0] = [b1, b2] [p1 - p0, p2 - p0]``; b3 = b1 x b2.
+    For a mesh whose lengths produced ``layouts`` these are rotations (the lift's f).
+    """
+    X = np.stack([vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                  vertices[faces[:, 2]] - vertices[faces[:, 0]]], axis=2)   # (m, 3, 2)
+    P = np.stack([layouts[:, 1] - layouts[:, 0], layouts[:, 2] - layouts[:, 0]], axis=2)
+    B = X @ np.linalg.inv(P)                                                # (m, 3, 2)
+    return np.concatenate([B, np.cross(B[:, :, 0], B[:, :, 1])[:, :, None]], axis=2)

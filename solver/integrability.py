@@ -1,0 +1,340 @@
+"""The discrete integrability condition (Sec. 2.3): local (Eq. 4) and global holonomy.
+
+Local: around every interior vertex, the transition rotations of the counter-clockwise loop of
+faces multiply to the identity. The rotation angle of that product is the vertex defect; it
+splits into a twist about the normal (Gauss's equation: intrinsic vs. extrinsic curvature) and
+a tilt of the normal (the Codazzi equations).
+
+Global: on a surface with handles or holes, loops that do not bound a disk need checking too
+(the paper's global theorem). Tree-cotree decompositions give a homology basis:
+
+* rotation holonomy along dual generator loops: a primal spanning tree (with all boundary
+  vertices joined to one virtual root) and a dual spanning tree of the remaining interior
+  edges; each interior edge in neither tree closes one dual loop (2 g + b - 1 of them);
+* translation holonomy along primal generator loops: a dual spanning tree first, then a
+  primal spanning tree of the remaining edges; each edge in neither closes one primal loop.
+  Frames follow the transition rotations along the dual tree ("following the rotated
+  frames"); the translation accumulated around the loop must vanish.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .forms import validate_forms
+from .frames import face_edge_lengths, triangle_inequality_violations
+from .rotations import rotation_angle, swing_twist_angles
+from .serialization import JsonDataclass
+from .system import EnergyTerms, energy_terms
+from .topology import MeshTopology, corner_successor, previous_halfedge
+from .trees import accumulate_products, accumulate_sums, spanning_forest
+
+WORST_COUNT = 10
+
+
+@dataclass
+class HolonomyLoop(JsonDataclass):
+    """One homology generator and the holonomy measured along it.
+
+    Attributes:
+        kind: "rotation" (a dual loop of faces) or "translation" (a primal loop of edges).
+        component: connected component of the loop.
+        edge: [i, j], the edge that closes the loop (in neither spanning tree).
+        faces: the faces on either side of that edge (-1 for none).
+        angle: rotation angle (radians) of the accumulated rotation (rotation loops).
+        translation: [x, y, z] accumulated translation in the root face's frame
+            (translation loops; its length is ``magnitude``).
+        magnitude: ``angle`` for rotation loops, the length of ``translation`` divided by the
+            mean edge length for translation loops.
+        passes: magnitude <= tolerance.
+    """
+
+    kind: str
+    component: int
+    edge: list[int]
+    faces: list[int]
+    angle: float = 0.0
+    translation: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    magnitude: float = 0.0
+    passes: bool = True
+
+
+@dataclass
+class IntegrabilityReport(JsonDataclass):
+    """Result of :func:`check_integrability` (n vertices).
+
+    Attributes:
+        integrable: every check passes (local, triangle inequality, global).
+        max_defect: largest vertex defect or global rotation holonomy (radians), or relative
+            translation holonomy.
+        tolerance: the tolerance used.
+        vertex_defect: (n,) rotation angle of the holonomy around each interior vertex (Eq. 4);
+            0 on boundary and isolated vertices.
+        gauss_defect: (n,) signed rotation of that holonomy about the normal (Gauss part).
+        codazzi_defect: (n,) tilt of the normal by that holonomy (Codazzi part).
+        failing_vertices: vertices whose defect exceeds the tolerance.
+        worst_vertices: up to 10 vertices with the largest defects, largest first.
+        triangle_violations: faces whose lengths violate the triangle inequality.
+        components: per component: vertices, edges, faces, boundary_loops,
+            euler_characteristic, genus, closed.
+        n_components, euler_characteristic, genus: totals over components with faces.
+        boundary_loops: vertex loops of the boundary, in boundary order.
+        isolated_vertices: vertices that no face uses.
+        rotation_holonomy, translation_holonomy: the global generator loops.
+        local_integrable, global_integrable: the two halves of ``integrable``.
+    """
+
+    integrable: bool
+    max_defect: float
+    tolerance: float
+    vertex_defect: np.ndarray
+    gauss_defect: np.ndarray
+    codazzi_defect: np.ndarray
+    failing_vertices: np.ndarray
+    worst_vertices: np.ndarray
+    triangle_violations: np.ndarray
+    components: list[dict[str, Any]]
+    n_components: int
+    euler_characteristic: int
+    genus: int
+    boundary_loops: list[np.ndarray]
+    isolated_vertices: np.ndarray
+    rotation_holonomy: list[HolonomyLoop]
+    translation_holonomy: list[HolonomyLoop]
+    local_integrable: bool
+    global_integrable: bool
+
+    _array_fields = {"vertex_defect": np.float64, "gauss_defect": np.float64,
+                     "codazzi_defect": np.float64, "failing_vertices": np.int64,
+                     "worst_vertices": np.int64, "triangle_violations": np.int64,
+                     "isolated_vertices": np.int64}
+    _nested_fields = {"rotation_holonomy": HolonomyLoop, "translation_holonomy": HolonomyLoop}
+
+    def summary(self) -> dict[str, Any]:
+        """The short form used in reconstruction reports (no per-vertex arrays)."""
+        return {
+            "integrable": self.integrable, "local_integrable": self.local_integrable,
+            "global_integrable": self.global_integrable, "max_defect": self.max_defect,
+            "tolerance": self.tolerance,
+            "worst_vertices": [{"vertex": int(v), "defect": float(self.vertex_defect[v])}
+                               for v in self.worst_vertices],
+            "failing_vertex_count": len(self.failing_vertices),
+            "triangle_violations": self.triangle_violations.tolist(),
+            "genus": self.genus, "n_components": self.n_components,
+            "rotation_holonomy": [g.to_dict() for g in self.rotation_holonomy],
+            "translation_holonomy": [g.to_dict() for g in self.translation_holonomy],
+        }
+
+
+def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
+                        angles: ArrayLike, tol: float = 1e-8,
+                        n_vertices: int | None = None) -> IntegrabilityReport:
+    """Check whether edge lengths and dihedral angles come from an immersion.
+
+    Args:
+        faces: (m, 3) int, counter-clockwise.
+        edges: (E, 2) int, the faces' edges (i < j, sorted).
+        lengths: (E,) positive edge lengths.
+        angles: (E,) signed dihedral angles in (-pi, pi].
+        tol: tolerance on defects (radians) and on translation holonomy (relative to the mean
+            edge length).
+        n_vertices: vertex count (default ``faces.max() + 1``).
+    Returns:
+        :class:`IntegrabilityReport`. Faces violating the triangle inequality are listed in
+        ``triangle_violations`` and their vertices are excluded from the rotation check.
+    """
+    topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
+    violations = triangle_inequality_violations(face_edge_lengths(topology, L))
+    terms = energy_terms(topology, L / L.mean(), A, check=False)
+    return integrability_from_terms(terms, tol, mean_length=1.0, violations=violations)
+
+
+def integrability_from_terms(terms: EnergyTerms, tol: float, mean_length: float,
+                             violations: np.ndarray | None = None) -> IntegrabilityReport:
+    """:func:`check_integrability` on precomputed layouts and transition rotations.
+
+    Vertices of faces listed in ``violations`` (triangle inequality) are excluded from the
+    vertex check (their defect is reported as 0); the report is then not integrable.
+    """
+    violations = np.zeros(0, np.int64) if violations is None else violations
+    topo = terms.topology
+    holonomy = vertex_holonomy(terms)
+    interior = _interior_vertices(topo)
+    defect = np.zeros(topo.n_vertices)
+    gauss = np.zeros(topo.n_vertices)
+    codazzi = np.zeros(topo.n_vertices)
+    defect[interior] = rotation_angle(holonomy)
+    gauss[interior], codazzi[interior] = swing_twist_angles(holonomy)
+    for values in (defect, gauss, codazzi):
+        values[topo.faces[violations].ravel()] = 0.0
+
+    rotation_loops, translation_loops = global_holonomy(terms, tol, mean_length)
+    global_ok = all(g.passes for g in rotation_loops + translation_loops)
+    global_max = max([g.magnitude for g in rotation_loops + translation_loops], default=0.0)
+    local_max = float(defect.max()) if len(defect) else 0.0
+    local_ok = local_max <= tol
+    return _assemble_report(topo, defect, gauss, codazzi, violations, tol,
+                            rotation_loops, translation_loops, local_ok, global_ok,
+                            max(local_max, global_max))
+
+
+def _interior_vertices(topology: MeshTopology) -> np.ndarray:
+    return np.flatnonzero(topology.is_referenced & ~topology.is_boundary_vertex)
+
+
+def halfedge_transitions(terms: EnergyTerms) -> np.ndarray:
+    """(H, 3, 3) transition rotation across each half-edge, from its face to the twin's face
+    (identity on boundary half-edges)."""
+    topo = terms.topology
+    R = np.broadcast_to(np.eye(3), (3 * topo.n_faces, 3, 3)).copy()
+    fwd, bwd = topo.edge_halfedges[terms.interior_edges].T
+    R[fwd] = terms.rotations
+    R[bwd] = np.swapaxes(terms.rotations, 1, 2)  # R_RL = R_LR^T
+    return R
+
+
+def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
+    """(k, 3, 3) product of transition rotations around each interior vertex (Eq. 4).
+
+    The loop starts at one face of the vertex and goes counter-clockwise; the product is
+    expressed in that face's frame (its z axis is the normal). Computed for all vertices at
+    once by pointer doubling over the corner successor permutation: O(H log valence).
+    """
+    topo = terms.topology
+    interior = _interior_vertices(topo)
+    H = 3 * topo.n_faces
+    successor = corner_successor(topo.halfedge_twin)
+    corners = np.arange(H)
+    successor = np.where(successor >= 0, successor, corners)
+    step = halfedge_transitions(terms)[previous_halfedge(corners)]  # transition of each step
+    valence = np.bincount(topo.halfedge_origin, minlength=topo.n_vertices)[interior]
+    start = np.full(topo.n_vertices, -1, dtype=np.int64)
+    start[topo.halfedge_origin[::-1]] = corners[::-1]   # first corner of each vertex
+    position = start[interior]
+    result = np.broadcast_to(np.eye(3), (len(interior), 3, 3)).copy()
+    bit = 0
+    while len(interior) and (1 << bit) <= valence.max():
+        take = ((valence >> bit) & 1).astype(bool)
+        result[take] = result[take] @ step[position[take]]
+        position[take] = successor[position[take]]
+        step = step @ step[successor]
+        successor = successor[successor]
+        bit += 1
+    return result
+
+
+def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
+                    ) -> tuple[list[HolonomyLoop], list[HolonomyLoop]]:
+    """Rotation holonomy of the dual generators and translation holonomy of the primal ones."""
+    topo = terms.topology
+    n, m = topo.n_vertices, topo.n_faces
+    inner = terms.interior_edges
+    dual_links = topo.edge_faces[inner]
+    edge_is_inner = np.zeros(topo.n_edges, dtype=bool)
+    edge_is_inner[inner] = True
+
+    # Rotation generators: primal tree (boundary joined to a virtual vertex n) then cotree.
+    boundary_vertices = np.flatnonzero(topo.is_boundary_vertex)
+    virtual = np.stack([np.full(len(boundary_vertices), n), boundary_vertices], axis=1)
+    primal = spanning_forest(n + 1, np.concatenate([topo.edges, virtual]),
+                             roots=np.array([n]) if len(boundary_vertices) else None)
+    primal_tree_edges = primal.in_tree[: topo.n_edges]
+    cotree_mask = ~primal_tree_edges[inner]
+    cotree = spanning_forest(m, dual_links[cotree_mask])
+    in_cotree = np.zeros(len(inner), dtype=bool)
+    in_cotree[np.flatnonzero(cotree_mask)[cotree.in_tree]] = True
+    generators = np.flatnonzero(~in_cotree & ~primal_tree_edges[inner])
+    frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask))
+    left, right = dual_links[generators].T
+    hol = frames[left] @ terms.rotations[generators] @ np.swapaxes(frames[right], 1, 2)
+    angles = rotation_angle(hol)
+    rotation_loops = [
+        HolonomyLoop(kind="rotation", component=int(topo.face_component[lf]),
+                     edge=topo.edges[inner[g]].tolist(), faces=[int(lf), int(rf)],
+                     angle=float(a), magnitude=float(a), passes=bool(a <= tol))
+        for g, lf, rf, a in zip(generators, left, right, angles, strict=True)]
+
+    # Translation generators: dual tree first, then a primal tree of the remaining edges.
+    dual = spanning_forest(m, dual_links)
+    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)))
+    edge_vectors = _edge_vectors(terms, frames)
+    dual_tree_edges = np.zeros(topo.n_edges, dtype=bool)
+    dual_tree_edges[inner[dual.in_tree]] = True
+    rest = np.flatnonzero(~dual_tree_edges)
+    tree = spanning_forest(n, topo.edges[rest])
+    link = tree.parent_link
+    has_parent = link >= 0
+    steps = np.zeros((n, 3))
+    e_up = rest[link[has_parent]]
+    # Step from parent to node along edge e_up: +d if the edge runs parent -> node.
+    sign = np.where(topo.edges[e_up, 1] == np.flatnonzero(has_parent), 1.0, -1.0)
+    steps[has_parent] = sign[:, None] * edge_vectors[e_up]
+    positions = accumulate_sums(tree.parent, steps)
+    closing = rest[~tree.in_tree]
+    i, j = topo.edges[closing].T
+    gaps = positions[i] + edge_vectors[closing] - positions[j]
+    sizes = np.linalg.norm(gaps, axis=1) / mean_length
+    translation_loops = [
+        HolonomyLoop(kind="translation", component=int(topo.vertex_component[a]),
+                     edge=[int(a), int(b)], faces=topo.edge_faces[e].tolist(),
+                     translation=gap.tolist(), magnitude=float(s), passes=bool(s <= tol))
+        for e, a, b, gap, s in zip(closing, i, j, gaps, sizes, strict=True)]
+    return rotation_loops, translation_loops
+
+
+def _links_to_inner(forest: Any, mask: np.ndarray) -> np.ndarray:
+    """Map each face's parent link (an index into the masked link list) to interior-edge
+    positions (index into ``terms.interior_edges``); -1 at roots."""
+    positions = np.flatnonzero(mask)
+    return np.where(forest.parent_link >= 0, positions[forest.parent_link], -1)
+
+
+def _tree_frames(terms: EnergyTerms, parent: np.ndarray, parent_inner: np.ndarray,
+                 ) -> np.ndarray:
+    """Frames (m, 3, 3) integrated from each root face (identity) along a dual tree."""
+    topo = terms.topology
+    local = np.broadcast_to(np.eye(3), (topo.n_faces, 3, 3)).copy()
+    has = parent_inner >= 0
+    q = parent_inner[has]
+    R = terms.rotations[q]
+    # f_child = f_parent R_{parent -> child}; R_LR is stored, R_RL = R_LR^T.
+    parent_is_left = topo.edge_faces[terms.interior_edges[q], 0] == parent[has]
+    local[has] = np.where(parent_is_left[:, None, None], R, np.swapaxes(R, 1, 2))
+    return accumulate_products(parent, local)
+
+
+def _edge_vectors(terms: EnergyTerms, frames: np.ndarray) -> np.ndarray:
+    """(E, 3) vector of each edge i -> j, ``f_T (a1, a2, 0)`` from a face containing it."""
+    topo = terms.topology
+    a = terms.coefficients.reshape(-1, 2)
+    fwd, bwd = topo.edge_halfedges.T
+    use_fwd = fwd >= 0
+    h = np.where(use_fwd, fwd, bwd)
+    vec = np.einsum("eij,ej->ei", frames[h // 3][:, :, :2], a[h])
+    return np.where(use_fwd[:, None], vec, -vec)
+
+
+def _assemble_report(topo: MeshTopology, defect: np.ndarray, gauss: np.ndarray,
+                     codazzi: np.ndarray, violations: np.ndarray, tol: float,
+                     rotation_loops: list[HolonomyLoop], translation_loops: list[HolonomyLoop],
+                     local_ok: bool, global_ok: bool, max_defect: float,
+                     ) -> IntegrabilityReport:
+    components = topo.component_summary()
+    worst = np.argsort(-defect, kind="stable")[:WORST_COUNT]
+    worst = worst[defect[worst] > 0]
+    return IntegrabilityReport(
+        integrable=bool(local_ok and global_ok and len(violations) == 0),
+        max_defect=float(max_defect), tolerance=float(tol), vertex_defect=defect,
+        gauss_defect=gauss, codazzi_defect=codazzi,
+        failing_vertices=np.flatnonzero(defect > tol), worst_vertices=worst,
+        triangle_violations=violations, components=components,
+        n_components=len(components),
+        euler_characteristic=int(sum(c["euler_characteristic"] for c in components)),
+        genus=int(sum(c["genus"] for c in components)), boundary_loops=topo.boundary_loops,
+        isolated_vertices=topo.isolated_vertices, rotation_holonomy=rotation_loops,
+        translation_holonomy=translation_loops, local_integrable=bool(local_ok),
+        global_integrable=bool(global_ok))

@@ -1,0 +1,405 @@
+"""Vertex positions from discrete fundamental forms: one sparse linear solve (Sec. 3-4).
+
+:class:`ImmersionProblem` holds the assembled energy of Eq. (5) for a set of forms;
+:func:`reconstruct` adds constraints (or anchors), factorizes once and solves for the three
+coordinates; with ``orthonormalize=True`` it projects the frames to rotations and solves again
+with them as soft constraints (Sec. 4). :class:`solver.deform.Deformer` reuses the same pieces.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .errors import ConstraintError
+from .forms import validate_forms
+from .integrability import integrability_from_terms
+from .rotations import is_rotation, nearest_rotation
+from .serialization import JsonDataclass
+from .system import (
+    WEIGHTINGS,
+    ConstrainedSystem,
+    EnergyTerms,
+    LinearConstraints,
+    Weighting,
+    energies,
+    energy_terms,
+    frame_columns,
+    least_squares_rows,
+    normal_matrix,
+)
+from .topology import MeshTopology
+from .validation import as_indices, as_points, require_finite
+
+Progress = Callable[[str, float], None]
+REGULARIZATION = 1e-8
+
+
+@dataclass
+class Constraints(JsonDataclass):
+    """Position and frame constraints. A weight of ``inf`` (the default) makes it hard.
+
+    Attributes:
+        position_vertices: (p,) int64 constrained vertices (no repeats).
+        positions: (p, 3) float64 their target positions.
+        position_weights: (p,) float64 > 0, ``inf`` = hard (eliminated).
+        frame_faces: (q,) int64 constrained faces (no repeats).
+        frames: (q, 3, 3) float64 target frames, rotations whose columns are (unit vector
+            along the face's edge faces[t][0] -> faces[t][1], in-plane perpendicular, normal).
+        frame_weights: (q,) float64 > 0, ``inf`` = hard.
+    """
+
+    position_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    position_weights: np.ndarray | None = None
+    frame_faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    frames: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    frame_weights: np.ndarray | None = None
+
+    _array_fields = {"position_vertices": np.int64, "positions": np.float64,
+                     "position_weights": np.float64, "frame_faces": np.int64,
+                     "frames": np.float64, "frame_weights": np.float64}
+
+    def validated(self, n_vertices: int, n_faces: int, rotation_tol: float = 1e-6,
+                  ) -> Constraints:
+        """Checked copy with arrays of the documented shapes; raises ConstraintError etc."""
+        pv = as_indices(self.position_vertices, "constraints.positions.vertex", n_vertices)
+        pos = as_points(self.positions, "constraints.positions.position")
+        pw = _weights(self.position_weights, len(pv), "constraints.positions.weight")
+        ff = as_indices(self.frame_faces, "constraints.frames.face", n_faces)
+        fr = np.asarray(self.frames, dtype=np.float64).reshape(-1, 3, 3) if np.size(
+            self.frames) else np.zeros((0, 3, 3))
+        require_finite(fr, "constraints.frames.frame")
+        fw = _weights(self.frame_weights, len(ff), "constraints.frames.weight")
+        if len(pos) != len(pv):
+            raise ConstraintError(f"{len(pv)} constrained vertices but {len(pos)} positions",
+                                  field="constraints.positions")
+        if len(fr) != len(ff):
+            raise ConstraintError(f"{len(ff)} constrained faces but {len(fr)} frames",
+                                  field="constraints.frames")
+        _no_repeats(pv, "constraints.positions.vertex", "vertex")
+        _no_repeats(ff, "constraints.frames.face", "face")
+        bad = np.flatnonzero(~is_rotation(fr, rotation_tol))
+        if len(bad):
+            raise ConstraintError(
+                f"frame of face {int(ff[bad[0]])} is not a rotation matrix (orthonormal, det +1)",
+                field="constraints.frames.frame", index=int(bad[0]))
+        return Constraints(pv, pos, pw, ff, fr, fw)
+
+
+def _weights(values: ArrayLike | None, size: int, name: str) -> np.ndarray:
+    if values is None:
+        return np.full(size, np.inf)
+    w = np.asarray(values, dtype=np.float64).reshape(-1)
+    if len(w) != size:
+        raise ConstraintError(f"expected {size} weights, got {len(w)}", field=name)
+    bad = np.flatnonzero(~(w > 0))
+    if len(bad):
+        raise ConstraintError(f"weight {w[bad[0]]!r} must be positive (inf = hard)",
+                              field=name, index=int(bad[0]))
+    return w
+
+
+def _no_repeats(indices: np.ndarray, name: str, what: str) -> None:
+    values, first, counts = np.unique(indices, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        dup = values[counts > 1][0]
+        second = np.flatnonzero(indices == dup)[1]
+        raise ConstraintError(f"{what} {int(dup)} is constrained more than once", field=name,
+                              index=int(second))
+
+
+@dataclass
+class Reconstruction(JsonDataclass):
+    """Result of :func:`reconstruct`.
+
+    Attributes:
+        vertices: (n, 3) float64 positions.
+        frames: (m, 3, 3) float64 face frames of the last solve (columns b1, b2, b3).
+        report: energies per term, timings per stage (s), backend, anchors, integrability.
+    """
+
+    vertices: np.ndarray
+    frames: np.ndarray
+    report: dict[str, Any]
+
+    _array_fields = {"vertices": np.float64, "frames": np.float64}
+
+
+class ImmersionProblem:
+    """The energy of Eq. (5) for one set of forms, in units of ``length_scale``.
+
+    Attributes:
+        terms: layouts, coefficients, rotations, weights.
+        A, row_weights, row_kind: the residual operator (see :mod:`solver.system`).
+        K: (N, N) normal matrix, N = n + 3 m.
+        length_scale: lengths were divided by it; solutions are multiplied back.
+    """
+
+    def __init__(self, topology: MeshTopology, lengths: np.ndarray, angles: np.ndarray, *,
+                 frame_weight: float = 1000.0, weighting: Weighting = "uniform",
+                 cotan_floor: float = 1e-11, length_scale: float | None = None,
+                 layout_angles: np.ndarray | None = None) -> None:
+        if weighting not in WEIGHTINGS:
+            raise ConstraintError(f"unknown weighting {weighting!r}; use one of {WEIGHTINGS}",
+                                  field="options.weighting")
+        if not frame_weight > 0 or not np.isfinite(frame_weight):
+            raise ConstraintError(f"frame_weight must be positive and finite, got {frame_weight}",
+                                  field="options.frame_weight")
+        self.topology = topology
+        self.length_scale = float(lengths.mean()) if length_scale is None else float(length_scale)
+        self.frame_weight = float(frame_weight)
+        self.weighting = weighting
+        self.terms: EnergyTerms = energy_terms(
+            topology, lengths / self.length_scale, angles, weighting=weighting,
+            cotan_floor=cotan_floor, layout_angles=layout_angles)
+        self.A, self.row_weights, self.row_kind = least_squares_rows(self.terms, frame_weight)
+        self.K = normal_matrix(self.A, self.row_weights)
+
+    @property
+    def n_unknowns(self) -> int:
+        return self.terms.n_unknowns
+
+    def unknowns_to_geometry(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Split (N, 3) unknowns into vertices (n, 3) (in input units) and frames (m, 3, 3)."""
+        n = self.topology.n_vertices
+        frames = np.swapaxes(u[n:].reshape(-1, 3, 3), 1, 2)  # u[n + 3t + c, k] = f_t[k, c]
+        return u[:n] * self.length_scale, frames
+
+    def geometry_to_unknowns(self, vertices: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`unknowns_to_geometry`."""
+        return np.concatenate([vertices / self.length_scale,
+                               np.swapaxes(frames, 1, 2).reshape(-1, 3)])
+
+    def energies(self, u: np.ndarray) -> dict[str, float]:
+        """Residual energy per term (in normalized units) of unknowns u (N, 3)."""
+        return energies(self.A, self.row_weights, self.row_kind, u)
+
+    def linear_constraints(self, constraints: Constraints) -> LinearConstraints:
+        """Map validated user constraints to unknown columns (positions scaled)."""
+        n, m = self.topology.n_vertices, self.topology.n_faces
+        del m
+        pos_hard = np.isinf(constraints.position_weights)
+        frm_hard = np.isinf(constraints.frame_weights)
+        f_cols = frame_columns(n, constraints.frame_faces)             # (q, 3) cols f_t[k, c]
+        f_vals = np.swapaxes(constraints.frames, 1, 2)                 # [t, c, k] = f_t[k, c]
+        return LinearConstraints(
+            hard_columns=np.concatenate([constraints.position_vertices[pos_hard],
+                                         f_cols[frm_hard].ravel()]),
+            hard_values=np.concatenate([constraints.positions[pos_hard] / self.length_scale,
+                                        f_vals[frm_hard].reshape(-1, 3)]),
+            soft_columns=np.concatenate([constraints.position_vertices[~pos_hard],
+                                         f_cols[~frm_hard].ravel()]),
+            soft_values=np.concatenate([constraints.positions[~pos_hard] / self.length_scale,
+                                        f_vals[~frm_hard].reshape(-1, 3)]),
+            soft_weights=np.concatenate([constraints.position_weights[~pos_hard],
+                                         np.repeat(constraints.frame_weights[~frm_hard], 3)]),
+        )
+
+    def constrained_components(self, constraints: Constraints) -> np.ndarray:
+        """(C,) bool: components touched by at least one constraint."""
+        topo = self.topology
+        touched = np.zeros(topo.n_components, dtype=bool)
+        touched[topo.vertex_component[constraints.position_vertices]] = True
+        touched[topo.face_component[constraints.frame_faces]] = True
+        return touched
+
+    def anchors(self, components: np.ndarray, isolated: bool = True,
+                ) -> tuple[LinearConstraints, list[dict[str, int]]]:
+        """Hard anchors for the components where ``components`` (C,) bool is True.
+
+        Each gets its first face's first vertex at the origin and that face's frame at the
+        identity (Sec. 3: "after fixing one vertex and one frame, the system becomes
+        positive-definite"); with ``isolated``, unused vertices are pinned at the origin.
+        """
+        topo = self.topology
+        face_comps, first_face = np.unique(topo.face_component, return_index=True)
+        chosen = components[face_comps]
+        faces = first_face[chosen]
+        vertices = topo.faces[faces, 0]
+        pinned = np.concatenate([vertices, topo.isolated_vertices if isolated else []])
+        pinned = pinned.astype(np.int64)
+        cols = np.concatenate([pinned, frame_columns(topo.n_vertices, faces).ravel()])
+        values = np.concatenate([np.zeros((len(pinned), 3)), np.tile(np.eye(3), (len(faces), 1))])
+        info = [{"component": int(c), "vertex": int(v), "face": int(t)}
+                for c, v, t in zip(face_comps[chosen], vertices, faces, strict=True)]
+        return LinearConstraints(hard_columns=cols, hard_values=values), info
+
+    def underdetermined_components(self, constraints: Constraints,
+                                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Components constrained by positions only, and by frames only.
+
+        With positions only, the frames (hence rotation and, for coplanar handles, the
+        normal scale) are fixed only if the handles span 3D; with frames only, translation
+        is free. Such components get a tiny Tikhonov pull towards a reference embedding.
+        """
+        topo = self.topology
+        has_pos = np.zeros(topo.n_components, dtype=bool)
+        has_frm = np.zeros(topo.n_components, dtype=bool)
+        has_pos[topo.vertex_component[constraints.position_vertices]] = True
+        has_frm[topo.face_component[constraints.frame_faces]] = True
+        return np.flatnonzero(has_pos & ~has_frm), np.flatnonzero(has_frm & ~has_pos)
+
+    def regularization(self, constraints: Constraints, reference_vertices: np.ndarray,
+                       reference_frames: np.ndarray, weight: float = REGULARIZATION,
+                       ) -> tuple[LinearConstraints, list[int]]:
+        """Soft pull (weight ``weight``) of the free gauge of underdetermined components
+        towards a reference: frames for position-only components, positions for
+        frame-only components."""
+        topo = self.topology
+        pos_only, frame_only = self.underdetermined_components(constraints)
+        faces = np.flatnonzero(np.isin(topo.face_component, pos_only))
+        verts = np.flatnonzero(np.isin(topo.vertex_component, frame_only) & topo.is_referenced)
+        cols = np.concatenate([verts, frame_columns(topo.n_vertices, faces).ravel()])
+        values = np.concatenate([reference_vertices[verts] / self.length_scale,
+                                 np.swapaxes(reference_frames[faces], 1, 2).reshape(-1, 3)])
+        reg = LinearConstraints(soft_columns=cols, soft_values=values,
+                                soft_weights=np.full(len(cols), weight))
+        return reg, sorted(int(c) for c in np.concatenate([pos_only, frame_only]))
+
+    def system(self, constraints: LinearConstraints, backend: str = "auto",
+               extra_penalty_columns: np.ndarray | None = None,
+               extra_penalty_weight: float = 0.0) -> ConstrainedSystem:
+        """Factorize K with ``constraints`` (and optional extra soft columns, e.g. every
+        frame for the orthonormalization solve)."""
+        soft_cols, soft_w = constraints.soft_columns, constraints.soft_weights
+        if extra_penalty_columns is not None:
+            soft_cols = np.concatenate([soft_cols, extra_penalty_columns])
+            soft_w = np.concatenate([soft_w, np.full(len(extra_penalty_columns),
+                                                     extra_penalty_weight)])
+        return ConstrainedSystem(self.K, constraints.hard_columns, soft_cols, soft_w, backend)
+
+    def all_frame_columns(self) -> np.ndarray:
+        return frame_columns(self.topology.n_vertices, np.arange(self.topology.n_faces)).ravel()
+
+
+def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: ArrayLike, *,
+                constraints: Constraints | None = None, frame_weight: float = 1000.0,
+                orthonormalize: bool = False, orthonormal_weight: float = 1000.0,
+                weighting: Weighting = "uniform", cotan_floor: float = 1e-11,
+                backend: str = "auto", length_scale: float | None = None,
+                layout_angles: np.ndarray | None = None, n_vertices: int | None = None,
+                check_integrability: bool = True, integrability_tol: float = 1e-8,
+                progress: Progress | None = None) -> Reconstruction:
+    """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
+
+    Args:
+        faces: (m, 3) int, counter-clockwise.
+        edges: (E, 2) int, the faces' edges (i < j, sorted lexicographically).
+        lengths: (E,) positive edge lengths (first fundamental form).
+        angles: (E,) signed dihedral angles in (-pi, pi] (second fundamental form).
+        constraints: optional :class:`Constraints`. Components without any are anchored
+            (one vertex at the origin, one frame at the identity).
+        frame_weight: relative weight w of the frame term E_f (paper: 1000).
+        orthonormalize: project the frames of the first solve to rotations and solve again
+            with them as soft constraints of weight ``orthonormal_weight`` (Sec. 4).
+        weighting: "uniform" (default), "cotan" (the paper literally) or "cotan_clamped";
+            see :func:`solver.system.energy_weights` and docs/weights.md.
+        cotan_floor: lower threshold of cotangent weights ("cotan"; paper: 1e-11).
+        backend: sparse factorization backend (:func:`solver.linalg.available_backends`).
+        length_scale: lengths are divided by it before assembly so that frame_weight means
+            the same at every mesh scale; default the mean edge length. 1.0 reproduces the
+            paper's raw-unit weighting.
+        layout_angles: optional (m,) rotation of each face's 2D frame; the vertices do not
+            depend on it (Sec. 3), only the returned frames do.
+        n_vertices: vertex count (default ``faces.max() + 1``).
+        check_integrability: include the integrability summary in the report.
+        progress: optional callback ``progress(stage, fraction)`` for stages
+            validate, assemble, factorize, solve.
+    Returns:
+        :class:`Reconstruction` with vertices (n, 3), frames (m, 3, 3) and a report.
+    """
+    notify = progress or (lambda stage, fraction: None)
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[stage] = timings.get(stage, 0.0) + now - clock
+        clock = now
+
+    notify("validate", 0.0)
+    topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
+    user = (constraints or Constraints()).validated(topology.n_vertices, topology.n_faces)
+    lap("validate")
+    notify("assemble", 0.0)
+    problem = ImmersionProblem(topology, L, A, frame_weight=frame_weight, weighting=weighting,
+                               cotan_floor=cotan_floor, length_scale=length_scale,
+                               layout_angles=layout_angles)
+    report: dict[str, Any] = {}
+    if check_integrability:
+        report["integrability"] = integrability_from_terms(
+            problem.terms, integrability_tol, mean_length=float(L.mean()) /
+            problem.length_scale).summary()
+    linear = problem.linear_constraints(user)
+    touched = problem.constrained_components(user)
+    anchor, anchored = problem.anchors(~touched)
+    linear = linear.extended(anchor)
+    lap("assemble")
+
+    regularized: list[int] = []
+    pos_only, frame_only = problem.underdetermined_components(user)
+    if len(pos_only) or len(frame_only):
+        # The gauge left free by the constraints is pinned to an anchored reconstruction.
+        notify("factorize", 0.0)
+        ref_system = problem.system(problem.anchors(np.ones_like(touched))[0], backend)
+        ref_u = ref_system.solve(np.zeros((len(ref_system.hard_columns), 3)), np.zeros((0, 3)))
+        ref_v, ref_f = problem.unknowns_to_geometry(ref_u)
+        reg, regularized = problem.regularization(user, ref_v, ref_f)
+        linear = linear.extended(reg)
+        lap("factorize")
+
+    notify("factorize", 0.0)
+    system = problem.system(linear, backend)
+    lap("factorize")
+    notify("solve", 0.0)
+    u = system.solve(linear.hard_values, linear.soft_values)
+    lap("solve")
+
+    first_energy = problem.energies(u)
+    vertices, frames = problem.unknowns_to_geometry(u)
+    orthonormality = _orthonormality_error(frames)
+    if orthonormalize:
+        notify("factorize", 0.5)
+        rotations = nearest_rotation(frames)
+        cols = problem.all_frame_columns()
+        system2 = problem.system(linear, backend, cols, orthonormal_weight)
+        lap("factorize")
+        notify("solve", 0.5)
+        targets = np.swapaxes(rotations, 1, 2).reshape(-1, 3)
+        soft_values = np.concatenate([linear.soft_values, targets])
+        u = system2.solve(linear.hard_values, soft_values)
+        vertices, frames = problem.unknowns_to_geometry(u)
+        lap("solve")
+    notify("solve", 1.0)
+
+    report.update({
+        "energy": problem.energies(u),
+        "first_solve_energy": first_energy,
+        "frame_orthonormality_error": orthonormality,
+        "orthonormalized": bool(orthonormalize),
+        "timings": timings,
+        "backend": system.backend,
+        "n_unknowns": problem.n_unknowns,
+        "frame_weight": problem.frame_weight,
+        "weighting": problem.weighting,
+        "length_scale": problem.length_scale,
+        "regularized_components": regularized,
+        "anchored_components": anchored,
+        "isolated_vertices": topology.isolated_vertices.tolist(),
+    })
+    return Reconstruction(vertices=vertices, frames=frames, report=report)
+
+
+def _orthonormality_error(frames: np.ndarray) -> float:
+    """max_t ||f_t^T f_t - I||_max: how far the solved frames are from rotations."""
+    if not len(frames):
+        return 0.0
+    gram = np.swapaxes(frames, 1, 2) @ frames
+    return float(np.abs(gram - np.eye(3)).max())

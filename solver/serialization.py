@@ -1,0 +1,53 @@
+"""JSON round-trips for the package's result dataclasses (plain dataclasses of numpy arrays)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Self
+
+import numpy as np
+
+
+def to_jsonable(value: Any) -> Any:
+    """Recursively convert numpy arrays/scalars and dataclasses to lists, floats and dicts."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_jsonable(v) for v in value]
+    return value
+
+
+class JsonDataclass:
+    """Mixin: ``to_dict()`` gives JSON-ready data; ``from_dict()`` restores numpy arrays.
+
+    Fields listed in ``_array_fields`` (name -> dtype) are turned back into arrays; nested
+    dataclass fields are listed in ``_nested_fields`` (name -> class).
+    """
+
+    _array_fields: dict[str, Any] = {}
+    _nested_fields: dict[str, Any] = {}
+
+    def to_dict(self) -> dict[str, Any]:
+        return to_jsonable(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Self:
+        names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+        kwargs: dict[str, Any] = {}
+        for key, value in data.items():
+            if key not in names:
+                continue
+            if key in cls._array_fields and value is not None:
+                value = np.asarray(value, dtype=cls._array_fields[key])
+            elif key in cls._nested_fields and value is not None:
+                nested = cls._nested_fields[key]
+                value = ([nested.from_dict(v) for v in value] if isinstance(value, list)
+                         else nested.from_dict(value))
+            kwargs[key] = value
+        return cls(**kwargs)

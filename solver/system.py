@@ -1,0 +1,245 @@
+"""Assembly of the immersion energy of Eq. (5) and its constrained linear system.
+
+Unknowns, per coordinate k in {x, y, z}: the vertex coordinates ``x[:, k]`` (n) and row k of
+every face frame ``f_t[k, :]`` (3 m), stacked as ``u = [x_k ; f_0[k, :] ; f_1[k, :] ; ...]``.
+Both terms of Eq. (5) are row-wise in ``f`` -- ``||f_j - f_i R_ij||_F^2`` sums the squared rows
+and ``x_n - x_m - f_T (a1, a2, 0)`` couples coordinate k of x with row k of f_T only -- so the
+3 |V| + 9 |F| system splits into three identical systems of size |V| + 3 |F| with one
+shared matrix ``K = A^T W A`` and three right-hand sides. ``K`` is factorized once.
+
+Rows of ``A`` (per coordinate):
+* edge rows (Eq. 3), one per half-edge h = (m -> n) of face T:
+  ``x_n - x_m - a^1 f_T[k, 0] - a^2 f_T[k, 1]`` with weight ``w_{e,T}``;
+* frame rows (Eq. 2), three per interior edge (L, R), one per frame column c:
+  ``f_R[k, c] - sum_d f_L[k, d] R_LR[d, c]`` with weight ``frame_weight / w_e``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+
+from .frames import (
+    edge_coefficients,
+    face_edge_lengths,
+    transition_rotations,
+    triangle_areas,
+    triangle_layouts,
+)
+from .linalg import Factorization, factorize
+from .topology import MeshTopology
+
+Weighting = Literal["uniform", "cotan", "cotan_clamped"]
+WEIGHTINGS: tuple[str, ...] = ("uniform", "cotan", "cotan_clamped")
+CLAMP_RANGE = (0.05, 5.0)  # bounds of the half-cotangent w_{e,T} under "cotan_clamped"
+
+
+@dataclass
+class EnergyTerms:
+    """Everything Eq. (5) needs, derived from the forms (no embedding required).
+
+    Attributes:
+        topology: the mesh connectivity.
+        layouts: (m, 3, 2) 2D corner positions per face.
+        coefficients: (m, 3, 2) ``a`` of each half-edge in its face's frame.
+        interior_edges: (k,) int64 edges with two faces.
+        rotations: (k, 3, 3) transition rotations ``R_LR`` of those edges.
+        edge_weights: (m, 3) weight of each half-edge row.
+        frame_weights: (k,) weight of each interior edge's frame rows (before frame_weight).
+    """
+
+    topology: MeshTopology
+    layouts: np.ndarray
+    coefficients: np.ndarray
+    interior_edges: np.ndarray
+    rotations: np.ndarray
+    edge_weights: np.ndarray
+    frame_weights: np.ndarray
+
+    @property
+    def n_unknowns(self) -> int:
+        return self.topology.n_vertices + 3 * self.topology.n_faces
+
+
+def half_cotangents(face_lengths: np.ndarray) -> np.ndarray:
+    """(m, 3) ``cot(angle opposite half-edge k) / 2``: the per-face cotangent weight."""
+    l0, l1, l2 = face_lengths.T                     # opposite corners 2, 0, 1
+    four_area = 4.0 * triangle_areas(face_lengths)
+    four_area = np.where(four_area > 0, four_area, np.finfo(float).tiny)
+    cot = np.stack([(l1**2 + l2**2 - l0**2), (l2**2 + l0**2 - l1**2),
+                    (l0**2 + l1**2 - l2**2)], axis=1) / four_area[:, None]
+    return 0.5 * cot
+
+
+def energy_weights(topology: MeshTopology, face_lengths: np.ndarray,
+                   interior_edges: np.ndarray, weighting: Weighting,
+                   cotan_floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-half-edge weights (m, 3) of E_x and per-interior-edge weights (k,) of E_f.
+
+    * ``"cotan"`` -- the paper literally: ``w_{e,T}`` = half cotangent (floored at
+      ``cotan_floor``), E_f weighted by ``1 / w_e`` with ``w_e`` the edge's cotangent weight
+      floored at ``cotan_floor``. Ill-conditioned on meshes with obtuse triangles.
+    * ``"cotan_clamped"`` -- the same Hodge-star weights with ``w_{e,T}`` clamped to
+      :data:`CLAMP_RANGE` so that ``1 / w_e`` stays bounded.
+    * ``"uniform"`` -- all weights 1 (the default: exact and well-conditioned).
+    """
+    m = topology.n_faces
+    if weighting == "uniform":
+        return np.ones((m, 3)), np.ones(len(interior_edges))
+    half_cot = half_cotangents(face_lengths)
+    if weighting == "cotan":
+        w_half = np.maximum(half_cot, cotan_floor)
+        w_edge_raw = np.bincount(topology.halfedge_edge, weights=half_cot.ravel(),
+                                 minlength=topology.n_edges)
+        w_edge = np.maximum(w_edge_raw, cotan_floor)
+    elif weighting == "cotan_clamped":
+        w_half = np.clip(half_cot, *CLAMP_RANGE)
+        w_edge = np.bincount(topology.halfedge_edge, weights=w_half.ravel(),
+                             minlength=topology.n_edges)
+    else:
+        raise ValueError(f"unknown weighting {weighting!r}; expected one of {WEIGHTINGS}")
+    return w_half, 1.0 / w_edge[interior_edges]
+
+
+def energy_terms(topology: MeshTopology, lengths: np.ndarray, angles: np.ndarray, *,
+                 weighting: Weighting = "uniform", cotan_floor: float = 1e-11,
+                 layout_angles: np.ndarray | None = None, check: bool = True) -> EnergyTerms:
+    """Layouts, edge coefficients, transition rotations and weights from the forms.
+
+    ``check=False`` lays faces that violate the triangle inequality out flat instead of
+    raising (used by the integrability report, which lists them).
+    """
+    face_lengths = face_edge_lengths(topology, lengths)
+    layouts = triangle_layouts(face_lengths, layout_angles, check=check)
+    coefficients = edge_coefficients(layouts)
+    inner, rotations = transition_rotations(topology, coefficients, angles)
+    w_edge, w_frame = energy_weights(topology, face_lengths, inner, weighting, cotan_floor)
+    return EnergyTerms(topology=topology, layouts=layouts, coefficients=coefficients,
+                       interior_edges=inner, rotations=rotations, edge_weights=w_edge,
+                       frame_weights=w_frame)
+
+
+def least_squares_rows(terms: EnergyTerms, frame_weight: float) -> tuple[sp.csr_matrix,
+                                                                          np.ndarray,
+                                                                          np.ndarray]:
+    """Residual operator ``A`` (rows x N), row weights (rows,) and row kind (0 edge, 1 frame).
+
+    The energy of one coordinate is ``sum(weights * (A @ u)**2)`` (Eq. 5 without the 1/2).
+    """
+    topo = terms.topology
+    n, m = topo.n_vertices, topo.n_faces
+    H = 3 * m
+    frame_col = n + 3 * np.repeat(np.arange(m), 3)          # column of f_T[k, 0] per half-edge
+    a = terms.coefficients.reshape(H, 2)
+    edge_cols = np.stack([topo.halfedge_dest, topo.halfedge_origin, frame_col, frame_col + 1],
+                         axis=1)
+    edge_vals = np.stack([np.ones(H), -np.ones(H), -a[:, 0], -a[:, 1]], axis=1)
+
+    k = len(terms.interior_edges)
+    left, right = topo.edge_faces[terms.interior_edges].T
+    c = np.arange(3)
+    # Row (q, c): f_R[c] - sum_d f_L[d] R[d, c].
+    frame_cols = np.concatenate([
+        (n + 3 * right[:, None] + c[None, :])[:, :, None],                       # (k, 3, 1)
+        np.broadcast_to((n + 3 * left[:, None, None] + c[None, None, :]), (k, 3, 3)),
+    ], axis=2).reshape(3 * k, 4)
+    frame_vals = np.concatenate([
+        np.ones((k, 3, 1)), -np.swapaxes(terms.rotations, 1, 2)], axis=2).reshape(3 * k, 4)
+
+    rows = np.repeat(np.arange(H + 3 * k), 4)
+    cols = np.concatenate([edge_cols.ravel(), frame_cols.ravel()])
+    vals = np.concatenate([edge_vals.ravel(), frame_vals.ravel()])
+    A = sp.csr_matrix((vals, (rows, cols)), shape=(H + 3 * k, n + 3 * m))
+    weights = np.concatenate([terms.edge_weights.ravel(),
+                              frame_weight * np.repeat(terms.frame_weights, 3)])
+    kind = np.concatenate([np.zeros(H, dtype=np.int8), np.ones(3 * k, dtype=np.int8)])
+    return A, weights, kind
+
+
+def frame_columns(n_vertices: int, faces: np.ndarray) -> np.ndarray:
+    """(k, 3) unknown indices of frame rows ``f_t[k, 0..2]`` for faces (k,)."""
+    return n_vertices + 3 * np.asarray(faces)[:, None] + np.arange(3)[None, :]
+
+
+@dataclass
+class LinearConstraints:
+    """Constraints in unknown space: hard values are eliminated, soft ones are penalties.
+
+    Attributes:
+        hard_columns: (h,) int64 unknowns fixed exactly.
+        hard_values: (h, 3) float64 their values, one column per coordinate.
+        soft_columns: (s,) int64 unknowns pulled towards soft_values with soft_weights.
+        soft_values: (s, 3) float64.
+        soft_weights: (s,) float64 > 0.
+    """
+
+    hard_columns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    hard_values: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    soft_columns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    soft_values: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    soft_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def extended(self, other: LinearConstraints) -> LinearConstraints:
+        """Union of two constraint sets (``other`` appended)."""
+        return LinearConstraints(
+            np.concatenate([self.hard_columns, other.hard_columns]),
+            np.concatenate([self.hard_values, other.hard_values]),
+            np.concatenate([self.soft_columns, other.soft_columns]),
+            np.concatenate([self.soft_values, other.soft_values]),
+            np.concatenate([self.soft_weights, other.soft_weights]))
+
+
+class ConstrainedSystem:
+    """``K`` with hard unknowns eliminated and soft penalties added, factorized once.
+
+    ``solve(hard_values, soft_values)`` only back-substitutes, so handle drags reuse the
+    factorization (the paper's prefactorization, Sec. 5). The constrained columns and the
+    soft weights are fixed at construction; their target values may change per solve.
+    """
+
+    def __init__(self, K: sp.spmatrix, hard_columns: np.ndarray, soft_columns: np.ndarray,
+                 soft_weights: np.ndarray, backend: str = "auto") -> None:
+        N = K.shape[0]
+        self.size = N
+        self.hard_columns = np.asarray(hard_columns, dtype=np.int64)
+        self.soft_columns = np.asarray(soft_columns, dtype=np.int64)
+        self.soft_weights = np.asarray(soft_weights, dtype=np.float64)
+        penalty = np.bincount(self.soft_columns, weights=self.soft_weights,
+                              minlength=N).astype(np.float64)
+        K = (sp.csr_matrix(K) + sp.diags(penalty)).tocsr()
+        is_free = np.ones(N, dtype=bool)
+        is_free[self.hard_columns] = False
+        self.free = np.flatnonzero(is_free)
+        K_free_rows = K[self.free]
+        self.K_ff = K_free_rows[:, self.free].tocsc()
+        self.K_fc = K_free_rows[:, self.hard_columns].tocsr()
+        self.factor: Factorization = factorize(self.K_ff, backend)
+
+    @property
+    def backend(self) -> str:
+        return self.factor.backend
+
+    def solve(self, hard_values: np.ndarray, soft_values: np.ndarray) -> np.ndarray:
+        """Unknowns (N, 3) for the given constraint targets ((h, 3) and (s, 3))."""
+        rhs = np.zeros((self.size, 3))
+        np.add.at(rhs, self.soft_columns, self.soft_weights[:, None] * soft_values)
+        rhs_free = rhs[self.free] - self.K_fc @ hard_values
+        u = np.empty((self.size, 3))
+        u[self.hard_columns] = hard_values
+        u[self.free] = self.factor.solve(rhs_free)
+        return u
+
+
+def normal_matrix(A: sp.csr_matrix, weights: np.ndarray) -> sp.csc_matrix:
+    """``K = A^T diag(weights) A`` (symmetric positive semi-definite)."""
+    return (A.T @ sp.diags(weights) @ A).tocsc()
+
+
+def energies(A: sp.csr_matrix, weights: np.ndarray, kind: np.ndarray,
+             u: np.ndarray) -> dict[str, float]:
+    """Edge (E_x) and weighted frame (w E_f) parts of Eq. (5), summed over coordinates."""
+    r2 = weights * ((A @ u) ** 2).sum(axis=1)
+    return {"edge": float(r2[kind == 0].sum()), "frame": float(r2[kind == 1].sum())}

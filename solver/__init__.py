@@ -10,18 +10,29 @@ outside; ``edges`` (E, 2) unique pairs i < j sorted lexicographically; ``lengths
 (E,) aligned with ``edges``; dihedral angles in (-pi, pi], positive where convex.
 """
 
+from . import metrics
+from .deform import Deformation, Deformer, deform
 from .errors import SolverInputError
 from .forms import Forms, fundamental_forms
 from .integrability import IntegrabilityReport, check_integrability
+from .interpolate import interpolate
+from .parameterize import Parameterization, parameterize
 from .reconstruct import Constraints, Reconstruction, reconstruct
 
 __all__ = [
     "Constraints",
+    "Deformation",
+    "Deformer",
     "Forms",
     "IntegrabilityReport",
+    "Parameterization",
     "Reconstruction",
     "SolverInputError",
     "check_integrability",
+    "deform",
     "fundamental_forms",
+    "interpolate",
+    "metrics",
+    "parameterize",
     "reconstruct",
 ]

@@ -149,16 +149,20 @@ def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
     """
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     violations = triangle_inequality_violations(face_edge_lengths(topology, L))
-    terms = energy_terms(topology, L / L.mean(), A, check=False)
-    return integrability_from_terms(terms, tol, mean_length=1.0, violations=violations)
+    terms = energy_terms(topology, L, A, check=False)
+    return integrability_from_terms(terms, tol, mean_length=float(L.mean()),
+                                    violations=violations)
 
 
 def integrability_from_terms(terms: EnergyTerms, tol: float, mean_length: float,
-                             violations: np.ndarray | None = None) -> IntegrabilityReport:
+                             violations: np.ndarray | None = None,
+                             length_unit: float = 1.0) -> IntegrabilityReport:
     """:func:`check_integrability` on precomputed layouts and transition rotations.
 
-    Vertices of faces listed in ``violations`` (triangle inequality) are excluded from the
-    vertex check (their defect is reported as 0); the report is then not integrable.
+    ``mean_length`` is the mean edge length in the units of ``terms``; ``length_unit``
+    converts those units back to the caller's (translations are reported in the caller's
+    units). Vertices of faces listed in ``violations`` (triangle inequality) are excluded
+    from the vertex check (their defect is reported as 0); the report is then not integrable.
     """
     violations = np.zeros(0, np.int64) if violations is None else violations
     topo = terms.topology
@@ -172,7 +176,7 @@ def integrability_from_terms(terms: EnergyTerms, tol: float, mean_length: float,
     for values in (defect, gauss, codazzi):
         values[topo.faces[violations].ravel()] = 0.0
 
-    rotation_loops, translation_loops = global_holonomy(terms, tol, mean_length)
+    rotation_loops, translation_loops = global_holonomy(terms, tol, mean_length, length_unit)
     global_ok = all(g.passes for g in rotation_loops + translation_loops)
     global_max = max([g.magnitude for g in rotation_loops + translation_loops], default=0.0)
     local_max = float(defect.max()) if len(defect) else 0.0
@@ -228,7 +232,7 @@ def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
 
 
 def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
-                    ) -> tuple[list[HolonomyLoop], list[HolonomyLoop]]:
+                    length_unit: float = 1.0) -> tuple[list[HolonomyLoop], list[HolonomyLoop]]:
     """Rotation holonomy of the dual generators and translation holonomy of the primal ones."""
     topo = terms.topology
     n, m = topo.n_vertices, topo.n_faces
@@ -281,7 +285,8 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     translation_loops = [
         HolonomyLoop(kind="translation", component=int(topo.vertex_component[a]),
                      edge=[int(a), int(b)], faces=topo.edge_faces[e].tolist(),
-                     translation=gap.tolist(), magnitude=float(s), passes=bool(s <= tol))
+                     translation=(gap * length_unit).tolist(), magnitude=float(s),
+                     passes=bool(s <= tol))
         for e, a, b, gap, s in zip(closing, i, j, gaps, sizes, strict=True)]
     return rotation_loops, translation_loops
 

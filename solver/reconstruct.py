@@ -165,11 +165,20 @@ class ImmersionProblem:
     def n_unknowns(self) -> int:
         return self.terms.n_unknowns
 
-    def unknowns_to_geometry(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Split (N, 3) unknowns into vertices (n, 3) (in input units) and frames (m, 3, 3)."""
+    def unknowns_to_geometry(self, u: np.ndarray, constraints: Constraints | None = None,
+                             ) -> tuple[np.ndarray, np.ndarray]:
+        """Split (N, 3) unknowns into vertices (n, 3) (in input units) and frames (m, 3, 3).
+
+        Hard position constraints are copied to the output bit for bit (undoing the length
+        normalization would otherwise round them).
+        """
         n = self.topology.n_vertices
         frames = np.swapaxes(u[n:].reshape(-1, 3, 3), 1, 2)  # u[n + 3t + c, k] = f_t[k, c]
-        return u[:n] * self.length_scale, frames
+        vertices = u[:n] * self.length_scale
+        if constraints is not None:
+            hard = np.isinf(constraints.position_weights)
+            vertices[constraints.position_vertices[hard]] = constraints.positions[hard]
+        return vertices, frames
 
     def geometry_to_unknowns(self, vertices: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`unknowns_to_geometry`."""
@@ -209,23 +218,29 @@ class ImmersionProblem:
         touched[topo.face_component[constraints.frame_faces]] = True
         return touched
 
-    def anchors(self, components: np.ndarray, isolated: bool = True,
+    def anchors(self, components: np.ndarray, reference_vertices: np.ndarray | None = None,
+                reference_frames: np.ndarray | None = None,
                 ) -> tuple[LinearConstraints, list[dict[str, int]]]:
         """Hard anchors for the components where ``components`` (C,) bool is True.
 
         Each gets its first face's first vertex at the origin and that face's frame at the
         identity (Sec. 3: "after fixing one vertex and one frame, the system becomes
-        positive-definite"); with ``isolated``, unused vertices are pinned at the origin.
+        positive-definite"), or at their reference values when given (reference vertices
+        in input units); unused vertices are pinned at the origin (or reference).
         """
         topo = self.topology
         face_comps, first_face = np.unique(topo.face_component, return_index=True)
         chosen = components[face_comps]
         faces = first_face[chosen]
         vertices = topo.faces[faces, 0]
-        pinned = np.concatenate([vertices, topo.isolated_vertices if isolated else []])
-        pinned = pinned.astype(np.int64)
+        pinned = np.concatenate([vertices, topo.isolated_vertices]).astype(np.int64)
         cols = np.concatenate([pinned, frame_columns(topo.n_vertices, faces).ravel()])
-        values = np.concatenate([np.zeros((len(pinned), 3)), np.tile(np.eye(3), (len(faces), 1))])
+        if reference_vertices is None or reference_frames is None:
+            values = np.concatenate([np.zeros((len(pinned), 3)),
+                                     np.tile(np.eye(3), (len(faces), 1))])
+        else:
+            values = np.concatenate([reference_vertices[pinned] / self.length_scale,
+                                     np.swapaxes(reference_frames[faces], 1, 2).reshape(-1, 3)])
         info = [{"component": int(c), "vertex": int(v), "face": int(t)}
                 for c, v, t in zip(face_comps[chosen], vertices, faces, strict=True)]
         return LinearConstraints(hard_columns=cols, hard_values=values), info
@@ -336,7 +351,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     if check_integrability:
         report["integrability"] = integrability_from_terms(
             problem.terms, integrability_tol, mean_length=float(L.mean()) /
-            problem.length_scale).summary()
+            problem.length_scale, length_unit=problem.length_scale).summary()
     linear = problem.linear_constraints(user)
     touched = problem.constrained_components(user)
     anchor, anchored = problem.anchors(~touched)
@@ -363,7 +378,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     lap("solve")
 
     first_energy = problem.energies(u)
-    vertices, frames = problem.unknowns_to_geometry(u)
+    vertices, frames = problem.unknowns_to_geometry(u, user)
     orthonormality = _orthonormality_error(frames)
     if orthonormalize:
         notify("factorize", 0.5)
@@ -375,7 +390,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         targets = np.swapaxes(rotations, 1, 2).reshape(-1, 3)
         soft_values = np.concatenate([linear.soft_values, targets])
         u = system2.solve(linear.hard_values, soft_values)
-        vertices, frames = problem.unknowns_to_geometry(u)
+        vertices, frames = problem.unknowns_to_geometry(u, user)
         lap("solve")
     notify("solve", 1.0)
 

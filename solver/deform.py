@@ -1,0 +1,253 @@
+"""Mesh deformation with position and orientation handles (Sec. 4-5).
+
+The rest mesh's forms define the energy of Eq. (5); handles become constraints. The system
+for a handle set is factorized once in :class:`Deformer`; each :meth:`Deformer.solve` only
+back-substitutes (and, with ``orthonormalize``, runs the second solve of Sec. 4 against its
+own cached factorization). With a region of interest the system is built on the faces that
+touch the ROI only, so the cost follows the ROI size.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .errors import ConstraintError
+from .forms import fundamental_forms
+from .frames import layout_frames
+from .metrics import compact, distortion
+from .reconstruct import Constraints, ImmersionProblem, Progress
+from .rotations import is_rotation, nearest_rotation
+from .serialization import JsonDataclass
+from .system import ConstrainedSystem, LinearConstraints, Weighting
+from .topology import build_topology
+from .validation import as_indices, as_points
+
+
+@dataclass
+class Deformation(JsonDataclass):
+    """Result of :func:`deform`: vertices (n, 3) float64 and a report (timings, distortion)."""
+
+    vertices: np.ndarray
+    report: dict[str, Any]
+
+    _array_fields = {"vertices": np.float64}
+
+
+class Deformer:
+    """Prefactorized deformation of one mesh under one set of handles.
+
+    Args:
+        vertices: (n, 3) rest positions.
+        faces: (m, 3) int, counter-clockwise.
+        handles: (h,) vertex indices whose positions are prescribed at each solve.
+        rotation_handles: optional sequence of g face-index arrays; the frames of the faces
+            in group i are rotated by ``handle_rotations[i]`` at each solve.
+        roi: optional vertex indices that may move; every other vertex stays at rest.
+            Default: all vertices.
+        frame_weight: relative weight w of the frame term (paper: 1000).
+        orthonormalize: after each solve, project frames to rotations and solve again with
+            them as soft constraints of weight ``orthonormal_weight`` (Sec. 4).
+        handle_weight: ``inf`` (default) eliminates handle positions exactly; a finite value
+            makes them soft.
+        rotation_weight: the same for orientation handles.
+        weighting, backend: see :func:`solver.reconstruct`.
+    """
+
+    def __init__(self, vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike, *,
+                 rotation_handles: Sequence[ArrayLike] | None = None,
+                 roi: ArrayLike | None = None, frame_weight: float = 1000.0,
+                 orthonormalize: bool = False, orthonormal_weight: float = 1000.0,
+                 handle_weight: float = np.inf, rotation_weight: float = np.inf,
+                 weighting: Weighting = "uniform", backend: str = "auto",
+                 progress: Progress | None = None) -> None:
+        notify = progress or (lambda stage, fraction: None)
+        start = time.perf_counter()
+        notify("validate", 0.0)
+        self.rest = as_points(vertices, "vertices")
+        full = build_topology(faces, n_vertices=len(self.rest))
+        self.faces = full.faces
+        n = len(self.rest)
+        self.handles = as_indices(handles, "handles", upper=n)
+        _no_duplicates(self.handles, "handles", "vertex")
+        groups = [as_indices(g, f"rotations[{i}].faces", upper=len(self.faces))
+                  for i, g in enumerate(rotation_handles or [])]
+        for i, g in enumerate(groups):
+            if len(g) == 0:
+                raise ConstraintError("an orientation handle needs at least one face",
+                                      field=f"rotations[{i}].faces")
+        all_rot = np.concatenate(groups) if groups else np.zeros(0, np.int64)
+        _no_duplicates(all_rot, "rotations.faces", "face")
+        if len(self.handles) == 0 and len(all_rot) == 0:
+            raise ConstraintError("give at least one position or orientation handle",
+                                  field="handles")
+
+        # Region of interest: faces touching it form the system; other vertices are fixed.
+        if roi is None:
+            in_roi = np.ones(n, dtype=bool)
+        else:
+            in_roi = np.zeros(n, dtype=bool)
+            in_roi[as_indices(roi, "roi", upper=n)] = True
+        outside = np.flatnonzero(~in_roi[self.handles])
+        if len(outside):
+            raise ConstraintError(f"handle vertex {int(self.handles[outside[0]])} is outside "
+                                  "the region of interest", field="handles",
+                                  index=int(outside[0]))
+        sub_faces_mask = in_roi[self.faces].any(axis=1)
+        rot_outside = np.flatnonzero(~sub_faces_mask[all_rot])
+        if len(rot_outside):
+            raise ConstraintError(f"rotation face {int(all_rot[rot_outside[0]])} does not touch "
+                                  "the region of interest", field="rotations.faces",
+                                  index=int(rot_outside[0]))
+        self.in_roi = in_roi
+        self.sub_faces = np.flatnonzero(sub_faces_mask)
+        self.sub_vertices = np.unique(self.faces[self.sub_faces])
+        local_index = np.full(n, -1, dtype=np.int64)
+        local_index[self.sub_vertices] = np.arange(len(self.sub_vertices))
+        local_faces = local_index[self.faces[self.sub_faces]]
+        face_local = np.full(len(self.faces), -1, dtype=np.int64)
+        face_local[self.sub_faces] = np.arange(len(self.sub_faces))
+
+        sub_rest = self.rest[self.sub_vertices]
+        forms = fundamental_forms(sub_rest, local_faces)
+        notify("assemble", 0.0)
+        topology = build_topology(forms.faces, n_vertices=len(sub_rest))
+        self.problem = ImmersionProblem(topology, forms.lengths, forms.angles,
+                                        frame_weight=frame_weight, weighting=weighting)
+        self.rest_frames = layout_frames(sub_rest / self.problem.length_scale, forms.faces,
+                                         self.problem.terms.layouts)
+        fixed_local = np.flatnonzero(~in_roi[self.sub_vertices])
+        self._handle_local = local_index[self.handles]
+        self._fixed_local = fixed_local
+        self._group_faces = [face_local[g] for g in groups]
+        self._handle_weight = float(handle_weight)
+        self._rotation_weight = float(rotation_weight)
+        self.orthonormalize = orthonormalize
+
+        template = self._constraints(np.zeros((len(self.handles), 3)),
+                                     np.tile(np.eye(3), (len(groups), 1, 1)))
+        linear = self.problem.linear_constraints(template)
+        touched = self.problem.constrained_components(template)
+        # Components without any handle stay at rest; underdetermined ones lean on the rest.
+        anchor, _ = self.problem.anchors(~touched, sub_rest, self.rest_frames)
+        self._anchor = anchor.extended(self.problem.regularization(
+            template, sub_rest, self.rest_frames)[0])
+        linear = linear.extended(self._anchor)
+        notify("factorize", 0.0)
+        self.system: ConstrainedSystem = self.problem.system(linear, backend)
+        self.system_orthonormal: ConstrainedSystem | None = None
+        if orthonormalize:
+            self.system_orthonormal = self.problem.system(
+                linear, backend, self.problem.all_frame_columns(), orthonormal_weight)
+        self.setup_seconds = time.perf_counter() - start
+        notify("factorize", 1.0)
+
+    @property
+    def n_groups(self) -> int:
+        return len(self._group_faces)
+
+    @property
+    def backend(self) -> str:
+        return self.system.backend
+
+    def _constraints(self, handle_positions: np.ndarray,
+                     handle_rotations: np.ndarray) -> Constraints:
+        local_faces = (np.concatenate(self._group_faces) if self._group_faces
+                       else np.zeros(0, np.int64))
+        group_of = np.repeat(np.arange(self.n_groups),
+                             [len(g) for g in self._group_faces]).astype(np.int64)
+        frames = handle_rotations[group_of] @ self.rest_frames[local_faces]
+        fixed = self._fixed_local
+        return Constraints(
+            position_vertices=np.concatenate([self._handle_local, fixed]),
+            positions=np.concatenate([handle_positions, self.rest[self.sub_vertices[fixed]]]),
+            position_weights=np.concatenate([np.full(len(self._handle_local),
+                                                     self._handle_weight),
+                                             np.full(len(fixed), np.inf)]),
+            frame_faces=local_faces, frames=frames,
+            frame_weights=np.full(len(local_faces), self._rotation_weight))
+
+    def solve(self, handle_positions: ArrayLike | None = None,
+              handle_rotations: ArrayLike | None = None) -> np.ndarray:
+        """Deformed vertices (n, 3) for new handle targets; only back-substitutes.
+
+        Args:
+            handle_positions: (h, 3) target positions of ``handles`` (default: rest).
+            handle_rotations: (g, 3, 3) rotations of the orientation handles (default: I).
+        """
+        P = (self.rest[self.handles] if handle_positions is None
+             else as_points(handle_positions, "handle_positions"))
+        if len(P) != len(self.handles):
+            raise ConstraintError(f"expected {len(self.handles)} handle positions, got {len(P)}",
+                                  field="handle_positions")
+        R = (np.tile(np.eye(3), (self.n_groups, 1, 1)) if handle_rotations is None
+             else np.asarray(handle_rotations, dtype=np.float64).reshape(-1, 3, 3))
+        if len(R) != self.n_groups:
+            raise ConstraintError(f"expected {self.n_groups} rotations, got {len(R)}",
+                                  field="handle_rotations")
+        bad = np.flatnonzero(~is_rotation(R))
+        if len(bad):
+            raise ConstraintError("not a rotation matrix (orthonormal with det +1)",
+                                  field="handle_rotations", index=int(bad[0]))
+        constraints = self._constraints(P, R)
+        linear = self.problem.linear_constraints(constraints).extended(self._anchor)
+        u = self.system.solve(linear.hard_values, linear.soft_values)
+        if self.system_orthonormal is not None:
+            _, frames = self.problem.unknowns_to_geometry(u)
+            targets = np.swapaxes(nearest_rotation(frames), 1, 2).reshape(-1, 3)
+            u = self.system_orthonormal.solve(linear.hard_values,
+                                              np.concatenate([linear.soft_values, targets]))
+        local, _ = self.problem.unknowns_to_geometry(u, constraints)
+        out = self.rest.copy()
+        moving = self.in_roi[self.sub_vertices]
+        out[self.sub_vertices[moving]] = local[moving]
+        return out
+
+
+def _no_duplicates(indices: np.ndarray, field: str, what: str) -> None:
+    values, counts = np.unique(indices, return_counts=True)
+    if (counts > 1).any():
+        dup = int(values[counts > 1][0])
+        raise ConstraintError(f"{what} {dup} appears in more than one handle", field=field,
+                              index=int(np.flatnonzero(indices == dup)[1]))
+
+
+def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
+           handle_positions: ArrayLike, *, rotation_handles: Sequence[ArrayLike] | None = None,
+           handle_rotations: ArrayLike | None = None, roi: ArrayLike | None = None,
+           frame_weight: float = 1000.0, orthonormalize: bool = False,
+           orthonormal_weight: float = 1000.0, handle_weight: float = np.inf,
+           rotation_weight: float = np.inf, weighting: Weighting = "uniform",
+           backend: str = "auto", progress: Progress | None = None) -> Deformation:
+    """One-shot deformation: build a :class:`Deformer`, solve once, measure distortion.
+
+    Returns :class:`Deformation` whose report holds timings, the backend and the distortion
+    (:func:`solver.metrics.distortion`, without per-edge arrays) against the rest mesh.
+    """
+    t0 = time.perf_counter()
+    deformer = Deformer(vertices, faces, handles, rotation_handles=rotation_handles, roi=roi,
+                        frame_weight=frame_weight, orthonormalize=orthonormalize,
+                        orthonormal_weight=orthonormal_weight, handle_weight=handle_weight,
+                        rotation_weight=rotation_weight, weighting=weighting, backend=backend,
+                        progress=progress)
+    t1 = time.perf_counter()
+    if progress:
+        progress("solve", 0.0)
+    result = deformer.solve(handle_positions, handle_rotations)
+    t2 = time.perf_counter()
+    if progress:
+        progress("solve", 1.0)
+    report = {
+        "timings": {"setup": t1 - t0, "solve": t2 - t1},
+        "backend": deformer.backend,
+        "n_unknowns": deformer.problem.n_unknowns,
+        "roi_faces": len(deformer.sub_faces),
+        "orthonormalized": bool(orthonormalize),
+        "distortion": compact(distortion(deformer.rest, result, deformer.faces)),
+    }
+    return Deformation(vertices=result, report=report)

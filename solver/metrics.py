@@ -1,0 +1,116 @@
+"""Distortion between two embeddings of one connectivity, or an embedding and target forms.
+
+All functions are vectorized; per-element arrays are aligned with the sorted edge list
+(edges) or with the faces. Summaries give mean, rms, max and the 95th percentile;
+histograms give counts over fixed bin edges so reports are comparable across meshes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .forms import Forms, fundamental_forms
+from .validation import as_points
+
+HISTOGRAM_BINS = 20
+
+
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Map angles to (-pi, pi]."""
+    wrapped = np.mod(angle + np.pi, 2 * np.pi) - np.pi
+    return np.where(wrapped <= -np.pi, np.pi, wrapped)
+
+
+def corner_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(m, 3) interior angle at each corner of each face (radians)."""
+    P = vertices[faces]                                # (m, 3, 3)
+    u = np.roll(P, -1, axis=1) - P                     # to next corner
+    v = np.roll(P, 1, axis=1) - P                      # to previous corner
+    cross = np.linalg.norm(np.cross(u, v), axis=2)
+    return np.arctan2(cross, np.einsum("tkc,tkc->tk", u, v))
+
+
+def summary(values: np.ndarray) -> dict[str, float]:
+    """mean, rms, max and 95th percentile of |values| (zeros for an empty array)."""
+    a = np.abs(np.asarray(values, dtype=np.float64))
+    if a.size == 0:
+        return {"mean": 0.0, "rms": 0.0, "max": 0.0, "p95": 0.0}
+    return {"mean": float(a.mean()), "rms": float(np.sqrt((a**2).mean())),
+            "max": float(a.max()), "p95": float(np.percentile(a, 95))}
+
+
+def histogram(values: np.ndarray, upper: float | None = None,
+              bins: int = HISTOGRAM_BINS) -> dict[str, list[float]]:
+    """Counts of |values| over ``bins`` equal bins on [0, upper] (upper: default the max)."""
+    a = np.abs(np.asarray(values, dtype=np.float64))
+    top = float(upper if upper is not None else (a.max() if a.size else 1.0)) or 1.0
+    counts, edges = np.histogram(np.minimum(a, top), bins=bins, range=(0.0, top))
+    return {"counts": counts.tolist(), "bin_edges": edges.tolist()}
+
+
+def edge_values_to_vertices(edges: np.ndarray, values: np.ndarray, n_vertices: int,
+                            ) -> np.ndarray:
+    """(n,) max of |values| over the edges at each vertex (for colour maps)."""
+    out = np.zeros(n_vertices)
+    a = np.abs(values)
+    np.maximum.at(out, edges[:, 0], a)
+    np.maximum.at(out, edges[:, 1], a)
+    return out
+
+
+def forms_distortion(forms: Forms, target_lengths: ArrayLike, target_angles: ArrayLike,
+                     n_vertices: int | None = None) -> dict[str, Any]:
+    """Change of edge lengths (relative) and dihedral angles (radians) from target forms.
+
+    Returns a dict with per-edge arrays ``length_change`` (relative, signed) and
+    ``angle_change`` (signed, wrapped), per-vertex ``vertex`` (max |change| of either kind
+    over incident edges, relative length and radians summed), their summaries and histograms.
+    """
+    L0 = np.asarray(target_lengths, dtype=np.float64)
+    A0 = np.asarray(target_angles, dtype=np.float64)
+    length_change = forms.lengths / L0 - 1.0
+    angle_change = wrap_angle(forms.angles - A0)
+    n = int(forms.faces.max()) + 1 if n_vertices is None else n_vertices
+    vertex = (edge_values_to_vertices(forms.edges, length_change, n)
+              + edge_values_to_vertices(forms.edges, angle_change, n))
+    return {
+        "length_change": length_change, "angle_change": angle_change, "vertex": vertex,
+        "length_summary": summary(length_change), "angle_summary": summary(angle_change),
+        "length_histogram": histogram(length_change),
+        "angle_histogram": histogram(angle_change),
+    }
+
+
+def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike,
+               ) -> dict[str, Any]:
+    """Distortion of ``vertices`` relative to ``vertices_ref`` (same faces).
+
+    Returns :func:`forms_distortion` entries plus per-face ``face_angle_change`` (max |change|
+    of the three corner angles, radians) and ``area_ratio`` (area / reference area), with
+    their summaries.
+    """
+    V0 = as_points(vertices_ref, "vertices_ref")
+    V1 = as_points(vertices, "vertices")
+    rest = fundamental_forms(V0, faces)
+    now = fundamental_forms(V1, rest.faces)
+    report = forms_distortion(now, rest.lengths, rest.angles, len(V0))
+    F = rest.faces
+    corner_change = np.abs(corner_angles(V1, F) - corner_angles(V0, F)).max(axis=1)
+    area0 = 0.5 * np.linalg.norm(np.cross(V0[F[:, 1]] - V0[F[:, 0]], V0[F[:, 2]] - V0[F[:, 0]]),
+                                 axis=1)
+    area1 = 0.5 * np.linalg.norm(np.cross(V1[F[:, 1]] - V1[F[:, 0]], V1[F[:, 2]] - V1[F[:, 0]]),
+                                 axis=1)
+    report.update({
+        "face_angle_change": corner_change, "area_ratio": area1 / area0,
+        "face_angle_summary": summary(corner_change),
+        "area_ratio_summary": summary(area1 / area0 - 1.0),
+    })
+    return report
+
+
+def compact(report: dict[str, Any]) -> dict[str, Any]:
+    """The report without per-element arrays, except the per-vertex values (for colours)."""
+    return {k: v for k, v in report.items() if not isinstance(v, np.ndarray) or k == "vertex"}

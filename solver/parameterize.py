@@ -1,0 +1,135 @@
+"""Quasi-isometric parameterization: set every dihedral angle to 0 and reconstruct (Sec. 5).
+
+With all angles 0 the transition rotations are rotations about the normal, so the anchored
+reconstruction lies exactly in the plane z = 0 and keeps the first fundamental form (edge
+lengths) as well as a planar immersion can. The optional second solve (Sec. 4) pulls each
+frame's in-plane 2x2 block towards the nearest 2D rotation; projecting in 2D (not 3D) keeps
+the result planar. Flipped faces (negative signed area in uv) are reported, never hidden.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .errors import TopologyError
+from .forms import fundamental_forms
+from .metrics import corner_angles, histogram, summary
+from .reconstruct import ImmersionProblem, Progress
+from .serialization import JsonDataclass
+from .system import Weighting
+from .topology import build_topology
+from .validation import as_points
+
+
+@dataclass
+class Parameterization(JsonDataclass):
+    """Result of :func:`parameterize`.
+
+    Attributes:
+        uv: (n, 2) float64 planar coordinates (same units as the input).
+        flipped_faces: (k,) int64 faces whose uv orientation is reversed.
+        area_ratio: (m,) float64 uv area / 3D area.
+        angle_distortion: (m,) float64 max |corner angle change| per face (radians).
+        report: summaries, histograms, timings, backend, components.
+    """
+
+    uv: np.ndarray
+    flipped_faces: np.ndarray
+    area_ratio: np.ndarray
+    angle_distortion: np.ndarray
+    report: dict[str, Any]
+
+    _array_fields = {"uv": np.float64, "flipped_faces": np.int64, "area_ratio": np.float64,
+                     "angle_distortion": np.float64}
+
+
+def nearest_planar_rotation(frames: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) rotations about z closest to the in-plane 2x2 block of each frame."""
+    B = frames[:, :2, :2]
+    # Closest SO(2) element to B: the rotation by the angle of (B00 + B11, B10 - B01).
+    angle = np.arctan2(B[:, 1, 0] - B[:, 0, 1], B[:, 0, 0] + B[:, 1, 1])
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.zeros_like(frames)
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
+def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool = True,
+                 orthonormal_weight: float = 1000.0, frame_weight: float = 1000.0,
+                 weighting: Weighting = "uniform", backend: str = "auto",
+                 progress: Progress | None = None) -> Parameterization:
+    """Flatten a mesh with boundary by reconstructing it with all dihedral angles 0.
+
+    Args:
+        vertices: (n, 3) float; faces: (m, 3) int, counter-clockwise.
+        orthonormalize: run the second solve with planar-rotation frame targets.
+    Raises:
+        TopologyError for a component without boundary (a closed surface cannot be
+        flattened without a cut).
+    """
+    notify = progress or (lambda stage, fraction: None)
+    t0 = time.perf_counter()
+    notify("validate", 0.0)
+    V = as_points(vertices, "vertices")
+    topology = build_topology(faces, n_vertices=len(V))
+    closed = [c["component"] for c in topology.component_summary() if c["closed"]]
+    if closed:
+        raise TopologyError(
+            f"component {closed[0]} is a closed surface: it has no boundary, so it cannot be "
+            "flattened; cut it open along a seam (duplicate the seam vertices) first",
+            field="faces", details={"closed_components": closed})
+    forms = fundamental_forms(V, topology.faces)
+    notify("assemble", 0.0)
+    problem = ImmersionProblem(topology, forms.lengths, np.zeros_like(forms.angles),
+                               frame_weight=frame_weight, weighting=weighting)
+    anchor, anchored = problem.anchors(np.ones(topology.n_components, dtype=bool))
+    notify("factorize", 0.0)
+    system = problem.system(anchor, backend)
+    notify("solve", 0.0)
+    u = system.solve(anchor.hard_values, np.zeros((0, 3)))
+    if orthonormalize:
+        _, frames = problem.unknowns_to_geometry(u)
+        targets = np.swapaxes(nearest_planar_rotation(frames), 1, 2).reshape(-1, 3)
+        notify("factorize", 0.5)
+        system = problem.system(anchor, backend, problem.all_frame_columns(), orthonormal_weight)
+        notify("solve", 0.5)
+        u = system.solve(anchor.hard_values, targets)
+    flat, _ = problem.unknowns_to_geometry(u)
+    notify("solve", 1.0)
+    uv = flat[:, :2]
+    # Used vertices lie in z = 0 exactly (see module docstring); report any deviation.
+    planarity = float(np.abs(flat[topology.is_referenced, 2]).max())
+    F = topology.faces
+    e1, e2 = uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]]
+    signed_area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    area3d = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                  axis=1)
+    flipped = np.flatnonzero(signed_area < 0)
+    ratio = signed_area / area3d
+    flat3 = np.concatenate([uv, np.zeros((len(uv), 1))], axis=1)
+    angle_change = np.abs(corner_angles(flat3, F) - corner_angles(V, F)).max(axis=1)
+    length_uv = np.linalg.norm(uv[forms.edges[:, 1]] - uv[forms.edges[:, 0]], axis=1)
+    length_change = length_uv / forms.lengths - 1.0
+    report = {
+        "flipped_count": len(flipped),
+        "area_ratio_summary": summary(ratio - 1.0),
+        "angle_distortion_summary": summary(angle_change),
+        "length_change_summary": summary(length_change),
+        "angle_distortion_histogram": histogram(angle_change),
+        "length_change_histogram": histogram(length_change),
+        "planarity_error": planarity,
+        "orthonormalized": bool(orthonormalize),
+        "anchored_components": anchored,
+        "backend": system.backend,
+        "timings": {"total": time.perf_counter() - t0},
+    }
+    return Parameterization(uv=uv, flipped_faces=flipped, area_ratio=ratio,
+                            angle_distortion=angle_change, report=report)
+
+
+__all__ = ["Parameterization", "nearest_planar_rotation", "parameterize"]

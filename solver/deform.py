@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -24,9 +24,9 @@ from .metrics import compact, distortion
 from .reconstruct import Constraints, ImmersionProblem, Progress
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
-from .system import ConstrainedSystem, LinearConstraints, Weighting
+from .system import ConstrainedSystem, Weighting
 from .topology import build_topology
-from .validation import as_indices, as_points
+from .validation import as_indices, as_points, require_unique
 
 
 @dataclass
@@ -36,7 +36,7 @@ class Deformation(JsonDataclass):
     vertices: np.ndarray
     report: dict[str, Any]
 
-    _array_fields = {"vertices": np.float64}
+    _array_fields: ClassVar[dict[str, Any]] = {"vertices": np.float64}
 
 
 class Deformer:
@@ -74,7 +74,7 @@ class Deformer:
         self.faces = full.faces
         n = len(self.rest)
         self.handles = as_indices(handles, "handles", upper=n)
-        _no_duplicates(self.handles, "handles", "vertex")
+        require_unique(self.handles, "handles", "vertex")
         groups = [as_indices(g, f"rotations[{i}].faces", upper=len(self.faces))
                   for i, g in enumerate(rotation_handles or [])]
         for i, g in enumerate(groups):
@@ -82,7 +82,7 @@ class Deformer:
                 raise ConstraintError("an orientation handle needs at least one face",
                                       field=f"rotations[{i}].faces")
         all_rot = np.concatenate(groups) if groups else np.zeros(0, np.int64)
-        _no_duplicates(all_rot, "rotations.faces", "face")
+        require_unique(all_rot, "rotations.faces", "face")
         if len(self.handles) == 0 and len(all_rot) == 0:
             raise ConstraintError("give at least one position or orientation handle",
                                   field="handles")
@@ -207,14 +207,6 @@ class Deformer:
         moving = self.in_roi[self.sub_vertices]
         out[self.sub_vertices[moving]] = local[moving]
         return out
-
-
-def _no_duplicates(indices: np.ndarray, field: str, what: str) -> None:
-    values, counts = np.unique(indices, return_counts=True)
-    if (counts > 1).any():
-        dup = int(values[counts > 1][0])
-        raise ConstraintError(f"{what} {dup} appears in more than one handle", field=field,
-                              index=int(np.flatnonzero(indices == dup)[1]))
 
 
 def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,

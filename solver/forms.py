@@ -11,6 +11,7 @@ Section 2.3 of the paper.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -45,8 +46,10 @@ class Forms(JsonDataclass):
     lengths: np.ndarray
     angles: np.ndarray
 
-    _array_fields = {"faces": np.int64, "edges": np.int64, "lengths": np.float64,
-                     "angles": np.float64}
+    _array_fields: ClassVar[dict[str, Any]] = {
+        "faces": np.int64, "edges": np.int64, "lengths": np.float64,
+        "angles": np.float64,
+    }
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +123,7 @@ def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angle
         raise EdgeMismatchError(
             f"the faces have {len(expected)} distinct edges but {len(E)} were given",
             field="edges", details={"expected_count": len(expected)})
-    differs = (E != expected).any(axis=1)
+    differs = (expected != E).any(axis=1)
     if differs.any():
         e = int(np.flatnonzero(differs)[0])
         hint = " (write each edge as [i, j] with i < j)" if E[e, 0] > E[e, 1] else ""
@@ -134,12 +137,12 @@ def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angle
         e = int(np.flatnonzero(L <= 0)[0])
         raise NonPositiveLengthError(f"length {L[e]!r} of edge {E[e].tolist()} is not positive",
                                      field="lengths", index=e)
-    outside = (A <= -np.pi - ANGLE_SLACK) | (A > np.pi + ANGLE_SLACK)
+    outside = (-np.pi - ANGLE_SLACK >= A) | (np.pi + ANGLE_SLACK < A)
     if outside.any():
         e = int(np.flatnonzero(outside)[0])
         raise AngleRangeError(f"angle {A[e]!r} of edge {E[e].tolist()} is outside (-pi, pi]",
                               field="angles", index=e)
-    A = np.where(A <= -np.pi, np.pi, np.minimum(A, np.pi))
+    A = np.where(-np.pi >= A, np.pi, np.minimum(A, np.pi))
     return topology, L, A
 
 

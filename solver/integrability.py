@@ -20,7 +20,7 @@ Global: on a surface with handles or holes, loops that do not bound a disk need 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -108,11 +108,14 @@ class IntegrabilityReport(JsonDataclass):
     local_integrable: bool
     global_integrable: bool
 
-    _array_fields = {"vertex_defect": np.float64, "gauss_defect": np.float64,
-                     "codazzi_defect": np.float64, "failing_vertices": np.int64,
-                     "worst_vertices": np.int64, "triangle_violations": np.int64,
-                     "isolated_vertices": np.int64}
-    _nested_fields = {"rotation_holonomy": HolonomyLoop, "translation_holonomy": HolonomyLoop}
+    _array_fields: ClassVar[dict[str, Any]] = {
+        "vertex_defect": np.float64, "gauss_defect": np.float64, "codazzi_defect": np.float64,
+        "failing_vertices": np.int64, "worst_vertices": np.int64,
+        "triangle_violations": np.int64, "isolated_vertices": np.int64,
+    }
+    _nested_fields: ClassVar[dict[str, Any]] = {
+        "rotation_holonomy": HolonomyLoop, "translation_holonomy": HolonomyLoop,
+    }
 
     def summary(self) -> dict[str, Any]:
         """The short form used in reconstruction reports (no per-vertex arrays)."""

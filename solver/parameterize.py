@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -44,8 +44,10 @@ class Parameterization(JsonDataclass):
     angle_distortion: np.ndarray
     report: dict[str, Any]
 
-    _array_fields = {"uv": np.float64, "flipped_faces": np.int64, "area_ratio": np.float64,
-                     "angle_distortion": np.float64}
+    _array_fields: ClassVar[dict[str, Any]] = {
+        "uv": np.float64, "flipped_faces": np.int64, "area_ratio": np.float64,
+        "angle_distortion": np.float64,
+    }
 
 
 def nearest_planar_rotation(frames: np.ndarray) -> np.ndarray:

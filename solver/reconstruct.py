@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -34,7 +34,7 @@ from .system import (
     normal_matrix,
 )
 from .topology import MeshTopology
-from .validation import as_indices, as_points, require_finite
+from .validation import as_indices, as_points, require_finite, require_unique
 
 Progress = Callable[[str, float], None]
 REGULARIZATION = 1e-8
@@ -61,9 +61,10 @@ class Constraints(JsonDataclass):
     frames: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     frame_weights: np.ndarray | None = None
 
-    _array_fields = {"position_vertices": np.int64, "positions": np.float64,
-                     "position_weights": np.float64, "frame_faces": np.int64,
-                     "frames": np.float64, "frame_weights": np.float64}
+    _array_fields: ClassVar[dict[str, Any]] = {
+        "position_vertices": np.int64, "positions": np.float64, "position_weights": np.float64,
+        "frame_faces": np.int64, "frames": np.float64, "frame_weights": np.float64,
+    }
 
     def validated(self, n_vertices: int, n_faces: int, rotation_tol: float = 1e-6,
                   ) -> Constraints:
@@ -82,8 +83,8 @@ class Constraints(JsonDataclass):
         if len(fr) != len(ff):
             raise ConstraintError(f"{len(ff)} constrained faces but {len(fr)} frames",
                                   field="constraints.frames")
-        _no_repeats(pv, "constraints.positions.vertex", "vertex")
-        _no_repeats(ff, "constraints.frames.face", "face")
+        require_unique(pv, "constraints.positions.vertex", "vertex")
+        require_unique(ff, "constraints.frames.face", "face")
         bad = np.flatnonzero(~is_rotation(fr, rotation_tol))
         if len(bad):
             raise ConstraintError(
@@ -105,15 +106,6 @@ def _weights(values: ArrayLike | None, size: int, name: str) -> np.ndarray:
     return w
 
 
-def _no_repeats(indices: np.ndarray, name: str, what: str) -> None:
-    values, first, counts = np.unique(indices, return_index=True, return_counts=True)
-    if (counts > 1).any():
-        dup = values[counts > 1][0]
-        second = np.flatnonzero(indices == dup)[1]
-        raise ConstraintError(f"{what} {int(dup)} is constrained more than once", field=name,
-                              index=int(second))
-
-
 @dataclass
 class Reconstruction(JsonDataclass):
     """Result of :func:`reconstruct`.
@@ -128,7 +120,7 @@ class Reconstruction(JsonDataclass):
     frames: np.ndarray
     report: dict[str, Any]
 
-    _array_fields = {"vertices": np.float64, "frames": np.float64}
+    _array_fields: ClassVar[dict[str, Any]] = {"vertices": np.float64, "frames": np.float64}
 
 
 class ImmersionProblem:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Self
+from typing import Any, ClassVar, Self
 
 import numpy as np
 
@@ -30,8 +30,8 @@ class JsonDataclass:
     dataclass fields are listed in ``_nested_fields`` (name -> class).
     """
 
-    _array_fields: dict[str, Any] = {}
-    _nested_fields: dict[str, Any] = {}
+    _array_fields: ClassVar[dict[str, Any]] = {}
+    _nested_fields: ClassVar[dict[str, Any]] = {}
 
     def to_dict(self) -> dict[str, Any]:
         return to_jsonable(self)

@@ -50,7 +50,7 @@ def as_vector(values: ArrayLike, field: str, size: int | None = None) -> np.ndar
 
 def as_indices(values: ArrayLike, field: str, upper: int | None = None,
                width: int | None = None) -> np.ndarray:
-    """Return ``values`` as an int64 array of shape (k,) or (k, width) with entries in [0, upper)."""
+    """Return ``values`` as int64 of shape (k,) or (k, width), entries in [0, upper)."""
     raw = np.asarray(values)
     if raw.size and raw.dtype.kind == "f":
         if not np.all(np.isfinite(raw)):
@@ -77,7 +77,8 @@ def as_indices(values: ArrayLike, field: str, upper: int | None = None,
             bad |= (rows >= upper).any(axis=1)
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
-            value = int(rows[row][(rows[row] < 0) | ((rows[row] >= upper) if upper else False)][0])
+            out = (rows[row] < 0) | ((rows[row] >= upper) if upper is not None else False)
+            value = int(rows[row][out][0])
             limit = f"[0, {upper})" if upper is not None else ">= 0"
             raise IndexOutOfRangeError(f"index {value} out of range {limit}", field=field,
                                        index=row, details={"value": value})
@@ -104,3 +105,14 @@ def require_finite(values: np.ndarray, field: str) -> None:
         rows = finite.reshape(len(values), -1).all(axis=1) if values.ndim else finite
         row = int(np.flatnonzero(~rows)[0])
         raise NonFiniteValueError("value is NaN or infinite", field=field, index=row)
+
+
+def require_unique(indices: np.ndarray, field: str, what: str) -> None:
+    """Raise ConstraintError naming the second occurrence of a repeated index."""
+    from .errors import ConstraintError
+
+    values, counts = np.unique(indices, return_counts=True)
+    if (counts > 1).any():
+        dup = int(values[counts > 1][0])
+        raise ConstraintError(f"{what} {dup} is given more than once", field=field,
+                              index=int(np.flatnonzero(indices == dup)[1]))

@@ -4,8 +4,8 @@ from meshes import bumpy_grid_with_holes, double_torus, grid, icosphere, load, t
 
 from solver.errors import (
     DegenerateFaceError,
-    IndexOutOfRangeError,
     InconsistentOrientationError,
+    IndexOutOfRangeError,
     NonManifoldEdgeError,
     NonManifoldVertexError,
     ShapeMismatchError,
@@ -31,7 +31,7 @@ def test_invariants(mesh, components, loops, genus, euler):
 
 
 def test_edges_sorted_and_halfedges_consistent():
-    V, F = icosphere(1)
+    _, F = icosphere(1)
     topo = build_topology(F)
     e = topo.edges
     assert (e[:, 0] < e[:, 1]).all()
@@ -43,7 +43,7 @@ def test_edges_sorted_and_halfedges_consistent():
 
 
 def test_boundary_loops_are_ordered_cycles():
-    V, F = bumpy_grid_with_holes()
+    _, F = bumpy_grid_with_holes()
     topo = build_topology(F)
     edge_set = {tuple(sorted(p)) for p in topo.edges[(topo.edge_halfedges < 0).any(1)].tolist()}
     for loop in topo.boundary_loops:
@@ -54,7 +54,7 @@ def test_boundary_loops_are_ordered_cycles():
 
 def test_two_components_and_isolated_vertex():
     V1, F1 = icosphere(1)
-    V2, F2 = grid(3, 2)
+    _, F2 = grid(3, 2)
     F = np.concatenate([F1, F2 + len(V1) + 1])  # vertex len(V1) is unused
     topo = build_topology(F)
     assert topo.isolated_vertices.tolist() == [len(V1)]

@@ -135,7 +135,7 @@ class Deformer:
         touched = self.problem.constrained_components(template)
         # Components without any handle stay at rest; underdetermined ones lean on the rest.
         anchor, _ = self.problem.anchors(~touched, sub_rest, self.rest_frames)
-        self._anchor = anchor.extended(self.problem.regularization(
+        self._anchor = anchor.extended(self.problem.gauge_constraints(
             template, sub_rest, self.rest_frames)[0])
         linear = linear.extended(self._anchor)
         notify("factorize", 0.0)
@@ -203,6 +203,7 @@ class Deformer:
             u = self.system_orthonormal.solve(linear.hard_values,
                                               np.concatenate([linear.soft_values, targets]))
         local, _ = self.problem.unknowns_to_geometry(u, constraints)
+        local = self.problem.recenter(local, constraints, self.rest[self.sub_vertices])
         out = self.rest.copy()
         moving = self.in_roi[self.sub_vertices]
         out[self.sub_vertices[moving]] = local[moving]

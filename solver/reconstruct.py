@@ -37,7 +37,7 @@ from .topology import MeshTopology
 from .validation import as_indices, as_points, require_finite, require_unique
 
 Progress = Callable[[str, float], None]
-REGULARIZATION = 1e-8
+REGULARIZATION = 1e-6
 
 
 @dataclass
@@ -238,36 +238,89 @@ class ImmersionProblem:
         return LinearConstraints(hard_columns=cols, hard_values=values), info
 
     def underdetermined_components(self, constraints: Constraints,
+                                   reference_vertices: np.ndarray | None = None,
                                    ) -> tuple[np.ndarray, np.ndarray]:
         """Components constrained by positions only, and by frames only.
 
-        With positions only, the frames (hence rotation and, for coplanar handles, the
-        normal scale) are fixed only if the handles span 3D; with frames only, translation
-        is free. Such components get a tiny Tikhonov pull towards a reference embedding.
+        The linear energy of exact forms is invariant under every affine map of (x, f), so
+        position constraints alone fix a component only when their points span 3D (four or
+        more, not coplanar); with a reference embedding, position-only components whose
+        constrained reference points do span 3D are not listed. With frames only,
+        translation is free.
         """
         topo = self.topology
         has_pos = np.zeros(topo.n_components, dtype=bool)
         has_frm = np.zeros(topo.n_components, dtype=bool)
         has_pos[topo.vertex_component[constraints.position_vertices]] = True
         has_frm[topo.face_component[constraints.frame_faces]] = True
-        return np.flatnonzero(has_pos & ~has_frm), np.flatnonzero(has_frm & ~has_pos)
+        position_only = has_pos & ~has_frm
+        if reference_vertices is not None:
+            position_only &= ~self._constraints_span_space(constraints, reference_vertices)
+        return np.flatnonzero(position_only), np.flatnonzero(has_frm & ~has_pos)
 
-    def regularization(self, constraints: Constraints, reference_vertices: np.ndarray,
-                       reference_frames: np.ndarray, weight: float = REGULARIZATION,
-                       ) -> tuple[LinearConstraints, list[int]]:
-        """Soft pull (weight ``weight``) of the free gauge of underdetermined components
-        towards a reference: frames for position-only components, positions for
-        frame-only components."""
+    def _constraints_span_space(self, constraints: Constraints,
+                                reference_vertices: np.ndarray) -> np.ndarray:
+        """(C,) bool: the constrained reference points of each component span 3D."""
+        C = self.topology.n_components
+        comp = self.topology.vertex_component[constraints.position_vertices]
+        points = reference_vertices[constraints.position_vertices]
+        count = np.bincount(comp, minlength=C).astype(np.float64)
+        safe = np.maximum(count, 1.0)[:, None]
+        mean = np.stack([np.bincount(comp, points[:, k], C) for k in range(3)], 1) / safe
+        centred = points - mean[comp]
+        outer = centred[:, :, None] * centred[:, None, :]
+        cov = np.stack([np.bincount(comp, outer[:, i, j], C) for i in range(3)
+                        for j in range(3)], 1).reshape(C, 3, 3)
+        eig = np.linalg.eigvalsh(cov)
+        return (count >= 4) & (eig[:, 0] > 1e-8 * np.maximum(eig[:, 2], np.finfo(float).tiny))
+
+    def gauge_constraints(self, constraints: Constraints, reference_vertices: np.ndarray,
+                          reference_frames: np.ndarray, weight: float = REGULARIZATION,
+                          ) -> tuple[LinearConstraints, list[int]]:
+        """Fix the gauge that the user's constraints leave free, from a reference embedding.
+
+        * Position-only components whose handles do not span 3D: the frames are pulled
+          towards the reference frames with a soft weight of ``weight`` times the mean
+          diagonal of the frame block of K (relative, so the conditioning stays ~1/weight).
+        * Frame-only components: only translation is free; one vertex is pinned at its
+          reference position and :meth:`recenter` later moves the component so its centroid
+          matches the reference (translation is an exact null direction, so this is exact).
+
+        Returns (constraints, sorted list of the components concerned).
+        """
         topo = self.topology
-        pos_only, frame_only = self.underdetermined_components(constraints)
+        pos_only, frame_only = self.underdetermined_components(constraints, reference_vertices)
         faces = np.flatnonzero(np.isin(topo.face_component, pos_only))
-        verts = np.flatnonzero(np.isin(topo.vertex_component, frame_only) & topo.is_referenced)
-        cols = np.concatenate([verts, frame_columns(topo.n_vertices, faces).ravel()])
-        values = np.concatenate([reference_vertices[verts] / self.length_scale,
-                                 np.swapaxes(reference_frames[faces], 1, 2).reshape(-1, 3)])
-        reg = LinearConstraints(soft_columns=cols, soft_values=values,
-                                soft_weights=np.full(len(cols), weight))
-        return reg, sorted(int(c) for c in np.concatenate([pos_only, frame_only]))
+        pinned = self._first_vertices(frame_only)
+        n = topo.n_vertices
+        weight = weight * float(self.K.diagonal()[n:].mean())
+        gauge = LinearConstraints(
+            hard_columns=pinned, hard_values=reference_vertices[pinned] / self.length_scale,
+            soft_columns=frame_columns(topo.n_vertices, faces).ravel(),
+            soft_values=np.swapaxes(reference_frames[faces], 1, 2).reshape(-1, 3),
+            soft_weights=np.full(3 * len(faces), weight))
+        return gauge, sorted(int(c) for c in np.concatenate([pos_only, frame_only]))
+
+    def _first_vertices(self, components: np.ndarray) -> np.ndarray:
+        """First vertex of the first face of each given component."""
+        face_comps, first_face = np.unique(self.topology.face_component, return_index=True)
+        return self.topology.faces[first_face[np.isin(face_comps, components)], 0]
+
+    def recenter(self, vertices: np.ndarray, constraints: Constraints,
+                 reference_vertices: np.ndarray) -> np.ndarray:
+        """Translate frame-only components so their centroids match the reference."""
+        topo = self.topology
+        _, frame_only = self.underdetermined_components(constraints)
+        if not len(frame_only):
+            return vertices
+        comp = topo.vertex_component
+        moved = np.isin(comp, frame_only) & topo.is_referenced
+        count = np.bincount(comp[moved], minlength=topo.n_components)
+        shift = np.stack([np.bincount(comp[moved], weights=(reference_vertices - vertices)[
+            moved, k], minlength=topo.n_components) for k in range(3)], axis=1)
+        vertices = vertices.copy()
+        vertices[moved] += shift[comp[moved]] / count[comp[moved], None]
+        return vertices
 
     def system(self, constraints: LinearConstraints, backend: str = "auto",
                extra_penalty_columns: np.ndarray | None = None,
@@ -351,15 +404,17 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     lap("assemble")
 
     regularized: list[int] = []
+    ref_v = np.zeros((topology.n_vertices, 3))
     pos_only, frame_only = problem.underdetermined_components(user)
     if len(pos_only) or len(frame_only):
         # The gauge left free by the constraints is pinned to an anchored reconstruction.
         notify("factorize", 0.0)
-        ref_system = problem.system(problem.anchors(np.ones_like(touched))[0], backend)
-        ref_u = ref_system.solve(np.zeros((len(ref_system.hard_columns), 3)), np.zeros((0, 3)))
+        ref_anchor, _ = problem.anchors(np.ones_like(touched))
+        ref_u = problem.system(ref_anchor, backend).solve(ref_anchor.hard_values,
+                                                          np.zeros((0, 3)))
         ref_v, ref_f = problem.unknowns_to_geometry(ref_u)
-        reg, regularized = problem.regularization(user, ref_v, ref_f)
-        linear = linear.extended(reg)
+        gauge, regularized = problem.gauge_constraints(user, ref_v, ref_f)
+        linear = linear.extended(gauge)
         lap("factorize")
 
     notify("factorize", 0.0)
@@ -371,6 +426,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
 
     first_energy = problem.energies(u)
     vertices, frames = problem.unknowns_to_geometry(u, user)
+    vertices = problem.recenter(vertices, user, ref_v)
     orthonormality = _orthonormality_error(frames)
     if orthonormalize:
         notify("factorize", 0.5)
@@ -383,6 +439,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         soft_values = np.concatenate([linear.soft_values, targets])
         u = system2.solve(linear.hard_values, soft_values)
         vertices, frames = problem.unknowns_to_geometry(u, user)
+        vertices = problem.recenter(vertices, user, ref_v)
         lap("solve")
     notify("solve", 1.0)
 

@@ -255,10 +255,12 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     in_cotree = np.zeros(len(inner), dtype=bool)
     in_cotree[np.flatnonzero(cotree_mask)[cotree.in_tree]] = True
     generators = np.flatnonzero(~in_cotree & ~primal_tree_edges[inner])
-    frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask))
     left, right = dual_links[generators].T
-    hol = frames[left] @ terms.rotations[generators] @ np.swapaxes(frames[right], 1, 2)
-    angles = rotation_angle(hol)
+    angles = np.zeros(0)
+    if len(generators):  # genus 0 without holes has none: skip the frame integration
+        frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask))
+        hol = frames[left] @ terms.rotations[generators] @ np.swapaxes(frames[right], 1, 2)
+        angles = rotation_angle(hol)
     rotation_loops = [
         HolonomyLoop(kind="rotation", component=int(topo.face_component[lf]),
                      edge=topo.edges[inner[g]].tolist(), faces=[int(lf), int(rf)],
@@ -267,12 +269,14 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
 
     # Translation generators: dual tree first, then a primal tree of the remaining edges.
     dual = spanning_forest(m, dual_links)
-    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)))
-    edge_vectors = _edge_vectors(terms, frames)
     dual_tree_edges = np.zeros(topo.n_edges, dtype=bool)
     dual_tree_edges[inner[dual.in_tree]] = True
     rest = np.flatnonzero(~dual_tree_edges)
     tree = spanning_forest(n, topo.edges[rest])
+    if tree.in_tree.all():
+        return rotation_loops, []
+    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)))
+    edge_vectors = _edge_vectors(terms, frames)
     link = tree.parent_link
     has_parent = link >= 0
     steps = np.zeros((n, 3))

@@ -195,9 +195,13 @@ class LinearConstraints:
 class ConstrainedSystem:
     """``K`` with hard unknowns eliminated and soft penalties added, factorized once.
 
-    ``solve(hard_values, soft_values)`` only back-substitutes, so handle drags reuse the
-    factorization (the paper's prefactorization, Sec. 5). The constrained columns and the
-    soft weights are fixed at construction; their target values may change per solve.
+    Hard unknowns are eliminated symmetrically in place: their rows and columns are
+    cleared except for the diagonal, and their coupling to the free unknowns moves to the
+    right-hand side. The factorized matrix keeps its size N, so no index remapping or
+    sub-matrix copy is needed. ``solve(hard_values, soft_values)`` only back-substitutes,
+    so handle drags reuse the factorization (the paper's prefactorization, Sec. 5). The
+    constrained unknowns and soft weights are fixed at construction; their target values
+    may change per solve.
     """
 
     def __init__(self, K: sp.spmatrix, hard_columns: np.ndarray, soft_columns: np.ndarray,
@@ -207,16 +211,21 @@ class ConstrainedSystem:
         self.hard_columns = np.asarray(hard_columns, dtype=np.int64)
         self.soft_columns = np.asarray(soft_columns, dtype=np.int64)
         self.soft_weights = np.asarray(soft_weights, dtype=np.float64)
-        penalty = np.bincount(self.soft_columns, weights=self.soft_weights,
-                              minlength=N).astype(np.float64)
-        K = (sp.csr_matrix(K) + sp.diags(penalty)).tocsr()
-        is_free = np.ones(N, dtype=bool)
-        is_free[self.hard_columns] = False
-        self.free = np.flatnonzero(is_free)
-        K_free_rows = K[self.free]
-        self.K_ff = K_free_rows[:, self.free].tocsc()
-        self.K_fc = K_free_rows[:, self.hard_columns].tocsr()
-        self.factor: Factorization = factorize(self.K_ff, backend)
+        hard = np.zeros(N, dtype=bool)
+        hard[self.hard_columns] = True
+        # Penalties of soft constraints, and 1 on hard diagonals (unused vertices have none).
+        diagonal = np.bincount(self.soft_columns, weights=self.soft_weights,
+                               minlength=N).astype(np.float64) + hard
+        K = (sp.csr_matrix(K) + sp.diags(diagonal)).tocsr()
+        K.sum_duplicates()
+        self.K_hard_rows = K[self.hard_columns]            # (h, N): coupling to the rhs
+        rows = np.repeat(np.arange(N), np.diff(K.indptr))
+        cols = K.indices
+        keep = (~hard[rows] & ~hard[cols]) | ((rows == cols) & hard[rows])
+        reduced = sp.csr_matrix((K.data * keep, cols, K.indptr), shape=K.shape)
+        reduced.eliminate_zeros()
+        self.hard_diagonal = reduced.diagonal()[self.hard_columns]
+        self.factor: Factorization = factorize(reduced, backend)
 
     @property
     def backend(self) -> str:
@@ -226,10 +235,10 @@ class ConstrainedSystem:
         """Unknowns (N, 3) for the given constraint targets ((h, 3) and (s, 3))."""
         rhs = np.zeros((self.size, 3))
         np.add.at(rhs, self.soft_columns, self.soft_weights[:, None] * soft_values)
-        rhs_free = rhs[self.free] - self.K_fc @ hard_values
-        u = np.empty((self.size, 3))
+        rhs -= self.K_hard_rows.T @ hard_values
+        rhs[self.hard_columns] = self.hard_diagonal[:, None] * hard_values
+        u = self.factor.solve(rhs)
         u[self.hard_columns] = hard_values
-        u[self.free] = self.factor.solve(rhs_free)
         return u
 
 

@@ -70,11 +70,11 @@ class MeshTopology:
 
     @property
     def n_faces(self) -> int:
-        return int(len(self.faces))
+        return len(self.faces)
 
     @property
     def n_edges(self) -> int:
-        return int(len(self.edges))
+        return len(self.edges)
 
     @property
     def n_components(self) -> int:

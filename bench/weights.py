@@ -60,8 +60,8 @@ def main() -> None:
                 error = "refused: " + str(exc).split("=")[1].split(" exceeds")[0].strip()
             cells.append(f"{error} ({w.max() / w.min():.0e})")
             if obtuse is None:
-                from solver.system import half_cotangents
                 from solver.frames import face_edge_lengths
+                from solver.system import half_cotangents
                 obtuse = int((half_cotangents(face_edge_lengths(topo, L)) < 0).any(1).sum())
         print(f"| {name} | {len(F)} | {obtuse} | " + " | ".join(cells) + " |", flush=True)
 

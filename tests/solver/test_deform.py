@@ -12,8 +12,9 @@ from solver.topology import build_topology
 
 def rest_frames(V, F):
     forms = fundamental_forms(V, F)
-    lay = triangle_layouts(face_edge_lengths(build_topology(F), forms.lengths / forms.lengths.mean()))
-    return layout_frames(V / forms.lengths.mean(), F, lay)
+    scale = forms.lengths.mean()
+    lay = triangle_layouts(face_edge_lengths(build_topology(F), forms.lengths / scale))
+    return layout_frames(V / scale, F, lay)
 
 
 def test_hard_handles_are_met_exactly_and_solve_reuses_factorization():

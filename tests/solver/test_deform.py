@@ -3,18 +3,9 @@ import pytest
 from botsch_sorkine import load_case
 from meshes import DATA, grid, load, random_rotation, rigid_alignment_error
 
-from solver import Deformer, deform, fundamental_forms
+from solver import Deformer, deform
 from solver.errors import ConstraintError, IndexOutOfRangeError, NonFiniteValueError
-from solver.frames import face_edge_lengths, layout_frames, triangle_layouts
 from solver.metrics import distortion
-from solver.topology import build_topology
-
-
-def rest_frames(V, F):
-    forms = fundamental_forms(V, F)
-    scale = forms.lengths.mean()
-    lay = triangle_layouts(face_edge_lengths(build_topology(F), forms.lengths / scale))
-    return layout_frames(V / scale, F, lay)
 
 
 def test_hard_handles_are_met_exactly_and_solve_reuses_factorization():

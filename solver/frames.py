@@ -13,7 +13,13 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import TriangleInequalityError
-from .rotations import rotation_x, rotation_z
+from .rotations import (
+    quaternion_multiply,
+    quaternion_x,
+    quaternion_z,
+    rotation_x,
+    rotation_z,
+)
 from .topology import MeshTopology
 
 TRIANGLE_SLACK = 1e-12
@@ -76,9 +82,9 @@ def edge_coefficients(layouts: np.ndarray) -> np.ndarray:
     return layouts[:, [1, 2, 0], :] - layouts
 
 
-def transition_rotations(topology: MeshTopology, coefficients: np.ndarray,
-                         angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Transition rotations of the interior edges.
+def transition_angles(topology: MeshTopology, coefficients: np.ndarray,
+                      angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Angles of the transition rotations of the interior edges.
 
     For interior edge ``e = [i, j]`` with face ``L`` left of ``i -> j`` and face ``R`` on the
     other side, ``R_LR = Rz(theta_L) Rx(phi_e) Rz(-theta_R)`` where ``theta_T`` is the angle
@@ -86,7 +92,7 @@ def transition_rotations(topology: MeshTopology, coefficients: np.ndarray,
     immersion, ``f_R = f_L R_LR``.
 
     Returns:
-        (interior_edges (k,) int64, rotations (k, 3, 3) float64).
+        (interior_edges (k,) int64, (k, 3) float64 columns theta_L, phi_e, theta_R).
     """
     inner = topology.interior_edges
     h_left, h_right = topology.edge_halfedges[inner, 0], topology.edge_halfedges[inner, 1]
@@ -94,8 +100,20 @@ def transition_rotations(topology: MeshTopology, coefficients: np.ndarray,
     theta_left = np.arctan2(a[h_left, 1], a[h_left, 0])
     # In face R the edge runs j -> i; the direction i -> j is that vector turned by pi.
     theta_right = np.arctan2(a[h_right, 1], a[h_right, 0]) + np.pi
-    R = rotation_z(theta_left) @ rotation_x(angles[inner]) @ rotation_z(-theta_right)
-    return inner, R
+    return inner, np.stack([theta_left, angles[inner], theta_right], axis=1)
+
+
+def transition_rotations(transition: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) matrices ``Rz(theta_L) Rx(phi) Rz(-theta_R)`` from :func:`transition_angles`."""
+    theta_left, phi, theta_right = transition.T
+    return rotation_z(theta_left) @ rotation_x(phi) @ rotation_z(-theta_right)
+
+
+def transition_quaternions(transition: np.ndarray) -> np.ndarray:
+    """(k, 4) unit quaternions of the same rotations (cheaper to compose)."""
+    theta_left, phi, theta_right = transition.T
+    return quaternion_multiply(quaternion_multiply(quaternion_z(theta_left), quaternion_x(phi)),
+                               quaternion_z(-theta_right))
 
 
 def layout_frames(vertices: np.ndarray, faces: np.ndarray, layouts: np.ndarray) -> np.ndarray:

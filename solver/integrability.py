@@ -26,11 +26,16 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .forms import validate_forms
-from .frames import face_edge_lengths, triangle_inequality_violations
-from .rotations import rotation_angle, swing_twist_angles
+from .frames import face_edge_lengths, transition_quaternions, triangle_inequality_violations
+from .rotations import (
+    quaternion_angles,
+    quaternion_conjugate,
+    quaternion_multiply,
+    rotation_angle,
+)
 from .serialization import JsonDataclass
 from .system import EnergyTerms, energy_terms
-from .topology import MeshTopology, corner_successor, previous_halfedge
+from .topology import MeshTopology, corner_successor, cycle_ranks, previous_halfedge
 from .trees import accumulate_products, accumulate_sums, spanning_forest
 
 WORST_COUNT = 10
@@ -174,8 +179,7 @@ def integrability_from_terms(terms: EnergyTerms, tol: float, mean_length: float,
     defect = np.zeros(topo.n_vertices)
     gauss = np.zeros(topo.n_vertices)
     codazzi = np.zeros(topo.n_vertices)
-    defect[interior] = rotation_angle(holonomy)
-    gauss[interior], codazzi[interior] = swing_twist_angles(holonomy)
+    defect[interior], gauss[interior], codazzi[interior] = quaternion_angles(holonomy)
     for values in (defect, gauss, codazzi):
         values[topo.faces[violations].ravel()] = 0.0
 
@@ -194,43 +198,49 @@ def _interior_vertices(topology: MeshTopology) -> np.ndarray:
 
 
 def halfedge_transitions(terms: EnergyTerms) -> np.ndarray:
-    """(H, 3, 3) transition rotation across each half-edge, from its face to the twin's face
-    (identity on boundary half-edges)."""
+    """(H, 4) unit quaternion of the transition rotation across each half-edge, from its
+    face to the twin's face (identity on boundary half-edges)."""
     topo = terms.topology
-    R = np.broadcast_to(np.eye(3), (3 * topo.n_faces, 3, 3)).copy()
+    q = np.zeros((3 * topo.n_faces, 4))
+    q[:, 0] = 1.0
     fwd, bwd = topo.edge_halfedges[terms.interior_edges].T
-    R[fwd] = terms.rotations
-    R[bwd] = np.swapaxes(terms.rotations, 1, 2)  # R_RL = R_LR^T
-    return R
+    q_lr = transition_quaternions(terms.transition)
+    q[fwd] = q_lr
+    q[bwd] = quaternion_conjugate(q_lr)  # R_RL = R_LR^T
+    return q
 
 
 def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
-    """(k, 3, 3) product of transition rotations around each interior vertex (Eq. 4).
+    """(k, 4) unit quaternion of the transition rotations multiplied around each interior
+    vertex (Eq. 4), in ``interior`` vertex order.
 
     The loop starts at one face of the vertex and goes counter-clockwise; the product is
-    expressed in that face's frame (its z axis is the normal). Computed for all vertices at
-    once by pointer doubling over the corner successor permutation: O(H log valence).
+    expressed in that face's frame (its z axis is the normal). The corners of every
+    interior vertex are put in ring order (pointer doubling over the corner successor
+    permutation), then multiplied rank by rank for all vertices at once: O(H) quaternion
+    products in all, in as many vectorized steps as the largest valence.
     """
     topo = terms.topology
     interior = _interior_vertices(topo)
+    if not len(interior):
+        return np.zeros((0, 4))
     H = 3 * topo.n_faces
-    successor = corner_successor(topo.halfedge_twin)
     corners = np.arange(H)
-    successor = np.where(successor >= 0, successor, corners)
-    step = halfedge_transitions(terms)[previous_halfedge(corners)]  # transition of each step
-    valence = np.bincount(topo.halfedge_origin, minlength=topo.n_vertices)[interior]
-    start = np.full(topo.n_vertices, -1, dtype=np.int64)
-    start[topo.halfedge_origin[::-1]] = corners[::-1]   # first corner of each vertex
-    position = start[interior]
-    result = np.broadcast_to(np.eye(3), (len(interior), 3, 3)).copy()
-    bit = 0
-    while len(interior) and (1 << bit) <= valence.max():
-        take = ((valence >> bit) & 1).astype(bool)
-        result[take] = result[take] @ step[position[take]]
-        position[take] = successor[position[take]]
-        step = step @ step[successor]
-        successor = successor[successor]
-        bit += 1
+    on_interior = np.zeros(topo.n_vertices, dtype=bool)
+    on_interior[interior] = True
+    successor = corner_successor(topo.halfedge_twin)
+    successor = np.where(on_interior[topo.halfedge_origin], successor, corners)
+    count = np.bincount(topo.halfedge_origin, minlength=topo.n_vertices)[interior]
+    _, rank = cycle_ranks(successor, int(count.max()))
+    # Corners of interior vertices sorted by (vertex, ring position).
+    chosen = corners[on_interior[topo.halfedge_origin]]
+    order = chosen[np.lexsort((rank[chosen], topo.halfedge_origin[chosen]))]
+    step = halfedge_transitions(terms)[previous_halfedge(order)]  # transition of each step
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    result = step[start].copy()
+    for r in range(1, int(count.max())):  # one vectorized step per ring position
+        active = np.flatnonzero(count > r)
+        result[active] = quaternion_multiply(result[active], step[start[active] + r])
     return result
 
 

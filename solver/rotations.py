@@ -36,22 +36,58 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     return np.arctan2(sin, cos)
 
 
-def swing_twist_angles(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Split rotations into a twist about the local z axis and a swing that tilts z.
+def quaternion_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product of (..., 4) quaternions (w, x, y, z): R(p q) = R(p) R(q)."""
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack([pw * qw - px * qx - py * qy - pz * qz,
+                     pw * qx + px * qw + py * qz - pz * qy,
+                     pw * qy - px * qz + py * qw + pz * qx,
+                     pw * qz + px * qy - py * qx + pz * qw], axis=-1)
 
-    Returns (twist, swing): twist in (-pi, pi] is the signed rotation about z, swing in
-    [0, pi] the angle by which z itself is tilted (angle between ``R e_z`` and ``e_z``).
+
+def quaternion_z(angle: np.ndarray) -> np.ndarray:
+    """(k, 4) unit quaternions of rotations about z by ``angle`` (k,)."""
+    half = 0.5 * np.asarray(angle, dtype=np.float64)
+    zero = np.zeros_like(half)
+    return np.stack([np.cos(half), zero, zero, np.sin(half)], axis=-1)
+
+
+def quaternion_x(angle: np.ndarray) -> np.ndarray:
+    """(k, 4) unit quaternions of rotations about x by ``angle`` (k,)."""
+    half = 0.5 * np.asarray(angle, dtype=np.float64)
+    zero = np.zeros_like(half)
+    return np.stack([np.cos(half), np.sin(half), zero, zero], axis=-1)
+
+
+def quaternion_conjugate(q: np.ndarray) -> np.ndarray:
+    """Inverse of unit quaternions (the transposed rotation)."""
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices of (..., 4) unit quaternions."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=-2)
+
+
+def quaternion_angles(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotation angle, twist about z and swing of z for (..., 4) unit quaternions.
+
+    Returns (angle in [0, pi], twist in [-pi, pi] signed about the local z axis, swing in
+    [0, pi]: the tilt of z). All three use atan2 of quaternion parts, so they are accurate
+    near 0 (an arccos of the trace would lose half the digits).
     """
-    swing = np.arctan2(np.linalg.norm(np.cross(R[..., :, 2], [0.0, 0.0, 1.0]), axis=-1),
-                       R[..., 2, 2])
-    # Twist: rotate R e_z back onto e_z by the minimal swing, then read the in-plane angle
-    # of the image of e_x. Equivalent to 2 atan2(q_z, q_w) of R's quaternion.
-    q_w2 = 1.0 + np.trace(R, axis1=-2, axis2=-1)  # 4 q_w^2
-    q_z = R[..., 1, 0] - R[..., 0, 1]            # 4 q_w q_z
-    twist = 2.0 * np.arctan2(q_z, q_w2)          # atan2(q_z, q_w) scaled by 4 q_w (> 0 branch)
-    twist = np.where(twist > np.pi, twist - 2 * np.pi, twist)
-    twist = np.where(twist <= -np.pi, twist + 2 * np.pi, twist)
-    return twist, swing
+    q = np.where(q[..., :1] < 0, -q, q)                   # w >= 0: angles in [0, pi]
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    angle = 2.0 * np.arctan2(np.sqrt(x * x + y * y + z * z), w)
+    twist = 2.0 * np.arctan2(z, w)
+    swing = 2.0 * np.arctan2(np.sqrt(x * x + y * y), np.sqrt(w * w + z * z))
+    return angle, twist, swing
 
 
 def nearest_rotation(M: np.ndarray) -> np.ndarray:

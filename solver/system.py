@@ -25,6 +25,7 @@ import scipy.sparse as sp
 from .frames import (
     edge_coefficients,
     face_edge_lengths,
+    transition_angles,
     transition_rotations,
     triangle_areas,
     triangle_layouts,
@@ -46,6 +47,7 @@ class EnergyTerms:
         layouts: (m, 3, 2) 2D corner positions per face.
         coefficients: (m, 3, 2) ``a`` of each half-edge in its face's frame.
         interior_edges: (k,) int64 edges with two faces.
+        transition: (k, 3) angles (theta_L, phi, theta_R) of their transition rotations.
         rotations: (k, 3, 3) transition rotations ``R_LR`` of those edges.
         edge_weights: (m, 3) weight of each half-edge row.
         frame_weights: (k,) weight of each interior edge's frame rows (before frame_weight).
@@ -55,6 +57,7 @@ class EnergyTerms:
     layouts: np.ndarray
     coefficients: np.ndarray
     interior_edges: np.ndarray
+    transition: np.ndarray
     rotations: np.ndarray
     edge_weights: np.ndarray
     frame_weights: np.ndarray
@@ -115,10 +118,12 @@ def energy_terms(topology: MeshTopology, lengths: np.ndarray, angles: np.ndarray
     face_lengths = face_edge_lengths(topology, lengths)
     layouts = triangle_layouts(face_lengths, layout_angles, check=check)
     coefficients = edge_coefficients(layouts)
-    inner, rotations = transition_rotations(topology, coefficients, angles)
+    inner, transition = transition_angles(topology, coefficients, angles)
+    rotations = transition_rotations(transition)
     w_edge, w_frame = energy_weights(topology, face_lengths, inner, weighting, cotan_floor)
     return EnergyTerms(topology=topology, layouts=layouts, coefficients=coefficients,
-                       interior_edges=inner, rotations=rotations, edge_weights=w_edge,
+                       interior_edges=inner, transition=transition, rotations=rotations,
+                       edge_weights=w_edge,
                        frame_weights=w_frame)
 
 

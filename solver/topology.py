@@ -230,27 +230,31 @@ def _check_vertex_fans(origin: np.ndarray, twin: np.ndarray, n: int) -> None:
             details={"vertex": v})
 
 
-def cycle_ranks(successor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def cycle_ranks(successor: np.ndarray, max_length: int | None = None,
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Cycle id and position of each element of a permutation made of cycles.
 
     Args:
         successor: (k,) int64 permutation.
+        max_length: an upper bound on the cycle lengths (default k); the cost is
+            O(k log max_length) by pointer doubling.
     Returns:
         (leader, rank): the smallest index in each element's cycle, and the number of
-        steps from that leader to the element. O(k log k) by pointer doubling.
+        steps from that leader to the element.
     """
     k = len(successor)
+    bound = k if max_length is None else max(int(max_length), 1)
     leader = np.arange(k)
     jump = successor.copy()
     span = 1
-    while span < k:
+    while span < bound:
         leader = np.minimum(leader, leader[jump])
         jump = jump[jump]
         span *= 2
     succ = np.where(successor == leader, np.arange(k), successor)  # cut each cycle at its leader
     dist = (succ != np.arange(k)).astype(np.int64)
     span = 1
-    while span < k:
+    while span < bound:
         dist = dist + dist[succ]
         succ = succ[succ]
         span *= 2

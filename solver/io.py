@@ -1,0 +1,436 @@
+"""Mesh file input/output: OBJ, OFF, PLY, STL, GLB (and embedded-buffer glTF) <-> arrays.
+
+Loading keeps the file's vertex order and count: vertex ``i`` of the result is the ``i``-th
+vertex record of the file, including vertices that no face references (those matter: the
+solver's inputs are indexed by vertex). The one exception is STL, which stores each triangle
+with its own three corners: exactly equal positions are merged so the mesh is connected, and
+the merged vertices are numbered in order of first occurrence.
+
+Per format:
+
+* **OBJ** -- parsed here, not by trimesh: trimesh splits vertices on faces with ``vt``/``vn``
+  indices (one vertex per unique ``v/vt/vn`` triple, creating false boundaries), drops
+  unreferenced ``v`` lines unless ``maintain_order`` is set, and gives every ``usemtl``/``o``
+  group its own vertex set. Here every ``v`` line is one vertex; ``f`` entries use only their
+  ``v`` index (``v``, ``v/vt``, ``v//vn``, ``v/vt/vn``; negative = relative), polygons are
+  fan-triangulated, and all groups/objects/materials are merged in file order. ``vt``, ``vn``,
+  ``l``, ``p``, materials and vertex colours are ignored.
+* **OFF**, **PLY** -- trimesh (``process=False``); polygons are triangulated by trimesh.
+* **STL** -- trimesh, then merge of bit-identical positions (``-0.0`` equals ``0.0``).
+* **GLB** / **glTF** (``.gltf`` only with ``data:`` URI buffers) -- trimesh. The scene must
+  hold exactly one triangle mesh primitive used by exactly one node; its node transform is
+  applied (skipped when it is the identity, so positions are bit-exact). Scenes with several
+  meshes/primitives or instances are rejected with :class:`MeshFileError`: concatenating them
+  would give disconnected pieces whose seams the solver would treat as boundaries.
+
+Saving (:func:`save_mesh`): OBJ, OFF and PLY are written here with full float64 precision
+(``%.17g`` text, binary little-endian ``double`` PLY) so a save/load round trip is exact; STL
+(float32, unshared vertices) and GLB (float32) go through trimesh.
+
+All parse failures raise :class:`MeshFileError` (a ``ValueError``) with a ``reason``; unknown
+formats raise its subclass :class:`UnsupportedFormatError`. The HTTP service maps them to
+400 and 415 respectively.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+import re
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
+
+__all__ = [
+    "LOAD_FORMATS",
+    "SAVE_FORMATS",
+    "MeshFileError",
+    "UnsupportedFormatError",
+    "load_mesh",
+    "load_mesh_file",
+    "resolve_format",
+    "save_mesh",
+]
+
+LOAD_FORMATS: Final = ("obj", "off", "ply", "stl", "glb", "gltf")
+"""Formats :func:`load_mesh` reads (lower-case names / file extensions)."""
+SAVE_FORMATS: Final = ("obj", "off", "ply", "stl", "glb")
+"""Formats :func:`save_mesh` writes."""
+
+_ALIASES: Final[dict[str, str]] = {
+    "model/obj": "obj",
+    "model/stl": "stl",
+    "model/x.stl-binary": "stl",
+    "model/x.stl-ascii": "stl",
+    "application/sla": "stl",
+    "model/gltf-binary": "glb",
+    "model/gltf+json": "gltf",
+}
+"""Media types accepted in place of a file name or extension."""
+
+_log = logging.getLogger(__name__)
+
+_OBJ_REF_TAIL: Final = re.compile(r"/\S*")
+"""The ``/vt/vn`` tail of an OBJ face entry."""
+
+
+class MeshFileError(ValueError):
+    """Mesh file data that cannot be read as a triangle mesh.
+
+    Attributes
+    ----------
+    reason : str
+        Human-readable cause.
+    file_type : str or None
+        The resolved format (``"obj"``, ...), when known.
+    details : dict
+        Extra JSON-ready context.
+    """
+
+    kind: str = "invalid-mesh-file"
+
+    def __init__(self, reason: str, *, file_type: str | None = None,
+                 details: dict[str, Any] | None = None) -> None:
+        self.reason = reason
+        self.file_type = file_type
+        self.details = dict(details or {})
+        super().__init__(f"{file_type}: {reason}" if file_type else reason)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description: ``{"kind", "file_type", "reason", **details}``."""
+        return {"kind": self.kind, "file_type": self.file_type, "reason": self.reason,
+                **self.details}
+
+
+class UnsupportedFormatError(MeshFileError):
+    """The file name / type names no format this module reads (or writes)."""
+
+    kind = "unsupported-mesh-format"
+
+
+def resolve_format(filename_or_type: str, supported: tuple[str, ...] = LOAD_FORMATS) -> str:
+    """Normalise a file name, extension (``"obj"``, ``".OBJ"``) or media type to a format name.
+
+    Raises
+    ------
+    UnsupportedFormatError
+        If the result is not in ``supported``.
+    """
+    s = str(filename_or_type).strip().lower()
+    fmt = _ALIASES.get(s)
+    if fmt is None:
+        fmt = s.rsplit(".", 1)[-1] if "." in s else s
+    if fmt not in supported:
+        raise UnsupportedFormatError(
+            f"unsupported mesh format {fmt or filename_or_type!r}; "
+            f"supported: {', '.join(supported)}",
+            details={"supported": list(supported)})
+    return fmt
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+# --------------------------------------------------------------------------------------------
+
+def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Read a triangle mesh from file bytes, keeping the file's vertex order and count.
+
+    Parameters
+    ----------
+    data : bytes
+        The whole file.
+    filename_or_type : str
+        File name (its extension decides), bare extension (``"off"``, ``".ply"``) or media
+        type (``"model/gltf-binary"``). One of :data:`LOAD_FORMATS`.
+
+    Returns
+    -------
+    vertices : (n, 3) float64, finite, C-contiguous
+    faces : (m, 3) int64, m >= 1, indices in ``[0, n)``; polygons triangulated
+
+    Raises
+    ------
+    UnsupportedFormatError
+        Unknown format.
+    MeshFileError
+        The data cannot be parsed, has no faces, non-finite coordinates or out-of-range indices.
+    """
+    fmt = resolve_format(filename_or_type)
+    if isinstance(data, memoryview | bytearray):
+        data = bytes(data)
+    if not isinstance(data, bytes):
+        raise TypeError(f"data must be bytes, got {type(data).__name__}")
+    if not data.strip():
+        raise MeshFileError("empty file", file_type=fmt)
+    try:
+        if fmt == "obj":
+            vertices, faces = _parse_obj(data)
+        else:
+            vertices, faces = _load_trimesh(data, fmt)
+    except MeshFileError as exc:
+        if exc.file_type is None:
+            exc.file_type = fmt
+            exc.args = (f"{fmt}: {exc.reason}",)
+        raise
+    except Exception as exc:  # trimesh raises all kinds of errors on bad data
+        _log.debug("mesh parse failure", exc_info=True)
+        raise MeshFileError(f"cannot parse {fmt.upper()} data: {type(exc).__name__}: {exc}",
+                            file_type=fmt) from exc
+    if fmt == "stl":
+        vertices, faces = _merge_identical(vertices, faces)
+    return _finish(vertices, faces, fmt)
+
+
+def load_mesh_file(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """:func:`load_mesh` on a file on disk; the format comes from the file extension."""
+    p = Path(path)
+    return load_mesh(p.read_bytes(), p.name)
+
+
+def _finish(vertices: np.ndarray, faces: np.ndarray, fmt: str
+            ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Final dtype/shape/range checks shared by every format."""
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
+        raise MeshFileError(f"no vertices (got array of shape {v.shape})", file_type=fmt)
+    if f.size == 0:
+        raise MeshFileError("no faces: not a triangle mesh", file_type=fmt)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise MeshFileError(f"faces are not triangles (shape {f.shape})", file_type=fmt)
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise MeshFileError(f"vertex {i} has a non-finite coordinate", file_type=fmt,
+                            details={"index": i})
+    bad = ((f < 0) | (f >= v.shape[0])).any(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise MeshFileError(f"face {i} has a vertex index outside [0, {v.shape[0]})",
+                            file_type=fmt, details={"index": i})
+    return v, f
+
+
+def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """Positions from every ``v`` line, triangles from the ``v`` index of every ``f`` entry.
+
+    Returns (n, 3) float64 vertices in ``v``-line order and (m, 3) int64 faces (0-based; each
+    k-gon fan-triangulated into k - 2 triangles ``(i0, ij, ij+1)``, in file order).
+    """
+    text = data.decode("utf-8", errors="replace")
+    text = text.replace("\r\n", "\n").replace("\r", "\n").replace("\\\n", " ")
+    lines = [ln.split("#", 1)[0].strip() for ln in text.split("\n")]
+    # Only whitespace-separated "v" / "f" records count ("vt", "vn", "vp", "fo"... do not).
+    v_lines = [ln for ln in lines if ln[:2] in ("v ", "v\t")]
+    if not v_lines:
+        raise MeshFileError("no vertices ('v' lines) found")
+    is_v = np.array([ln[:2] in ("v ", "v\t") for ln in lines], dtype=bool)
+    is_f = np.array([ln[:2] in ("f ", "f\t") for ln in lines], dtype=bool)
+    coords = [ln.split()[1:4] for ln in v_lines]
+    if min(map(len, coords)) < 3:
+        i = next(k for k, c in enumerate(coords) if len(c) < 3)
+        lineno = int(np.flatnonzero(is_v)[i]) + 1
+        raise MeshFileError(f"line {lineno}: vertex needs 3 coordinates",
+                            details={"line": lineno})
+    try:
+        vertices = np.array(coords, dtype=np.float64)
+    except ValueError as exc:
+        raise MeshFileError(f"bad vertex coordinate ({exc})") from exc
+
+    f_rows = np.flatnonzero(is_f)
+    if f_rows.size == 0:
+        return vertices, np.zeros((0, 3), dtype=np.int64)
+    # "f 1/2/3 4//5 6" -> "1 4 6": keep each entry's leading v index.
+    f_text = _OBJ_REF_TAIL.sub("", "\n".join([lines[r][2:] for r in f_rows]))
+    counts = np.fromiter(map(len, map(str.split, f_text.split("\n"))), dtype=np.int64,
+                         count=f_rows.size)
+    try:
+        ids = np.array(f_text.split(), dtype=np.int64)
+    except ValueError as exc:
+        raise MeshFileError(f"bad face index ({exc})") from exc
+    if counts.min() < 3:
+        lineno = int(f_rows[np.argmax(counts < 3)]) + 1
+        raise MeshFileError(f"line {lineno}: face with fewer than 3 vertices",
+                            details={"line": lineno})
+    # 1-based; negative indices count back from the last vertex defined before the face line.
+    nv_before = np.cumsum(is_v)[f_rows]  # vertices defined up to each face line
+    nv_tok = np.repeat(nv_before, counts)
+    idx = np.where(ids > 0, ids - 1, np.where(ids < 0, nv_tok + ids, -1))
+    bad = (idx < 0) | (idx >= nv_tok)
+    if bad.any():
+        lineno = int(np.repeat(f_rows, counts)[np.argmax(bad)]) + 1
+        raise MeshFileError(f"line {lineno}: face references a vertex not defined before it",
+                            details={"line": lineno})
+    # Fan triangulation, vectorized: face j with k corners starting at token offset o gives
+    # triangles (o, o + t, o + t + 1) for t = 1 .. k - 2.
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    ntri = counts - 2
+    first = np.repeat(starts, ntri)
+    t = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
+    tok = np.stack([first, first + t, first + t + 1], axis=1)
+    return vertices, idx[tok]
+
+
+def _load_trimesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray]:
+    """OFF/PLY/STL/GLB/glTF through trimesh without any processing or reordering."""
+    import trimesh  # deferred: heavy import, and only needed for these formats
+
+    loaded = trimesh.load(io.BytesIO(data), file_type=fmt, process=False,
+                          maintain_order=True)
+    if isinstance(loaded, trimesh.Scene):
+        return _single_scene_mesh(loaded, fmt)
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise MeshFileError(f"no triangle faces (file holds a {type(loaded).__name__})",
+                            file_type=fmt)
+    return np.asarray(loaded.vertices), np.asarray(loaded.faces)
+
+
+def _single_scene_mesh(scene: Any, fmt: str) -> tuple[np.ndarray, np.ndarray]:
+    """The one triangle mesh of a glTF scene, with its node transform applied."""
+    import trimesh
+
+    instances = list(scene.graph.nodes_geometry)
+    meshes = {name: g for name, g in scene.geometry.items() if isinstance(g, trimesh.Trimesh)}
+    if not meshes:
+        raise MeshFileError("no triangle mesh found in the data", file_type=fmt)
+    if len(scene.geometry) != 1 or len(instances) > 1:
+        raise MeshFileError(
+            f"scene holds {len(scene.geometry)} geometries (mesh primitives) in "
+            f"{len(instances)} node instances; exactly one triangle mesh primitive used by one "
+            "node is supported -- merge the meshes into one before uploading",
+            file_type=fmt,
+            details={"geometries": len(scene.geometry), "instances": len(instances)})
+    mesh = next(iter(meshes.values()))
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if instances:
+        transform, _ = scene.graph[instances[0]]
+        transform = np.asarray(transform, dtype=np.float64)
+        if not np.array_equal(transform, np.eye(4)):
+            homog = np.hstack([vertices, np.ones((vertices.shape[0], 1))]) @ transform.T
+            vertices = homog[:, :3] / homog[:, 3:4]
+    return vertices, np.asarray(mesh.faces)
+
+
+def _merge_identical(vertices: np.ndarray, faces: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Merge bit-identical positions; new vertices numbered by first occurrence.
+
+    Parameters
+    ----------
+    vertices : (k, 3) float
+    faces : (m, 3) int into ``vertices``
+
+    Returns
+    -------
+    (n, 3) float64 unique positions, (m, 3) int64 faces into them.
+    """
+    v = np.asarray(vertices, dtype=np.float64) + 0.0  # + 0.0 turns -0.0 into 0.0
+    if v.shape[0] == 0:
+        return v.reshape(0, 3), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    _, first, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(first, kind="stable")  # unique rows in order of first occurrence
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    new_index = rank[inverse]  # old vertex -> merged vertex
+    return v[first[order]], new_index[np.asarray(faces, dtype=np.int64)]
+
+
+# --------------------------------------------------------------------------------------------
+# Saving
+# --------------------------------------------------------------------------------------------
+
+def save_mesh(vertices: ArrayLike, faces: ArrayLike, file_type: str) -> bytes:
+    """Write a triangle mesh as file bytes.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float, finite
+    faces : (m, 3) int, indices in ``[0, n)``
+    file_type : str
+        One of :data:`SAVE_FORMATS` (or a file name / media type naming one).
+
+    Returns
+    -------
+    bytes
+        OBJ/OFF: ASCII with ``%.17g`` coordinates (exact float64 round trip). PLY: binary
+        little-endian, ``double`` coordinates, ``int`` indices. STL: binary, float32, three
+        unshared corners per face (unreferenced vertices are lost). GLB: float32 positions,
+        via trimesh. Every vertex, referenced or not, is written in order (except STL).
+
+    Raises
+    ------
+    UnsupportedFormatError
+        Unknown format.
+    solver.errors.ShapeMismatchError, IndexOutOfRangeError, NonFiniteValueError
+        Malformed arrays.
+    """
+    fmt = resolve_format(file_type, SAVE_FORMATS)
+    v = np.asarray(vertices, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ShapeMismatchError(f"expected shape (n, 3), got {v.shape}", field="vertices")
+    f = np.asarray(faces)
+    if f.size == 0:
+        f = f.reshape(0, 3)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ShapeMismatchError(f"expected shape (m, 3), got {f.shape}", field="faces")
+    f = f.astype(np.int64)
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        raise NonFiniteValueError("non-finite coordinate", field="vertices",
+                                  index=int(np.flatnonzero(bad)[0]))
+    bad = ((f < 0) | (f >= v.shape[0])).any(axis=1)
+    if bad.any():
+        raise IndexOutOfRangeError(f"vertex index outside [0, {v.shape[0]})", field="faces",
+                                   index=int(np.flatnonzero(bad)[0]))
+    if fmt == "obj":
+        return _write_obj(v, f)
+    if fmt == "off":
+        return _write_off(v, f)
+    if fmt == "ply":
+        return _write_ply(v, f)
+    import trimesh
+
+    exported = trimesh.Trimesh(vertices=v, faces=f, process=False).export(file_type=fmt)
+    return exported.encode("utf-8") if isinstance(exported, str) else bytes(exported)
+
+
+def _rows(array: np.ndarray, fmt: str, prefix: str = "") -> str:
+    """Format the rows of a 2-D array as text lines (vectorized via ``np.savetxt``)."""
+    if array.shape[0] == 0:
+        return ""
+    buf = io.StringIO()
+    np.savetxt(buf, array, fmt=fmt, delimiter=" ", header="", comments="")
+    text = buf.getvalue()
+    if prefix:
+        text = prefix + text[:-1].replace("\n", "\n" + prefix) + "\n"
+    return text
+
+
+def _write_obj(v: np.ndarray, f: np.ndarray) -> bytes:
+    return ("# written by fundamental-forms-service\n"
+            + _rows(v, "%.17g", "v ") + _rows(f + 1, "%d", "f ")).encode("ascii")
+
+
+def _write_off(v: np.ndarray, f: np.ndarray) -> bytes:
+    head = f"OFF\n{v.shape[0]} {f.shape[0]} 0\n"
+    tri = np.hstack([np.full((f.shape[0], 1), 3, dtype=np.int64), f])
+    return (head + _rows(v, "%.17g") + _rows(tri, "%d")).encode("ascii")
+
+
+def _write_ply(v: np.ndarray, f: np.ndarray) -> bytes:
+    header = ("ply\nformat binary_little_endian 1.0\ncomment fundamental-forms-service\n"
+              f"element vertex {v.shape[0]}\n"
+              "property double x\nproperty double y\nproperty double z\n"
+              f"element face {f.shape[0]}\nproperty list uchar int vertex_indices\n"
+              "end_header\n").encode("ascii")
+    face_dtype = np.dtype([("n", "u1"), ("idx", "<i4", (3,))])
+    rec = np.empty(f.shape[0], dtype=face_dtype)
+    rec["n"] = 3
+    rec["idx"] = f
+    return header + v.astype("<f8").tobytes() + rec.tobytes()

@@ -106,7 +106,7 @@ def main() -> None:
                 for weighting in args.weightings:
                     try:
                         out, rep, sec = run(case, rotations, orthonormalize, weighting)
-                    except Exception as exc:  # noqa: BLE001 - report and continue
+                    except Exception as exc:
                         print(f"| {name} | {len(case.faces)} | "
                               f"{'rotate' if rotations else 'translate'} | {orthonormalize} "
                               f"| {weighting} | failed: {type(exc).__name__}: {exc} | | | |")

@@ -1,0 +1,274 @@
+"""Request bodies -> task payloads: size limits, JSON or multipart, schema validation.
+
+Bodies are read here (not by FastAPI) so that one endpoint takes both
+``application/json`` and ``multipart/form-data`` (a mesh file in ``file``, every other field
+as a JSON-encoded form value), and so that the body limit is enforced while streaming.
+Arrays are converted to numpy once; the workers receive them pickled.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import anyio
+import numpy as np
+import orjson
+from pydantic import BaseModel, ValidationError
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import Request
+
+from service.problems import ProblemError, from_validation_errors
+from service.schemas import PARAMS_MODELS, REQUEST_MODELS
+from service.settings import Settings
+from service.tasks import check_limits
+
+FILE_FIELDS: dict[str, tuple[str, ...]] = {"interpolate": ("file_a", "file_b")}
+"""Upload field names per operation (default ``("file",)``)."""
+FILE_TYPES = ("obj", "ply", "off", "stl", "glb", "gltf")
+THREAD_THRESHOLD = 256 * 1024
+"""Bodies larger than this are validated in a worker thread, off the event loop."""
+
+
+def file_fields(operation: str) -> tuple[str, ...]:
+    return FILE_FIELDS.get(operation, ("file",))
+
+
+def media_type(request: Request) -> str:
+    """The request's media type without parameters (``application/json`` if absent)."""
+    value = request.headers.get("content-type", "")
+    return value.split(";", 1)[0].strip().lower() or "application/json"
+
+
+def is_json(mtype: str) -> bool:
+    return mtype == "application/json" or mtype.endswith("+json")
+
+
+async def read_body(request: Request, limit: int) -> bytes:
+    """The whole body, or a 413 problem as soon as it exceeds ``limit`` bytes."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise _too_large(int(declared), limit)
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise _too_large(size, limit)
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _too_large(size: int, limit: int) -> ProblemError:
+    return ProblemError("payload-too-large",
+                        f"the body has at least {size} bytes; the limit is {limit} "
+                        "(FFS_MAX_BODY_BYTES)",
+                        errors=[{"field": "body", "index": None,
+                                 "reason": f"more than {limit} bytes"}])
+
+
+def validate_json(model: type[BaseModel], body: bytes) -> Any:
+    """Parse and validate a JSON body: 400 if it is not JSON, 422 if it breaks the schema."""
+    if not body.strip():
+        raise ProblemError("malformed-json", "the body is empty; send a JSON object")
+    try:
+        return model.model_validate_json(body)
+    except ValidationError as exc:
+        errors = exc.errors(include_url=False, include_input=False)
+        invalid = [e for e in errors if e["type"] == "json_invalid"]
+        if invalid:
+            raise ProblemError("malformed-json", f"the body is not valid JSON: "
+                               f"{invalid[0].get('ctx', {}).get('error', invalid[0]['msg'])}"
+                               ) from None
+        raise from_validation_errors(errors) from None
+
+
+def validate_object(model: type[BaseModel], data: Any, prefix: tuple[Any, ...] = ()) -> Any:
+    """Validate already-parsed data; errors point below ``prefix``."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise from_validation_errors(exc.errors(include_url=False, include_input=False),
+                                     prefix) from None
+
+
+# ------------------------------------------------------------------------------ payloads
+
+
+def _limits(settings: Settings) -> dict[str, int]:
+    return {"max_vertices": settings.max_vertices, "max_faces": settings.max_faces}
+
+
+def _points(values: list[Any]) -> np.ndarray:
+    return np.asarray(values, dtype=np.float64).reshape(-1, 3)
+
+
+def _triangles(values: list[Any]) -> np.ndarray:
+    return np.asarray(values, dtype=np.int64).reshape(-1, 3)
+
+
+def _limit_problem(fn: Any, *args: Any) -> None:
+    from service.tasks import TaskProblemError
+
+    try:
+        fn(*args)
+    except TaskProblemError as exc:
+        raise ProblemError(exc.kind, exc.detail, status=exc.status, errors=exc.errors) from None
+
+
+def payload_from_model(operation: str, model: BaseModel, settings: Settings) -> dict[str, Any]:
+    """Task payload for a validated JSON request model."""
+    params_fields = set(PARAMS_MODELS[operation].model_fields)
+    params = model.model_dump(include=params_fields)
+    limits = _limits(settings)
+    data: Any = model
+    if operation in ("integrability", "reconstruct"):
+        faces = _triangles(data.faces)
+        n_vertices = int(faces.max()) + 1 if faces.size else 0
+        _limit_problem(check_limits, n_vertices, len(faces), limits, "faces")
+        source = {"kind": "forms", "faces": faces,
+                  "edges": np.asarray(data.edges, dtype=np.int64).reshape(-1, 2),
+                  "lengths": np.asarray(data.lengths, dtype=np.float64),
+                  "angles": np.asarray(data.angles, dtype=np.float64)}
+    elif operation == "interpolate":
+        vertices_a, vertices_b = _points(data.vertices_a), _points(data.vertices_b)
+        faces = _triangles(data.faces)
+        _limit_problem(check_limits, max(len(vertices_a), len(vertices_b)), len(faces),
+                       limits, "vertices_a")
+        source = {"kind": "pair", "vertices_a": vertices_a, "vertices_b": vertices_b,
+                  "faces": faces}
+    else:
+        vertices, faces = _points(data.vertices), _triangles(data.faces)
+        _limit_problem(check_limits, len(vertices), len(faces), limits, "vertices")
+        source = {"kind": "arrays", "vertices": vertices, "faces": faces}
+    return {"source": source, "params": params, "limits": limits,
+            "backend": settings.solver_backend}
+
+
+def payload_from_dict(operation: str, data: Any, settings: Settings,
+                      prefix: tuple[Any, ...] = ()) -> dict[str, Any]:
+    """Task payload for parsed JSON data (e.g. a job's ``input``)."""
+    model = validate_object(REQUEST_MODELS[operation], data, prefix)
+    return payload_from_model(operation, model, settings)
+
+
+async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any],
+                                                                   dict[str, UploadFile]]:
+    """Parse a multipart body: (JSON-decoded fields, uploaded files)."""
+    body = await read_body(request, settings.max_body_bytes)
+    sent = False
+
+    async def receive() -> dict[str, Any]:
+        nonlocal sent
+        if sent:
+            return {"type": "http.disconnect"}
+        sent = True
+        return {"type": "http.request", "body": body, "more_body": False}
+
+    replay = Request(request.scope, receive)
+    try:
+        form = await replay.form(max_files=4, max_fields=64,
+                                 max_part_size=settings.max_body_bytes)
+    except StarletteHTTPException as exc:
+        raise ProblemError("malformed-request", f"cannot read the multipart body: {exc.detail}"
+                           ) from None
+    except Exception as exc:  # python-multipart parse errors
+        raise ProblemError("malformed-request", f"cannot read the multipart body: {exc}"
+                           ) from None
+    fields: dict[str, Any] = {}
+    files: dict[str, UploadFile] = {}
+    for key, value in form.multi_items():
+        if isinstance(value, UploadFile):
+            files[key] = value
+        elif key in fields:
+            raise ProblemError("malformed-request", f"form field {key!r} is given twice",
+                               errors=[{"field": key, "index": None, "reason": "repeated"}])
+        else:
+            fields[key] = _decode_field(value)
+    return fields, files
+
+
+def _decode_field(value: str) -> Any:
+    """Form values are JSON (``{"a": 1}``, ``[1, 2]``, ``0.5``, ``true``) or plain strings."""
+    try:
+        return orjson.loads(value)
+    except orjson.JSONDecodeError:
+        return value
+
+
+async def upload(file: UploadFile, field: str) -> dict[str, Any]:
+    """Read one uploaded mesh file; 415 for an unknown type, 400 for an empty file."""
+    from solver.io import UnsupportedFormatError, resolve_format
+
+    name = file.filename or ""
+    try:
+        resolve_format(name if "." in name else (file.content_type or name))
+    except UnsupportedFormatError as exc:
+        raise ProblemError(
+            "unsupported-file-type",
+            f"{field}: {name or file.content_type!r} is not a supported mesh file; upload "
+            f"one of {', '.join(FILE_TYPES)}",
+            errors=[{"field": field, "index": None, "reason": exc.reason}]) from None
+    data = await file.read()
+    if not data:
+        raise ProblemError("unreadable-file", f"{field}: the file is empty",
+                           errors=[{"field": field, "index": None, "reason": "empty file"}])
+    return {"kind": "file", "data": data,
+            "filename": name if "." in name else (file.content_type or name)}
+
+
+async def payload_from_form(operation: str, fields: dict[str, Any],
+                            files: dict[str, UploadFile], settings: Settings,
+                            ) -> dict[str, Any]:
+    """Task payload for a multipart upload (mesh file(s) + JSON-encoded form fields)."""
+    names = file_fields(operation)
+    missing = [n for n in names if n not in files]
+    unexpected = [n for n in files if n not in names]
+    if missing or unexpected:
+        errors = [{"field": n, "index": None, "reason": "a mesh file is required"}
+                  for n in missing]
+        errors += [{"field": n, "index": None, "reason": f"unexpected file (use {names})"}
+                   for n in unexpected]
+        raise ProblemError("validation-error", errors[0]["field"] + ": " + errors[0]["reason"],
+                           errors=errors)
+    params = validate_object(PARAMS_MODELS[operation], fields)
+    uploads = {n: await upload(files[n], n) for n in names}
+    if operation == "interpolate":
+        source: dict[str, Any] = {"kind": "files", "a": uploads["file_a"],
+                                  "b": uploads["file_b"]}
+    else:
+        source = uploads["file"]
+    return {"source": source, "params": params.model_dump(), "limits": _limits(settings),
+            "backend": settings.solver_backend}
+
+
+async def parse_operation(request: Request, operation: str, settings: Settings,
+                          ) -> dict[str, Any]:
+    """Task payload of a synchronous operation request (JSON or multipart)."""
+    mtype = media_type(request)
+    if mtype == "multipart/form-data":
+        fields, files = await read_form(request, settings)
+        return await payload_from_form(operation, fields, files, settings)
+    if is_json(mtype):
+        body = await read_body(request, settings.max_body_bytes)
+        return await off_loop(len(body), _json_payload, operation, body, settings)
+    raise unsupported_media_type(mtype)
+
+
+def _json_payload(operation: str, body: bytes, settings: Settings) -> dict[str, Any]:
+    model = validate_json(REQUEST_MODELS[operation], body)
+    return payload_from_model(operation, model, settings)
+
+
+async def off_loop(size: int, fn: Any, *args: Any) -> Any:
+    """Run ``fn(*args)`` in a thread when the input is large (> THREAD_THRESHOLD bytes), so
+    that validating a big mesh does not stall the event loop for other requests."""
+    if size <= THREAD_THRESHOLD:
+        return fn(*args)
+    return await anyio.to_thread.run_sync(fn, *args)
+
+
+def unsupported_media_type(mtype: str) -> ProblemError:
+    return ProblemError("unsupported-media-type",
+                        f"Content-Type {mtype!r} is not supported; send application/json or "
+                        "multipart/form-data with the mesh in `file`",
+                        errors=[{"field": "Content-Type", "index": None, "reason": mtype}])

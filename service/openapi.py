@@ -1,0 +1,134 @@
+"""The OpenAPI document: request bodies that FastAPI cannot infer (JSON *or* multipart),
+problem responses as ``application/problem+json``, and every schema with an example.
+
+``scripts/generate_openapi.py`` writes it to ``openapi/openapi.json``; a test fails when that
+file is stale.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+from pydantic import BaseModel
+from pydantic.json_schema import models_json_schema
+
+from service.problems import PROBLEM_MEDIA_TYPE
+from service.schemas import PARAMS_MODELS, REQUEST_MODELS, JobRequest, Problem
+
+REF = "#/components/schemas/{model}"
+ERROR_DESCRIPTIONS: dict[int, str] = {
+    400: "Malformed JSON, multipart body or mesh file.",
+    404: "Unknown job (or it expired).",
+    406: "None of the Accept media types can be produced.",
+    409: "The job has no result (not finished, failed or cancelled).",
+    413: "Body, vertex or face count over the limit.",
+    415: "Unsupported Content-Type or mesh file type.",
+    422: "Schema violation, or a solver input error (one problem kind per error class).",
+    500: "A worker process died.",
+    503: "Queue full (Retry-After) or the pool is not running.",
+    504: "No result within FFS_REQUEST_TIMEOUT.",
+}
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` entries for problem documents (content filled in by :func:`build`)."""
+    return {code: {"description": ERROR_DESCRIPTIONS[code]} for code in codes}
+
+
+def _example(model: type[BaseModel]) -> Any:
+    extra = model.model_config.get("json_schema_extra") or {}
+    examples = extra.get("examples") if isinstance(extra, dict) else None
+    return copy.deepcopy(examples[0]) if examples else None
+
+
+def multipart_schema(operation: str, file_fields: tuple[str, ...],
+                     extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Schema of the multipart form: the mesh file(s) plus JSON-encoded parameter fields."""
+    params = PARAMS_MODELS[operation]
+    properties: dict[str, Any] = dict(extra or {})
+    for name in file_fields:
+        properties[name] = {"type": "string", "format": "binary",
+                            "description": "Mesh file: OBJ, PLY, OFF, STL or GLB (vertex order "
+                                           "and faces are kept as in the file)."}
+    for name, info in params.model_fields.items():
+        properties[name] = {"type": "string",
+                            "description": f"JSON-encoded `{name}`"
+                                           + (f": {info.description}" if info.description
+                                              else "") + "."}
+    required = [*file_fields, *(n for n, f in params.model_fields.items() if f.is_required())]
+    example = {name: f"<{name}.off>" for name in file_fields}
+    sample = _example(params) or {}
+    example.update({k: _to_form_value(v) for k, v in sample.items()})
+    return {"type": "object", "properties": properties, "required": required,
+            "examples": [example]}
+
+
+def _to_form_value(value: Any) -> str:
+    import json
+
+    return json.dumps(value)
+
+
+def operation_body(operation: str, file_fields: tuple[str, ...]) -> dict[str, Any]:
+    """``openapi_extra`` of a synchronous operation: JSON body or a multipart upload."""
+    model = REQUEST_MODELS[operation]
+    return {"requestBody": {"required": True, "content": {
+        "application/json": {"schema": {"$ref": REF.format(model=model.__name__)},
+                             "example": _example(model)},
+        "multipart/form-data": {"schema": multipart_schema(operation, file_fields)},
+    }}}
+
+
+def jobs_body() -> dict[str, Any]:
+    """``openapi_extra`` of ``POST /v1/jobs``."""
+    upload = {"type": "object", "required": ["operation", "file"],
+              "properties": {
+                  "operation": {"type": "string", "enum": list(REQUEST_MODELS)},
+                  "color": {"type": "string", "enum": ["defect", "distortion"]},
+                  "file": {"type": "string", "format": "binary",
+                           "description": "Mesh file (file_a and file_b for interpolate)."},
+                  "file_a": {"type": "string", "format": "binary"},
+                  "file_b": {"type": "string", "format": "binary"},
+              },
+              "additionalProperties": {"type": "string",
+                                       "description": "Other JSON-encoded parameters of the "
+                                                      "operation (options, handles, t, ...)."},
+              "examples": [{"operation": "reconstruct", "file": "<face.off>",
+                            "options": '{"orthonormalize": true}'}]}
+    return {"requestBody": {"required": True, "content": {
+        "application/json": {"schema": {"$ref": REF.format(model=JobRequest.__name__)},
+                             "example": _example(JobRequest)},
+        "multipart/form-data": {"schema": upload},
+    }}}
+
+
+EXTRA_MODELS: tuple[type[BaseModel], ...] = (*REQUEST_MODELS.values(), JobRequest, Problem)
+
+
+def build(app: FastAPI) -> dict[str, Any]:
+    """The app's OpenAPI document (cached on the app)."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    schema = get_openapi(title=app.title, version=app.version, description=app.description,
+                         routes=app.routes, tags=app.openapi_tags)
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    _, defs = models_json_schema([(m, "validation") for m in EXTRA_MODELS], ref_template=REF)
+    for name, definition in defs.get("$defs", {}).items():
+        components.setdefault(name, definition)
+    for name in ("HTTPValidationError", "ValidationError"):
+        components.pop(name, None)
+    problem_ref = {"$ref": REF.format(model="Problem")}
+    for path_item in schema.get("paths", {}).values():
+        for operation in path_item.values():
+            for code, response in operation.get("responses", {}).items():
+                if code.isdigit() and int(code) >= 400 and "readyz" not in str(
+                        operation.get("operationId")):
+                    response["content"] = {PROBLEM_MEDIA_TYPE: {"schema": problem_ref}}
+                    if int(code) == 422 and response.get("description") == "Validation Error":
+                        response["description"] = ERROR_DESCRIPTIONS[422]
+    schema["components"]["schemas"] = dict(sorted(components.items()))
+    app.openapi_schema = schema
+    return schema

@@ -1,0 +1,251 @@
+"""RFC 9457 problem documents (``application/problem+json``) and the app's error handlers.
+
+Every error response is a problem document::
+
+    {"type": "/problems/index-out-of-range", "title": "Index out of range", "status": 422,
+     "detail": "faces[17]: index 9001 out of range [0, 100)", "instance": "/v1/forms",
+     "kind": "index-out-of-range",
+     "errors": [{"field": "faces", "index": 17, "reason": "index 9001 out of range [0, 100)"}]}
+
+``type`` is relative to the service root; ``GET /problems/{kind}`` describes each kind.
+Each :class:`solver.errors.SolverInputError` kind maps to 422, schema violations to 422
+(``validation-error``), malformed bodies to 400, unsupported media types to 415 and
+oversize input to 413.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import orjson
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.responses import Response
+
+from solver.errors import ERROR_KINDS, SolverInputError
+
+logger = logging.getLogger("service")
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+PROBLEM_BASE = "/problems/"
+
+PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
+    # Service-level kinds: kind -> (status, title, description).
+    "validation-error": (422, "Request does not match the schema",
+                         "A field is missing, has the wrong type, is not finite (NaN or "
+                         "infinity) or is out of its allowed range; `errors` names each one."),
+    "malformed-json": (400, "Malformed JSON", "The body is not valid JSON."),
+    "malformed-request": (400, "Malformed request",
+                          "The multipart body or a form field could not be read."),
+    "unreadable-file": (400, "Unreadable mesh file",
+                        "The uploaded mesh file could not be parsed."),
+    "unsupported-media-type": (415, "Unsupported media type",
+                               "Send application/json or multipart/form-data."),
+    "unsupported-file-type": (415, "Unsupported mesh file type",
+                              "Upload an OBJ, PLY, OFF, STL or GLB file."),
+    "payload-too-large": (413, "Request body too large",
+                          "The body exceeds FFS_MAX_BODY_BYTES."),
+    "mesh-too-large": (413, "Mesh too large",
+                       "The mesh exceeds FFS_MAX_VERTICES or FFS_MAX_FACES."),
+    "not-acceptable": (406, "Not acceptable",
+                       "None of the media types in Accept can be produced for this result."),
+    "unsupported-color": (422, "Colour field not available",
+                          "The requested vertex colour field is not produced by this operation."),
+    "invalid-option": (422, "Invalid option", "An option has a value the solver cannot use."),
+    "not-integrable": (422, "Forms are not integrable",
+                       "options.require_integrable is set and the integrability check failed; "
+                       "`errors` names the worst vertices."),
+    "singular-system": (422, "Singular linear system",
+                        "The constraints leave the linear system singular or ill-posed."),
+    "not-found": (404, "Not found", "No such resource (or the job expired)."),
+    "method-not-allowed": (405, "Method not allowed", "The path does not accept this method."),
+    "job-not-finished": (409, "Job not finished", "The job is still queued or running."),
+    "job-failed": (409, "Job failed", "The job failed; `error` holds its problem document."),
+    "job-cancelled": (409, "Job cancelled", "The job was cancelled; it has no result."),
+    "color-not-computed": (409, "Colour not computed",
+                           "Submit the job with that `color` to fetch its result coloured."),
+    "queue-full": (503, "Server busy", "The work queue is full; retry after Retry-After seconds."),
+    "too-many-jobs": (503, "Too many jobs", "The job store is full; retry later."),
+    "unavailable": (503, "Service unavailable", "The worker pool is not running."),
+    "timeout": (504, "Timed out", "The result was not ready within FFS_REQUEST_TIMEOUT."),
+    "worker-died": (500, "Worker died", "The worker process running the request exited."),
+    "internal-error": (500, "Internal error", "An unexpected error; it has been logged."),
+    "http-error": (400, "HTTP error", "A generic HTTP error."),
+}
+for _cls in ERROR_KINDS:
+    PROBLEM_KINDS[_cls.kind] = (422, _cls.kind.replace("-", " ").capitalize(),
+                                (_cls.__doc__ or "").strip().splitlines()[0])
+PROBLEM_KINDS[SolverInputError.kind] = (422, "Invalid input", "Invalid input data.")
+
+
+def problem_type(kind: str) -> str:
+    """The ``type`` URI of a problem kind."""
+    return PROBLEM_BASE + kind
+
+
+class ProblemError(Exception):
+    """An error that the app's handler turns into a problem document.
+
+    Attributes:
+        kind: the problem kind (a key of :data:`PROBLEM_KINDS`).
+        status: HTTP status (defaults to the kind's).
+        detail: human-readable explanation of this occurrence.
+        errors: machine-readable pointers ``[{"field", "index", "reason", ...}]``.
+        headers: extra response headers (e.g. Retry-After).
+        extensions: extra top-level members.
+    """
+
+    def __init__(self, kind: str, detail: str, *, status: int | None = None,
+                 errors: Sequence[Mapping[str, Any]] | None = None,
+                 headers: Mapping[str, str] | None = None, **extensions: Any) -> None:
+        super().__init__(detail)
+        self.kind = kind
+        self.status = status or PROBLEM_KINDS.get(kind, (500,))[0]
+        self.detail = detail
+        self.errors = [dict(e) for e in (errors or [])]
+        self.headers = dict(headers or {})
+        self.extensions = extensions
+
+    def to_dict(self, instance: str | None = None) -> dict[str, Any]:
+        """The problem document."""
+        title = PROBLEM_KINDS.get(self.kind, (0, "Error"))[1]
+        doc: dict[str, Any] = {"type": problem_type(self.kind), "title": title,
+                               "status": self.status, "detail": self.detail, "kind": self.kind}
+        if instance:
+            doc["instance"] = instance
+        doc["errors"] = self.errors
+        doc.update(self.extensions)
+        return doc
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> ProblemError:
+        """Rebuild from a document made by :meth:`to_dict` (e.g. a stored job error)."""
+        known = {"type", "title", "status", "detail", "kind", "instance", "errors"}
+        return cls(str(doc.get("kind", "internal-error")), str(doc.get("detail", "")),
+                   status=int(doc.get("status", 500)), errors=doc.get("errors"),
+                   **{k: v for k, v in doc.items() if k not in known})
+
+
+def problem_response(problem: ProblemError, instance: str | None = None) -> Response:
+    """A ``application/problem+json`` response for ``problem``."""
+    body = orjson.dumps(problem.to_dict(instance), option=orjson.OPT_SERIALIZE_NUMPY,
+                        default=_fallback)
+    return Response(body, status_code=problem.status, media_type=PROBLEM_MEDIA_TYPE,
+                    headers=problem.headers)
+
+
+def _fallback(value: Any) -> Any:
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    return str(value)
+
+
+# ----------------------------------------------------------------------------- conversions
+
+
+def from_solver_error(error: Mapping[str, Any], message: str | None = None) -> ProblemError:
+    """Problem for a serialized :class:`SolverInputError` (``to_dict()``): always 422."""
+    item = {k: v for k, v in error.items() if k != "kind"}
+    kind = str(error.get("kind") or SolverInputError.kind)
+    if kind not in PROBLEM_KINDS:
+        kind = SolverInputError.kind
+    return ProblemError(kind, message or str(error.get("reason", "invalid input")), status=422,
+                        errors=[item])
+
+
+def pointer_from_loc(loc: Iterable[Any]) -> dict[str, Any]:
+    """Map a pydantic error location to ``{"field", "index", "pointer"}``.
+
+    ``("constraints", "positions", 2, "vertex")`` -> field ``constraints.positions.vertex``,
+    index 2 (the first list index), pointer ``/constraints/positions/2/vertex``. Union tags
+    such as ``list[float]`` are dropped.
+    """
+    parts = [p for p in loc if not (isinstance(p, str) and ("[" in p or p in _UNION_TAGS))]
+    names = [str(p) for p in parts if isinstance(p, str)]
+    indices = [p for p in parts if isinstance(p, int)]
+    return {"field": ".".join(names) or None, "index": indices[0] if indices else None,
+            "pointer": "/" + "/".join(str(p) for p in parts) if parts else ""}
+
+
+_UNION_TAGS = {"float", "int", "str", "bool", "function-after", "function-before"}
+
+
+def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence[Any] = (),
+                           limit: int = 50) -> ProblemError:
+    """422 ``validation-error`` listing pydantic errors as pointers (at most ``limit``)."""
+    items = []
+    for err in errors[:limit]:
+        loc = (*prefix, *err.get("loc", ()))
+        item = pointer_from_loc(loc)
+        item["reason"] = str(err.get("msg", "invalid"))
+        item["type"] = str(err.get("type", ""))
+        items.append(item)
+    first = items[0] if items else {"field": None, "reason": "invalid"}
+    where = first["field"] or "body"
+    if first.get("index") is not None:
+        where += f"[{first['index']}]"
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return ProblemError("validation-error", f"{where}: {first['reason']}{more}", status=422,
+                        errors=items)
+
+
+def from_worker_error(error: Mapping[str, Any]) -> ProblemError:
+    """Problem for an error dict produced by :func:`service.tasks.describe_error`."""
+    category = error.get("category")
+    if category == "input":
+        return from_solver_error(error["error"], error.get("message"))
+    if category == "problem":
+        return ProblemError(str(error["kind"]), str(error["detail"]),
+                            status=int(error.get("status") or 0) or None,
+                            errors=error.get("errors"), **dict(error.get("extensions") or {}))
+    logger.error("worker task failed: %s\n%s", error.get("message"), error.get("traceback", ""))
+    return ProblemError("internal-error",
+                        f"the solver failed unexpectedly ({error.get('exception', 'error')}: "
+                        f"{error.get('message', '')})", status=500)
+
+
+# ------------------------------------------------------------------------------- handlers
+
+
+def install_handlers(app: FastAPI) -> None:
+    """Register handlers so that every error leaves the app as a problem document."""
+
+    async def on_problem(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, ProblemError)
+        return problem_response(exc, request.url.path)
+
+    async def on_request_validation(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, RequestValidationError)
+        return problem_response(from_validation_errors(exc.errors()), request.url.path)
+
+    async def on_pydantic(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, ValidationError)
+        return problem_response(from_validation_errors(exc.errors()), request.url.path)
+
+    async def on_solver_error(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, SolverInputError)
+        return problem_response(from_solver_error(exc.to_dict(), str(exc)), request.url.path)
+
+    async def on_http(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, StarletteHTTPException)
+        kind = {404: "not-found", 405: "method-not-allowed", 413: "payload-too-large",
+                415: "unsupported-media-type"}.get(exc.status_code, "http-error")
+        problem = ProblemError(kind, str(exc.detail), status=exc.status_code,
+                               headers=exc.headers)
+        return problem_response(problem, request.url.path)
+
+    async def on_unexpected(request: Request, exc: Exception) -> Response:
+        logger.exception("unhandled error on %s %s", request.method, request.url.path)
+        problem = ProblemError("internal-error", f"unexpected {type(exc).__name__}", status=500)
+        return problem_response(problem, request.url.path)
+
+    app.add_exception_handler(ProblemError, on_problem)
+    app.add_exception_handler(RequestValidationError, on_request_validation)
+    app.add_exception_handler(ValidationError, on_pydantic)
+    app.add_exception_handler(SolverInputError, on_solver_error)
+    app.add_exception_handler(StarletteHTTPException, on_http)
+    app.add_exception_handler(Exception, on_unexpected)

@@ -1,0 +1,588 @@
+"""Pydantic v2 models of the HTTP API: request bodies, responses and problem documents.
+
+Request models reject NaN and infinities at the schema (``allow_inf_nan=False``) and unknown
+fields (``extra="forbid"``). Large arrays are typed as lists of fixed-size tuples, which
+pydantic-core validates in Rust; routes turn them into numpy arrays once. Every model carries
+an example (``json_schema_extra``) that the OpenAPI document and the docs page show; the
+request examples are valid requests (a test posts each one).
+
+Request models for the multipart upload form are split into a *mesh* part (taken from the
+uploaded file) and a *params* part (the other form fields); see :data:`PARAMS_MODELS`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from solver.linalg import BACKENDS
+
+# ---------------------------------------------------------------------------- examples
+
+_V = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.5, 0.5, 0.5]]
+_F = [[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]]
+_E = [[0, 1], [0, 3], [0, 4], [1, 2], [1, 4], [2, 3], [2, 4], [3, 4]]
+_S = 0.8660254037844386  # slanted edge length of the example pyramid
+_A = 1.0471975511965979  # its dihedral angle (pi / 3)
+_L = [1.0, 1.0, _S, 1.0, _S, 1.0, _S, _S]
+_ANG = [0.0, 0.0, _A, 0.0, _A, 0.0, _A, _A]
+_V_UP = [*_V[:4], [0.5, 0.5, 0.8]]
+EXAMPLE_MESH: dict[str, Any] = {"vertices": _V, "faces": _F}
+EXAMPLE_FORMS: dict[str, Any] = {"faces": _F, "edges": _E, "lengths": _L, "angles": _ANG}
+_IDENTITY = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+Operation = Literal["reconstruct", "deform", "parameterize", "integrability", "forms",
+                    "interpolate"]
+OPERATIONS: tuple[str, ...] = ("forms", "integrability", "reconstruct", "deform",
+                               "parameterize", "interpolate")
+ColorField = Literal["defect", "distortion"]
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+
+MAX_MAGNITUDE = 1e60
+"""Largest accepted |coordinate| or length (Heron's formula takes 4th powers of lengths)."""
+MAX_INDEX = 2**31 - 1
+
+MAX_WEIGHT = 1e12
+"""Largest accepted energy weight (frame, orthonormalization, soft constraint)."""
+
+Real = Annotated[float, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
+Weight = Annotated[float, Field(gt=0, le=MAX_WEIGHT)]
+Index = Annotated[int, Field(ge=0, le=MAX_INDEX)]
+Vec3 = tuple[Real, Real, Real]
+Tri = tuple[Index, Index, Index]
+Mat3 = tuple[Vec3, Vec3, Vec3]
+SolverName = Literal["auto", *sorted(BACKENDS)]  # type: ignore[valid-type]
+Weighting = Literal["uniform", "cotan", "cotan_clamped"]
+
+
+class ApiModel(BaseModel):
+    """Base of the request models: finite floats only, unknown fields rejected."""
+
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
+
+
+def _example(example: dict[str, Any], model: type[BaseModel] = ApiModel) -> ConfigDict:
+    config = ConfigDict(**model.model_config)
+    config["json_schema_extra"] = {"examples": [example]}
+    return config
+
+
+# ------------------------------------------------------------------------ mesh sources
+
+
+class MeshPart(ApiModel):
+    """A triangle mesh: vertex positions and counter-clockwise faces (0-based)."""
+
+    model_config = _example(EXAMPLE_MESH)
+
+    vertices: list[Vec3] = Field(min_length=1, description="(n, 3) vertex positions.")
+    faces: list[Tri] = Field(min_length=1, description="(m, 3) vertex indices, 0-based, "
+                             "counter-clockwise seen from outside.")
+
+
+class FormsPart(ApiModel):
+    """Discrete fundamental forms: the output of ``POST /v1/forms``."""
+
+    model_config = _example(EXAMPLE_FORMS)
+
+    faces: list[Tri] = Field(min_length=1, description="(m, 3) vertex indices.")
+    edges: list[tuple[Index, Index]] = Field(
+        description="(E, 2) the faces' edges [i, j], i < j, sorted lexicographically.")
+    lengths: list[Real] = Field(description="(E,) edge lengths (first fundamental form).")
+    angles: list[Real] = Field(
+        description="(E,) signed dihedral angles in (-pi, pi], positive where convex, 0 on "
+                    "boundary edges (second fundamental form).")
+
+
+# ------------------------------------------------------------------------- parameters
+
+
+class FormsParams(ApiModel):
+    """``POST /v1/forms`` takes no parameters besides the mesh."""
+
+    model_config = _example({})
+
+
+class IntegrabilityParams(ApiModel):
+    """Parameters of ``POST /v1/integrability``."""
+
+    model_config = _example({"tolerance": 1e-8})
+
+    tolerance: float = Field(1e-8, gt=0, description="Tolerance on vertex defects and global "
+                             "holonomy (radians; translation relative to the mean edge).")
+
+
+class PositionConstraint(ApiModel):
+    """Pin one vertex to a position; ``weight`` omitted = hard constraint."""
+
+    model_config = _example({"vertex": 0, "position": [0.0, 0.0, 0.0]})
+
+    vertex: Index = Field(description="Vertex index.")
+    position: Vec3 = Field(description="Target position.")
+    weight: Weight | None = Field(None, description="Soft weight; omit for hard.")
+
+
+class FrameConstraint(ApiModel):
+    """Fix the frame of one face (a rotation: columns edge direction, in-plane normal,
+    face normal); ``weight`` omitted = hard."""
+
+    model_config = _example({"face": 0, "frame": _IDENTITY})
+
+    face: Index = Field(description="Face index.")
+    frame: Mat3 = Field(description="3x3 rotation matrix (rows).")
+    weight: Weight | None = Field(None, description="Soft weight; omit for hard.")
+
+
+class Constraints(ApiModel):
+    """Position and frame constraints of a reconstruction."""
+
+    model_config = _example({"positions": [{"vertex": 0, "position": [0.0, 0.0, 0.0]}],
+                             "frames": [{"face": 0, "frame": _IDENTITY}]})
+
+    positions: list[PositionConstraint] = Field(default_factory=list)
+    frames: list[FrameConstraint] = Field(default_factory=list)
+
+
+class ReconstructOptions(ApiModel):
+    """Options of ``POST /v1/reconstruct``."""
+
+    model_config = _example({"frame_weight": 1000.0, "orthonormalize": False,
+                             "solver": "auto", "require_integrable": False})
+
+    frame_weight: Weight = Field(1000.0, description="Weight w of the frame term.")
+    orthonormalize: bool = Field(False, description="Second solve with frames projected "
+                                 "to rotations (Sec. 4).")
+    orthonormal_weight: Weight = Field(1000.0,
+                                       description="Weight of that second solve's targets.")
+    weighting: Weighting = Field("uniform", description="Edge weighting of the energy.")
+    solver: SolverName | None = Field(None, description="Sparse backend; default "
+                                      "FFS_SOLVER_BACKEND.")
+    require_integrable: bool = Field(
+        False, description="Fail with 422 naming the worst vertices instead of returning a "
+                           "least-squares answer when the forms are not integrable.")
+    tolerance: float = Field(1e-8, gt=0, description="Integrability tolerance.")
+
+
+class ReconstructParams(ApiModel):
+    """Parameters of ``POST /v1/reconstruct`` besides the forms (or mesh file)."""
+
+    model_config = _example({"constraints": {"positions": [{"vertex": 0,
+                                                             "position": [0.0, 0.0, 0.0]}]},
+                             "options": {"orthonormalize": True}})
+
+    constraints: Constraints | None = None
+    options: ReconstructOptions = Field(default_factory=ReconstructOptions)
+
+
+class HandleTarget(ApiModel):
+    """Move vertex ``vertex`` to ``position``."""
+
+    model_config = _example({"vertex": 4, "position": [0.5, 0.5, 0.8]})
+
+    vertex: Index
+    position: Vec3
+
+
+class RotationHandle(ApiModel):
+    """Rotate the frames of a group of faces by ``rotation``."""
+
+    model_config = _example({"faces": [0, 1], "rotation": _IDENTITY})
+
+    faces: list[Index] = Field(min_length=1)
+    rotation: Mat3
+
+
+class DeformOptions(ApiModel):
+    """Options of ``POST /v1/deform``."""
+
+    model_config = _example({"frame_weight": 1000.0, "orthonormalize": False,
+                             "solver": "auto"})
+
+    frame_weight: Weight = 1000.0
+    orthonormalize: bool = False
+    orthonormal_weight: Weight = 1000.0
+    weighting: Weighting = "uniform"
+    solver: SolverName | None = None
+
+
+class DeformParams(ApiModel):
+    """Parameters of ``POST /v1/deform`` besides the mesh."""
+
+    model_config = _example({"handles": [{"vertex": 0, "position": [0.0, 0.0, 0.0]},
+                                         {"vertex": 4, "position": [0.5, 0.5, 0.8]}]})
+
+    handles: list[HandleTarget] = Field(min_length=1)
+    rotations: list[RotationHandle] | None = None
+    roi: list[Index] | None = Field(None, description="Vertices that may move (default all).")
+    options: DeformOptions = Field(default_factory=DeformOptions)
+
+
+class ParameterizeOptions(ApiModel):
+    """Options of ``POST /v1/parameterize``."""
+
+    model_config = _example({"orthonormalize": True, "solver": "auto"})
+
+    orthonormalize: bool = True
+    orthonormal_weight: Weight = 1000.0
+    frame_weight: Weight = 1000.0
+    weighting: Weighting = "uniform"
+    solver: SolverName | None = None
+
+
+class ParameterizeParams(ApiModel):
+    """Parameters of ``POST /v1/parameterize`` besides the mesh."""
+
+    model_config = _example({"options": {"orthonormalize": True}})
+
+    options: ParameterizeOptions = Field(default_factory=ParameterizeOptions)
+
+
+class InterpolateOptions(ApiModel):
+    """Options of ``POST /v1/interpolate``."""
+
+    model_config = _example({"frame_weight": 1000.0, "solver": "auto"})
+
+    frame_weight: Weight = 1000.0
+    weighting: Weighting = "uniform"
+    solver: SolverName | None = None
+
+
+class InterpolateParams(ApiModel):
+    """Parameters of ``POST /v1/interpolate`` besides the two meshes."""
+
+    model_config = _example({"t": [0.0, 0.5, 1.0]})
+
+    t: Real | list[Real] = Field(description="Blend value(s); 0 gives A, 1 gives B.")
+    options: InterpolateOptions = Field(default_factory=InterpolateOptions)
+
+
+# ---------------------------------------------------------------------- request bodies
+
+
+class FormsRequest(MeshPart, FormsParams):
+    """Body of ``POST /v1/forms``."""
+
+    model_config = _example(EXAMPLE_MESH)
+
+
+class IntegrabilityRequest(FormsPart, IntegrabilityParams):
+    """Body of ``POST /v1/integrability``."""
+
+    model_config = _example({**EXAMPLE_FORMS, "tolerance": 1e-8})
+
+
+class ReconstructRequest(FormsPart, ReconstructParams):
+    """Body of ``POST /v1/reconstruct``: the forms, optional constraints and options."""
+
+    model_config = _example({**EXAMPLE_FORMS, "constraints": {
+        "positions": [{"vertex": 0, "position": [0.0, 0.0, 0.0]}],
+        "frames": [{"face": 0, "frame": [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0],
+                                         [0.0, 1.0, 0.0]]}]},
+        "options": {"frame_weight": 1000.0, "orthonormalize": False, "solver": "auto",
+                    "require_integrable": True}})
+
+
+class DeformRequest(MeshPart, DeformParams):
+    """Body of ``POST /v1/deform``."""
+
+    model_config = _example({**EXAMPLE_MESH, "handles": [
+        {"vertex": 0, "position": [0.0, 0.0, 0.0]}, {"vertex": 1, "position": [1.0, 0.0, 0.0]},
+        {"vertex": 2, "position": [1.0, 1.0, 0.0]}, {"vertex": 3, "position": [0.0, 1.0, 0.0]},
+        {"vertex": 4, "position": [0.5, 0.5, 0.8]}], "options": {"orthonormalize": False}})
+
+
+class ParameterizeRequest(MeshPart, ParameterizeParams):
+    """Body of ``POST /v1/parameterize`` (a mesh with boundary)."""
+
+    model_config = _example({**EXAMPLE_MESH, "options": {"orthonormalize": True}})
+
+
+class InterpolateRequest(InterpolateParams):
+    """Body of ``POST /v1/interpolate``: two embeddings of the same faces and t."""
+
+    model_config = _example({"vertices_a": _V, "vertices_b": _V_UP, "faces": _F,
+                             "t": [0.0, 0.5, 1.0]})
+
+    vertices_a: list[Vec3] = Field(min_length=1)
+    vertices_b: list[Vec3] = Field(min_length=1)
+    faces: list[Tri] = Field(min_length=1)
+
+
+REQUEST_MODELS: dict[str, type[ApiModel]] = {
+    "forms": FormsRequest, "integrability": IntegrabilityRequest,
+    "reconstruct": ReconstructRequest, "deform": DeformRequest,
+    "parameterize": ParameterizeRequest, "interpolate": InterpolateRequest,
+}
+PARAMS_MODELS: dict[str, type[ApiModel]] = {
+    "forms": FormsParams, "integrability": IntegrabilityParams,
+    "reconstruct": ReconstructParams, "deform": DeformParams,
+    "parameterize": ParameterizeParams, "interpolate": InterpolateParams,
+}
+"""The non-mesh fields of each operation: the other form fields of a multipart upload."""
+
+
+class JobRequest(BaseModel):
+    """Body of ``POST /v1/jobs``: an operation and its input (the operation's JSON body)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"operation": "reconstruct", "input": ReconstructRequest.model_config[
+            "json_schema_extra"]["examples"][0], "color": "defect"}]})
+
+    operation: Operation
+    input: dict[str, Any] = Field(description="The body the synchronous endpoint takes.")
+    color: ColorField | None = Field(
+        None, description="Precompute this vertex colour field so that "
+                          "GET /v1/jobs/{id}/result?color=... can add it.")
+
+
+# --------------------------------------------------------------------------- responses
+
+
+class FormsResponse(BaseModel):
+    """Result of ``POST /v1/forms``; a valid body for /v1/integrability and /v1/reconstruct."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [EXAMPLE_FORMS]})
+
+    faces: list[Tri]
+    edges: list[tuple[int, int]]
+    lengths: list[float]
+    angles: list[float]
+
+
+class HolonomyLoop(BaseModel):
+    """One homology generator of the global integrability check."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"kind": "rotation", "component": 0, "edge": [3, 7], "faces": [4, 9], "angle": 0.0,
+         "translation": [0.0, 0.0, 0.0], "magnitude": 0.0, "passes": True}]})
+
+    kind: Literal["rotation", "translation"]
+    component: int
+    edge: list[int]
+    faces: list[int]
+    angle: float
+    translation: list[float]
+    magnitude: float
+    passes: bool
+
+
+class ComponentSummary(BaseModel):
+    """Topology of one connected component."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"component": 0, "vertices": 5, "edges": 8, "faces": 4, "boundary_loops": 1,
+         "euler_characteristic": 1, "genus": 0, "closed": False}]})
+
+    component: int
+    vertices: int
+    edges: int
+    faces: int
+    boundary_loops: int
+    euler_characteristic: int
+    genus: int
+    closed: bool
+
+
+class Topology(BaseModel):
+    """Components, boundary loops and genus of the mesh."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"n_components": 1, "euler_characteristic": 1, "genus": 0,
+         "boundary_loops": [[0, 1, 2, 3]], "isolated_vertices": [],
+         "components": ComponentSummary.model_config["json_schema_extra"]["examples"]}]})
+
+    n_components: int
+    euler_characteristic: int
+    genus: int
+    boundary_loops: list[list[int]]
+    isolated_vertices: list[int]
+    components: list[ComponentSummary]
+
+
+class GlobalHolonomy(BaseModel):
+    """Holonomy along the homology generators (non-empty for genus > 0 or several holes)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"rotation": [],
+                                                               "translation": []}]})
+
+    rotation: list[HolonomyLoop]
+    translation: list[HolonomyLoop]
+
+
+class IntegrabilityResponse(BaseModel):
+    """The integrability report."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "integrable": True, "local_integrable": True, "global_integrable": True,
+        "max_defect": 5.2e-16, "tolerance": 1e-8,
+        "vertex_defect": [0.0, 0.0, 0.0, 0.0, 5.2e-16],
+        "gauss_defect": [0.0, 0.0, 0.0, 0.0, 3.7e-16],
+        "codazzi_defect": [0.0, 0.0, 0.0, 0.0, 3.8e-16], "failing_vertices": [],
+        "worst_vertices": [4], "triangle_violations": [],
+        "topology": Topology.model_config["json_schema_extra"]["examples"][0],
+        "global_holonomy": {"rotation": [], "translation": []}}]})
+
+    integrable: bool
+    local_integrable: bool
+    global_integrable: bool
+    max_defect: float
+    tolerance: float
+    vertex_defect: list[float]
+    gauss_defect: list[float]
+    codazzi_defect: list[float]
+    failing_vertices: list[int]
+    worst_vertices: list[int]
+    triangle_violations: list[int]
+    topology: Topology
+    global_holonomy: GlobalHolonomy
+
+
+_REPORT_EXAMPLE = {"integrability": {"integrable": True, "max_defect": 5.2e-16,
+                                     "worst_vertices": [{"vertex": 4, "defect": 5.2e-16}],
+                                     "rotation_holonomy": [], "translation_holonomy": []},
+                   "backend": "pardiso", "timings": {"validate": 0.002, "assemble": 0.008,
+                                                     "factorize": 0.02, "solve": 0.001}}
+
+
+class MeshResponse(BaseModel):
+    """A mesh result (reconstruct, deform): vertices in input order, faces, and a report.
+
+    With ``?color=...`` the JSON also carries ``colors`` (n, 4) linear RGBA.
+    """
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"vertices": _V, "faces": _F, "report": _REPORT_EXAMPLE}]})
+
+    vertices: list[Vec3]
+    faces: list[Tri]
+    report: dict[str, Any]
+    colors: list[tuple[float, float, float, float]] | None = None
+
+
+class ParameterizeResponse(BaseModel):
+    """Planar coordinates per vertex, faces whose orientation flipped, and a report."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"uv": [[0.0, 0.0], [1.058, 0.0], [1.049, 1.04], [0.009, 1.04], [0.529, 0.543]],
+         "flipped_faces": [], "report": {"flipped_count": 0, "backend": "pardiso"}}]})
+
+    uv: list[tuple[float, float]]
+    flipped_faces: list[int]
+    report: dict[str, Any]
+
+
+class InterpolateResponse(BaseModel):
+    """Vertices per t: (n, 3) for a single t, (k, n, 3) for a list of k values."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"t": 0.5, "vertices": _V, "faces": _F}]})
+
+    t: float | list[float]
+    vertices: list[Vec3] | list[list[Vec3]]
+    faces: list[Tri]
+
+
+class ProblemItem(BaseModel):
+    """One machine-readable pointer to what is wrong."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [
+        {"field": "faces", "index": 17, "reason": "index 9001 out of range [0, 100)"}]})
+
+    field: str | None = None
+    index: int | None = None
+    reason: str
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem document (``application/problem+json``)."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [
+        {"type": "/problems/index-out-of-range", "title": "Index out of range",
+         "status": 422, "detail": "faces[17]: index 9001 out of range [0, 100)",
+         "instance": "/v1/forms", "kind": "index-out-of-range",
+         "errors": [{"field": "faces", "index": 17,
+                     "reason": "index 9001 out of range [0, 100)", "value": 9001}]}]})
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    instance: str | None = None
+    kind: str
+    errors: list[ProblemItem] = Field(default_factory=list)
+
+
+class JobProgress(BaseModel):
+    """Progress of a job: the current stage, the fraction done of each stage and overall."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"stage": "factorize", "fraction": 0.5,
+         "stages": {"validate": 1.0, "assemble": 1.0, "factorize": 0.0, "solve": 0.0,
+                    "encode": 0.0}}]})
+
+    stage: str | None
+    fraction: float
+    stages: dict[str, float]
+
+
+class JobStatus(BaseModel):
+    """State of an asynchronous job."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"id": "6f1c2b0e9a7d4c55b1f0e2d3c4b5a697", "operation": "reconstruct",
+         "status": "running", "progress": JobProgress.model_config[
+             "json_schema_extra"]["examples"][0],
+         "timings": {"queued": 0.001, "validate": 0.01, "assemble": 0.05},
+         "created_at": "2025-01-01T12:00:00.000Z", "started_at": "2025-01-01T12:00:00.001Z",
+         "finished_at": None, "expires_at": None, "error": None,
+         "links": {"self": "/v1/jobs/6f1c2b0e9a7d4c55b1f0e2d3c4b5a697",
+                   "result": "/v1/jobs/6f1c2b0e9a7d4c55b1f0e2d3c4b5a697/result"}}]})
+
+    id: str
+    operation: Operation
+    status: JobState
+    progress: JobProgress
+    timings: dict[str, float]
+    created_at: str
+    started_at: str | None
+    finished_at: str | None
+    expires_at: str | None
+    error: Problem | None
+    links: dict[str, str]
+
+
+class Health(BaseModel):
+    """Liveness."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"status": "ok"}]})
+
+    status: str
+
+
+class Readiness(BaseModel):
+    """Readiness: the worker pool is up."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"status": "ready", "workers": 2, "workers_ready": 2, "busy": 0, "queue_depth": 0}]})
+
+    status: Literal["ready", "starting", "unavailable"]
+    workers: int
+    workers_ready: int
+    busy: int
+    queue_depth: int
+
+
+class ProblemKind(BaseModel):
+    """Description of one problem type."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"type": "/problems/queue-full", "kind": "queue-full", "status": 503,
+         "title": "Server busy",
+         "description": "The work queue is full; retry after Retry-After seconds."}]})
+
+    type: str
+    kind: str
+    status: int
+    title: str
+    description: str

@@ -1,0 +1,65 @@
+"""Helpers shared by the service tests (meshes, alignment, problem assertions)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = REPO / "tests" / "data"
+
+
+def icosphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+
+
+def load(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of tests/data/<name> in file order (solver.io)."""
+    from solver.io import load_mesh_file
+
+    return load_mesh_file(DATA / name)
+
+
+def bumpy_grid(nx: int = 8, ny: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """An open, curved grid (disk topology)."""
+    from meshes import grid
+
+    V, F = grid(nx, ny, width=1.5, height=1.0)
+    V[:, 2] = 0.2 * np.sin(3 * V[:, 0]) * np.cos(4 * V[:, 1])
+    return V, F
+
+
+def mesh_json(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
+    return {"vertices": V.tolist(), "faces": F.tolist()}
+
+
+def forms_json(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
+    import solver
+
+    return solver.fundamental_forms(V, F).to_dict()
+
+
+def rigid_error(A: np.ndarray, B: np.ndarray) -> float:
+    """max |R A + t - B| after the best rigid alignment of A onto B (Kabsch)."""
+    from solver.interpolate import rigid_alignment
+
+    R, t = rigid_alignment(np.asarray(A), np.asarray(B))
+    return float(np.abs(np.asarray(A) @ R.T + t - np.asarray(B)).max())
+
+
+def problem(response: httpx.Response, status: int, kind: str) -> dict[str, Any]:
+    """Assert an RFC 9457 problem response of ``status``/``kind``; return the document."""
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/problem+json")
+    doc = response.json()
+    assert doc["type"] == f"/problems/{kind}", doc
+    assert doc["status"] == status and doc["kind"] == kind
+    assert isinstance(doc["title"], str) and isinstance(doc["detail"], str) and doc["detail"]
+    assert isinstance(doc["errors"], list)
+    return doc

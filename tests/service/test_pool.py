@@ -1,0 +1,155 @@
+"""The worker pool: bounded queue (503), timeouts (504), worker death, cancellation."""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import os
+import signal
+import threading
+import time
+
+import pytest
+from conftest import running_app
+from service_helpers import forms_json, icosphere, mesh_json, problem
+
+from service.executor import (
+    ExecutorClosedError,
+    ProcessExecutor,
+    QueueFullError,
+    TaskCancelledError,
+    TaskFailedError,
+    WorkerDiedError,
+)
+
+
+def _submit(client, fn_name, payload):
+    return client.portal.call(functools.partial(client.app.state.executor.submit, fn_name,
+                                                payload))
+
+
+def test_queue_full_is_503_with_retry_after():
+    with running_app(workers=1, queue_size=1) as c:
+        busy = _submit(c, "debug.sleep", {"seconds": 30})
+        waiting = _submit(c, "debug.sleep", {"seconds": 30})
+        assert c.get("/readyz").json() == {"status": "ready", "workers": 1, "workers_ready": 1,
+                                           "busy": 1, "queue_depth": 1}
+        response = c.post("/v1/forms", json=mesh_json(*icosphere(0)))
+        doc = problem(response, 503, "queue-full")
+        assert int(response.headers["retry-after"]) >= 1
+        assert doc["retry_after"] == int(response.headers["retry-after"])
+        job = c.post("/v1/jobs", json={"operation": "forms", "input": mesh_json(*icosphere(0))})
+        problem(job, 503, "queue-full")
+        metrics = c.get("/metrics").text
+        assert "ffs_queue_depth 1.0" in metrics and "ffs_pool_busy_workers 1.0" in metrics
+        executor = c.app.state.executor
+        for handle in (waiting, busy):
+            assert c.portal.call(executor.cancel, handle.id)
+        deadline = time.monotonic() + 30
+        while c.get("/readyz").json()["workers_ready"] < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert c.post("/v1/forms", json=mesh_json(*icosphere(0))).status_code == 200
+
+
+def test_sync_timeout_is_504_and_frees_the_worker():
+    with running_app(workers=1, request_timeout=0.05) as c:
+        executor = c.app.state.executor
+        pid = executor.worker_pids()[0]
+        V, F = icosphere(5)  # ~1 s of work: far beyond the 50 ms timeout
+        doc = problem(c.post("/v1/reconstruct", json=forms_json(V, F)), 504, "timeout")
+        assert "FFS_REQUEST_TIMEOUT" in doc["detail"]
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            ready = c.get("/readyz").json()
+            if ready["workers_ready"] == 1 and executor.worker_pids() != [pid]:
+                break
+            time.sleep(0.05)
+        assert executor.worker_pids() != [pid]  # the abandoned solve was stopped
+        assert executor.restarts == 1
+        assert 'ffs_tasks_total{operation="reconstruct",outcome="timeout"} 1.0' in c.get(
+            "/metrics").text
+
+
+def test_sync_request_whose_worker_dies_is_500_and_the_pool_recovers(client):
+    executor = client.app.state.executor
+    V, F = icosphere(5)
+    body = forms_json(V, F)
+    result = {}
+
+    def call():
+        result["response"] = client.post("/v1/reconstruct", json=body)
+
+    thread = threading.Thread(target=call)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while executor.busy() == 0 and time.monotonic() < deadline:
+        time.sleep(0.002)
+    busy = [w.pid for w in list(executor._workers.values()) if w.task is not None]
+    assert busy, "the request never reached a worker"
+    time.sleep(0.3)  # let it start solving (about 1 s of work)
+    os.kill(busy[0], signal.SIGKILL)
+    thread.join(60)
+    doc = problem(result["response"], 500, "worker-died")
+    assert "SIGKILL" in doc["detail"]
+    deadline = time.monotonic() + 30
+    while client.get("/readyz").json()["workers_ready"] < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert client.post("/v1/forms", json=mesh_json(*icosphere(1))).status_code == 200
+
+
+def test_process_executor_directly():
+    async def scenario():
+        executor = ProcessExecutor(2, 1, start_method="forkserver", threads_per_worker=1)
+        with pytest.raises(ExecutorClosedError):
+            await executor.submit("debug.sleep", {"seconds": 0})
+        await executor.start()
+        try:
+            events = []
+            handle = await executor.submit(
+                "debug.sleep", {"seconds": 0.05, "steps": 5},
+                progress_cb=lambda stage, f: events.append((stage, f)),
+                on_start=lambda: events.append(("start", 0.0)))
+            result = await handle.future
+            assert result["body"] == b'{"slept": true}' and "solve" in result["timings"]
+            assert events[0] == ("start", 0.0)
+            assert [f for _, f in events[1:]] == [0.0, 0.2, 0.4, 0.6, 0.8]
+
+            failing = await executor.submit("debug.raise", {"message": "kaput"})
+            with pytest.raises(TaskFailedError) as info:
+                await failing.future
+            assert info.value.error["category"] == "internal"
+            assert info.value.error["exception"] == "RuntimeError"
+
+            crash = await executor.submit("debug.crash", {"code": 7})
+            with pytest.raises(WorkerDiedError, match="exit code 7"):
+                await crash.future
+
+            a = await executor.submit("debug.sleep", {"seconds": 30})
+            b = await executor.submit("debug.sleep", {"seconds": 30})
+            c = await executor.submit("debug.sleep", {"seconds": 30})
+            with pytest.raises(QueueFullError):
+                await executor.submit("debug.sleep", {"seconds": 30})
+            assert executor.queue_depth() >= 1
+            for handle in (c, b, a):
+                assert await executor.cancel(handle.id)
+                with pytest.raises(TaskCancelledError):
+                    await handle.future
+            assert not await executor.cancel(a.id)
+
+            deadline = time.monotonic() + 30
+            while executor.workers_ready() < 2 and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            again = await executor.submit("forms", {
+                "source": {"kind": "arrays", "vertices": icosphere(0)[0],
+                           "faces": icosphere(0)[1]},
+                "params": {}, "limits": {"max_vertices": 100, "max_faces": 100},
+                "output": {"format": "json"}})
+            assert (await again.future)["media_type"] == "application/json"
+            pending = await executor.submit("debug.sleep", {"seconds": 30})
+        finally:
+            await executor.shutdown()
+        with pytest.raises(ExecutorClosedError):
+            await pending.future
+        assert executor.worker_pids() == []
+
+    asyncio.run(scenario())

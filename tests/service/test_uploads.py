@@ -1,0 +1,117 @@
+"""Mesh file uploads (multipart `file`): every format, vertex order and count kept."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from service_helpers import DATA, bumpy_grid, problem, rigid_error
+
+import solver
+from solver.io import load_mesh, save_mesh
+
+FORMATS = ["obj", "off", "ply", "stl", "glb"]
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_forms_from_every_file_format(client, fmt):
+    V, F = bumpy_grid(5, 4)
+    data = save_mesh(V, F, fmt)
+    response = client.post("/v1/forms", files={"file": (f"grid.{fmt}", data)})
+    assert response.status_code == 200, response.text
+    got = response.json()
+    want = solver.fundamental_forms(*load_mesh(data, fmt))
+    np.testing.assert_array_equal(got["faces"], want.faces)
+    np.testing.assert_allclose(got["lengths"], want.lengths, rtol=1e-12)
+    np.testing.assert_allclose(got["angles"], want.angles, atol=1e-12)
+    if fmt != "stl":  # STL stores corners per triangle; the others keep the file's vertices
+        np.testing.assert_array_equal(got["faces"], F)
+
+
+def test_vertex_count_and_order_survive(client):
+    data = (DATA / "decimated-knight.off").read_bytes()
+    V, F = load_mesh(data, "off")
+    # Deform with every 25th vertex pinned at rest: the result is the file's mesh, in order.
+    handles = [{"vertex": v, "position": V[v].tolist()} for v in range(0, len(V), 25)]
+    response = client.post("/v1/deform", files={"file": ("knight.off", data)},
+                           data={"handles": json.dumps(handles)})
+    assert response.status_code == 200, response.text
+    out = response.json()
+    assert len(out["vertices"]) == len(V) == 502
+    np.testing.assert_allclose(out["vertices"], V, atol=1e-8)
+    np.testing.assert_array_equal(out["faces"], F)
+    # Reconstruct from the file's own forms: same count, same order up to a rigid motion.
+    rebuilt = client.post("/v1/reconstruct", files={"file": ("knight.off", data)}).json()
+    assert len(rebuilt["vertices"]) == len(V)
+    assert rigid_error(rebuilt["vertices"], V) < 1e-6
+
+
+def test_unreferenced_vertices_are_kept(client):
+    obj = (b"v 0 0 0\nv 1 0 0\nv 9 9 9\nv 1 1 0\nv 0 1 0.2\n"
+           b"f 1 2 4\nf 1 4 5\n")
+    response = client.post("/v1/reconstruct", files={"file": ("quad.obj", obj)})
+    assert response.status_code == 200, response.text
+    doc = response.json()
+    assert len(doc["vertices"]) == 5 and doc["faces"] == [[0, 1, 3], [0, 3, 4]]
+    assert doc["report"]["isolated_vertices"] == [2]
+
+
+def test_uploads_for_the_other_operations(client):
+    torus = (DATA / "torus.off").read_bytes()
+    doc = client.post("/v1/integrability", files={"file": ("torus.off", torus)},
+                      data={"tolerance": "1e-6"}).json()
+    assert doc["integrable"] is True and doc["topology"]["genus"] == 1
+    assert doc["tolerance"] == 1e-6
+
+    face = (DATA / "face.off").read_bytes()
+    doc = client.post("/v1/parameterize", files={"file": ("face.off", face)},
+                      data={"options": '{"orthonormalize": false}'}).json()
+    want = solver.parameterize(*load_mesh(face, "off"), orthonormalize=False)
+    np.testing.assert_allclose(doc["uv"], want.uv, atol=1e-9)
+
+    V, F = bumpy_grid(5, 4)
+    W = V.copy()
+    W[:, 2] *= -1
+    response = client.post("/v1/interpolate", data={"t": "[0.0, 1.0]"}, files={
+        "file_a": ("a.obj", save_mesh(V, F, "obj")), "file_b": ("b.ply", save_mesh(W, F, "ply"))})
+    assert response.status_code == 200, response.text
+    X = np.asarray(response.json()["vertices"])
+    assert np.abs(X[0] - V).max() < 1e-6 and np.abs(X[1] - W).max() < 1e-6
+
+    glb = client.post("/v1/reconstruct", files={"file": ("grid.glb", save_mesh(V, F, "glb"))},
+                      headers={"accept": "model/gltf-binary"})
+    assert glb.status_code == 200 and glb.content[:4] == b"glTF"
+
+
+def test_upload_errors(client):
+    problem(client.post("/v1/forms", files={"file": ("notes.txt", b"hello")}), 415,
+            "unsupported-file-type")
+    doc = problem(client.post("/v1/forms", files={"file": ("broken.off", b"OFF\n3 1 0\n0 0")}),
+                  400, "unreadable-file")
+    assert doc["errors"][0]["field"] == "file"
+    problem(client.post("/v1/forms", files={"file": ("empty.obj", b"")}), 400,
+            "unreadable-file")
+    problem(client.post("/v1/forms", files={"mesh": ("a.off", b"OFF")}), 422,
+            "validation-error")
+    doc = problem(client.post("/v1/forms", data={"x": "1"}, files={}), 415,
+                  "unsupported-media-type")  # urlencoded form, not multipart
+    V, F = bumpy_grid(3, 3)
+    off = save_mesh(V, F, "off")
+    doc = problem(client.post("/v1/interpolate", data={"t": "0.5"},
+                              files={"file_a": ("a.off", off)}), 422, "validation-error")
+    assert doc["errors"][0]["field"] == "file_b"
+    doc = problem(client.post("/v1/deform", files={"file": ("a.off", off)},
+                              data={"handles": "not json"}), 422, "validation-error")
+    assert doc["errors"][0]["field"] == "handles"
+    doc = problem(client.post("/v1/deform", files={"file": ("a.off", off)},
+                              data={"handles": '[{"vertex": 999, "position": [0, 0, 0]}]'}),
+                  422, "index-out-of-range")
+    problem(client.post("/v1/forms", content=b"--xyz\r\nbroken",
+                        headers={"content-type": "multipart/form-data; boundary=xyz"}),
+            422, "validation-error")
+    W = V.copy()
+    doc = problem(client.post("/v1/interpolate", data={"t": "0.5"}, files={
+        "file_a": ("a.off", off), "file_b": ("b.off", save_mesh(W, F[::-1], "off"))}),
+        422, "shape-mismatch")
+    assert doc["errors"][0]["field"] == "file_b"

@@ -20,6 +20,7 @@ from .errors import (
     AngleRangeError,
     DegenerateFaceError,
     EdgeMismatchError,
+    NonFiniteValueError,
     NonPositiveLengthError,
     ShapeMismatchError,
 )
@@ -92,9 +93,15 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
     """
     V = as_points(vertices, "vertices")
     topology = build_topology(faces, n_vertices=len(V))
-    normals, areas = face_normals(V, topology.faces)
-    edge_vectors = V[topology.edges[:, 1]] - V[topology.edges[:, 0]]
-    lengths = np.linalg.norm(edge_vectors, axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        normals, areas = face_normals(V, topology.faces)
+        lengths = np.linalg.norm(V[topology.edges[:, 1]] - V[topology.edges[:, 0]], axis=1)
+    overflow = ~np.isfinite(areas)
+    if overflow.any():
+        t = int(np.flatnonzero(overflow)[0])
+        raise NonFiniteValueError(
+            "coordinates are too large: the face's area overflows double precision",
+            field="faces", index=t)
     scale = float(lengths.max()) ** 2
     zero = areas <= 1e-15 * scale
     if zero.any():

@@ -39,9 +39,11 @@ def triangle_inequality_violations(face_lengths: np.ndarray) -> np.ndarray:
 
 def triangle_areas(face_lengths: np.ndarray) -> np.ndarray:
     """(m,) areas from edge lengths by Kahan's stable Heron formula (0 if degenerate)."""
-    c, b, a = np.sort(face_lengths, axis=1).T  # a >= b >= c
+    ordered = np.sort(face_lengths, axis=1)
+    scale = np.where(ordered[:, 2] > 0, ordered[:, 2], 1.0)  # avoids overflow of the product
+    c, b, a = (ordered / scale[:, None]).T  # a >= b >= c
     product = (a + (b + c)) * (c - (a - b)) * (c + (a - b)) * (a + (b - c))
-    return 0.25 * np.sqrt(np.maximum(product, 0.0))
+    return 0.25 * np.sqrt(np.maximum(product, 0.0)) * scale**2
 
 
 def triangle_layouts(face_lengths: np.ndarray, layout_angles: np.ndarray | None = None,

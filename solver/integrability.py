@@ -312,7 +312,10 @@ def _links_to_inner(forest: Any, mask: np.ndarray) -> np.ndarray:
     """Map each face's parent link (an index into the masked link list) to interior-edge
     positions (index into ``terms.interior_edges``); -1 at roots."""
     positions = np.flatnonzero(mask)
-    return np.where(forest.parent_link >= 0, positions[forest.parent_link], -1)
+    out = np.full(len(forest.parent_link), -1, dtype=np.int64)
+    has = forest.parent_link >= 0
+    out[has] = positions[forest.parent_link[has]]
+    return out
 
 
 def _tree_frames(terms: EnergyTerms, parent: np.ndarray, parent_inner: np.ndarray,

@@ -275,9 +275,6 @@ def test_never_a_500_for_client_input(client, operation):
             assert "null" not in response.text, (raw, response.text[:300])
 
 
-@pytest.mark.xfail(reason="solver bug (reported): check_integrability raises IndexError in "
-                          "integrability._links_to_inner when a component has no interior edge",
-                   strict=False)
 @pytest.mark.parametrize("faces", [[[0, 1, 2]], [[0, 1, 2], [3, 4, 5]]])
 def test_components_without_interior_edges(client, faces):
     V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 0, 0], [6, 0, 0], [5, 1, 0]], float)

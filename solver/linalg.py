@@ -14,7 +14,7 @@ solve of 3 right-hand sides, numbers in ``bench/LINALG.md``):
     called directly through ``ctypes`` so that the factor stays inside MKL between
     solves and nothing is copied per solve. Needs the MKL runtime ``libmkl_rt``, which
     ``pip install pypardiso`` brings (it depends on the ``mkl`` wheel); x86_64 only.
-    3-7x faster than the others from 70K unknowns on and the smallest factor. It
+    2-10x faster than the others from 70K unknowns on, and the smallest factor. It
     releases the GIL and uses MKL's OpenMP threads, by default one per core (limit them
     with ``threadpoolctl.threadpool_limits(n, user_api="blas")`` when several processes
     factorize at once).
@@ -27,12 +27,12 @@ solve of 3 right-hand sides, numbers in ``bench/LINALG.md``):
     of raising.
 ``"cholespy"``
     CHOLMOD (SuiteSparse) Cholesky ``L L^T`` through ``pip install cholespy``, from the
-    lower triangle. Its factorization is a little slower than SuperLU's here (the wheel
-    bundles the unoptimized reference BLAS), so ``"auto"`` never picks it while SuperLU
-    works; choose it explicitly for about a third less memory than SuperLU and 2-3x
-    faster solves (many solves per factorization). Single-threaded; holds the GIL while
-    it factorizes. CHOLMOD prints a one-line "not positive definite" warning to stdout
-    when it rejects a matrix.
+    lower triangle. Its factorization is as fast as SuperLU's or up to 1.4x slower (the
+    wheel bundles the unoptimized reference BLAS), so ``"auto"`` never picks it while
+    SuperLU works; choose it explicitly for less memory than SuperLU (up to half) and
+    1.5-3x faster solves (many solves per factorization). Single-threaded; holds the GIL
+    while it factorizes. CHOLMOD prints a one-line "not positive definite" warning to
+    stdout when it rejects a matrix.
 
 Not backends: ``python-mumps`` 0.0.2 does not import with NumPy 2; ``sksparse-minimal``
 0.3 provides no ``sksparse`` module (only ``sksparse_minimal``).
@@ -209,10 +209,11 @@ def _release_pardiso(mkl: _Mkl, pt: np.ndarray, iparm: np.ndarray) -> None:
 
 
 class _PardisoSolver:
-    """MKL PARDISO factor of an SPD matrix given by its upper triangle (CSR)."""
+    """MKL PARDISO factor of an SPD matrix, from its upper triangle."""
 
-    def __init__(self, upper: sp.csr_array) -> None:
+    def __init__(self, matrix: sp.csr_array) -> None:
         self._mkl = _mkl()
+        upper = _upper_triangle(matrix)
         self.n = int(upper.shape[0])
         # PARDISO reads these arrays in every phase: keep them alive and unchanged.
         self._ia = np.ascontiguousarray(upper.indptr, dtype=np.int32)
@@ -263,18 +264,17 @@ class _PardisoSolver:
 
 
 class _CholespySolver:
-    """CHOLMOD ``L L^T`` factor via cholespy, built from the lower triangle (CSR)."""
+    """CHOLMOD ``L L^T`` factor via cholespy, from the lower triangle."""
 
-    def __init__(self, upper: sp.csr_array) -> None:
+    def __init__(self, matrix: sp.csr_array) -> None:
         import cholespy  # optional: imported lazily
 
-        # The CSR arrays of the lower triangle are the CSC arrays of the upper one. Pass
-        # them as CSR: cholespy copies CSR/COO input, whereas it sorts CSC input in place
-        # and reallocates it (unsafe on NumPy-owned memory).
-        lower = upper.T.tocsr()
+        # Pass CSR: cholespy copies CSR/COO input, whereas it sorts CSC input in place and
+        # reallocates it (unsafe on NumPy-owned memory). CHOLMOD reads the lower triangle.
+        lower = sp.tril(matrix, format="csr")
         try:
             self._solver = cholespy.CholeskySolverD(
-                int(upper.shape[0]), lower.indptr.astype(np.int32, copy=False),
+                int(matrix.shape[0]), lower.indptr.astype(np.int32, copy=False),
                 lower.indices.astype(np.int32, copy=False),
                 np.ascontiguousarray(lower.data, dtype=np.float64), cholespy.MatrixType.CSR)
         except ValueError as exc:
@@ -300,14 +300,15 @@ _SUPERLU_OPTIONS: dict[str, Any] = {
 
 
 class _SuperluSolver:
-    """SciPy SuperLU factor of the full matrix (rebuilt from its upper triangle)."""
+    """SciPy SuperLU factor of the full (symmetric) matrix."""
 
-    def __init__(self, upper: sp.csr_array) -> None:
+    def __init__(self, matrix: sp.csr_array) -> None:
         from scipy.sparse.linalg import splu  # lazy: keeps module import light
 
-        full = (upper + sp.triu(upper, k=1, format="csr").T).tocsc()
+        # The CSR arrays of a symmetric matrix are also its CSC arrays: no copy.
+        csc = sp.csc_array((matrix.data, matrix.indices, matrix.indptr), shape=matrix.shape)
         try:
-            self._lu = splu(full, **_SUPERLU_OPTIONS)
+            self._lu = splu(csc, **_SUPERLU_OPTIONS)
         except RuntimeError as exc:  # "Factor is exactly singular"
             raise SingularSystemError(f"SuperLU factorization failed: {exc}") from exc
 
@@ -340,8 +341,7 @@ def _unavailable_reason(backend: str) -> str | None:
     if backend == "superlu":
         return None
     try:
-        matrix = sp.csr_array(np.array([[4.0, 1.0], [1.0, 3.0]]))
-        solver = _SOLVERS[backend](_upper_triangle(matrix))
+        solver = _SOLVERS[backend](_canonical_matrix(sp.csr_array([[4.0, 1.0], [1.0, 3.0]])))
         x = solver.solve(np.array([[5.0], [4.0]]))
     except ImportError as exc:
         return f"{type(exc).__name__}: {exc}"
@@ -458,7 +458,7 @@ class Factorization:
         if self.size == 0:
             self._solver: _NativeSolver = _EmptySolver()
         else:
-            self._solver = _SOLVERS[backend](_upper_triangle(matrix))
+            self._solver = _SOLVERS[backend](matrix)
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Solve ``K x = rhs``.
@@ -526,9 +526,9 @@ def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto") -> Factor
     """Factorize a sparse symmetric positive definite matrix for repeated solves.
 
     ``matrix``: (N, N) real, any scipy.sparse format (matrix or array); it is copied
-    (as float64 CSR), so later changes to it do not affect the factorization. Only its
-    upper triangle enters the factor; it must be symmetric to 1e-10 relative to its
-    largest entry. ``backend``: one of :data:`BACKENDS` or ``"auto"``
+    (as float64 CSR), so later changes to it do not affect the factorization. It must be
+    symmetric to 1e-10 relative to its largest entry (each backend reads the triangle it
+    needs). ``backend``: one of :data:`BACKENDS` or ``"auto"``
     (:func:`default_backend`).
 
     Raises ``ValueError`` (unknown backend name; non-square, non-finite or non-symmetric

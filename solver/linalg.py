@@ -87,6 +87,7 @@ BACKENDS: tuple[str, ...] = ("pardiso", "superlu", "cholespy")
 """Every backend name :func:`factorize` knows, fastest first (see ``bench/LINALG.md``)."""
 
 RESIDUAL_TOLERANCE: float = 1e-6
+REFINEMENT_STEPS: int = 3  # iterative-refinement steps tried before a solve is refused
 """Largest accepted relative residual ``||K x - b|| / ||b||`` of a solved column."""
 
 _PIP_PACKAGE: dict[str, str] = {"pardiso": "pypardiso", "cholespy": "cholespy", "superlu": "scipy"}
@@ -390,7 +391,7 @@ def _is_real(dtype: np.dtype) -> bool:
                 or np.issubdtype(dtype, np.bool_))
 
 
-def _canonical_matrix(matrix: Any) -> sp.csr_array:
+def _canonical_matrix(matrix: Any, assume_symmetric: bool = False) -> sp.csr_array:
     """Validate ``matrix`` and return an owned, canonical float64 CSR copy (int32 indices).
 
     Raises ``TypeError`` for a non-sparse or complex matrix and ``ValueError`` for a
@@ -411,8 +412,9 @@ def _canonical_matrix(matrix: Any) -> sp.csr_array:
     K.indptr = K.indptr.astype(np.int32, copy=False)
     K.indices = K.indices.astype(np.int32, copy=False)
     if not np.isfinite(K.data).all():
-        raise ValueError("matrix has non-finite (NaN or infinite) entries")
-    if K.nnz:
+        raise SingularSystemError("matrix has non-finite (NaN or infinite) entries: the "
+                                  "input values overflow double precision")
+    if K.nnz and not assume_symmetric:
         scale = float(np.abs(K.data).max())
         asymmetry = float(abs(K - K.T).max())
         if asymmetry > 1e-10 * scale:
@@ -484,8 +486,24 @@ class Factorization:
             return np.zeros(b.shape, dtype=np.float64)
         with self._lock:
             x = self._solver.solve(b2)
+            # Iterative refinement, only when the first answer is not accurate enough
+            # (ill-conditioned but nonsingular systems): x += K^-1 (b - K x).
+            for _ in range(REFINEMENT_STEPS):
+                if self._relative_residual(x, b2) <= RESIDUAL_TOLERANCE:
+                    break
+                x = x + self._solver.solve(b2 - self._matrix @ x)
         self._check_residual(x, b2)
         return np.ascontiguousarray(x.reshape(b.shape))
+
+    def _relative_residual(self, x: np.ndarray, b: np.ndarray) -> float:
+        """max over columns of ||K x - b|| / ||b|| (inf for a nonzero residual of b = 0)."""
+        if not np.isfinite(x).all():
+            return float("inf")
+        residual = np.linalg.norm(self._matrix @ x - b, axis=0)
+        norm_b = np.linalg.norm(b, axis=0)
+        relative = np.where(norm_b > 0, residual / np.where(norm_b > 0, norm_b, 1.0),
+                            np.where(residual > 0, np.inf, 0.0))
+        return float(relative.max())
 
     def _check_residual(self, x: np.ndarray, b: np.ndarray) -> None:
         """Raise :class:`SingularSystemError` unless every column of ``x`` (N, k) solves
@@ -494,11 +512,7 @@ class Factorization:
             raise SingularSystemError(
                 f"{self.backend}: the solution is not finite; the matrix is singular or not "
                 "positive definite")
-        residual = np.linalg.norm(self._matrix @ x - b, axis=0)
-        norm_b = np.linalg.norm(b, axis=0)
-        relative = np.where(norm_b > 0, residual / np.where(norm_b > 0, norm_b, 1.0),
-                            np.where(residual > 0, np.inf, 0.0))
-        worst = float(relative.max())
+        worst = self._relative_residual(x, b)
         if not worst <= RESIDUAL_TOLERANCE:  # also catches NaN
             raise SingularSystemError(
                 f"{self.backend}: relative residual ||Kx - b|| / ||b|| = {worst:.3g} exceeds "
@@ -522,20 +536,23 @@ class Factorization:
         self.__init__(matrix, backend)  # type: ignore[misc]
 
 
-def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto") -> Factorization:
+def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
+              assume_symmetric: bool = False) -> Factorization:
     """Factorize a sparse symmetric positive definite matrix for repeated solves.
 
     ``matrix``: (N, N) real, any scipy.sparse format (matrix or array); it is copied
     (as float64 CSR), so later changes to it do not affect the factorization. It must be
     symmetric to 1e-10 relative to its largest entry (each backend reads the triangle it
-    needs). ``backend``: one of :data:`BACKENDS` or ``"auto"``
+    needs); ``assume_symmetric=True`` skips that check (for matrices symmetric by
+    construction, such as ``A^T W A``). ``backend``: one of :data:`BACKENDS` or ``"auto"``
     (:func:`default_backend`).
 
-    Raises ``ValueError`` (unknown backend name; non-square, non-finite or non-symmetric
-    matrix), :class:`BackendUnavailableError` (known backend not installed),
+    Raises ``ValueError`` (unknown backend name; non-square or non-symmetric matrix),
+    :class:`SingularSystemError` (non-finite entries), :class:`BackendUnavailableError`
+    (known backend not installed),
     ``TypeError`` (not a real sparse matrix) and :class:`SingularSystemError` (the
     backend found the matrix singular or not positive definite; others are only detected
     by :meth:`Factorization.solve`).
     """
     name = _resolve_backend(backend)
-    return Factorization(_canonical_matrix(matrix), name)
+    return Factorization(_canonical_matrix(matrix, assume_symmetric), name)

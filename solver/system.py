@@ -230,7 +230,7 @@ class ConstrainedSystem:
         reduced = sp.csr_matrix((K.data * keep, cols, K.indptr), shape=K.shape)
         reduced.eliminate_zeros()
         self.hard_diagonal = reduced.diagonal()[self.hard_columns]
-        self.factor: Factorization = factorize(reduced, backend)
+        self.factor: Factorization = factorize(reduced, backend, assume_symmetric=True)
 
     @property
     def backend(self) -> str:

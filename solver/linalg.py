@@ -457,6 +457,7 @@ class Factorization:
         self.size = int(matrix.shape[0])
         self._matrix = matrix
         self._lock = threading.Lock()
+        self._verified = False  # set by the first solve whose residual is checked
         if self.size == 0:
             self._solver: _NativeSolver = _EmptySolver()
         else:
@@ -469,7 +470,10 @@ class Factorization:
         with the same shape, float64. Raises :class:`SingularSystemError` if some column
         of ``x`` is non-finite or has a relative residual ``||K x - b|| / ||b||`` above
         :data:`RESIDUAL_TOLERANCE` (for ``b = 0``: any nonzero residual), ``ValueError``
-        for a wrong shape or non-finite ``rhs``.
+        for a wrong shape or non-finite ``rhs``. The residual is checked (and improved by
+        iterative refinement if needed) until one solve has passed; after that the factor
+        is trusted and only finiteness is checked, so repeated solves cost one
+        back-substitution each.
         """
         b = np.asarray(rhs)
         if b.ndim not in (1, 2) or b.shape[0] != self.size:
@@ -486,6 +490,10 @@ class Factorization:
             return np.zeros(b.shape, dtype=np.float64)
         with self._lock:
             x = self._solver.solve(b2)
+            if self._verified and np.isfinite(x).all():
+                # The factor passed the residual check once: a backward-stable solve with
+                # the same factor needs no second opinion (this keeps drags cheap).
+                return np.ascontiguousarray(x.reshape(b.shape))
             residual = self._relative_residual(x, b2)
             # Iterative refinement, only when the first answer is not accurate enough
             # (ill-conditioned but nonsingular systems): x += K^-1 (b - K x).
@@ -495,6 +503,7 @@ class Factorization:
                 x = x + self._solver.solve(b2 - self._matrix @ x)
                 residual = self._relative_residual(x, b2)
         self._raise_if_inaccurate(x, residual)
+        self._verified = True
         return np.ascontiguousarray(x.reshape(b.shape))
 
     def _relative_residual(self, x: np.ndarray, b: np.ndarray) -> float:

@@ -49,6 +49,7 @@ class HolonomyLoop(JsonDataclass):
         kind: "rotation" (a dual loop of faces) or "translation" (a primal loop of edges).
         component: connected component of the loop.
         edge: [i, j], the edge that closes the loop (in neither spanning tree).
+        edge_index: row of that edge in the sorted edge list.
         faces: the faces on either side of that edge (-1 for none).
         angle: rotation angle (radians) of the accumulated rotation (rotation loops).
         translation: [x, y, z] accumulated translation in the root face's frame
@@ -62,6 +63,7 @@ class HolonomyLoop(JsonDataclass):
     component: int
     edge: list[int]
     faces: list[int]
+    edge_index: int = -1
     angle: float = 0.0
     translation: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     magnitude: float = 0.0
@@ -274,6 +276,7 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     rotation_loops = [
         HolonomyLoop(kind="rotation", component=int(topo.face_component[lf]),
                      edge=topo.edges[inner[g]].tolist(), faces=[int(lf), int(rf)],
+                     edge_index=int(inner[g]),
                      angle=float(a), magnitude=float(a), passes=bool(a <= tol))
         for g, lf, rf, a in zip(generators, left, right, angles, strict=True)]
 
@@ -302,6 +305,7 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     translation_loops = [
         HolonomyLoop(kind="translation", component=int(topo.vertex_component[a]),
                      edge=[int(a), int(b)], faces=topo.edge_faces[e].tolist(),
+                     edge_index=int(e),
                      translation=(gap * length_unit).tolist(), magnitude=float(s),
                      passes=bool(s <= tol))
         for e, a, b, gap, s in zip(closing, i, j, gaps, sizes, strict=True)]

@@ -281,23 +281,11 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
         for g, lf, rf, a in zip(generators, left, right, angles, strict=True)]
 
     # Translation generators: dual tree first, then a primal tree of the remaining edges.
-    dual = spanning_forest(m, dual_links)
-    dual_tree_edges = np.zeros(topo.n_edges, dtype=bool)
-    dual_tree_edges[inner[dual.in_tree]] = True
-    rest = np.flatnonzero(~dual_tree_edges)
-    tree = spanning_forest(n, topo.edges[rest])
+    forests = integration_forests(terms)
+    rest, tree = forests.rest, forests.primal
     if tree.in_tree.all():
         return rotation_loops, []
-    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)))
-    edge_vectors = _edge_vectors(terms, frames)
-    link = tree.parent_link
-    has_parent = link >= 0
-    steps = np.zeros((n, 3))
-    e_up = rest[link[has_parent]]
-    # Step from parent to node along edge e_up: +d if the edge runs parent -> node.
-    sign = np.where(topo.edges[e_up, 1] == np.flatnonzero(has_parent), 1.0, -1.0)
-    steps[has_parent] = sign[:, None] * edge_vectors[e_up]
-    positions = accumulate_sums(tree.parent, steps)
+    frames, edge_vectors, positions = integrate_along_forests(terms, forests)
     closing = rest[~tree.in_tree]
     i, j = topo.edges[closing].T
     gaps = positions[i] + edge_vectors[closing] - positions[j]
@@ -310,6 +298,54 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
                      passes=bool(s <= tol))
         for e, a, b, gap, s in zip(closing, i, j, gaps, sizes, strict=True)]
     return rotation_loops, translation_loops
+
+
+@dataclass(frozen=True)
+class IntegrationForests:
+    """A dual spanning forest of the faces (across interior edges) and a primal spanning
+    forest of the edges it does not cross (``rest``): the paths along which frames and
+    then positions are integrated (the constructive proof of Sec. 2.3)."""
+
+    dual: Any
+    rest: np.ndarray
+    primal: Any
+
+
+def integration_forests(terms: EnergyTerms, root_faces: np.ndarray | None = None,
+                        root_vertices: np.ndarray | None = None) -> IntegrationForests:
+    """Spanning forests for :func:`integrate_along_forests`, grown from the given roots."""
+    topo = terms.topology
+    inner = terms.interior_edges
+    dual = spanning_forest(topo.n_faces, topo.edge_faces[inner], roots=root_faces)
+    crossed = np.zeros(topo.n_edges, dtype=bool)
+    crossed[inner[dual.in_tree]] = True
+    rest = np.flatnonzero(~crossed)
+    primal = spanning_forest(topo.n_vertices, topo.edges[rest], roots=root_vertices)
+    return IntegrationForests(dual=dual, rest=rest, primal=primal)
+
+
+def integrate_along_forests(terms: EnergyTerms, forests: IntegrationForests,
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frames (m, 3, 3), edge vectors (E, 3) and positions (n, 3) integrated from the roots.
+
+    Frames follow ``f_child = f_parent R`` (Eq. 2) from the identity at each dual root;
+    each edge vector is ``f_T (a1, a2, 0)`` (Eq. 3) from one face containing it; positions
+    add edge vectors along the primal forest from the origin at each primal root. For
+    integrable forms this is the immersion itself (up to rounding).
+    """
+    topo = terms.topology
+    inner = terms.interior_edges
+    dual, rest, tree = forests.dual, forests.rest, forests.primal
+    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)))
+    edge_vectors = _edge_vectors(terms, frames)
+    link = tree.parent_link
+    has_parent = link >= 0
+    steps = np.zeros((topo.n_vertices, 3))
+    e_up = rest[link[has_parent]]
+    # Step from parent to node along edge e_up: +d if the edge runs parent -> node.
+    sign = np.where(topo.edges[e_up, 1] == np.flatnonzero(has_parent), 1.0, -1.0)
+    steps[has_parent] = sign[:, None] * edge_vectors[e_up]
+    return frames, edge_vectors, accumulate_sums(tree.parent, steps)
 
 
 def _links_to_inner(forest: Any, mask: np.ndarray) -> np.ndarray:

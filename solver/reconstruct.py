@@ -18,7 +18,11 @@ from numpy.typing import ArrayLike
 
 from .errors import ConstraintError
 from .forms import validate_forms
-from .integrability import integrability_from_terms
+from .integrability import (
+    integrability_from_terms,
+    integrate_along_forests,
+    integration_forests,
+)
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
 from .system import (
@@ -38,6 +42,7 @@ from .validation import as_indices, as_points, require_finite, require_unique
 
 Progress = Callable[[str, float], None]
 REGULARIZATION = 1e-6
+EXACT_TOLERANCE = 1e-10  # residual rows (normalized lengths) accepted without a solve
 
 
 @dataclass
@@ -322,6 +327,20 @@ class ImmersionProblem:
         vertices[moved] += shift[comp[moved]] / count[comp[moved], None]
         return vertices
 
+    def integrated_solution(self, root_faces: ArrayLike, root_vertices: ArrayLike,
+                            tol: float = EXACT_TOLERANCE) -> np.ndarray | None:
+        """Unknowns (N, 3) integrated along spanning trees from the anchors (frame I at
+        each root face, origin at each root vertex), or None if some weighted residual row
+        of Eq. 5 exceeds ``tol`` (the forms are not integrable to that accuracy)."""
+        forests = integration_forests(self.terms, np.asarray(root_faces, dtype=np.int64),
+                                      np.asarray(root_vertices, dtype=np.int64))
+        frames, _, positions = integrate_along_forests(self.terms, forests)
+        if not np.isfinite(frames).all() or not np.isfinite(positions).all():
+            return None
+        u = np.concatenate([positions, np.swapaxes(frames, 1, 2).reshape(-1, 3)])
+        rows = np.sqrt(self.row_weights)[:, None] * (self.A @ u)
+        return u if np.abs(rows).max(initial=0.0) <= tol else None
+
     def system(self, constraints: LinearConstraints, backend: str = "auto",
                extra_penalty_columns: np.ndarray | None = None,
                extra_penalty_weight: float = 0.0) -> ConstrainedSystem:
@@ -345,7 +364,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                 backend: str = "auto", length_scale: float | None = None,
                 layout_angles: np.ndarray | None = None, n_vertices: int | None = None,
                 check_integrability: bool = True, integrability_tol: float = 1e-8,
-                progress: Progress | None = None) -> Reconstruction:
+                exact_shortcut: bool = True, progress: Progress | None = None,
+                ) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
 
     Args:
@@ -369,6 +389,11 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             depend on it (Sec. 3), only the returned frames do.
         n_vertices: vertex count (default ``faces.max() + 1``).
         check_integrability: include the integrability summary in the report.
+        exact_shortcut: without constraints, first integrate frames and positions along
+            spanning trees (Sec. 2.3); if every residual row of Eq. 5 vanishes (to 1e-10,
+            lengths normalized), that immersion is the minimizer and no factorization is
+            needed (report ``solve_path`` = "tree-integration", ``backend`` = None).
+            Otherwise, and always with constraints, the system is factorized.
         progress: optional callback ``progress(stage, fraction)`` for stages
             validate, assemble, factorize, solve.
     Returns:
@@ -417,18 +442,29 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         linear = linear.extended(gauge)
         lap("factorize")
 
-    notify("factorize", 0.0)
-    system = problem.system(linear, backend)
-    lap("factorize")
-    notify("solve", 0.0)
-    u = system.solve(linear.hard_values, linear.soft_values)
-    lap("solve")
+    u = None
+    if exact_shortcut and not touched.any():
+        # Integrable forms: the immersion integrated along spanning trees already has zero
+        # energy, so it is the minimizer of Eq. 5 with these anchors (checked row by row).
+        notify("solve", 0.0)
+        u = problem.integrated_solution([a["face"] for a in anchored],
+                                        [a["vertex"] for a in anchored])
+        lap("solve")
+    solve_path = "tree-integration" if u is not None else "factorization"
+    system: ConstrainedSystem | None = None
+    if u is None:
+        notify("factorize", 0.0)
+        system = problem.system(linear, backend)
+        lap("factorize")
+        notify("solve", 0.0)
+        u = system.solve(linear.hard_values, linear.soft_values)
+        lap("solve")
 
     first_energy = problem.energies(u)
     vertices, frames = problem.unknowns_to_geometry(u, user)
     vertices = problem.recenter(vertices, user, ref_v)
     orthonormality = _orthonormality_error(frames)
-    if orthonormalize:
+    if orthonormalize and solve_path == "factorization":  # integrated frames are rotations
         notify("factorize", 0.5)
         rotations = nearest_rotation(frames)
         cols = problem.all_frame_columns()
@@ -449,7 +485,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         "frame_orthonormality_error": orthonormality,
         "orthonormalized": bool(orthonormalize),
         "timings": timings,
-        "backend": system.backend,
+        "backend": system.backend if system is not None else None,
+        "solve_path": solve_path,
         "n_unknowns": problem.n_unknowns,
         "frame_weight": problem.frame_weight,
         "weighting": problem.weighting,

@@ -59,8 +59,8 @@ def test_weightings_are_exact(weighting):
 def test_paper_cotan_weights_are_ill_conditioned_on_obtuse_meshes():
     # Documented behaviour (docs/weights.md): the literal weights lose accuracy here.
     V, F = load("torus.off")
-    exact = solve(fundamental_forms(V, F), weighting="uniform")
-    literal = solve(fundamental_forms(V, F), weighting="cotan")
+    exact = solve(fundamental_forms(V, F), weighting="uniform", exact_shortcut=False)
+    literal = solve(fundamental_forms(V, F), weighting="cotan", exact_shortcut=False)
     assert rigid_alignment_error(exact.vertices, V) < 1e-10
     assert rigid_alignment_error(literal.vertices, V) > 1e-6
 
@@ -68,7 +68,7 @@ def test_paper_cotan_weights_are_ill_conditioned_on_obtuse_meshes():
 @pytest.mark.parametrize("backend", available_backends())
 def test_every_backend_is_exact(backend):
     V, F = load("decimated-knight.off")
-    result = solve(fundamental_forms(V, F), backend=backend)
+    result = solve(fundamental_forms(V, F), backend=backend, exact_shortcut=False)
     assert result.report["backend"] == backend
     assert rigid_alignment_error(result.vertices, V) <= 1e-8
 
@@ -196,14 +196,15 @@ def test_isolated_vertex_is_pinned_and_reported():
 def test_progress_reports_every_stage():
     V, F = icosphere(2)
     seen = []
-    solve(fundamental_forms(V, F), progress=lambda stage, fraction: seen.append(stage))
+    solve(fundamental_forms(V, F), progress=lambda stage, fraction: seen.append(stage),
+          exact_shortcut=False)
     assert [s for i, s in enumerate(seen) if s not in seen[:i]] == [
         "validate", "assemble", "factorize", "solve"]
 
 
 def test_report_has_timings_backend_and_energy():
     V, F = icosphere(2)
-    report = solve(fundamental_forms(V, F)).report
+    report = solve(fundamental_forms(V, F), exact_shortcut=False).report
     assert set(report["timings"]) >= {"validate", "assemble", "factorize", "solve"}
     assert report["backend"] in available_backends()
     assert report["energy"]["edge"] < 1e-18 and report["energy"]["frame"] < 1e-18
@@ -253,3 +254,31 @@ def test_every_shared_mesh_reconstructs_exactly(name):
                          n_vertices=len(V))
     assert result.report["integrability"]["max_defect"] <= 1e-10
     assert rigid_alignment_error(result.vertices, V) <= 1e-8
+
+
+@pytest.mark.parametrize("name", ["knight (closed, genus 0)", "torus grid (genus 1)",
+                                  "double torus (genus 2)", "grid with holes (3 loops)",
+                                  "skinny strip"])
+def test_tree_integration_shortcut_equals_the_factorized_solve(name):
+    """Integrable forms are solved by integration along spanning trees (no factorization);
+    the result is the same minimizer of Eq. 5 as the factorized solve, anchors included."""
+    V, F = MESHES[name]
+    forms = fundamental_forms(V, F)
+    fast = solve(forms)
+    direct = solve(forms, exact_shortcut=False)
+    assert fast.report["solve_path"] == "tree-integration"
+    assert direct.report["solve_path"] == "factorization"
+    scale = np.linalg.norm(np.ptp(V, axis=0))
+    assert np.abs(fast.vertices - direct.vertices).max() <= 1e-9 * scale
+    assert np.abs(fast.frames - direct.frames).max() <= 1e-9
+    assert fast.report["energy"]["edge"] + fast.report["energy"]["frame"] < 1e-18
+
+
+def test_shortcut_declines_non_integrable_forms_and_constraints():
+    V, F = load("decimated-knight.off")
+    forms = fundamental_forms(V, F)
+    pinned = solve(forms, constraints=Constraints(position_vertices=[0, 5, 9, 200],
+                                                   positions=V[[0, 5, 9, 200]]))
+    assert pinned.report["solve_path"] == "factorization"
+    forms.angles[np.flatnonzero(forms.angles)[3]] += 1e-6
+    assert solve(forms).report["solve_path"] == "factorization"

@@ -8,12 +8,14 @@ with them as soft constraints (Sec. 4). :class:`solver.deform.Deformer` reuses t
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
 from .errors import ConstraintError
@@ -134,7 +136,7 @@ class ImmersionProblem:
     Attributes:
         terms: layouts, coefficients, rotations, weights.
         A, row_weights, row_kind: the residual operator (see :mod:`solver.system`).
-        K: (N, N) normal matrix, N = n + 3 m.
+        K: (N, N) normal matrix, N = n + 3 m (assembled lazily).
         length_scale: lengths were divided by it; solutions are multiplied back.
     """
 
@@ -156,7 +158,12 @@ class ImmersionProblem:
             topology, lengths / self.length_scale, angles, weighting=weighting,
             cotan_floor=cotan_floor, layout_angles=layout_angles)
         self.A, self.row_weights, self.row_kind = least_squares_rows(self.terms, frame_weight)
-        self.K = normal_matrix(self.A, self.row_weights)
+
+    @functools.cached_property
+    def K(self) -> sp.csc_matrix:  # noqa: N802 - the matrix of the paper
+        """(N, N) normal matrix A^T W A, assembled on first use (the tree-integration
+        shortcut never needs it)."""
+        return normal_matrix(self.A, self.row_weights)
 
     @property
     def n_unknowns(self) -> int:

@@ -1,12 +1,26 @@
 #!/usr/bin/env bash
 # The whole test suite, set-up included: Python package with test extras, the Khronos glTF
-# validator (npm, from the committed lockfile), then pytest. Used by .ci/run and README.
+# validator and the web page's three.js modules (npm, from the committed lockfiles), Debian's
+# Chromium for the browser tests (installed with apt when missing and running as root), then
+# pytest. Used by .ci/run and README.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 python -m pip install --quiet --disable-pip-version-check -e ".[test,dev]"
 if [ ! -d tools/gltf-validator/node_modules ]; then
   npm ci --silent --no-audit --no-fund --prefix tools/gltf-validator
+fi
+# The page's three.js modules: `npm ci` installs the pinned package and its postinstall
+# (web/build.mjs) copies the modules into service/static/vendor/ (git-ignored).
+if [ ! -f web/node_modules/.package-lock.json ] || [ web/package-lock.json -nt web/node_modules/.package-lock.json ]; then
+  npm ci --silent --no-audit --no-fund --prefix web
+else
+  node web/build.mjs > /dev/null
+fi
+# Browser tests (tests/web) drive Debian's Chromium headless; Playwright's own browser
+# download is never used. Without root, install it yourself: apt-get install -y chromium.
+if ! command -v chromium > /dev/null && [ "$(id -u)" = 0 ]; then
+  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium
 fi
 ruff check .
 python -m pytest "$@"

@@ -9,8 +9,9 @@ def main() -> None:
     from service.settings import Settings
 
     settings = Settings()
+    # Session WebSockets carry float32 vertex buffers: deflate costs more than it saves.
     uvicorn.run("service.app:app", host=settings.host, port=settings.port,
-                log_level=settings.log_level)
+                log_level=settings.log_level, ws_per_message_deflate=False)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,9 @@
 
 Serve with ``uvicorn service.app:app --host 0.0.0.0 --port 8000`` or ``python -m service``.
 The worker pool starts in the lifespan (``/readyz`` turns 200 when a worker is up) and stops
-with it.
+with it. ``FFS_EXECUTOR`` picks the backend of the pool, the jobs and the sessions: ``local``
+(processes of this service, jobs in memory) or ``dask`` (a Dask cluster shared by every
+replica; :mod:`service.cluster`).
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ from service.executor import make_executor
 from service.jobs import JobManager, MemoryJobStore
 from service.metrics import MetricsMiddleware, ServiceMetrics
 from service.problems import install_handlers
-from service.routes import health, jobs, operations
+from service.routes import health, jobs, operations, sessions, web
+from service.sessions import make_sessions
 from service.settings import Settings
 
 VERSION = "1.0.0"
@@ -37,11 +40,16 @@ and signed dihedral angles).
   (`GET /problems` lists the types).
 * Long work: `POST /v1/jobs` -> 202 + Location, poll `GET /v1/jobs/{id}`, fetch
   `GET /v1/jobs/{id}/result`, cancel with `DELETE`.
+* Interactive deformation: `POST /v1/sessions` factorizes once (201 + Location); each drag is
+  `POST /v1/sessions/{id}/solve` (JSON, GLB, glTF or raw float32 vertices) or a message on
+  the WebSocket `/v1/sessions/{id}/ws` (docs/service.md describes its binary format).
 """
 
 TAGS = [
     {"name": "operations", "description": "Synchronous solver operations."},
     {"name": "jobs", "description": "Asynchronous jobs with progress."},
+    {"name": "sessions", "description": "Interactive deformation: factorize once, solve per "
+                                        "drag (HTTP or WebSocket)."},
     {"name": "health", "description": "Liveness, readiness, metrics, problem types."},
 ]
 
@@ -50,26 +58,37 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app (the worker pool starts with the lifespan, not here)."""
     settings = settings or Settings()
     logging.getLogger("service").setLevel(settings.log_level.upper())
-    executor = make_executor(settings)
     metrics = ServiceMetrics()
 
     def on_job_finished(operation: str, result: dict[str, Any]) -> None:
         metrics.observe_task(operation, result, "ok")
 
-    manager = JobManager(MemoryJobStore(), executor, ttl=settings.job_ttl,
-                         timeout=settings.job_timeout, max_jobs=settings.max_jobs,
-                         on_result=on_job_finished)
-    metrics.bind(executor, manager.store.counts)
+    manager: Any
+    if settings.executor == "dask":
+        from service.cluster import make_backend
+
+        executor, manager, session_backend = make_backend(settings)
+        manager._on_result = on_job_finished
+    else:
+        executor = make_executor(settings)
+        manager = JobManager(MemoryJobStore(), executor, ttl=settings.job_ttl,
+                             timeout=settings.job_timeout, max_jobs=settings.max_jobs,
+                             on_result=on_job_finished)
+        session_backend = make_sessions(settings)
+    metrics.bind(executor, manager.counts)
+    metrics.bind_sessions(session_backend)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await executor.start()
         await manager.start()
+        await session_backend.start()
         app.state.started = True
         try:
             yield
         finally:
             app.state.started = False
+            await session_backend.stop()
             await manager.stop()
             await executor.shutdown()
 
@@ -78,12 +97,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.executor = executor
     app.state.jobs = manager
+    app.state.sessions = session_backend
     app.state.metrics = metrics
     app.state.started = False
     install_handlers(app)
     app.include_router(operations.router)
     app.include_router(jobs.router)
+    app.include_router(sessions.router)
     app.include_router(health.router)
+    app.include_router(web.router)
+    app.mount("/static", web.static_files(), name="static")
 
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(GZipMiddleware, minimum_size=settings.gzip_minimum_size,

@@ -14,8 +14,9 @@ its worker (which is replaced), and a worker that dies (crash, OOM kill) fails o
 it was running. Admission is bounded: at most ``size`` running plus ``queue_size`` waiting
 tasks, beyond that :class:`QueueFullError` (the routes answer 503 with Retry-After).
 
-A distributed backend (e.g. Dask) implements the same protocol: ``submit`` returns a
-:class:`TaskHandle` whose ``future`` resolves on the event loop.
+:class:`service.cluster.DaskExecutor` implements the same protocol on a Dask cluster
+(``FFS_EXECUTOR=dask``): ``submit`` returns a :class:`TaskHandle` whose ``future`` resolves
+on the event loop.
 """
 
 from __future__ import annotations
@@ -475,8 +476,8 @@ def _consume_exception(future: asyncio.Future[Any]) -> None:
 
 
 def make_executor(settings: Any) -> Executor:
-    """The executor selected by ``settings.executor``."""
-    if settings.executor == "process":
+    """The local executor (``settings.executor`` ``local``; Dask: service.cluster)."""
+    if settings.executor in ("local", "process"):
         return ProcessExecutor(settings.workers, settings.queue_size,
                                start_method=settings.start_method,
                                threads_per_worker=settings.effective_threads)

@@ -6,8 +6,9 @@ problem document, and the result (the encoded JSON body plus the mesh arrays so 
 ``GET /v1/jobs/{id}/result`` can return glTF or add colours). Finished jobs expire
 ``FFS_JOB_TTL`` seconds after they finish; a sweeper removes them.
 
-A shared store (e.g. Redis) would implement :class:`JobStore`; the manager only uses its
-methods, never the dict inside :class:`MemoryJobStore`.
+The routes talk to a :class:`JobService`: :class:`JobManager` here (local executor, jobs in
+this process) or :class:`service.cluster.DaskJobManager` (jobs on a Dask cluster, their
+state in the scheduler so that every service replica sees them).
 """
 
 from __future__ import annotations
@@ -174,6 +175,33 @@ class MemoryJobStore:
         return out
 
 
+class JobService(Protocol):
+    """What the job routes need (local: :class:`JobManager`; Dask: ``DaskJobManager``)."""
+
+    async def start(self) -> None: ...
+
+    async def stop(self) -> None: ...
+
+    async def submit(self, operation: str, payload: dict[str, Any], *,
+                     color: str | None = None, task: str | None = None) -> Job:
+        """Create and queue a job; 503 problems when the queue or the store is full."""
+
+    async def get(self, job_id: str) -> Job | None:
+        """The job, or None when it is unknown or expired."""
+
+    async def result(self, job: Job) -> dict[str, Any]:
+        """The result dict of a succeeded job (see :mod:`service.tasks`)."""
+
+    async def cancel(self, job: Job) -> None:
+        """Cancel a queued or running job."""
+
+    async def delete(self, job: Job) -> None:
+        """Forget a finished job and its result."""
+
+    def counts(self) -> dict[str, int]:
+        """Number of jobs per status (for the metrics)."""
+
+
 class JobManager:
     """Runs jobs on the executor and keeps their records in a :class:`JobStore`."""
 
@@ -266,6 +294,20 @@ class JobManager:
                     self._on_result(job.operation, result)
         finally:
             self._runners.pop(job.id, None)
+
+    async def get(self, job_id: str) -> Job | None:
+        return self.store.get(job_id)
+
+    async def result(self, job: Job) -> dict[str, Any]:
+        if job.result is None:
+            raise ProblemError("job-failed", f"job {job.id} has no result")
+        return job.result
+
+    async def delete(self, job: Job) -> None:
+        self.store.remove(job.id)
+
+    def counts(self) -> dict[str, int]:
+        return self.store.counts()
 
     def _fail(self, job: Job, problem: ProblemError) -> None:
         if job.done:

@@ -14,6 +14,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0,
                    120.0)
+SOLVE_BUCKETS = (0.005, 0.01, 0.02, 0.03, 0.04, 0.05, 0.075, 0.1, 0.25, 0.5, 1.0, 5.0)
 METRICS_CONTENT_TYPE = CONTENT_TYPE_LATEST
 
 
@@ -41,6 +42,17 @@ class ServiceMetrics:
                                      "Worker processes replaced (crash, cancel, timeout).",
                                      registry=r)
         self.jobs = Gauge("ffs_jobs", "Stored jobs by status.", ["status"], registry=r)
+        self.sessions = Gauge("ffs_sessions", "Open deformation sessions.", registry=r)
+        self.session_memory = Gauge("ffs_session_memory_bytes",
+                                    "Memory held by open sessions.", registry=r)
+        self.sessions_created = Counter("ffs_sessions_created", "Sessions opened.",
+                                        registry=r)
+        self.session_solves = Histogram("ffs_session_solve_duration_seconds",
+                                        "Session solves (one drag) by transport.",
+                                        ["transport"], buckets=SOLVE_BUCKETS, registry=r)
+        self.session_drops = Counter("ffs_session_dropped_drags",
+                                     "WebSocket drags replaced by a newer one before they "
+                                     "were solved.", registry=r)
 
     def bind(self, executor: Any, job_counts: Callable[[], dict[str, int]]) -> None:
         """Read pool and job gauges from live objects at scrape time."""
@@ -50,6 +62,20 @@ class ServiceMetrics:
         self.pool_busy.set_function(executor.busy)
         self.worker_restarts.set_function(lambda: getattr(executor, "restarts", 0))
         self._job_counts = job_counts
+
+    def bind_sessions(self, sessions: Any) -> None:
+        """Read the session gauges from the session backend at scrape time."""
+        self.sessions.set_function(sessions.count)
+        self.session_memory.set_function(sessions.memory)
+
+    def session_created(self) -> None:
+        self.sessions_created.inc()
+
+    def session_solve(self, transport: str, seconds: float) -> None:
+        self.session_solves.labels(transport).observe(seconds)
+
+    def session_dropped(self) -> None:
+        self.session_drops.inc()
 
     def observe_task(self, operation: str, result: dict[str, Any] | None, outcome: str) -> None:
         """Count a finished task and record its stage timings."""

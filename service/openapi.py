@@ -21,14 +21,17 @@ from service.schemas import PARAMS_MODELS, REQUEST_MODELS, JobRequest, Problem
 REF = "#/components/schemas/{model}"
 ERROR_DESCRIPTIONS: dict[int, str] = {
     400: "Malformed JSON, multipart body or mesh file.",
-    404: "Unknown job (or it expired).",
+    404: "Unknown job or session (or it expired).",
     406: "None of the Accept media types can be produced.",
     409: "The job has no result (not finished, failed or cancelled).",
+    410: "The session expired or its worker died.",
     413: "Body, vertex or face count over the limit.",
     415: "Unsupported Content-Type or mesh file type.",
+    429: "Too many open sessions (FFS_MAX_SESSIONS).",
     422: "Schema violation, or a solver input error (one problem kind per error class).",
     500: "A worker process died.",
-    503: "Queue full (Retry-After) or the pool is not running.",
+    503: "Queue full (Retry-After), the pool is not running, or session memory is "
+         "exhausted.",
     504: "No result within FFS_REQUEST_TIMEOUT.",
 }
 

@@ -17,8 +17,9 @@ MEDIA_TYPES: Final[dict[str, str]] = {
     "json": "application/json",
     "glb": "model/gltf-binary",
     "gltf": "model/gltf+json",
+    "f32": "application/octet-stream",
 }
-"""Response format -> media type."""
+"""Response format -> media type (``f32``: little-endian float32 vertices, sessions only)."""
 
 _OPTIONS = orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS
 

@@ -71,6 +71,14 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
     "queue-full": (503, "Server busy", "The work queue is full; retry after Retry-After seconds."),
     "too-many-jobs": (503, "Too many jobs", "The job store is full; retry later."),
     "unavailable": (503, "Service unavailable", "The worker pool is not running."),
+    "too-many-sessions": (429, "Too many sessions",
+                          "FFS_MAX_SESSIONS deformation sessions are open; delete one or retry "
+                          "after Retry-After seconds."),
+    "session-memory": (503, "Session memory exhausted",
+                       "The open sessions and this one would exceed FFS_MAX_SESSION_MEMORY."),
+    "session-gone": (410, "Session gone",
+                     "The session expired (FFS_SESSION_TTL) or the worker holding it died; "
+                     "`reason` says which. Create a new session."),
     "timeout": (504, "Timed out", "The result was not ready within FFS_REQUEST_TIMEOUT."),
     "worker-died": (500, "Worker died", "The worker process running the request exited."),
     "internal-error": (500, "Internal error", "An unexpected error; it has been logged."),

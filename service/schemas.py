@@ -33,9 +33,9 @@ EXAMPLE_FORMS: dict[str, Any] = {"faces": _F, "edges": _E, "lengths": _L, "angle
 _IDENTITY = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 
 Operation = Literal["reconstruct", "deform", "parameterize", "integrability", "forms",
-                    "interpolate"]
+                    "interpolate", "mesh"]
 OPERATIONS: tuple[str, ...] = ("forms", "integrability", "reconstruct", "deform",
-                               "parameterize", "interpolate")
+                               "parameterize", "interpolate", "mesh")
 ColorField = Literal["defect", "distortion"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
@@ -104,6 +104,12 @@ class FormsParams(ApiModel):
     model_config = _example({})
 
 
+class MeshParams(ApiModel):
+    """``POST /v1/mesh`` takes no parameters besides the mesh."""
+
+    model_config = _example({})
+
+
 class IntegrabilityParams(ApiModel):
     """Parameters of ``POST /v1/integrability``."""
 
@@ -162,6 +168,10 @@ class ReconstructOptions(ApiModel):
         False, description="Fail with 422 naming the worst vertices instead of returning a "
                            "least-squares answer when the forms are not integrable.")
     tolerance: float = Field(1e-8, gt=0, description="Integrability tolerance.")
+    exact_shortcut: bool = Field(
+        True, description="Without constraints, integrate the forms along spanning trees "
+        "first and skip the factorization when that immersion already has zero energy "
+        "(integrable forms; report.solve_path = tree-integration).")
 
 
 class ReconstructParams(ApiModel):
@@ -298,6 +308,12 @@ class ParameterizeRequest(MeshPart, ParameterizeParams):
     model_config = _example({**EXAMPLE_MESH, "options": {"orthonormalize": True}})
 
 
+class MeshRequest(MeshPart, MeshParams):
+    """Body of ``POST /v1/mesh`` (the JSON form is useful for GLB/glTF output)."""
+
+    model_config = _example(EXAMPLE_MESH)
+
+
 class InterpolateRequest(InterpolateParams):
     """Body of ``POST /v1/interpolate``: two embeddings of the same faces and t."""
 
@@ -313,11 +329,13 @@ REQUEST_MODELS: dict[str, type[ApiModel]] = {
     "forms": FormsRequest, "integrability": IntegrabilityRequest,
     "reconstruct": ReconstructRequest, "deform": DeformRequest,
     "parameterize": ParameterizeRequest, "interpolate": InterpolateRequest,
+    "mesh": MeshRequest,
 }
 PARAMS_MODELS: dict[str, type[ApiModel]] = {
     "forms": FormsParams, "integrability": IntegrabilityParams,
     "reconstruct": ReconstructParams, "deform": DeformParams,
     "parameterize": ParameterizeParams, "interpolate": InterpolateParams,
+    "mesh": MeshParams,
 }
 """The non-mesh fields of each operation: the other form fields of a multipart upload."""
 
@@ -334,6 +352,95 @@ class JobRequest(BaseModel):
     color: ColorField | None = Field(
         None, description="Precompute this vertex colour field so that "
                           "GET /v1/jobs/{id}/result?color=... can add it.")
+
+
+# ---------------------------------------------------------------------------- sessions
+
+
+class SessionHandle(ApiModel):
+    """A handle vertex of a session; ``position`` is optional and unused at creation (each
+    solve brings the targets), so a ``/v1/deform`` body can be reused as is."""
+
+    model_config = _example({"vertex": 4, "position": [0.5, 0.5, 0.5]})
+
+    vertex: Index
+    position: Vec3 | None = None
+
+
+class SessionRotationHandle(ApiModel):
+    """A group of faces whose frames each solve rotates by one matrix (``rotation`` is
+    optional and unused at creation)."""
+
+    model_config = _example({"faces": [0, 1]})
+
+    faces: list[Index] = Field(min_length=1)
+    rotation: Mat3 | None = None
+
+
+class SessionRequest(MeshPart):
+    """Body of ``POST /v1/sessions``: the rest mesh, the handles (vertex indices and,
+    optionally, face groups with a rotation handle), an optional region of interest and
+    the deformation options. The system is factorized once here."""
+
+    model_config = _example({**EXAMPLE_MESH, "handles": [
+        {"vertex": 0}, {"vertex": 1}, {"vertex": 2}, {"vertex": 3},
+        {"vertex": 4, "position": [0.5, 0.5, 0.5]}]})
+
+    handles: list[SessionHandle] = Field(min_length=1)
+    rotations: list[SessionRotationHandle] | None = None
+    roi: list[Index] | None = Field(None, description="Vertices that may move (default all).")
+    options: DeformOptions = Field(default_factory=DeformOptions)
+
+
+class SessionDrag(ApiModel):
+    """Body of ``POST /v1/sessions/{id}/solve`` (and a JSON WebSocket message): one target
+    per handle, in the order of the session's ``handles``, and one rotation per rotation
+    group (default: identity). ``seq`` (WebSocket only) is echoed in the reply header."""
+
+    model_config = _example({"handle_positions": [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0],
+                                                  [1.0, 1.0, 0.0], [0.0, 1.0, 0.0],
+                                                  [0.5, 0.5, 0.8]]})
+
+    handle_positions: list[Vec3] = Field(min_length=1)
+    handle_rotations: list[Mat3] | None = None
+    seq: int | None = Field(None, ge=0, le=2**32 - 1)
+
+
+class SessionInfo(BaseModel):
+    """A deformation session."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"id": "9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d", "n_vertices": 5, "n_faces": 4,
+         "handles": [0, 1, 2, 3, 4], "n_rotation_groups": 0, "expires_in": 600.0,
+         "setup_seconds": 0.004, "backend": "pardiso", "executor": "local",
+         "memory_bytes": 92274688, "solves": 0,
+         "links": {"self": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d",
+                   "solve": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d/solve",
+                   "ws": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d/ws"}}]})
+
+    id: str
+    n_vertices: int
+    n_faces: int
+    handles: list[int] = Field(description="Handle vertices, in the order of "
+                                           "`handle_positions`.")
+    n_rotation_groups: int
+    expires_in: float = Field(description="Seconds until the session expires unless it "
+                                          "solves again.")
+    setup_seconds: float = Field(description="Time to assemble and factorize.")
+    backend: str = Field(description="Sparse factorization backend.")
+    executor: Literal["local", "dask"] = Field(description="Where the session lives.")
+    memory_bytes: int = Field(description="Memory the session holds (counts towards "
+                                          "FFS_MAX_SESSION_MEMORY).")
+    solves: int
+    links: dict[str, str]
+
+
+class SessionVertices(BaseModel):
+    """Result of a session solve in JSON: the deformed vertices in input order."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"vertices": _V}]})
+
+    vertices: list[Vec3]
 
 
 # --------------------------------------------------------------------------- responses
@@ -354,13 +461,14 @@ class HolonomyLoop(BaseModel):
     """One homology generator of the global integrability check."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
-        {"kind": "rotation", "component": 0, "edge": [3, 7], "faces": [4, 9], "angle": 0.0,
-         "translation": [0.0, 0.0, 0.0], "magnitude": 0.0, "passes": True}]})
+        {"kind": "rotation", "component": 0, "edge": [3, 7], "faces": [4, 9], "edge_index": 12,
+         "angle": 0.0, "translation": [0.0, 0.0, 0.0], "magnitude": 0.0, "passes": True}]})
 
     kind: Literal["rotation", "translation"]
     component: int
-    edge: list[int]
+    edge: list[int] = Field(description="[i, j], the edge that closes the loop.")
     faces: list[int]
+    edge_index: int = Field(description="Row of that edge in the sorted edge list.")
     angle: float
     translation: list[float]
     magnitude: float

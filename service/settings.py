@@ -3,6 +3,10 @@
 Every field below is documented in ``docs/service.md`` (a test checks that the table there
 lists each one). Lists such as ``FFS_CORS_ORIGINS`` are given as JSON (``'["https://a.b"]'``)
 or comma-separated (``https://a.b,https://c.d``).
+
+Two settings also answer to the unprefixed names of the scale-out spec: ``SOLVER_EXECUTOR``
+(= ``FFS_EXECUTOR``) and ``DASK_SCHEDULER_ADDRESS`` (= ``FFS_DASK_SCHEDULER_ADDRESS``); the
+prefixed name wins when both are set.
 """
 
 from __future__ import annotations
@@ -10,7 +14,7 @@ from __future__ import annotations
 import os
 from typing import Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import AliasChoices, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from solver.linalg import BACKENDS
@@ -26,15 +30,25 @@ class Settings(BaseSettings):
     """Runtime configuration of the HTTP service (see the module docstring)."""
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore",
-                                      validate_default=True)
+                                      validate_default=True, populate_by_name=True)
 
     host: str = Field("127.0.0.1", description="Bind address of `python -m service`.")
     port: int = Field(8000, ge=0, le=65535, description="Port of `python -m service`.")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field(
         "info", description="Log level of `python -m service`.")
 
-    executor: Literal["process"] = Field(
-        "process", description="Worker backend: `process` (a local process pool).")
+    executor: Literal["local", "process", "dask"] = Field(
+        "local", validation_alias=AliasChoices("FFS_EXECUTOR", "SOLVER_EXECUTOR"),
+        description="Worker backend: `local` (a local process pool; `process` is a synonym) "
+                    "or `dask` (a Dask distributed cluster at FFS_DASK_SCHEDULER_ADDRESS).")
+    dask_scheduler_address: str | None = Field(
+        None, validation_alias=AliasChoices("FFS_DASK_SCHEDULER_ADDRESS",
+                                            "DASK_SCHEDULER_ADDRESS"),
+        description="Scheduler of the Dask cluster, e.g. `tcp://scheduler:8786` "
+                    "(required with FFS_EXECUTOR=dask).")
+    dask_connect_timeout: float = Field(
+        30.0, gt=0, description="Seconds to wait for the Dask scheduler at each connection "
+                                "attempt; the service retries until it answers.")
     workers: int = Field(default_factory=_default_workers, ge=1, le=256,
                          description="Worker processes (default: the number of cores).")
     threads_per_worker: int | None = Field(
@@ -53,6 +67,23 @@ class Settings(BaseSettings):
         3600.0, gt=0, description="Seconds a finished job and its result are kept.")
     max_jobs: int = Field(
         256, ge=1, description="Jobs kept at once (all states); beyond it: 503.")
+
+    session_ttl: float = Field(
+        600.0, gt=0, description="Seconds a deformation session may stay idle before it is "
+                                 "closed (its memory freed).")
+    max_sessions: int = Field(
+        8, ge=0, le=10_000, description="Live deformation sessions at once; beyond it: 429.")
+    max_session_memory: int = Field(
+        4 * 1024**3, ge=0,
+        description="Bytes all live sessions may hold together (measured per session after "
+                    "its factorization, estimated before); beyond it: 503.")
+    session_threads: int | None = Field(
+        None, ge=1, le=256,
+        description="BLAS/MKL threads of each local session process (default: the number "
+                    "of cores: a drag is latency-bound, and sessions rarely drag at once).")
+    session_solve_timeout: float = Field(
+        30.0, gt=0, description="Seconds one session solve may take; then 504 and the "
+                                "session is closed (410 afterwards).")
 
     max_body_bytes: int = Field(
         64 * 1024 * 1024, ge=1024, description="Largest request body (413 beyond).")
@@ -81,6 +112,28 @@ class Settings(BaseSettings):
                 return json.loads(text)
             return [part.strip() for part in text.split(",") if part.strip()]
         return value
+
+    @field_validator("executor", mode="after")
+    @classmethod
+    def _local_synonym(cls, value: str) -> str:
+        return "local" if value == "process" else value
+
+    @field_validator("dask_scheduler_address", mode="before")
+    @classmethod
+    def _blank_is_none(cls, value: object) -> object:
+        return None if isinstance(value, str) and not value.strip() else value
+
+    @model_validator(mode="after")
+    def _dask_needs_an_address(self) -> Settings:
+        if self.executor == "dask" and not self.dask_scheduler_address:
+            raise ValueError("FFS_EXECUTOR=dask needs FFS_DASK_SCHEDULER_ADDRESS "
+                             "(or DASK_SCHEDULER_ADDRESS), e.g. tcp://scheduler:8786")
+        return self
+
+    @property
+    def effective_session_threads(self) -> int:
+        """BLAS threads of a local session process: the setting, or the number of cores."""
+        return self.session_threads or max(1, os.cpu_count() or 1)
 
     @property
     def effective_threads(self) -> int:

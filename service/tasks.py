@@ -278,18 +278,17 @@ def integrability_task(payload: dict[str, Any], progress: Progress) -> dict[str,
     return _finish(payload, progress, integrability_document(report))
 
 
-def _not_integrable(report: solver.IntegrabilityReport, edges: np.ndarray) -> TaskProblemError:
+def _not_integrable(report: solver.IntegrabilityReport) -> TaskProblemError:
     """422 ``not-integrable`` naming the worst vertices, failing loops and bad triangles."""
     errors: list[dict[str, Any]] = [
         {"field": "vertices", "index": int(v), "reason":
          f"holonomy defect {report.vertex_defect[v]:.3g} rad around vertex {int(v)} exceeds "
          f"the tolerance {report.tolerance:g}", "defect": float(report.vertex_defect[v])}
         for v in report.worst_vertices if report.vertex_defect[v] > report.tolerance]
-    edge_rows = {tuple(e): i for i, e in enumerate(np.asarray(edges).tolist())}
     for loop in report.rotation_holonomy + report.translation_holonomy:
         if not loop.passes:
             what = ("rotation" if loop.kind == "rotation" else "translation")
-            errors.append({"field": "edges", "index": edge_rows.get(tuple(sorted(loop.edge))),
+            errors.append({"field": "edges", "index": loop.edge_index,
                            "reason": f"global {what} holonomy {loop.magnitude:.3g} along the "
                                      f"generator loop closed by edge {loop.edge}",
                            "magnitude": loop.magnitude})
@@ -336,7 +335,7 @@ def reconstruct_task(payload: dict[str, Any], progress: Progress) -> dict[str, A
             forms["faces"], forms["edges"], forms["lengths"], forms["angles"],
             tol=options["tolerance"], n_vertices=n_vertices)
         if options["require_integrable"] and not full_report.integrable:
-            raise _not_integrable(full_report, forms["edges"])
+            raise _not_integrable(full_report)
     result = solver.reconstruct(
         forms["faces"], forms["edges"], forms["lengths"], forms["angles"],
         constraints=_constraints(params.get("constraints")),
@@ -344,6 +343,7 @@ def reconstruct_task(payload: dict[str, Any], progress: Progress) -> dict[str, A
         orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
         backend=_backend(payload), n_vertices=n_vertices,
         check_integrability=full_report is None, integrability_tol=options["tolerance"],
+        exact_shortcut=options["exact_shortcut"],
         progress=progress)
     report = dict(result.report)
     if full_report is not None:

@@ -399,7 +399,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         exact_shortcut: without constraints, first integrate frames and positions along
             spanning trees (Sec. 2.3); if every residual row of Eq. 5 vanishes (to 1e-10,
             lengths normalized), that immersion is the minimizer and no factorization is
-            needed (report ``solve_path`` = "tree-integration", ``backend`` = None).
+            needed (report ``solve_path`` = "tree-integration", ``backend`` = "none",
+            ``timings["factorize"]`` = 0).
             Otherwise, and always with constraints, the system is factorized.
         progress: optional callback ``progress(stage, fraction)`` for stages
             validate, assemble, factorize, solve.
@@ -457,6 +458,9 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         u = problem.integrated_solution([a["face"] for a in anchored],
                                         [a["vertex"] for a in anchored])
         lap("solve")
+        if u is not None:  # the factorization stage is skipped: report it as 0 s
+            timings["factorize"] = 0.0
+            notify("factorize", 1.0)
     solve_path = "tree-integration" if u is not None else "factorization"
     system: ConstrainedSystem | None = None
     if u is None:
@@ -492,7 +496,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         "frame_orthonormality_error": orthonormality,
         "orthonormalized": bool(orthonormalize),
         "timings": timings,
-        "backend": system.backend if system is not None else None,
+        "backend": system.backend if system is not None else "none",
         "solve_path": solve_path,
         "n_unknowns": problem.n_unknowns,
         "frame_weight": problem.frame_weight,

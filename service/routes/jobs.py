@@ -52,8 +52,8 @@ def _status_response(job: Job, status_code: int = 200,
                     media_type="application/json", headers=headers)
 
 
-def _get(request: Request, job_id: str) -> Job:
-    job = request.app.state.jobs.store.get(job_id)
+async def _get(request: Request, job_id: str) -> Job:
+    job = await request.app.state.jobs.get(job_id)
     if job is None:
         raise ProblemError("not-found", f"no job {job_id!r} (it may have expired)")
     return job
@@ -95,7 +95,7 @@ async def submit_job(request: Request) -> Response:
                         "(a problem document) of a job.",
             response_class=Response, responses=error_responses(404, 422))
 async def get_job(request: Request, job_id: JobId) -> Response:
-    return _status_response(_get(request, job_id))
+    return _status_response(await _get(request, job_id))
 
 
 @router.get("/v1/jobs/{job_id}/result", summary="Job result",
@@ -106,7 +106,7 @@ async def get_job(request: Request, job_id: JobId) -> Response:
             responses={200: {"description": "The result.", "content": _RESULT_CONTENT},
                        **error_responses(404, 406, 409, 422)})
 async def get_result(request: Request, job_id: JobId, color: ColorQuery = None) -> Response:
-    job = _get(request, job_id)
+    job = await _get(request, job_id)
     formats = MESH_FORMATS if job.operation in MESH_OPERATIONS else JSON_ONLY
     fmt = negotiate(request.headers.get("accept"), formats)
     check_color(job.operation, color)
@@ -115,10 +115,10 @@ async def get_result(request: Request, job_id: JobId, color: ColorQuery = None) 
                            headers={"Retry-After": "1"}, job_status=job.status)
     if job.status == "cancelled":
         raise ProblemError("job-cancelled", f"job {job.id} was cancelled")
-    if job.status == "failed" or job.result is None:
+    if job.status == "failed":
         raise ProblemError("job-failed", f"job {job.id} failed: "
                            f"{(job.error or {}).get('detail', 'no result')}", error=job.error)
-    result = job.result
+    result = await request.app.state.jobs.result(job)
     values = None
     if color is not None:
         values = (result.get("colors") or {}).get(color)
@@ -151,9 +151,9 @@ def _encode(result: dict[str, Any], fmt: str, values: Any) -> bytes:
                responses={204: {"description": "Deleted."}, **error_responses(404, 422)})
 async def delete_job(request: Request, job_id: JobId) -> Response:
     manager = request.app.state.jobs
-    job = _get(request, job_id)
+    job = await _get(request, job_id)
     if job.done:
-        manager.store.remove(job.id)
+        await manager.delete(job)
         return Response(status_code=204)
     await manager.cancel(job)
     return _status_response(job)

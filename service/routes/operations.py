@@ -1,5 +1,5 @@
 """The synchronous operations: forms, integrability, reconstruct, deform, parameterize,
-interpolate. Each takes a JSON body or a multipart mesh upload, runs in a worker and answers
+interpolate, mesh. Each takes a JSON body or a multipart mesh upload, runs in a worker and answers
 in the negotiated format (JSON, GLB or glTF for mesh results).
 """
 
@@ -73,6 +73,13 @@ SPECS: dict[str, dict[str, Any]] = {
         "description": "Blends lengths and dihedral angles of two embeddings of the same "
                        "faces and reconstructs for each t. glTF output needs a single t. "
                        "Uploads use `file_a` and `file_b`."},
+    "mesh": {
+        "model": MeshResponse, "summary": "Read or convert a mesh",
+        "description": "Reads a mesh file (OBJ, PLY, OFF, STL, GLB) or a JSON mesh, checks "
+                       "its connectivity like the other operations do, and returns it in the "
+                       "negotiated format: JSON `vertices` (file order) and `faces` with a "
+                       "`report` (counts, bounds, mean edge length), or GLB / glTF. The web "
+                       "page uses it to open uploads and to download the current mesh."},
 }
 
 

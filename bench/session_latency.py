@@ -1,0 +1,241 @@
+"""Drag latency of a deformation session against the direct ``Deformer.solve`` call.
+
+A ~20K-face mesh (shared/meshes/rocker-arm.obj, 20 088 faces; icosphere(5) with 20 480
+faces if the shared meshes are absent) with 10 position handles. Each round drags all
+handles to new targets and waits for the vertices:
+
+* direct: ``solver.Deformer(...).solve(targets)`` in this process (MKL's default threads,
+  one per core, like a local session process with the default FFS_SESSION_THREADS);
+* HTTP: ``POST /v1/sessions/{id}/solve`` with a JSON drag, answered as raw float32
+  (``Accept: application/octet-stream``, what a frontend uploads into a vertex buffer) and
+  as JSON;
+* WebSocket: one binary drag per message, waiting for each reply (no drops).
+
+Each path runs all its drags before the next path starts. (Interleaving the paths drag by
+drag distorts the result: after each solve, MKL's OpenMP threads spin for up to 200 ms
+(KMP_BLOCKTIME) and slow down whatever process runs next on the same cores.)
+
+The service is a real ``uvicorn service.app:app`` on loopback (``FFS_EXECUTOR=local``: the
+session is a dedicated process; with ``--dask`` also ``FFS_EXECUTOR=dask`` on a one-worker
+cluster: the session is a Dask actor). Targets: HTTP p50 <= 40 ms, WebSocket p50 <= 30 ms.
+
+``python bench/session_latency.py [--drags 200] [--dask] [--out bench/SESSIONS.md]``
+prints a markdown table (and writes it with ``--out``, replacing that file's latency
+section).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import orjson
+import trimesh
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.servers import dask_cluster, load, uvicorn  # noqa: E402
+
+SHARED_MESH = REPO.parent / "shared" / "meshes" / "rocker-arm.obj"
+
+
+def mesh() -> tuple[str, np.ndarray, np.ndarray]:
+    if SHARED_MESH.exists():
+        from solver.io import load_mesh_file
+
+        V, F = load_mesh_file(SHARED_MESH)
+        return SHARED_MESH.name, V, F
+    m = trimesh.creation.icosphere(subdivisions=5)
+    return "icosphere(5)", np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def targets(V: np.ndarray, handles: np.ndarray, count: int) -> np.ndarray:
+    """A smooth drag of the first handle (the others stay), float32-exact values."""
+    t = np.linspace(0.0, 1.0, count)[:, None]
+    scale = float(np.ptp(V, axis=0).max())
+    out = np.repeat(V[handles][None], count, axis=0)
+    out[:, 0] += t * np.array([0.1, 0.05, 0.0]) * scale
+    return out.astype(np.float32).astype(np.float64)
+
+
+def stats(seconds: list[float]) -> dict[str, float]:
+    ms = np.asarray(seconds) * 1000
+    return {"p50": float(np.median(ms)), "p90": float(np.percentile(ms, 90)),
+            "mean": float(ms.mean())}
+
+
+class Session:
+    """One session on one server: an HTTP client and a WebSocket, each drag timed."""
+
+    def __init__(self, base: str, V: np.ndarray, F: np.ndarray, handles: np.ndarray) -> None:
+        from websockets.sync.client import connect
+
+        self.http = httpx.Client(base_url=base, timeout=300)
+        body = orjson.dumps({"vertices": V, "faces": F,
+                             "handles": [{"vertex": int(h)} for h in handles]},
+                            option=orjson.OPT_SERIALIZE_NUMPY)
+        t0 = time.perf_counter()
+        created = self.http.post("/v1/sessions", content=body,
+                                 headers={"content-type": "application/json"})
+        created.raise_for_status()
+        self.create = time.perf_counter() - t0
+        self.doc = created.json()
+        self.location = created.headers["location"]
+        self._stack = contextlib.ExitStack()
+        self.ws = self._stack.enter_context(connect(
+            base.replace("http://", "ws://") + self.location + "/ws", max_size=None))
+        self.worker_solve: list[float] = []
+        self.bytes: dict[str, int] = {}
+
+    def http_drag(self, target: np.ndarray, accept: str, key: str) -> None:
+        payload = orjson.dumps({"handle_positions": target}, option=orjson.OPT_SERIALIZE_NUMPY)
+        r = self.http.post(f"{self.location}/solve", content=payload, headers={
+            "content-type": "application/json", "accept": accept,
+            "accept-encoding": "identity"})
+        r.raise_for_status()
+        self.bytes[key] = len(r.content)
+        timing = dict(part.split(";dur=") for part in r.headers["server-timing"].split(", "))
+        self.worker_solve.append(float(timing["solve"]) / 1000)
+
+    def ws_drag(self, target: np.ndarray) -> None:
+        self.ws.send(target.astype("<f4").tobytes())
+        self.bytes["ws"] = len(self.ws.recv(timeout=60))
+
+    def close(self) -> None:
+        self._stack.close()
+        self.http.delete(self.location).raise_for_status()
+        self.http.close()
+
+
+def measure(V: np.ndarray, F: np.ndarray, handles: np.ndarray, drags: np.ndarray,
+            servers: dict[str, str]) -> tuple[dict, dict[str, Session]]:
+    """Time each path over all drags, one path after the other."""
+    import solver
+
+    sessions = {name: Session(base, V, F, handles) for name, base in servers.items()}
+    # MKL's default threads (one per core), as in a local session process.
+    t0 = time.perf_counter()
+    deformer = solver.Deformer(V, F, handles)
+    setup = time.perf_counter() - t0
+    deformer.solve()  # a session's first solve (it verifies the factorization)
+    paths = {"direct": deformer.solve}
+    for name, session in sessions.items():
+        paths[f"{name}:http_f32"] = functools.partial(
+            session.http_drag, accept="application/octet-stream", key="http_f32")
+        paths[f"{name}:http_json"] = functools.partial(
+            session.http_drag, accept="application/json", key="http_json")
+        paths[f"{name}:ws"] = session.ws_drag
+    times: dict[str, list[float]] = {key: [] for key in paths}
+    for key, drag in paths.items():  # one path after the other (see the module docstring)
+        for i, target in enumerate(drags):
+            t0 = time.perf_counter()
+            drag(target)
+            if i:  # the first drag warms the connection up
+                times[key].append(time.perf_counter() - t0)
+    out = {key: stats(values) for key, values in times.items()}
+    out["direct"]["setup"] = setup
+    return out, sessions
+
+
+def report(name: str, V: np.ndarray, F: np.ndarray, n_drags: int, out: dict,
+           sessions: dict[str, Session], loads: list[str]) -> str:
+    ref = out["direct"]
+    lines = [
+        "## Session drag latency",
+        "",
+        f"`python bench/session_latency.py --drags {n_drags}"
+        f"{' --dask' if 'dask' in sessions else ''}` on {platform.machine()} with "
+        f"{os.cpu_count()} cores, Python {platform.python_version()}; {name}: {len(F)} faces, "
+        f"{len(V)} vertices, 10 position handles; {n_drags} drags per path, one path after "
+        "the other (milliseconds from sending a drag to having all vertices; one request or "
+        "message at a time over one keep-alive connection; uvicorn without WebSocket "
+        "deflate, as in the image; MKL threads: one per core in this process and in the "
+        "local session process, one in the Dask worker). Load average (1, 5, 15 min) "
+        "before and after: "
+        f"{loads[0]} / {loads[-1]}.",
+        "",
+        "| Path | p50 (ms) | p90 (ms) | mean (ms) | p50 x direct | reply bytes |",
+        "|---|---|---|---|---|---|",
+        f"| direct `Deformer.solve` (this process) | {ref['p50']:.1f} | "
+        f"{ref['p90']:.1f} | {ref['mean']:.1f} | 1.00 | |",
+    ]
+    labels = {"http_f32": "HTTP, JSON drag -> float32 vertices",
+              "http_json": "HTTP, JSON drag -> JSON vertices",
+              "ws": "WebSocket, binary drag -> float32 vertices"}
+    for backend, session in sessions.items():
+        for key, label in labels.items():
+            row = out[f"{backend}:{key}"]
+            lines.append(f"| {backend}: {label} | {row['p50']:.1f} | {row['p90']:.1f} | "
+                         f"{row['mean']:.1f} | {row['p50'] / ref['p50']:.2f} | "
+                         f"{session.bytes[key]:,} |")
+    local = sessions["local"]
+    http_p50, ws_p50 = out["local:http_f32"]["p50"], out["local:ws"]["p50"]
+    lines += [
+        "",
+        f"Session set-up (assemble + factorize + the first, verified solve): "
+        f"{local.doc['setup_seconds']:.2f} s in the session process ({ref['setup']:.2f} s "
+        f"for the bare `Deformer` here); `POST /v1/sessions` took {local.create:.2f} s "
+        "including the 1.9 MB JSON body and the process start. Measured session memory: "
+        f"{local.doc['memory_bytes'] / 2**20:.0f} MiB (private memory of its process). The "
+        "session process's own solve time (`Server-Timing`) had a p50 of "
+        f"{stats(local.worker_solve)['p50']:.1f} ms.",
+        "",
+        f"Targets (p50, local executor): HTTP <= 40 ms: {'met' if http_p50 <= 40 else 'NOT met'}"
+        f" ({http_p50:.1f} ms with float32 vertices, {out['local:http_json']['p50']:.1f} ms "
+        f"with JSON); WebSocket <= 30 ms: {'met' if ws_p50 <= 30 else 'NOT met'} "
+        f"({ws_p50:.1f} ms).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--drags", type=int, default=200)
+    parser.add_argument("--dask", action="store_true", help="also measure a Dask actor")
+    parser.add_argument("--out", type=Path, help="write the section into this markdown file")
+    args = parser.parse_args()
+    name, V, F = mesh()
+    handles = np.linspace(0, len(V) - 1, 10).astype(np.int64)
+    drags = targets(V, handles, args.drags + 1)
+    env = {"FFS_WORKERS": "1", "FFS_LOG_LEVEL": "warning"}
+    loads = [load()]
+    with contextlib.ExitStack() as stack:
+        servers = {"local": stack.enter_context(uvicorn(env))}
+        if args.dask:
+            address = stack.enter_context(dask_cluster(1))
+            servers["dask"] = stack.enter_context(uvicorn(
+                {**env, "FFS_EXECUTOR": "dask", "FFS_DASK_SCHEDULER_ADDRESS": address}))
+        out, sessions = measure(V, F, handles, drags, servers)
+        loads.append(load())
+        text = report(name, V, F, args.drags, out, sessions, loads)
+        for session in sessions.values():
+            session.close()
+    print(text)
+    if args.out:
+        _write_section(args.out, "## Session drag latency", text)
+
+
+def _write_section(path: Path, heading: str, text: str) -> None:
+    """Replace the section that starts with ``heading`` (up to the next ``## ``)."""
+    old = path.read_text() if path.exists() else "# Sessions and scale-out benchmarks\n\n"
+    start = old.find(heading)
+    if start < 0:
+        new = old.rstrip("\n") + "\n\n" + text
+    else:
+        end = old.find("\n## ", start + len(heading))
+        new = old[:start] + text + (old[end + 1:] if end >= 0 else "")
+    path.write_text(new.rstrip("\n") + "\n")
+
+
+if __name__ == "__main__":
+    main()

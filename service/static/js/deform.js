@@ -1,0 +1,205 @@
+// Live deformation transports. Each one takes the same set-up (rest mesh, handle vertices,
+// rotation groups, options) and answers solve(handlePositions, handleRotations) with the new
+// vertices (Float64Array(3n)):
+//   SessionTransport  POST /v1/sessions once (the factorization), then per update the session
+//                     WebSocket (links.ws of the session), or POST /v1/sessions/{id}/solve
+//                     with a float32 answer when there is no socket;
+//   DeformTransport   POST /v1/deform per update (servers without sessions).
+// Wire formats (docs/service.md): a drag is JSON {handle_positions, handle_rotations?, seq?};
+// vertices come back as little-endian float32 (n, 3); a WebSocket reply puts an 8-byte header
+// in front (uint32 seq, uint32 n) and a text frame is a problem document (with "seq").
+// The page keeps one drag in flight, so the server's "newest drag wins" never drops one.
+
+import { ApiError, request, postJson } from "./api.js";
+import { flatten3, rows3 } from "./mesh.js";
+
+/** Body of POST /v1/deform (and of POST /v1/sessions) for a set-up and handle targets. */
+export function deformBody(setup, positions, rotations) {
+  const body = {
+    vertices: rows3(setup.rest),
+    faces: Array.from({ length: setup.faces.length / 3 },
+      (_, t) => [setup.faces[3 * t], setup.faces[3 * t + 1], setup.faces[3 * t + 2]]),
+    handles: setup.handles.map((vertex, k) => ({ vertex,
+      position: [positions[3 * k], positions[3 * k + 1], positions[3 * k + 2]] })),
+    options: { orthonormalize: setup.orthonormalize },
+  };
+  if (setup.rotationGroups.length) {
+    body.rotations = setup.rotationGroups.map((faces, k) => ({ faces, rotation: rotations[k] }));
+  }
+  return body;
+}
+
+/** Little-endian float32 (n, 3) from byte `offset` -> Float64Array(3n). */
+export function decodeVertices(buffer, n, offset = 0) {
+  const view = new DataView(buffer, offset);
+  if (n !== undefined && view.byteLength !== 12 * n) {
+    throw new Error(`expected ${12 * n} bytes of vertices, got ${view.byteLength}`);
+  }
+  const out = new Float64Array(view.byteLength / 4);
+  for (let i = 0; i < out.length; i++) out[i] = view.getFloat32(4 * i, true);
+  return out;
+}
+
+const WS_HEADER_BYTES = 8;
+
+export class DeformTransport {
+  constructor(setup) {
+    this.setup = setup;
+    this.kind = "deform";
+    this.label = "HTTP: POST /v1/deform per update (this server has no sessions)";
+  }
+
+  async open() {}
+
+  async solve(positions, rotations) {
+    const result = await postJson("/v1/deform", deformBody(this.setup, positions, rotations));
+    return flatten3(result.vertices);
+  }
+
+  close() {}
+}
+
+export class SessionTransport {
+  constructor(setup, { websocket = true } = {}) {
+    this.setup = setup;
+    this.kind = "session";
+    this.useWebSocket = websocket;
+    this.socket = null;
+    this.id = null;
+    this.label = "HTTP: POST /v1/sessions/{id}/solve";
+  }
+
+  async open() {
+    const body = deformBody(this.setup, this.setup.initialPositions, this.setup.initialRotations);
+    const response = await request("/v1/sessions", { json: body });
+    const session = await response.json();
+    this.id = session.id;
+    this.session = session;
+    this.n = session.n_vertices ?? this.setup.rest.length / 3;
+    this.label = `HTTP: POST /v1/sessions/${this.id.slice(0, 8)}…/solve`;
+    this.seq = 0;
+    const ws = session.links?.ws;
+    if (this.useWebSocket && ws) await this.openSocket(ws);
+  }
+
+  async openSocket(path) {
+    // Opened only when the session advertises it (links.ws); a socket that fails to open
+    // or closes leaves the HTTP solve endpoint in charge.
+    const scheme = location.protocol === "https:" ? "wss:" : "ws:";
+    const url = new URL(path, `${scheme}//${location.host}`).href;
+    await new Promise((resolve) => {
+      let socket;
+      try {
+        socket = new WebSocket(url);
+      } catch (err) {
+        console.warn("WebSocket unavailable, using HTTP", err);
+        resolve();
+        return;
+      }
+      socket.binaryType = "arraybuffer";
+      const timer = setTimeout(() => {
+        socket.close();
+        resolve();
+      }, 3000);
+      socket.onopen = () => {
+        clearTimeout(timer);
+        this.socket = socket;
+        this.label = `WebSocket: /v1/sessions/${this.id.slice(0, 8)}…/ws`;
+        resolve();
+      };
+      socket.onerror = () => {
+        clearTimeout(timer);
+        resolve();
+      };
+      socket.onclose = (event) => {
+        if (this.socket === socket) {
+          this.socket = null;
+          this.label = `HTTP: POST /v1/sessions/${this.id?.slice(0, 8)}…/solve (socket closed)`;
+          const reject = this.reject;
+          this.resolve = this.reject = null;
+          reject?.(Object.assign(new Error(`the session WebSocket closed (${event.code}`
+            + `${event.reason ? ` ${event.reason}` : ""})`), { name: "SocketClosed" }));
+        }
+      };
+      socket.onmessage = (event) => this.onMessage(event);
+    });
+  }
+
+  onMessage(event) {
+    let seq, result, error;
+    if (typeof event.data === "string") {
+      // A text frame is a problem document about drag `seq`.
+      let doc;
+      try {
+        doc = JSON.parse(event.data);
+      } catch {
+        doc = { title: "Unexpected WebSocket message", detail: event.data.slice(0, 200) };
+      }
+      seq = doc.seq;
+      error = new ApiError(doc, `WebSocket ${new URL(this.socket?.url ?? location.href).pathname}`);
+    } else {
+      const header = new DataView(event.data, 0, WS_HEADER_BYTES);
+      seq = header.getUint32(0, true);
+      try {
+        result = decodeVertices(event.data, header.getUint32(4, true), WS_HEADER_BYTES);
+      } catch (err) {
+        error = err;
+      }
+    }
+    if (!this.resolve || (seq !== undefined && seq !== null && seq !== this.pendingSeq)) return;
+    const resolve = this.resolve, reject = this.reject;
+    this.resolve = this.reject = null;
+    if (error) reject(error);
+    else resolve(result);
+  }
+
+  solveBody(positions, rotations) {
+    const body = { handle_positions: rows3(positions) };
+    if (this.setup.rotationGroups.length) body.handle_rotations = rotations;
+    return body;
+  }
+
+  solve(positions, rotations) {
+    const pending = this.solveOnce(positions, rotations);
+    this.inflight = pending.catch(() => {}).finally(() => {
+      if (this.inflight === guard) this.inflight = null;
+    });
+    const guard = this.inflight;
+    return pending;
+  }
+
+  async solveOnce(positions, rotations) {
+    const body = this.solveBody(positions, rotations);
+    if (this.socket && this.socket.readyState === WebSocket.OPEN) {
+      this.seq = (this.seq + 1) % 2 ** 32;
+      this.pendingSeq = this.seq;
+      return new Promise((resolve, reject) => {
+        this.resolve = resolve;
+        this.reject = reject;
+        this.socket.send(JSON.stringify({ ...body, seq: this.seq }));
+      });
+    }
+    const response = await request(`/v1/sessions/${this.id}/solve`, { json: body,
+      accept: "application/octet-stream" });
+    return decodeVertices(await response.arrayBuffer(), this.n);
+  }
+
+  /** Close the socket and delete the session once the solve in flight (if any) is done;
+   * `unloading`: right now, with a request that outlives the page. */
+  close({ unloading = false } = {}) {
+    const socket = this.socket, id = this.id;
+    this.id = null;
+    const finish = () => {
+      if (socket) {
+        if (this.socket === socket) this.socket = null;
+        socket.close(1000, "done");
+      }
+      if (id) {
+        request(`/v1/sessions/${id}`, { method: "DELETE", keepalive: unloading })
+          .catch((err) => console.warn(`could not delete session ${id}`, err));
+      }
+    };
+    if (this.inflight && !unloading) this.inflight.then(finish);
+    else finish();
+  }
+}

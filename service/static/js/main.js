@@ -1,0 +1,1008 @@
+// The page: state, panels, interaction, and `window.app` (a small programmatic API that the
+// browser tests use next to real mouse input). Everything the page knows comes from the
+// service's public HTTP API; errors are shown as toasts with the problem document's text.
+
+import * as THREE from "three";
+import * as api from "./api.js";
+import { CSS_GRADIENT, scaleFor, uniformColors, vertexColors } from "./colormap.js";
+import { DeformTransport, SessionTransport, deformBody } from "./deform.js";
+import {
+  bounds, distortion, facesAround, flatten3, forms as meshForms, histogram, rows3, topology,
+} from "./mesh.js";
+import { FlatView, MeshView } from "./viewer.js";
+
+const $ = (id) => document.getElementById(id);
+const HANDLE_COLORS = [0xe4572e, 0x2e86ab, 0x9c27b0, 0xff9f1c, 0x43aa8b, 0xd81159];
+const DEFECT_LABELS = { vertex_defect: "Total", gauss_defect: "Gauss", codazzi_defect: "Codazzi" };
+
+const state = {
+  name: null,
+  source: null,
+  vertices: null,      // Float64Array(3n): what is shown
+  faces: null,         // Uint32Array(3m)
+  topo: null,
+  rest: null,          // deformation rest shape (Float64Array)
+  reference: null,     // forms of the shape as loaded: the distortion reference
+  forms: null,         // forms document of the loaded mesh (or the uploaded forms)
+  integrability: null,
+  defectPart: "vertex_defect",
+  distortion: null,
+  distortionKind: "length",
+  flat: null,
+  colorMode: "plain",
+  selection: [],
+  handles: [],
+  active: null,
+  orthonormalize: false,
+  transport: null,
+  deformed: false,
+  solving: null,
+  solveWanted: false,
+  solves: 0,
+  lastSolveMs: null,
+  errors: [],
+};
+
+let view, flatView, caps = { sessions: false };
+const TRANSPORT = new URLSearchParams(location.search).get("transport");
+let handleCounter = 0;
+
+// ------------------------------------------------------------------------- formatting
+
+function fmt(x, digits = 3) {
+  if (x === null || x === undefined || Number.isNaN(x)) return "–";
+  const a = Math.abs(x);
+  if (a === 0) return "0";
+  if (a < 1e-3 || a >= 1e5) return x.toExponential(digits - 1);
+  return Number(x.toPrecision(digits)).toString();
+}
+const pct = (x) => `${(100 * x).toFixed(x < 0.001 ? 3 : 2)} %`;
+const deg = (x) => `${((180 / Math.PI) * x).toFixed(2)}°`;
+
+function setStats(id, rows) {
+  const dl = $(id);
+  dl.replaceChildren();
+  for (const [label, value, cls] of rows) {
+    const dt = document.createElement("dt"), dd = document.createElement("dd");
+    dt.textContent = label;
+    if (value instanceof Node) dd.append(value);
+    else dd.textContent = value;
+    if (cls) dd.className = cls;
+    dl.append(dt, dd);
+  }
+}
+
+function badge(ok, yes = "yes", no = "no") {
+  const span = document.createElement("span");
+  span.className = `badge ${ok ? "ok" : "bad"}`;
+  span.textContent = ok ? yes : no;
+  return span;
+}
+
+function status(text) {
+  $("statusbar").textContent = text;
+}
+
+function updateStatus() {
+  if (!state.vertices) return status("Ready.");
+  const parts = [`${state.name}`, `${state.vertices.length / 3} vertices`,
+    `${state.faces.length / 3} faces`];
+  if (state.handles.length) parts.push(`${state.handles.length} handle(s)`);
+  if (state.transport) parts.push(state.transport.label);
+  if (state.lastSolveMs !== null) parts.push(`last update ${state.lastSolveMs.toFixed(0)} ms`);
+  status(parts.join(" · "));
+}
+
+// ----------------------------------------------------------------------- busy, errors
+
+let busy = 0;
+const idleWaiters = [];
+
+function track(promise) {
+  busy++;
+  return promise.finally(() => {
+    busy--;
+    if (!busy) idleWaiters.splice(0).forEach((resolve) => resolve());
+  });
+}
+
+function idle() {
+  return busy ? new Promise((resolve) => idleWaiters.push(resolve)) : Promise.resolve();
+}
+
+function showError(err) {
+  if (err?.name === "AbortError") {
+    status("Cancelled.");
+    return;
+  }
+  const info = api.describe(err);
+  state.errors.push(info);
+  console.warn("[ffs]", info.title, info.detail, err);
+  const toast = document.createElement("div");
+  toast.className = "toast";
+  toast.setAttribute("role", "alert");
+  const title = document.createElement("div");
+  title.className = "toast-title";
+  title.textContent = info.title;
+  const detail = document.createElement("div");
+  detail.className = "toast-detail";
+  detail.textContent = info.detail;
+  toast.append(title, detail);
+  if (info.items.length) {
+    const list = document.createElement("ul");
+    for (const item of info.items) {
+      const li = document.createElement("li");
+      li.textContent = item;
+      list.append(li);
+    }
+    toast.append(list);
+  }
+  if (info.context) {
+    const context = document.createElement("div");
+    context.className = "toast-context";
+    context.textContent = info.context + (info.kind ? ` · ${info.kind}` : "");
+    toast.append(context);
+  }
+  const close = document.createElement("button");
+  close.className = "toast-close";
+  close.type = "button";
+  close.setAttribute("aria-label", "Dismiss");
+  close.textContent = "×";
+  close.addEventListener("click", () => toast.remove());
+  toast.append(close);
+  const box = $("toasts");
+  box.prepend(toast);
+  while (box.children.length > 4) box.lastChild.remove();
+}
+
+/** Run an async UI action: tracked for idle(), errors shown, never thrown away. */
+function action(fn) {
+  return (...args) => track(Promise.resolve().then(() => fn(...args))).catch(showError);
+}
+
+const progress = {
+  controller: null,
+  start(label, { cancellable = false } = {}) {
+    $("progress").hidden = false;
+    $("progress").classList.add("indeterminate");
+    $("progress-bar").style.width = "";
+    $("progress-label").textContent = label;
+    this.controller = cancellable ? new AbortController() : null;
+    $("progress-cancel").hidden = !cancellable;
+    return this.controller?.signal;
+  },
+  update(fraction, label) {
+    $("progress").classList.remove("indeterminate");
+    $("progress-bar").style.width = `${Math.round(100 * fraction)}%`;
+    $("progress-label").textContent = label;
+  },
+  done() {
+    $("progress").hidden = true;
+    this.controller = null;
+  },
+};
+
+async function withProgress(label, fn, options) {
+  const signal = progress.start(label, options);
+  try {
+    return await fn(signal);
+  } finally {
+    progress.done();
+  }
+}
+
+function jobProgress(label) {
+  return (job) => {
+    const p = job.progress || {};
+    const stage = p.stage ? ` · ${p.stage}` : "";
+    progress.update(p.fraction ?? 0, `${label}: ${job.status}${stage} · ${Math.round(100 * (p.fraction ?? 0))} %`);
+  };
+}
+
+// ------------------------------------------------------------------------ colour maps
+
+function setLegend(title, scale, format) {
+  $("legend").hidden = false;
+  $("legend-title").textContent = title;
+  $("legend-ramp").style.background = CSS_GRADIENT;
+  $("legend-min").textContent = format(scale.log ? scale.min : 0);
+  $("legend-max").textContent = `${scale.clipped ? "≥ " : ""}${format(scale.max)}`;
+}
+
+function refreshColors() {
+  if (!state.vertices) return;
+  const mode = state.colorMode;
+  $("color-mode").value = mode;
+  view.setTexture(mode === "checker" && state.flat ? state.flat.texcoords : null);
+  if (mode === "defect" && state.integrability) {
+    const values = state.integrability[state.defectPart];
+    const scale = scaleFor(values, { log: true });
+    view.setColors(vertexColors(values, scale));
+    setLegend(`${DEFECT_LABELS[state.defectPart]} defect per vertex (rad, log scale)`, scale,
+      (x) => fmt(x, 2));
+  } else if (mode === "distortion" && state.distortion) {
+    const length = state.distortionKind === "length";
+    const values = length ? state.distortion.vertexLength : state.distortion.vertexAngle;
+    const scale = scaleFor(values);
+    view.setColors(vertexColors(values, scale));
+    setLegend(length ? "Edge-length change (max per vertex)" : "Dihedral-angle change (max per vertex)",
+      scale, length ? pct : deg);
+  } else if (mode === "checker" && state.flat) {
+    view.setColors(uniformColors(state.vertices.length / 3, [255, 255, 255]));
+    $("legend").hidden = true;
+  } else {
+    state.colorMode = "plain";
+    $("color-mode").value = "plain";
+    view.setColors(null);
+    $("legend").hidden = true;
+  }
+}
+
+function setColorMode(mode) {
+  state.colorMode = mode;
+  refreshColors();
+}
+
+function enableColorOptions() {
+  const options = $("color-mode").options;
+  for (const option of options) {
+    option.disabled = { plain: false, defect: !state.integrability,
+      distortion: !state.distortion, checker: !state.flat }[option.value];
+  }
+}
+
+// ---------------------------------------------------------------------------- loading
+
+function meanEdgeLength(vertices, edges) {
+  let sum = 0;
+  const E = edges.length / 2;
+  for (let e = 0; e < E; e++) {
+    const i = 3 * edges[2 * e], j = 3 * edges[2 * e + 1];
+    sum += Math.hypot(vertices[j] - vertices[i], vertices[j + 1] - vertices[i + 1],
+      vertices[j + 2] - vertices[i + 2]);
+  }
+  return E ? sum / E : 0;
+}
+
+function renderMeshStats() {
+  const n = state.vertices.length / 3, m = state.faces.length / 3;
+  const E = state.topo.edges.length / 2;
+  const { min, max } = bounds(state.vertices);
+  const boundary = state.boundaryEdges;
+  setStats("mesh-stats", [
+    ["Vertices", n.toLocaleString("en")], ["Faces", m.toLocaleString("en")],
+    ["Edges", `${E.toLocaleString("en")}${boundary ? ` (${boundary} on the boundary)` : ""}`],
+    ["Size", max.map((x, k) => fmt(x - min[k])).join(" × ")],
+    ["Mean edge", fmt(state.meanEdge)],
+  ]);
+}
+
+/** Show a mesh ({vertices, faces} as nested arrays) and analyse it. */
+async function openMesh(mesh, name, source, extra = {}) {
+  closeTransport();
+  for (const h of state.handles) view.scene.remove(h.pivot);
+  view.attachGizmo(null);
+  Object.assign(state, {
+    name, source, vertices: flatten3(mesh.vertices), faces: flatten3(mesh.faces, Uint32Array),
+    handles: [], active: null, selection: [], deformed: false, distortion: null, flat: null,
+    integrability: null, forms: null, lastSolveMs: null, solves: 0,
+  });
+  const n = state.vertices.length / 3;
+  state.topo = topology(state.faces, n);
+  state.rest = state.vertices.slice();
+  state.reference = meshForms(state.vertices, state.faces, state.topo);
+  state.meanEdge = meanEdgeLength(state.vertices, state.topo.edges);
+  state.boundaryEdges = 0;
+  for (let e = 0; e < state.topo.edges.length / 2; e++) {
+    if (state.topo.right[e] < 0 || state.topo.left[e] < 0) state.boundaryEdges++;
+  }
+  state.closed = state.boundaryEdges === 0;
+  view.markerRadius = 0.5 * state.meanEdge;
+  view.setMesh(state.vertices, state.faces, state.topo.edges);
+  $("empty-state").hidden = true;
+  $("mesh-title").textContent = `${name}${source === "sample" ? " (sample)" : ""}`;
+  if (source !== "sample") $("sample-select").value = "";
+  hideFlat();
+  renderMeshStats();
+  renderHandles();
+  renderDistortion();
+  setStats("flatten-stats", []);
+  for (const id of ["download-glb", "flatten", "bend-forms"]) $(id).disabled = false;
+  state.colorMode = "plain";
+  enableColorOptions();
+  refreshColors();
+  updateStatus();
+  await analyze(extra);
+}
+
+async function analyze({ forms, integrability } = {}) {
+  await withProgress("Integrability report…", async () => {
+    const body = { vertices: rows3(state.vertices), faces: rows3(state.faces) };
+    state.forms = forms ?? await api.postJson("/v1/forms", body);
+    state.integrability = integrability ?? await api.postJson("/v1/integrability", state.forms);
+  });
+  renderIntegrability();
+  enableColorOptions();
+  setColorMode("defect");
+}
+
+function renderIntegrability() {
+  const r = state.integrability;
+  if (!r) {
+    setStats("integrability-stats", [["Report", "–"]]);
+    return;
+  }
+  const maxOf = (values) => values.reduce((a, b) => Math.max(a, Math.abs(b)), 0);
+  const topo = r.topology;
+  const loops = [...r.global_holonomy.rotation, ...r.global_holonomy.translation];
+  const worst = r.worst_vertices.slice(0, 3)
+    .map((v) => `v${v}: ${fmt(r[state.defectPart][v], 2)}`).join(", ");
+  const parts = Object.entries(DEFECT_LABELS).map(([key, label]) => [
+    `${label} vertex defect (max)`, fmt(maxOf(r[key]), 3),
+    key === state.defectPart ? "selected" : ""]);
+  const worstLoop = loops.reduce((a, l) => Math.max(a, l.magnitude), 0);
+  setStats("integrability-stats", [
+    ["Integrable", badge(r.integrable)],
+    ["Max defect", fmt(r.max_defect, 3)],
+    ...parts,
+    ["Tolerance", fmt(r.tolerance)],
+    ["Failing vertices", String(r.failing_vertices.length)],
+    ["Triangle violations", String(r.triangle_violations.length)],
+    ["Components · genus", `${topo.n_components} · ${topo.genus}`],
+    ["Boundary loops", String(topo.boundary_loops.length)],
+    ["Global loops", loops.length ? `${loops.filter((l) => l.passes).length} / ${loops.length} pass`
+      + (worstLoop > r.tolerance ? ` (max ${fmt(worstLoop, 3)})` : "") : "none"],
+    ["Worst", worst || "–"],
+  ]);
+  $("integrability-note").textContent = r.integrable
+    ? "Every defect is below the tolerance: the colours show round-off only. Reconstruct with "
+      + "angles × 0.8 (below) to see a non-integrable set."
+    : "Not integrable: no surface has exactly these forms; the reconstruction is the "
+      + "least-squares compromise.";
+}
+
+async function fetchBlob(path) {
+  const response = await api.request(path, { method: "GET", accept: "*/*" });
+  return response.blob();
+}
+
+async function loadSample(file) {
+  const mesh = await withProgress(`Loading ${file}…`, async () => {
+    const blob = await fetchBlob(`/static/samples/${encodeURIComponent(file)}`);
+    return api.readMeshFile(blob, file);
+  });
+  $("sample-select").value = file;
+  await openMesh(mesh, file, "sample");
+}
+
+async function openUpload(file) {
+  const mesh = await withProgress(`Reading ${file.name}…`, () => api.readMeshFile(file, file.name));
+  $("sample-select").value = "";
+  await openMesh(mesh, file.name, "upload");
+}
+
+// ------------------------------------------------------------------ forms -> reconstruct
+
+const FORM_KEYS = ["faces", "edges", "lengths", "angles"];
+
+async function reconstructForms(doc, name, source = name) {
+  if (!doc || typeof doc !== "object" || Array.isArray(doc)) {
+    throw new api.ApiError({ title: "Not a forms document",
+      detail: `${source}: expected a JSON object with ${FORM_KEYS.join(", ")} (the output of POST /v1/forms)` });
+  }
+  const missing = FORM_KEYS.filter((k) => !(k in doc));
+  if (missing.length) {
+    throw new api.ApiError({ title: "Not a forms document",
+      detail: `${source}: missing ${missing.join(", ")}; upload the output of POST /v1/forms` });
+  }
+  const input = Object.fromEntries(FORM_KEYS.map((k) => [k, doc[k]]));
+  const { integrability, result } = await withProgress("Reconstructing…", async (signal) => {
+    const report = await api.postJson("/v1/integrability", input, { signal });
+    const mesh = await api.runJob("reconstruct", input, { signal,
+      onProgress: jobProgress("Reconstruct") });
+    return { integrability: report, result: mesh };
+  }, { cancellable: true });
+  await openMesh(result, name, "reconstruction", { forms: input, integrability });
+  const r = result.report;
+  setStats("forms-stats", [
+    ["Reconstructed", `${result.vertices.length} vertices`],
+    ["Integrable", badge(integrability.integrable)],
+    ["Max defect", fmt(integrability.max_defect)],
+    ["Backend", r.backend ?? "–"],
+    ["Solve time", r.timings ? `${(1000 * Object.values(r.timings)
+      .reduce((a, b) => a + b, 0)).toFixed(0)} ms` : "–"],
+  ]);
+}
+
+async function openFormsFile(file) {
+  let doc;
+  try {
+    doc = JSON.parse(await file.text());
+  } catch (err) {
+    throw new api.ApiError({ title: "Invalid JSON", detail: `${file.name}: ${err.message}` });
+  }
+  await reconstructForms(doc, `${file.name} (reconstructed)`, file.name);
+}
+
+async function bendForms() {
+  const scale = Number($("angle-scale").value);
+  if (!Number.isFinite(scale)) throw new api.ApiError({ title: "Invalid angle scale",
+    detail: "enter a number, e.g. 0.8" });
+  const base = state.forms;
+  const angles = base.angles.map((a) => Math.max(-Math.PI, Math.min(Math.PI, a * scale)));
+  const stem = state.name.replace(/ \(.*\)$/, "");
+  await reconstructForms({ ...base, angles }, `${stem} (angles × ${scale})`);
+}
+
+// ---------------------------------------------------------------------------- flatten
+
+function hideFlat() {
+  $("view-flat").hidden = true;
+  $("viewport").classList.remove("split");
+  if (state.colorMode === "checker") setColorMode("plain");
+}
+
+async function flatten() {
+  const input = { vertices: rows3(state.vertices), faces: rows3(state.faces),
+    options: { orthonormalize: $("flatten-orthonormalize").checked } };
+  const result = await withProgress("Flattening…", (signal) => api.runJob("parameterize", input,
+    { signal, onProgress: jobProgress("Flatten") }), { cancellable: true });
+  const uv = new Float64Array(result.uv.length * 2);
+  result.uv.forEach(([u, v], i) => {
+    uv[2 * i] = u;
+    uv[2 * i + 1] = v;
+  });
+  $("view-flat").hidden = false;
+  $("viewport").classList.add("split");
+  await new Promise((resolve) => requestAnimationFrame(resolve));
+  const texcoords = flatView.show(uv, state.faces, state.topo.edges, result.flipped_faces);
+  state.flat = { uv, flipped: result.flipped_faces, report: result.report, texcoords };
+  view.resize();
+  view.frame({ keep: true });
+  const r = result.report;
+  const flips = result.flipped_faces.length;
+  $("flip-note").textContent = flips ? `${flips} flipped face(s) in red` : "no flipped faces";
+  $("flip-note").className = `flip-note${flips ? " bad" : ""}`;
+  setStats("flatten-stats", [
+    ["Flipped faces", badge(flips === 0, "0", String(flips))],
+    ["Length change (mean)", pct(r.length_change_summary.mean)],
+    ["Length change (max)", pct(r.length_change_summary.max)],
+    ["Angle distortion (max)", deg(r.angle_distortion_summary.max)],
+    ["Area ratio − 1 (rms)", fmt(r.area_ratio_summary.rms)],
+  ]);
+  enableColorOptions();
+  setColorMode("checker");
+}
+
+// ---------------------------------------------------------------------------- handles
+
+function renderHandles() {
+  const list = $("handle-list");
+  list.replaceChildren();
+  state.handles.forEach((h) => {
+    const li = document.createElement("li");
+    li.className = h === state.active ? "active" : "";
+    const swatch = document.createElement("span");
+    swatch.className = "swatch";
+    swatch.style.background = `#${h.color.toString(16).padStart(6, "0")}`;
+    const name = document.createElement("span");
+    name.className = "name";
+    name.textContent = `Handle ${h.id} · ${h.vertices.length} ${h.vertices.length > 1 ? "vertices" : "vertex"}`
+      + (h === state.active ? " · active" : "");
+    const remove = document.createElement("button");
+    remove.type = "button";
+    remove.textContent = "Remove";
+    remove.addEventListener("click", (event) => {
+      event.stopPropagation();
+      removeHandle(h);
+    });
+    li.append(swatch, name, remove);
+    li.addEventListener("click", () => setActive(h));
+    list.append(li);
+  });
+  const count = state.selection.length;
+  $("selection-count").textContent = `${count} selected`;
+  $("make-handle").disabled = !count;
+  $("reset-shape").disabled = !state.handles.length;
+  $("remove-handles").disabled = !state.handles.length;
+  if (!state.handles.length) {
+    $("transport").textContent = state.vertices ? "No handles yet." : "";
+  } else if (state.handles.length === 1) {
+    $("transport").textContent = "One handle moves the mesh rigidly: add a second one to anchor it.";
+  }
+  refreshMarkers();
+}
+
+function refreshMarkers() {
+  if (!state.vertices) return;
+  view.setMarkers(state.vertices, state.selection, state.handles);
+}
+
+function setActive(handle) {
+  state.active = handle;
+  view.attachGizmo(handle ? handle.pivot : null);
+  renderHandles();
+}
+
+function select(ids, { toggle = false } = {}) {
+  const used = new Set(state.handles.flatMap((h) => h.vertices));
+  const current = new Set(state.selection);
+  for (const v of ids) {
+    if (used.has(v)) continue;
+    if (toggle && current.has(v)) current.delete(v);
+    else current.add(v);
+  }
+  state.selection = [...current];
+  renderHandles();
+}
+
+/** Targets of all handle vertices, and the rotation of each rotation group. */
+function handleTargets() {
+  const count = state.handles.reduce((s, h) => s + h.vertices.length, 0);
+  const positions = new Float64Array(3 * count);
+  const rotations = [];
+  const offset = new THREE.Vector3(), m = new THREE.Matrix4();
+  let k = 0;
+  for (const h of state.handles) {
+    for (let i = 0; i < h.vertices.length; i++) {
+      offset.set(h.start[3 * i], h.start[3 * i + 1], h.start[3 * i + 2]).sub(h.center)
+        .applyQuaternion(h.pivot.quaternion).add(h.pivot.position);
+      positions.set([offset.x, offset.y, offset.z], 3 * k++);
+    }
+    if (h.rotationFaces.length) {
+      const e = m.makeRotationFromQuaternion(h.pivot.quaternion).elements;
+      rotations.push([[e[0], e[4], e[8]], [e[1], e[5], e[9]], [e[2], e[6], e[10]]]);
+    }
+  }
+  return { positions, rotations };
+}
+
+function setupFor() {
+  const taken = new Set();
+  for (const h of state.handles) h.rotationFaces = facesAround(h.vertices, state.faces, taken);
+  const { positions, rotations } = handleTargets();
+  return {
+    rest: state.rest, faces: state.faces,
+    handles: state.handles.flatMap((h) => h.vertices),
+    rotationGroups: state.handles.filter((h) => h.rotationFaces.length).map((h) => h.rotationFaces),
+    orthonormalize: state.orthonormalize,
+    initialPositions: positions, initialRotations: rotations,
+  };
+}
+
+/** The current shape becomes the rest shape of the next session (handles keep their place). */
+function bake() {
+  state.rest = state.vertices.slice();
+  const { positions } = handleTargets();
+  let k = 0;
+  for (const h of state.handles) {
+    h.start = positions.slice(3 * k, 3 * (k + h.vertices.length));
+    k += h.vertices.length;
+    h.center.copy(h.pivot.position);
+    h.pivot.quaternion.identity();
+  }
+  state.deformed = false;
+}
+
+function closeTransport(options) {
+  if (state.transport) state.transport.close(options);
+  state.transport = null;
+}
+
+/** Session statuses that mean "no session for you now": deform per update instead. */
+const SESSION_UNAVAILABLE = [404, 405, 429, 501, 503];
+
+let transportGeneration = 0;
+
+async function rebuildTransport() {
+  const generation = ++transportGeneration;
+  closeTransport();
+  if (!state.handles.length) {
+    updateStatus();
+    return;
+  }
+  const setup = setupFor();
+  // ?transport=http (session, no WebSocket) or ?transport=deform (no session) pin a path.
+  let transport = caps.sessions && TRANSPORT !== "deform"
+    ? new SessionTransport(setup, { websocket: TRANSPORT !== "http" })
+    : new DeformTransport(setup);
+  let note = "";
+  await withProgress("Preparing the deformation (factorization)…", async () => {
+    try {
+      await transport.open();
+    } catch (err) {
+      if (!(transport instanceof SessionTransport && err instanceof api.ApiError
+        && SESSION_UNAVAILABLE.includes(err.status))) throw err;
+      const info = api.describe(err);
+      note = ` (no session: ${info.title}: ${info.detail})`;
+      console.warn("[ffs] sessions unavailable, deforming per request", info);
+      transport = new DeformTransport(setup);
+      transport.label = "HTTP: POST /v1/deform per update";
+    }
+  });
+  if (generation !== transportGeneration) {  // superseded while it opened
+    transport.close();
+    return;
+  }
+  transport.note = note;
+  state.transport = transport;
+  if (state.handles.length > 1) $("transport").textContent = transportText();
+  updateStatus();
+  requestSolve();
+}
+
+function transportText() {
+  return `Live updates: ${state.transport.label}${state.transport.note || ""}`;
+}
+
+function requestSolve() {
+  state.solveWanted = true;
+  if (!state.solving) state.solving = track(solveLoop());
+}
+
+async function solveLoop() {
+  try {
+    while (state.solveWanted && state.transport) {
+      state.solveWanted = false;
+      const transport = state.transport;
+      const { positions, rotations } = handleTargets();
+      const t0 = performance.now();
+      let vertices;
+      try {
+        vertices = await transport.solve(positions, rotations);
+      } catch (err) {
+        if (transport !== state.transport) continue; // replaced meanwhile: stale
+        if (transport.kind === "session" && (err.status === 410 || err.status === 404)
+          && !transport.replaced) {
+          // The session expired (FFS_SESSION_TTL) or its worker went away: open a new one
+          // for the same handles and carry on.
+          console.warn("[ffs] session gone, opening a new one", api.describe(err));
+          transport.replaced = true;
+          transport.id = null;  // nothing left to delete
+          await rebuildTransport();
+          state.solveWanted = true;
+          continue;
+        }
+        throw err;
+      }
+      if (transport !== state.transport) continue;
+      state.lastSolveMs = performance.now() - t0;
+      state.solves++;
+      applyShape(vertices);
+    }
+  } catch (err) {
+    showError(err);
+  } finally {
+    state.solving = null;
+  }
+}
+
+function applyShape(vertices) {
+  state.vertices = vertices;
+  state.deformed = true;
+  view.updatePositions(vertices);
+  state.distortion = distortion(state.reference, meshForms(vertices, state.faces, state.topo),
+    state.topo);
+  renderDistortion();
+  enableColorOptions();
+  if (state.colorMode !== "distortion" && state.colorMode !== "checker") state.colorMode = "distortion";
+  refreshColors();
+  refreshMarkers();
+  if (state.handles.length > 1 && state.transport) $("transport").textContent = transportText();
+  updateStatus();
+}
+
+async function makeHandle(ids = state.selection) {
+  const used = new Set(state.handles.flatMap((h) => h.vertices));
+  const vertices = [...new Set(ids)].filter((v) => !used.has(v));
+  if (!vertices.length) throw new api.ApiError({ title: "Nothing to make a handle of",
+    detail: "select vertices that are not already in a handle" });
+  if (state.deformed) bake();
+  const start = new Float64Array(3 * vertices.length);
+  const center = new THREE.Vector3();
+  vertices.forEach((v, k) => {
+    start.set(state.vertices.subarray(3 * v, 3 * v + 3), 3 * k);
+    center.x += state.vertices[3 * v] / vertices.length;
+    center.y += state.vertices[3 * v + 1] / vertices.length;
+    center.z += state.vertices[3 * v + 2] / vertices.length;
+  });
+  const pivot = new THREE.Object3D();
+  pivot.position.copy(center);
+  const handle = { id: ++handleCounter, vertices, start, center: center.clone(), pivot,
+    color: HANDLE_COLORS[(handleCounter - 1) % HANDLE_COLORS.length], rotationFaces: [] };
+  view.scene.add(pivot);
+  state.handles.push(handle);
+  state.selection = state.selection.filter((v) => !vertices.includes(v));
+  setActive(handle);
+  await rebuildTransport();
+}
+
+async function removeHandle(handle) {
+  if (state.deformed) bake();
+  state.handles = state.handles.filter((h) => h !== handle);
+  view.scene.remove(handle.pivot);
+  setActive(state.handles.at(-1) ?? null);
+  await rebuildTransport();
+}
+
+async function removeHandles() {
+  closeTransport();
+  for (const h of state.handles) view.scene.remove(h.pivot);
+  state.handles = [];
+  state.rest = state.vertices.slice();
+  state.deformed = false;
+  setActive(null);
+  updateStatus();
+}
+
+async function resetShape() {
+  for (const h of state.handles) {
+    h.pivot.position.copy(h.center);
+    h.pivot.quaternion.identity();
+  }
+  view.request();
+  if (state.transport) requestSolve();
+}
+
+function onHandleMoved() {
+  if (state.transport) requestSolve();
+}
+
+function renderDistortion() {
+  const canvas = $("histogram");
+  const ctx = canvas.getContext("2d");
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  const d = state.distortion;
+  if (!d) {
+    ctx.fillStyle = "#9aa5b1";
+    ctx.font = "22px system-ui, sans-serif";
+    ctx.textAlign = "center";
+    ctx.fillText("Drag a handle to see the distortion", canvas.width / 2, canvas.height / 2);
+    setStats("distortion-stats", []);
+    return;
+  }
+  const length = state.distortionKind === "length";
+  const values = length ? d.length : d.angle;
+  const { counts, top } = histogram(values, 20);
+  const W = canvas.width, H = canvas.height, pad = { l: 12, r: 12, t: 14, b: 34 };
+  const maxCount = Math.max(...counts, 1);
+  const bw = (W - pad.l - pad.r) / counts.length;
+  counts.forEach((c, i) => {
+    const h = ((H - pad.t - pad.b) * Math.sqrt(c)) / Math.sqrt(maxCount);
+    ctx.fillStyle = "#1f7a76";
+    ctx.fillRect(pad.l + i * bw + 1, H - pad.b - h, bw - 2, h);
+  });
+  ctx.strokeStyle = "#9aa5b1";
+  ctx.beginPath();
+  ctx.moveTo(pad.l, H - pad.b + 0.5);
+  ctx.lineTo(W - pad.r, H - pad.b + 0.5);
+  ctx.stroke();
+  ctx.fillStyle = "#616e7c";
+  ctx.font = "20px system-ui, sans-serif";
+  ctx.textAlign = "left";
+  ctx.fillText("0", pad.l, H - 8);
+  ctx.textAlign = "right";
+  ctx.fillText(length ? pct(top) : deg(top), W - pad.r, H - 8);
+  ctx.textAlign = "center";
+  ctx.fillText(`edges per bin (√ scale, max ${maxCount})`, W / 2, H - 8);
+  const s = length ? d.lengthSummary : d.angleSummary;
+  const f = length ? pct : deg;
+  setStats("distortion-stats", [["Mean", f(s.mean)], ["RMS", f(s.rms)], ["95th percentile", f(s.p95)],
+    ["Max", f(s.max)]]);
+}
+
+// ---------------------------------------------------------------------------- download
+
+async function downloadGlb() {
+  const blob = await withProgress("Encoding GLB…", () => api.meshGlb(rows3(state.vertices),
+    rows3(state.faces)));
+  const url = URL.createObjectURL(blob);
+  const a = document.createElement("a");
+  a.href = url;
+  a.download = `${state.name.replace(/\.[^.]*$|\s*\(.*\)$/g, "").replace(/[^\w.-]+/g, "-") || "mesh"}.glb`;
+  document.body.append(a);
+  a.click();
+  a.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 10000);
+  return blob.size;
+}
+
+// ------------------------------------------------------------------------ interaction
+
+function installPointer() {
+  const canvas = view.canvas, box = $("selection-box");
+  let down = null;
+  canvas.addEventListener("pointerdown", (event) => {
+    if (event.button !== 0 || !state.vertices) return;
+    down = { x: event.clientX, y: event.clientY, shift: event.shiftKey,
+      gizmo: view.gizmoActive() };
+    if (down.shift && !down.gizmo) {
+      view.controls.enabled = false;
+      Object.assign(box.style, { left: `${down.x}px`, top: `${down.y}px`, width: "0px", height: "0px" });
+      box.hidden = false;
+    }
+  });
+  window.addEventListener("pointermove", (event) => {
+    if (!down?.shift || down.gizmo) return;
+    const left = Math.min(down.x, event.clientX), top = Math.min(down.y, event.clientY);
+    Object.assign(box.style, { left: `${left}px`, top: `${top}px`,
+      width: `${Math.abs(event.clientX - down.x)}px`, height: `${Math.abs(event.clientY - down.y)}px` });
+  });
+  window.addEventListener("pointerup", (event) => {
+    if (!down) return;
+    const start = down;
+    down = null;
+    if (start.shift && !start.gizmo) {
+      box.hidden = true;
+      view.controls.enabled = true;
+      const ids = view.verticesInRect(Math.min(start.x, event.clientX), Math.min(start.y, event.clientY),
+        Math.max(start.x, event.clientX), Math.max(start.y, event.clientY),
+        { facing: state.closed });
+      select(ids);
+      return;
+    }
+    const moved = Math.hypot(event.clientX - start.x, event.clientY - start.y);
+    if (moved < 5 && !start.gizmo && event.target === canvas) {
+      const v = view.pickVertex(event.clientX, event.clientY);
+      if (v >= 0) select([v], { toggle: true });
+    }
+  });
+  view.gizmo.addEventListener("objectChange", onHandleMoved);
+  window.addEventListener("keydown", (event) => {
+    if (event.target.closest?.("input, select, textarea")) return;
+    if (event.key === "w" || event.key === "e") {
+      const mode = event.key === "w" ? "translate" : "rotate";
+      document.querySelector(`input[name="gizmo-mode"][value="${mode}"]`).checked = true;
+      view.gizmo.setMode(mode);
+    } else if (event.key === "Escape") {
+      state.selection = [];
+      renderHandles();
+    } else if ((event.key === "Delete" || event.key === "Backspace") && state.active) {
+      action(removeHandle)(state.active);
+    } else if (event.key === "h" && state.selection.length) {
+      action(makeHandle)();
+    }
+  });
+}
+
+function installPanels() {
+  $("sample-select").addEventListener("change", (event) => {
+    if (event.target.value) action(loadSample)(event.target.value);
+  });
+  $("mesh-file").addEventListener("change", (event) => {
+    const file = event.target.files[0];
+    event.target.value = "";
+    if (file) action(openUpload)(file);
+  });
+  $("forms-file").addEventListener("change", (event) => {
+    const file = event.target.files[0];
+    event.target.value = "";
+    if (file) action(openFormsFile)(file);
+  });
+  $("wireframe").addEventListener("change", (event) => view.setWireframe(event.target.checked));
+  $("download-glb").addEventListener("click", action(downloadGlb));
+  $("flatten").addEventListener("click", action(flatten));
+  $("close-flat").addEventListener("click", () => {
+    hideFlat();
+    view.resize();
+    view.frame({ keep: true });
+  });
+  $("bend-forms").addEventListener("click", action(bendForms));
+  $("make-handle").addEventListener("click", action(() => makeHandle()));
+  $("clear-selection").addEventListener("click", () => {
+    state.selection = [];
+    renderHandles();
+  });
+  $("reset-shape").addEventListener("click", action(resetShape));
+  $("remove-handles").addEventListener("click", action(removeHandles));
+  $("orthonormalize").addEventListener("change", action(async (event) => {
+    state.orthonormalize = event.target.checked;
+    if (state.handles.length) await rebuildTransport();
+  }));
+  $("color-mode").addEventListener("change", (event) => setColorMode(event.target.value));
+  for (const input of document.querySelectorAll('input[name="defect-part"]')) {
+    input.addEventListener("change", () => {
+      state.defectPart = input.value;
+      renderIntegrability();
+      if (state.integrability) setColorMode("defect");
+    });
+  }
+  for (const input of document.querySelectorAll('input[name="distortion-kind"]')) {
+    input.addEventListener("change", () => {
+      state.distortionKind = input.value;
+      renderDistortion();
+      if (state.distortion) setColorMode("distortion");
+    });
+  }
+  for (const input of document.querySelectorAll('input[name="gizmo-mode"]')) {
+    input.addEventListener("change", () => view.gizmo.setMode(input.value));
+  }
+  $("progress-cancel").addEventListener("click", () => progress.controller?.abort());
+}
+
+async function loadSampleList() {
+  const samples = await api.getJson("/static/samples/index.json");
+  for (const s of samples) {
+    const option = document.createElement("option");
+    option.value = s.file;
+    option.textContent = s.title;
+    option.title = s.note;
+    $("sample-select").append(option);
+  }
+  return samples;
+}
+
+// ------------------------------------------------------------------------------ start
+
+async function start() {
+  view = new MeshView($("view-3d"));
+  flatView = new FlatView($("view-flat"));
+  installPointer();
+  installPanels();
+  renderDistortion();
+  const [samples, capabilities] = await Promise.all([loadSampleList(), api.capabilities()]);
+  caps = capabilities;
+  const wanted = new URLSearchParams(location.search).get("sample");
+  const first = wanted ?? samples[0]?.file;
+  if (first) await loadSample(first);
+  else status("Ready: pick a sample or upload a mesh.");
+}
+
+const ready = track(start()).catch(showError);
+window.addEventListener("pagehide", () => closeTransport({ unloading: true }));
+
+window.app = {
+  state, ready, idle,
+  get view() { return view; },
+  get capabilities() { return caps; },
+  loadSample: (file) => action(loadSample)(file),
+  select: (ids) => select(ids),
+  makeHandle: (ids) => action(makeHandle)(ids),
+  setActive: (index) => setActive(state.handles[index]),
+  /** Move (and optionally rotate, axis-angle in radians) the active handle, as the gizmo does. */
+  dragHandle(dx, dy, dz, { axis, angle } = {}) {
+    const h = state.active;
+    if (!h) throw new Error("no active handle");
+    h.pivot.position.add(new THREE.Vector3(dx, dy, dz));
+    if (axis) {
+      h.pivot.quaternion.premultiply(new THREE.Quaternion()
+        .setFromAxisAngle(new THREE.Vector3(...axis).normalize(), angle));
+    }
+    view.request();
+    onHandleMoved();
+    return idle();
+  },
+  /** The POST /v1/deform body equivalent to the current handles. */
+  deformRequest() {
+    const setup = setupFor();
+    const { positions, rotations } = handleTargets();
+    return deformBody(setup, positions, rotations);
+  },
+  handleTargets: () => {
+    const { positions, rotations } = handleTargets();
+    return { positions: Array.from(positions), rotations };
+  },
+  vertices: () => Array.from(state.vertices),
+  colors: () => Array.from(view.mesh.geometry.getAttribute("color").array),
+  screenOf(vertex) {
+    const v = state.vertices;
+    return view.project(v[3 * vertex], v[3 * vertex + 1], v[3 * vertex + 2]);
+  },
+  pivotScreen() {
+    const p = state.active.pivot.position;
+    return view.project(p.x, p.y, p.z);
+  },
+  /** Vertices whose normal faces the camera and whose screen position is inside the canvas. */
+  visibleVertices() {
+    const r = view.canvas.getBoundingClientRect();
+    return view.verticesInRect(r.left, r.top, r.right, r.bottom, { facing: state.closed });
+  },
+  setOrthonormalize: (on) => {
+    $("orthonormalize").checked = on;
+    $("orthonormalize").dispatchEvent(new Event("change"));
+    return idle();
+  },
+  flatten: () => action(flatten)(),
+  downloadGlb: () => action(downloadGlb)(),
+  setColorMode,
+};

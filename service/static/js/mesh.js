@@ -1,0 +1,184 @@
+// Mesh utilities on flat typed arrays: vertices Float64Array(3n), faces Uint32Array(3m).
+// Edges follow the API's convention: unique undirected [i, j], i < j, sorted
+// lexicographically; dihedral angles are signed like solver/forms.py (positive where convex).
+
+export function flatten3(rows, Type = Float64Array) {
+  const out = new Type(rows.length * 3);
+  for (let i = 0; i < rows.length; i++) {
+    const r = rows[i];
+    out[3 * i] = r[0];
+    out[3 * i + 1] = r[1];
+    out[3 * i + 2] = r[2];
+  }
+  return out;
+}
+
+export function rows3(flat) {
+  const out = new Array(flat.length / 3);
+  for (let i = 0; i < out.length; i++) out[i] = [flat[3 * i], flat[3 * i + 1], flat[3 * i + 2]];
+  return out;
+}
+
+/** Edge list and, per edge, the face left of i -> j and the face on the other side (-1). */
+export function topology(faces, nVertices) {
+  const m = faces.length / 3;
+  const index = new Map();
+  const keys = [];
+  for (let t = 0; t < m; t++) {
+    for (let k = 0; k < 3; k++) {
+      const a = faces[3 * t + k], b = faces[3 * t + ((k + 1) % 3)];
+      const key = Math.min(a, b) * nVertices + Math.max(a, b);
+      if (!index.has(key)) {
+        index.set(key, keys.length);
+        keys.push(key);
+      }
+    }
+  }
+  const order = Float64Array.from(keys).sort();
+  const E = order.length;
+  const edges = new Uint32Array(2 * E);
+  const rank = new Map();
+  for (let e = 0; e < E; e++) {
+    const key = order[e];
+    edges[2 * e] = Math.floor(key / nVertices);
+    edges[2 * e + 1] = key % nVertices;
+    rank.set(key, e);
+  }
+  const left = new Int32Array(E).fill(-1), right = new Int32Array(E).fill(-1);
+  for (let t = 0; t < m; t++) {
+    for (let k = 0; k < 3; k++) {
+      const a = faces[3 * t + k], b = faces[3 * t + ((k + 1) % 3)];
+      const e = rank.get(Math.min(a, b) * nVertices + Math.max(a, b));
+      if (a < b) left[e] = t;
+      else right[e] = t;
+    }
+  }
+  return { nVertices, nFaces: m, edges, left, right };
+}
+
+function faceNormals(vertices, faces) {
+  const m = faces.length / 3;
+  const normals = new Float64Array(3 * m);
+  for (let t = 0; t < m; t++) {
+    const a = 3 * faces[3 * t], b = 3 * faces[3 * t + 1], c = 3 * faces[3 * t + 2];
+    const ux = vertices[b] - vertices[a], uy = vertices[b + 1] - vertices[a + 1];
+    const uz = vertices[b + 2] - vertices[a + 2];
+    const vx = vertices[c] - vertices[a], vy = vertices[c + 1] - vertices[a + 1];
+    const vz = vertices[c + 2] - vertices[a + 2];
+    let nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
+    const len = Math.hypot(nx, ny, nz) || 1;
+    normals[3 * t] = nx / len;
+    normals[3 * t + 1] = ny / len;
+    normals[3 * t + 2] = nz / len;
+  }
+  return normals;
+}
+
+/** Edge lengths and signed dihedral angles (0 on boundary edges), aligned with topo.edges. */
+export function forms(vertices, faces, topo) {
+  const E = topo.edges.length / 2;
+  const lengths = new Float64Array(E), angles = new Float64Array(E);
+  const normals = faceNormals(vertices, faces);
+  for (let e = 0; e < E; e++) {
+    const i = 3 * topo.edges[2 * e], j = 3 * topo.edges[2 * e + 1];
+    const dx = vertices[j] - vertices[i], dy = vertices[j + 1] - vertices[i + 1];
+    const dz = vertices[j + 2] - vertices[i + 2];
+    const len = Math.hypot(dx, dy, dz);
+    lengths[e] = len;
+    const l = topo.left[e], r = topo.right[e];
+    if (l < 0 || r < 0 || len === 0) continue;
+    const lx = normals[3 * l], ly = normals[3 * l + 1], lz = normals[3 * l + 2];
+    const rx = normals[3 * r], ry = normals[3 * r + 1], rz = normals[3 * r + 2];
+    const cx = ly * rz - lz * ry, cy = lz * rx - lx * rz, cz = lx * ry - ly * rx;
+    const phi = Math.atan2((cx * dx + cy * dy + cz * dz) / len, lx * rx + ly * ry + lz * rz);
+    angles[e] = phi <= -Math.PI ? Math.PI : phi;
+  }
+  return { lengths, angles };
+}
+
+function wrap(angle) {
+  let a = ((angle + Math.PI) % (2 * Math.PI) + 2 * Math.PI) % (2 * Math.PI) - Math.PI;
+  return a <= -Math.PI ? Math.PI : a;
+}
+
+export function summary(values) {
+  const n = values.length;
+  if (!n) return { mean: 0, rms: 0, max: 0, p95: 0 };
+  const abs = Float64Array.from(values, Math.abs).sort();
+  let sum = 0, sq = 0;
+  for (const v of abs) {
+    sum += v;
+    sq += v * v;
+  }
+  // numpy's default percentile: linear interpolation between closest ranks.
+  const pos = 0.95 * (n - 1), lo = Math.floor(pos), hi = Math.min(n - 1, lo + 1);
+  const p95 = abs[lo] + (abs[hi] - abs[lo]) * (pos - lo);
+  return { mean: sum / n, rms: Math.sqrt(sq / n), max: abs[n - 1], p95 };
+}
+
+/**
+ * Distortion of the current forms relative to reference forms (solver.metrics conventions):
+ * per edge the relative length change and the wrapped dihedral change, per vertex the max
+ * |change| over its edges.
+ */
+export function distortion(reference, current, topo) {
+  const E = reference.lengths.length;
+  const length = new Float64Array(E), angle = new Float64Array(E);
+  const vertexLength = new Float64Array(topo.nVertices);
+  const vertexAngle = new Float64Array(topo.nVertices);
+  for (let e = 0; e < E; e++) {
+    length[e] = current.lengths[e] / reference.lengths[e] - 1;
+    angle[e] = wrap(current.angles[e] - reference.angles[e]);
+    const i = topo.edges[2 * e], j = topo.edges[2 * e + 1];
+    const a = Math.abs(length[e]), b = Math.abs(angle[e]);
+    if (a > vertexLength[i]) vertexLength[i] = a;
+    if (a > vertexLength[j]) vertexLength[j] = a;
+    if (b > vertexAngle[i]) vertexAngle[i] = b;
+    if (b > vertexAngle[j]) vertexAngle[j] = b;
+  }
+  return {
+    length, angle, vertexLength, vertexAngle,
+    lengthSummary: summary(length), angleSummary: summary(angle),
+  };
+}
+
+/** Counts of |values| in `bins` equal bins over [0, max]. */
+export function histogram(values, bins = 20) {
+  let top = 0;
+  for (const v of values) top = Math.max(top, Math.abs(v));
+  top = top || 1;
+  const counts = new Array(bins).fill(0);
+  for (const v of values) counts[Math.min(bins - 1, Math.floor((Math.abs(v) / top) * bins))]++;
+  return { counts, top };
+}
+
+export function bounds(vertices) {
+  const min = [Infinity, Infinity, Infinity], max = [-Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < vertices.length; i += 3) {
+    for (let k = 0; k < 3; k++) {
+      min[k] = Math.min(min[k], vertices[i + k]);
+      max[k] = Math.max(max[k], vertices[i + k]);
+    }
+  }
+  return { min, max };
+}
+
+/** Faces touching any of `vertices`, skipping faces in `taken` (a Set, updated). */
+export function facesAround(vertexIds, faces, taken) {
+  const inside = new Set(vertexIds);
+  const out = [];
+  for (let t = 0; t < faces.length / 3; t++) {
+    if (taken.has(t)) continue;
+    if (inside.has(faces[3 * t]) || inside.has(faces[3 * t + 1]) || inside.has(faces[3 * t + 2])) {
+      out.push(t);
+      taken.add(t);
+    }
+  }
+  return out;
+}
+
+export function maxAbsDifference(a, b) {
+  let worst = 0;
+  for (let i = 0; i < a.length; i++) worst = Math.max(worst, Math.abs(a[i] - b[i]));
+  return worst;
+}

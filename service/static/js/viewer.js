@@ -1,0 +1,409 @@
+// three.js views: the 3D mesh (lit, orbit controls, wireframe, vertex colours, handle
+// markers, transform gizmo, picking) and the flattened 2D layout (checkerboard, flips).
+// Rendering is on demand (after a change), which keeps a software-rendered browser idle.
+
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { TransformControls } from "three/addons/controls/TransformControls.js";
+
+const BASE_COLOR = [200, 206, 214];
+const SELECTION_COLOR = 0xffb000;
+const CHECKER_REPEAT = 3;
+
+function checkerTexture() {
+  const size = 256, cells = 8, canvas = document.createElement("canvas");
+  canvas.width = canvas.height = size;
+  const ctx = canvas.getContext("2d");
+  for (let i = 0; i < cells; i++) {
+    for (let j = 0; j < cells; j++) {
+      ctx.fillStyle = (i + j) % 2 ? "#2c728e" : "#f3f5f8";
+      ctx.fillRect((i * size) / cells, (j * size) / cells, size / cells, size / cells);
+    }
+  }
+  const texture = new THREE.CanvasTexture(canvas);
+  texture.wrapS = texture.wrapT = THREE.RepeatWrapping;
+  texture.colorSpace = THREE.SRGBColorSpace;
+  texture.anisotropy = 4;
+  return texture;
+}
+
+function edgeIndex(edges) {
+  return new THREE.BufferAttribute(edges instanceof Uint32Array ? edges : Uint32Array.from(edges), 1);
+}
+
+class RenderView {
+  constructor(container, { rotate = true } = {}) {
+    this.container = container;
+    this.renderer = new THREE.WebGLRenderer({ antialias: true, alpha: true,
+      preserveDrawingBuffer: true });
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    this.renderer.outputColorSpace = THREE.SRGBColorSpace;
+    container.appendChild(this.renderer.domElement);
+    this.scene = new THREE.Scene();
+    this.pending = false;
+    this.observer = new ResizeObserver(() => this.resize());
+    this.observer.observe(container);
+    this.rotate = rotate;
+  }
+
+  get canvas() {
+    return this.renderer.domElement;
+  }
+
+  resize() {
+    const { clientWidth: w, clientHeight: h } = this.container;
+    if (!w || !h) return;
+    this.renderer.setSize(w, h, true);
+    this.updateCamera(w, h);
+    this.request();
+  }
+
+  request() {
+    if (this.pending) return;
+    this.pending = true;
+    requestAnimationFrame(() => {
+      this.pending = false;
+      this.renderer.render(this.scene, this.camera);
+    });
+  }
+}
+
+export class MeshView extends RenderView {
+  constructor(container) {
+    super(container);
+    this.camera = new THREE.PerspectiveCamera(40, 1, 0.01, 100);
+    this.camera.position.set(0, 0, 3);
+    this.scene.add(new THREE.HemisphereLight(0xffffff, 0x5a6470, 1.6));
+    const key = new THREE.DirectionalLight(0xffffff, 1.8);
+    key.position.set(0.6, 1.0, 0.8);
+    this.camera.add(key);
+    this.scene.add(this.camera);
+
+    this.controls = new OrbitControls(this.camera, this.canvas);
+    this.controls.addEventListener("change", () => this.request());
+
+    this.material = new THREE.MeshStandardMaterial({ vertexColors: true, roughness: 0.62,
+      metalness: 0.0, side: THREE.DoubleSide, polygonOffset: true, polygonOffsetFactor: 1,
+      polygonOffsetUnits: 1 });
+    this.wireMaterial = new THREE.LineBasicMaterial({ color: 0x1f2933, transparent: true,
+      opacity: 0.35 });
+    this.checker = checkerTexture();
+
+    this.markerGeometry = new THREE.SphereGeometry(1, 12, 8);
+    this.markers = new THREE.Group();
+    this.scene.add(this.markers);
+
+    this.gizmo = new TransformControls(this.camera, this.canvas);
+    this.gizmo.setSize(0.9);
+    this.gizmo.addEventListener("dragging-changed", (e) => {
+      this.controls.enabled = !e.value;
+    });
+    this.gizmo.addEventListener("change", () => this.request());
+    this.scene.add(this.gizmo.getHelper());
+
+    this.raycaster = new THREE.Raycaster();
+    this.mesh = null;
+    this.resize();
+  }
+
+  updateCamera(w, h) {
+    this.camera.aspect = w / h;
+    this.camera.updateProjectionMatrix();
+  }
+
+  /** Replace the mesh: vertices Float64Array(3n), faces Uint32Array(3m), edges Uint32Array(2E). */
+  setMesh(vertices, faces, edges) {
+    if (this.mesh) {
+      this.scene.remove(this.mesh, this.wire);
+      this.mesh.geometry.dispose();
+      this.wire.geometry.dispose();
+    }
+    const n = vertices.length / 3;
+    const geometry = new THREE.BufferGeometry();
+    const position = new THREE.BufferAttribute(new Float32Array(vertices), 3);
+    position.setUsage(THREE.DynamicDrawUsage);
+    geometry.setAttribute("position", position);
+    geometry.setAttribute("color", new THREE.BufferAttribute(new Float32Array(3 * n), 3));
+    geometry.setAttribute("uv", new THREE.BufferAttribute(new Float32Array(2 * n), 2));
+    geometry.setIndex(new THREE.BufferAttribute(new Uint32Array(faces), 1));
+    geometry.computeVertexNormals();
+    geometry.computeBoundingSphere();
+    this.mesh = new THREE.Mesh(geometry, this.material);
+    const wireGeometry = new THREE.BufferGeometry();
+    wireGeometry.setAttribute("position", position);
+    wireGeometry.setIndex(edgeIndex(edges));
+    this.wire = new THREE.LineSegments(wireGeometry, this.wireMaterial);
+    this.wire.visible = !!this.wireVisible;
+    this.scene.add(this.mesh, this.wire);
+    this.setColors(null);
+    this.frame();
+  }
+
+  /** The direction to look from: the mean outward normal of an open surface, else along
+   * the thinnest side of the bounding box (a torus is seen through its hole). */
+  viewDirection() {
+    const position = this.mesh.geometry.getAttribute("position");
+    const index = this.mesh.geometry.getIndex().array;
+    const a = new THREE.Vector3(), b = new THREE.Vector3(), c = new THREE.Vector3();
+    const sum = new THREE.Vector3();
+    let area = 0;
+    for (let t = 0; t < index.length; t += 3) {
+      a.fromBufferAttribute(position, index[t]);
+      b.fromBufferAttribute(position, index[t + 1]).sub(a);
+      c.fromBufferAttribute(position, index[t + 2]).sub(a);
+      b.cross(c);
+      sum.add(b);
+      area += b.length();
+    }
+    if (sum.length() > 0.3 * area) return sum.normalize();
+    this.mesh.geometry.computeBoundingBox();
+    const size = this.mesh.geometry.boundingBox.getSize(new THREE.Vector3()).toArray();
+    const axis = size.indexOf(Math.min(...size));
+    return new THREE.Vector3().setComponent(axis, 1);
+  }
+
+  /** Fit the mesh in the view: from its best side, or (keep) from the current direction. */
+  frame({ keep = false } = {}) {
+    const sphere = this.mesh.geometry.boundingSphere;
+    this.radius = sphere.radius || 1;
+    const vertical = THREE.MathUtils.degToRad(this.camera.fov / 2);
+    const horizontal = Math.atan(Math.tan(vertical) * this.camera.aspect);
+    const distance = (this.radius / Math.sin(Math.min(vertical, horizontal))) * 1.08;
+    this.camera.near = distance / 100;
+    this.camera.far = distance * 100;
+    let direction;
+    if (keep) {
+      direction = this.camera.position.clone().sub(this.controls.target).normalize();
+    } else {
+      direction = this.viewDirection();
+      this.camera.up.set(0, 1, 0);
+      if (Math.abs(direction.y) > 0.9) this.camera.up.set(0, 0, -Math.sign(direction.y));
+    }
+    this.camera.position.copy(sphere.center).addScaledVector(direction, distance);
+    this.camera.updateProjectionMatrix();
+    this.controls.target.copy(sphere.center);
+    this.controls.update();
+    this.request();
+  }
+
+  updatePositions(vertices) {
+    const position = this.mesh.geometry.getAttribute("position");
+    position.array.set(vertices);
+    position.needsUpdate = true;
+    this.mesh.geometry.computeVertexNormals();
+    this.mesh.geometry.computeBoundingSphere();
+    this.request();
+  }
+
+  /** Linear RGB Float32Array(3n), or null for the plain material colour. */
+  setColors(colors) {
+    const attribute = this.mesh.geometry.getAttribute("color");
+    if (colors) attribute.array.set(colors);
+    else {
+      const c = new THREE.Color().setRGB(...BASE_COLOR.map((x) => x / 255), THREE.SRGBColorSpace);
+      for (let i = 0; i < attribute.count; i++) attribute.setXYZ(i, c.r, c.g, c.b);
+    }
+    attribute.needsUpdate = true;
+    this.request();
+  }
+
+  /** Checkerboard texture through uv (Float32Array(2n)), or null to remove it. */
+  setTexture(uv) {
+    if (uv) {
+      const attribute = this.mesh.geometry.getAttribute("uv");
+      attribute.array.set(uv);
+      attribute.needsUpdate = true;
+      this.material.map = this.checker;
+    } else {
+      this.material.map = null;
+    }
+    this.material.needsUpdate = true;
+    this.request();
+  }
+
+  setWireframe(visible) {
+    this.wireVisible = visible;
+    if (this.wire) this.wire.visible = visible;
+    this.request();
+  }
+
+  /** Spheres at selected vertices and at handle vertices (one colour per handle). */
+  setMarkers(vertices, selection, handles) {
+    for (const child of [...this.markers.children]) {
+      this.markers.remove(child);
+      child.material.dispose();
+      child.dispose?.();
+    }
+    const radius = (this.markerRadius || 0.01);
+    const groups = [{ ids: selection, color: SELECTION_COLOR }, ...handles.map((h) => ({
+      ids: h.vertices, color: h.color }))];
+    for (const { ids, color } of groups) {
+      if (!ids.length) continue;
+      // Drawn over the surface: a handle stays visible where the mesh would hide it.
+      const material = new THREE.MeshStandardMaterial({ color, roughness: 0.4,
+        emissive: color, emissiveIntensity: 0.35, depthTest: false, transparent: true,
+        opacity: 0.95 });
+      const spheres = new THREE.InstancedMesh(this.markerGeometry, material, ids.length);
+      spheres.renderOrder = 10;
+      const m = new THREE.Matrix4();
+      ids.forEach((v, k) => {
+        m.makeScale(radius, radius, radius)
+          .setPosition(vertices[3 * v], vertices[3 * v + 1], vertices[3 * v + 2]);
+        spheres.setMatrixAt(k, m);
+      });
+      this.markers.add(spheres);
+    }
+    this.request();
+  }
+
+  attachGizmo(object) {
+    if (object) {
+      if (!object.parent) this.scene.add(object);
+      this.gizmo.attach(object);
+    } else {
+      this.gizmo.detach();
+    }
+    this.request();
+  }
+
+  gizmoActive() {
+    return this.gizmo.dragging || this.gizmo.axis !== null;
+  }
+
+  ndc(clientX, clientY) {
+    const rect = this.canvas.getBoundingClientRect();
+    return new THREE.Vector2(((clientX - rect.left) / rect.width) * 2 - 1,
+      -((clientY - rect.top) / rect.height) * 2 + 1);
+  }
+
+  /** The vertex of the picked face nearest to the hit point, or -1. */
+  pickVertex(clientX, clientY) {
+    if (!this.mesh) return -1;
+    this.raycaster.setFromCamera(this.ndc(clientX, clientY), this.camera);
+    const hit = this.raycaster.intersectObject(this.mesh, false)[0];
+    if (!hit) return -1;
+    const position = this.mesh.geometry.getAttribute("position");
+    const corners = [hit.face.a, hit.face.b, hit.face.c];
+    const p = new THREE.Vector3();
+    let best = -1, bestDistance = Infinity;
+    for (const v of corners) {
+      const d = p.fromBufferAttribute(position, v).distanceToSquared(hit.point);
+      if (d < bestDistance) {
+        bestDistance = d;
+        best = v;
+      }
+    }
+    return best;
+  }
+
+  /** Screen position (client pixels) of a point, and whether it faces the camera. */
+  project(x, y, z) {
+    const rect = this.canvas.getBoundingClientRect();
+    const v = new THREE.Vector3(x, y, z).project(this.camera);
+    return { x: rect.left + ((v.x + 1) / 2) * rect.width,
+      y: rect.top + ((1 - v.y) / 2) * rect.height };
+  }
+
+  /** Vertices inside a client-pixel rectangle; on closed meshes only those whose normal
+   * faces the camera (open surfaces can be worked on from either side). */
+  verticesInRect(left, top, right, bottom, { facing = true } = {}) {
+    const geometry = this.mesh.geometry;
+    const position = geometry.getAttribute("position"), normal = geometry.getAttribute("normal");
+    const rect = this.canvas.getBoundingClientRect();
+    const p = new THREE.Vector3(), nrm = new THREE.Vector3(), eye = new THREE.Vector3();
+    const out = [];
+    for (let i = 0; i < position.count; i++) {
+      p.fromBufferAttribute(position, i);
+      nrm.fromBufferAttribute(normal, i);
+      eye.copy(this.camera.position).sub(p);
+      if (facing && nrm.dot(eye) <= 0) continue;
+      p.project(this.camera);
+      const x = rect.left + ((p.x + 1) / 2) * rect.width;
+      const y = rect.top + ((1 - p.y) / 2) * rect.height;
+      if (x >= left && x <= right && y >= top && y <= bottom && p.z < 1) out.push(i);
+    }
+    return out;
+  }
+}
+
+export class FlatView extends RenderView {
+  constructor(container) {
+    super(container, { rotate: false });
+    this.camera = new THREE.OrthographicCamera(-1, 1, 1, -1, -10, 10);
+    this.controls = new OrbitControls(this.camera, this.canvas);
+    this.controls.enableRotate = false;
+    this.controls.screenSpacePanning = true;
+    this.controls.mouseButtons = { LEFT: THREE.MOUSE.PAN, MIDDLE: THREE.MOUSE.DOLLY,
+      RIGHT: THREE.MOUSE.PAN };
+    this.controls.addEventListener("change", () => this.request());
+    this.checker = checkerTexture();
+    this.extent = 1;
+    this.resize();
+  }
+
+  updateCamera(w, h) {
+    const aspect = w / h, e = this.extent * 0.55;
+    Object.assign(this.camera, aspect >= 1
+      ? { left: -e * aspect, right: e * aspect, top: e, bottom: -e }
+      : { left: -e, right: e, top: e / aspect, bottom: -e / aspect });
+    this.camera.updateProjectionMatrix();
+  }
+
+  /** Show the layout: uv Float64Array(2n), faces, edges, flipped face ids; returns the
+   * texture coordinates used (Float32Array(2n), 8 x CHECKER_REPEAT cells across). */
+  show(uv, faces, edges, flipped) {
+    for (const child of [...this.scene.children]) {
+      this.scene.remove(child);
+      child.geometry?.dispose();
+    }
+    const n = uv.length / 2;
+    let minU = Infinity, minV = Infinity, maxU = -Infinity, maxV = -Infinity;
+    for (let i = 0; i < n; i++) {
+      minU = Math.min(minU, uv[2 * i]);
+      maxU = Math.max(maxU, uv[2 * i]);
+      minV = Math.min(minV, uv[2 * i + 1]);
+      maxV = Math.max(maxV, uv[2 * i + 1]);
+    }
+    const size = Math.max(maxU - minU, maxV - minV) || 1;
+    const cu = (minU + maxU) / 2, cv = (minV + maxV) / 2;
+    const positions = new Float32Array(3 * n), texcoords = new Float32Array(2 * n);
+    for (let i = 0; i < n; i++) {
+      positions[3 * i] = (uv[2 * i] - cu) / size;
+      positions[3 * i + 1] = (uv[2 * i + 1] - cv) / size;
+      texcoords[2 * i] = ((uv[2 * i] - minU) / size) * CHECKER_REPEAT;
+      texcoords[2 * i + 1] = ((uv[2 * i + 1] - minV) / size) * CHECKER_REPEAT;
+    }
+    const geometry = new THREE.BufferGeometry();
+    const position = new THREE.BufferAttribute(positions, 3);
+    geometry.setAttribute("position", position);
+    geometry.setAttribute("uv", new THREE.BufferAttribute(texcoords, 2));
+    geometry.setIndex(new THREE.BufferAttribute(new Uint32Array(faces), 1));
+    const sheet = new THREE.Mesh(geometry, new THREE.MeshBasicMaterial({ map: this.checker,
+      side: THREE.DoubleSide }));
+    const wire = new THREE.BufferGeometry();
+    wire.setAttribute("position", position);
+    wire.setIndex(edgeIndex(edges));
+    const lines = new THREE.LineSegments(wire, new THREE.LineBasicMaterial({ color: 0x1f2933,
+      transparent: true, opacity: 0.18 }));
+    lines.position.z = 0.001;
+    this.scene.add(sheet, lines);
+    if (flipped.length) {
+      const index = new Uint32Array(3 * flipped.length);
+      flipped.forEach((t, k) => index.set(faces.subarray(3 * t, 3 * t + 3), 3 * k));
+      const bad = new THREE.BufferGeometry();
+      bad.setAttribute("position", position);
+      bad.setIndex(new THREE.BufferAttribute(index, 1));
+      const flips = new THREE.Mesh(bad, new THREE.MeshBasicMaterial({ color: 0xe02424,
+        side: THREE.DoubleSide, transparent: true, opacity: 0.85 }));
+      flips.position.z = 0.002;
+      this.scene.add(flips);
+    }
+    this.extent = 1;
+    this.controls.target.set(0, 0, 0);
+    this.camera.position.set(0, 0, 5);
+    this.camera.zoom = 1;
+    this.controls.update();
+    this.resize();
+    return texcoords;
+  }
+}

@@ -1,0 +1,62 @@
+"""docker-compose.yml checks that need no Docker engine: it builds the one image of the
+Dockerfile, runs the README's serve command for the API, and wires the API, the scheduler
+and the workers together with settings the service really reads."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import re
+from pathlib import Path
+
+import yaml
+
+from service.settings import Settings
+
+ROOT = Path(__file__).resolve().parents[1]
+COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+SERVICES = COMPOSE["services"]
+
+
+def _dockerfile_cmd() -> list[str]:
+    text = (ROOT / "Dockerfile").read_text()
+    (cmd,) = re.findall(r"^CMD (\[.*\])$", text, re.MULTILINE)
+    return json.loads(cmd)
+
+
+def test_one_image_for_every_service():
+    images = {s["image"] for s in SERVICES.values()}
+    assert len(images) == 1
+    assert all(s["build"] == "." for s in SERVICES.values())
+    assert set(SERVICES) == {"api", "scheduler", "worker"}
+
+
+def test_api_runs_the_image_command_on_the_scheduler():
+    api = SERVICES["api"]
+    assert api["command"] == _dockerfile_cmd()
+    assert " ".join(api["command"]) in (ROOT / "README.md").read_text()
+    env = {k: str(v) for k, v in api["environment"].items()}
+    settings = Settings(**{k.removeprefix("FFS_").lower(): v for k, v in env.items()})
+    assert settings.executor == "dask"
+    scheduler = SERVICES["scheduler"]["command"]
+    port = scheduler[scheduler.index("--port") + 1]
+    assert settings.dask_scheduler_address == f"tcp://scheduler:{port}"
+    assert SERVICES["worker"]["command"][:3] == ["dask", "worker", f"tcp://scheduler:{port}"]
+
+
+def test_scheduler_preload_and_retry_policy():
+    scheduler = SERVICES["scheduler"]
+    module = scheduler["command"][scheduler["command"].index("--preload") + 1]
+    assert hasattr(importlib.import_module(module), "dask_setup")
+    assert scheduler["environment"]["DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES"] == "1"
+    worker = SERVICES["worker"]
+    assert worker["command"][worker["command"].index("--nthreads") + 1] == "1"
+    assert worker["deploy"]["replicas"] >= 2
+    for name in ("scheduler", "worker"):  # the image's HEALTHCHECK probes the API port
+        assert "healthcheck" in SERVICES[name]
+
+
+def test_documented():
+    doc = (ROOT / "docs" / "distributed.md").read_text()
+    assert "docker compose up --build --scale worker=4" in doc
+    assert "docker compose up --build" in (ROOT / "README.md").read_text()

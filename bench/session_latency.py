@@ -11,9 +11,11 @@ handles to new targets and waits for the vertices:
   as JSON;
 * WebSocket: one binary drag per message, waiting for each reply (no drops).
 
-Each path runs all its drags before the next path starts. (Interleaving the paths drag by
-drag distorts the result: after each solve, MKL's OpenMP threads spin for up to 200 ms
-(KMP_BLOCKTIME) and slow down whatever process runs next on the same cores.)
+The drags run in ``--rounds`` rounds; within a round each path runs its block of drags
+before the next path starts, so slow drift of the machine's load spreads over all paths.
+(Interleaving the paths drag by drag distorts the result: after each solve, MKL's OpenMP
+threads spin for up to 200 ms (KMP_BLOCKTIME) and slow down whatever process runs next on
+the same cores.)
 
 The service is a real ``uvicorn service.app:app`` on loopback (``FFS_EXECUTOR=local``: the
 session is a dedicated process; with ``--dask`` also ``FFS_EXECUTOR=dask`` on a one-worker
@@ -117,8 +119,9 @@ class Session:
 
 
 def measure(V: np.ndarray, F: np.ndarray, handles: np.ndarray, drags: np.ndarray,
-            servers: dict[str, str]) -> tuple[dict, dict[str, Session]]:
-    """Time each path over all drags, one path after the other."""
+            servers: dict[str, str], rounds: int) -> tuple[dict, dict[str, Session]]:
+    """Time each path in blocks of drags: ``rounds`` rounds, the paths one after the other
+    within a round."""
     import solver
 
     sessions = {name: Session(base, V, F, handles) for name, base in servers.items()}
@@ -135,32 +138,33 @@ def measure(V: np.ndarray, F: np.ndarray, handles: np.ndarray, drags: np.ndarray
             session.http_drag, accept="application/json", key="http_json")
         paths[f"{name}:ws"] = session.ws_drag
     times: dict[str, list[float]] = {key: [] for key in paths}
-    for key, drag in paths.items():  # one path after the other (see the module docstring)
-        for i, target in enumerate(drags):
-            t0 = time.perf_counter()
-            drag(target)
-            if i:  # the first drag warms the connection up
-                times[key].append(time.perf_counter() - t0)
+    for chunk in np.array_split(drags, rounds):  # rounds spread slow drift over all paths
+        for key, drag in paths.items():  # within a round, one path after the other
+            for i, target in enumerate(chunk):
+                t0 = time.perf_counter()
+                drag(target)
+                if i:  # the first drag of a block warms the connection up
+                    times[key].append(time.perf_counter() - t0)
     out = {key: stats(values) for key, values in times.items()}
     out["direct"]["setup"] = setup
     return out, sessions
 
 
-def report(name: str, V: np.ndarray, F: np.ndarray, n_drags: int, out: dict,
+def report(name: str, V: np.ndarray, F: np.ndarray, n_drags: int, rounds: int, out: dict,
            sessions: dict[str, Session], loads: list[str]) -> str:
     ref = out["direct"]
     lines = [
         "## Session drag latency",
         "",
-        f"`python bench/session_latency.py --drags {n_drags}"
+        f"`python bench/session_latency.py --drags {n_drags} --rounds {rounds}"
         f"{' --dask' if 'dask' in sessions else ''}` on {platform.machine()} with "
         f"{os.cpu_count()} cores, Python {platform.python_version()}; {name}: {len(F)} faces, "
-        f"{len(V)} vertices, 10 position handles; {n_drags} drags per path, one path after "
-        "the other (milliseconds from sending a drag to having all vertices; one request or "
-        "message at a time over one keep-alive connection; uvicorn without WebSocket "
-        "deflate, as in the image; MKL threads: one per core in this process and in the "
-        "local session process, one in the Dask worker). Load average (1, 5, 15 min) "
-        "before and after: "
+        f"{len(V)} vertices, 10 position handles; {n_drags} drags per path in {rounds} "
+        "rounds, within a round one path after the other. Milliseconds from sending a drag "
+        "to having all vertices, one request or message at a time over one keep-alive "
+        "connection; uvicorn without WebSocket deflate, as in the image; MKL threads: one "
+        "per core in this process and in the local session process, one in the Dask "
+        "worker. Load average (1, 5, 15 min) before and after: "
         f"{loads[0]} / {loads[-1]}.",
         "",
         "| Path | p50 (ms) | p90 (ms) | mean (ms) | p50 x direct | reply bytes |",
@@ -201,12 +205,13 @@ def report(name: str, V: np.ndarray, F: np.ndarray, n_drags: int, out: dict,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--drags", type=int, default=200)
+    parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--dask", action="store_true", help="also measure a Dask actor")
     parser.add_argument("--out", type=Path, help="write the section into this markdown file")
     args = parser.parse_args()
     name, V, F = mesh()
     handles = np.linspace(0, len(V) - 1, 10).astype(np.int64)
-    drags = targets(V, handles, args.drags + 1)
+    drags = targets(V, handles, args.drags + args.rounds)
     env = {"FFS_WORKERS": "1", "FFS_LOG_LEVEL": "warning"}
     loads = [load()]
     with contextlib.ExitStack() as stack:
@@ -215,9 +220,9 @@ def main() -> None:
             address = stack.enter_context(dask_cluster(1))
             servers["dask"] = stack.enter_context(uvicorn(
                 {**env, "FFS_EXECUTOR": "dask", "FFS_DASK_SCHEDULER_ADDRESS": address}))
-        out, sessions = measure(V, F, handles, drags, servers)
+        out, sessions = measure(V, F, handles, drags, servers, args.rounds)
         loads.append(load())
-        text = report(name, V, F, args.drags, out, sessions, loads)
+        text = report(name, V, F, args.drags, args.rounds, out, sessions, loads)
         for session in sessions.values():
             session.close()
     print(text)

@@ -114,6 +114,16 @@ class Registry(SchedulerPlugin):  # type: ignore[misc,valid-type]
         self.keys[meta["key"]] = job.id
         return None
 
+    async def wait_for_key(self, key: str, timeout: float) -> bool:
+        """Wait until the scheduler knows task ``key`` (a client's graph and its RPCs travel
+        on different connections: publishing a key before it exists would not hold it)."""
+        deadline = time.monotonic() + timeout
+        while key not in self.scheduler.tasks:
+            if time.monotonic() > deadline:
+                return False
+            await asyncio.sleep(0.005)
+        return True
+
     def job_get(self, job_id: str, now: float) -> dict[str, Any] | None:
         job = self.jobs.get(job_id)
         if job is None or (job.expires_at is not None and job.expires_at <= now):
@@ -332,6 +342,12 @@ def _registry_call(op: str, args: tuple[Any, ...], dask_scheduler: Any = None) -
     return getattr(install_registry(dask_scheduler), op)(*args)
 
 
+async def _registry_call_async(op: str, args: tuple[Any, ...],
+                               dask_scheduler: Any = None) -> Any:
+    """Like :func:`_registry_call` for the registry's coroutine methods."""
+    return await getattr(install_registry(dask_scheduler), op)(*args)
+
+
 def dask_setup(scheduler: Any) -> None:
     """``dask scheduler --preload service.cluster`` installs the registry at start."""
     install_registry(scheduler)
@@ -521,6 +537,16 @@ class DaskConnection:
         client = self.require()
         try:
             return await asyncio.wait_for(client.run_on_scheduler(_registry_call, op, args), 30)
+        except (OSError, TimeoutError) as exc:
+            raise ProblemError("unavailable", f"the Dask scheduler did not answer: {exc}",
+                               headers={"Retry-After": "5"}) from None
+
+    async def call_async(self, op: str, *args: Any) -> Any:
+        """Call a coroutine method of :class:`Registry` in the scheduler."""
+        client = self.require()
+        try:
+            return await asyncio.wait_for(
+                client.run_on_scheduler(_registry_call_async, op, args), 60)
         except (OSError, TimeoutError) as exc:
             raise ProblemError("unavailable", f"the Dask scheduler did not answer: {exc}",
                                headers={"Retry-After": "5"}) from None
@@ -750,6 +776,8 @@ class DaskJobManager:
         try:
             handle = await self.executor.submit(task or operation, payload, task_id=job.id,
                                                 job=True)
+            if not await self.connection.call_async("wait_for_key", meta["key"], 30.0):
+                raise ExecutorClosedError("the Dask scheduler did not receive the job")
             await client.publish_dataset(self.executor.dask_future(job.id),
                                          name=JOB_PREFIX + job.id)
         except BaseException as exc:

@@ -43,6 +43,18 @@ ProgressCallback = Callable[[str, float], None]
 StartCallback = Callable[[], None]
 
 
+def post_threadsafe(loop: asyncio.AbstractEventLoop | None, fn: Callable[..., None],
+                    *args: Any) -> bool:
+    """Schedule ``fn(*args)`` on ``loop`` from a reader thread; False once the loop is gone."""
+    if loop is None or loop.is_closed():
+        return False
+    try:
+        loop.call_soon_threadsafe(fn, *args)
+    except RuntimeError:
+        return False
+    return True
+
+
 class ExecutorError(Exception):
     """Base class of executor failures."""
 
@@ -387,14 +399,7 @@ class ProcessExecutor:
         self._post(self._on_exit, worker)
 
     def _post(self, fn: Callable[..., None], *args: Any) -> bool:
-        loop = self._loop
-        if loop is None or loop.is_closed():
-            return False
-        try:
-            loop.call_soon_threadsafe(fn, *args)
-        except RuntimeError:
-            return False
-        return True
+        return post_threadsafe(self._loop, fn, *args)
 
     def _on_message(self, worker: _Worker, message: tuple[Any, ...]) -> None:
         kind = message[0]

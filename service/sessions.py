@@ -47,6 +47,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from service.executor import post_threadsafe
 from service.problems import ProblemError, from_worker_error
 
 logger = logging.getLogger("service.sessions")
@@ -588,14 +589,7 @@ class LocalSessions:
         self._post(self._on_exit, session)
 
     def _post(self, fn: Callable[..., None], *args: Any) -> bool:
-        loop = self._loop
-        if loop is None or loop.is_closed():
-            return False
-        try:
-            loop.call_soon_threadsafe(fn, *args)
-        except RuntimeError:
-            return False
-        return True
+        return post_threadsafe(self._loop, fn, *args)
 
     @staticmethod
     def _on_message(session: _LocalSession, message: tuple[Any, ...]) -> None:

@@ -38,6 +38,7 @@ import os
 import pickle
 import time
 import uuid
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import numpy as np
@@ -62,6 +63,21 @@ from service.sessions import (
 )
 
 logger = logging.getLogger("service.cluster")
+
+
+async def sweep_forever(connection: Any, ttl: float, sweep: Callable[[], Awaitable[Any]],
+                        what: str) -> None:
+    """Call ``sweep()`` every ttl / 4 (0.05 to 5 s) while connected; log, never stop."""
+    interval = max(0.05, min(5.0, ttl / 4))
+    while True:
+        await asyncio.sleep(interval)
+        if connection.client is None:
+            continue
+        try:
+            await sweep()
+        except Exception:
+            logger.exception("%s failed", what)
+
 
 REGISTRY_NAME = "ffs-registry"
 PROGRESS_TOPIC = "ffs-job"
@@ -734,15 +750,7 @@ class DaskJobManager:
         return dict(self._counts)
 
     async def _sweep(self) -> None:
-        interval = max(0.05, min(5.0, self.ttl / 4))
-        while True:
-            await asyncio.sleep(interval)
-            if self.connection.client is None:
-                continue
-            try:
-                await self.sweep()
-            except Exception:
-                logger.exception("job sweeper failed")
+        await sweep_forever(self.connection, self.ttl, self.sweep, "job sweeper")
 
     async def sweep(self) -> None:
         """Expire and time out jobs in the registry; drop their results from the cluster."""
@@ -881,15 +889,7 @@ class DaskSessions:
         return self._memory
 
     async def _sweep(self) -> None:
-        interval = max(0.05, min(5.0, self.ttl / 4))
-        while True:
-            await asyncio.sleep(interval)
-            if self.connection.client is None:
-                continue
-            try:
-                await self.expire()
-            except Exception:
-                logger.exception("session sweeper failed")
+        await sweep_forever(self.connection, self.ttl, self.expire, "session sweeper")
 
     async def expire(self) -> None:
         await self._flush_touches(force=True)

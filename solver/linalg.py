@@ -15,9 +15,11 @@ solve of 3 right-hand sides, numbers in ``bench/LINALG.md``):
     solves and nothing is copied per solve. Needs the MKL runtime ``libmkl_rt``, which
     ``pip install pypardiso`` brings (it depends on the ``mkl`` wheel); x86_64 only.
     2-10x faster than the others from 70K unknowns on, and the smallest factor. It
-    releases the GIL and uses MKL's OpenMP threads, by default one per core (limit them
-    with ``threadpoolctl.threadpool_limits(n, user_api="blas")`` when several processes
-    factorize at once).
+    releases the GIL and uses MKL's OpenMP threads, by default one per core. Limit them
+    with ``MKL_NUM_THREADS`` (and ``OMP_NUM_THREADS``) set before the process loads MKL
+    when several processes factorize at once: ``threadpoolctl`` does not see the MKL
+    library loaded here through ``ctypes``, so its limits do not reach PARDISO (the
+    service's worker processes set the environment variables at start-up).
 ``"superlu"``
     SciPy's SuperLU (``scipy.sparse.linalg.splu``) with the minimum-degree ordering on
     ``K + K^T`` and diagonal pivoting (``SymmetricMode``, ``diag_pivot_thresh=0``).

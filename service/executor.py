@@ -138,12 +138,18 @@ class Executor(Protocol):
 # ---------------------------------------------------------------------------- worker side
 
 
-def _worker_main(conn: Connection, threads: int) -> None:
-    """Entry point of a worker process: serve tasks from ``conn`` until it closes."""
+def prepare_worker_process(threads: int) -> None:
+    """First thing in a worker or session process, before numpy or MKL load: cap their
+    threads (MKL reads the variables only at load time) and leave Ctrl-C to the parent,
+    which shuts the process down."""
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(threads)
-    # The parent shuts workers down; ignore Ctrl-C sent to the whole process group.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _worker_main(conn: Connection, threads: int) -> None:
+    """Entry point of a worker process: serve tasks from ``conn`` until it closes."""
+    prepare_worker_process(threads)
     from service import tasks
 
     tasks.initialize_worker(threads)

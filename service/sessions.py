@@ -34,7 +34,6 @@ import contextlib
 import logging
 import math
 import multiprocessing
-import os
 import signal
 import struct
 import threading
@@ -47,7 +46,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from service.executor import post_threadsafe
+from service.executor import post_threadsafe, prepare_worker_process
 from service.problems import ProblemError, from_worker_error
 
 logger = logging.getLogger("service.sessions")
@@ -147,9 +146,7 @@ class SessionState:
 
 def _session_main(conn: Connection, threads: int) -> None:
     """Entry point of a local session process: build the session, then serve solves."""
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ[var] = str(threads)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    prepare_worker_process(threads)
     from service import tasks
 
     tasks.initialize_worker(threads)

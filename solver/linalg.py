@@ -83,6 +83,7 @@ __all__ = [
     "available_backends",
     "default_backend",
     "factorize",
+    "resolve_backend",
 ]
 
 BACKENDS: tuple[str, ...] = ("pardiso", "superlu", "cholespy")
@@ -369,8 +370,14 @@ def default_backend() -> str:
     return available_backends()[0]
 
 
-def _resolve_backend(backend: str) -> str:
-    """Map ``"auto"`` to the default and validate a backend name."""
+def resolve_backend(backend: str) -> str:
+    """Map ``"auto"`` to the default backend and validate a backend name.
+
+    Returns an available backend name; raises ``ValueError`` for an unknown name and
+    :class:`BackendUnavailableError` for a known one that cannot be loaded here. Call it
+    before any work on paths that may not factorize at all (e.g. tree integration), so an
+    invalid choice is refused on every path.
+    """
     if backend == "auto":
         return default_backend()
     if backend not in BACKENDS:
@@ -544,7 +551,7 @@ class Factorization:
         """Unpickle by factorizing the matrix again with the same backend."""
         matrix = sp.csr_array((state["data"], state["indices"], state["indptr"]),
                               shape=state["shape"])
-        backend = _resolve_backend(state["backend"])
+        backend = resolve_backend(state["backend"])
         self.__init__(matrix, backend)  # type: ignore[misc]
 
 
@@ -566,5 +573,5 @@ def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
     backend found the matrix singular or not positive definite; others are only detected
     by :meth:`Factorization.solve`).
     """
-    name = _resolve_backend(backend)
+    name = resolve_backend(backend)
     return Factorization(_canonical_matrix(matrix, assume_symmetric), name)

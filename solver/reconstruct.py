@@ -25,6 +25,7 @@ from .integrability import (
     integrate_along_forests,
     integration_forests,
 )
+from .linalg import resolve_backend
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
 from .system import (
@@ -418,6 +419,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         clock = now
 
     notify("validate", 0.0)
+    backend = resolve_backend(backend)  # refused here even when no factorization follows
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     user = (constraints or Constraints()).validated(topology.n_vertices, topology.n_faces)
     lap("validate")

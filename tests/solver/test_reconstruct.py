@@ -282,3 +282,23 @@ def test_shortcut_declines_non_integrable_forms_and_constraints():
     assert pinned.report["solve_path"] == "factorization"
     forms.angles[np.flatnonzero(forms.angles)[3]] += 1e-6
     assert solve(forms).report["solve_path"] == "factorization"
+
+
+@pytest.mark.parametrize("constrained", [False, True])
+def test_unavailable_or_unknown_backend_is_refused_on_every_path(monkeypatch, constrained):
+    """Exact forms take the tree-integration path, which never factorizes: an invalid
+    backend must still be refused there (it used to be accepted silently)."""
+    from solver import linalg
+
+    forms = fundamental_forms(*icosphere(1))
+    kw = {}
+    if constrained:
+        kw["constraints"] = Constraints(position_vertices=[0], positions=[[0.0, 0.0, 0.0]])
+    monkeypatch.setattr(linalg, "_unavailable_reason",
+                        lambda name: "ImportError: not here" if name == "cholespy" else None)
+    with pytest.raises(linalg.BackendUnavailableError, match="pip install cholespy"):
+        solve(forms, backend="cholespy", **kw)
+    with pytest.raises(ValueError, match="unknown linear-algebra backend"):
+        solve(forms, backend="umfpack", **kw)
+    assert solve(forms, backend="superlu", **kw).report["solve_path"] == (
+        "factorization" if constrained else "tree-integration")

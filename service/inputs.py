@@ -8,6 +8,7 @@ Arrays are converted to numpy once; the workers receive them pickled.
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 import anyio
@@ -44,17 +45,29 @@ def is_json(mtype: str) -> bool:
     return mtype == "application/json" or mtype.endswith("+json")
 
 
-async def read_body(request: Request, limit: int) -> bytes:
-    """The whole body, or a 413 problem as soon as it exceeds ``limit`` bytes."""
+async def read_body(request: Request, settings: Settings) -> bytes:
+    """The whole body: a 413 problem as soon as it exceeds FFS_MAX_BODY_BYTES, a 408 (and the
+    connection closed) when it takes longer than FFS_BODY_TIMEOUT to arrive. A client that
+    disconnects mid-body raises :class:`starlette.requests.ClientDisconnect` (answered 499 and
+    logged without a traceback by the app's handler)."""
+    limit = settings.max_body_bytes
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise _too_large(int(declared), limit)
     chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > limit:
-            raise _too_large(size, limit)
-        chunks.append(chunk)
+    try:
+        async with asyncio.timeout(settings.body_timeout):
+            async for chunk in request.stream():
+                size += len(chunk)
+                if size > limit:
+                    raise _too_large(size, limit)
+                chunks.append(chunk)
+    except TimeoutError:
+        raise ProblemError(
+            "body-timeout", f"the body did not arrive within {settings.body_timeout:g} s "
+            f"(FFS_BODY_TIMEOUT; {size} bytes received)", headers={"Connection": "close"},
+            errors=[{"field": "body", "index": None,
+                     "reason": f"{size} bytes in {settings.body_timeout:g} s"}]) from None
     return b"".join(chunks)
 
 
@@ -154,7 +167,7 @@ def payload_from_dict(operation: str, data: Any, settings: Settings,
 async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any],
                                                                    dict[str, UploadFile]]:
     """Parse a multipart body: (JSON-decoded fields, uploaded files)."""
-    body = await read_body(request, settings.max_body_bytes)
+    body = await read_body(request, settings)
     sent = False
 
     async def receive() -> dict[str, Any]:
@@ -249,7 +262,7 @@ async def parse_operation(request: Request, operation: str, settings: Settings,
         fields, files = await read_form(request, settings)
         return await payload_from_form(operation, fields, files, settings)
     if is_json(mtype):
-        body = await read_body(request, settings.max_body_bytes)
+        body = await read_body(request, settings)
         return await off_loop(len(body), _json_payload, operation, body, settings)
     raise unsupported_media_type(mtype)
 

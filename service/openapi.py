@@ -22,6 +22,7 @@ REF = "#/components/schemas/{model}"
 ERROR_DESCRIPTIONS: dict[int, str] = {
     400: "Malformed JSON, multipart body or mesh file.",
     404: "Unknown job or session (or it expired).",
+    408: "The body did not arrive within FFS_BODY_TIMEOUT seconds.",
     406: "None of the Accept media types can be produced.",
     409: "The job has no result (not finished, failed or cancelled).",
     410: "The session expired or its worker died.",

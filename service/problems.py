@@ -24,6 +24,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.responses import Response
 
 from solver.errors import ERROR_KINDS, SolverInputError
@@ -31,6 +32,8 @@ from solver.errors import ERROR_KINDS, SolverInputError
 logger = logging.getLogger("service")
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
+CLIENT_CLOSED = 499
+"""Status recorded (never seen by anyone) when the client disconnected before the answer."""
 PROBLEM_BASE = "/problems/"
 
 PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
@@ -49,6 +52,9 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
                               "Upload an OBJ, PLY, OFF, STL or GLB file."),
     "payload-too-large": (413, "Request body too large",
                           "The body exceeds FFS_MAX_BODY_BYTES."),
+    "body-timeout": (408, "Request body too slow",
+                     "The body did not arrive within FFS_BODY_TIMEOUT seconds; the connection "
+                     "is closed."),
     "mesh-too-large": (413, "Mesh too large",
                        "The mesh exceeds FFS_MAX_VERTICES or FFS_MAX_FACES."),
     "not-acceptable": (406, "Not acceptable",
@@ -246,6 +252,12 @@ def install_handlers(app: FastAPI) -> None:
                                headers=exc.headers)
         return problem_response(problem, request.url.path)
 
+    async def on_disconnect(request: Request, exc: Exception) -> Response:
+        # The client closed the connection before its body arrived: nobody reads an answer.
+        # 499 (nginx's "client closed request") keeps it apart from server errors in metrics.
+        logger.info("client disconnected during %s %s", request.method, request.url.path)
+        return Response(status_code=CLIENT_CLOSED)
+
     async def on_unexpected(request: Request, exc: Exception) -> Response:
         logger.exception("unhandled error on %s %s", request.method, request.url.path)
         problem = ProblemError("internal-error", f"unexpected {type(exc).__name__}", status=500)
@@ -256,4 +268,5 @@ def install_handlers(app: FastAPI) -> None:
     app.add_exception_handler(ValidationError, on_pydantic)
     app.add_exception_handler(SolverInputError, on_solver_error)
     app.add_exception_handler(StarletteHTTPException, on_http)
+    app.add_exception_handler(ClientDisconnect, on_disconnect)
     app.add_exception_handler(Exception, on_unexpected)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import Response
 
 from service.executor import (
@@ -36,14 +36,15 @@ async def run_task(request: Request, operation: str, payload: dict[str, Any]) ->
     except ExecutorClosedError as exc:
         raise ProblemError("unavailable", str(exc), headers={"Retry-After": "5"}) from None
     try:
-        result = await asyncio.wait_for(asyncio.shield(handle.future), timeout)
+        result = await _result_or_disconnect(request, handle.future, timeout)
     except TimeoutError:
         await executor.cancel(handle.id)
         metrics.observe_task(operation, None, "timeout")
         raise ProblemError("timeout", f"no result within {timeout:g} s (FFS_REQUEST_TIMEOUT); "
                            "submit large inputs as a job (POST /v1/jobs)") from None
-    except asyncio.CancelledError:  # client gone or server stopping: free the worker
-        await executor.cancel(handle.id)
+    except (ClientDisconnect, asyncio.CancelledError):  # client gone or server stopping
+        await executor.cancel(handle.id)  # free the worker: nobody will read the result
+        metrics.observe_task(operation, None, "disconnected")
         raise
     except TaskFailedError as exc:
         problem = from_worker_error(exc.error)
@@ -57,6 +58,32 @@ async def run_task(request: Request, operation: str, payload: dict[str, Any]) ->
                            headers={"Retry-After": "5"}) from None
     metrics.observe_task(operation, result, "ok")
     return result
+
+
+async def _wait_disconnect(request: Request) -> None:
+    """Return when the client closes the connection (the body has been read already, so the
+    server's next ``receive`` message is ``http.disconnect``)."""
+    while True:
+        message = await request.receive()
+        if message["type"] == "http.disconnect":
+            return
+
+
+async def _result_or_disconnect(request: Request, future: asyncio.Future[Any],
+                                timeout: float) -> Any:
+    """``future``'s result; TimeoutError after ``timeout`` s; ClientDisconnect as soon as the
+    client hangs up (uvicorn does not cancel the request when the client leaves)."""
+    watcher = asyncio.ensure_future(_wait_disconnect(request))
+    try:
+        done, _ = await asyncio.wait({future, watcher}, timeout=timeout,
+                                     return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        watcher.cancel()
+    if future in done:
+        return future.result()
+    if watcher in done:
+        raise ClientDisconnect()
+    raise TimeoutError
 
 
 def server_timing(timings: dict[str, float] | None) -> dict[str, str]:

@@ -87,6 +87,9 @@ class Settings(BaseSettings):
 
     max_body_bytes: int = Field(
         64 * 1024 * 1024, ge=1024, description="Largest request body (413 beyond).")
+    body_timeout: float = Field(
+        60.0, gt=0, description="Seconds a client may take to send a request body; then 408 "
+                                "and the connection is closed (slow or stalled uploads).")
     max_vertices: int = Field(
         250_000, ge=3, description="Largest vertex count of a mesh (413 beyond).")
     max_faces: int = Field(

@@ -69,7 +69,7 @@ async def _get(request: Request, job_id: str) -> Job:
              responses={202: {"description": "Accepted; poll the Location.",
                               "headers": {"Location": {"schema": {"type": "string"},
                                                        "description": "/v1/jobs/{id}"}}},
-                        **error_responses(400, 413, 415, 422, 503)})
+                        **error_responses(400, 408, 413, 415, 422, 503)})
 async def submit_job(request: Request) -> Response:
     settings = request.app.state.settings
     mtype = media_type(request)
@@ -79,7 +79,7 @@ async def submit_job(request: Request) -> Response:
                                             "color": fields.pop("color", None), "input": {}})
         payload = await payload_from_form(head.operation, fields, files, settings)
     elif is_json(mtype):
-        body = await read_body(request, settings.max_body_bytes)
+        body = await read_body(request, settings)
         head, payload = await off_loop(len(body), _json_job, body, settings)
     else:
         raise unsupported_media_type(mtype)

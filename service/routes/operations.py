@@ -119,5 +119,5 @@ for _operation, _spec in SPECS.items():
         operation_id=_operation, response_class=Response,
         responses={200: {"model": _spec["model"], "description": "The result.",
                          "content": dict(_content)},
-                   **error_responses(400, 406, 413, 415, 422, 500, 503, 504)},
+                   **error_responses(400, 406, 408, 413, 415, 422, 500, 503, 504)},
         openapi_extra=operation_body(_operation, file_fields(_operation)))

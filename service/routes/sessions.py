@@ -74,13 +74,13 @@ def _spec(body: bytes, settings: Any) -> dict[str, Any]:
              responses={201: {"description": "Created.",
                               "headers": {"Location": {"schema": {"type": "string"},
                                                        "description": "/v1/sessions/{id}"}}},
-                        **error_responses(400, 413, 415, 422, 429, 500, 503, 504)})
+                        **error_responses(400, 408, 413, 415, 422, 429, 500, 503, 504)})
 async def create_session(request: Request) -> Response:
     settings = request.app.state.settings
     mtype = media_type(request)
     if not is_json(mtype):
         raise unsupported_media_type(mtype)
-    body = await read_body(request, settings.max_body_bytes)
+    body = await read_body(request, settings)
     spec = await off_loop(len(body), _spec, body, settings)
     doc = await request.app.state.sessions.create(spec)
     request.app.state.metrics.session_created()
@@ -131,14 +131,14 @@ _SOLVE_CONTENT = {
                                     "examples": ["<3 h float32 values>"]}}}}},
              responses={200: {"description": "The deformed vertices.",
                               "content": _SOLVE_CONTENT},
-                        **error_responses(400, 404, 406, 410, 413, 415, 422, 503, 504)})
+                        **error_responses(400, 404, 406, 408, 410, 413, 415, 422, 503, 504)})
 async def solve_session(request: Request, session_id: SessionId) -> Response:
     state = request.app.state
     sessions = state.sessions
     fmt = negotiate(request.headers.get("accept"), SESSION_FORMATS)
     n_handles, n_groups = await sessions.shape(session_id)
     mtype = media_type(request)
-    body = await read_body(request, state.settings.max_body_bytes)
+    body = await read_body(request, state.settings)
     if mtype == OCTET:
         positions, rotations = parse_drag_binary(body, n_handles, n_groups)
     elif is_json(mtype):

@@ -1,0 +1,169 @@
+"""Hostile clients against a real uvicorn: disconnects, slow bodies, huge flat lists, memory.
+
+Each test reproduces one finding of issue 13 on a live server on loopback (raw sockets where
+the behaviour lives below HTTP clients) and checks what the server did: metrics, /readyz,
+the worker pool, the main process's memory (psutil).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import socket
+import time
+from collections.abc import Iterator
+from urllib.parse import urlsplit
+
+import httpx
+import numpy as np
+import orjson
+import pytest
+from conftest import REPO, uvicorn_server
+from service_helpers import forms_json, icosphere
+
+
+def _address(base: str) -> tuple[str, int]:
+    parts = urlsplit(base)
+    return parts.hostname or "127.0.0.1", int(parts.port or 80)
+
+
+def _head(path: str, length: int, content_type: str = "application/json") -> bytes:
+    return (f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: {content_type}\r\n"
+            f"Content-Length: {length}\r\n\r\n").encode()
+
+
+@contextlib.contextmanager
+def _raw(base: str, timeout: float = 10.0) -> Iterator[socket.socket]:
+    sock = socket.create_connection(_address(base), timeout=timeout)
+    try:
+        yield sock
+    finally:
+        sock.close()
+
+
+def _metric(text: str, name: str, **labels: str) -> float:
+    """Sum of the samples of ``name`` whose labels include ``labels``."""
+    total = 0.0
+    for line in text.splitlines():
+        if not line.startswith(name):
+            continue
+        match = re.match(r"^(\w+)(\{[^}]*\})? ([0-9.e+-]+)$", line)
+        if not match or match.group(1) != name:
+            continue
+        found = dict(re.findall(r'(\w+)="([^"]*)"', match.group(2) or ""))
+        if all(found.get(k) == v for k, v in labels.items()):
+            total += float(match.group(3))
+    return total
+
+
+def _log(base: str) -> str:
+    return (REPO / "tests" / "artifacts" / f"uvicorn-{_address(base)[1]}.log").read_text()
+
+
+# ------------------------------------------------------------------- 3: disconnect mid-body
+
+
+def test_client_disconnect_mid_body_is_not_a_server_error():
+    with uvicorn_server() as base:
+        for path in ("/v1/forms", "/v1/jobs", "/v1/sessions"):
+            with _raw(base) as sock:
+                sock.sendall(_head(path, 100_000) + b'{"vertices": [[0, 0, 0], ')
+                time.sleep(0.2)
+        time.sleep(0.5)
+        metrics = httpx.get(base + "/metrics").text
+        assert _metric(metrics, "ffs_http_requests_total", status="500") == 0, metrics
+        for path in ("/v1/forms", "/v1/jobs", "/v1/sessions"):
+            assert _metric(metrics, "ffs_http_requests_total", route=path, status="499") == 1
+        log = _log(base)
+        assert "Traceback" not in log and "ClientDisconnect" not in log, log
+
+
+# --------------------------------------------------------- 4: disconnect during a sync solve
+
+
+def _busy(base: str) -> int:
+    return int(httpx.get(base + "/readyz").json()["busy"])
+
+
+def test_disconnect_during_a_synchronous_solve_frees_the_worker():
+    V, F = icosphere(6)  # 81,920 faces; bent angles: not integrable, so it factorizes
+    forms = forms_json(V, F)
+    forms["angles"] = (np.asarray(forms["angles"]) * 0.8).tolist()
+    body = orjson.dumps(forms)
+    with uvicorn_server({"FFS_WORKERS": "1"}) as base:
+        with _raw(base) as sock:
+            sock.sendall(_head("/v1/reconstruct", len(body)) + body)
+            deadline = time.monotonic() + 60
+            while _busy(base) == 0:
+                assert time.monotonic() < deadline, "the solve never started"
+                time.sleep(0.02)
+        closed = time.monotonic()
+        freed = None
+        while time.monotonic() < closed + 10:
+            metrics = httpx.get(base + "/metrics").text
+            if (_metric(metrics, "ffs_pool_busy_workers") == 0
+                    and _metric(metrics, "ffs_worker_restarts") == 1):
+                freed = time.monotonic() - closed
+                break
+            time.sleep(0.02)
+        assert freed is not None, "the worker kept solving for a client that was gone"
+        assert _metric(metrics, "ffs_tasks_total", operation="reconstruct",
+                       outcome="disconnected") == 1
+        assert _metric(metrics, "ffs_tasks_total", operation="reconstruct", outcome="ok") == 0
+        print(f"worker freed {freed:.3f} s after the client hung up")
+        # The replacement worker serves the next request.
+        small = forms_json(*icosphere(1))
+        deadline = time.monotonic() + 30
+        while httpx.get(base + "/readyz").json()["workers_ready"] < 1:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert httpx.post(base + "/v1/reconstruct", json=small, timeout=30).status_code == 200
+
+
+# ------------------------------------------------------------------ 5: slow bodies (loris)
+
+
+def test_slow_bodies_are_answered_408_and_closed():
+    timeout = 1.5
+    with uvicorn_server({"FFS_BODY_TIMEOUT": str(timeout)}) as base:
+        socks = [socket.create_connection(_address(base), timeout=0.05) for _ in range(20)]
+        try:
+            for sock in socks:
+                sock.sendall(_head("/v1/forms", 1000) + b"{")
+            start = time.monotonic()
+            replies = {i: b"" for i in range(len(socks))}
+            closed_at: dict[int, float] = {}
+            while len(closed_at) < len(socks) and time.monotonic() < start + 4 * timeout + 5:
+                for i, sock in enumerate(socks):
+                    if i in closed_at:
+                        continue
+                    with contextlib.suppress(OSError):
+                        sock.sendall(b" ")  # one byte per round: a slow-loris client
+                    try:
+                        data = sock.recv(65536)
+                    except TimeoutError:
+                        continue
+                    except OSError:
+                        data = b""
+                    if data:
+                        replies[i] += data
+                    else:
+                        closed_at[i] = time.monotonic() - start
+                time.sleep(0.2)
+        finally:
+            for sock in socks:
+                sock.close()
+        assert len(closed_at) == len(socks), f"{len(socks) - len(closed_at)} stayed open"
+        for reply in replies.values():
+            assert reply.startswith(b"HTTP/1.1 408 "), reply[:200]
+            assert b"body-timeout" in reply
+        assert max(closed_at.values()) < timeout + 3.0, closed_at
+        print(f"20 slow clients closed after {min(closed_at.values()):.2f}-"
+              f"{max(closed_at.values()):.2f} s (FFS_BODY_TIMEOUT={timeout})")
+        assert httpx.get(base + "/healthz").status_code == 200
+
+
+@pytest.fixture(autouse=True)
+def _no_proxy(monkeypatch: pytest.MonkeyPatch) -> None:
+    for var in ("HTTP_PROXY", "HTTPS_PROXY", "http_proxy", "https_proxy", "ALL_PROXY"):
+        monkeypatch.delenv(var, raising=False)

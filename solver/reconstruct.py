@@ -20,12 +20,15 @@ from numpy.typing import ArrayLike
 
 from .errors import ConstraintError
 from .forms import validate_forms
+from .frames import layout_frames
 from .integrability import (
     integrability_from_terms,
     integrate_along_forests,
     integration_forests,
 )
 from .linalg import resolve_backend
+from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, form_residuals
+from .refine import refine as refine_forms
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
 from .system import (
@@ -46,6 +49,8 @@ from .validation import as_indices, as_points, require_finite, require_unique
 Progress = Callable[[str, float], None]
 REGULARIZATION = 1e-6
 EXACT_TOLERANCE = 1e-10  # residual rows (normalized lengths) accepted without a solve
+FORMS_TOLERANCE = 1e-9  # relative length / angle (rad) error below which forms are met
+RECONSTRUCT_ANGLE_WEIGHT = 0.05  # refinement's dihedral weight (docs/refinement.md)
 
 
 @dataclass
@@ -361,6 +366,50 @@ class ImmersionProblem:
                                                      extra_penalty_weight)])
         return ConstrainedSystem(self.K, constraints.hard_columns, soft_cols, soft_w, backend)
 
+    def refinement_handles(self, constraints: Constraints) -> Handles:
+        """The user's constraints as :class:`solver.refine.Handles`: hard positions fixed,
+        soft positions kept soft, frame constraints as target edge vectors (Eq. 3 with the
+        constrained frame and the face's layout, in input units)."""
+        hard = np.isinf(constraints.position_weights)
+        frame_hard = np.isinf(constraints.frame_weights)
+        layouts = self.terms.layouts[constraints.frame_faces] * self.length_scale  # (q, 3, 2)
+        planar = np.stack([layouts[:, 1] - layouts[:, 0], layouts[:, 2] - layouts[:, 0]], 1)
+        edges = np.einsum("qkc,qec->qek", constraints.frames[:, :, :2], planar)
+        return Handles(
+            fixed=constraints.position_vertices[hard],
+            soft_vertices=constraints.position_vertices[~hard],
+            soft_positions=constraints.positions[~hard],
+            soft_weights=constraints.position_weights[~hard],
+            frame_faces=constraints.frame_faces, frame_edges=edges,
+            frame_weights=np.where(frame_hard, HARD_FRAME_WEIGHT, constraints.frame_weights))
+
+    def frames_of(self, vertices: np.ndarray) -> np.ndarray:
+        """(m, 3, 3) rotations nearest to the frames that map each face's layout onto
+        ``vertices`` (n, 3) (input units)."""
+        frames = layout_frames(vertices / self.length_scale, self.topology.faces,
+                               self.terms.layouts)
+        return nearest_rotation(frames)
+
+    def place_anchored(self, vertices: np.ndarray, anchored: list[dict[str, int]],
+                       ) -> np.ndarray:
+        """Move each anchored component rigidly so that its anchor vertex is at the origin
+        and its anchor face's frame is the identity again (after a refinement, which keeps
+        no anchor)."""
+        if not anchored:
+            return vertices
+        comps = np.array([a["component"] for a in anchored], dtype=np.int64)
+        faces = np.array([a["face"] for a in anchored], dtype=np.int64)
+        origin = vertices[[a["vertex"] for a in anchored]]                # (c, 3)
+        frames = self.frames_of(vertices)[faces]                           # (c, 3, 3)
+        slot = np.full(self.topology.n_components, -1, dtype=np.int64)
+        slot[comps] = np.arange(len(comps))
+        which = slot[self.topology.vertex_component]
+        moved = vertices.copy()
+        sel = which >= 0
+        rel = vertices[sel] - origin[which[sel]]
+        moved[sel] = np.einsum("vk,vkc->vc", rel, frames[which[sel]])   # R^T (x - x_a)
+        return moved
+
     def all_frame_columns(self) -> np.ndarray:
         return frame_columns(self.topology.n_vertices, np.arange(self.topology.n_faces)).ravel()
 
@@ -372,8 +421,9 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                 backend: str = "auto", length_scale: float | None = None,
                 layout_angles: np.ndarray | None = None, n_vertices: int | None = None,
                 check_integrability: bool = True, integrability_tol: float = 1e-8,
-                exact_shortcut: bool = True, progress: Progress | None = None,
-                ) -> Reconstruction:
+                exact_shortcut: bool = True, refine: bool | None = None,
+                angle_weight: float = RECONSTRUCT_ANGLE_WEIGHT,
+                progress: Progress | None = None) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
 
     Args:
@@ -403,8 +453,17 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             needed (report ``solve_path`` = "tree-integration", ``backend`` = "none",
             ``timings["factorize"]`` = 0).
             Otherwise, and always with constraints, the system is factorized.
+        refine: the nearest surface (:mod:`solver.refine`). ``None`` (default): when the
+            linear answer does not reproduce the forms (they do not integrate, or the
+            constraints conflict with them), refine it with Levenberg-Marquardt on the
+            lengths and angles, started from the orthonormalized linear answer (Sec. 4);
+            integrable forms keep the exact answer (and the tree-integration path).
+            ``False``: the linear answer of Eq. 5. ``True``: refine whenever the linear
+            answer is not exact. ``report["refinement"]`` says whether and how it refined.
+        angle_weight: weight of a radian of dihedral angle against a relative length change
+            of 1 in the refinement (see :mod:`solver.refine` and docs/refinement.md).
         progress: optional callback ``progress(stage, fraction)`` for stages
-            validate, assemble, factorize, solve.
+            validate, assemble, factorize, solve (and refine when refining).
     Returns:
         :class:`Reconstruction` with vertices (n, 3), frames (m, 3, 3) and a report.
     """
@@ -477,6 +536,13 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     vertices, frames = problem.unknowns_to_geometry(u, user)
     vertices = problem.recenter(vertices, user, ref_v)
     orthonormality = _orthonormality_error(frames)
+    refinement: dict[str, Any] = {"refined": False, "reason": "exact: tree integration"}
+    if solve_path == "factorization":
+        exact = _reproduces(problem, vertices, L, A)
+        want = refine is not False and not exact
+        refinement = {"refined": False, "reason": "disabled (refine=false)" if refine is False
+                      else "exact: the linear answer reproduces the forms"}
+        orthonormalize = orthonormalize or want  # the refinement starts from rotations
     if orthonormalize and solve_path == "factorization":  # integrated frames are rotations
         notify("factorize", 0.5)
         rotations = nearest_rotation(frames)
@@ -491,12 +557,21 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         vertices = problem.recenter(vertices, user, ref_v)
         lap("solve")
     notify("solve", 1.0)
+    if solve_path == "factorization" and refine is not False and not exact:
+        notify("refine", 0.0)
+        fit = refine_forms(vertices, FormTargets(topology, L, A, angle_weight=angle_weight),
+                           problem.refinement_handles(user), backend=backend)
+        vertices, refinement = problem.place_anchored(fit.vertices, anchored), fit.report
+        frames = problem.frames_of(vertices)
+        lap("refine")
+        notify("refine", 1.0)
 
     report.update({
         "energy": problem.energies(u),
         "first_solve_energy": first_energy,
         "frame_orthonormality_error": orthonormality,
         "orthonormalized": bool(orthonormalize),
+        "refinement": refinement,
         "timings": timings,
         "backend": system.backend if system is not None else "none",
         "solve_path": solve_path,
@@ -509,6 +584,14 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         "isolated_vertices": topology.isolated_vertices.tolist(),
     })
     return Reconstruction(vertices=vertices, frames=frames, report=report)
+
+
+def _reproduces(problem: ImmersionProblem, vertices: np.ndarray, lengths: np.ndarray,
+                angles: np.ndarray) -> bool:
+    """Whether ``vertices`` have the forms (to :data:`FORMS_TOLERANCE`)."""
+    residual = form_residuals(vertices, problem.topology, lengths, angles)
+    return bool(residual["length_error"]["max"] <= FORMS_TOLERANCE
+                and residual["angle_error"]["max"] <= FORMS_TOLERANCE)
 
 
 def _orthonormality_error(frames: np.ndarray) -> float:

@@ -60,9 +60,14 @@ def test_paper_cotan_weights_are_ill_conditioned_on_obtuse_meshes():
     # Documented behaviour (docs/weights.md): the literal weights lose accuracy here.
     V, F = load("torus.off")
     exact = solve(fundamental_forms(V, F), weighting="uniform", exact_shortcut=False)
-    literal = solve(fundamental_forms(V, F), weighting="cotan", exact_shortcut=False)
+    literal = solve(fundamental_forms(V, F), weighting="cotan", exact_shortcut=False,
+                    refine=False)
     assert rigid_alignment_error(exact.vertices, V) < 1e-10
     assert rigid_alignment_error(literal.vertices, V) > 1e-6
+    # The refinement notices that the linear answer misses the forms and repairs it.
+    refined = solve(fundamental_forms(V, F), weighting="cotan", exact_shortcut=False)
+    assert refined.report["refinement"]["refined"]
+    assert rigid_alignment_error(refined.vertices, V) < 1e-8
 
 
 @pytest.mark.parametrize("backend", available_backends())
@@ -81,15 +86,15 @@ def test_frame_choice_invariance():
     forms.angles += rng.normal(scale=0.05, size=len(forms.angles)) * (forms.angles != 0)
     forms.lengths *= rng.uniform(0.995, 1.005, size=len(forms.lengths))
     alpha = rng.uniform(-np.pi, np.pi, size=len(F))
-    a = solve(forms)
-    b = solve(forms, layout_angles=alpha)
+    a = solve(forms, refine=False)  # a property of the linear solve of Eq. 5
+    b = solve(forms, layout_angles=alpha, refine=False)
     # Same shape: the default anchor (frame of face 0 = I) differs by a rotation.
     assert rigid_alignment_error(a.vertices, b.vertices) <= 1e-10
     # Same vertices with the same anchor: a rotated 2D frame f' = f Rz(-alpha) (Sec. 3).
     c, s = np.cos(-alpha[0]), np.sin(-alpha[0])
     same_anchor = Constraints(position_vertices=[F[0, 0]], positions=[[0.0, 0.0, 0.0]],
                               frame_faces=[0], frames=[[[c, -s, 0], [s, c, 0], [0, 0, 1]]])
-    b = solve(forms, layout_angles=alpha, constraints=same_anchor)
+    b = solve(forms, layout_angles=alpha, constraints=same_anchor, refine=False)
     scale = np.linalg.norm(a.vertices.max(0) - a.vertices.min(0))
     assert np.abs(a.vertices - b.vertices).max() <= 1e-10 * scale
     # ... and frames related by f' = f Rz(-alpha_t) for every face.
@@ -105,7 +110,7 @@ def test_noisy_forms_still_reconstruct_with_residual_reported():
     rng = np.random.default_rng(2)
     forms.lengths *= rng.uniform(0.99, 1.01, size=len(forms.lengths))
     forms.angles += rng.normal(scale=0.02, size=len(forms.angles))
-    plain = solve(forms)
+    plain = solve(forms, refine=False)
     report = plain.report
     assert not report["integrability"]["integrable"]
     assert report["integrability"]["max_defect"] > 0.01
@@ -113,7 +118,7 @@ def test_noisy_forms_still_reconstruct_with_residual_reported():
     assert np.isfinite(plain.vertices).all()
     # Averaging inconsistent rotations shrinks the linear frames (measured: 12% shape error);
     # the second, orthonormalized solve of Sec. 4 recovers the shape (measured: 0.7%).
-    ortho = solve(forms, orthonormalize=True)
+    ortho = solve(forms, orthonormalize=True, refine=False)
     assert rigid_alignment_error(ortho.vertices, V) < 0.02
     assert rigid_alignment_error(ortho.vertices, V) < rigid_alignment_error(plain.vertices, V)
 
@@ -129,8 +134,8 @@ def test_orthonormalize_reduces_frame_error_on_noisy_forms():
     V, F = load("decimated-knight.off")
     forms = fundamental_forms(V, F)
     forms.angles *= 0.5
-    plain = solve(forms)
-    ortho = solve(forms, orthonormalize=True)
+    plain = solve(forms, refine=False)
+    ortho = solve(forms, orthonormalize=True, refine=False)
     def gram_error(frames):
         return np.abs(np.swapaxes(frames, 1, 2) @ frames - np.eye(3)).max(axis=(1, 2)).mean()
     assert gram_error(ortho.frames) < gram_error(plain.frames)

@@ -1,0 +1,535 @@
+"""The nearest surface: a nonlinear fit of vertex positions to target fundamental forms.
+
+The linear solve of Eq. (5) is exact for integrable forms. For forms that no surface has
+(noisy, edited, blended or constrained ones) its frames are not rotations, so the answer
+shrinks and distorts (Sec. 4 and 6 of the paper). This module returns, from a starting
+embedding (the linear answer), the vertex positions whose fundamental forms are nearest to
+the requested ones, by Levenberg-Marquardt on the positions directly, minimizing::
+
+    E(x) = 1/2 sum_e ((l_e(x) - L_e) / L_e)^2                  first form (every edge)
+         + beta/2 sum_e wrap(theta_e(x) - Theta_e)^2            second form (interior edges)
+         + 1/2 sum_v w_v |x_v - p_v|^2 / s^2                    soft position handles
+         + 1/2 sum_t w_t sum_c |x_tc - x_t0 - F_t a_tc|^2 / s^2  orientation handles
+
+with ``l_e`` and ``theta_e`` the edge lengths and signed dihedral angles of ``x`` (the
+conventions of :mod:`solver.forms`), ``s`` the mean target length and ``F_t a_tc`` the target
+edge vectors of a face whose frame is prescribed (Eq. 3 with that frame). Hard position
+handles are eliminated. In the plane (``dim=2``, for parameterization) the second form is
+identically 0 and is replaced by the signed area of each face relative to its target area,
+which keeps faces from flipping::
+
+    + gamma/2 sum_t ((A_t(x) - A_t^0) / A_t^0)^2
+
+Every residual is dimensionless, so the weights mean the same at every scale; ``beta`` is
+the weight of a radian of dihedral angle against a relative length change of 1 (a thin
+shell's bending against its stretching). Why these energies and weights, with measurements:
+``docs/refinement.md``.
+
+Each iteration builds the Gauss-Newton matrix ``J^T J`` directly in its fixed block sparsity
+pattern (3x3 blocks between vertices that share a residual: one scatter of per-residual outer
+products, no sparse matrix product), damps it (``+ lambda diag``) and factorizes it with
+:func:`solver.linalg.factorize`. The pattern never changes between iterations, so backends
+that keep their analysis per pattern reuse it. A step is kept only when it lowers ``E``, so
+the result is never worse than the start.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from .linalg import SingularSystemError, factorize
+from .metrics import summary, wrap_angle
+from .topology import MeshTopology
+
+ANGLE_WEIGHT = 0.1
+"""Default ``beta``: weight of the dihedral-angle residual (radians) against relative length."""
+AREA_WEIGHT = 1.0
+"""Default ``gamma`` (planar fits only): weight of the relative signed-area residual."""
+HARD_FRAME_WEIGHT = 1e3
+"""Weight standing in for a hard orientation handle (not eliminable in positions)."""
+MAX_ITERATIONS = 50
+TOLERANCE = 1e-3
+"""Stop when an accepted step lowers E by less than this fraction of E."""
+EXACT_ENERGY = 1e-24  # E below this: the forms are met to round-off
+STEP_FRACTIONS = (1.0, 0.5, 0.25)  # of a Gauss-Newton step tried before more damping
+ARMIJO = 1e-4  # sufficient decrease: E(x + a d) < E(x) + ARMIJO a g.d
+INITIAL_DAMPING = 1e-4  # lambda of the first step, relative to diag(J^T J)
+MAX_DAMPING = 1e12  # relative damping at which a step is declared impossible
+DEGENERATE = 1e-12  # floor of |N|^2 / s^4 for the dihedral gradient of collapsed faces
+
+
+@dataclass(frozen=True)
+class FormTargets:
+    """What the refined surface should have.
+
+    Attributes:
+        topology: connectivity (n vertices, m faces, E edges).
+        lengths: (E,) float64 > 0 target edge lengths.
+        angles: (E,) float64 target dihedral angles (ignored for dim=2 and on the boundary).
+        angle_weight: ``beta`` (>= 0).
+        area_weight: ``gamma`` (>= 0; dim=2 only). Target areas come from ``lengths``.
+    """
+
+    topology: MeshTopology
+    lengths: np.ndarray
+    angles: np.ndarray
+    angle_weight: float = ANGLE_WEIGHT
+    area_weight: float = AREA_WEIGHT
+
+
+@dataclass(frozen=True)
+class Handles:
+    """Position and orientation targets.
+
+    Attributes:
+        fixed: (h,) int64 vertices kept exactly where the start embedding has them.
+        soft_vertices: (p,) int64; soft_positions (p, dim); soft_weights (p,) > 0.
+        frame_faces: (q,) int64 faces with a prescribed orientation; frame_edges (q, 2, dim)
+            their target edge vectors ``x_t1 - x_t0`` and ``x_t2 - x_t0``; frame_weights (q,).
+    """
+
+    fixed: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    soft_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    soft_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    soft_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    frame_faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    frame_edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
+    frame_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
+class Refinement:
+    """Result of :func:`refine`.
+
+    Attributes:
+        vertices: (n, dim) float64 refined positions (fixed vertices copied bit for bit).
+        report: ``refined`` (bool), ``converged``, ``iterations``, ``rejected_steps``,
+            ``seconds``, ``energy_before`` / ``energy_after``, ``before`` / ``after`` residual
+            summaries (:func:`form_residuals`), ``stop_reason``.
+    """
+
+    vertices: np.ndarray
+    report: dict[str, Any]
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+def hinges(topology: MeshTopology) -> tuple[np.ndarray, np.ndarray]:
+    """Interior edges and their hinge vertices.
+
+    Returns ``(edges (k,) int64, (k, 4) int64 [i, j, a, b])``: edge ``[i, j]`` (i < j), ``a``
+    the tip of the face left of ``i -> j`` and ``b`` the tip of the other face.
+    """
+    inner = topology.interior_edges
+    flat = topology.faces.ravel()
+    h_left, h_right = topology.edge_halfedges[inner, 0], topology.edge_halfedges[inner, 1]
+    tip = lambda h: flat[3 * (h // 3) + (h % 3 + 2) % 3]  # noqa: E731 - corner opposite h
+    i, j = topology.edges[inner, 0], topology.edges[inner, 1]
+    return inner, np.stack([i, j, tip(h_left), tip(h_right)], axis=1)
+
+
+def hinge_angles(X: np.ndarray, hinge: np.ndarray, floor: float = 0.0,
+                 gradients: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Signed dihedral angles (k,) of hinges (k, 4) of ``X`` (n, 3), and their gradients.
+
+    The angle is that of :func:`solver.forms.dihedral_angles`. Gradients (k, 4, 3) with
+    respect to ``[x_i, x_j, x_a, x_b]`` follow Bridson et al. 2003 (translation invariant:
+    they sum to 0); ``floor`` bounds ``|N|^2`` (twice the face area, squared) from below so
+    collapsed faces give large but finite gradients.
+    """
+    xi, xj, xa, xb = (X[hinge[:, c]] for c in range(4))
+    e = xj - xi
+    elen = np.sqrt(np.einsum("ij,ij->i", e, e))
+    n_left = np.cross(e, xa - xi)
+    n_right = np.cross(xi - xj, xb - xj)
+    q_left = np.maximum(np.einsum("ij,ij->i", n_left, n_left), floor)
+    q_right = np.maximum(np.einsum("ij,ij->i", n_right, n_right), floor)
+    sin = np.einsum("ij,ij->i", np.cross(n_left, n_right), e) / np.where(elen > 0, elen, 1.0)
+    cos = np.einsum("ij,ij->i", n_left, n_right)
+    theta = np.arctan2(sin, cos)
+    if not gradients:
+        return theta, None
+    safe = np.where(elen > 0, elen, 1.0)[:, None]
+    u_left = n_left / q_left[:, None]
+    u_right = n_right / q_right[:, None]
+    dot = lambda p, q: np.einsum("ij,ij->i", p, q)[:, None] / safe  # noqa: E731
+    g_a = -safe * u_left
+    g_b = -safe * u_right
+    g_i = -(dot(xa - xj, e) * u_left + dot(xb - xj, e) * u_right)
+    g_j = dot(xa - xi, e) * u_left + dot(xb - xi, e) * u_right
+    return theta, np.stack([g_i, g_j, g_a, g_b], axis=1)
+
+
+def signed_areas(X: np.ndarray, faces: np.ndarray, gradients: bool = True,
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Signed areas (m,) of planar faces of ``X`` (n, 2), and gradients (m, 3, 2)."""
+    p0, p1, p2 = (X[faces[:, c]] for c in range(3))
+    area = 0.5 * ((p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1])
+                  - (p1[:, 1] - p0[:, 1]) * (p2[:, 0] - p0[:, 0]))
+    if not gradients:
+        return area, None
+    perp = lambda v: np.stack([v[:, 1], -v[:, 0]], axis=1)  # noqa: E731 - d(A)/d(corner)
+    return area, 0.5 * np.stack([perp(p1 - p2), perp(p2 - p0), perp(p0 - p1)], axis=1)
+
+
+def form_residuals(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
+                   angles: np.ndarray) -> dict[str, Any]:
+    """How far the forms of ``X`` (n, 3) are from target forms.
+
+    Returns summaries (:func:`solver.metrics.summary`: mean, rms, max, p95 of absolute
+    values) of the relative length error ``l/L - 1`` over every edge (``length_error``), of
+    the dihedral-angle error in radians over interior edges (``angle_error``), and
+    ``length_ratio`` = mean of ``l/L``. For a planar ``X`` (n, 2) the angle error is 0.
+    """
+    edges = topology.edges
+    current = np.linalg.norm(X[edges[:, 1]] - X[edges[:, 0]], axis=1)
+    out: dict[str, Any] = {"length_error": summary(current / lengths - 1.0),
+                           "length_ratio": float(np.mean(current / lengths))
+                           if len(lengths) else 1.0}
+    if X.shape[1] == 3:
+        inner, hinge = hinges(topology)
+        theta, _ = hinge_angles(X, hinge, gradients=False)
+        out["angle_error"] = summary(wrap_angle(theta - angles[inner]))
+    else:
+        out["angle_error"] = summary(np.zeros(0))
+    return out
+
+
+# ------------------------------------------------------------------------ the residuals
+
+
+@dataclass
+class _Group:
+    """One kind of residual: ``rows`` residuals, each touching ``q`` vertices."""
+
+    vertices: np.ndarray          # (rows, q) int64
+    evaluate: Any                 # X -> (r (rows,), G (rows, q, dim) or None)
+    hinge: bool = False                 # rows are hinges [i, j, a, b]
+    scatter: np.ndarray | None = None   # positions in the block values, or None
+    select: np.ndarray | None = None    # entries of the outer products that are kept
+
+
+class _Objective:
+    """The weighted residuals of :func:`refine` and the block pattern of ``J^T J``."""
+
+    def __init__(self, targets: FormTargets, handles: Handles, dim: int) -> None:
+        topo = targets.topology
+        self.dim = dim
+        self.n = topo.n_vertices
+        self.scale = float(np.mean(targets.lengths))
+        self.groups: list[_Group] = []
+        self._add_lengths(topo.edges, targets.lengths)
+        if dim == 3 and targets.angle_weight > 0:
+            inner, hinge = hinges(topo)
+            self._add_hinges(hinge, targets.angles[inner], targets.angle_weight)
+        if dim == 2 and targets.area_weight > 0:
+            self._add_areas(topo, targets.lengths, targets.area_weight)
+        if len(handles.soft_vertices):
+            self._add_soft_positions(handles)
+        if len(handles.frame_faces):
+            self._add_frames(topo.faces, handles)
+        self.free = np.ones(self.n, dtype=bool)
+        self.free[handles.fixed] = False
+        self.free &= topo.is_referenced
+        self._build_pattern()
+
+    # -- residual groups (each returns weighted residuals and their gradients)
+
+    def _add_lengths(self, edges: np.ndarray, L: np.ndarray) -> None:
+        def evaluate(X: np.ndarray, grad: bool = True):
+            d = X[edges[:, 1]] - X[edges[:, 0]]
+            length = np.sqrt(np.einsum("ij,ij->i", d, d))
+            r = length / L - 1.0
+            if not grad:
+                return r, None
+            unit = d / (np.where(length > 0, length, 1.0) * L)[:, None]
+            return r, np.stack([-unit, unit], axis=1)
+
+        self.groups.append(_Group(edges, evaluate))
+
+    def _add_hinges(self, hinge: np.ndarray, target: np.ndarray, weight: float) -> None:
+        w = np.sqrt(weight)
+        floor = DEGENERATE * self.scale**4
+
+        def evaluate(X: np.ndarray, grad: bool = True):
+            theta, G = hinge_angles(X, hinge, floor, grad)
+            r = w * wrap_angle(theta - target)
+            return r, (None if G is None else w * G)
+
+        self.groups.append(_Group(hinge, evaluate, hinge=True))
+
+    def _add_areas(self, topo: MeshTopology, L: np.ndarray, weight: float) -> None:
+        from .frames import face_edge_lengths, triangle_areas
+
+        area0 = np.maximum(triangle_areas(face_edge_lengths(topo, L)),
+                           DEGENERATE * self.scale**2)
+        c = np.sqrt(weight) / area0
+        faces = topo.faces
+
+        def evaluate(X: np.ndarray, grad: bool = True):
+            area, G = signed_areas(X, faces, grad)
+            r = c * area - np.sqrt(weight)
+            return r, (None if G is None else c[:, None, None] * G)
+
+        self.groups.append(_Group(faces, evaluate))
+
+    def _add_soft_positions(self, h: Handles) -> None:
+        w = np.sqrt(h.soft_weights) / self.scale
+        eye = np.broadcast_to(np.eye(self.dim), (len(w), self.dim, self.dim))
+        G = (w[:, None, None] * eye).reshape(-1, 1, self.dim)
+        self.soft_positions = np.array(h.soft_positions, dtype=np.float64)
+
+        # One residual per coordinate: rows (p * dim,), each touching one vertex.
+        def evaluate(X: np.ndarray, grad: bool = True):
+            r = (w[:, None] * (X[h.soft_vertices] - self.soft_positions)).ravel()
+            return r, (G if grad else None)
+
+        self.groups.append(_Group(np.repeat(h.soft_vertices[:, None], self.dim, axis=0),
+                                  evaluate))
+
+    def _add_frames(self, faces: np.ndarray, h: Handles) -> None:
+        F = faces[h.frame_faces]
+        pairs = np.concatenate([F[:, [0, 1]], F[:, [0, 2]]])          # (2q, 2)
+        w = np.tile(np.sqrt(h.frame_weights), 2) / self.scale
+        dim = self.dim
+        eye = np.eye(dim)
+        block = np.stack([-eye, eye], axis=0)                           # (2, dim, dim)
+        G = (w[:, None, None, None] * block[None]).transpose(0, 2, 1, 3)  # (2q, dim, 2, dim)
+        G = G.reshape(-1, 2, dim)
+        self.frame_edges = np.array(h.frame_edges, dtype=np.float64)
+
+        def evaluate(X: np.ndarray, grad: bool = True):
+            targets = np.concatenate([self.frame_edges[:, 0], self.frame_edges[:, 1]])
+            d = X[pairs[:, 1]] - X[pairs[:, 0]] - targets
+            return (w[:, None] * d).ravel(), (G if grad else None)
+
+        self.groups.append(_Group(np.repeat(pairs, dim, axis=0), evaluate))
+
+    # -- the block pattern of J^T J over the free vertices
+
+    def _build_pattern(self) -> None:
+        """Block pattern (free vertex pairs) and, per group, where each outer-product entry
+        of its residuals' gradients lands in the block values."""
+        index = np.full(self.n, -1, dtype=np.int64)
+        index[self.free] = np.arange(int(self.free.sum()))
+        self.index = index
+        n_free = self.n_free = int(self.free.sum())
+        keys = []
+        for g in self.groups:
+            local = index[g.vertices]                                   # (rows, q)
+            q = local.shape[1]
+            a, b = np.repeat(local, q, axis=1), np.tile(local, (1, q))
+            keys.append(np.where((a >= 0) & (b >= 0), a * n_free + b, -1))
+        # Every pair a hinge couples is an edge (in the length group, always present) except
+        # its two tips: the pattern is the union of the groups' pairs without the hinges'
+        # edge pairs, plus every diagonal block (damping), which keeps the sort small.
+        parts = [np.arange(n_free, dtype=np.int64) * (n_free + 1)]
+        for g, k in zip(self.groups, keys, strict=True):
+            q = g.vertices.shape[1]
+            parts.append((k[:, [2 * q + 3, 3 * q + 2]] if g.hinge else k).ravel())
+        pattern = np.unique(np.concatenate(parts))
+        self.pattern = pattern[pattern >= 0]
+        rows, cols = np.divmod(self.pattern, max(n_free, 1))
+        self.block_indptr = np.searchsorted(rows, np.arange(n_free + 1)).astype(np.int32)
+        self.block_indices = cols.astype(np.int32)
+        d2 = self.dim * self.dim
+        entry = np.arange(d2)
+        for g, k in zip(self.groups, keys, strict=True):
+            flat = k.ravel()
+            keep = flat >= 0
+            block = np.searchsorted(self.pattern, flat[keep])
+            g.scatter = (block[:, None] * d2 + entry[None, :]).ravel()
+            # Entries of the (rows, q*q, dim, dim) outer products that land in the matrix.
+            g.select = None if keep.all() else np.flatnonzero(np.repeat(keep, d2))
+
+    # -- evaluation
+
+    def energy(self, X: np.ndarray) -> float:
+        """E(X) (see the module docstring)."""
+        return 0.5 * sum(float(np.dot(r, r)) for r in
+                         (g.evaluate(X, False)[0] for g in self.groups))
+
+    def normal_equations(self, X: np.ndarray) -> tuple[float, sp.csr_array, np.ndarray]:
+        """(E, J^T J over the free coordinates (CSR), J^T r (n_free * dim,))."""
+        dim, d2 = self.dim, self.dim * self.dim
+        values = np.zeros(len(self.pattern) * d2)
+        gradient = np.zeros((self.n_free, dim))
+        energy = 0.0
+        for g in self.groups:
+            r, G = g.evaluate(X)
+            energy += 0.5 * float(np.dot(r, r))
+            local = self.index[g.vertices]                      # (rows, q)
+            contrib = r[:, None, None] * G                      # (rows, q, dim)
+            ok = local >= 0
+            for c in range(dim):
+                gradient[:, c] += np.bincount(local[ok], contrib[..., c][ok],
+                                              minlength=self.n_free)
+            outer = np.einsum("rad,rbe->rabde", G, G)           # (rows, q, q, dim, dim)
+            flat = outer.ravel() if g.select is None else outer.ravel()[g.select]
+            values += np.bincount(g.scatter, flat, minlength=len(values))
+        H = sp.bsr_array((values.reshape(-1, dim, dim), self.block_indices, self.block_indptr),
+                         shape=(self.n_free * dim, self.n_free * dim)).tocsr()
+        return energy, H, gradient.ravel()
+
+
+# --------------------------------------------------------------------------- the solver
+
+
+class Refiner:
+    """Levenberg-Marquardt fit of positions to target forms, built once per problem.
+
+    Building it computes the block pattern of ``J^T J`` (the costly set-up); :meth:`run`
+    can then be called for many starts and handle targets (e.g. each drag of a deformation
+    session) with the same fixed vertices.
+
+    Args:
+        targets: :class:`FormTargets`.
+        handles: optional :class:`Handles`; their target values may change per :meth:`run`.
+        dim: 3, or 2 for a planar fit (parameterization).
+        backend: sparse factorization backend (:func:`solver.linalg.factorize`).
+    """
+
+    def __init__(self, targets: FormTargets, handles: Handles | None = None, dim: int = 3,
+                 backend: str = "auto") -> None:
+        handles = handles or Handles(soft_positions=np.zeros((0, dim)),
+                                     frame_edges=np.zeros((0, 2, dim)))
+        self.targets = targets
+        self.backend = backend
+        self.objective = _Objective(targets, handles, dim)
+
+    def energy(self, vertices: np.ndarray) -> float:
+        """E of (n, dim) positions (fixed vertices as given)."""
+        return self.objective.energy(np.asarray(vertices, dtype=np.float64))
+
+    def residuals(self, vertices: np.ndarray) -> dict[str, Any]:
+        """:func:`form_residuals` of ``vertices`` against the targets."""
+        t = self.targets
+        return form_residuals(vertices, t.topology, t.lengths, t.angles)
+
+    def run(self, start: np.ndarray, *, soft_positions: np.ndarray | None = None,
+            frame_edges: np.ndarray | None = None, max_iterations: int = MAX_ITERATIONS,
+            tolerance: float = TOLERANCE, time_limit: float | None = None) -> Refinement:
+        """Refine from ``start`` (n, dim); fixed vertices keep their ``start`` positions.
+
+        ``soft_positions`` (p, dim) and ``frame_edges`` (q, 2, dim) replace the handle
+        targets given at construction. See :func:`refine` for the rest.
+        """
+        clock = time.perf_counter()
+        objective = self.objective
+        if soft_positions is not None:
+            objective.soft_positions = np.asarray(soft_positions, dtype=np.float64)
+        if frame_edges is not None:
+            objective.frame_edges = np.asarray(frame_edges, dtype=np.float64)
+        X = np.array(start, dtype=np.float64)
+        before = self.residuals(X)
+        energy0 = energy = objective.energy(X)
+        free, dim = objective.free, objective.dim
+        damping, growth = INITIAL_DAMPING, 2.0
+        iterations = rejected = 0
+        stop, converged = "max_iterations", False
+        trace = [energy0]
+        while iterations < max_iterations and objective.n_free and not converged:
+            if time_limit is not None and time.perf_counter() - clock > time_limit:
+                stop = "time_limit"
+                break
+            iterations += 1
+            energy, H, g = objective.normal_equations(X)
+            if energy <= EXACT_ENERGY:
+                stop, converged = "exact", True
+                break
+            diag = H.diagonal()
+            floor = 1e-9 * float(diag.mean())
+            accepted = False
+            while not accepted and damping <= MAX_DAMPING:
+                D = sp.diags_array(damping * np.maximum(diag, floor) + floor)
+                try:
+                    step = -factorize(H + D, self.backend, assume_symmetric=True).solve(g)
+                except SingularSystemError:
+                    damping, rejected = damping * 10.0, rejected + 1
+                    continue
+                slope = float(g @ step)  # < 0: a descent direction (H + D is SPD)
+                # Gain ratio of the full step: actual decrease over the Gauss-Newton model's.
+                predicted = -slope - 0.5 * float(step @ (H @ step))
+                for alpha in STEP_FRACTIONS:  # backtracking costs energies, not factorizations
+                    trial = X.copy()
+                    trial[free] += alpha * step.reshape(-1, dim)
+                    new_energy = objective.energy(trial)
+                    if np.isfinite(new_energy) and new_energy < energy + ARMIJO * alpha * slope:
+                        accepted = True
+                        break
+                if not accepted:
+                    rejected += 1
+                    damping *= growth
+                    growth *= 2.0
+                    continue
+                if alpha == 1.0 and predicted > 0:
+                    gain = (energy - new_energy) / predicted
+                    damping *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+                else:
+                    damping *= 2.0
+                growth = 2.0
+                decrease, X, energy = energy - new_energy, trial, new_energy
+                trace.append(energy)
+                if decrease <= tolerance * energy or energy <= EXACT_ENERGY:
+                    stop, converged = "converged", True
+            if not accepted:  # no step lowers E: a stationary point to working precision
+                stop, converged = "stationary", True
+        if not objective.n_free:
+            stop, converged = "no_free_vertices", True
+        return Refinement(vertices=X, report={
+            "refined": True,
+            "converged": converged,
+            "stop_reason": stop,
+            "iterations": iterations,
+            "rejected_steps": rejected,
+            "energy_before": energy0,
+            "energy_after": energy,
+            "energy_trace": trace,
+            "before": before,
+            "after": self.residuals(X),
+            "angle_weight": self.targets.angle_weight,
+            "seconds": time.perf_counter() - clock,
+        })
+
+
+def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None = None, *,
+           max_iterations: int = MAX_ITERATIONS, tolerance: float = TOLERANCE,
+           time_limit: float | None = None, backend: str = "auto") -> Refinement:
+    """Vertex positions whose fundamental forms are nearest to ``targets`` (Levenberg-Marquardt).
+
+    Args:
+        vertices: (n, dim) float64 start (dim 3, or 2 for a planar fit), e.g. the linear
+            answer of Eq. (5). Fixed handle vertices keep these positions.
+        targets: :class:`FormTargets` (lengths, angles, weights).
+        handles: optional :class:`Handles`.
+        max_iterations: Gauss-Newton matrices built (each one factorization, plus one per
+            rejected step).
+        tolerance: stop when an accepted step lowers E by less than ``tolerance * E``.
+        time_limit: optional wall-clock budget in seconds (checked between iterations).
+        backend: sparse factorization backend (:func:`solver.linalg.factorize`).
+    Returns:
+        :class:`Refinement`. Its energy is never above the start's: a step is accepted
+        only when it lowers E. ``report["converged"]`` is False when the iteration or time
+        budget ran out first.
+
+    Example::
+
+        >>> import numpy as np, solver
+        >>> from solver.refine import FormTargets, refine
+        >>> from solver.topology import build_topology
+        >>> V = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.2]])
+        >>> F = np.array([[0, 1, 2], [2, 1, 3]])
+        >>> forms = solver.fundamental_forms(V, F)
+        >>> fit = refine(V * 0.9, FormTargets(build_topology(F), forms.lengths, forms.angles))
+        >>> bool(fit.report["after"]["length_error"]["max"] < 1e-6)
+        True
+    """
+    dim = np.shape(vertices)[1]
+    return Refiner(targets, handles, dim, backend).run(
+        vertices, max_iterations=max_iterations, tolerance=tolerance, time_limit=time_limit)

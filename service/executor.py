@@ -179,7 +179,8 @@ def _worker_main(conn: Connection, threads: int) -> None:
                 conn.send(("error", task_id, tasks.describe_error(exc)))
         except OSError:  # the pipe is gone: the service stopped
             break
-        del payload
+        payload = message = result = None  # drop the task's data before trimming the heap
+        tasks.release_memory()
 
 
 # ------------------------------------------------------------------------------ main side

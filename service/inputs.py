@@ -9,6 +9,7 @@ Arrays are converted to numpy once; the workers receive them pickled.
 from __future__ import annotations
 
 import asyncio
+import gc
 from typing import Any
 
 import anyio
@@ -20,9 +21,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import Request
 
 from service.problems import ProblemError, from_validation_errors
-from service.schemas import PARAMS_MODELS, REQUEST_MODELS
+from service.schemas import PARAMS_MODELS
 from service.settings import Settings
-from service.tasks import check_limits
+from service.tasks import check_limits, release_memory
+from service.validation import parse_json, request_arrays
 
 FILE_FIELDS: dict[str, tuple[str, ...]] = {"interpolate": ("file_a", "file_b")}
 """Upload field names per operation (default ``("file",)``)."""
@@ -79,22 +81,6 @@ def _too_large(size: int, limit: int) -> ProblemError:
                                  "reason": f"more than {limit} bytes"}])
 
 
-def validate_json(model: type[BaseModel], body: bytes) -> Any:
-    """Parse and validate a JSON body: 400 if it is not JSON, 422 if it breaks the schema."""
-    if not body.strip():
-        raise ProblemError("malformed-json", "the body is empty; send a JSON object")
-    try:
-        return model.model_validate_json(body)
-    except ValidationError as exc:
-        errors = exc.errors(include_url=False, include_input=False)
-        invalid = [e for e in errors if e["type"] == "json_invalid"]
-        if invalid:
-            raise ProblemError("malformed-json", f"the body is not valid JSON: "
-                               f"{invalid[0].get('ctx', {}).get('error', invalid[0]['msg'])}"
-                               ) from None
-        raise from_validation_errors(errors) from None
-
-
 def validate_object(model: type[BaseModel], data: Any, prefix: tuple[Any, ...] = ()) -> Any:
     """Validate already-parsed data; errors point below ``prefix``."""
     try:
@@ -111,12 +97,36 @@ def _limits(settings: Settings) -> dict[str, int]:
     return {"max_vertices": settings.max_vertices, "max_faces": settings.max_faces}
 
 
-def _points(values: list[Any]) -> np.ndarray:
-    return np.asarray(values, dtype=np.float64).reshape(-1, 3)
+def json_source(operation: str, arrays: dict[str, np.ndarray], limits: dict[str, int]
+                ) -> dict[str, Any]:
+    """The task ``source`` of validated JSON arrays, after the vertex and face limits (413)."""
+    if operation in ("integrability", "reconstruct"):
+        faces = arrays["faces"]
+        n_vertices = int(faces.max()) + 1 if faces.size else 0
+        _limit_problem(check_limits, n_vertices, len(faces), limits, "faces")
+        return {"kind": "forms", **arrays}
+    if operation == "interpolate":
+        n_vertices = max(len(arrays["vertices_a"]), len(arrays["vertices_b"]))
+        _limit_problem(check_limits, n_vertices, len(arrays["faces"]), limits, "vertices_a")
+        return {"kind": "pair", **arrays}
+    _limit_problem(check_limits, len(arrays["vertices"]), len(arrays["faces"]), limits,
+                   "vertices")
+    return {"kind": "arrays", **arrays}
 
 
-def _triangles(values: list[Any]) -> np.ndarray:
-    return np.asarray(values, dtype=np.int64).reshape(-1, 3)
+def json_payload(operation: str, doc: Any, limits: dict[str, int], backend: str,
+                 prefix: tuple[Any, ...] = ()) -> dict[str, Any]:
+    """Task payload of a parsed JSON body (a synchronous body, or a job's ``input``)."""
+    arrays, params = request_arrays(operation, doc, prefix)
+    return {"source": json_source(operation, arrays, limits), "params": params.model_dump(),
+            "limits": limits, "backend": backend}
+
+
+def expand_json_body(operation: str, payload: dict[str, Any]) -> dict[str, Any]:
+    """A payload whose source is the raw JSON body (``{"kind": "json", "body"}``), parsed and
+    validated: run in the worker, so that the main process never holds the parsed body."""
+    doc = parse_json(payload["source"]["body"])
+    return {**payload, **json_payload(operation, doc, payload["limits"], payload["backend"])}
 
 
 def _limit_problem(fn: Any, *args: Any) -> None:
@@ -126,42 +136,6 @@ def _limit_problem(fn: Any, *args: Any) -> None:
         fn(*args)
     except TaskProblemError as exc:
         raise ProblemError(exc.kind, exc.detail, status=exc.status, errors=exc.errors) from None
-
-
-def payload_from_model(operation: str, model: BaseModel, settings: Settings) -> dict[str, Any]:
-    """Task payload for a validated JSON request model."""
-    params_fields = set(PARAMS_MODELS[operation].model_fields)
-    params = model.model_dump(include=params_fields)
-    limits = _limits(settings)
-    data: Any = model
-    if operation in ("integrability", "reconstruct"):
-        faces = _triangles(data.faces)
-        n_vertices = int(faces.max()) + 1 if faces.size else 0
-        _limit_problem(check_limits, n_vertices, len(faces), limits, "faces")
-        source = {"kind": "forms", "faces": faces,
-                  "edges": np.asarray(data.edges, dtype=np.int64).reshape(-1, 2),
-                  "lengths": np.asarray(data.lengths, dtype=np.float64),
-                  "angles": np.asarray(data.angles, dtype=np.float64)}
-    elif operation == "interpolate":
-        vertices_a, vertices_b = _points(data.vertices_a), _points(data.vertices_b)
-        faces = _triangles(data.faces)
-        _limit_problem(check_limits, max(len(vertices_a), len(vertices_b)), len(faces),
-                       limits, "vertices_a")
-        source = {"kind": "pair", "vertices_a": vertices_a, "vertices_b": vertices_b,
-                  "faces": faces}
-    else:
-        vertices, faces = _points(data.vertices), _triangles(data.faces)
-        _limit_problem(check_limits, len(vertices), len(faces), limits, "vertices")
-        source = {"kind": "arrays", "vertices": vertices, "faces": faces}
-    return {"source": source, "params": params, "limits": limits,
-            "backend": settings.solver_backend}
-
-
-def payload_from_dict(operation: str, data: Any, settings: Settings,
-                      prefix: tuple[Any, ...] = ()) -> dict[str, Any]:
-    """Task payload for parsed JSON data (e.g. a job's ``input``)."""
-    model = validate_object(REQUEST_MODELS[operation], data, prefix)
-    return payload_from_model(operation, model, settings)
 
 
 async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any],
@@ -256,28 +230,43 @@ async def payload_from_form(operation: str, fields: dict[str, Any],
 
 async def parse_operation(request: Request, operation: str, settings: Settings,
                           ) -> dict[str, Any]:
-    """Task payload of a synchronous operation request (JSON or multipart)."""
+    """Task payload of a synchronous operation request (JSON or multipart).
+
+    A JSON body goes to the worker as bytes (``source.kind == "json"``) and is parsed and
+    validated there (:func:`expand_json_body`), off the event loop and out of this process.
+    """
     mtype = media_type(request)
     if mtype == "multipart/form-data":
         fields, files = await read_form(request, settings)
         return await payload_from_form(operation, fields, files, settings)
     if is_json(mtype):
         body = await read_body(request, settings)
-        return await off_loop(len(body), _json_payload, operation, body, settings)
+        return {"source": {"kind": "json", "body": body}, "params": None,
+                "limits": _limits(settings), "backend": settings.solver_backend}
     raise unsupported_media_type(mtype)
 
 
-def _json_payload(operation: str, body: bytes, settings: Settings) -> dict[str, Any]:
-    model = validate_json(REQUEST_MODELS[operation], body)
-    return payload_from_model(operation, model, settings)
-
-
 async def off_loop(size: int, fn: Any, *args: Any) -> Any:
-    """Run ``fn(*args)`` in a thread when the input is large (> THREAD_THRESHOLD bytes), so
-    that validating a big mesh does not stall the event loop for other requests."""
+    """Run ``fn(*args)`` in a thread when the input is large (> THREAD_THRESHOLD bytes), then
+    give the memory of the parse back to the system before answering."""
     if size <= THREAD_THRESHOLD:
         return fn(*args)
-    return await anyio.to_thread.run_sync(fn, *args)
+    result, error = await anyio.to_thread.run_sync(_capture, fn, *args)
+    gc.collect()
+    release_memory()
+    if error is not None:
+        raise error
+    return result
+
+
+def _capture(fn: Any, *args: Any) -> tuple[Any, BaseException | None]:
+    """``(fn(*args), None)`` or ``(None, error)`` with the error's traceback and context
+    dropped: their frames hold the parsed body, which must be freed before trimming."""
+    try:
+        return fn(*args), None
+    except Exception as exc:
+        exc.__traceback__ = exc.__context__ = exc.__cause__ = None
+        return None, exc
 
 
 def unsupported_media_type(mtype: str) -> ProblemError:

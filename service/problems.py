@@ -216,10 +216,10 @@ def from_worker_error(error: Mapping[str, Any]) -> ProblemError:
         return ProblemError(str(error["kind"]), str(error["detail"]),
                             status=int(error.get("status") or 0) or None,
                             errors=error.get("errors"), **dict(error.get("extensions") or {}))
-    logger.error("worker task failed: %s\n%s", error.get("message"), error.get("traceback", ""))
-    return ProblemError("internal-error",
-                        f"the solver failed unexpectedly ({error.get('exception', 'error')}: "
-                        f"{error.get('message', '')})", status=500)
+    logger.error("worker task failed: %s: %s\n%s", error.get("exception"), error.get("message"),
+                 error.get("traceback", ""))
+    return ProblemError("internal-error", "the solver failed unexpectedly; the error has been "
+                        "logged", status=500)
 
 
 # ------------------------------------------------------------------------------- handlers
@@ -260,7 +260,8 @@ def install_handlers(app: FastAPI) -> None:
 
     async def on_unexpected(request: Request, exc: Exception) -> Response:
         logger.exception("unhandled error on %s %s", request.method, request.url.path)
-        problem = ProblemError("internal-error", f"unexpected {type(exc).__name__}", status=500)
+        problem = ProblemError("internal-error", "an unexpected error; it has been logged",
+                               status=500)
         return problem_response(problem, request.url.path)
 
     app.add_exception_handler(ProblemError, on_problem)

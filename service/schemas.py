@@ -76,8 +76,10 @@ class MeshPart(ApiModel):
 
     model_config = _example(EXAMPLE_MESH)
 
-    vertices: list[Vec3] = Field(min_length=1, description="(n, 3) vertex positions.")
-    faces: list[Tri] = Field(min_length=1, description="(m, 3) vertex indices, 0-based, "
+    vertices: list[Vec3] = Field(min_length=1, fail_fast=True,
+                                description="(n, 3) vertex positions.")
+    faces: list[Tri] = Field(min_length=1, fail_fast=True,
+                             description="(m, 3) vertex indices, 0-based, "
                              "counter-clockwise seen from outside.")
 
 
@@ -86,11 +88,15 @@ class FormsPart(ApiModel):
 
     model_config = _example(EXAMPLE_FORMS)
 
-    faces: list[Tri] = Field(min_length=1, description="(m, 3) vertex indices.")
+    faces: list[Tri] = Field(min_length=1, fail_fast=True,
+                             description="(m, 3) vertex indices.")
     edges: list[tuple[Index, Index]] = Field(
+        fail_fast=True,
         description="(E, 2) the faces' edges [i, j], i < j, sorted lexicographically.")
-    lengths: list[Real] = Field(description="(E,) edge lengths (first fundamental form).")
+    lengths: list[Real] = Field(fail_fast=True,
+                                description="(E,) edge lengths (first fundamental form).")
     angles: list[Real] = Field(
+        fail_fast=True,
         description="(E,) signed dihedral angles in (-pi, pi], positive where convex, 0 on "
                     "boundary edges (second fundamental form).")
 
@@ -146,8 +152,8 @@ class Constraints(ApiModel):
     model_config = _example({"positions": [{"vertex": 0, "position": [0.0, 0.0, 0.0]}],
                              "frames": [{"face": 0, "frame": _IDENTITY}]})
 
-    positions: list[PositionConstraint] = Field(default_factory=list)
-    frames: list[FrameConstraint] = Field(default_factory=list)
+    positions: list[PositionConstraint] = Field(default_factory=list, fail_fast=True)
+    frames: list[FrameConstraint] = Field(default_factory=list, fail_fast=True)
 
 
 class ReconstructOptions(ApiModel):
@@ -199,7 +205,7 @@ class RotationHandle(ApiModel):
 
     model_config = _example({"faces": [0, 1], "rotation": _IDENTITY})
 
-    faces: list[Index] = Field(min_length=1)
+    faces: list[Index] = Field(min_length=1, fail_fast=True)
     rotation: Mat3
 
 
@@ -222,9 +228,10 @@ class DeformParams(ApiModel):
     model_config = _example({"handles": [{"vertex": 0, "position": [0.0, 0.0, 0.0]},
                                          {"vertex": 4, "position": [0.5, 0.5, 0.8]}]})
 
-    handles: list[HandleTarget] = Field(min_length=1)
-    rotations: list[RotationHandle] | None = None
-    roi: list[Index] | None = Field(None, description="Vertices that may move (default all).")
+    handles: list[HandleTarget] = Field(min_length=1, fail_fast=True)
+    rotations: list[RotationHandle] | None = Field(None, fail_fast=True)
+    roi: list[Index] | None = Field(None, description="Vertices that may move (default all).",
+                                    fail_fast=True)
     options: DeformOptions = Field(default_factory=DeformOptions)
 
 
@@ -263,7 +270,8 @@ class InterpolateParams(ApiModel):
 
     model_config = _example({"t": [0.0, 0.5, 1.0]})
 
-    t: Real | list[Real] = Field(description="Blend value(s); 0 gives A, 1 gives B.")
+    t: Real | Annotated[list[Real], Field(fail_fast=True)] = Field(
+        description="Blend value(s); 0 gives A, 1 gives B.")
     options: InterpolateOptions = Field(default_factory=InterpolateOptions)
 
 
@@ -320,9 +328,9 @@ class InterpolateRequest(InterpolateParams):
     model_config = _example({"vertices_a": _V, "vertices_b": _V_UP, "faces": _F,
                              "t": [0.0, 0.5, 1.0]})
 
-    vertices_a: list[Vec3] = Field(min_length=1)
-    vertices_b: list[Vec3] = Field(min_length=1)
-    faces: list[Tri] = Field(min_length=1)
+    vertices_a: list[Vec3] = Field(min_length=1, fail_fast=True)
+    vertices_b: list[Vec3] = Field(min_length=1, fail_fast=True)
+    faces: list[Tri] = Field(min_length=1, fail_fast=True)
 
 
 REQUEST_MODELS: dict[str, type[ApiModel]] = {
@@ -373,11 +381,23 @@ class SessionRotationHandle(ApiModel):
 
     model_config = _example({"faces": [0, 1]})
 
-    faces: list[Index] = Field(min_length=1)
+    faces: list[Index] = Field(min_length=1, fail_fast=True)
     rotation: Mat3 | None = None
 
 
-class SessionRequest(MeshPart):
+class SessionParams(ApiModel):
+    """The fields of ``POST /v1/sessions`` besides the mesh."""
+
+    model_config = _example({"handles": [{"vertex": 0}, {"vertex": 4}]})
+
+    handles: list[SessionHandle] = Field(min_length=1, fail_fast=True)
+    rotations: list[SessionRotationHandle] | None = Field(None, fail_fast=True)
+    roi: list[Index] | None = Field(None, description="Vertices that may move (default all).",
+                                    fail_fast=True)
+    options: DeformOptions = Field(default_factory=DeformOptions)
+
+
+class SessionRequest(MeshPart, SessionParams):
     """Body of ``POST /v1/sessions``: the rest mesh, the handles (vertex indices and,
     optionally, face groups with a rotation handle), an optional region of interest and
     the deformation options. The system is factorized once here."""
@@ -385,11 +405,6 @@ class SessionRequest(MeshPart):
     model_config = _example({**EXAMPLE_MESH, "handles": [
         {"vertex": 0}, {"vertex": 1}, {"vertex": 2}, {"vertex": 3},
         {"vertex": 4, "position": [0.5, 0.5, 0.5]}]})
-
-    handles: list[SessionHandle] = Field(min_length=1)
-    rotations: list[SessionRotationHandle] | None = None
-    roi: list[Index] | None = Field(None, description="Vertices that may move (default all).")
-    options: DeformOptions = Field(default_factory=DeformOptions)
 
 
 class SessionDrag(ApiModel):
@@ -401,8 +416,8 @@ class SessionDrag(ApiModel):
                                                   [1.0, 1.0, 0.0], [0.0, 1.0, 0.0],
                                                   [0.5, 0.5, 0.8]]})
 
-    handle_positions: list[Vec3] = Field(min_length=1)
-    handle_rotations: list[Mat3] | None = None
+    handle_positions: list[Vec3] = Field(min_length=1, fail_fast=True)
+    handle_rotations: list[Mat3] | None = Field(None, fail_fast=True)
     seq: int | None = Field(None, ge=0, le=2**32 - 1)
 
 

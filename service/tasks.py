@@ -78,6 +78,11 @@ def describe_error(exc: BaseException) -> dict[str, Any]:
     if isinstance(exc, TaskProblemError):
         return {"category": "problem", "kind": exc.kind, "status": exc.status,
                 "detail": exc.detail, "errors": exc.errors, "extensions": exc.extensions}
+    from service.problems import ProblemError
+
+    if isinstance(exc, ProblemError):  # e.g. a JSON body validated in the worker
+        return {"category": "problem", "kind": exc.kind, "status": exc.status,
+                "detail": exc.detail, "errors": exc.errors, "extensions": exc.extensions}
     mapped = _map_solver_exception(exc)
     if mapped is not None:
         return describe_error(mapped)
@@ -99,6 +104,32 @@ def _map_solver_exception(exc: BaseException) -> TaskProblemError | None:
         return TaskProblemError("mesh-too-large", 413,
                                 "the input needs more memory than is available")
     return None
+
+
+def release_memory() -> None:
+    """Give freed heap memory back to the system (glibc ``malloc_trim``; a no-op elsewhere).
+
+    Parsing a large JSON body allocates millions of small objects; once freed, glibc keeps
+    the pages unless asked, so a process's RSS would stay at its largest body."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+def _malloc_trim() -> Any:
+    global _TRIM
+    if _TRIM is None:
+        import ctypes
+        import ctypes.util
+
+        try:
+            _TRIM = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+        except (OSError, AttributeError):
+            _TRIM = False
+    return _TRIM or None
+
+
+_TRIM: Any = None
 
 
 def initialize_worker(threads: int) -> None:
@@ -140,9 +171,18 @@ class _Clock:
 
 
 def run(fn_name: str, payload: dict[str, Any], progress: Progress) -> dict[str, Any]:
-    """Run task ``fn_name`` with stage timing; the entry point used by the workers."""
+    """Run task ``fn_name`` with stage timing; the entry point used by the workers.
+
+    A raw JSON body (``source.kind == "json"``) is parsed and validated here first, as part
+    of the ``validate`` stage (:func:`service.inputs.expand_json_body`)."""
     fn = TASKS[fn_name]
     clock = _Clock(progress)
+    source = payload.get("source")
+    if isinstance(source, dict) and source.get("kind") == "json":
+        from service.inputs import expand_json_body
+
+        clock("validate", 0.0)
+        payload = expand_json_body(fn_name, payload)
     result = fn(payload, clock)
     result["timings"] = clock.finish()
     return result
@@ -410,8 +450,11 @@ def interpolate_task(payload: dict[str, Any], progress: Progress) -> dict[str, A
     else:
         vertices_a, vertices_b, faces = (source["vertices_a"], source["vertices_b"],
                                          source["faces"])
-    progress("solve", 0.0)
     t = params["t"]
+    if isinstance(t, list) and (payload.get("output") or {}).get("format", "json") != "json":
+        raise TaskProblemError("not-acceptable", 406, "glTF holds one mesh: request a single "
+                               "t, or Accept: application/json for a list of t")
+    progress("solve", 0.0)
     vertices = solver.interpolate(vertices_a, vertices_b, faces, t,
                                   frame_weight=options["frame_weight"],
                                   weighting=options["weighting"], backend=_backend(payload))

@@ -171,16 +171,17 @@ def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], 
         if fmt == "obj":
             vertices, faces = _parse_obj(data)
         else:
-            vertices, faces = _load_trimesh(data, fmt)
+            vertices, faces = _load_trimesh(_text_as_utf8(data, fmt), fmt)
     except MeshFileError as exc:
         if exc.file_type is None:
             exc.file_type = fmt
             exc.args = (f"{fmt}: {exc.reason}",)
         raise
+    except (ImportError, MemoryError):  # the environment, not the file: not a client error
+        raise
     except Exception as exc:  # trimesh raises all kinds of errors on bad data
         _log.debug("mesh parse failure", exc_info=True)
-        raise MeshFileError(f"cannot parse {fmt.upper()} data: {type(exc).__name__}: {exc}",
-                            file_type=fmt) from exc
+        raise MeshFileError(f"cannot parse {fmt.upper()} data: {exc}", file_type=fmt) from exc
     if fmt == "stl":
         vertices, faces = _merge_identical(vertices, faces)
     return _finish(vertices, faces, fmt)
@@ -216,6 +217,38 @@ def _finish(vertices: np.ndarray, faces: np.ndarray, fmt: str
     return v, f
 
 
+def _text_as_utf8(data: bytes, fmt: str) -> bytes:
+    """The file with its text (all of OFF and ASCII STL, the PLY header) as UTF-8.
+
+    Text mesh files are ASCII apart from comments and names, which are often Latin-1; trimesh
+    decodes text as UTF-8 (and would reach for an optional charset detector otherwise). Bytes
+    that are not UTF-8 are read as Latin-1, which maps every byte to one character, so the
+    numbers are untouched. Binary parts (binary STL, a binary PLY body) are left as they are.
+    """
+    if fmt == "ply":
+        end = data.find(b"end_header")
+        return data if end < 0 else _latin1_to_utf8(data[:end]) + data[end:]
+    if fmt == "off" or (fmt == "stl" and not _is_binary_stl(data)):
+        return _latin1_to_utf8(data)
+    return data
+
+
+def _latin1_to_utf8(text: bytes) -> bytes:
+    try:
+        text.decode("utf-8")
+    except UnicodeDecodeError:
+        return text.decode("latin-1").encode("utf-8")
+    return text
+
+
+def _is_binary_stl(data: bytes) -> bool:
+    """A binary STL: an 80-byte header, a uint32 count n, then exactly n 50-byte records."""
+    if len(data) < 84:
+        return False
+    count = int(np.frombuffer(data, dtype="<u4", count=1, offset=80)[0])
+    return len(data) == 84 + 50 * count
+
+
 def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     """Positions from every ``v`` line, triangles from the ``v`` index of every ``f`` entry.
 
@@ -249,10 +282,13 @@ def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     f_text = _OBJ_REF_TAIL.sub("", "\n".join([lines[r][2:] for r in f_rows]))
     counts = np.fromiter(map(len, map(str.split, f_text.split("\n"))), dtype=np.int64,
                          count=f_rows.size)
+    tokens = f_text.split()
     try:
-        ids = np.array(f_text.split(), dtype=np.int64)
+        ids = np.array(tokens, dtype=np.int64)
     except ValueError as exc:
         raise MeshFileError(f"bad face index ({exc})") from exc
+    except OverflowError:
+        raise _huge_index(tokens, np.repeat(f_rows, counts)) from None
     if counts.min() < 3:
         lineno = int(f_rows[np.argmax(counts < 3)]) + 1
         raise MeshFileError(f"line {lineno}: face with fewer than 3 vertices",
@@ -274,6 +310,17 @@ def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     t = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
     tok = np.stack([first, first + t, first + t + 1], axis=1)
     return vertices, idx[tok]
+
+
+def _huge_index(tokens: list[str], token_rows: np.ndarray) -> MeshFileError:
+    """The error for a face index beyond int64, naming its line (``token_rows``: the line
+    index of each token)."""
+    long = np.flatnonzero(np.fromiter(map(len, tokens), np.intp, len(tokens)) >= 19)
+    limit = np.iinfo(np.int64)
+    k = next(int(k) for k in long if not limit.min <= int(tokens[k]) <= limit.max)
+    lineno = int(token_rows[k]) + 1
+    return MeshFileError(f"line {lineno}: face index {tokens[k]} is far beyond the vertices "
+                         "of the file", details={"line": lineno, "value": tokens[k]})
 
 
 def _load_trimesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray]:

@@ -10,14 +10,13 @@ from starlette.responses import Response
 
 from service.inputs import (
     is_json,
+    json_payload,
     media_type,
     off_loop,
-    payload_from_dict,
     payload_from_form,
     read_body,
     read_form,
     unsupported_media_type,
-    validate_json,
     validate_object,
 )
 from service.jobs import Job
@@ -28,6 +27,7 @@ from service.problems import ProblemError
 from service.routes.operations import ColorQuery, check_color
 from service.schemas import JobRequest, JobStatus
 from service.tasks import MESH_OPERATIONS
+from service.validation import parse_json
 
 router = APIRouter(tags=["jobs"])
 
@@ -42,8 +42,12 @@ _RESULT_CONTENT = {
 
 
 def _json_job(body: bytes, settings: Any) -> tuple[JobRequest, dict[str, Any]]:
-    head = validate_json(JobRequest, body)
-    return head, payload_from_dict(head.operation, head.input, settings, prefix=("input",))
+    """(head, payload) of a JSON job: ``input`` is validated like the synchronous body (its
+    arrays with numpy); in a thread for large bodies (:func:`off_loop`)."""
+    head = validate_object(JobRequest, parse_json(body))
+    limits = {"max_vertices": settings.max_vertices, "max_faces": settings.max_faces}
+    return head, json_payload(head.operation, head.input, limits, settings.solver_backend,
+                              prefix=("input",))
 
 
 def _status_response(job: Job, status_code: int = 200,

@@ -101,9 +101,6 @@ def _endpoint(operation: str) -> Callable[..., Awaitable[Response]]:
         fmt = negotiate(request.headers.get("accept"), formats)
         check_color(operation, color)
         payload = await parse_operation(request, operation, request.app.state.settings)
-        if fmt != "json" and isinstance(payload["params"].get("t"), list):
-            raise ProblemError("not-acceptable", "glTF holds one mesh: request a single t, "
-                               "or Accept: application/json for a list of t")
         payload["output"] = {"format": fmt, "color": color, "compute": [], "keep": False}
         return result_response(await run_task(request, operation, payload))
 

@@ -23,16 +23,22 @@ from service.inputs import (
     off_loop,
     read_body,
     unsupported_media_type,
-    validate_json,
 )
 from service.negotiation import negotiate
 from service.openapi import error_responses
 from service.output import MEDIA_TYPES, json_bytes
 from service.problems import ProblemError
 from service.runner import server_timing
-from service.schemas import SessionDrag, SessionInfo, SessionRequest, SessionVertices
+from service.schemas import (
+    SessionDrag,
+    SessionInfo,
+    SessionParams,
+    SessionRequest,
+    SessionVertices,
+)
 from service.sessions import SESSION_FORMATS, parse_drag_binary, parse_drag_json, ws_reply
 from service.tasks import check_limits
+from service.validation import parse_json, split_request
 
 logger = logging.getLogger("service.sessions")
 router = APIRouter(tags=["sessions"])
@@ -42,12 +48,12 @@ OCTET = "application/octet-stream"
 
 
 def _spec(body: bytes, settings: Any) -> dict[str, Any]:
-    """Validate a create body and turn it into the session spec (numpy arrays)."""
+    """Validate a create body and turn it into the session spec (numpy arrays; the mesh is
+    validated as arrays, :mod:`service.validation`)."""
     from service.inputs import _limit_problem
 
-    model = validate_json(SessionRequest, body)
-    vertices = np.asarray(model.vertices, dtype=np.float64).reshape(-1, 3)
-    faces = np.asarray(model.faces, dtype=np.int64).reshape(-1, 3)
+    arrays, model = split_request("session", parse_json(body), SessionParams)
+    vertices, faces = arrays["vertices"], arrays["faces"]
     _limit_problem(check_limits, len(vertices), len(faces),
                    {"max_vertices": settings.max_vertices, "max_faces": settings.max_faces},
                    "vertices")

@@ -75,6 +75,14 @@ def free_port() -> int:
 @contextlib.contextmanager
 def uvicorn_server(env: dict[str, str] | None = None) -> Iterator[str]:
     """Real uvicorn (``python -m uvicorn service.app:app``) on a free loopback port."""
+    with uvicorn_process(env) as (base, _):
+        yield base
+
+
+@contextlib.contextmanager
+def uvicorn_process(env: dict[str, str] | None = None,
+                    ) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
+    """:func:`uvicorn_server`, also yielding the server process (its pid, for psutil)."""
     port = free_port()
     full_env = {**os.environ, "FFS_WORKERS": "2", "PYTHONUNBUFFERED": "1", **(env or {})}
     full_env["PYTHONPATH"] = os.pathsep.join(
@@ -97,7 +105,7 @@ def uvicorn_server(env: dict[str, str] | None = None) -> Iterator[str]:
                     return http.get(path)
 
                 wait_ready(get, int(full_env["FFS_WORKERS"]))
-            yield base
+            yield base, proc
         finally:
             proc.send_signal(signal.SIGTERM)
             try:

@@ -8,17 +8,19 @@ the worker pool, the main process's memory (psutil).
 from __future__ import annotations
 
 import contextlib
+import functools
 import re
 import socket
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
 import orjson
 import pytest
-from conftest import REPO, uvicorn_server
+from conftest import REPO, uvicorn_process, uvicorn_server
 from service_helpers import forms_json, icosphere
 
 
@@ -161,6 +163,87 @@ def test_slow_bodies_are_answered_408_and_closed():
         print(f"20 slow clients closed after {min(closed_at.values()):.2f}-"
               f"{max(closed_at.values()):.2f} s (FFS_BODY_TIMEOUT={timeout})")
         assert httpx.get(base + "/healthz").status_code == 200
+
+
+# ----------------------------------------------- 1, 2: huge flat lists, main-process memory
+
+
+def _rss(pid: int) -> float:
+    """Resident memory of a process in MB."""
+    import psutil
+
+    return psutil.Process(pid).memory_info().rss / 1e6
+
+
+def _during(base: str, send: Callable[[], httpx.Response]) -> tuple[httpx.Response, float]:
+    """``send()``'s response and the slowest /healthz answer while it ran (seconds)."""
+    result: list[httpx.Response] = []
+    worker = threading.Thread(target=lambda: result.append(send()))
+    worker.start()
+    slowest = 0.0
+    with httpx.Client(base_url=base, timeout=300) as http:
+        while worker.is_alive():
+            start = time.perf_counter()
+            assert http.get("/healthz").status_code == 200
+            slowest = max(slowest, time.perf_counter() - start)
+            time.sleep(0.02)
+    worker.join()
+    return result[0], slowest
+
+
+FLAT = 10_000_000
+FLAT_BODY = b'{"vertices": [' + b"1," * (FLAT - 1) + b'1], "faces": [[0, 1, 2]]}'
+
+
+def test_a_flat_list_of_ten_million_numbers_is_one_error_and_the_loop_stays_free():
+    with uvicorn_process() as (base, proc):
+        before = _rss(proc.pid)
+        post = functools.partial(httpx.post, base + "/v1/forms", content=FLAT_BODY,
+                                 headers={"content-type": "application/json"}, timeout=300)
+        start = time.perf_counter()
+        response, slowest = _during(base, post)
+        elapsed = time.perf_counter() - start
+        assert response.status_code == 422, response.text[:500]
+        doc = response.json()
+        assert len(doc["errors"]) == 1
+        assert doc["errors"][0]["field"] == "vertices"
+        assert f"flat list of {FLAT} numbers" in doc["errors"][0]["reason"]
+        job = httpx.post(base + "/v1/jobs", timeout=300,
+                         content=b'{"operation": "forms", "input": ' + FLAT_BODY + b"}",
+                         headers={"content-type": "application/json"})
+        assert job.status_code == 422 and job.json()["errors"][0]["pointer"] == "/input/vertices"
+        grown = _rss(proc.pid) - before
+        print(f"10M-element body: 422 in {elapsed:.2f} s, slowest /healthz meanwhile "
+              f"{slowest * 1000:.0f} ms, main process +{grown:.0f} MB")
+        assert elapsed < 60 and slowest < 2.0  # unbounded before: 147 s, /healthz blocked
+        assert grown < 300, f"the main process kept {grown:.0f} MB"
+
+
+def _big_mesh_body(n_faces: int) -> bytes:
+    rng = np.random.default_rng(0)
+    vertices = rng.random((1000, 3))
+    faces = rng.integers(0, len(vertices), (n_faces, 3))
+    return orjson.dumps({"vertices": vertices, "faces": faces},
+                        option=orjson.OPT_SERIALIZE_NUMPY)
+
+
+def test_main_process_memory_is_given_back_after_large_bodies():
+    body = _big_mesh_body(2_000_000)  # ~60 MB: under the body limit, over FFS_MAX_FACES
+    with uvicorn_process() as (base, proc):
+        httpx.post(base + "/v1/forms", json={"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]],
+                                             "faces": [[0, 1, 2]]})
+        before = _rss(proc.pid)
+        peaks = []
+        for path, content in (("/v1/forms", body), ("/v1/mesh", body),
+                              ("/v1/jobs", b'{"operation": "mesh", "input": ' + body + b"}")):
+            response = httpx.post(base + path, content=content, timeout=300,
+                                  headers={"content-type": "application/json"})
+            assert response.status_code == 413, response.text[:300]
+            assert response.json()["kind"] == "mesh-too-large"
+            peaks.append(_rss(proc.pid) - before)
+        print(f"main process after three 2M-face bodies ({len(body) / 1e6:.0f} MB each): "
+              + ", ".join(f"+{p:.0f} MB" for p in peaks))
+        assert max(peaks) < 150, peaks  # before: +464 MB after one such body
 
 
 @pytest.fixture(autouse=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -97,7 +98,7 @@ def test_upload_errors(client):
     doc = problem(client.post("/v1/forms", data={"x": "1"}, files={}), 415,
                   "unsupported-media-type")  # urlencoded form, not multipart
     V, F = bumpy_grid(3, 3)
-    off = save_mesh(V, F, "off")
+    off = save_mesh(np.asarray(V), F, "off")
     doc = problem(client.post("/v1/interpolate", data={"t": "0.5"},
                               files={"file_a": ("a.off", off)}), 422, "validation-error")
     assert doc["errors"][0]["field"] == "file_b"
@@ -115,3 +116,71 @@ def test_upload_errors(client):
         "file_a": ("a.off", off), "file_b": ("b.off", save_mesh(W, F[::-1], "off"))}),
         422, "shape-mismatch")
     assert doc["errors"][0]["field"] == "file_b"
+
+
+def _latin1_files(V: np.ndarray, F: np.ndarray) -> dict[str, bytes]:
+    """OFF, ASCII STL, ASCII and binary PLY of (V, F), each with a Latin-1 comment."""
+    comment = "caf\xe9 \xa9 r\xe9sum\xe9".encode("latin-1")
+    V = V.tolist()
+    off = save_mesh(np.asarray(V), F, "off").replace(b"OFF\n", b"OFF\n# " + comment + b"\n", 1)
+    rows = "".join("facet normal 0 0 0\nouter loop\n"
+                   + "".join(f"vertex {x!r} {y!r} {z!r}\n" for x, y, z in (V[i] for i in f))
+                   + "endloop\nendfacet\n" for f in F)
+    stl = b"solid " + comment + b"\n" + rows.encode() + b"endsolid\n"
+    binary_ply = save_mesh(np.asarray(V), F, "ply").replace(b"comment ",
+                                                            b"comment " + comment + b" ", 1)
+    ascii_ply = (f"ply\nformat ascii 1.0\ncomment \xe9t\xe9\nelement vertex {len(V)}\n"
+                 "property double x\nproperty double y\nproperty double z\n"
+                 f"element face {len(F)}\nproperty list uchar int vertex_indices\n"
+                 "end_header\n").encode("latin-1")
+    ascii_ply += "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in V).encode()
+    ascii_ply += "".join(f"3 {a} {b} {c}\n" for a, b, c in F).encode()
+    return {"off": off, "stl": stl, "ply": binary_ply, "ascii.ply": ascii_ply}
+
+
+@pytest.mark.parametrize("name", ["off", "stl", "ply", "ascii.ply"])
+def test_text_files_with_latin1_comments_are_read(client, name):
+    V, F = bumpy_grid(4, 3)
+    data = _latin1_files(V, F)[name]
+    with pytest.raises(UnicodeDecodeError):
+        data.decode("utf-8")  # the file really is not UTF-8
+    response = client.post("/v1/mesh", files={"file": (f"latin1.{name}", data)})
+    assert response.status_code == 200, response.text
+    got = response.json()
+    if name == "stl":  # corners per triangle, merged again in order of first occurrence
+        np.testing.assert_allclose(np.asarray(got["vertices"])[got["faces"]], V[F], rtol=0,
+                                   atol=0)
+    else:
+        np.testing.assert_array_equal(got["vertices"], V)
+        np.testing.assert_array_equal(got["faces"], F)
+
+
+def test_huge_obj_face_index_names_the_line_and_no_exception_name(client):
+    data = b"v 0 0 0\nv 1 0 0\nv 0 1 0\n# a comment\nf 1 2 3\nf 1 2 99999999999999999999999\n"
+    doc = problem(client.post("/v1/mesh", files={"file": ("huge.obj", data)}), 400,
+                  "unreadable-file")
+    assert "line 6" in doc["detail"] and "99999999999999999999999" in doc["detail"]
+    assert doc["errors"][0]["line"] == 6
+    assert "Error" not in doc["detail"] and "Python int" not in doc["detail"]
+
+
+@pytest.mark.parametrize(("name", "data"), [
+    ("broken.ply", b"ply\nformat ascii 1.0\nelement vertex x\nend_header\n"),
+    ("broken.off", b"OFF\n3 1 0\n0 0\n"),
+    ("broken.glb", b"glTF\x02\x00\x00\x00garbage"),
+    ("broken.stl", b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0\n"),
+])
+def test_unreadable_files_never_show_an_exception_name(client, name, data):
+    response = client.post("/v1/mesh", files={"file": (name, data)})
+    assert response.status_code in (400, 422), response.text
+    detail = response.json()["detail"]
+    assert not re.search(r"\b[A-Z]\w*(Error|Exception)\b", detail), detail
+
+
+@pytest.mark.parametrize("name", ["off", "stl"])
+def test_latin1_text_needs_no_charset_detector(monkeypatch, name):
+    # A fresh machine has no charset_normalizer (trimesh's optional fallback decoder).
+    monkeypatch.setitem(__import__("sys").modules, "charset_normalizer", None)
+    V, F = bumpy_grid(4, 3)
+    vertices, faces = load_mesh(_latin1_files(V, F)[name], name)
+    np.testing.assert_array_equal(vertices[faces], V[F])

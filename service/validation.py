@@ -1,0 +1,216 @@
+"""JSON request bodies validated as arrays: orjson parses, numpy checks the large arrays
+(shapes, dtypes, ranges), pydantic validates the small rest (the operation's params model).
+
+The request models in :mod:`service.schemas` document the bodies; this module enforces the
+same rules on the large arrays without one Python object per element error:
+
+* shapes and element types are checked with C-level passes (``map``/``set``/``np.fromiter``)
+  before any element-wise work, so a flat list of a million numbers where ``[x, y, z]`` rows
+  belong is one error found in milliseconds;
+* at most :data:`MAX_ERRORS` errors are collected per array, and the params models' lists
+  fail fast (``Field(fail_fast=True)``);
+* the result is the numpy arrays the workers use, so nothing is converted twice.
+
+Synchronous operations run this in the worker process (the event loop and the main process's
+memory never see the parsed body); jobs and sessions run it in a thread of the main process.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from itertools import chain
+from typing import Any
+
+import numpy as np
+import orjson
+from pydantic import BaseModel, ValidationError
+
+from service.problems import ProblemError, from_validation_errors
+from service.schemas import MAX_INDEX, MAX_MAGNITUDE, PARAMS_MODELS
+
+MAX_ERRORS = 5
+"""Errors reported per array (the first ones in element order)."""
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """One large array of a request body: rows of ``cols`` values (``cols == 0``: a flat
+    vector), integer indices in [0, MAX_INDEX] or reals in [-MAX_MAGNITUDE, MAX_MAGNITUDE]."""
+
+    cols: int
+    integer: bool
+    min_rows: int = 0
+
+    @property
+    def dtype(self) -> type:
+        return np.int64 if self.integer else np.float64
+
+    @property
+    def what(self) -> str:
+        return "integer" if self.integer else "number"
+
+
+_POINTS = ArraySpec(3, False, 1)
+_TRIANGLES = ArraySpec(3, True, 1)
+MESH_ARRAYS: dict[str, ArraySpec] = {"vertices": _POINTS, "faces": _TRIANGLES}
+FORMS_ARRAYS: dict[str, ArraySpec] = {"faces": _TRIANGLES, "edges": ArraySpec(2, True),
+                                      "lengths": ArraySpec(0, False),
+                                      "angles": ArraySpec(0, False)}
+ARRAYS: dict[str, dict[str, ArraySpec]] = {
+    "forms": MESH_ARRAYS, "mesh": MESH_ARRAYS, "deform": MESH_ARRAYS,
+    "parameterize": MESH_ARRAYS, "session": MESH_ARRAYS,
+    "integrability": FORMS_ARRAYS, "reconstruct": FORMS_ARRAYS,
+    "interpolate": {"vertices_a": _POINTS, "vertices_b": _POINTS, "faces": _TRIANGLES},
+}
+"""The large arrays of each JSON body (the request model's fields minus the params')."""
+
+_NUMBER_TYPES = frozenset({int, float})
+_JSON_TYPES = {dict: "an object", list: "a list", str: "a string", bool: "a boolean",
+               type(None): "null", int: "an integer", float: "a number"}
+
+
+def parse_json(body: bytes) -> Any:
+    """The parsed body; a 400 ``malformed-json`` problem when it is empty or not JSON.
+
+    ``NaN``, ``Infinity`` and overflowing numbers such as ``1e400`` (which Python's ``json``
+    writes and reads) parse, as non-finite floats, so that the schema check names the element
+    (422) instead of calling the whole body malformed."""
+    if not body.strip():
+        raise ProblemError("malformed-json", "the body is empty; send a JSON object")
+    try:
+        return orjson.loads(body)
+    except orjson.JSONDecodeError as exc:
+        try:  # only on the error path: the stdlib parser reads the non-finite literals
+            return json.loads(body)
+        except (ValueError, RecursionError):
+            pass
+        raise ProblemError("malformed-json", f"the body is not valid JSON: {exc}") from None
+
+
+def _error(loc: Sequence[Any], msg: str, kind: str) -> dict[str, Any]:
+    return {"loc": tuple(loc), "msg": msg, "type": kind}
+
+
+def _json_type(value: Any) -> str:
+    return _JSON_TYPES.get(type(value), type(value).__name__)
+
+
+def _first(mask: np.ndarray) -> list[int]:
+    return np.flatnonzero(mask)[:MAX_ERRORS].tolist()
+
+
+def _flat(name: str, value: list[Any], spec: ArraySpec) -> tuple[list[Any], list[dict[str, Any]]]:
+    """The values of a list of rows in row-major order, or the structure errors."""
+    n, cols = len(value), spec.cols
+    if n and set(map(type, value)) != {list}:
+        if set(map(type, value)) <= _NUMBER_TYPES:
+            rows = f"{n // cols}" if n % cols == 0 else "n"
+            return [], [_error((name,), f"expected a list of {rows} rows of {cols} "
+                               f"{spec.what}s, got a flat list of {n} {spec.what}s; nest "
+                               "each row: [[...], [...], ...]", "list_of_rows")]
+        is_row = np.fromiter(map(list.__instancecheck__, value), bool, n)
+        return [], [_error((name, i), f"expected a list of {cols} {spec.what}s, got "
+                           f"{_json_type(value[i])}", "row_type") for i in _first(~is_row)]
+    lengths = np.fromiter(map(len, value), np.intp, n)
+    wrong = lengths != cols
+    if wrong.any():
+        return [], [_error((name, i), f"expected {cols} values, got {int(lengths[i])}",
+                           "row_length") for i in _first(wrong)]
+    return list(chain.from_iterable(value)), []
+
+
+def _numbers(name: str, flat: list[Any], spec: ArraySpec
+             ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
+    """A 1-D array of ``flat`` (int64 or float64 per ``spec``), or the element errors."""
+    cols = max(spec.cols, 1)
+
+    def loc(k: int) -> tuple[Any, ...]:
+        return (name, k // cols, k % cols) if spec.cols else (name, k)
+
+    kinds = set(map(type, flat))
+    if not kinds <= _NUMBER_TYPES:
+        ok = np.fromiter(map(_NUMBER_TYPES.__contains__, map(type, flat)), bool, len(flat))
+        return None, [_error(loc(k), f"Input should be a valid {spec.what}, got "
+                             f"{_json_type(flat[k])}", f"{spec.what}_type")
+                      for k in _first(~ok)]
+    if spec.integer and float not in kinds:
+        try:
+            array = np.array(flat, dtype=np.int64)
+        except OverflowError:  # beyond int64: certainly beyond MAX_INDEX
+            array = np.array(flat, dtype=np.float64)
+    else:
+        array = np.array(flat, dtype=np.float64)
+    errors = []
+    if spec.integer and array.dtype == np.float64:
+        fractional = array != np.trunc(array)
+        errors += [_error(loc(k), "Input should be a valid integer, got a number with a "
+                          "fractional part", "int_from_float") for k in _first(fractional)]
+    low, high = (0, MAX_INDEX) if spec.integer else (-MAX_MAGNITUDE, MAX_MAGNITUDE)
+    errors += [_error(loc(k), f"Input should be greater than or equal to {low}",
+                      "greater_than_equal") for k in _first(array < low)]
+    errors += [_error(loc(k), f"Input should be less than or equal to {high}",
+                      "less_than_equal") for k in _first(array > high)]
+    if not spec.integer:
+        errors += [_error(loc(k), "Input should be a finite number", "finite_number")
+                   for k in _first(~np.isfinite(array))]
+    if errors:
+        return None, errors[:MAX_ERRORS]
+    return array.astype(spec.dtype, copy=False), []
+
+
+def as_array(name: str, value: Any, spec: ArraySpec
+             ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
+    """``value`` (parsed JSON) as an (n, cols) or (n,) array, or at most MAX_ERRORS errors
+    in pydantic's shape (``loc``, ``msg``, ``type``)."""
+    if not isinstance(value, list):
+        return None, [_error((name,), f"Input should be a valid list, got {_json_type(value)}",
+                             "list_type")]
+    if len(value) < spec.min_rows:
+        return None, [_error((name,), f"List should have at least {spec.min_rows} item, "
+                             f"not {len(value)}", "too_short")]
+    flat, errors = _flat(name, value, spec) if spec.cols else (value, [])
+    if errors:
+        return None, errors
+    array, errors = _numbers(name, flat, spec)
+    if array is None:
+        return None, errors
+    return (array.reshape(-1, spec.cols) if spec.cols else array), []
+
+
+def split_request(kind: str, doc: Any, params_model: type[BaseModel],
+                  prefix: tuple[Any, ...] = ()) -> tuple[dict[str, np.ndarray], BaseModel]:
+    """(arrays, params) of a parsed JSON body of ``kind`` (an operation or ``session``).
+
+    Raises one 422 ``validation-error`` listing the first errors of every array and of the
+    params (pointers below ``prefix``, e.g. ``("input",)`` for a job).
+    """
+    if not isinstance(doc, Mapping):
+        raise from_validation_errors([_error((), f"Input should be a JSON object, got "
+                                              f"{_json_type(doc)}", "model_type")], prefix)
+    rest = dict(doc)
+    arrays: dict[str, np.ndarray] = {}
+    errors: list[dict[str, Any]] = []
+    for name, spec in ARRAYS[kind].items():
+        if name not in rest:
+            errors.append(_error((name,), "Field required", "missing"))
+            continue
+        array, found = as_array(name, rest.pop(name), spec)
+        errors += found
+        if array is not None:
+            arrays[name] = array
+    params = None
+    try:
+        params = params_model.model_validate(rest)
+    except ValidationError as exc:
+        errors += exc.errors(include_url=False, include_input=False)[:MAX_ERRORS * 4]
+    if errors or params is None:
+        raise from_validation_errors(errors, prefix)
+    return arrays, params
+
+
+def request_arrays(operation: str, doc: Any, prefix: tuple[Any, ...] = ()
+                   ) -> tuple[dict[str, np.ndarray], BaseModel]:
+    """:func:`split_request` with the operation's params model."""
+    return split_request(operation, doc, PARAMS_MODELS[operation], prefix)

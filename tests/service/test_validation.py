@@ -1,0 +1,88 @@
+"""service.validation: JSON arrays checked as arrays, with the request models' rules."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.problems import ProblemError
+from service.schemas import PARAMS_MODELS, REQUEST_MODELS, SessionParams, SessionRequest
+from service.validation import ARRAYS, MAX_ERRORS, as_array, request_arrays
+
+MESH = {"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0.5]], "faces": [[0, 1, 2]]}
+
+
+@pytest.mark.parametrize("operation", sorted(REQUEST_MODELS))
+def test_the_arrays_are_the_request_model_minus_its_params(operation):
+    documented = set(REQUEST_MODELS[operation].model_fields)
+    assert set(ARRAYS[operation]) == documented - set(PARAMS_MODELS[operation].model_fields)
+
+
+def test_session_arrays_match_the_session_model():
+    assert set(ARRAYS["session"]) == (set(SessionRequest.model_fields)
+                                      - set(SessionParams.model_fields))
+
+
+def test_valid_body_gives_typed_arrays_and_params():
+    arrays, params = request_arrays("deform", {**MESH, "handles": [
+        {"vertex": 0, "position": [0, 0, 0]}]})
+    assert arrays["vertices"].dtype == np.float64 and arrays["vertices"].shape == (3, 3)
+    assert arrays["faces"].dtype == np.int64 and arrays["faces"].tolist() == [[0, 1, 2]]
+    assert params.handles[0].vertex == 0
+    np.testing.assert_array_equal(arrays["vertices"], np.asarray(MESH["vertices"], float))
+
+
+def _errors(operation, doc):
+    with pytest.raises(ProblemError) as info:
+        request_arrays(operation, doc)
+    assert info.value.status == 422 and info.value.kind == "validation-error"
+    return info.value.errors
+
+
+@pytest.mark.parametrize(("faces", "pointer", "words"), [
+    ([[0, 1]], "/faces/0", "expected 3 values, got 2"),
+    ([[0, 1, "2"]], "/faces/0/2", "valid integer, got a string"),
+    ([[0, 1, 1.5]], "/faces/0/2", "fractional part"),
+    ([[0, 1, True]], "/faces/0/2", "valid integer, got a boolean"),
+    ([[0, 1, -1]], "/faces/0/2", "greater than or equal to 0"),
+    ([[0, 1, 2**70]], "/faces/0/2", "less than or equal to 2147483647"),
+    ([[0, 1, 2], 7], "/faces/1", "got an integer"),
+    ([0, 1, 2], "/faces", "flat list of 3 integers"),
+    ("0 1 2", "/faces", "valid list, got a string"),
+    ([], "/faces", "at least 1 item"),
+])
+def test_each_kind_of_bad_array_names_its_element(faces, pointer, words):
+    errors = _errors("forms", {**MESH, "faces": faces})
+    assert errors[0]["pointer"] == pointer and words in errors[0]["reason"], errors
+
+
+def test_integral_floats_are_indices_and_non_finite_values_are_named():
+    arrays, _ = request_arrays("forms", {**MESH, "faces": [[0, 1.0, 2]]})
+    assert arrays["faces"].dtype == np.int64 and arrays["faces"].tolist() == [[0, 1, 2]]
+    errors = _errors("forms", {**MESH, "vertices": [[0, 0, 0], [1, 0, float("nan")],
+                                                   [0, 1, 0]]})
+    assert errors[0]["pointer"] == "/vertices/1/2" and "finite" in errors[0]["reason"]
+
+
+def test_errors_are_capped_and_arrays_and_params_reported_together():
+    bad = [[0, 0, "x"]] * 100_000
+    errors = _errors("deform", {"vertices": bad, "faces": [[0, 1, 2]],
+                                "handles": ["h"] * 100_000})
+    vertex_errors = [e for e in errors if e["field"] == "vertices"]
+    assert len(vertex_errors) == MAX_ERRORS
+    assert [e["index"] for e in vertex_errors] == list(range(MAX_ERRORS))
+    assert any(e["field"] == "handles" for e in errors)
+    assert len(errors) <= 2 * MAX_ERRORS
+
+
+def test_flat_list_of_a_million_numbers_is_one_error():
+    values, errors = as_array("vertices", [0.5] * 1_000_000, ARRAYS["forms"]["vertices"])
+    assert values is None and len(errors) == 1
+    assert "flat list of 1000000 numbers" in errors[0]["msg"]
+    assert "333333 rows" not in errors[0]["msg"]  # 10**6 is not a multiple of 3
+
+
+def test_missing_array_and_non_object_body():
+    errors = _errors("reconstruct", {"faces": [[0, 1, 2]], "edges": [], "lengths": []})
+    assert {"field": "angles", "type": "missing"}.items() <= errors[0].items()
+    assert _errors("forms", [1, 2, 3])[0]["reason"].startswith("Input should be a JSON object")

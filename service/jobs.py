@@ -79,21 +79,32 @@ class Job:
             self.timings["queued"] = self.started_at - self.created_at
 
     def update_progress(self, stage: str, fraction: float) -> None:
-        """Record ``progress(stage, fraction)``: earlier stages are complete."""
+        """Record ``progress(stage, fraction)``: earlier stages are complete, later ones are
+        not (a solver may go back, e.g. from a failed shortcut to the factorization)."""
         if self.done:
             return
         self.mark_running()
         now = time.time()
+        previous = self.stage
         if stage != self.stage:
             if self.stage is not None and self.stage_started is not None:
                 self.timings[self.stage] = (self.timings.get(self.stage, 0.0)
                                             + now - self.stage_started)
             self.stage, self.stage_started = stage, now
         names = list(self.stages)
-        if stage in names:
-            for earlier in names[: names.index(stage)]:
-                self.stages[earlier] = 1.0
-            self.stages[stage] = max(self.stages[stage], min(1.0, max(0.0, fraction)))
+        if stage not in names:
+            return
+        at = names.index(stage)
+        fraction = min(1.0, max(0.0, fraction))
+        if previous in names and names.index(previous) > at:
+            # Back to an earlier stage (e.g. the tree integration reported `solve`, did not
+            # reproduce the forms, and the solver now factorizes): the later stages are not
+            # done, and this one is only as far as it says.
+            for later in names[at:]:
+                self.stages[later] = 0.0
+        for earlier in names[:at]:
+            self.stages[earlier] = 1.0
+        self.stages[stage] = max(self.stages[stage], fraction)
 
     def finish(self, status: str, ttl: float) -> None:
         now = time.time()

@@ -282,3 +282,18 @@ def test_components_without_interior_edges(client, faces):
     for operation in ("integrability", "reconstruct"):
         response = client.post(f"/v1/{operation}", json=forms)
         assert response.status_code == 200, response.text
+
+
+def test_triangle_inequality_quotes_the_lengths_as_sent(client):
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=float)
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    body = forms_json(V, F)
+    edges = [tuple(e) for e in body["edges"]]
+    body["lengths"] = [1.41] * len(edges)
+    body["lengths"][edges.index((0, 1))] = 100  # face 0: 100 > 1.41 + 1.41
+    doc = problem(client.post("/v1/reconstruct", json=body), 422, "triangle-inequality")
+    assert doc["errors"][0]["field"] == "faces" and doc["errors"][0]["index"] == 0
+    assert "100 > 1.41 + 1.41" in doc["detail"], doc["detail"]
+    assert sorted(doc["errors"][0]["lengths"]) == [1.41, 1.41, 100]
+    normalized = 100 / np.mean(body["lengths"])
+    assert f"{normalized:.3f}" not in doc["detail"]

@@ -238,3 +238,26 @@ def test_job_timeout_ttl_and_store_limit():
         problem(c.get(location), 404, "not-found")
         assert c.post("/v1/jobs", json={"operation": "forms",
                                         "input": mesh_json(*icosphere(0))}).status_code == 202
+
+
+def test_progress_is_honest_when_the_solver_goes_back_to_factorize():
+    from service.jobs import Job
+
+    V, F = icosphere(2)
+    forms = solver.fundamental_forms(V, F)
+    job, seen = Job(id="x", operation="reconstruct"), []
+
+    def progress(stage: str, fraction: float) -> None:
+        job.update_progress(stage, fraction)
+        seen.append((stage, dict(job.stages)))
+
+    # Not integrable: the tree integration ("solve") fails and the solver factorizes.
+    result = solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles * 0.8,
+                                progress=progress)
+    assert result.report["solve_path"] == "factorization"
+    order = [stage for stage, _ in seen]
+    assert "factorize" in order[order.index("solve"):], order  # it did go back
+    for stage, stages in seen:
+        if stage == "factorize":
+            assert stages["factorize"] < 1.0 and stages["solve"] == 0.0, (stage, stages)
+    assert job.stages["solve"] == 1.0 and job.stages["factorize"] == 1.0

@@ -1,5 +1,6 @@
 # syntax=docker/dockerfile:1
 # Fundamental-forms mesh service: FastAPI app served by uvicorn. Build/run: docs/deployment.md.
+# Verified end to end (build, API, web page, compose topology) by scripts/docker-smoke.sh.
 
 # The web page's three.js modules: `npm ci --prefix web` installs them from the npm registry
 # (committed lockfile) and web/build.mjs copies them to service/static/vendor/; only those
@@ -9,40 +10,67 @@ WORKDIR /src
 COPY web/package.json web/package-lock.json web/build.mjs web/
 RUN npm ci --prefix web --no-audit --no-fund
 
+# The runtime dependencies in a virtual environment that the final stage copies whole:
+# [project].dependencies plus the `dask` extra, none of the test/dev extras (the one image
+# runs the API, the Dask scheduler and the Dask workers, docker-compose.yml). The venv has no
+# pip/setuptools (the base image's pip installs into it). In the same step, so that nothing
+# deleted reaches a layer: scripts/prune_mkl.py measures which MKL libraries a PARDISO
+# factorization loads and deletes the rest of the ~1 GB oneAPI runtime that pypardiso's `mkl`
+# wheel brings, then checks PARDISO still solves; NumPy's and SciPy's test suites, headers and
+# the oneAPI wheels' build/offload files (cmake, pkgconfig, opt/compiler) go too.
+FROM python:3.11-slim AS deps
+ENV PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    MKL_ENABLE_INSTRUCTIONS=AVX2
+WORKDIR /src
+COPY pyproject.toml scripts/prune_mkl.py ./
+RUN python -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; print('\n'.join(p['dependencies'] + p['optional-dependencies']['dask']))" > requirements.txt \
+    && python -m venv --without-pip /opt/ffs \
+    && pip --python /opt/ffs/bin/python install --no-cache-dir --no-compile -r requirements.txt \
+    && if /opt/ffs/bin/python -c "import pypardiso"; then /opt/ffs/bin/python prune_mkl.py; fi \
+    && rm -rf /opt/ffs/lib/python3*/site-packages/numpy/*/tests \
+              /opt/ffs/lib/python3*/site-packages/numpy/tests \
+              /opt/ffs/lib/python3*/site-packages/scipy/*/tests \
+              /opt/ffs/lib/python3*/site-packages/scipy/*/*/tests \
+              /opt/ffs/share /opt/ffs/include /opt/ffs/opt /opt/ffs/lib/cmake /opt/ffs/lib/pkgconfig \
+    && /opt/ffs/bin/python -m compileall -q -j 0 /opt/ffs/lib \
+    && /opt/ffs/bin/python -c "import fastapi, uvicorn, numpy, scipy, trimesh, distributed"
+
 FROM python:3.11-slim
 
 # WEB_CONCURRENCY=1 pins uvicorn to one worker: the app runs its own solver process pool,
 # sized by its settings (environment variables documented in README.md).
 # UVICORN_WS_PER_MESSAGE_DEFLATE=false: session WebSockets carry float32 vertex buffers,
 # which barely compress; deflating them costs ~5 ms per 20K-face reply (docs/service.md).
-ENV PYTHONDONTWRITEBYTECODE=1 \
+# MKL_ENABLE_INSTRUCTIONS=AVX2: MKL's AVX2 kernels also on AVX-512 CPUs, because the image
+# keeps only those and the generic ones (scripts/prune_mkl.py, docs/deployment.md).
+# PYTHONPATH=/app: the application code is imported from /app by uvicorn and by the Dask
+# scheduler (--preload service.cluster) and workers alike.
+ENV PATH=/opt/ffs/bin:$PATH \
+    VIRTUAL_ENV=/opt/ffs \
+    PYTHONPATH=/app \
+    PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     WEB_CONCURRENCY=1 \
-    UVICORN_WS_PER_MESSAGE_DEFLATE=false
+    UVICORN_WS_PER_MESSAGE_DEFLATE=false \
+    MKL_ENABLE_INSTRUCTIONS=AVX2
 
 RUN groupadd --system --gid 10001 app \
     && useradd --system --uid 10001 --gid app --create-home --home-dir /home/app \
        --shell /usr/sbin/nologin app
 
+# Dependencies first, in their own layer (cached until pyproject.toml changes).
+COPY --from=deps /opt/ffs /opt/ffs
+
+# The application code (owned by root, read-only for the service user), byte-compiled.
 WORKDIR /app
-
-# Runtime dependencies first, in their own layer (cached until pyproject.toml changes):
-# [project].dependencies plus the `dask` extra, none of the test/dev extras. The one image
-# runs the API, the Dask scheduler and the Dask workers (docker-compose.yml).
-COPY pyproject.toml README.md ./
-RUN python -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; print('\n'.join(p['dependencies'] + p['optional-dependencies']['dask']))" > /tmp/requirements.txt \
-    && pip install --no-cache-dir -r /tmp/requirements.txt \
-    && rm /tmp/requirements.txt
-
-# The application code (owned by root, read-only for the service user).
 COPY solver/ solver/
 COPY service/ service/
 COPY --from=web /src/service/static/vendor/ service/static/vendor/
-RUN pip install --no-cache-dir --no-deps . \
-    && python -m compileall -q solver service \
-    && rm -rf build ./*.egg-info
+RUN python -m compileall -q solver service
 
 USER 10001:10001
 # 8000: the API; 8786/8787: the Dask scheduler and its dashboard (docker-compose.yml).

@@ -56,6 +56,14 @@ SolverName = Literal["auto", *sorted(BACKENDS)]  # type: ignore[valid-type]
 Weighting = Literal["uniform", "cotan", "cotan_clamped"]
 
 
+REFINE_DESCRIPTION = (
+    "Nearest-surface refinement (Levenberg-Marquardt on edge lengths and dihedral angles, "
+    "started from the linear answer): `null` (default) refines when the linear answer does "
+    "not reproduce the forms; `false` returns the linear answer of Eq. 5 (fast; it shrinks "
+    "non-integrable forms); `true` refines whenever the answer is not exact. "
+    "`report.refinement` says whether and how it refined.")
+
+
 class ApiModel(BaseModel):
     """Base of the request models: finite floats only, unknown fields rejected."""
 
@@ -178,6 +186,7 @@ class ReconstructOptions(ApiModel):
         True, description="Without constraints, integrate the forms along spanning trees "
         "first and skip the factorization when that immersion already has zero energy "
         "(integrable forms; report.solve_path = tree-integration).")
+    refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
 
 
 class ReconstructParams(ApiModel):
@@ -642,7 +651,7 @@ class JobProgress(BaseModel):
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"stage": "factorize", "fraction": 0.5,
          "stages": {"validate": 1.0, "assemble": 1.0, "factorize": 0.0, "solve": 0.0,
-                    "encode": 0.0}}]})
+                    "refine": 0.0, "encode": 0.0}}]})
 
     stage: str | None
     fraction: float

@@ -42,7 +42,8 @@ from solver.errors import SolverInputError, TriangleInequalityError
 Progress = Callable[[str, float], None]
 TaskFn = Callable[[dict[str, Any], Progress], dict[str, Any]]
 
-STAGES_SOLVE: tuple[str, ...] = ("validate", "assemble", "factorize", "solve", "encode")
+STAGES_SOLVE: tuple[str, ...] = ("validate", "assemble", "factorize", "solve", "refine",
+                                  "encode")
 STAGES_LIGHT: tuple[str, ...] = ("validate", "solve", "encode")
 STAGES: dict[str, tuple[str, ...]] = {
     "forms": STAGES_LIGHT, "integrability": STAGES_LIGHT, "interpolate": STAGES_LIGHT,
@@ -415,7 +416,7 @@ def reconstruct_task(payload: dict[str, Any], progress: Progress) -> dict[str, A
             orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
             backend=_backend(payload), n_vertices=n_vertices,
             check_integrability=full_report is None, integrability_tol=options["tolerance"],
-            exact_shortcut=options["exact_shortcut"],
+            exact_shortcut=options["exact_shortcut"], refine=options["refine"],
             progress=progress)
     except TriangleInequalityError as exc:
         raise _quote_sent_lengths(exc, forms) from None

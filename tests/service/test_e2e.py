@@ -109,3 +109,27 @@ def test_forms_reconstruct_roundtrip_over_http(live_server):
         assert forms == {k: np.asarray(v).tolist() for k, v in forms_json(V, F).items()}
         rebuilt = http.post("/v1/reconstruct", json=forms).json()
     assert rigid_error(rebuilt["vertices"], V) < 1e-7
+
+
+def _mean_length_ratio(doc: dict, edges: np.ndarray, target: np.ndarray) -> float:
+    X = np.asarray(doc["vertices"])
+    return float(np.linalg.norm(X[edges[:, 1]] - X[edges[:, 0]], axis=1).mean()
+                 / target.mean())
+
+
+def test_refine_option_over_http_on_non_integrable_forms(live_server):
+    V, F = load("decimated-knight.off")
+    forms = solver.fundamental_forms(V, F)
+    body = {**forms.to_dict(), "angles": (forms.angles * 0.8).tolist()}  # not integrable
+    with httpx.Client(base_url=live_server, timeout=120) as http:
+        default = http.post("/v1/reconstruct", json=body)
+        linear = http.post("/v1/reconstruct", json={**body, "options": {"refine": False}})
+    assert default.status_code == 200 and linear.status_code == 200, (default.text,
+                                                                      linear.text)
+    refined, plain = default.json(), linear.json()
+    assert refined["report"]["refinement"]["refined"] is True
+    assert plain["report"]["refinement"]["refined"] is False
+    kept = _mean_length_ratio(refined, forms.edges, forms.lengths)
+    shrunk = _mean_length_ratio(plain, forms.edges, forms.lengths)
+    assert abs(kept - 1) < 0.02, kept  # the nearest surface keeps the lengths
+    assert shrunk < 0.9, shrunk  # the linear answer of Eq. 5 shrinks bent forms

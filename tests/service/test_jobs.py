@@ -50,7 +50,7 @@ def test_job_lifecycle_json_and_glb(client):
     assert location == f"/v1/jobs/{first['id']}" == first["links"]["self"]
     assert first["status"] in ("queued", "running")
     assert list(first["progress"]["stages"]) == ["validate", "assemble", "factorize", "solve",
-                                                 "encode"]
+                                                 "refine", "encode"]
     final, seen = wait_job(client, location)
     assert final["status"] == "succeeded", final
     assert final["progress"]["fraction"] == 1.0

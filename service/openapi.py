@@ -16,7 +16,14 @@ from pydantic import BaseModel
 from pydantic.json_schema import models_json_schema
 
 from service.problems import PROBLEM_MEDIA_TYPE
-from service.schemas import PARAMS_MODELS, REQUEST_MODELS, JobRequest, Problem
+from service.schemas import (
+    PARAMS_MODELS,
+    REQUEST_MODELS,
+    JobRequest,
+    Problem,
+    SessionDrag,
+    SessionRequest,
+)
 
 REF = "#/components/schemas/{model}"
 ERROR_DESCRIPTIONS: dict[int, str] = {
@@ -50,30 +57,39 @@ def _example(model: type[BaseModel]) -> Any:
 
 def multipart_schema(operation: str, file_fields: tuple[str, ...],
                      extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Schema of the multipart form: the mesh file(s) plus JSON-encoded parameter fields."""
+    """Schema of the multipart form: the mesh file(s) plus the parameter fields, each
+    documented with its real schema (they are parsed as JSON; see :func:`form_encoding`)."""
     params = PARAMS_MODELS[operation]
     properties: dict[str, Any] = dict(extra or {})
     for name in file_fields:
         properties[name] = {"type": "string", "format": "binary",
                             "description": "Mesh file: OBJ, PLY, OFF, STL or GLB (vertex order "
                                            "and faces are kept as in the file)."}
+    field_schemas = params_schema(params)["properties"]
     for name, info in params.model_fields.items():
-        properties[name] = {"type": "string",
-                            "description": f"JSON-encoded `{name}`"
+        properties[name] = {**field_schemas[name],
+                            "description": f"`{name}` as JSON (a form value such as "
+                                           f"`{{\"a\": 1}}`, `[1, 2]` or `0.5`)"
                                            + (f": {info.description}" if info.description
                                               else "") + "."}
     required = [*file_fields, *(n for n, f in params.model_fields.items() if f.is_required())]
     example = {name: f"<{name}.off>" for name in file_fields}
     sample = _example(params) or {}
-    example.update({k: _to_form_value(v) for k, v in sample.items()})
+    example.update(sample)  # JSON parts (form_encoding): the values themselves
     return {"type": "object", "properties": properties, "required": required,
             "examples": [example]}
 
 
-def _to_form_value(value: Any) -> str:
-    import json
+def params_schema(model: type[BaseModel]) -> dict[str, Any]:
+    """JSON schema of a params model with references into ``components/schemas``."""
+    _, defs = models_json_schema([(model, "validation")], ref_template=REF)
+    return defs["$defs"][model.__name__]
 
-    return json.dumps(value)
+
+def form_encoding(operation: str) -> dict[str, Any]:
+    """The multipart ``encoding``: every parameter field is an ``application/json`` part."""
+    return {name: {"contentType": "application/json"}
+            for name in PARAMS_MODELS[operation].model_fields}
 
 
 def operation_body(operation: str, file_fields: tuple[str, ...]) -> dict[str, Any]:
@@ -82,7 +98,8 @@ def operation_body(operation: str, file_fields: tuple[str, ...]) -> dict[str, An
     return {"requestBody": {"required": True, "content": {
         "application/json": {"schema": {"$ref": REF.format(model=model.__name__)},
                              "example": _example(model)},
-        "multipart/form-data": {"schema": multipart_schema(operation, file_fields)},
+        "multipart/form-data": {"schema": multipart_schema(operation, file_fields),
+                                "encoding": form_encoding(operation)},
     }}}
 
 
@@ -97,11 +114,11 @@ def jobs_body() -> dict[str, Any]:
                   "file_a": {"type": "string", "format": "binary"},
                   "file_b": {"type": "string", "format": "binary"},
               },
-              "additionalProperties": {"type": "string",
-                                       "description": "Other JSON-encoded parameters of the "
-                                                      "operation (options, handles, t, ...)."},
+              "additionalProperties": {"description": "The operation's other parameters "
+                                                      "(options, handles, t, ...), each a "
+                                                      "JSON form value."},
               "examples": [{"operation": "reconstruct", "file": "<face.off>",
-                            "options": '{"orthonormalize": true}'}]}
+                            "options": {"orthonormalize": True}}]}
     return {"requestBody": {"required": True, "content": {
         "application/json": {"schema": {"$ref": REF.format(model=JobRequest.__name__)},
                              "example": _example(JobRequest)},
@@ -109,7 +126,9 @@ def jobs_body() -> dict[str, Any]:
     }}}
 
 
-EXTRA_MODELS: tuple[type[BaseModel], ...] = (*REQUEST_MODELS.values(), JobRequest, Problem)
+EXTRA_MODELS: tuple[type[BaseModel], ...] = (*REQUEST_MODELS.values(), JobRequest, Problem,
+                                              SessionRequest, SessionDrag)
+"""Models referenced by hand-written request bodies: every ``$ref`` must resolve."""
 
 
 def build(app: FastAPI) -> dict[str, Any]:

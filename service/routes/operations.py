@@ -6,7 +6,7 @@ in the negotiated format (JSON, GLB or glTF for mesh results).
 from __future__ import annotations
 
 from collections.abc import Awaitable, Callable
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Request
 from starlette.responses import Response
@@ -29,9 +29,21 @@ from service.tasks import COLOR_FIELDS, MESH_OPERATIONS
 router = APIRouter(tags=["operations"])
 
 ColorQuery = Annotated[ColorField | None, Query(
-    description="Add a per-vertex colour ramp of this field: `defect` (reconstruct: the "
-                "integrability defect) or `distortion` (deform). glTF gets COLOR_0, JSON a "
-                "`colors` array.")]
+    description="Add a per-vertex colour ramp of this field (a job precomputed with `color`): "
+                "`defect` (reconstruct: the integrability defect) or `distortion` (deform). "
+                "glTF gets COLOR_0, JSON a `colors` array.")]
+_COLOR_MEANING = {"defect": "the integrability defect of each vertex",
+                  "distortion": "the distortion of the forms at each vertex"}
+
+
+def _color_query(operation: str) -> Any:
+    """The ``?color=`` parameter of an operation that offers colours: only its fields."""
+    offered = COLOR_FIELDS[operation]
+    meaning = "; ".join(f"`{c}`: {_COLOR_MEANING[c]}" for c in offered)
+    return Annotated[Literal[offered] | None, Query(  # type: ignore[valid-type]
+        description=f"Add a per-vertex colour ramp ({meaning}). glTF gets COLOR_0, JSON a "
+                    "`colors` array.")]
+
 
 _GLTF_CONTENT = {
     "model/gltf-binary": {"schema": {"type": "string", "format": "binary"}},
@@ -95,14 +107,25 @@ def check_color(operation: str, color: str | None) -> None:
 
 
 def _endpoint(operation: str) -> Callable[..., Awaitable[Response]]:
+    """The route function; ``?color=`` is a documented parameter only where it works (an
+    undocumented ``color`` elsewhere is still refused with 422 unsupported-color)."""
     formats = MESH_FORMATS if operation in MESH_OPERATIONS else JSON_ONLY
 
-    async def endpoint(request: Request, color: ColorQuery = None) -> Response:
+    async def run(request: Request, color: str | None) -> Response:
         fmt = negotiate(request.headers.get("accept"), formats)
         check_color(operation, color)
         payload = await parse_operation(request, operation, request.app.state.settings)
         payload["output"] = {"format": fmt, "color": color, "compute": [], "keep": False}
         return result_response(await run_task(request, operation, payload))
+
+    if operation in COLOR_FIELDS:
+        async def endpoint(request: Request, color: Any = None) -> Response:
+            return await run(request, color)
+
+        endpoint.__annotations__["color"] = _color_query(operation)
+    else:
+        async def endpoint(request: Request) -> Response:
+            return await run(request, request.query_params.get("color"))
 
     endpoint.__name__ = f"{operation}_endpoint"
     return endpoint

@@ -181,8 +181,9 @@ def test_not_acceptable_is_406(client):
 
 
 def test_colors(client):
-    problem(client.post("/v1/reconstruct", params={"color": "distortion"}, json=EXAMPLE_FORMS),
-            422, "unsupported-color")
+    doc = problem(client.post("/v1/reconstruct", params={"color": "distortion"},
+                              json=EXAMPLE_FORMS), 422, "validation-error")
+    assert doc["errors"][0]["field"] == "query.color" and "defect" in doc["errors"][0]["reason"]
     problem(client.post("/v1/forms", params={"color": "defect"}, json=EXAMPLE_MESH),
             422, "unsupported-color")
     doc = problem(client.post("/v1/reconstruct", params={"color": "rainbow"},

@@ -58,3 +58,59 @@ def test_docs_page_and_served_document(client):
                       "interpolate"):
         content = served["paths"][f"/v1/{operation}"]["post"]["requestBody"]["content"]
         assert set(content) == {"application/json", "multipart/form-data"}
+
+
+def _document() -> dict:
+    return json.loads((REPO / "openapi" / "openapi.json").read_text(encoding="utf-8"))
+
+
+def _refs(node):
+    if isinstance(node, dict):
+        for key, value in node.items():
+            if key == "$ref":
+                yield value
+            else:
+                yield from _refs(value)
+    elif isinstance(node, list):
+        for value in node:
+            yield from _refs(value)
+
+
+def test_every_reference_resolves():
+    doc = _document()
+    refs = set(_refs(doc))
+    assert "#/components/schemas/SessionRequest" in refs
+    assert "#/components/schemas/SessionDrag" in refs
+    prefix = "#/components/schemas/"
+    dangling = sorted(r for r in refs
+                      if not r.startswith(prefix) or r[len(prefix):] not in
+                      doc["components"]["schemas"])
+    assert not dangling, dangling
+
+
+def test_color_is_documented_only_where_it_works():
+    from service.tasks import COLOR_FIELDS
+
+    doc = _document()
+    for operation in ("forms", "integrability", "reconstruct", "deform", "parameterize",
+                      "interpolate", "mesh"):
+        params = {p["name"]: p for p in
+                  doc["paths"][f"/v1/{operation}"]["post"].get("parameters", [])}
+        if operation not in COLOR_FIELDS:
+            assert "color" not in params, operation
+            continue
+        options = {s.get("const") for s in params["color"]["schema"]["anyOf"]} - {None}
+        assert options == set(COLOR_FIELDS[operation]), (operation, options)
+
+
+def test_multipart_parameter_fields_are_documented_as_json():
+    from service.schemas import PARAMS_MODELS
+
+    doc = _document()
+    for operation, model in PARAMS_MODELS.items():
+        form = doc["paths"][f"/v1/{operation}"]["post"]["requestBody"]["content"][
+            "multipart/form-data"]
+        assert set(form["encoding"]) == set(model.model_fields), operation
+        for name in model.model_fields:
+            assert form["encoding"][name]["contentType"] == "application/json"
+            assert form["schema"]["properties"][name].get("type") != "string", (operation, name)

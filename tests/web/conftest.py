@@ -20,7 +20,15 @@ from typing import Any
 
 import httpx
 import pytest
-from web_helpers import ARTIFACTS, CHROMIUM_ARGS, REPO, VENDOR_MANIFEST, VIEWPORT, chromium_path
+from web_helpers import (
+    ARTIFACTS,
+    CHROMIUM_ARGS,
+    REPO,
+    SMALL_VIEWPORT,
+    VENDOR_MANIFEST,
+    VIEWPORT,
+    chromium_path,
+)
 
 
 def _service_helpers() -> Any:
@@ -90,9 +98,22 @@ class WebPage:
     def shown_errors(self) -> list[dict[str, Any]]:
         return self.page.evaluate("window.app.state.errors")
 
+    def frame(self) -> None:
+        """Wait until the page has rendered a frame after a change."""
+        self.page.evaluate(
+            "new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+
     def screenshot(self, name: str) -> bytes:
+        """Save ``name``-1400x900.png and ``name``-1280x720.png; returns the large one."""
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
-        return self.page.screenshot(path=str(ARTIFACTS / f"{name}.png"))
+        self.frame()
+        png = self.page.screenshot(path=str(ARTIFACTS / f"{name}-1400x900.png"))
+        self.page.set_viewport_size(SMALL_VIEWPORT)
+        self.frame()
+        self.page.screenshot(path=str(ARTIFACTS / f"{name}-1280x720.png"))
+        self.page.set_viewport_size(VIEWPORT)
+        self.frame()
+        return png
 
 
 def _session_count(base: str) -> int | None:

@@ -66,6 +66,9 @@ def test_upload_mesh_and_defect_map(web):
     page.set_input_files("#mesh-file", str(REPO_DATA / "decimated-knight.off"))
     page.wait_for_function("window.app.state.name === 'decimated-knight.off'")
     web.idle()
+    assert web.app("app.state.colorMode") == "plain"  # exact forms: nothing to colour
+    assert page.locator("#integrability-summary").inner_text().startswith("Forms are exact")
+    page.click("#show-defect")
     assert web.app("app.state.colorMode") == "defect"
 
     data = (REPO_DATA / "decimated-knight.off").read_bytes()
@@ -75,6 +78,7 @@ def test_upload_mesh_and_defect_map(web):
                                             "faces": mesh["faces"]}).json()
         report = api.post("/v1/integrability", json=forms).json()
     np.testing.assert_array_equal(_vertices(web), np.asarray(mesh["vertices"]))
+    page.click("#integrability-details summary")
     stats = page.locator("#integrability-stats").inner_text()
     assert f"Max defect\n{report['max_defect']:.2e}" in stats, stats
     assert "Integrable" in stats and "yes" in stats
@@ -83,13 +87,13 @@ def test_upload_mesh_and_defect_map(web):
     # The colours follow the per-vertex defect (viridis: brighter = larger).
     for part, label in (("vertex_defect", "Total"), ("gauss_defect", "Gauss"),
                         ("codazzi_defect", "Codazzi")):
-        page.locator("#panel-integrability label", has_text=label).click()
+        page.locator("#panel-mesh .segmented label", has_text=label).click()
         assert page.locator("#legend-title").inner_text().startswith(f"{label} defect")
         values = np.asarray(report[part])
         lum = _luminance(web.app("app.colors()"))
         positive = values > 0
         assert _spearman(np.log10(values[positive]), lum[positive]) > 0.99, part
-    page.locator("#panel-integrability label", has_text="Total").click()
+    page.locator("#panel-mesh .segmented label", has_text="Total").click()
     png = web.screenshot("01-defect-map")
     assert_not_blank(png)
     assert_not_blank(_canvas_png(web))
@@ -157,7 +161,7 @@ def test_deform_with_mouse_and_gizmo(web):
     web.idle()
     assert web.app("app.state.handles.length") == 2
     assert "WebSocket" in web.app("app.state.transport.label")
-    assert "WebSocket" in page.locator("#transport").inner_text()
+    assert page.locator("#transport").inner_text().startswith("Live:")
 
     # A real drag of the active handle's gizmo (its centre moves in the view plane).
     pivot = web.app("app.pivotScreen()")
@@ -254,6 +258,7 @@ def test_flatten_with_progress_and_download_glb(web, tmp_path):
     from gltf_validator import validate_gltf
 
     page = web.open()
+    page.keyboard.press("3")  # the Flatten tab
     page.evaluate("""() => { window.__progress = [];
         new MutationObserver(() => window.__progress.push(
             document.getElementById('progress-label').textContent))
@@ -286,6 +291,7 @@ def test_flatten_with_progress_and_download_glb(web, tmp_path):
     web.app("app.makeHandle([0])")
     web.app("app.makeHandle([600])")
     web.app("app.dragHandle(0, 0, 10)")
+    page.click("#tab-mesh")
     with page.expect_download() as info:
         page.click("#download-glb")
     download = info.value
@@ -331,7 +337,8 @@ def test_reconstruct_from_forms_file(web, tmp_path):
     assert "no" in stats and f"{report['max_defect']:.3g}" in stats, stats
     loops = report["global_holonomy"]["rotation"] + report["global_holonomy"]["translation"]
     assert f"{sum(g['passes'] for g in loops)} / {len(loops)} pass" in stats  # genus 1
-    assert "Reconstructed" in page.locator("#forms-stats").inner_text()
+    assert "Rebuilt" in page.locator("#forms-stats").inner_text()
+    assert web.app("app.state.tab") == "forms"
     assert web.app("app.state.colorMode") == "defect"
     png = web.screenshot("04-forms")
     assert_not_blank(png)
@@ -354,11 +361,13 @@ def test_api_errors_are_shown(web, tmp_path):
     assert "415" in toast.inner_text() and "not a supported mesh file" in toast.inner_text()
     assert web.app("app.state.name") == "face.off"  # the open mesh is kept
 
-    # A closed mesh cannot be flattened: the failed job's problem document is shown.
+    # A closed mesh cannot be flattened: the button is off, and the service's answer to the
+    # request anyway (programmatic) is shown.
     page.select_option("#sample-select", "decimated-knight.off")
     page.wait_for_function("window.app.state.name === 'decimated-knight.off'")
     web.idle()
-    page.click("#flatten")
+    assert page.locator("#flatten").is_disabled()
+    web.app("app.flatten()")
     page.wait_for_function("window.app.state.errors.length >= 2")
     web.idle()
     text = page.locator(".toast").first.inner_text()

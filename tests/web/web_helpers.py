@@ -18,7 +18,8 @@ CHROMIUM_ARGS = [
     "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
     "--disable-dev-shm-usage", "--hide-scrollbars", "--force-color-profile=srgb",
 ]
-VIEWPORT = {"width": 1440, "height": 900}
+VIEWPORT = {"width": 1400, "height": 900}
+SMALL_VIEWPORT = {"width": 1280, "height": 720}
 
 
 def chromium_path() -> str:

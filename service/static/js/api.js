@@ -87,8 +87,10 @@ export async function meshGlb(vertices, faces) {
 export async function capabilities() {
   const doc = await getJson("/openapi.json");
   const paths = doc.paths || {};
+  const reconstructOptions = doc.components?.schemas?.ReconstructOptions?.properties || {};
   return {
     sessions: "/v1/sessions" in paths,
+    refine: "refine" in reconstructOptions,
     sessionSolve: Object.keys(paths).some((p) => /^\/v1\/sessions\/\{[^}]+\}\/solve$/.test(p)),
     version: doc.info?.version,
   };
@@ -142,7 +144,11 @@ export function describe(err) {
       const pointer = e.field ? (e.index ?? null) !== null ? `${e.field}[${e.index}]` : e.field
         : "";
       return pointer ? `${pointer}: ${e.reason}` : e.reason;
-    }).filter((item) => !(p.detail || "").includes(item));  // no echo of the detail
+    }).filter((item, k) => {
+      // No echo of the detail: the same text, or another wording about the same field.
+      const detail = p.detail || "", pointer = item.split(":")[0];
+      return !detail.includes(item) && !(errors[k].field && detail.startsWith(`${pointer}:`));
+    });
     if (errors.length > 4) items.push(`… and ${errors.length - 4} more`);
     return { title: `${status}${p.title || "Error"}`, detail: p.detail || "", items,
       kind: p.kind || "", context: err.context };

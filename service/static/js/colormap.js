@@ -24,8 +24,12 @@ function toLinear(c) {
 /**
  * Scale of a scalar field: linear over [0, max], or log10 over [min positive, max] for values
  * that span orders of magnitude (integrability defects).
+ *   floor: the linear ramp never ends below it, so round-off (a shape back at rest, float32
+ *          vertices) stays at the dark end instead of being stretched over the whole ramp;
+ *          `quiet` says that every value is below it.
+ *   min, max: fixed ends of a log ramp (exact forms: round-off up to the tolerance).
  */
-export function scaleFor(values, { log = false, clip = 0.98 } = {}) {
+export function scaleFor(values, { log = false, clip = 0.98, floor = 0, min, max: top } = {}) {
   let max = 0, minPositive = Infinity;
   for (const v of values) {
     const a = Math.abs(v);
@@ -36,13 +40,16 @@ export function scaleFor(values, { log = false, clip = 0.98 } = {}) {
     // A few extreme values (a dragged spike) would leave the rest of the map one colour:
     // the ramp ends at the `clip` quantile and the legend says "≥".
     const sorted = Float64Array.from(values, Math.abs).sort();
-    const top = sorted.length ? sorted[Math.min(sorted.length - 1, Math.floor(clip * sorted.length))] : 0;
-    return top > 0 && top < max ? { log: false, min: 0, max: top, clipped: true }
-      : { log: false, min: 0, max: max || 1, clipped: false };
+    const q = sorted.length ? sorted[Math.min(sorted.length - 1, Math.floor(clip * sorted.length))] : 0;
+    if (max <= floor) return { log: false, min: 0, max: floor || 1, clipped: false, quiet: true };
+    const end = Math.max(q, floor);
+    return end > 0 && end < max ? { log: false, min: 0, max: end, clipped: true, quiet: false }
+      : { log: false, min: 0, max, clipped: false, quiet: false };
   }
+  if (min !== undefined && top !== undefined) return { log: true, min, max: top, clipped: max > top };
   if (!(max > 0)) return { log: true, min: 1e-17, max: 1e-16 };
-  const lo = Math.max(minPositive, max * 1e-8);
-  return { log: true, min: lo, max: lo === max ? max * 10 : max };
+  const lo = Math.max(minPositive, max * 1e-8, min ?? 0);
+  return { log: true, min: lo, max: lo >= max ? lo * 10 : max };
 }
 
 export function normalized(value, scale) {

@@ -1,6 +1,7 @@
-// The page: state, panels, interaction, and `window.app` (a small programmatic API that the
-// browser tests use next to real mouse input). Everything the page knows comes from the
-// service's public HTTP API; errors are shown as toasts with the problem document's text.
+// The page: state, tabs, panels, interaction, undo/redo, and `window.app` (a small
+// programmatic API that the browser tests use next to real mouse input). Everything the page
+// knows comes from the service's public HTTP API; errors are shown as toasts with the problem
+// document's text (they close by themselves and an identical one is not repeated).
 
 import * as THREE from "three";
 import * as api from "./api.js";
@@ -9,11 +10,19 @@ import { DeformTransport, SessionTransport, deformBody } from "./deform.js";
 import {
   bounds, distortion, facesAround, flatten3, forms as meshForms, histogram, rows3, topology,
 } from "./mesh.js";
-import { FlatView, MeshView } from "./viewer.js";
+import { FlatView, MeshView, axisVector } from "./viewer.js";
 
 const $ = (id) => document.getElementById(id);
 const HANDLE_COLORS = [0xe4572e, 0x2e86ab, 0x9c27b0, 0xff9f1c, 0x43aa8b, 0xd81159];
 const DEFECT_LABELS = { vertex_defect: "Total", gauss_defect: "Gauss", codazzi_defect: "Codazzi" };
+const UP_AXES = ["+y", "+z", "+x", "-y", "-z", "-x"];
+const TABS = ["mesh", "deform", "flatten", "forms"];
+// Changes below these are round-off (float32 vertices over the wire): the distortion map
+// stays dark instead of stretching them over the whole ramp.
+const LENGTH_FLOOR = 1e-3;                // 0.1 %
+const ANGLE_FLOOR = (0.1 * Math.PI) / 180; // 0.1°
+const ROUND_OFF = 1e-12;                   // a max defect below this is floating-point noise
+const HISTORY_LIMIT = 50;
 
 const state = {
   name: null,
@@ -40,10 +49,19 @@ const state = {
   solveWanted: false,
   solves: 0,
   lastSolveMs: null,
+  lastApplyMs: null,
   errors: [],
+  up: "+y",
+  upSource: "guess",
+  tab: "mesh",
+  undo: [],
+  redo: [],
+  reconstruction: null, // {refined, linear, report, input, showing}
+  analysisError: null,
 };
 
-let view, flatView, caps = { sessions: false };
+let view, flatView, caps = { sessions: false, refine: false };
+let samples = [];
 const TRANSPORT = new URLSearchParams(location.search).get("transport");
 let handleCounter = 0;
 
@@ -72,6 +90,14 @@ function setStats(id, rows) {
   }
 }
 
+/** A number (or short value) that never breaks across lines. */
+function num(text) {
+  const span = document.createElement("span");
+  span.className = "num";
+  span.textContent = text;
+  return span;
+}
+
 function badge(ok, yes = "yes", no = "no") {
   const span = document.createElement("span");
   span.className = `badge ${ok ? "ok" : "bad"}`;
@@ -87,9 +113,9 @@ function updateStatus() {
   if (!state.vertices) return status("Ready.");
   const parts = [`${state.name}`, `${state.vertices.length / 3} vertices`,
     `${state.faces.length / 3} faces`];
-  if (state.handles.length) parts.push(`${state.handles.length} handle(s)`);
-  if (state.transport) parts.push(state.transport.label);
+  if (state.handles.length) parts.push(`${state.handles.length} handle${state.handles.length > 1 ? "s" : ""}`);
   if (state.lastSolveMs !== null) parts.push(`last update ${state.lastSolveMs.toFixed(0)} ms`);
+  parts.push(`up: ${state.up.replace("+", "")}${{ guess: " (guessed)", sample: " (sample)" }[state.upSource] ?? ""}`);
   status(parts.join(" · "));
 }
 
@@ -110,6 +136,18 @@ function idle() {
   return busy ? new Promise((resolve) => idleWaiters.push(resolve)) : Promise.resolve();
 }
 
+const toastTimers = new WeakMap();
+
+function closeToast(toast) {
+  toast.classList.add("fading");
+  setTimeout(() => toast.remove(), 300);
+}
+
+function scheduleClose(toast) {
+  clearTimeout(toastTimers.get(toast));
+  toastTimers.set(toast, setTimeout(() => closeToast(toast), window.app?.toastMs ?? 8000));
+}
+
 function showError(err) {
   if (err?.name === "AbortError") {
     status("Cancelled.");
@@ -118,12 +156,29 @@ function showError(err) {
   const info = api.describe(err);
   state.errors.push(info);
   console.warn("[ffs]", info.title, info.detail, err);
+  const box = $("toasts");
+  const key = `${info.title}\n${info.detail}`;
+  const same = [...box.children].find((t) => t.dataset.key === key && !t.classList.contains("fading"));
+  if (same) {  // the same message again: count it instead of stacking a copy
+    const count = same.querySelector(".toast-count");
+    const n = Number(same.dataset.count) + 1;
+    same.dataset.count = String(n);
+    count.textContent = `×${n}`;
+    box.prepend(same);
+    scheduleClose(same);
+    return;
+  }
   const toast = document.createElement("div");
   toast.className = "toast";
+  toast.dataset.key = key;
+  toast.dataset.count = "1";
   toast.setAttribute("role", "alert");
   const title = document.createElement("div");
   title.className = "toast-title";
   title.textContent = info.title;
+  const count = document.createElement("span");
+  count.className = "toast-count";
+  title.append(count);
   const detail = document.createElement("div");
   detail.className = "toast-detail";
   detail.textContent = info.detail;
@@ -137,11 +192,15 @@ function showError(err) {
     }
     toast.append(list);
   }
-  if (info.context) {
+  if (info.context) {  // which request failed: for developers, folded away
+    const more = document.createElement("details");
+    const summary = document.createElement("summary");
+    summary.textContent = "Technical details";
     const context = document.createElement("div");
     context.className = "toast-context";
     context.textContent = info.context + (info.kind ? ` · ${info.kind}` : "");
-    toast.append(context);
+    more.append(summary, context);
+    toast.append(more);
   }
   const close = document.createElement("button");
   close.className = "toast-close";
@@ -150,8 +209,10 @@ function showError(err) {
   close.textContent = "×";
   close.addEventListener("click", () => toast.remove());
   toast.append(close);
-  const box = $("toasts");
+  toast.addEventListener("mouseenter", () => clearTimeout(toastTimers.get(toast)));
+  toast.addEventListener("mouseleave", () => scheduleClose(toast));
   box.prepend(toast);
+  scheduleClose(toast);
   while (box.children.length > 4) box.lastChild.remove();
 }
 
@@ -201,12 +262,19 @@ function jobProgress(label) {
 
 // ------------------------------------------------------------------------ colour maps
 
-function setLegend(title, scale, format) {
+function setLegend(title, scale, format, maxNote = "") {
   $("legend").hidden = false;
   $("legend-title").textContent = title;
   $("legend-ramp").style.background = CSS_GRADIENT;
   $("legend-min").textContent = format(scale.log ? scale.min : 0);
-  $("legend-max").textContent = `${scale.clipped ? "≥ " : ""}${format(scale.max)}`;
+  $("legend-max").textContent = `${scale.clipped ? "≥ " : ""}${format(scale.max)}${maxNote}`;
+}
+
+/** Colour scale of the defect: exact forms on a fixed ramp from round-off to the tolerance
+ * (so they stay dark), others from the tolerance up (only what fails lights up). */
+function defectScale(r, values) {
+  return r.integrable ? scaleFor(values, { log: true, min: 1e-17, max: r.tolerance })
+    : scaleFor(values, { log: true, min: r.tolerance });
 }
 
 function refreshColors() {
@@ -215,18 +283,20 @@ function refreshColors() {
   $("color-mode").value = mode;
   view.setTexture(mode === "checker" && state.flat ? state.flat.texcoords : null);
   if (mode === "defect" && state.integrability) {
-    const values = state.integrability[state.defectPart];
-    const scale = scaleFor(values, { log: true });
+    const r = state.integrability;
+    const values = r[state.defectPart];
+    const scale = defectScale(r, values);
     view.setColors(vertexColors(values, scale));
-    setLegend(`${DEFECT_LABELS[state.defectPart]} defect per vertex (rad, log scale)`, scale,
-      (x) => fmt(x, 2));
+    setLegend(`${DEFECT_LABELS[state.defectPart]} defect per vertex (rad, log scale)`
+      + (r.integrable ? ": all below the tolerance" : ""), scale, (x) => fmt(x, 2),
+    r.integrable ? " (tolerance)" : "");
   } else if (mode === "distortion" && state.distortion) {
     const length = state.distortionKind === "length";
     const values = length ? state.distortion.vertexLength : state.distortion.vertexAngle;
-    const scale = scaleFor(values);
+    const scale = scaleFor(values, { floor: length ? LENGTH_FLOOR : ANGLE_FLOOR });
     view.setColors(vertexColors(values, scale));
-    setLegend(length ? "Edge-length change (max per vertex)" : "Dihedral-angle change (max per vertex)",
-      scale, length ? pct : deg);
+    setLegend((length ? "Edge-length change (max per vertex)" : "Dihedral-angle change (max per vertex)")
+      + (scale.quiet ? ": none" : ""), scale, length ? pct : deg);
   } else if (mode === "checker" && state.flat) {
     view.setColors(uniformColors(state.vertices.length / 3, [255, 255, 255]));
     $("legend").hidden = true;
@@ -251,6 +321,33 @@ function enableColorOptions() {
   }
 }
 
+// ----------------------------------------------------------------------- tabs, view
+
+function showTab(name) {
+  state.tab = name;
+  for (const tab of TABS) {
+    $(`tab-${tab}`).setAttribute("aria-selected", String(tab === name));
+    $(`panel-${tab}`).hidden = tab !== name;
+  }
+}
+
+/** The up axis of a mesh: the sample's known orientation, else a guess from the bounding
+ * box (Z when the mesh is clearly taller in Z than in Y, as scans and CAD files are; Y,
+ * the OBJ/glTF convention, otherwise). */
+function guessUp(vertices, sampleUp) {
+  if (sampleUp) return { up: sampleUp, source: "sample" };
+  const { min, max } = bounds(vertices);
+  return { up: max[2] - min[2] > 1.15 * (max[1] - min[1]) ? "+z" : "+y", source: "guess" };
+}
+
+function setUp(up, source = "user") {
+  state.up = up;
+  state.upSource = source;
+  $("up-axis").value = up;
+  view.setUp(axisVector(up));
+  updateStatus();
+}
+
 // ---------------------------------------------------------------------------- loading
 
 function meanEdgeLength(vertices, edges) {
@@ -270,10 +367,11 @@ function renderMeshStats() {
   const { min, max } = bounds(state.vertices);
   const boundary = state.boundaryEdges;
   setStats("mesh-stats", [
-    ["Vertices", n.toLocaleString("en")], ["Faces", m.toLocaleString("en")],
-    ["Edges", `${E.toLocaleString("en")}${boundary ? ` (${boundary} on the boundary)` : ""}`],
-    ["Size", max.map((x, k) => fmt(x - min[k])).join(" × ")],
-    ["Mean edge", fmt(state.meanEdge)],
+    ["Vertices · faces", num(`${n.toLocaleString("en")} · ${m.toLocaleString("en")}`)],
+    ["Edges", num(`${E.toLocaleString("en")}${boundary ? ` (${boundary.toLocaleString("en")} on the boundary)`
+      : " (closed)"}`)],
+    ["Size", num(max.map((x, k) => fmt(x - min[k])).join(" × "))],
+    ["Mean edge", num(fmt(state.meanEdge))],
   ]);
 }
 
@@ -285,7 +383,8 @@ async function openMesh(mesh, name, source, extra = {}) {
   Object.assign(state, {
     name, source, vertices: flatten3(mesh.vertices), faces: flatten3(mesh.faces, Uint32Array),
     handles: [], active: null, selection: [], deformed: false, distortion: null, flat: null,
-    integrability: null, forms: null, lastSolveMs: null, solves: 0,
+    integrability: null, forms: null, lastSolveMs: null, solves: 0, undo: [], redo: [],
+    analysisError: null, reconstruction: extra.reconstruction ?? null,
   });
   const n = state.vertices.length / 3;
   state.topo = topology(state.faces, n);
@@ -297,7 +396,12 @@ async function openMesh(mesh, name, source, extra = {}) {
     if (state.topo.right[e] < 0 || state.topo.left[e] < 0) state.boundaryEdges++;
   }
   state.closed = state.boundaryEdges === 0;
-  view.markerRadius = 0.5 * state.meanEdge;
+  const { up, source: upSource } = extra.up ? { up: extra.up, source: "user" }
+    : guessUp(state.vertices, extra.sampleUp);
+  state.up = up;
+  state.upSource = upSource;
+  $("up-axis").value = up;
+  view.setUp(axisVector(up), { refit: false });
   view.setMesh(state.vertices, state.faces, state.topo.edges);
   $("empty-state").hidden = true;
   $("mesh-title").textContent = `${name}${source === "sample" ? " (sample)" : ""}`;
@@ -306,59 +410,106 @@ async function openMesh(mesh, name, source, extra = {}) {
   renderMeshStats();
   renderHandles();
   renderDistortion();
+  renderReconstruction();
   setStats("flatten-stats", []);
-  for (const id of ["download-glb", "flatten", "bend-forms"]) $(id).disabled = false;
+  $("download-glb").disabled = false;
+  $("flatten").disabled = state.closed;
+  $("flatten-note").textContent = state.closed
+    ? "This mesh is closed: a flat layout needs a boundary. Open a mesh with a hole (the Face "
+      + "sample is a disk)." : "";
+  $("bend-forms").disabled = true;  // until the forms are known
   state.colorMode = "plain";
   enableColorOptions();
+  renderIntegrability();  // "computing…": never the previous mesh's report
   refreshColors();
   updateStatus();
   await analyze(extra);
 }
 
 async function analyze({ forms, integrability } = {}) {
-  await withProgress("Integrability report…", async () => {
-    const body = { vertices: rows3(state.vertices), faces: rows3(state.faces) };
-    state.forms = forms ?? await api.postJson("/v1/forms", body);
-    state.integrability = integrability ?? await api.postJson("/v1/integrability", state.forms);
-  });
+  try {
+    await withProgress("Integrability report…", async () => {
+      const body = { vertices: rows3(state.vertices), faces: rows3(state.faces) };
+      state.forms = forms ?? await api.postJson("/v1/forms", body);
+      state.integrability = integrability ?? await api.postJson("/v1/integrability", state.forms);
+    });
+  } catch (err) {
+    state.forms = state.integrability = null;
+    state.analysisError = err?.name === "AbortError" ? null : api.describe(err);
+    renderIntegrability();
+    throw err;
+  }
   renderIntegrability();
   enableColorOptions();
-  setColorMode("defect");
+  $("bend-forms").disabled = false;
+  // Colours only where there is something to see: exact forms are plain.
+  setColorMode(state.integrability.integrable ? "plain" : "defect");
+}
+
+function integrabilityVerdict(r) {
+  const loops = [...r.global_holonomy.rotation, ...r.global_holonomy.translation];
+  const failingLoops = loops.filter((l) => !l.passes).length;
+  if (r.integrable && r.max_defect < ROUND_OFF) {
+    return [true, `Forms are exact (defect ${fmt(r.max_defect, 2)}, round-off).`];
+  }
+  if (r.integrable) {
+    return [true, `Forms are integrable (max defect ${fmt(r.max_defect, 2)}, below the `
+      + `tolerance ${fmt(r.tolerance, 1)}).`];
+  }
+  const parts = [];
+  if (r.failing_vertices.length) parts.push(`${r.failing_vertices.length} vertices`);
+  if (failingLoops) parts.push(`${failingLoops} global loop${failingLoops > 1 ? "s" : ""}`);
+  return [false, `Not integrable: max defect ${fmt(r.max_defect, 2)}`
+    + (parts.length ? ` (${parts.join(" and ")} above the tolerance).` : ".")];
 }
 
 function renderIntegrability() {
   const r = state.integrability;
+  const verdict = $("integrability-summary");
+  $("show-defect").disabled = !r;
   if (!r) {
-    setStats("integrability-stats", [["Report", "–"]]);
+    const failed = state.analysisError;
+    verdict.className = failed ? "verdict bad" : "verdict";
+    verdict.textContent = !state.vertices ? "Open a mesh to see whether its forms are integrable."
+      : failed ? `No report: the service refused this mesh (${failed.title}).`
+        : "Computing the integrability report…";
+    setStats("integrability-stats", [["Report", failed ? failed.detail : "–", "wrap"]]);
+    $("integrability-note").textContent = "";
     return;
   }
+  const [ok, text] = integrabilityVerdict(r);
+  verdict.className = `verdict ${ok ? "ok" : "bad"}`;
+  verdict.textContent = text;
   const maxOf = (values) => values.reduce((a, b) => Math.max(a, Math.abs(b)), 0);
   const topo = r.topology;
   const loops = [...r.global_holonomy.rotation, ...r.global_holonomy.translation];
-  const worst = r.worst_vertices.slice(0, 3)
-    .map((v) => `v${v}: ${fmt(r[state.defectPart][v], 2)}`).join(", ");
+  const worst = document.createDocumentFragment();
+  r.worst_vertices.slice(0, 3).forEach((v, k) => {
+    if (k) worst.append(" ");
+    worst.append(num(`v${v}: ${fmt(r[state.defectPart][v], 2)}`));
+  });
   const parts = Object.entries(DEFECT_LABELS).map(([key, label]) => [
-    `${label} vertex defect (max)`, fmt(maxOf(r[key]), 3),
+    `${label} vertex defect (max)`, num(fmt(maxOf(r[key]), 3)),
     key === state.defectPart ? "selected" : ""]);
   const worstLoop = loops.reduce((a, l) => Math.max(a, l.magnitude), 0);
   setStats("integrability-stats", [
     ["Integrable", badge(r.integrable)],
-    ["Max defect", fmt(r.max_defect, 3)],
+    ["Max defect", num(fmt(r.max_defect, 3))],
     ...parts,
-    ["Tolerance", fmt(r.tolerance)],
-    ["Failing vertices", String(r.failing_vertices.length)],
-    ["Triangle violations", String(r.triangle_violations.length)],
-    ["Components · genus", `${topo.n_components} · ${topo.genus}`],
-    ["Boundary loops", String(topo.boundary_loops.length)],
-    ["Global loops", loops.length ? `${loops.filter((l) => l.passes).length} / ${loops.length} pass`
-      + (worstLoop > r.tolerance ? ` (max ${fmt(worstLoop, 3)})` : "") : "none"],
-    ["Worst", worst || "–"],
+    ["Tolerance", num(fmt(r.tolerance))],
+    ["Failing vertices", num(String(r.failing_vertices.length))],
+    ["Triangle violations", num(String(r.triangle_violations.length))],
+    ["Components · genus", num(`${topo.n_components} · ${topo.genus}`)],
+    ["Boundary loops", num(String(topo.boundary_loops.length))],
+    ["Global loops", num(loops.length ? `${loops.filter((l) => l.passes).length} / ${loops.length} pass`
+      + (worstLoop > r.tolerance ? ` (max ${fmt(worstLoop, 3)})` : "") : "none")],
+    ["Worst", r.worst_vertices.length ? worst : "–", "wrap"],
   ]);
   $("integrability-note").textContent = r.integrable
-    ? "Every defect is below the tolerance: the colours show round-off only. Reconstruct with "
-      + "angles × 0.8 (below) to see a non-integrable set."
-    : "Not integrable: no surface has exactly these forms; the reconstruction is the "
-      + "least-squares compromise.";
+    ? "A surface with exactly these edge lengths and angles exists (this one), so there is "
+      + "nothing to colour. To see forms that do not fit, open Rebuild (4) and scale the angles."
+    : "No surface has exactly these forms: the colours show where they fail, and a "
+      + "reconstruction is the closest compromise.";
 }
 
 async function fetchBlob(path) {
@@ -372,7 +523,7 @@ async function loadSample(file) {
     return api.readMeshFile(blob, file);
   });
   $("sample-select").value = file;
-  await openMesh(mesh, file, "sample");
+  await openMesh(mesh, file, "sample", { sampleUp: samples.find((s) => s.file === file)?.up });
 }
 
 async function openUpload(file) {
@@ -385,6 +536,12 @@ async function openUpload(file) {
 
 const FORM_KEYS = ["faces", "edges", "lengths", "angles"];
 
+function reconstructInput(input, refine) {
+  // options.refine: null (the default) refines when the linear answer needs it; false asks
+  // for the linear least-squares answer. Sent only to servers that know the option.
+  return refine === undefined || !caps.refine ? input : { ...input, options: { refine } };
+}
+
 async function reconstructForms(doc, name, source = name) {
   if (!doc || typeof doc !== "object" || Array.isArray(doc)) {
     throw new api.ApiError({ title: "Not a forms document",
@@ -396,22 +553,97 @@ async function reconstructForms(doc, name, source = name) {
       detail: `${source}: missing ${missing.join(", ")}; upload the output of POST /v1/forms` });
   }
   const input = Object.fromEntries(FORM_KEYS.map((k) => [k, doc[k]]));
-  const { integrability, result } = await withProgress("Reconstructing…", async (signal) => {
+  const { integrability, result } = await withProgress("Rebuilding the surface…", async (signal) => {
     const report = await api.postJson("/v1/integrability", input, { signal });
-    const mesh = await api.runJob("reconstruct", input, { signal,
-      onProgress: jobProgress("Reconstruct") });
+    const mesh = await api.runJob("reconstruct", reconstructInput(input), { signal,
+      onProgress: jobProgress("Rebuild") });
     return { integrability: report, result: mesh };
   }, { cancellable: true });
-  await openMesh(result, name, "reconstruction", { forms: input, integrability });
-  const r = result.report;
-  setStats("forms-stats", [
-    ["Reconstructed", `${result.vertices.length} vertices`],
-    ["Integrable", badge(integrability.integrable)],
-    ["Max defect", fmt(integrability.max_defect)],
-    ["Backend", r.backend ?? "–"],
-    ["Solve time", r.timings ? `${(1000 * Object.values(r.timings)
-      .reduce((a, b) => a + b, 0)).toFixed(0)} ms` : "–"],
-  ]);
+  const refinement = result.report?.refinement ?? null;
+  const reconstruction = { input, report: result.report, refinement, integrability,
+    refined: refinement?.refined ? result.vertices : null,
+    linear: refinement?.refined ? null : result.vertices, showing: refinement?.refined ? "refined" : "linear" };
+  await openMesh(result, name, "reconstruction", { forms: input, integrability, reconstruction });
+  showTab("forms");
+}
+
+/** Show the refined or the linear reconstruction (fetched the first time it is asked for). */
+async function showAnswer(which) {
+  const rec = state.reconstruction;
+  if (!rec || rec.showing === which) return;
+  if (which === "linear" && !rec.linear) {
+    const result = await withProgress("Linear answer…", (signal) => api.runJob("reconstruct",
+      reconstructInput(rec.input, false), { signal, onProgress: jobProgress("Linear") }),
+    { cancellable: true });
+    rec.linear = result.vertices;
+  }
+  rec.showing = which;
+  const vertices = flatten3(rec[which]);
+  closeTransport();
+  for (const h of state.handles) view.scene.remove(h.pivot);
+  view.attachGizmo(null);
+  Object.assign(state, { vertices, rest: vertices.slice(), handles: [], active: null,
+    selection: [], deformed: false, distortion: null, undo: [], redo: [] });
+  state.reference = meshForms(vertices, state.faces, state.topo);
+  view.updatePositions(vertices);
+  view.buildHelpers();
+  view.frame({ keep: true });
+  renderHandles();
+  renderDistortion();
+  renderReconstruction();
+  refreshColors();
+  updateStatus();
+}
+
+function residualText(r) {
+  const ratio = r.length_ratio;
+  return `lengths ${pct(residual(r, "length_error", "mean"))} mean, `
+    + `${pct(residual(r, "length_error", "max"))} max · angles `
+    + `${deg(residual(r, "angle_error", "mean"))} mean, ${deg(residual(r, "angle_error", "max"))} max`
+    + (ratio !== undefined && Math.abs(ratio - 1) > 0.01 ? ` · size × ${fmt(ratio, 2)}` : "");
+}
+
+/** A residual summary of report.refinement ("before"/"after"): nested summaries
+ * ({length_error: {mean, max}, ...}) or flat keys (length_error_mean, ...). */
+function residual(r, kind, stat) {
+  return r?.[kind]?.[stat] ?? r?.[`${kind}_${stat}`];
+}
+
+function renderReconstruction() {
+  const rec = state.reconstruction;
+  // Comparing needs the linear answer, i.e. a server that takes options.refine.
+  $("compare-row").hidden = !(rec?.refinement?.refined && caps.refine);
+  if (!rec) {
+    setStats("forms-stats", []);
+    $("forms-note").textContent = "";
+    return;
+  }
+  const r = rec.report || {};
+  const f = rec.refinement;
+  const seconds = r.timings ? Object.values(r.timings).reduce((a, b) => a + b, 0) : null;
+  const rows = [
+    ["Rebuilt", num(`${(state.vertices.length / 3).toLocaleString("en")} vertices`)],
+    ["Integrable", badge(rec.integrability.integrable)],
+    ["Max defect", num(fmt(rec.integrability.max_defect))],
+    ["Method", r.solve_path === "tree-integration" ? "exact integration" : "least squares"],
+  ];
+  if (f?.refined) {
+    if (caps.refine) rows.push(["Showing", rec.showing === "refined" ? "refined answer" : "linear answer"]);
+    rows.push(["Linear residual", residualText(f.before), "wrap"]);
+    rows.push(["Refined residual", residualText(f.after), "wrap"]);
+    rows.push(["Refinement", num(`${f.iterations} steps, ${(1000 * f.seconds).toFixed(0)} ms`
+      + (f.converged ? "" : " (not converged)"))]);
+  } else if (seconds !== null) {
+    rows.push(["Solve time", num(`${(1000 * (seconds + (f?.seconds ?? 0))).toFixed(0)} ms`)]);
+  }
+  setStats("forms-stats", rows);
+  document.querySelector(`input[name="answer"][value="${rec.showing}"]`).checked = true;
+  $("forms-note").textContent = f?.refined
+    ? "The linear answer can shrink or crumple a surface whose forms do not fit; the refined "
+      + "one shown here is the nearest surface to the forms."
+      + (caps.refine ? " Switch to Linear to compare." : "")
+    : rec.integrability.integrable ? "The forms fit together: this is the surface they describe."
+      : "The forms do not fit together: this is the least-squares compromise.";
 }
 
 async function openFormsFile(file) {
@@ -443,6 +675,7 @@ function hideFlat() {
 }
 
 async function flatten() {
+  if (!state.vertices) return;
   const input = { vertices: rows3(state.vertices), faces: rows3(state.faces),
     options: { orthonormalize: $("flatten-orthonormalize").checked } };
   const result = await withProgress("Flattening…", (signal) => api.runJob("parameterize", input,
@@ -494,7 +727,7 @@ function renderHandles() {
     remove.textContent = "Remove";
     remove.addEventListener("click", (event) => {
       event.stopPropagation();
-      removeHandle(h);
+      action(removeHandle)(h);
     });
     li.append(swatch, name, remove);
     li.addEventListener("click", () => setActive(h));
@@ -505,10 +738,14 @@ function renderHandles() {
   $("make-handle").disabled = !count;
   $("reset-shape").disabled = !state.handles.length;
   $("remove-handles").disabled = !state.handles.length;
+  $("undo").disabled = !state.undo.length;
+  $("redo").disabled = !state.redo.length;
   if (!state.handles.length) {
     $("transport").textContent = state.vertices ? "No handles yet." : "";
   } else if (state.handles.length === 1) {
     $("transport").textContent = "One handle moves the mesh rigidly: add a second one to anchor it.";
+  } else if (state.transport) {
+    $("transport").textContent = transportText();
   }
   refreshMarkers();
 }
@@ -594,7 +831,7 @@ const SESSION_UNAVAILABLE = [404, 405, 429, 501, 503];
 
 let transportGeneration = 0;
 
-async function rebuildTransport() {
+async function rebuildTransport({ solve = true } = {}) {
   const generation = ++transportGeneration;
   closeTransport();
   if (!state.handles.length) {
@@ -626,13 +863,31 @@ async function rebuildTransport() {
   }
   transport.note = note;
   state.transport = transport;
+  state.transportKey = transportKey();
   if (state.handles.length > 1) $("transport").textContent = transportText();
   updateStatus();
-  requestSolve();
+  if (solve) requestSolve();
 }
 
+/** What the live updates run on, in words (the technical label stays in state.transport). */
 function transportText() {
-  return `Live updates: ${state.transport.label}${state.transport.note || ""}`;
+  const t = state.transport;
+  const how = t.kind === "session" ? "set up once for these handles"
+    : "each drag solved from scratch (slower)";
+  const last = state.lastSolveMs !== null ? `, ${state.lastSolveMs.toFixed(0)} ms per update` : "";
+  return `Live: ${how}${last}.`;
+}
+
+/** What a transport was opened for: the rest shape, the handle set and the options. */
+function transportKey() {
+  return { rest: state.rest, handles: state.handles.map((h) => h.id).join(","),
+    orthonormalize: state.orthonormalize };
+}
+
+function transportCurrent() {
+  const key = state.transportKey, now = transportKey();
+  return !!state.transport && !!key && key.rest === now.rest && key.handles === now.handles
+    && key.orthonormalize === now.orthonormalize;
 }
 
 function requestSolve() {
@@ -677,9 +932,10 @@ async function solveLoop() {
   }
 }
 
-function applyShape(vertices) {
+function applyShape(vertices, { deformed = true } = {}) {
+  const t0 = performance.now();
   state.vertices = vertices;
-  state.deformed = true;
+  state.deformed = deformed;
   view.updatePositions(vertices);
   state.distortion = distortion(state.reference, meshForms(vertices, state.faces, state.topo),
     state.topo);
@@ -690,6 +946,7 @@ function applyShape(vertices) {
   refreshMarkers();
   if (state.handles.length > 1 && state.transport) $("transport").textContent = transportText();
   updateStatus();
+  state.lastApplyMs = performance.now() - t0;
 }
 
 async function makeHandle(ids = state.selection) {
@@ -697,6 +954,7 @@ async function makeHandle(ids = state.selection) {
   const vertices = [...new Set(ids)].filter((v) => !used.has(v));
   if (!vertices.length) throw new api.ApiError({ title: "Nothing to make a handle of",
     detail: "select vertices that are not already in a handle" });
+  remember();
   if (state.deformed) bake();
   const start = new Float64Array(3 * vertices.length);
   const center = new THREE.Vector3();
@@ -718,6 +976,7 @@ async function makeHandle(ids = state.selection) {
 }
 
 async function removeHandle(handle) {
+  remember();
   if (state.deformed) bake();
   state.handles = state.handles.filter((h) => h !== handle);
   view.scene.remove(handle.pivot);
@@ -726,6 +985,7 @@ async function removeHandle(handle) {
 }
 
 async function removeHandles() {
+  remember();
   closeTransport();
   for (const h of state.handles) view.scene.remove(h.pivot);
   state.handles = [];
@@ -736,6 +996,7 @@ async function removeHandles() {
 }
 
 async function resetShape() {
+  remember();
   for (const h of state.handles) {
     h.pivot.position.copy(h.center);
     h.pivot.quaternion.identity();
@@ -746,6 +1007,78 @@ async function resetShape() {
 
 function onHandleMoved() {
   if (state.transport) requestSolve();
+}
+
+// ------------------------------------------------------------------------- undo / redo
+// A step is a drag, a reset, or adding/removing handles. Each keeps what it started from:
+// the rest shape, the shown vertices and every handle's vertices and pose. Undo puts that
+// back (no solve: the vertices are the ones shown then) and reopens the session only when
+// the rest shape or the handle set differ from the open one.
+
+function snapshot() {
+  return {
+    rest: state.rest, vertices: state.vertices, deformed: state.deformed, active: state.active,
+    distortion: state.distortion,
+    handles: state.handles.map((h) => ({ handle: h, vertices: h.vertices, start: h.start,
+      center: h.center.clone(), position: h.pivot.position.clone(),
+      quaternion: h.pivot.quaternion.clone() })),
+  };
+}
+
+function remember() {
+  if (!state.vertices) return;
+  state.undo.push(snapshot());
+  if (state.undo.length > HISTORY_LIMIT) state.undo.shift();
+  state.redo = [];
+  $("undo").disabled = false;
+  $("redo").disabled = true;
+}
+
+async function restore(snap) {
+  for (const h of state.handles) view.scene.remove(h.pivot);
+  state.handles = snap.handles.map((s) => {
+    const h = s.handle;
+    Object.assign(h, { vertices: s.vertices, start: s.start });
+    h.center.copy(s.center);
+    h.pivot.position.copy(s.position);
+    h.pivot.quaternion.copy(s.quaternion);
+    view.scene.add(h.pivot);
+    return h;
+  });
+  state.rest = snap.rest;
+  state.vertices = snap.vertices;
+  state.deformed = snap.deformed;
+  state.distortion = snap.distortion;
+  view.updatePositions(state.vertices);
+  renderDistortion();
+  enableColorOptions();
+  if (state.colorMode === "distortion" && !state.distortion) state.colorMode = "plain";
+  refreshColors();
+  setActive(state.handles.includes(snap.active) ? snap.active : state.handles.at(-1) ?? null);
+  if (!transportCurrent()) {
+    if (state.handles.length) await rebuildTransport({ solve: false });
+    else {
+      closeTransport();
+      state.transportKey = null;
+    }
+  }
+  updateStatus();
+}
+
+async function undo() {
+  if (state.solving) await state.solving;
+  const snap = state.undo.pop();
+  if (!snap) return;
+  state.redo.push(snapshot());
+  await restore(snap);
+}
+
+async function redo() {
+  if (state.solving) await state.solving;
+  const snap = state.redo.pop();
+  if (!snap) return;
+  state.undo.push(snapshot());
+  await restore(snap);
 }
 
 function renderDistortion() {
@@ -839,30 +1172,76 @@ function installPointer() {
         Math.max(start.x, event.clientX), Math.max(start.y, event.clientY),
         { facing: state.closed });
       select(ids);
+      if (ids.length) showTab("deform");
       return;
     }
     const moved = Math.hypot(event.clientX - start.x, event.clientY - start.y);
     if (moved < 5 && !start.gizmo && event.target === canvas) {
       const v = view.pickVertex(event.clientX, event.clientY);
-      if (v >= 0) select([v], { toggle: true });
+      if (v >= 0) {
+        select([v], { toggle: true });
+        showTab("deform");
+      }
     }
   });
+  view.gizmo.addEventListener("mouseDown", () => remember());
   view.gizmo.addEventListener("objectChange", onHandleMoved);
-  window.addEventListener("keydown", (event) => {
-    if (event.target.closest?.("input, select, textarea")) return;
-    if (event.key === "w" || event.key === "e") {
-      const mode = event.key === "w" ? "translate" : "rotate";
-      document.querySelector(`input[name="gizmo-mode"][value="${mode}"]`).checked = true;
-      view.gizmo.setMode(mode);
-    } else if (event.key === "Escape") {
+  window.addEventListener("keydown", onKey);
+}
+
+function toggleCheckbox(id) {
+  $(id).checked = !$(id).checked;
+  $(id).dispatchEvent(new Event("change"));
+}
+
+function setHelp(open) {
+  $("help").hidden = !open;
+  if (open) $("help-close").focus();
+}
+
+/** Keyboard shortcuts (listed in the help overlay, index.html). */
+function onKey(event) {
+  // Typing in a field is not a shortcut (a focused checkbox or button does not count).
+  const field = event.target.closest?.("select, textarea, input");
+  if (field && !(field.tagName === "INPUT" && ["checkbox", "radio", "file", "button"].includes(field.type))) return;
+  const key = event.key, ctrl = event.ctrlKey || event.metaKey;
+  if (key === "?") {
+    setHelp($("help").hidden);
+  } else if (key === "Escape") {
+    if (!$("help").hidden) setHelp(false);
+    else {
       state.selection = [];
       renderHandles();
-    } else if ((event.key === "Delete" || event.key === "Backspace") && state.active) {
-      action(removeHandle)(state.active);
-    } else if (event.key === "h" && state.selection.length) {
-      action(makeHandle)();
     }
-  });
+  } else if (ctrl && (key === "z" || key === "Z")) {
+    event.preventDefault();
+    action(event.shiftKey ? redo : undo)();
+  } else if (ctrl && key === "y") {
+    event.preventDefault();
+    action(redo)();
+  } else if (ctrl || event.altKey) {
+    return;
+  } else if (key >= "1" && key <= "4") {
+    showTab(TABS[Number(key) - 1]);
+  } else if (key === "w" || key === "e") {
+    const mode = key === "w" ? "translate" : "rotate";
+    document.querySelector(`input[name="gizmo-mode"][value="${mode}"]`).checked = true;
+    view.gizmo.setMode(mode);
+  } else if ((key === "Delete" || key === "Backspace") && state.active) {
+    action(removeHandle)(state.active);
+  } else if (key === "h" && state.selection.length) {
+    action(makeHandle)();
+  } else if (key === "f" && state.vertices) {
+    view.frame({ keep: true });
+  } else if (key === "r" && state.vertices) {
+    view.frame();
+  } else if (key === "g") {
+    toggleCheckbox("grid-toggle");
+  } else if (key === "m") {
+    toggleCheckbox("wireframe");
+  } else if (key === "u" && state.vertices) {
+    setUp(UP_AXES[(UP_AXES.indexOf(state.up) + 1) % UP_AXES.length]);
+  }
 }
 
 function installPanels() {
@@ -880,6 +1259,24 @@ function installPanels() {
     if (file) action(openFormsFile)(file);
   });
   $("wireframe").addEventListener("change", (event) => view.setWireframe(event.target.checked));
+  $("grid-toggle").addEventListener("change", (event) => view.setHelpers(event.target.checked));
+  $("up-axis").addEventListener("change", (event) => {
+    if (state.vertices) setUp(event.target.value);
+  });
+  $("fit-view").addEventListener("click", () => state.vertices && view.frame({ keep: true }));
+  $("reset-view").addEventListener("click", () => state.vertices && view.frame());
+  for (const tab of TABS) $(`tab-${tab}`).addEventListener("click", () => showTab(tab));
+  $("help-open").addEventListener("click", () => setHelp(true));
+  $("help-close").addEventListener("click", () => setHelp(false));
+  $("help").addEventListener("click", (event) => {
+    if (event.target === $("help")) setHelp(false);
+  });
+  $("undo").addEventListener("click", action(undo));
+  $("redo").addEventListener("click", action(redo));
+  $("show-defect").addEventListener("click", () => setColorMode("defect"));
+  for (const input of document.querySelectorAll('input[name="answer"]')) {
+    input.addEventListener("change", action(() => showAnswer(input.value)));
+  }
   $("download-glb").addEventListener("click", action(downloadGlb));
   $("flatten").addEventListener("click", action(flatten));
   $("close-flat").addEventListener("click", () => {
@@ -921,7 +1318,7 @@ function installPanels() {
 }
 
 async function loadSampleList() {
-  const samples = await api.getJson("/static/samples/index.json");
+  samples = await api.getJson("/static/samples/index.json");
   for (const s of samples) {
     const option = document.createElement("option");
     option.value = s.file;
@@ -940,7 +1337,7 @@ async function start() {
   installPointer();
   installPanels();
   renderDistortion();
-  const [samples, capabilities] = await Promise.all([loadSampleList(), api.capabilities()]);
+  const [, capabilities] = await Promise.all([loadSampleList(), api.capabilities()]);
   caps = capabilities;
   const wanted = new URLSearchParams(location.search).get("sample");
   const first = wanted ?? samples[0]?.file;
@@ -953,6 +1350,7 @@ window.addEventListener("pagehide", () => closeTransport({ unloading: true }));
 
 window.app = {
   state, ready, idle,
+  toastMs: 8000,
   get view() { return view; },
   get capabilities() { return caps; },
   loadSample: (file) => action(loadSample)(file),
@@ -963,6 +1361,7 @@ window.app = {
   dragHandle(dx, dy, dz, { axis, angle } = {}) {
     const h = state.active;
     if (!h) throw new Error("no active handle");
+    remember();
     h.pivot.position.add(new THREE.Vector3(dx, dy, dz));
     if (axis) {
       h.pivot.quaternion.premultiply(new THREE.Quaternion()
@@ -1004,5 +1403,15 @@ window.app = {
   },
   flatten: () => action(flatten)(),
   downloadGlb: () => action(downloadGlb)(),
+  undo: () => action(undo)(),
+  redo: () => action(redo)(),
+  setUp: (up) => setUp(up),
+  showTab,
   setColorMode,
+  /** Up vector on screen: the screen direction (y down) of the up axis at the mesh centre. */
+  screenUp() {
+    const c = view.mesh.geometry.boundingSphere.center, u = view.up, r = view.radius * 0.2;
+    const a = view.project(c.x, c.y, c.z), b = view.project(c.x + r * u.x, c.y + r * u.y, c.z + r * u.z);
+    return { x: b.x - a.x, y: b.y - a.y };
+  },
 };

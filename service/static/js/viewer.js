@@ -1,6 +1,9 @@
-// three.js views: the 3D mesh (lit, orbit controls, wireframe, vertex colours, handle
-// markers, transform gizmo, picking) and the flattened 2D layout (checkerboard, flips).
-// Rendering is on demand (after a change), which keeps a software-rendered browser idle.
+// three.js views: the 3D mesh (lit, orbit controls, up axis, grid and axes, wireframe, vertex
+// colours, selection and handle markers, transform gizmo, picking) and the flattened 2D layout
+// (checkerboard, flips). Rendering is on demand (after a change), which keeps a
+// software-rendered browser idle; `paused` skips rendering altogether (tests measure the
+// page's own main-thread cost that way). Materials are made once: an update never recompiles
+// a shader.
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
@@ -8,6 +11,29 @@ import { TransformControls } from "three/addons/controls/TransformControls.js";
 
 const BASE_COLOR = [200, 206, 214];
 const SELECTION_COLOR = 0xffb000;
+const MARKER_PIXELS = 9;
+
+/** Unit vector of an up-axis name: "+y", "-z", ... */
+export function axisVector(name) {
+  const sign = name[0] === "-" ? -1 : 1;
+  return new THREE.Vector3().setComponent("xyz".indexOf(name[1]), sign);
+}
+
+function discTexture() {
+  const size = 64, canvas = document.createElement("canvas");
+  canvas.width = canvas.height = size;
+  const ctx = canvas.getContext("2d");
+  ctx.fillStyle = "#fff";
+  ctx.beginPath();
+  ctx.arc(size / 2, size / 2, size / 2 - 2, 0, 2 * Math.PI);
+  ctx.fill();
+  ctx.strokeStyle = "rgba(0, 0, 0, 0.55)";
+  ctx.lineWidth = 6;
+  ctx.stroke();
+  const texture = new THREE.CanvasTexture(canvas);
+  texture.colorSpace = THREE.SRGBColorSpace;
+  return texture;
+}
 const CHECKER_REPEAT = 3;
 
 function checkerTexture() {
@@ -59,11 +85,11 @@ class RenderView {
   }
 
   request() {
-    if (this.pending) return;
+    if (this.pending || this.paused) return;
     this.pending = true;
     requestAnimationFrame(() => {
       this.pending = false;
-      this.renderer.render(this.scene, this.camera);
+      if (!this.paused) this.renderer.render(this.scene, this.camera);
     });
   }
 }
@@ -89,9 +115,21 @@ export class MeshView extends RenderView {
       opacity: 0.35 });
     this.checker = checkerTexture();
 
-    this.markerGeometry = new THREE.SphereGeometry(1, 12, 8);
-    this.markers = new THREE.Group();
+    // Selection and handle vertices: one Points object, a fixed pixel size (a big handle is a
+    // field of dots, not a carpet of spheres), geometry reused until it needs more room;
+    // drawn over the surface, so a handle stays visible where the mesh would hide it.
+    this.markerMaterial = new THREE.PointsMaterial({ size: MARKER_PIXELS, sizeAttenuation: false,
+      vertexColors: true, map: discTexture(), alphaTest: 0.5, depthTest: false,
+      transparent: true });
+    this.markers = new THREE.Points(new THREE.BufferGeometry(), this.markerMaterial);
+    this.markers.renderOrder = 10;
+    this.markers.frustumCulled = false;
+    this.markerCapacity = 0;
     this.scene.add(this.markers);
+    this.up = new THREE.Vector3(0, 1, 0);
+    this.helpers = new THREE.Group();
+    this.helpers.visible = false;
+    this.scene.add(this.helpers);
 
     this.gizmo = new TransformControls(this.camera, this.canvas);
     this.gizmo.setSize(0.9);
@@ -104,6 +142,51 @@ export class MeshView extends RenderView {
     this.raycaster = new THREE.Raycaster();
     this.mesh = null;
     this.resize();
+  }
+
+  /** Which way is up (a unit Vector3 in mesh coordinates); the orbit keeps it vertical. */
+  setUp(up, { refit = true } = {}) {
+    this.up.copy(up).normalize();
+    this.camera.up.copy(this.up);
+    // OrbitControls caches the rotation from camera.up to +Y when it is made.
+    this.controls._quat.setFromUnitVectors(this.camera.up, new THREE.Vector3(0, 1, 0));
+    this.controls._quatInverse.copy(this.controls._quat).invert();
+    if (this.mesh && refit) {
+      this.buildHelpers();
+      this.frame();
+    }
+  }
+
+  setHelpers(visible) {
+    this.helpers.visible = visible;
+    this.request();
+  }
+
+  /** A grid on the ground (the plane through the lowest point, normal to up) and axes at
+   * its corner, sized to the mesh. */
+  buildHelpers() {
+    for (const child of [...this.helpers.children]) {
+      this.helpers.remove(child);
+      child.geometry.dispose();
+      child.material.dispose();
+    }
+    const box = new THREE.Box3().setFromBufferAttribute(this.mesh.geometry.getAttribute("position"));
+    const center = box.getCenter(new THREE.Vector3());
+    const size = box.getSize(new THREE.Vector3());
+    const extent = Math.max(size.x, size.y, size.z) || 1;
+    const step = 10 ** Math.floor(Math.log10(extent / 2));
+    const span = Math.ceil((1.6 * extent) / step) * step;
+    const grid = new THREE.GridHelper(span, Math.round(span / step), 0x7b8794, 0xc5ccd5);
+    grid.quaternion.setFromUnitVectors(new THREE.Vector3(0, 1, 0), this.up);
+    const low = -0.5 * (Math.abs(this.up.x) * size.x + Math.abs(this.up.y) * size.y
+      + Math.abs(this.up.z) * size.z);
+    grid.position.copy(center).addScaledVector(this.up, low);
+    const axes = new THREE.AxesHelper(0.3 * extent);
+    axes.position.copy(grid.position);
+    axes.material.depthTest = false;
+    axes.renderOrder = 5;
+    this.helpers.add(grid, axes);
+    this.gridStep = step;
   }
 
   updateCamera(w, h) {
@@ -136,30 +219,50 @@ export class MeshView extends RenderView {
     this.wire.visible = !!this.wireVisible;
     this.scene.add(this.mesh, this.wire);
     this.setColors(null);
+    this.setMarkers(vertices, [], []);
+    this.buildHelpers();
     this.frame();
   }
 
-  /** The direction to look from: the mean outward normal of an open surface, else along
-   * the thinnest side of the bounding box (a torus is seen through its hole). */
+  /** The direction to look from, level with the up axis and a little above: the mean outward
+   * normal of an open surface when it is not vertical, else along the thinnest horizontal
+   * side of the bounding box (a torus is seen through its hole, a figure from the front). */
   viewDirection() {
     const position = this.mesh.geometry.getAttribute("position");
     const index = this.mesh.geometry.getIndex().array;
-    const a = new THREE.Vector3(), b = new THREE.Vector3(), c = new THREE.Vector3();
-    const sum = new THREE.Vector3();
-    let area = 0;
+    const p = position.array;
+    let sx = 0, sy = 0, sz = 0, area = 0;
     for (let t = 0; t < index.length; t += 3) {
-      a.fromBufferAttribute(position, index[t]);
-      b.fromBufferAttribute(position, index[t + 1]).sub(a);
-      c.fromBufferAttribute(position, index[t + 2]).sub(a);
-      b.cross(c);
-      sum.add(b);
-      area += b.length();
+      const a = 3 * index[t], b = 3 * index[t + 1], c = 3 * index[t + 2];
+      const ux = p[b] - p[a], uy = p[b + 1] - p[a + 1], uz = p[b + 2] - p[a + 2];
+      const vx = p[c] - p[a], vy = p[c + 1] - p[a + 1], vz = p[c + 2] - p[a + 2];
+      const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
+      sx += nx;
+      sy += ny;
+      sz += nz;
+      area += Math.hypot(nx, ny, nz);
     }
-    if (sum.length() > 0.3 * area) return sum.normalize();
-    this.mesh.geometry.computeBoundingBox();
-    const size = this.mesh.geometry.boundingBox.getSize(new THREE.Vector3()).toArray();
-    const axis = size.indexOf(Math.min(...size));
-    return new THREE.Vector3().setComponent(axis, 1);
+    const up = this.up;
+    const normal = new THREE.Vector3(sx, sy, sz);
+    const level = normal.clone().addScaledVector(up, -normal.dot(up));
+    let direction;
+    if (level.length() > 0.3 * area) {
+      direction = level.normalize();
+    } else {
+      const box = new THREE.Box3().setFromBufferAttribute(position);
+      const size = box.getSize(new THREE.Vector3());
+      let best = -1;
+      for (let k = 0; k < 3; k++) {
+        if (Math.abs(up.getComponent(k)) > 0.5) continue;
+        if (best < 0 || size.getComponent(k) < size.getComponent(best)) best = k;
+      }
+      direction = new THREE.Vector3().setComponent(best, 1);
+      // An open surface facing up or down (a terrain): look at its front side from above.
+      if (normal.length() > 0.3 * area && normal.dot(up) < 0) direction.negate();
+    }
+    const lift = normal.length() > 0.3 * area && Math.abs(normal.dot(up)) > 0.7 * normal.length()
+      ? Math.sign(normal.dot(up)) * 1.0 : 0.35;
+    return direction.addScaledVector(up, lift).normalize();
   }
 
   /** Fit the mesh in the view: from its best side, or (keep) from the current direction. */
@@ -171,14 +274,10 @@ export class MeshView extends RenderView {
     const distance = (this.radius / Math.sin(Math.min(vertical, horizontal))) * 1.08;
     this.camera.near = distance / 100;
     this.camera.far = distance * 100;
-    let direction;
-    if (keep) {
-      direction = this.camera.position.clone().sub(this.controls.target).normalize();
-    } else {
-      direction = this.viewDirection();
-      this.camera.up.set(0, 1, 0);
-      if (Math.abs(direction.y) > 0.9) this.camera.up.set(0, 0, -Math.sign(direction.y));
-    }
+    const direction = keep
+      ? this.camera.position.clone().sub(this.controls.target).normalize()
+      : this.viewDirection();
+    this.camera.up.copy(this.up);
     this.camera.position.copy(sphere.center).addScaledVector(direction, distance);
     this.camera.updateProjectionMatrix();
     this.controls.target.copy(sphere.center);
@@ -209,15 +308,18 @@ export class MeshView extends RenderView {
 
   /** Checkerboard texture through uv (Float32Array(2n)), or null to remove it. */
   setTexture(uv) {
-    if (uv) {
+    const map = uv ? this.checker : null;
+    if (uv && this.uvShown !== uv) {
       const attribute = this.mesh.geometry.getAttribute("uv");
       attribute.array.set(uv);
       attribute.needsUpdate = true;
-      this.material.map = this.checker;
-    } else {
-      this.material.map = null;
     }
-    this.material.needsUpdate = true;
+    this.uvShown = uv;
+    if (this.material.map !== map) {
+      // A map changes the shader: compiled once per state, switched only when it changes.
+      this.material.map = map;
+      this.material.needsUpdate = true;
+    }
     this.request();
   }
 
@@ -227,32 +329,42 @@ export class MeshView extends RenderView {
     this.request();
   }
 
-  /** Spheres at selected vertices and at handle vertices (one colour per handle). */
+  /** Dots at selected vertices and at handle vertices (one colour per handle). */
   setMarkers(vertices, selection, handles) {
-    for (const child of [...this.markers.children]) {
-      this.markers.remove(child);
-      child.material.dispose();
-      child.dispose?.();
-    }
-    const radius = (this.markerRadius || 0.01);
     const groups = [{ ids: selection, color: SELECTION_COLOR }, ...handles.map((h) => ({
       ids: h.vertices, color: h.color }))];
-    for (const { ids, color } of groups) {
-      if (!ids.length) continue;
-      // Drawn over the surface: a handle stays visible where the mesh would hide it.
-      const material = new THREE.MeshStandardMaterial({ color, roughness: 0.4,
-        emissive: color, emissiveIntensity: 0.35, depthTest: false, transparent: true,
-        opacity: 0.95 });
-      const spheres = new THREE.InstancedMesh(this.markerGeometry, material, ids.length);
-      spheres.renderOrder = 10;
-      const m = new THREE.Matrix4();
-      ids.forEach((v, k) => {
-        m.makeScale(radius, radius, radius)
-          .setPosition(vertices[3 * v], vertices[3 * v + 1], vertices[3 * v + 2]);
-        spheres.setMatrixAt(k, m);
-      });
-      this.markers.add(spheres);
+    const count = groups.reduce((s, g) => s + g.ids.length, 0);
+    let geometry = this.markers.geometry;
+    if (count > this.markerCapacity || !this.markerCapacity) {
+      geometry.dispose();
+      this.markerCapacity = Math.max(64, 2 * count);
+      geometry = new THREE.BufferGeometry();
+      geometry.setAttribute("position", new THREE.BufferAttribute(
+        new Float32Array(3 * this.markerCapacity), 3).setUsage(THREE.DynamicDrawUsage));
+      geometry.setAttribute("color", new THREE.BufferAttribute(
+        new Float32Array(3 * this.markerCapacity), 3).setUsage(THREE.DynamicDrawUsage));
+      this.markers.geometry = geometry;
     }
+    const position = geometry.getAttribute("position").array;
+    const colors = geometry.getAttribute("color").array;
+    const c = new THREE.Color();
+    let k = 0;
+    for (const { ids, color } of groups) {
+      c.setHex(color);
+      for (const v of ids) {
+        position[3 * k] = vertices[3 * v];
+        position[3 * k + 1] = vertices[3 * v + 1];
+        position[3 * k + 2] = vertices[3 * v + 2];
+        colors[3 * k] = c.r;
+        colors[3 * k + 1] = c.g;
+        colors[3 * k + 2] = c.b;
+        k++;
+      }
+    }
+    geometry.getAttribute("position").needsUpdate = true;
+    geometry.getAttribute("color").needsUpdate = true;
+    geometry.setDrawRange(0, count);
+    this.markers.visible = count > 0;
     this.request();
   }
 

@@ -22,11 +22,16 @@ from .forms import fundamental_forms
 from .frames import layout_frames
 from .metrics import compact, distortion
 from .reconstruct import Constraints, ImmersionProblem, Progress
+from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
 from .system import ConstrainedSystem, Weighting
 from .topology import build_topology
 from .validation import as_indices, as_points, require_unique
+
+DEFORM_ANGLE_WEIGHT = 0.3
+"""Refinement's dihedral weight for deformations (stiffer bending than reconstruction's;
+measured against libigl's ARAP in docs/refinement.md)."""
 
 
 @dataclass
@@ -57,6 +62,11 @@ class Deformer:
             makes them soft.
         rotation_weight: the same for orientation handles.
         weighting, backend: see :func:`solver.reconstruct`.
+        refine: default of :meth:`solve`'s ``refine``: also fit the rest forms nonlinearly
+            (:mod:`solver.refine`), started from the orthonormalized linear answer. Off by
+            default here (each refined drag costs several factorizations; see
+            bench/README.md); :func:`deform` refines by default.
+        angle_weight: the refinement's dihedral weight (docs/refinement.md).
     """
 
     def __init__(self, vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike, *,
@@ -65,6 +75,7 @@ class Deformer:
                  orthonormalize: bool = False, orthonormal_weight: float = 1000.0,
                  handle_weight: float = np.inf, rotation_weight: float = np.inf,
                  weighting: Weighting = "uniform", backend: str = "auto",
+                 refine: bool = False, angle_weight: float = DEFORM_ANGLE_WEIGHT,
                  progress: Progress | None = None) -> None:
         notify = progress or (lambda stage, fraction: None)
         start = time.perf_counter()
@@ -128,6 +139,13 @@ class Deformer:
         self._handle_weight = float(handle_weight)
         self._rotation_weight = float(rotation_weight)
         self.orthonormalize = orthonormalize
+        self.refine = bool(refine)
+        self.angle_weight = float(angle_weight)
+        self.backend_name = backend
+        self.orthonormal_weight = orthonormal_weight
+        self.rest_forms = forms
+        self.last_report: dict[str, Any] = {"refined": False, "reason": "no solve yet"}
+        self._refiner: Refiner | None = None
 
         template = self._constraints(np.zeros((len(self.handles), 3)),
                                      np.tile(np.eye(3), (len(groups), 1, 1)))
@@ -140,12 +158,55 @@ class Deformer:
         linear = linear.extended(self._anchor)
         notify("factorize", 0.0)
         self.system: ConstrainedSystem = self.problem.system(linear, backend)
+        self._linear = linear
         self.system_orthonormal: ConstrainedSystem | None = None
-        if orthonormalize:
-            self.system_orthonormal = self.problem.system(
-                linear, backend, self.problem.all_frame_columns(), orthonormal_weight)
+        if orthonormalize or refine:
+            self._orthonormal_system()
         self.setup_seconds = time.perf_counter() - start
         notify("factorize", 1.0)
+
+    def _orthonormal_system(self) -> ConstrainedSystem:
+        """The system of the second solve of Sec. 4 (factorized on first use)."""
+        if self.system_orthonormal is None:
+            self.system_orthonormal = self.problem.system(
+                self._linear, self.backend_name, self.problem.all_frame_columns(),
+                self.orthonormal_weight)
+        return self.system_orthonormal
+
+    def _refinement(self) -> Refiner:
+        """The nonlinear fit of the ROI to its rest forms (built on first use)."""
+        if self._refiner is None:
+            topology = self.problem.topology
+            hard = np.isinf(self._handle_weight)
+            local_faces = (np.concatenate(self._group_faces) if self._group_faces
+                           else np.zeros(0, np.int64))
+            fixed = np.concatenate([self._fixed_local, self._handle_local if hard
+                                    else np.zeros(0, np.int64)])
+            soft = np.zeros(0, np.int64) if hard else self._handle_local
+            weight = (HARD_FRAME_WEIGHT if np.isinf(self._rotation_weight)
+                      else self._rotation_weight)
+            handles = Handles(
+                fixed=fixed, soft_vertices=soft,
+                soft_positions=self.rest[self.sub_vertices[soft]],
+                soft_weights=np.full(len(soft), self._handle_weight),
+                frame_faces=local_faces, frame_edges=np.zeros((len(local_faces), 2, 3)),
+                frame_weights=np.full(len(local_faces), weight))
+            targets = FormTargets(topology, self.rest_forms.lengths, self.rest_forms.angles,
+                                  angle_weight=self.angle_weight)
+            self._refiner = Refiner(targets, handles, backend=self.backend_name)
+        return self._refiner
+
+    def _rest_face_edges(self, rotations: np.ndarray) -> np.ndarray:
+        """(q, 2, 3) rest edge vectors x1 - x0, x2 - x0 of the orientation-handle faces,
+        rotated by their group's rotation."""
+        if not self._group_faces:
+            return np.zeros((0, 2, 3))
+        faces = self.problem.topology.faces[np.concatenate(self._group_faces)]
+        group_of = np.repeat(np.arange(self.n_groups), [len(g) for g in self._group_faces])
+        rest = self.rest[self.sub_vertices]
+        edges = np.stack([rest[faces[:, 1]] - rest[faces[:, 0]],
+                          rest[faces[:, 2]] - rest[faces[:, 0]]], axis=1)   # (q, 2, 3)
+        return np.einsum("qij,qej->qei", rotations[group_of], edges)
 
     @property
     def n_groups(self) -> int:
@@ -173,13 +234,19 @@ class Deformer:
             frame_weights=np.full(len(local_faces), self._rotation_weight))
 
     def solve(self, handle_positions: ArrayLike | None = None,
-              handle_rotations: ArrayLike | None = None) -> np.ndarray:
+              handle_rotations: ArrayLike | None = None, refine: bool | None = None,
+              ) -> np.ndarray:
         """Deformed vertices (n, 3) for new handle targets; only back-substitutes.
 
         Args:
             handle_positions: (h, 3) target positions of ``handles`` (default: rest).
             handle_rotations: (g, 3, 3) rotations of the orientation handles (default: I).
+            refine: fit the rest forms nonlinearly from the linear answer (default: the
+                ``refine`` given at construction); skipped when the linear answer already
+                has the rest forms (e.g. a rigid motion of every handle).
+                :attr:`last_report` says whether and how it refined.
         """
+        refine = self.refine if refine is None else bool(refine)
         P = (self.rest[self.handles] if handle_positions is None
              else as_points(handle_positions, "handle_positions"))
         if len(P) != len(self.handles):
@@ -197,13 +264,25 @@ class Deformer:
         constraints = self._constraints(P, R)
         linear = self.problem.linear_constraints(constraints).extended(self._anchor)
         u = self.system.solve(linear.hard_values, linear.soft_values)
-        if self.system_orthonormal is not None:
+        if self.orthonormalize or refine:
             _, frames = self.problem.unknowns_to_geometry(u)
             targets = np.swapaxes(nearest_rotation(frames), 1, 2).reshape(-1, 3)
-            u = self.system_orthonormal.solve(linear.hard_values,
-                                              np.concatenate([linear.soft_values, targets]))
+            u = self._orthonormal_system().solve(
+                linear.hard_values, np.concatenate([linear.soft_values, targets]))
         local, _ = self.problem.unknowns_to_geometry(u, constraints)
         local = self.problem.recenter(local, constraints, self.rest[self.sub_vertices])
+        self.last_report = {"refined": False, "reason": "disabled (refine=false)"}
+        if refine:
+            refiner = self._refinement()
+            residual = refiner.residuals(local)
+            if max(residual["length_error"]["max"], residual["angle_error"]["max"]) <= 1e-9:
+                self.last_report = {"refined": False,
+                                    "reason": "exact: the linear answer has the rest forms"}
+            else:
+                soft = None if np.isinf(self._handle_weight) else P
+                fit = refiner.run(local, soft_positions=soft,
+                                  frame_edges=self._rest_face_edges(R))
+                local, self.last_report = fit.vertices, fit.report
         out = self.rest.copy()
         moving = self.in_roi[self.sub_vertices]
         out[self.sub_vertices[moving]] = local[moving]
@@ -216,8 +295,14 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
            frame_weight: float = 1000.0, orthonormalize: bool = False,
            orthonormal_weight: float = 1000.0, handle_weight: float = np.inf,
            rotation_weight: float = np.inf, weighting: Weighting = "uniform",
-           backend: str = "auto", progress: Progress | None = None) -> Deformation:
+           backend: str = "auto", refine: bool | None = None,
+           angle_weight: float = DEFORM_ANGLE_WEIGHT,
+           progress: Progress | None = None) -> Deformation:
     """One-shot deformation: build a :class:`Deformer`, solve once, measure distortion.
+
+    ``refine``: ``None`` (default) and ``True`` fit the rest forms nonlinearly from the
+    linear answer unless it already has them (:mod:`solver.refine`); ``False`` returns the
+    linear answer. ``report["refinement"]`` says whether and how it refined.
 
     Returns :class:`Deformation` whose report holds timings, the backend and the distortion
     (:func:`solver.metrics.distortion`, without per-edge arrays) against the rest mesh.
@@ -227,6 +312,7 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
                         frame_weight=frame_weight, orthonormalize=orthonormalize,
                         orthonormal_weight=orthonormal_weight, handle_weight=handle_weight,
                         rotation_weight=rotation_weight, weighting=weighting, backend=backend,
+                        refine=refine is not False, angle_weight=angle_weight,
                         progress=progress)
     t1 = time.perf_counter()
     if progress:
@@ -241,6 +327,7 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
         "n_unknowns": deformer.problem.n_unknowns,
         "roi_faces": len(deformer.sub_faces),
         "orthonormalized": bool(orthonormalize),
+        "refinement": deformer.last_report,
         "distortion": compact(distortion(deformer.rest, result, deformer.faces)),
     }
     return Deformation(vertices=result, report=report)

@@ -1,13 +1,17 @@
 """Shape interpolation in form space: blend lengths and dihedral angles, then reconstruct.
 
 Beyond the paper (which cites [WDAH10] for the idea): for each t the blended forms are
-reconstructed with one solve; the result is rigidly aligned (rotation + translation, no
-scale) to the linear blend of the two inputs so it sits where a user expects it.
+reconstructed with one solve and, by default, refined to the surface whose forms are
+nearest to the blended ones (:mod:`solver.refine`; blended forms of two poses do not
+integrate, and the linear answer alone shrinks), started from whichever of the linear answer
+and the vertex blend ``(1 - t) A + t B`` is nearer to them. The result is rigidly aligned
+(rotation + translation, no scale) to the vertex blend so it sits where a user expects it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -15,8 +19,10 @@ from numpy.typing import ArrayLike
 from .errors import ShapeMismatchError
 from .forms import fundamental_forms
 from .metrics import wrap_angle
-from .reconstruct import reconstruct
+from .reconstruct import RECONSTRUCT_ANGLE_WEIGHT, reconstruct
+from .refine import FormTargets, Refiner
 from .system import Weighting
+from .topology import build_topology
 from .validation import as_points
 
 
@@ -31,14 +37,20 @@ def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray,
 
 def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
                 t: float | Sequence[float], *, frame_weight: float = 1000.0,
-                weighting: Weighting = "uniform", backend: str = "auto") -> np.ndarray:
+                weighting: Weighting = "uniform", backend: str = "auto",
+                refine: bool | None = None, angle_weight: float = RECONSTRUCT_ANGLE_WEIGHT,
+                return_reports: bool = False,
+                ) -> np.ndarray | tuple[np.ndarray, list[dict[str, Any]]]:
     """Blend two meshes with the same faces in form space.
 
     Lengths blend linearly; dihedral angles along the shorter way round. For each t the
-    blended forms are reconstructed (one solve) and aligned rigidly to (1 - t) A + t B.
+    blended forms are reconstructed (one solve of Eq. 5), refined unless ``refine=False``
+    (see the module docstring) and aligned rigidly to (1 - t) A + t B.
 
     Returns:
-        (n, 3) for a scalar t, (k, n, 3) for a sequence of k values.
+        (n, 3) for a scalar t, (k, n, 3) for a sequence of k values; with
+        ``return_reports`` also a list (one per t) of the refinement reports
+        (``{"refined": False, ...}`` where nothing was refined).
     """
     A = as_points(vertices_a, "vertices_a")
     B = as_points(vertices_b, "vertices_b")
@@ -51,14 +63,32 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
     ts = np.atleast_1d(np.asarray(t, dtype=np.float64))
     if not np.all(np.isfinite(ts)):
         raise ShapeMismatchError("t must be finite", field="t")
-    results = []
-    for s in ts:  # one solve per requested blend value
+    results, reports = [], []
+    topology = build_topology(forms_a.faces, len(A))
+    for s in ts:  # one solve (and refinement) per requested blend value
         lengths = (1 - s) * forms_a.lengths + s * forms_b.lengths
         angles = wrap_angle(forms_a.angles + s * wrap_angle(forms_b.angles - forms_a.angles))
         rec = reconstruct(forms_a.faces, forms_a.edges, lengths, angles, n_vertices=len(A),
                           frame_weight=frame_weight, weighting=weighting, backend=backend,
-                          check_integrability=False)
+                          check_integrability=False, refine=False,
+                          orthonormalize=refine is not False)
         linear = (1 - s) * A + s * B
-        R, shift = rigid_alignment(rec.vertices, linear)
-        results.append(rec.vertices @ R.T + shift)
-    return results[0] if scalar else np.stack(results)
+        vertices = rec.vertices
+        report: dict[str, Any] = {"refined": False, "reason": "disabled (refine=false)"}
+        if refine is not False:
+            refiner = Refiner(FormTargets(topology, lengths, angles, angle_weight=angle_weight),
+                              backend=backend)
+            start = min((vertices, linear), key=refiner.energy)
+            residual = refiner.residuals(start)
+            if max(residual["length_error"]["max"], residual["angle_error"]["max"]) <= 1e-9:
+                report = {"refined": False, "reason": "exact: the forms integrate"}
+                vertices = start
+            else:
+                fit = refiner.run(start)
+                vertices, report = fit.vertices, fit.report
+                report["start"] = "vertex blend" if start is linear else "linear solve"
+        R, shift = rigid_alignment(vertices, linear)
+        results.append(vertices @ R.T + shift)
+        reports.append(report)
+    out = results[0] if scalar else np.stack(results)
+    return (out, reports) if return_reports else out

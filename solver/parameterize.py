@@ -20,6 +20,7 @@ from .errors import TopologyError
 from .forms import fundamental_forms
 from .metrics import corner_angles, histogram, summary
 from .reconstruct import ImmersionProblem, Progress
+from .refine import AREA_WEIGHT, FormTargets, Refiner
 from .serialization import JsonDataclass
 from .system import Weighting
 from .topology import build_topology
@@ -64,12 +65,18 @@ def nearest_planar_rotation(frames: np.ndarray) -> np.ndarray:
 def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool = True,
                  orthonormal_weight: float = 1000.0, frame_weight: float = 1000.0,
                  weighting: Weighting = "uniform", backend: str = "auto",
+                 refine: bool | None = None, area_weight: float = AREA_WEIGHT,
                  progress: Progress | None = None) -> Parameterization:
     """Flatten a mesh with boundary by reconstructing it with all dihedral angles 0.
 
     Args:
         vertices: (n, 3) float; faces: (m, 3) int, counter-clockwise.
         orthonormalize: run the second solve with planar-rotation frame targets.
+        refine: ``None`` (default) or ``True``: fit the edge lengths in the plane
+            nonlinearly from the linear answer (:mod:`solver.refine` with ``dim=2``: lengths
+            and signed areas, so flipped faces are pushed back), unless the linear answer
+            already has every length (a developable surface). ``False``: the linear answer.
+        area_weight: weight of the relative signed-area residual in the refinement.
     Raises:
         TopologyError for a component without boundary (a closed surface cannot be
         flattened without a cut).
@@ -106,6 +113,17 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
     uv = flat[:, :2]
     # Used vertices lie in z = 0 exactly (see module docstring); report any deviation.
     planarity = float(np.abs(flat[topology.is_referenced, 2]).max())
+    refinement: dict[str, Any] = {"refined": False, "reason": "disabled (refine=false)"}
+    if refine is not False:
+        refiner = Refiner(FormTargets(topology, forms.lengths, np.zeros_like(forms.angles),
+                                      area_weight=area_weight), dim=2, backend=backend)
+        if refiner.residuals(uv)["length_error"]["max"] <= 1e-9:
+            refinement = {"refined": False, "reason": "exact: the surface is developable"}
+        else:
+            notify("refine", 0.0)
+            fit = refiner.run(uv)
+            uv, refinement = fit.vertices, fit.report
+            notify("refine", 1.0)
     F = topology.faces
     e1, e2 = uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]]
     signed_area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
@@ -126,6 +144,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
         "length_change_histogram": histogram(length_change),
         "planarity_error": planarity,
         "orthonormalized": bool(orthonormalize),
+        "refinement": refinement,
         "anchored_components": anchored,
         "backend": system.backend,
         "timings": {"total": time.perf_counter() - t0},

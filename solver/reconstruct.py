@@ -50,7 +50,7 @@ Progress = Callable[[str, float], None]
 REGULARIZATION = 1e-6
 EXACT_TOLERANCE = 1e-10  # residual rows (normalized lengths) accepted without a solve
 FORMS_TOLERANCE = 1e-9  # relative length / angle (rad) error below which forms are met
-RECONSTRUCT_ANGLE_WEIGHT = 0.05  # refinement's dihedral weight (docs/refinement.md)
+RECONSTRUCT_ANGLE_WEIGHT = 0.005  # refinement's dihedral weight (docs/refinement.md)
 
 
 @dataclass

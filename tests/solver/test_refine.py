@@ -1,0 +1,321 @@
+"""The nearest surface (solver.refine): real numbers against independent truth.
+
+Noise tests compare with the mesh the forms came from; scale tests with the prescribed
+lengths; interpolation with its endpoints; deformation with libigl's ARAP run here, in the
+same test; parameterization with libigl's ARAP parameterization.
+"""
+
+import numpy as np
+import pytest
+from meshes import double_torus, icosphere, load, rigid_alignment_error
+
+from solver import (
+    Constraints,
+    Deformer,
+    deform,
+    fundamental_forms,
+    interpolate,
+    parameterize,
+    reconstruct,
+)
+from solver.metrics import distortion
+from solver.refine import FormTargets, hinge_angles, hinges, refine, signed_areas
+from solver.topology import build_topology
+
+NOISY_MESHES = {
+    "knight (genus 0)": lambda: load("decimated-knight.off"),
+    "torus (genus 1)": lambda: load("torus.off"),
+    "double torus (genus 2)": double_torus,
+    "face (open)": lambda: load("face.off"),
+    "octopus (skinny triangles)": lambda: load("octopus-low-surface.off"),
+}
+
+
+def solve(forms, **kw):
+    return reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles, **kw)
+
+
+def length_ratios(X, forms, lengths=None):
+    L = forms.lengths if lengths is None else lengths
+    return np.linalg.norm(X[forms.edges[:, 1]] - X[forms.edges[:, 0]], axis=1) / L
+
+
+# --------------------------------------------------------------------- the derivatives
+
+
+def test_hinge_angles_and_gradients_match_forms_and_finite_differences():
+    V, F = load("octopus-low-surface.off")
+    topology = build_topology(F, len(V))
+    inner, hinge = hinges(topology)
+    theta, G = hinge_angles(V, hinge)
+    assert np.abs(theta - fundamental_forms(V, F).angles[inner]).max() < 1e-12
+    rng = np.random.default_rng(0)
+    D = rng.normal(size=V.shape)
+    h = 1e-6 * np.ptp(V)
+    plus, _ = hinge_angles(V + h * D, hinge, gradients=False)
+    minus, _ = hinge_angles(V - h * D, hinge, gradients=False)
+    directional = np.einsum("kcd,kcd->k", G, D[hinge])
+    assert np.allclose((plus - minus) / (2 * h), directional, rtol=1e-5, atol=1e-5)
+    assert np.abs(G.sum(axis=1)).max() < 1e-8 * np.abs(G).max()  # translation invariant
+
+
+def test_signed_area_gradients_match_finite_differences():
+    V, F = load("face.off")
+    X = V[:, :2]
+    _, G = signed_areas(X, F)
+    D = np.random.default_rng(1).normal(size=X.shape)
+    h = 1e-6
+    plus, _ = signed_areas(X + h * D, F, gradients=False)
+    minus, _ = signed_areas(X - h * D, F, gradients=False)
+    assert np.allclose((plus - minus) / (2 * h), np.einsum("kcd,kcd->k", G, D[F]), atol=1e-6)
+
+
+def test_refine_recovers_a_shrunk_mesh_exactly():
+    V, F = load("decimated-knight.off")
+    forms = fundamental_forms(V, F)
+    rng = np.random.default_rng(3)
+    start = 0.8 * V + rng.normal(scale=1e-3, size=V.shape)
+    fit = refine(start, FormTargets(build_topology(F, len(V)), forms.lengths, forms.angles))
+    assert fit.report["converged"]
+    assert rigid_alignment_error(fit.vertices, V) < 1e-7
+    assert fit.report["energy_after"] < 1e-12 * fit.report["energy_before"]
+
+
+# ---------------------------------------------------------------- forms that don't integrate
+
+
+@pytest.mark.parametrize("name", list(NOISY_MESHES))
+def test_noisy_angles_give_the_original_mesh_back(name):
+    """Dihedral noise N(0, 1e-3) rad: the refined answer lies within 1e-4 of the bbox
+    diagonal of the mesh the forms came from (after rigid alignment), and much closer than
+    the linear answer."""
+    V, F = NOISY_MESHES[name]()
+    forms = fundamental_forms(V, F)
+    inner = build_topology(F, len(V)).interior_edges
+    rng = np.random.default_rng(5)
+    forms.angles[inner] += rng.normal(scale=1e-3, size=len(inner))
+    linear = solve(forms, refine=False)
+    refined = solve(forms)
+    report = refined.report["refinement"]
+    assert report["refined"] and report["iterations"] >= 1
+    error = rigid_alignment_error(refined.vertices, V)
+    assert error < 1e-4
+    assert error < 0.5 * rigid_alignment_error(linear.vertices, V)
+    assert report["energy_after"] <= report["energy_before"]
+
+
+@pytest.mark.parametrize("name", ["decimated-knight.off", "face.off"])
+def test_scaled_angles_keep_the_prescribed_lengths(name):
+    """Every dihedral angle x 0.8 (no surface has these forms): the linear answer collapses
+    (mean length ratio 0.06 on the knight); the refined one keeps the prescribed lengths:
+    mean ratio within 1% of 1, mean relative error <= 1%, 95th percentile <= 3%."""
+    V, F = load(name)
+    forms = fundamental_forms(V, F)
+    forms.angles *= 0.8
+    linear = solve(forms, refine=False)
+    refined = solve(forms)
+    ratio = length_ratios(refined.vertices, forms)
+    assert abs(ratio.mean() - 1.0) < 0.01
+    assert np.abs(ratio - 1).mean() <= 0.01
+    assert np.percentile(np.abs(ratio - 1), 95) <= 0.03
+    linear_error = np.abs(length_ratios(linear.vertices, forms) - 1).mean()
+    assert np.abs(ratio - 1).mean() < 0.5 * linear_error
+    after = refined.report["refinement"]["after"]
+    assert after["length_error"]["mean"] == pytest.approx(np.abs(ratio - 1).mean())
+
+
+def test_integrable_forms_stay_exact_and_on_the_tree_path():
+    V, F = load("decimated-knight.off")
+    result = solve(fundamental_forms(V, F))
+    assert result.report["solve_path"] == "tree-integration"
+    assert result.report["refinement"]["refined"] is False
+    assert rigid_alignment_error(result.vertices, V) < 1e-8
+
+
+def test_refined_answer_is_never_worse_than_the_linear_one():
+    V, F = icosphere(2)
+    forms = fundamental_forms(V, F)
+    rng = np.random.default_rng(9)
+    forms.angles += rng.normal(scale=0.2, size=len(forms.angles))
+    forms.lengths *= rng.uniform(0.9, 1.1, size=len(forms.lengths))
+    linear = solve(forms, refine=False, orthonormalize=True)
+    refined = solve(forms, refine=True)
+    report = refined.report["refinement"]
+    assert report["energy_after"] <= report["energy_before"]
+    assert report["after"]["length_error"]["rms"] <= report["before"]["length_error"]["rms"] \
+        or report["after"]["angle_error"]["rms"] <= report["before"]["angle_error"]["rms"]
+    lin = np.abs(length_ratios(linear.vertices, forms) - 1).mean()
+    ref = np.abs(length_ratios(refined.vertices, forms) - 1).mean()
+    assert ref < lin
+
+
+def test_refinement_keeps_hard_constraints_and_anchors():
+    V, F = load("decimated-knight.off")
+    forms = fundamental_forms(V, F)
+    forms.angles *= 0.9
+    pinned = np.array([3, 77, 250])
+    targets = V[pinned] * 1.02
+    result = solve(forms, constraints=Constraints(position_vertices=pinned, positions=targets))
+    assert result.report["refinement"]["refined"]
+    assert np.array_equal(result.vertices[pinned], targets)
+    free = solve(forms)
+    anchor = free.report["anchored_components"][0]
+    assert np.abs(free.vertices[anchor["vertex"]]).max() < 1e-12
+    assert np.abs(free.frames[anchor["face"]] - np.eye(3)).max() < 1e-9
+
+
+def test_frame_constraint_orients_the_refined_mesh():
+    V, F = load("decimated-knight.off")
+    forms = fundamental_forms(V, F)
+    forms.angles *= 0.9
+    angle = 0.7
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
+                  [0, 0, 1.0]])
+    result = solve(forms, constraints=Constraints(
+        position_vertices=[F[0, 0]], positions=[[0.0, 0.0, 0.0]], frame_faces=[0],
+        frames=[R]))
+    assert result.report["refinement"]["refined"]
+    assert np.abs(result.frames[0] - R).max() < 1e-3
+
+
+# ---------------------------------------------------------------------- interpolation
+
+
+def test_form_space_blend_halves_the_length_change_and_beats_vertex_blending():
+    """Two near-isometric poses of the bar (rest and a refined 135-degree twist): at
+    t = 0.5 the blended lengths ask for half the endpoint's length change; the refined blend
+    stays within 0.6x of it, while blending vertices linearly folds the twist."""
+    from botsch_sorkine import load_case
+    from meshes import DATA
+
+    case = load_case(DATA, "bar")
+    twisted = deform(case.vertices, case.faces, case.handles, case.handle_targets(),
+                     rotation_handles=[case.handle_faces()],
+                     handle_rotations=case.transform[None, :3, :3], roi=case.roi).vertices
+    rest = fundamental_forms(case.vertices, case.faces)
+    endpoint = np.abs(length_ratios(twisted, rest) - 1).mean()
+    mid, reports = interpolate(case.vertices, twisted, case.faces, 0.5, return_reports=True)
+    assert reports[0]["refined"]
+    change = np.abs(length_ratios(mid, rest) - 1).mean()
+    vertex_blend = np.abs(length_ratios(0.5 * (case.vertices + twisted), rest) - 1).mean()
+    linear = interpolate(case.vertices, twisted, case.faces, 0.5, refine=False)
+    assert change <= 0.6 * endpoint
+    assert change < vertex_blend
+    assert change < np.abs(length_ratios(linear, rest) - 1).mean()
+
+
+# ------------------------------------------------------------------------ deformation
+
+
+def arap_deformation(case, iterations=200):
+    igl = pytest.importorskip("igl")
+    data = igl.ARAPData()
+    data.max_iter = iterations
+    b = np.concatenate([case.fixed, case.handles])
+    igl.arap_precomputation(case.vertices, case.faces, 3, b.astype(np.int64), data)
+    start = case.vertices.copy()
+    start[case.handles] = case.handle_targets()
+    bc = np.concatenate([case.vertices[case.fixed], case.handle_targets()])
+    return igl.arap_solve(bc, data, start)
+
+
+@pytest.mark.parametrize("name", ["bar", "cylinder"])
+def test_refined_deformation_matches_or_beats_arap(name):
+    """Botsch-Sorkine bar (135 degree twist) and cylinder (120 degree bend), positions and
+    rotation handles, defaults: mean relative edge-length change + mean dihedral change <=
+    libigl ARAP's (spokes and rims, 200 iterations) in the same run, max length change <=
+    2x ARAP's; the linear answer does not manage either."""
+    from botsch_sorkine import load_case
+    from meshes import DATA
+
+    case = load_case(DATA, name)
+    kw = {"rotation_handles": [case.handle_faces()],
+          "handle_rotations": case.transform[None, :3, :3], "roi": case.roi}
+    ours = deform(case.vertices, case.faces, case.handles, case.handle_targets(), **kw)
+    linear = deform(case.vertices, case.faces, case.handles, case.handle_targets(),
+                    refine=False, **kw)
+    arap = distortion(case.vertices, arap_deformation(case), case.faces)
+
+    def measure(d):
+        return (d["length_summary"]["mean"] + d["angle_summary"]["mean"],
+                d["length_summary"]["max"])
+
+    ours_sum, ours_max = measure(ours.report["distortion"])
+    arap_sum, arap_max = measure(arap)
+    linear_sum, _ = measure(linear.report["distortion"])
+    assert ours.report["refinement"]["refined"]
+    assert np.abs(ours.vertices[case.handles] - case.handle_targets()).max() < 1e-9
+    assert np.array_equal(ours.vertices[case.fixed], case.vertices[case.fixed])
+    assert ours_sum <= arap_sum
+    assert ours_max <= 2 * arap_max
+    assert linear_sum > arap_sum
+
+
+def test_deformer_refines_each_drag_on_request():
+    V, F = load("face.off")
+    handles = np.array([10, 200, 600, 900])
+    deformer = Deformer(V, F, handles, refine=True)
+    rng = np.random.default_rng(4)
+    targets = V[handles] + rng.normal(scale=3.0, size=(4, 3))
+    refined = deformer.solve(targets)
+    assert deformer.last_report["refined"]
+    assert np.abs(refined[handles] - targets).max() <= 1e-10 * np.ptp(V)
+    linear = deformer.solve(targets, refine=False)
+    assert deformer.last_report["refined"] is False
+    rest = fundamental_forms(V, F)
+    assert np.abs(length_ratios(refined, rest) - 1).mean() < np.abs(
+        length_ratios(linear, rest) - 1).mean()
+    # A rigid motion of every handle: the linear answer is exact, nothing to refine.
+    exact = deformer.solve(V[handles] + [1.0, 2.0, 3.0])
+    assert deformer.last_report["refined"] is False
+    assert np.abs(exact - V - np.array([1.0, 2.0, 3.0])).max() < 1e-8 * np.ptp(V)
+
+
+def test_soft_handles_and_rotation_only_handles_refine():
+    """One patch turned by 90 degrees, another held, one soft position: no rigid motion has
+    these handles, so the answer is refined, and the turned patch's normals follow."""
+    V, F = load("face.off")
+    rotation = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    turned, held = np.arange(0, 40), np.arange(1900, 1940)
+    out = deform(V, F, [500], V[[500]], rotation_handles=[turned, held],
+                 handle_rotations=np.stack([rotation, np.eye(3)]), handle_weight=10.0)
+    assert out.report["refinement"]["refined"]
+
+    def unit_normals(X, faces):
+        n = np.cross(X[F[faces, 1]] - X[F[faces, 0]], X[F[faces, 2]] - X[F[faces, 0]])
+        return n / np.linalg.norm(n, axis=1)[:, None]
+
+    X = out.vertices
+    for group, R in ((turned, rotation), (held, np.eye(3))):
+        cos = np.einsum("ij,ij->i", unit_normals(X, group), unit_normals(V, group) @ R.T)
+        assert cos.min() > 0.98
+
+
+# --------------------------------------------------------------------- parameterization
+
+
+def test_refined_parameterization_against_arap():
+    """face.off flattened: no more flipped faces than libigl's ARAP parameterization and a
+    mean length change no larger than ARAP's (measured in the same run)."""
+    igl = pytest.importorskip("igl")
+    V, F = load("face.off")
+    boundary = igl.boundary_loop(F)
+    start = igl.harmonic(V, F, boundary, igl.map_vertices_to_circle(V, boundary), 1)
+    data = igl.ARAPData()
+    data.max_iter = 200
+    pin = np.array([int(boundary[0])])
+    igl.arap_precomputation(V, F, 2, pin, data)
+    uv_arap = igl.arap_solve(start[pin], data, start)
+    forms = fundamental_forms(V, F)
+    arap_change = np.abs(np.linalg.norm(uv_arap[forms.edges[:, 1]] - uv_arap[forms.edges[:, 0]],
+                                        axis=1) / forms.lengths - 1).mean()
+    area, _ = signed_areas(uv_arap, F, gradients=False)
+    arap_flips = min(int((area < 0).sum()), int((area > 0).sum()))
+    ours = parameterize(V, F)
+    linear = parameterize(V, F, refine=False)
+    assert ours.report["refinement"]["refined"]
+    assert len(ours.flipped_faces) <= arap_flips
+    assert ours.report["length_change_summary"]["mean"] <= arap_change
+    assert ours.report["length_change_summary"]["mean"] < \
+        linear.report["length_change_summary"]["mean"]
+

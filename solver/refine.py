@@ -64,6 +64,8 @@ length and angle errors in the fourth digit)."""
 EXACT_ENERGY = 1e-24  # E below this: the forms are met to round-off
 STEP_FRACTIONS = (1.0, 0.5, 0.25, 0.1)  # of a Gauss-Newton step tried before more damping
 ARMIJO = 1e-4  # sufficient decrease: E(x + a d) < E(x) + ARMIJO a g.d
+MAX_FROZEN_STEPS = 6  # steps on one factorization before it is rebuilt at the current X
+FROZEN_GAIN = 0.5  # rebuild earlier when a step lowers E by less than this x its prediction
 INITIAL_DAMPING = 1e-4  # lambda of the first step, relative to diag(J^T J)
 MAX_DAMPING = 1e12  # relative damping at which a step is declared impossible
 DEGENERATE = 1e-12  # floor of |N|^2 / s^4 for the dihedral gradient of collapsed faces
@@ -395,10 +397,12 @@ class _Objective:
         return 0.5 * sum(float(np.dot(r, r)) for r in
                          (g.evaluate(X, False)[0] for g in self.groups))
 
-    def normal_equations(self, X: np.ndarray) -> tuple[float, sp.csr_array, np.ndarray]:
-        """(E, J^T J over the free coordinates (CSR), J^T r (n_free * dim,))."""
+    def normal_equations(self, X: np.ndarray, matrix: bool = True,
+                         ) -> tuple[float, sp.csr_array | None, np.ndarray]:
+        """(E, J^T J over the free coordinates (CSR; None unless ``matrix``),
+        J^T r (n_free * dim,))."""
         dim, d2 = self.dim, self.dim * self.dim
-        values = np.zeros(len(self.pattern) * d2)
+        values = np.zeros(len(self.pattern) * d2) if matrix else None
         gradient = np.zeros((self.n_free, dim))
         energy = 0.0
         for g in self.groups:
@@ -410,9 +414,12 @@ class _Objective:
             for c in range(dim):
                 gradient[:, c] += np.bincount(local[ok], contrib[..., c][ok],
                                               minlength=self.n_free)
-            outer = np.einsum("rad,rbe->rabde", G, G)           # (rows, q, q, dim, dim)
-            flat = outer.ravel() if g.select is None else outer.ravel()[g.select]
-            values += np.bincount(g.scatter, flat, minlength=len(values))
+            if values is not None:
+                outer = G[:, :, None, :, None] * G[:, None, :, None, :]  # (rows, q, q, d, d)
+                flat = outer.ravel() if g.select is None else outer.ravel()[g.select]
+                values += np.bincount(g.scatter, flat, minlength=len(values))
+        if values is None:
+            return energy, None, gradient.ravel()
         H = sp.bsr_array((values.reshape(-1, dim, dim), self.block_indices, self.block_indptr),
                          shape=(self.n_free * dim, self.n_free * dim)).tocsr()
         return energy, H, gradient.ravel()
@@ -471,31 +478,39 @@ class Refiner:
         energy0 = energy = objective.energy(X)
         free, dim = objective.free, objective.dim
         damping, growth = INITIAL_DAMPING, 2.0
-        iterations = rejected = 0
+        iterations = rejected = factorizations = 0
         stop, converged = "max_iterations", False
         trace, steps = [energy0], []
+        factor = model = None  # the last factorized damped matrix and its J^T J
+        fresh = False  # whether ``factor`` was computed at the current X
+        frozen_steps = 0
         while iterations < max_iterations and objective.n_free and not converged:
             if time_limit is not None and time.perf_counter() - clock > time_limit:
                 stop = "time_limit"
                 break
             iterations += 1
-            energy, H, g = objective.normal_equations(X)
+            refresh = factor is None or frozen_steps >= MAX_FROZEN_STEPS
+            energy, H, g = objective.normal_equations(X, matrix=refresh)
             if energy <= EXACT_ENERGY:
                 stop, converged = "exact", True
                 break
-            diag = H.diagonal()
-            floor = 1e-9 * float(diag.mean())
             accepted = False
             while not accepted and damping <= MAX_DAMPING:
-                D = sp.diags_array(damping * np.maximum(diag, floor) + floor)
-                try:
-                    step = -factorize(H + D, self.backend, assume_symmetric=True).solve(g)
-                except SingularSystemError:
-                    damping, rejected = damping * 10.0, rejected + 1
-                    continue
+                if refresh:
+                    diag = H.diagonal()
+                    floor = 1e-9 * float(diag.mean())
+                    D = sp.diags_array(damping * np.maximum(diag, floor) + floor)
+                    try:
+                        factor = factorize(H + D, self.backend, assume_symmetric=True)
+                    except SingularSystemError:
+                        damping, rejected = damping * 10.0, rejected + 1
+                        continue
+                    factorizations += 1
+                    model, fresh, frozen_steps = H, True, 0
+                step = -factor.solve(g)
                 slope = float(g @ step)  # < 0: a descent direction (H + D is SPD)
                 # Gain ratio of the full step: actual decrease over the Gauss-Newton model's.
-                predicted = -slope - 0.5 * float(step @ (H @ step))
+                predicted = -slope - 0.5 * float(step @ (model @ step))
                 for alpha in STEP_FRACTIONS:  # backtracking costs energies, not factorizations
                     trial = X.copy()
                     trial[free] += alpha * step.reshape(-1, dim)
@@ -505,12 +520,17 @@ class Refiner:
                         break
                 if not accepted:
                     rejected += 1
-                    damping *= growth
-                    growth *= 2.0
+                    if fresh:
+                        damping *= growth
+                        growth *= 2.0
+                    elif H is None:  # a frozen factor failed: rebuild it here
+                        energy, H, g = objective.normal_equations(X)
+                    refresh = True
                     continue
-                # A full Gauss-Newton step (little damping) that barely lowers E: converged.
-                # A shortened or heavily damped step says nothing about convergence.
-                full = alpha == 1.0 and damping <= 1.0
+                gain = (energy - new_energy) / predicted if predicted > 0 else 0.0
+                # A full Gauss-Newton step (fresh matrix, little damping) that barely lowers
+                # E: converged. A frozen, shortened or heavily damped step says nothing.
+                full = fresh and alpha == 1.0 and damping <= 1.0
                 moved = float(np.abs(step).max(initial=0.0)) / objective.scale
                 decrease, X, energy = energy - new_energy, trial, new_energy
                 trace.append(energy)
@@ -521,12 +541,18 @@ class Refiner:
                 small = moved <= tolerance or decrease <= ENERGY_TOLERANCE * energy
                 if (full and small and slowing) or energy <= EXACT_ENERGY:
                     stop, converged = "converged", True
-                if alpha == 1.0 and predicted > 0:
-                    gain = decrease / predicted
-                    damping *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
-                else:
-                    damping *= 2.0
-                growth = 2.0
+                elif small and slowing and not fresh:
+                    frozen_steps = MAX_FROZEN_STEPS  # confirm with a fresh step
+                if fresh:  # Levenberg-Marquardt's damping update (Nielsen)
+                    damping *= (max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+                                if alpha == 1.0 else 2.0)
+                    growth = 2.0
+                # The next step reuses this factor (one back-substitution) while its model
+                # still predicts well; otherwise it is rebuilt at the new X.
+                fresh = False
+                frozen_steps += 1
+                if gain < FROZEN_GAIN:
+                    frozen_steps = MAX_FROZEN_STEPS
             if not accepted:  # no step lowers E: a stationary point to working precision
                 stop, converged = "stationary", True
         if not objective.n_free:
@@ -537,6 +563,7 @@ class Refiner:
             "stop_reason": stop,
             "iterations": iterations,
             "rejected_steps": rejected,
+            "factorizations": factorizations,
             "energy_before": energy0,
             "energy_after": energy,
             "energy_trace": trace,

@@ -5,7 +5,7 @@
 #
 #   1. tools: podman, buildah, runc, conmon, mmdebstrap (apt-get install when missing); all
 #      container state (storage, configs, runtime dirs) lives in one mktemp folder;
-#   2. base images: a Debian minbase (mmdebstrap, from the host's apt sources) with python3 in
+#   2. base images: a minimal Debian (mmdebstrap, from the host's apt sources) with python3 in
 #      a venv stands in for python:3.11-slim; the same rootfs plus the host's node + npm for
 #      node:20-bookworm-slim;
 #   3. `buildah bud` of the Dockerfile; prints the image size;
@@ -34,6 +34,10 @@ fail() { log "FAILED: $*"; exit 1; }
 [ "$(id -u)" = 0 ] || skip "needs root (builds the base images with mmdebstrap, runs podman as root)"
 command -v apt-get > /dev/null || skip "needs apt-get (Debian/Ubuntu) to install podman and buildah"
 command -v python3 > /dev/null || skip "needs python3 on the host (the checks use only its standard library)"
+# CAP_SYS_ADMIN (bit 21): mounts, namespaces. Without it (e.g. an unprivileged container) no
+# container can run here at all.
+cap_eff=$(awk '/^CapEff:/ {print $2}' /proc/self/status)
+(( (16#${cap_eff:-0} >> 21) & 1 )) || skip "needs CAP_SYS_ADMIN to run containers (CapEff=$cap_eff)"
 
 # -- 1. tools and a private container configuration ------------------------------------------
 need=()
@@ -152,12 +156,12 @@ Suites: $codename-security
 Components: main
 Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
 EOF
-log "mmdebstrap $codename minbase + python3, python3-venv, ca-certificates"
+log "mmdebstrap $codename (essential + apt) + python3, python3-venv, ca-certificates, passwd"
 slim=(--dpkgopt='path-exclude=/usr/share/doc/*' --dpkgopt='path-include=/usr/share/doc/*/copyright'
   --dpkgopt='path-exclude=/usr/share/man/*' --dpkgopt='path-exclude=/usr/share/info/*'
   --dpkgopt='path-exclude=/usr/share/locale/*' --dpkgopt='path-include=/usr/share/locale/locale.alias'
   --dpkgopt='path-exclude=/usr/share/lintian/*')
-mmdebstrap --quiet --variant=minbase "${slim[@]}" --include=python3,python3-venv,ca-certificates \
+mmdebstrap --quiet --variant=apt "${slim[@]}" --include=python3,python3-venv,ca-certificates,passwd \
   --customize-hook='chroot "$1" python3 -m venv /opt/venv' \
   --customize-hook='rm -f "$1"/etc/apt/sources.list "$1"/etc/apt/sources.list.d/*' \
   --customize-hook="copy-in $WORK/debian.sources /etc/apt/sources.list.d/" \
@@ -179,7 +183,7 @@ ln -s ../lib/node_modules/npm/bin/npm-cli.js "$rootfs/usr/local/bin/npm"
 ln -s ../lib/node_modules/npm/bin/npx-cli.js "$rootfs/usr/local/bin/npx"
 if ! chroot "$rootfs" /usr/local/bin/npm --version > /dev/null 2>&1; then
   log "the host's node does not run in a minbase rootfs: Debian's nodejs + npm instead"
-  mmdebstrap --quiet --variant=minbase "${slim[@]}" --include=nodejs,npm,ca-certificates \
+  mmdebstrap --quiet --variant=apt "${slim[@]}" --include=nodejs,npm,ca-certificates \
     "$codename" "$WORK/rootfs-node" "${sources[@]}" || fail "mmdebstrap (node)"
   rm -rf "$rootfs" && rootfs=$WORK/rootfs-node
 fi

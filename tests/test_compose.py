@@ -5,6 +5,7 @@ and the workers together with settings the service really reads."""
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import json
 import re
 from pathlib import Path
@@ -60,3 +61,40 @@ def test_documented():
     doc = (ROOT / "docs" / "distributed.md").read_text()
     assert "docker compose up --build --scale worker=4" in doc
     assert "docker compose up --build" in (ROOT / "README.md").read_text()
+
+
+def _docker_smoke():
+    """scripts/docker_smoke.py (the container checks of scripts/docker-smoke.sh) as a module."""
+    spec = importlib.util.spec_from_file_location("docker_smoke",
+                                                  ROOT / "scripts" / "docker_smoke.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_smoke_script_runs_every_service_as_composed():
+    """The smoke test's podman arguments carry each service's command, environment,
+    read-only root, tmpfs and healthcheck, with only the port numbers moved."""
+    smoke = _docker_smoke()
+    ports = {8786: 41001, 8787: 41002, 8000: 41003}
+    for name, service in SERVICES.items():
+        args = smoke.run_args(service, f"x-{name}", ports)
+        image_at = args.index(service["image"])
+        command = args[image_at + 1:]
+        expected = [str(a).replace("8786", "41001").replace("8787", "41002")
+                    .replace("8000", "41003") for a in service["command"]]
+        assert command == expected
+        assert ("--read-only" in args) == bool(service.get("read_only"))
+        assert args[args.index("--tmpfs") + 1] == "/tmp"
+        env = {args[i + 1].split("=", 1)[0]: args[i + 1].split("=", 1)[1]
+               for i, a in enumerate(args[:image_at]) if a == "--env"}
+        assert set(env) == set(service.get("environment") or {})
+        health = service.get("healthcheck", {})
+        if health.get("disable") or not health:
+            assert "--no-healthcheck" in args
+        else:
+            test = json.loads(args[args.index("--health-cmd") + 1])
+            assert test == [t.replace("8786", "41001") for t in health["test"][1:]]
+    api = smoke.run_args(SERVICES["api"], "x", ports)
+    assert "FFS_DASK_SCHEDULER_ADDRESS=tcp://scheduler:41001" in api
+    assert api[api.index("--add-host") + 1] == "scheduler:127.0.0.1"

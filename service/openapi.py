@@ -49,6 +49,13 @@ def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"description": ERROR_DESCRIPTIONS[code]} for code in codes}
 
 
+def id_links(parameter: str, targets: dict[str, str]) -> dict[str, Any]:
+    """OpenAPI ``links`` from a created resource's ``id`` to the operations on it (clients
+    and stateful fuzzers follow them)."""
+    return {name: {"operationId": operation, "parameters": {parameter: "$response.body#/id"}}
+            for name, operation in targets.items()}
+
+
 def _example(model: type[BaseModel]) -> Any:
     extra = model.model_config.get("json_schema_extra") or {}
     examples = extra.get("examples") if isinstance(extra, dict) else None

@@ -49,9 +49,12 @@ MAX_WEIGHT = 1e12
 Real = Annotated[float, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
 Weight = Annotated[float, Field(gt=0, le=MAX_WEIGHT)]
 Index = Annotated[int, Field(ge=0, le=MAX_INDEX)]
-Vec3 = tuple[Real, Real, Real]
-Tri = tuple[Index, Index, Index]
-Mat3 = tuple[Vec3, Vec3, Vec3]
+# Fixed-length rows are lists with a length (not tuples): the same rule, and a JSON schema
+# (`items` + `minItems`/`maxItems`) that every OpenAPI tool reads (`prefixItems` is 3.1-only).
+Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3)]
+Tri = Annotated[list[Index], Field(min_length=3, max_length=3)]
+Pair = Annotated[list[Index], Field(min_length=2, max_length=2)]
+Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
 SolverName = Literal["auto", *sorted(BACKENDS)]  # type: ignore[valid-type]
 Weighting = Literal["uniform", "cotan", "cotan_clamped"]
 
@@ -98,7 +101,7 @@ class FormsPart(ApiModel):
 
     faces: list[Tri] = Field(min_length=1, fail_fast=True,
                              description="(m, 3) vertex indices.")
-    edges: list[tuple[Index, Index]] = Field(
+    edges: list[Pair] = Field(
         fail_fast=True,
         description="(E, 2) the faces' edges [i, j], i < j, sorted lexicographically.")
     lengths: list[Real] = Field(fail_fast=True,
@@ -229,6 +232,9 @@ class DeformOptions(ApiModel):
     orthonormal_weight: Weight = 1000.0
     weighting: Weighting = "uniform"
     solver: SolverName | None = None
+    refine: bool | None = Field(
+        None, description=REFINE_DESCRIPTION + " In a session (`POST /v1/sessions`) `null` "
+        "means off: each refined drag costs several factorizations.")
 
 
 class DeformParams(ApiModel):
@@ -254,6 +260,7 @@ class ParameterizeOptions(ApiModel):
     frame_weight: Weight = 1000.0
     weighting: Weighting = "uniform"
     solver: SolverName | None = None
+    refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
 
 
 class ParameterizeParams(ApiModel):
@@ -272,6 +279,7 @@ class InterpolateOptions(ApiModel):
     frame_weight: Weight = 1000.0
     weighting: Weighting = "uniform"
     solver: SolverName | None = None
+    refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
 
 
 class InterpolateParams(ApiModel):
@@ -476,7 +484,7 @@ class FormsResponse(BaseModel):
     model_config = ConfigDict(json_schema_extra={"examples": [EXAMPLE_FORMS]})
 
     faces: list[Tri]
-    edges: list[tuple[int, int]]
+    edges: list[Annotated[list[int], Field(min_length=2, max_length=2)]]
     lengths: list[float]
     angles: list[float]
 
@@ -589,7 +597,7 @@ class MeshResponse(BaseModel):
     vertices: list[Vec3]
     faces: list[Tri]
     report: dict[str, Any]
-    colors: list[tuple[float, float, float, float]] | None = None
+    colors: list[Annotated[list[float], Field(min_length=4, max_length=4)]] | None = None
 
 
 class ParameterizeResponse(BaseModel):
@@ -599,7 +607,7 @@ class ParameterizeResponse(BaseModel):
         {"uv": [[0.0, 0.0], [1.058, 0.0], [1.049, 1.04], [0.009, 1.04], [0.529, 0.543]],
          "flipped_faces": [], "report": {"flipped_count": 0, "backend": "pardiso"}}]})
 
-    uv: list[tuple[float, float]]
+    uv: list[Annotated[list[float], Field(min_length=2, max_length=2)]]
     flipped_faces: list[int]
     report: dict[str, Any]
 

@@ -120,7 +120,8 @@ class SessionState:
             orthonormalize=options.get("orthonormalize", False),
             orthonormal_weight=options.get("orthonormal_weight", 1000.0),
             weighting=options.get("weighting", "uniform"),
-            backend=options.get("solver") or spec.get("backend", "auto"))
+            backend=options.get("solver") or spec.get("backend", "auto"),
+            refine=bool(options.get("refine")))  # null: off (a refined drag costs more)
         # A first solve at rest checks the factorization (and warms the backend up).
         self.deformer.solve()
         self.setup_seconds = time.perf_counter() - start

@@ -447,7 +447,7 @@ def deform_task(payload: dict[str, Any], progress: Progress) -> dict[str, Any]:
         roi=None if roi is None else np.asarray(roi, dtype=np.int64),
         frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
         orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
-        backend=_backend(payload), progress=progress)
+        backend=_backend(payload), refine=options["refine"], progress=progress)
     distortion = (result.report.get("distortion") or {}).get("vertex")
     colors = {} if distortion is None else {"distortion": np.asarray(distortion)}
     document = {"vertices": result.vertices, "faces": faces, "report": result.report}
@@ -462,7 +462,8 @@ def parameterize_task(payload: dict[str, Any], progress: Progress) -> dict[str, 
     result = solver.parameterize(
         vertices, faces, orthonormalize=options["orthonormalize"],
         orthonormal_weight=options["orthonormal_weight"], frame_weight=options["frame_weight"],
-        weighting=options["weighting"], backend=_backend(payload), progress=progress)
+        weighting=options["weighting"], backend=_backend(payload), refine=options["refine"],
+        progress=progress)
     document = {"uv": result.uv, "flipped_faces": result.flipped_faces, "report": result.report}
     flat = np.column_stack([result.uv, np.zeros(len(result.uv))])
     return _finish(payload, progress, document, (flat, np.asarray(faces)))
@@ -492,7 +493,8 @@ def interpolate_task(payload: dict[str, Any], progress: Progress) -> dict[str, A
     progress("solve", 0.0)
     vertices = solver.interpolate(vertices_a, vertices_b, faces, t,
                                   frame_weight=options["frame_weight"],
-                                  weighting=options["weighting"], backend=_backend(payload))
+                                  weighting=options["weighting"], backend=_backend(payload),
+                                  refine=options["refine"])
     faces = np.asarray(faces)
     document = {"t": t, "vertices": vertices, "faces": faces}
     mesh = (vertices, faces) if np.ndim(t) == 0 else None

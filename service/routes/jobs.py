@@ -21,7 +21,7 @@ from service.inputs import (
 )
 from service.jobs import Job
 from service.negotiation import JSON_ONLY, MESH_FORMATS, negotiate
-from service.openapi import error_responses, jobs_body
+from service.openapi import error_responses, id_links, jobs_body
 from service.output import MEDIA_TYPES, colors_for, json_bytes, mesh_bytes, with_colors
 from service.problems import ProblemError
 from service.routes.operations import ColorQuery, check_color
@@ -69,10 +69,13 @@ async def _get(request: Request, job_id: str) -> Job:
                          "body the synchronous endpoint takes. Multipart: form fields "
                          "`operation`, optional `color`, the mesh in `file` (`file_a`/`file_b` "
                          "for interpolate) and the operation's other fields JSON-encoded.",
-             response_class=Response, openapi_extra=jobs_body(),
+             response_class=Response, openapi_extra=jobs_body(), operation_id="submit_job",
              responses={202: {"description": "Accepted; poll the Location.",
                               "headers": {"Location": {"schema": {"type": "string"},
-                                                       "description": "/v1/jobs/{id}"}}},
+                                                       "description": "/v1/jobs/{id}"}},
+                              "links": id_links("job_id", {
+                                  "GetJob": "get_job", "GetJobResult": "get_job_result",
+                                  "DeleteJob": "delete_job"})},
                         **error_responses(400, 408, 413, 415, 422, 503)})
 async def submit_job(request: Request) -> Response:
     settings = request.app.state.settings
@@ -95,6 +98,7 @@ async def submit_job(request: Request) -> Response:
 
 
 @router.get("/v1/jobs/{job_id}", response_model=JobStatus, summary="Job status",
+            operation_id="get_job",
             description="State, progress by stage with fractions, timings and the error "
                         "(a problem document) of a job.",
             response_class=Response, responses=error_responses(404, 422))
@@ -102,7 +106,7 @@ async def get_job(request: Request, job_id: JobId) -> Response:
     return _status_response(await _get(request, job_id))
 
 
-@router.get("/v1/jobs/{job_id}/result", summary="Job result",
+@router.get("/v1/jobs/{job_id}/result", summary="Job result", operation_id="get_job_result",
             description="The result with the same content negotiation as the synchronous "
                         "endpoint (JSON, GLB, glTF; `?color=`). 409 while the job is not "
                         "finished, or when it failed or was cancelled.",
@@ -148,6 +152,7 @@ def _encode(result: dict[str, Any], fmt: str, values: Any) -> bytes:
 
 
 @router.delete("/v1/jobs/{job_id}", response_model=JobStatus, summary="Cancel or delete a job",
+               operation_id="delete_job",
                description="Cancels a queued or running job (200, status `cancelled`; a "
                            "running solve is stopped by replacing its worker). A finished "
                            "job is deleted with its result (204).",

@@ -25,7 +25,7 @@ from service.inputs import (
     unsupported_media_type,
 )
 from service.negotiation import negotiate
-from service.openapi import error_responses
+from service.openapi import error_responses, id_links
 from service.output import MEDIA_TYPES, json_bytes
 from service.problems import ProblemError
 from service.runner import server_timing
@@ -77,9 +77,13 @@ def _spec(body: bytes, settings: Any) -> dict[str, Any]:
                                                          "SessionRequest"},
                                       "example": SessionRequest.model_config[
                                           "json_schema_extra"]["examples"][0]}}}},
+             operation_id="create_session",
              responses={201: {"description": "Created.",
                               "headers": {"Location": {"schema": {"type": "string"},
-                                                       "description": "/v1/sessions/{id}"}}},
+                                                       "description": "/v1/sessions/{id}"}},
+                              "links": id_links("session_id", {
+                                  "SolveSession": "solve_session", "GetSession": "get_session",
+                                  "DeleteSession": "delete_session"})},
                         **error_responses(400, 408, 413, 415, 422, 429, 500, 503, 504)})
 async def create_session(request: Request) -> Response:
     settings = request.app.state.settings
@@ -95,6 +99,7 @@ async def create_session(request: Request) -> Response:
 
 
 @router.get("/v1/sessions/{session_id}", response_model=SessionInfo, summary="Session state",
+            operation_id="get_session",
             response_class=Response, responses=error_responses(404, 410))
 async def get_session(request: Request, session_id: SessionId) -> Response:
     doc = await request.app.state.sessions.describe(session_id)
@@ -102,6 +107,7 @@ async def get_session(request: Request, session_id: SessionId) -> Response:
 
 
 @router.delete("/v1/sessions/{session_id}", status_code=204, summary="Close a session",
+               operation_id="delete_session",
                description="Frees the session's factorization (204). A session that expired "
                            "or whose worker died is forgotten as well.",
                response_class=Response, responses=error_responses(404))
@@ -120,6 +126,7 @@ _SOLVE_CONTENT = {
 
 
 @router.post("/v1/sessions/{session_id}/solve", response_model=SessionVertices,
+             operation_id="solve_session",
              summary="Solve one drag",
              description="New targets for the handles (and rotations for the rotation "
                          "groups) -> the deformed vertices, by back-substitution only. Body: "

@@ -53,6 +53,21 @@ def rigid_error(A: np.ndarray, B: np.ndarray) -> float:
     return float(np.abs(np.asarray(A) @ R.T + t - np.asarray(B)).max())
 
 
+def metric_value(text: str, name: str, **labels: str) -> float:
+    """Sum of the Prometheus samples of ``name`` whose labels include ``labels``."""
+    import re
+
+    total = 0.0
+    for line in text.splitlines():
+        match = re.match(r"^(\w+)(\{.*\})? ([0-9.e+-]+)$", line)
+        if not match or match.group(1) != name:
+            continue
+        found = dict(re.findall(r'(\w+)="([^"]*)"', match.group(2) or ""))
+        if all(found.get(k) == v for k, v in labels.items()):
+            total += float(match.group(3))
+    return total
+
+
 def problem(response: httpx.Response, status: int, kind: str) -> dict[str, Any]:
     """Assert an RFC 9457 problem response of ``status``/``kind``; return the document."""
     assert response.status_code == status, response.text

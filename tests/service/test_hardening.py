@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import re
 import socket
 import threading
 import time
@@ -21,7 +20,7 @@ import numpy as np
 import orjson
 import pytest
 from conftest import REPO, uvicorn_process, uvicorn_server
-from service_helpers import forms_json, icosphere
+from service_helpers import forms_json, icosphere, metric_value
 
 
 def _address(base: str) -> tuple[str, int]:
@@ -43,19 +42,7 @@ def _raw(base: str, timeout: float = 10.0) -> Iterator[socket.socket]:
         sock.close()
 
 
-def _metric(text: str, name: str, **labels: str) -> float:
-    """Sum of the samples of ``name`` whose labels include ``labels``."""
-    total = 0.0
-    for line in text.splitlines():
-        if not line.startswith(name):
-            continue
-        match = re.match(r"^(\w+)(\{[^}]*\})? ([0-9.e+-]+)$", line)
-        if not match or match.group(1) != name:
-            continue
-        found = dict(re.findall(r'(\w+)="([^"]*)"', match.group(2) or ""))
-        if all(found.get(k) == v for k, v in labels.items()):
-            total += float(match.group(3))
-    return total
+_metric = metric_value
 
 
 def _log(base: str) -> str:

@@ -257,3 +257,43 @@ def test_interpolate_scalar_and_list(client):
     assert several["t"] == [0.0, 0.25, 1.0] and X.shape == (3, *V.shape)
     np.testing.assert_allclose(X, solver.interpolate(V, W, F, [0.0, 0.25, 1.0]), atol=1e-9)
     assert np.abs(X[0] - V).max() < 1e-6 and np.abs(X[2] - W).max() < 1e-6
+
+
+def test_refine_option_reaches_deform_parameterize_interpolate_and_sessions(client):
+    V, F = bumpy_grid(8, 6)
+    lifted = (V[-1] + [0, 0, 0.6]).tolist()
+    handles = [{"vertex": 0, "position": V[0].tolist()}, {"vertex": len(V) - 1,
+                                                          "position": lifted}]
+
+    def post(path, body, refine):
+        options = {} if refine is None else {"refine": refine}
+        response = client.post(path, json={**body, "options": options})
+        assert response.status_code == 200, response.text
+        return response.json()
+
+    deform = {r: post("/v1/deform", {**mesh_json(V, F), "handles": handles}, r)
+              for r in (None, False)}
+    assert deform[None]["report"]["refinement"]["refined"] is True
+    assert deform[False]["report"]["refinement"]["refined"] is False
+    assert not np.allclose(deform[None]["vertices"], deform[False]["vertices"], atol=1e-3)
+    flat = {r: post("/v1/parameterize", mesh_json(V, F), r) for r in (None, False)}
+    assert flat[None]["report"]["refinement"]["refined"] is True
+    assert not np.allclose(flat[None]["uv"], flat[False]["uv"], atol=1e-3)
+    B = V.copy()
+    B[:, 2] *= -1.5
+    pair = {"vertices_a": V.tolist(), "vertices_b": B.tolist(), "faces": F.tolist(), "t": 0.5}
+    blend = {r: post("/v1/interpolate", pair, r) for r in (None, False)}
+    assert not np.allclose(blend[None]["vertices"], blend[False]["vertices"], atol=1e-3)
+    # A session drags linearly by default (latency); refine=true gives /v1/deform's answer.
+    for refine, want in ((None, deform[False]), (True, deform[None])):
+        options = {} if refine is None else {"refine": refine}
+        created = client.post("/v1/sessions", json={
+            **mesh_json(V, F), "handles": [{"vertex": h["vertex"]} for h in handles],
+            "options": options})
+        assert created.status_code == 201, created.text
+        location = created.headers["location"]
+        solved = client.post(f"{location}/solve", json={
+            "handle_positions": [h["position"] for h in handles]})
+        assert solved.status_code == 200, solved.text
+        np.testing.assert_allclose(solved.json()["vertices"], want["vertices"], atol=1e-6)
+        assert client.delete(location).status_code == 204

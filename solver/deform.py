@@ -22,16 +22,12 @@ from .forms import fundamental_forms
 from .frames import layout_frames
 from .metrics import compact, distortion
 from .reconstruct import Constraints, ImmersionProblem, Progress
-from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner
+from .refine import DEFORM_ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
 from .system import ConstrainedSystem, Weighting
 from .topology import build_topology
 from .validation import as_indices, as_points, require_unique
-
-DEFORM_ANGLE_WEIGHT = 0.3
-"""Refinement's dihedral weight for deformations (stiffer bending than reconstruction's;
-measured against libigl's ARAP in docs/refinement.md)."""
 
 
 @dataclass

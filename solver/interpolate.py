@@ -19,8 +19,8 @@ from numpy.typing import ArrayLike
 from .errors import ShapeMismatchError
 from .forms import fundamental_forms
 from .metrics import wrap_angle
-from .reconstruct import RECONSTRUCT_ANGLE_WEIGHT, reconstruct
-from .refine import FormTargets, Refiner
+from .reconstruct import reconstruct
+from .refine import ANGLE_WEIGHT, FormTargets, Refiner
 from .system import Weighting
 from .topology import build_topology
 from .validation import as_points
@@ -38,7 +38,7 @@ def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray,
 def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
                 t: float | Sequence[float], *, frame_weight: float = 1000.0,
                 weighting: Weighting = "uniform", backend: str = "auto",
-                refine: bool | None = None, angle_weight: float = RECONSTRUCT_ANGLE_WEIGHT,
+                refine: bool | None = None, angle_weight: float = ANGLE_WEIGHT,
                 return_reports: bool = False,
                 ) -> np.ndarray | tuple[np.ndarray, list[dict[str, Any]]]:
     """Blend two meshes with the same faces in form space.

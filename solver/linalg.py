@@ -64,23 +64,30 @@ from __future__ import annotations
 import ctypes
 import functools
 import glob
+import hashlib
 import os
 import sys
 import threading
+import time
 import weakref
+from collections import OrderedDict, deque
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 import scipy.sparse as sp
 
 __all__ = [
+    "ANALYSIS_CACHE_BYTES",
     "BACKENDS",
     "RESIDUAL_TOLERANCE",
     "BackendUnavailableError",
     "Factorization",
     "SingularSystemError",
+    "analysis_cache_info",
     "available_backends",
+    "clear_analysis_cache",
     "default_backend",
     "factorize",
     "resolve_backend",
@@ -92,6 +99,11 @@ BACKENDS: tuple[str, ...] = ("pardiso", "superlu", "cholespy")
 RESIDUAL_TOLERANCE: float = 1e-6
 REFINEMENT_STEPS: int = 3  # iterative-refinement steps tried before a solve is refused
 """Largest accepted relative residual ``||K x - b|| / ||b||`` of a solved column."""
+
+ANALYSIS_CACHE_BYTES: int = 512 * 2**20
+"""Memory limit (bytes) of this process's cache of PARDISO analyses (orderings and symbolic
+factorizations, keyed by sparsity pattern; see :func:`analysis_cache_info`). Assign a new
+value at any time; it applies from the next factorization. 0 disables the cache."""
 
 _PIP_PACKAGE: dict[str, str] = {"pardiso": "pypardiso", "cholespy": "cholespy", "superlu": "scipy"}
 
@@ -200,64 +212,260 @@ def _mkl() -> _Mkl:
     return _Mkl(pypardiso.ps.libmkl)
 
 
-def _release_pardiso(mkl: _Mkl, pt: np.ndarray, iparm: np.ndarray) -> None:
-    """Free all MKL memory held by the PARDISO handle ``pt`` (phase -1)."""
-    one = ctypes.c_int32(1)
-    err = ctypes.c_int32(0)
-    idx = np.zeros(2, dtype=np.int32)
-    mkl.pardiso(pt.ctypes.data, ctypes.byref(one), ctypes.byref(one),
-                ctypes.byref(ctypes.c_int32(_PARDISO_MTYPE_SPD)), ctypes.byref(ctypes.c_int32(-1)),
-                ctypes.byref(ctypes.c_int32(1)), None, idx.ctypes.data, idx.ctypes.data, None,
-                ctypes.byref(one), iparm.ctypes.data, ctypes.byref(ctypes.c_int32(0)), None, None,
-                ctypes.byref(err))
+class _PardisoHandle:
+    """One PARDISO handle (``pt``, ``iparm`` and the ordering ``perm``) and the MKL memory
+    it holds. Exactly one owner uses a handle at a time (a live solver, or the analysis
+    cache while it is idle), so no lock is needed around its calls.
+    """
+
+    def __init__(self, mkl: _Mkl, n: int, perm: np.ndarray | None) -> None:
+        self.mkl = mkl
+        self.n = n
+        self.pt = np.zeros(64, dtype=np.int64)  # opaque handle: must never be touched
+        self.iparm = np.zeros(64, dtype=np.int32)
+        mtype = ctypes.c_int32(_PARDISO_MTYPE_SPD)
+        mkl.pardisoinit(self.pt.ctypes.data, ctypes.byref(mtype), self.iparm.ctypes.data)
+        for index, value in _PARDISO_IPARM.items():
+            self.iparm[index] = value
+        # iparm[4] = 1: use the ordering in perm; 2: compute it and return it in perm.
+        self.perm = np.zeros(n, dtype=np.int32) if perm is None else perm.copy()
+        self.iparm[4] = 2 if perm is None else 1
+
+    def call(self, phase: int, a: np.ndarray, ia: np.ndarray, ja: np.ndarray,
+             b: np.ndarray | None = None, x: np.ndarray | None = None, nrhs: int = 1) -> int:
+        """Run PARDISO ``phase`` on the upper-triangle CSR ``(a, ia, ja)``; its error code."""
+        one = ctypes.c_int32(1)
+        err = ctypes.c_int32(0)
+        self.mkl.pardiso(
+            self.pt.ctypes.data, ctypes.byref(one), ctypes.byref(one),
+            ctypes.byref(ctypes.c_int32(_PARDISO_MTYPE_SPD)), ctypes.byref(ctypes.c_int32(phase)),
+            ctypes.byref(ctypes.c_int32(self.n)), a.ctypes.data, ia.ctypes.data, ja.ctypes.data,
+            self.perm.ctypes.data, ctypes.byref(ctypes.c_int32(nrhs)), self.iparm.ctypes.data,
+            ctypes.byref(ctypes.c_int32(0)), None if b is None else b.ctypes.data,
+            None if x is None else x.ctypes.data, ctypes.byref(err))
+        return err.value
+
+    def _call_without_matrix(self, phase: int) -> None:
+        idx = np.zeros(2, dtype=np.int32)
+        self.call(phase, np.zeros(1), idx, idx)
+
+    def drop_factor(self) -> None:
+        """Free the numerical factor, keep the analysis (phase 0)."""
+        self._call_without_matrix(0)
+
+    def release(self) -> None:
+        """Free all MKL memory of the handle (phase -1)."""
+        self._call_without_matrix(-1)
+
+    @property
+    def analysis_bytes(self) -> int:
+        """Memory the analysis keeps after :meth:`drop_factor` (iparm[15], in KB), plus perm."""
+        return int(self.iparm[15]) * 1024 + self.perm.nbytes
+
+
+# --------------------------------------------------------------------- analysis cache
+
+
+@dataclass
+class _CacheEntry:
+    """What the cache keeps for one sparsity pattern."""
+
+    perm: np.ndarray  # the fill-reducing ordering PARDISO computed (int32, zero-based)
+    idle: list[_PardisoHandle] = field(default_factory=list)  # analysed, no owner
+
+    @property
+    def nbytes(self) -> int:
+        return self.perm.nbytes + sum(h.analysis_bytes for h in self.idle)
+
+
+class _AnalysisCache:
+    """Per-process LRU cache of PARDISO analyses, keyed by sparsity pattern.
+
+    For each pattern it keeps the fill-reducing ordering (``4 N`` bytes) and the handles of
+    factorizations that were garbage collected, with their numerical factor freed but their
+    analysis (ordering + symbolic factorization) kept. A new factorization of the same
+    pattern takes an idle handle for itself (then it pays only the numerical factorization,
+    phase 22) or, when all handles of that pattern are in use, a fresh handle with the kept
+    ordering (phase 11 skips the ordering but redoes the symbolic factorization). A handle is
+    never shared by two live factorizations, so factorizations of one pattern run in
+    parallel safely. The total size stays below :data:`ANALYSIS_CACHE_BYTES`: least recently
+    used patterns lose their idle handles first, then their ordering.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._entries: OrderedDict[bytes, _CacheEntry] = OrderedDict()
+        self._returned: deque[tuple[bytes, _PardisoHandle]] = deque()  # from finalizers
+        self._counts = {"computed": 0, "cached_handle": 0, "cached_ordering": 0}
+        self._bytes = 0
+
+    def acquire(self, key: bytes) -> tuple[_PardisoHandle | None, np.ndarray | None]:
+        """An idle analysed handle of pattern ``key`` (now owned by the caller), else the
+        kept ordering, else ``(None, None)``."""
+        with self._lock:
+            self._drain()
+            entry = self._entries.get(key)
+            if entry is None:
+                self._counts["computed"] += 1
+                return None, None
+            self._entries.move_to_end(key)
+            if entry.idle:
+                handle = entry.idle.pop()
+                self._bytes -= handle.analysis_bytes
+                self._counts["cached_handle"] += 1
+                return handle, entry.perm
+            self._counts["cached_ordering"] += 1
+            return None, entry.perm
+
+    def remember(self, key: bytes, perm: np.ndarray) -> None:
+        """Keep the ordering computed for pattern ``key``."""
+        with self._lock:
+            self._drain()
+            if key not in self._entries:
+                entry = _CacheEntry(perm.copy())
+                self._entries[key] = entry
+                self._bytes += entry.nbytes
+            self._entries.move_to_end(key)
+            self._evict()
+
+    def park(self, key: bytes, handle: _PardisoHandle) -> None:
+        """Take back the handle of a dead factorization (called by its finalizer, in any
+        thread, possibly during garbage collection: so no lock here, only an atomic
+        append; the handle is filed at the next cache operation)."""
+        handle.drop_factor()
+        self._returned.append((key, handle))
+
+    def _drain(self) -> None:
+        """File returned handles under their pattern (lock held), then evict."""
+        while self._returned:
+            key, handle = self._returned.popleft()
+            entry = self._entries.get(key)
+            if entry is None:
+                handle.release()
+                continue
+            entry.idle.append(handle)
+            self._bytes += handle.analysis_bytes
+        self._evict()
+
+    def _evict(self) -> None:
+        """Free least recently used analyses until the cache fits its limit (lock held)."""
+        for key in list(self._entries):
+            if self._bytes <= ANALYSIS_CACHE_BYTES:
+                return
+            entry = self._entries[key]
+            while entry.idle and self._bytes > ANALYSIS_CACHE_BYTES:
+                handle = entry.idle.pop(0)
+                self._bytes -= handle.analysis_bytes
+                handle.release()
+            if self._bytes > ANALYSIS_CACHE_BYTES:
+                self._bytes -= entry.nbytes
+                del self._entries[key]
+
+    def clear(self) -> None:
+        """Free every kept analysis; handles of live factorizations are not affected."""
+        with self._lock:
+            self._drain()
+            for entry in self._entries.values():
+                for handle in entry.idle:
+                    handle.release()
+            self._entries.clear()
+            self._bytes = 0
+
+    def info(self) -> dict[str, int]:
+        """Sizes and counters (see :func:`analysis_cache_info`)."""
+        with self._lock:
+            self._drain()
+            return {"patterns": len(self._entries),
+                    "idle_handles": sum(len(e.idle) for e in self._entries.values()),
+                    "bytes": self._bytes, "limit_bytes": int(ANALYSIS_CACHE_BYTES),
+                    **self._counts}
+
+
+_CACHE = _AnalysisCache()
+
+
+def clear_analysis_cache() -> None:
+    """Free every analysis kept by this process (live factorizations keep working)."""
+    _CACHE.clear()
+
+
+def analysis_cache_info() -> dict[str, int]:
+    """The analysis cache of this process: ``patterns`` (sparsity patterns kept),
+    ``idle_handles`` (analysed PARDISO handles without an owner), ``bytes`` (their size
+    and the orderings'), ``limit_bytes`` (:data:`ANALYSIS_CACHE_BYTES`), and how many
+    PARDISO factorizations ``computed`` their analysis, reused an idle handle
+    (``cached_handle``: numerical factorization only) or reused an ordering
+    (``cached_ordering``: symbolic factorization and numerical factorization)."""
+    return _CACHE.info()
+
+
+def _pattern_key(n: int, ia: np.ndarray, ja: np.ndarray) -> bytes:
+    """128-bit digest of an upper-triangle CSR pattern and the PARDISO settings."""
+    digest = hashlib.blake2b(digest_size=16)
+    digest.update(repr((n, len(ja), sorted(_PARDISO_IPARM.items()))).encode())
+    digest.update(memoryview(ia))
+    digest.update(memoryview(ja))
+    return digest.digest()
+
+
+def _retire(handle: _PardisoHandle, key: bytes) -> None:
+    """Finalizer of a PARDISO solver: give its analysis to the cache, or free it."""
+    if ANALYSIS_CACHE_BYTES > 0:
+        _CACHE.park(key, handle)
+    else:
+        handle.release()
 
 
 class _PardisoSolver:
-    """MKL PARDISO factor of an SPD matrix, from its upper triangle."""
+    """MKL PARDISO factor of an SPD matrix, from its upper triangle.
+
+    Attributes ``analysis`` ("cached" or "computed") and ``timings`` (seconds of
+    ``"analysis"`` -- ordering and symbolic factorization -- and ``"factorization"``).
+    """
 
     def __init__(self, matrix: sp.csr_array) -> None:
-        self._mkl = _mkl()
+        mkl = _mkl()
         upper = _upper_triangle(matrix)
         self.n = int(upper.shape[0])
         # PARDISO reads these arrays in every phase: keep them alive and unchanged.
         self._ia = np.ascontiguousarray(upper.indptr, dtype=np.int32)
         self._ja = np.ascontiguousarray(upper.indices, dtype=np.int32)
         self._a = np.ascontiguousarray(upper.data, dtype=np.float64)
-        self._pt = np.zeros(64, dtype=np.int64)  # opaque handle: must never be touched
-        self._iparm = np.zeros(64, dtype=np.int32)
-        mtype = ctypes.c_int32(_PARDISO_MTYPE_SPD)
-        self._mkl.pardisoinit(self._pt.ctypes.data, ctypes.byref(mtype), self._iparm.ctypes.data)
-        for index, value in _PARDISO_IPARM.items():
-            self._iparm[index] = value
-        self._finalizer = weakref.finalize(self, _release_pardiso, self._mkl, self._pt, self._iparm)
-        dummy = np.zeros(1)
-        error = self._call(12, dummy, dummy, 1)  # analysis + numerical factorization
-        if error:
-            self._finalizer()
-            message = (f"PARDISO factorization failed: error {error} "
-                       f"({_PARDISO_ERRORS.get(error, '?')})")
-            if error in (-4, -7):
-                raise SingularSystemError(message)
-            if error == -2:
-                raise MemoryError(message)
-            raise RuntimeError(message)
+        key = _pattern_key(self.n, self._ia, self._ja)
+        handle, perm = _CACHE.acquire(key) if ANALYSIS_CACHE_BYTES > 0 else (None, None)
+        self.analysis = "computed" if perm is None else "cached"
+        start = time.perf_counter()
+        if handle is None:
+            handle = _PardisoHandle(mkl, self.n, perm)
+            error = handle.call(11, self._a, self._ia, self._ja)  # ordering + symbolic
+            self._raise_if_failed(handle, error)
+            if perm is None and ANALYSIS_CACHE_BYTES > 0:
+                _CACHE.remember(key, handle.perm)
+        middle = time.perf_counter()
+        self._handle = handle
+        self._raise_if_failed(handle, handle.call(22, self._a, self._ia, self._ja))
+        self.timings = {"analysis": middle - start, "factorization": time.perf_counter() - middle}
+        self._finalizer = weakref.finalize(self, _retire, handle, key)
 
-    def _call(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int) -> int:
-        one = ctypes.c_int32(1)
-        err = ctypes.c_int32(0)
-        self._mkl.pardiso(
-            self._pt.ctypes.data, ctypes.byref(one), ctypes.byref(one),
-            ctypes.byref(ctypes.c_int32(_PARDISO_MTYPE_SPD)), ctypes.byref(ctypes.c_int32(phase)),
-            ctypes.byref(ctypes.c_int32(self.n)), self._a.ctypes.data, self._ia.ctypes.data,
-            self._ja.ctypes.data, None, ctypes.byref(ctypes.c_int32(nrhs)), self._iparm.ctypes.data,
-            ctypes.byref(ctypes.c_int32(0)), b.ctypes.data, x.ctypes.data, ctypes.byref(err))
-        return err.value
+    @staticmethod
+    def _raise_if_failed(handle: _PardisoHandle, error: int) -> None:
+        """Free ``handle`` and raise if PARDISO reported ``error`` != 0."""
+        if not error:
+            return
+        handle.release()
+        message = (f"PARDISO factorization failed: error {error} "
+                   f"({_PARDISO_ERRORS.get(error, '?')})")
+        if error in (-4, -7):
+            raise SingularSystemError(message)
+        if error == -2:
+            raise MemoryError(message)
+        raise RuntimeError(message)
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Forward/back substitution; ``rhs`` (N, k) float64 -> (N, k) float64."""
         b = np.asfortranarray(rhs, dtype=np.float64)  # PARDISO wants column-major columns
         x = np.zeros_like(b, order="F")
-        error = self._call(33, b, x, b.shape[1])
+        error = self._handle.call(33, self._a, self._ia, self._ja, b, x, b.shape[1])
         if error:
             raise RuntimeError(f"PARDISO solve failed: error {error} "
                                f"({_PARDISO_ERRORS.get(error, '?')})")
@@ -452,12 +660,19 @@ class Factorization:
     """A factorized sparse SPD matrix ``K``; :meth:`solve` only back-substitutes.
 
     Create it with :func:`factorize`. Attributes: ``backend`` (the backend name that
-    computed it) and ``size`` (N, the order of ``K``). It keeps a private copy of ``K``
-    (for the residual check and for pickling) besides the factor.
+    computed it), ``size`` (N, the order of ``K``), ``analysis`` (``"cached"`` when the
+    fill-reducing ordering of a factorization with the same sparsity pattern was reused
+    from this process's analysis cache -- PARDISO only --, else ``"computed"``) and
+    ``timings`` (seconds: ``"analysis"``, the ordering and symbolic factorization, 0 when
+    a cached handle was reused; ``"factorization"``, the numerical factorization; other
+    backends report their whole factorization under ``"factorization"``). It keeps a
+    private copy of ``K`` (for the residual check and for pickling) besides the factor.
     """
 
     backend: str
     size: int
+    analysis: str
+    timings: dict[str, float]
 
     def __init__(self, matrix: sp.csr_array, backend: str) -> None:
         """Factorize ``matrix`` (canonical float64 CSR, symmetric) with ``backend``
@@ -467,10 +682,14 @@ class Factorization:
         self._matrix = matrix
         self._lock = threading.Lock()
         self._verified = False  # set by the first solve whose residual is checked
+        start = time.perf_counter()
         if self.size == 0:
             self._solver: _NativeSolver = _EmptySolver()
         else:
             self._solver = _SOLVERS[backend](matrix)
+        self.analysis = getattr(self._solver, "analysis", "computed")
+        self.timings = getattr(self._solver, "timings",
+                               {"analysis": 0.0, "factorization": time.perf_counter() - start})
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Solve ``K x = rhs``.
@@ -539,7 +758,8 @@ class Factorization:
                 "definite or too ill-conditioned")
 
     def __repr__(self) -> str:
-        return f"Factorization(backend={self.backend!r}, size={self.size}, nnz={self._matrix.nnz})"
+        return (f"Factorization(backend={self.backend!r}, size={self.size}, "
+                f"nnz={self._matrix.nnz}, analysis={self.analysis!r})")
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickle the backend name and the matrix, never the native factor."""

@@ -27,7 +27,7 @@ from .integrability import (
     integration_forests,
 )
 from .linalg import resolve_backend
-from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, form_residuals
+from .refine import ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles, form_residuals
 from .refine import refine as refine_forms
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
@@ -50,7 +50,6 @@ Progress = Callable[[str, float], None]
 REGULARIZATION = 1e-6
 EXACT_TOLERANCE = 1e-10  # residual rows (normalized lengths) accepted without a solve
 FORMS_TOLERANCE = 1e-9  # relative length / angle (rad) error below which forms are met
-RECONSTRUCT_ANGLE_WEIGHT = 0.005  # refinement's dihedral weight (docs/refinement.md)
 
 
 @dataclass
@@ -422,7 +421,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                 layout_angles: np.ndarray | None = None, n_vertices: int | None = None,
                 check_integrability: bool = True, integrability_tol: float = 1e-8,
                 exact_shortcut: bool = True, refine: bool | None = None,
-                angle_weight: float = RECONSTRUCT_ANGLE_WEIGHT,
+                angle_weight: float = ANGLE_WEIGHT,
                 progress: Progress | None = None) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
 

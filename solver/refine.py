@@ -22,15 +22,19 @@ which keeps faces from flipping::
 
 Every residual is dimensionless, so the weights mean the same at every scale; ``beta`` is
 the weight of a radian of dihedral angle against a relative length change of 1 (a thin
-shell's bending against its stretching). Why these energies and weights, with measurements:
+shell's bending against its stretching). Every edge weighs the same by default; the
+``"area"`` weighting of :class:`FormTargets` uses a thin shell's density-independent weights
+(:func:`form_weights`). Why these energies and weights, with measurements:
 ``docs/refinement.md``.
 
 Each iteration builds the Gauss-Newton matrix ``J^T J`` directly in its fixed block sparsity
 pattern (3x3 blocks between vertices that share a residual: one scatter of per-residual outer
 products, no sparse matrix product), damps it (``+ lambda diag``) and factorizes it with
 :func:`solver.linalg.factorize`. The pattern never changes between iterations, so backends
-that keep their analysis per pattern reuse it. A step is kept only when it lowers ``E``, so
-the result is never worse than the start.
+that keep their analysis per pattern reuse it; and a factorization serves the next steps too
+(one back-substitution each) while its quadratic model still predicts the decrease well.
+Steps are shortened by backtracking before the damping grows. A step is kept only when it
+lowers ``E``, so the result is never worse than the start.
 """
 
 from __future__ import annotations
@@ -46,8 +50,14 @@ from .linalg import SingularSystemError, factorize
 from .metrics import summary, wrap_angle
 from .topology import MeshTopology
 
-ANGLE_WEIGHT = 0.1
-"""Default ``beta``: weight of the dihedral-angle residual (radians) against relative length."""
+ANGLE_WEIGHT = 0.005
+"""Default ``beta`` where forms are prescribed (reconstruct, interpolate): the weight of a
+radian of dihedral angle against a relative length change of 1. Small: lengths are kept and
+the angles give way, which is what noisy, scaled and blended forms need (docs/refinement.md)."""
+DEFORM_ANGLE_WEIGHT = 0.3
+"""Default ``beta`` for deformations, whose targets are the rest forms: stiffer bending,
+smoother shapes under conflicting handles (measured against libigl's ARAP in
+docs/refinement.md)."""
 AREA_WEIGHT = 1.0
 """Default ``gamma`` (planar fits only): weight of the relative signed-area residual."""
 HARD_FRAME_WEIGHT = 1e3
@@ -57,7 +67,7 @@ TOLERANCE = 1e-3
 """Stop after a full Gauss-Newton step that moved no vertex by more than this fraction of
 the mean target edge length (an energy criterion fails here: where the forms conflict, E
 stays large at the optimum, so its relative decrease says little about the positions)."""
-ENERGY_TOLERANCE = 1e-4
+ENERGY_TOLERANCE = 1e-3
 """... or lowered E by less than this fraction of E (the slow tail of Gauss-Newton where
 large residuals remain, e.g. strong deformations: measured to change the result's mean
 length and angle errors in the fourth digit)."""

@@ -203,7 +203,10 @@ class ConstrainedSystem:
     Hard unknowns are eliminated symmetrically in place: their rows and columns are
     cleared except for the diagonal, and their coupling to the free unknowns moves to the
     right-hand side. The factorized matrix keeps its size N, so no index remapping or
-    sub-matrix copy is needed. ``solve(hard_values, soft_values)`` only back-substitutes,
+    sub-matrix copy is needed. The cleared entries stay stored as explicit zeros, so the
+    sparsity pattern is that of ``K`` whatever the constraint set: a new handle set on the
+    same mesh reuses the analysis of the previous one (:mod:`solver.linalg` caches it per
+    pattern; ``analysis`` says whether it did). ``solve(hard_values, soft_values)`` only back-substitutes,
     so handle drags reuse the factorization (the paper's prefactorization, Sec. 5). The
     constrained unknowns and soft weights are fixed at construction; their target values
     may change per solve.
@@ -227,14 +230,19 @@ class ConstrainedSystem:
         rows = np.repeat(np.arange(N), np.diff(K.indptr))
         cols = K.indices
         keep = (~hard[rows] & ~hard[cols]) | ((rows == cols) & hard[rows])
+        # Explicit zeros kept on purpose (see the class docstring).
         reduced = sp.csr_matrix((K.data * keep, cols, K.indptr), shape=K.shape)
-        reduced.eliminate_zeros()
         self.hard_diagonal = reduced.diagonal()[self.hard_columns]
         self.factor: Factorization = factorize(reduced, backend, assume_symmetric=True)
 
     @property
     def backend(self) -> str:
         return self.factor.backend
+
+    @property
+    def analysis(self) -> str:
+        """``"cached"`` or ``"computed"``: see :class:`solver.linalg.Factorization`."""
+        return self.factor.analysis
 
     def solve(self, hard_values: np.ndarray, soft_values: np.ndarray) -> np.ndarray:
         """Unknowns (N, 3) for the given constraint targets ((h, 3) and (s, 3))."""

@@ -1,0 +1,286 @@
+"""The nearest surface: linear answer vs refined answer vs libigl's ARAP, measured in one run.
+
+Sections (``--sections``, default all):
+
+* ``scale``: every dihedral angle x 0.8 (no surface has these forms). Mean length ratio,
+  mean and 95th-percentile relative length error, for the linear answer (Eq. 5), the
+  orthonormalized one (Sec. 4) and the refined one (the default).
+* ``noise``: dihedral noise N(0, 1e-3) rad. Max vertex distance to the original mesh after
+  rigid alignment, in units of its bounding-box diagonal.
+* ``interpolate``: t = 0.5 between a mesh and a near-isometric pose of it (the Botsch-Sorkine
+  bar twisted and cylinder bent by the refined deformation): mean edge-length change against
+  the endpoint's, form-space blend (refined and linear) against linear vertex blending.
+* ``deform``: the four Botsch-Sorkine cases, positions + rotation handles: mean relative
+  edge-length change, mean dihedral change (rad), their sum and the max length change, for
+  libigl ARAP (spokes and rims, 200 iterations), the linear, orthonormalized and refined
+  answers.
+* ``parameterize``: flipped faces and mean length change against libigl's ARAP
+  parameterization (harmonic start, 200 iterations).
+* ``drag``: a session's refined drag at ~20K faces against the linear drag and libigl ARAP
+  with 10 iterations.
+
+    pip install -e ".[bench]"
+    python bench/refinement.py [--sections scale noise ...] [--large]
+
+``--large`` adds the meshes over 50K faces (armadillo, stanford-bunny, bumpy-plane, nefertiti).
+Meshes come from ../shared/meshes. Times are wall-clock seconds on this machine (quote them
+with the load: ``uptime``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from botsch_sorkine import load_case  # noqa: E402
+from meshes import rigid_alignment_error  # noqa: E402
+
+import solver  # noqa: E402
+from solver.metrics import distortion  # noqa: E402
+from solver.refine import signed_areas  # noqa: E402
+from solver.topology import build_topology  # noqa: E402
+
+SHARED = ROOT.parent / "shared" / "meshes"
+SCALE_MESHES = ["decimated-knight.off", "bunny.off", "face.off", "rocker-arm.obj", "beetle.off"]
+NOISE_MESHES = ["decimated-knight.off", "torus.off", "bunny.off", "face.off",
+                "octopus-low-surface.off", "rocker-arm.obj", "beetle.off", "cactus.off"]
+LARGE = ["armadillo.obj", "stanford-bunny.obj"]
+DEFORM_CASES = ["bar", "cylinder", "cactus", "bumpy-plane"]
+PARAM_MESHES = ["face.off", "beetle.off", "bumpy-plane.off"]
+
+
+def load(name: str) -> tuple[np.ndarray, np.ndarray]:
+    mesh = trimesh.load(SHARED / name, process=False)
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+
+
+def timed(fn, *args, **kw):
+    t0 = time.perf_counter()
+    out = fn(*args, **kw)
+    return out, time.perf_counter() - t0
+
+
+def ratios(X: np.ndarray, forms) -> np.ndarray:
+    return np.linalg.norm(X[forms.edges[:, 1]] - X[forms.edges[:, 0]], axis=1) / forms.lengths
+
+
+def reconstruct(forms, **kw):
+    return solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles,
+                              check_integrability=False, **kw)
+
+
+def scale_section(meshes: list[str]) -> None:
+    print("\n### Angles x 0.8\n")
+    print("| mesh | faces | answer | mean l/L | mean abs(l/L - 1) | p95 | iterations | s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name in meshes:
+        V, F = load(name)
+        forms = solver.fundamental_forms(V, F)
+        forms.angles *= 0.8
+        for label, kw in (("linear", {"refine": False}),
+                          ("orthonormalized", {"refine": False, "orthonormalize": True}),
+                          ("refined (default)", {})):
+            rec, seconds = timed(reconstruct, forms, **kw)
+            r = ratios(rec.vertices, forms)
+            it = rec.report["refinement"].get("iterations", "")
+            print(f"| {name} | {len(F)} | {label} | {r.mean():.4f} | {np.abs(r - 1).mean():.4f}"
+                  f" | {np.percentile(np.abs(r - 1), 95):.4f} | {it} | {seconds:.2f} |")
+
+
+def noise_section(meshes: list[str]) -> None:
+    print("\n### Dihedral noise N(0, 1e-3) rad: distance to the original / bbox diagonal\n")
+    print("| mesh | faces | genus | linear | orthonormalized | refined (default) "
+          "| iterations | refine s | total s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in meshes:
+        V, F = load(name)
+        forms = solver.fundamental_forms(V, F)
+        topo = build_topology(F, len(V))
+        rng = np.random.default_rng(1)
+        forms.angles[topo.interior_edges] += rng.normal(0, 1e-3, len(topo.interior_edges))
+        linear = reconstruct(forms, refine=False)
+        ortho = reconstruct(forms, refine=False, orthonormalize=True)
+        refined, seconds = timed(reconstruct, forms)
+        rep = refined.report
+        genus = rep.get("integrability", {}).get("genus", "")
+        genus = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
+                                           forms.angles).genus if genus == "" else genus
+        print(f"| {name} | {len(F)} | {genus} | {rigid_alignment_error(linear.vertices, V):.2e}"
+              f" | {rigid_alignment_error(ortho.vertices, V):.2e}"
+              f" | {rigid_alignment_error(refined.vertices, V):.2e}"
+              f" | {rep['refinement'].get('iterations')} | {rep['timings'].get('refine', 0):.2f}"
+              f" | {seconds:.2f} |")
+
+
+def case_kwargs(case) -> dict:
+    return {"rotation_handles": [case.handle_faces()],
+            "handle_rotations": case.transform[None, :3, :3], "roi": case.roi}
+
+
+def arap(case, iterations: int = 200) -> np.ndarray:
+    import igl
+
+    data = igl.ARAPData()
+    data.max_iter = iterations
+    b = np.concatenate([case.fixed, case.handles]).astype(np.int64)
+    igl.arap_precomputation(case.vertices, case.faces, 3, b, data)
+    start = case.vertices.copy()
+    start[case.handles] = case.handle_targets()
+    bc = np.concatenate([case.vertices[case.fixed], case.handle_targets()])
+    return igl.arap_solve(bc, data, start)
+
+
+def deform_section(cases: list[str]) -> None:
+    print("\n### Botsch-Sorkine cases, positions + rotation handles\n")
+    print("| case | faces | method | mean length change | mean dihedral change (rad) "
+          "| sum | max length change | iterations | s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in cases:
+        case = load_case(SHARED, name)
+        runs = []
+        try:
+            out, seconds = timed(arap, case)
+            runs.append(("libigl ARAP (200 it.)", out, "", seconds))
+        except ImportError:
+            print(f"| {name} | | libigl ARAP | not installed (pip install libigl) | | | | | |")
+        for label, kw in (("linear", {"refine": False}),
+                          ("orthonormalized", {"refine": False, "orthonormalize": True}),
+                          ("refined (default)", {})):
+            res, seconds = timed(solver.deform, case.vertices, case.faces, case.handles,
+                                 case.handle_targets(), **case_kwargs(case), **kw)
+            runs.append((label, res.vertices, res.report["refinement"].get("iterations", ""),
+                         seconds))
+        for label, X, it, seconds in runs:
+            d = distortion(case.vertices, X, case.faces)
+            length, angle = d["length_summary"]["mean"], d["angle_summary"]["mean"]
+            print(f"| {name} | {len(case.faces)} | {label} | {length:.4f} | {angle:.4f} | "
+                  f"{length + angle:.4f} | {d['length_summary']['max']:.3f} | {it} | "
+                  f"{seconds:.2f} |")
+
+
+def interpolate_section(cases: list[str]) -> None:
+    print("\n### Interpolation at t = 0.5 between a mesh and a near-isometric pose of it\n")
+    print("| case | endpoint mean length change | form space, refined (default) "
+          "| form space, linear | vertex blend | s (refined) |")
+    print("|---|---|---|---|---|---|")
+    for name in cases:
+        case = load_case(SHARED, name)
+        pose = solver.deform(case.vertices, case.faces, case.handles, case.handle_targets(),
+                             **case_kwargs(case)).vertices
+        rest = solver.fundamental_forms(case.vertices, case.faces)
+
+        def change(X, rest=rest):
+            return np.abs(ratios(X, rest) - 1).mean()
+
+        refined, seconds = timed(solver.interpolate, case.vertices, pose, case.faces, 0.5)
+        linear = solver.interpolate(case.vertices, pose, case.faces, 0.5, refine=False)
+        print(f"| {name} | {change(pose):.4f} | {change(refined):.4f} | {change(linear):.4f} |"
+              f" {change(0.5 * (case.vertices + pose)):.4f} | {seconds:.2f} |")
+
+
+def arap_parameterization(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    import igl
+
+    boundary = igl.boundary_loop(F)
+    start = igl.harmonic(V, F, boundary, igl.map_vertices_to_circle(V, boundary), 1)
+    data = igl.ARAPData()
+    data.max_iter = 200
+    pin = np.array([int(boundary[0])])
+    igl.arap_precomputation(V, F, 2, pin, data)
+    return igl.arap_solve(start[pin], data, start)
+
+
+def parameterize_section(meshes: list[str]) -> None:
+    print("\n### Parameterization (flattening)\n")
+    print("| mesh | faces | method | flipped faces | mean length change | iterations | s |")
+    print("|---|---|---|---|---|---|---|")
+    for name in meshes:
+        V, F = load(name)
+        forms = solver.fundamental_forms(V, F)
+        try:
+            uv, seconds = timed(arap_parameterization, V, F)
+            area, _ = signed_areas(uv, F, gradients=False)
+            flips = min(int((area < 0).sum()), int((area > 0).sum()))
+            print(f"| {name} | {len(F)} | libigl ARAP (200 it.) | {flips} | "
+                  f"{np.abs(ratios(uv, forms) - 1).mean():.4f} | | {seconds:.2f} |")
+        except ImportError:
+            print(f"| {name} | {len(F)} | libigl ARAP | not installed | | | |")
+        for label, kw in (("linear (orthonormalized)", {"refine": False}),
+                          ("refined (default)", {})):
+            p, seconds = timed(solver.parameterize, V, F, **kw)
+            r = p.report
+            print(f"| {name} | {len(F)} | {label} | {r['flipped_count']} | "
+                  f"{r['length_change_summary']['mean']:.4f} | "
+                  f"{r['refinement'].get('iterations', '')} | {seconds:.2f} |")
+
+
+def drag_section() -> None:
+    print("\n### Interactive drags at ~20K faces (rocker-arm, 3 handle patches)\n")
+    V, F = load("rocker-arm.obj")
+    rng = np.random.default_rng(0)
+    centres = V[rng.choice(len(V), 3, replace=False)]
+    near = [np.flatnonzero(np.linalg.norm(V - c, axis=1) < 0.05 * np.ptp(V)) for c in centres]
+    handles = np.unique(np.concatenate(near))
+    moves = [V[handles] + 0.02 * np.ptp(V) * k * np.array([0.0, 0.0, 1.0]) *
+             (np.isin(handles, near[0]))[:, None] for k in range(1, 6)]
+    print("| method | set-up s | median drag ms | mean length change (last drag) |")
+    print("|---|---|---|---|")
+    rest = solver.fundamental_forms(V, F)
+    for label, refine in (("linear drag", False), ("refined drag", True)):
+        deformer, setup = timed(solver.Deformer, V, F, handles, refine=refine)
+        times, out = [], V
+        for P in moves:
+            out, seconds = timed(deformer.solve, P)
+            times.append(seconds)
+        print(f"| {label} | {setup:.2f} | {1000 * float(np.median(times)):.0f} | "
+              f"{np.abs(ratios(out, rest) - 1).mean():.4f} |")
+    try:
+        import igl
+
+        data = igl.ARAPData()
+        data.max_iter = 10
+        _, setup = timed(igl.arap_precomputation, V, F, 3, handles.astype(np.int64), data)
+        U, times = V.copy(), []
+        for P in moves:
+            U, seconds = timed(igl.arap_solve, P, data, U)
+            times.append(seconds)
+        print(f"| libigl ARAP, 10 iterations | {setup:.2f} | "
+              f"{1000 * float(np.median(times)):.0f} | {np.abs(ratios(U, rest) - 1).mean():.4f} |")
+    except ImportError:
+        print("| libigl ARAP | not installed | | |")
+
+
+SECTIONS = ("scale", "noise", "interpolate", "deform", "parameterize", "drag")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS))
+    parser.add_argument("--large", action="store_true", help="add meshes over 50K faces")
+    args = parser.parse_args()
+    print(f"load average {os.getloadavg()[0]:.1f}; backend {solver.linalg.default_backend()}")
+    noise = NOISE_MESHES + (LARGE if args.large else [])
+    scale = SCALE_MESHES + (LARGE if args.large else [])
+    deform_cases = DEFORM_CASES if args.large else DEFORM_CASES[:3]
+    param = PARAM_MESHES if args.large else PARAM_MESHES[:2]
+    run = {"scale": lambda: scale_section(scale), "noise": lambda: noise_section(noise),
+           "interpolate": lambda: interpolate_section(["bar", "cylinder"]),
+           "deform": lambda: deform_section(deform_cases),
+           "parameterize": lambda: parameterize_section(param), "drag": drag_section}
+    for section in args.sections:
+        run[section]()
+        sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

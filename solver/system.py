@@ -206,8 +206,9 @@ class ConstrainedSystem:
     sub-matrix copy is needed. The cleared entries stay stored as explicit zeros, so the
     sparsity pattern is that of ``K`` whatever the constraint set: a new handle set on the
     same mesh reuses the analysis of the previous one (:mod:`solver.linalg` caches it per
-    pattern; ``analysis`` says whether it did). ``solve(hard_values, soft_values)`` only back-substitutes,
-    so handle drags reuse the factorization (the paper's prefactorization, Sec. 5). The
+    pattern; ``analysis`` says whether it did). ``solve(hard_values, soft_values)`` only
+    back-substitutes, so handle drags reuse the factorization (the paper's
+    prefactorization, Sec. 5). The
     constrained unknowns and soft weights are fixed at construction; their target values
     may change per solve.
     """

@@ -320,6 +320,7 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
     report = {
         "timings": {"setup": t1 - t0, "solve": t2 - t1},
         "backend": deformer.backend,
+        "analysis": deformer.system.analysis,
         "n_unknowns": deformer.problem.n_unknowns,
         "roi_faces": len(deformer.sub_faces),
         "orthonormalized": bool(orthonormalize),

@@ -147,6 +147,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
         "refinement": refinement,
         "anchored_components": anchored,
         "backend": system.backend,
+        "analysis": system.analysis,
         "timings": {"total": time.perf_counter() - t0},
     }
     return Parameterization(uv=uv, flipped_faces=flipped, area_ratio=ratio,

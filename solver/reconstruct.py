@@ -573,6 +573,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         "refinement": refinement,
         "timings": timings,
         "backend": system.backend if system is not None else "none",
+        "analysis": system.analysis if system is not None else "none",
         "solve_path": solve_path,
         "n_unknowns": problem.n_unknowns,
         "frame_weight": problem.frame_weight,

@@ -1,9 +1,11 @@
 """Request bodies -> task payloads: size limits, JSON or multipart, schema validation.
 
-Bodies are read here (not by FastAPI) so that one endpoint takes both
-``application/json`` and ``multipart/form-data`` (a mesh file in ``file``, every other field
-as a JSON-encoded form value), and so that the body limit is enforced while streaming.
-Arrays are converted to numpy once; the workers receive them pickled.
+Bodies are read here (not by FastAPI) so that one endpoint takes ``application/json``,
+``multipart/form-data`` (a mesh file in ``file``, every other field as a JSON-encoded form
+value) and ``application/vnd.ffs.arrays`` (the large arrays as raw bytes), and so that the
+body limit and the body timeout are enforced while streaming. A synchronous JSON or binary
+body is parsed and validated in the worker (:func:`expand_body`); jobs and sessions validate
+here, in a thread for large bodies. Arrays are converted to numpy once.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from service.problems import ProblemError, from_validation_errors
 from service.schemas import PARAMS_MODELS
 from service.settings import Settings
 from service.tasks import check_limits, release_memory
-from service.validation import parse_json, request_arrays
+from service.validation import BINARY_MEDIA_TYPE, binary_request, parse_json, request_arrays
 
 FILE_FIELDS: dict[str, tuple[str, ...]] = {"interpolate": ("file_a", "file_b")}
 """Upload field names per operation (default ``("file",)``)."""
@@ -122,11 +124,16 @@ def json_payload(operation: str, doc: Any, limits: dict[str, int], backend: str,
             "limits": limits, "backend": backend}
 
 
-def expand_json_body(operation: str, payload: dict[str, Any]) -> dict[str, Any]:
-    """A payload whose source is the raw JSON body (``{"kind": "json", "body"}``), parsed and
-    validated: run in the worker, so that the main process never holds the parsed body."""
-    doc = parse_json(payload["source"]["body"])
-    return {**payload, **json_payload(operation, doc, payload["limits"], payload["backend"])}
+def expand_body(operation: str, payload: dict[str, Any]) -> dict[str, Any]:
+    """A payload whose source is a raw body (``{"kind": "json" | "binary", "body"}``), parsed
+    and validated: run in the worker, so that the main process never holds the parsed body."""
+    source, limits = payload["source"], payload["limits"]
+    if source["kind"] == "binary":
+        arrays, params = binary_request(operation, source["body"])
+        return {**payload, "source": json_source(operation, arrays, limits),
+                "params": params.model_dump()}
+    doc = parse_json(source["body"])
+    return {**payload, **json_payload(operation, doc, limits, payload["backend"])}
 
 
 def _limit_problem(fn: Any, *args: Any) -> None:
@@ -232,16 +239,18 @@ async def parse_operation(request: Request, operation: str, settings: Settings,
                           ) -> dict[str, Any]:
     """Task payload of a synchronous operation request (JSON or multipart).
 
-    A JSON body goes to the worker as bytes (``source.kind == "json"``) and is parsed and
-    validated there (:func:`expand_json_body`), off the event loop and out of this process.
+    A JSON or binary (:data:`service.validation.BINARY_MEDIA_TYPE`) body goes to the worker
+    as bytes and is parsed and validated there (:func:`expand_body`), off the event loop and
+    out of this process.
     """
     mtype = media_type(request)
     if mtype == "multipart/form-data":
         fields, files = await read_form(request, settings)
         return await payload_from_form(operation, fields, files, settings)
-    if is_json(mtype):
+    if is_json(mtype) or mtype == BINARY_MEDIA_TYPE:
         body = await read_body(request, settings)
-        return {"source": {"kind": "json", "body": body}, "params": None,
+        kind = "binary" if mtype == BINARY_MEDIA_TYPE else "json"
+        return {"source": {"kind": kind, "body": body}, "params": None,
                 "limits": _limits(settings), "backend": settings.solver_backend}
     raise unsupported_media_type(mtype)
 
@@ -271,6 +280,6 @@ def _capture(fn: Any, *args: Any) -> tuple[Any, BaseException | None]:
 
 def unsupported_media_type(mtype: str) -> ProblemError:
     return ProblemError("unsupported-media-type",
-                        f"Content-Type {mtype!r} is not supported; send application/json or "
-                        "multipart/form-data with the mesh in `file`",
+                        f"Content-Type {mtype!r} is not supported; send application/json, "
+                        f"multipart/form-data with the mesh in `file`, or {BINARY_MEDIA_TYPE}",
                         errors=[{"field": "Content-Type", "index": None, "reason": mtype}])

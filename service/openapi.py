@@ -24,6 +24,7 @@ from service.schemas import (
     SessionDrag,
     SessionRequest,
 )
+from service.validation import ARRAYS, BINARY_DTYPES, BINARY_MEDIA_TYPE
 
 REF = "#/components/schemas/{model}"
 ERROR_DESCRIPTIONS: dict[int, str] = {
@@ -107,7 +108,23 @@ def operation_body(operation: str, file_fields: tuple[str, ...]) -> dict[str, An
                              "example": _example(model)},
         "multipart/form-data": {"schema": multipart_schema(operation, file_fields),
                                 "encoding": form_encoding(operation)},
+        BINARY_MEDIA_TYPE: {"schema": {
+            "type": "string", "format": "binary",
+            "description": binary_description(operation),
+            "examples": ["FFSA <uint32 header length> <JSON header> <padding> <arrays>"]}},
     }}}
+
+
+def binary_description(operation: str) -> str:
+    """What a binary body of ``operation`` holds (the format: docs/service.md)."""
+    names = ", ".join(f"`{n}` ({f'(n, {s.cols})' if s.cols else '(n,)'} "
+                      f"{'indices' if s.integer else 'reals'})"
+                      for n, s in ARRAYS[operation].items())
+    return ("The JSON body with its large arrays as raw little-endian bytes: `FFSA`, a uint32 "
+            "header length, a JSON header (the other fields of the JSON body plus "
+            "`\"arrays\": {name: {\"dtype\", \"shape\"}}` in the order they follow), zero "
+            "padding to a multiple of 8, then each array (C order) padded to a multiple of 8. "
+            f"dtypes: {', '.join(f'`{d}`' for d in BINARY_DTYPES)}. Arrays: {names}.")
 
 
 def jobs_body() -> dict[str, Any]:

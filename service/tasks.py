@@ -174,16 +174,16 @@ class _Clock:
 def run(fn_name: str, payload: dict[str, Any], progress: Progress) -> dict[str, Any]:
     """Run task ``fn_name`` with stage timing; the entry point used by the workers.
 
-    A raw JSON body (``source.kind == "json"``) is parsed and validated here first, as part
-    of the ``validate`` stage (:func:`service.inputs.expand_json_body`)."""
+    A raw body (``source.kind`` ``json`` or ``binary``) is parsed and validated here first,
+    as part of the ``validate`` stage (:func:`service.inputs.expand_body`)."""
     fn = TASKS[fn_name]
     clock = _Clock(progress)
     source = payload.get("source")
-    if isinstance(source, dict) and source.get("kind") == "json":
-        from service.inputs import expand_json_body
+    if isinstance(source, dict) and source.get("kind") in ("json", "binary"):
+        from service.inputs import expand_body
 
         clock("validate", 0.0)
-        payload = expand_json_body(fn_name, payload)
+        payload = expand_body(fn_name, payload)
     result = fn(payload, clock)
     result["timings"] = clock.finish()
     return result

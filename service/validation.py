@@ -121,7 +121,7 @@ def _flat(name: str, value: list[Any], spec: ArraySpec) -> tuple[list[Any], list
     return list(chain.from_iterable(value)), []
 
 
-def _numbers(name: str, flat: list[Any], spec: ArraySpec
+def _numbers(name: str, flat: list[Any] | np.ndarray, spec: ArraySpec
              ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
     """A 1-D array of ``flat`` (int64 or float64 per ``spec``), or the element errors."""
     cols = max(spec.cols, 1)
@@ -129,6 +129,9 @@ def _numbers(name: str, flat: list[Any], spec: ArraySpec
     def loc(k: int) -> tuple[Any, ...]:
         return (name, k // cols, k % cols) if spec.cols else (name, k)
 
+    if isinstance(flat, np.ndarray):  # a binary body: already numbers
+        return _checked(flat.astype(spec.dtype if flat.dtype.kind in "iu" else np.float64),
+                        spec, loc)
     kinds = set(map(type, flat))
     if not kinds <= _NUMBER_TYPES:
         ok = np.fromiter(map(_NUMBER_TYPES.__contains__, map(type, flat)), bool, len(flat))
@@ -142,6 +145,12 @@ def _numbers(name: str, flat: list[Any], spec: ArraySpec
             array = np.array(flat, dtype=np.float64)
     else:
         array = np.array(flat, dtype=np.float64)
+    return _checked(array, spec, loc)
+
+
+def _checked(array: np.ndarray, spec: ArraySpec, loc: Any
+             ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
+    """``array`` cast to the spec's dtype, or its first integrality and range errors."""
     errors = []
     if spec.integer and array.dtype == np.float64:
         fractional = array != np.trunc(array)
@@ -214,3 +223,121 @@ def request_arrays(operation: str, doc: Any, prefix: tuple[Any, ...] = ()
                    ) -> tuple[dict[str, np.ndarray], BaseModel]:
     """:func:`split_request` with the operation's params model."""
     return split_request(operation, doc, PARAMS_MODELS[operation], prefix)
+
+
+# ------------------------------------------------------------------------- binary bodies
+
+BINARY_MEDIA_TYPE = "application/vnd.ffs.arrays"
+"""A request body with the large arrays as raw little-endian bytes (docs/service.md)::
+
+    b"FFSA" | uint32 LE header length H | H bytes of UTF-8 JSON header | zero padding to a
+    multiple of 8 | each array's bytes (C order), each padded to a multiple of 8
+
+The header is the JSON body without its large arrays, plus ``"arrays": {name: {"dtype",
+"shape"}}`` in the order the arrays follow. dtypes: ``<f8`` ``<f4`` (reals), ``<i4`` ``<i8``
+``<u4`` (indices).
+"""
+BINARY_MAGIC = b"FFSA"
+BINARY_DTYPES = {"<f8": np.float64, "<f4": np.float32, "<i4": np.int32, "<i8": np.int64,
+                 "<u4": np.uint32}
+
+
+def binary_body(params: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> bytes:
+    """A :data:`BINARY_MEDIA_TYPE` body (the reference encoder; tests, benchmarks, clients):
+    ``params`` are the JSON body's other fields, ``arrays`` its large arrays (cast to
+    ``<f8`` for reals and ``<i4`` for integer arrays)."""
+    parts, meta = [], {}
+    for name, value in arrays.items():
+        array = np.asarray(value)
+        array = array.astype("<i4" if array.dtype.kind in "iub" else "<f8", copy=False)
+        meta[name] = {"dtype": array.dtype.str, "shape": list(array.shape)}
+        raw = np.ascontiguousarray(array).tobytes()
+        parts.append(raw + b"\0" * (_padded(len(raw)) - len(raw)))
+    header = orjson.dumps({**params, "arrays": meta}, option=orjson.OPT_SERIALIZE_NUMPY)
+    head = BINARY_MAGIC + len(header).to_bytes(4, "little") + header
+    return head + b"\0" * (_padded(len(head)) - len(head)) + b"".join(parts)
+
+
+def _binary_error(detail: str) -> ProblemError:
+    return ProblemError("malformed-request", f"cannot read the {BINARY_MEDIA_TYPE} body: "
+                        f"{detail}", errors=[{"field": "body", "index": None,
+                                              "reason": detail}])
+
+
+def _padded(n: int) -> int:
+    return -(-n // 8) * 8
+
+
+def parse_binary(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """(header without ``arrays``, {name: array view into ``body``}) of a binary body; a 400
+    ``malformed-request`` problem when the framing is wrong."""
+    if len(body) < 8 or body[:4] != BINARY_MAGIC:
+        raise _binary_error(f"it must start with {BINARY_MAGIC!r} and a uint32 header length")
+    size = int.from_bytes(body[4:8], "little")
+    if 8 + size > len(body):
+        raise _binary_error(f"the header length {size} runs past the end of the body")
+    try:
+        header = orjson.loads(body[8:8 + size])
+    except orjson.JSONDecodeError as exc:
+        raise _binary_error(f"the header is not JSON: {exc}") from None
+    if not isinstance(header, dict) or not isinstance(header.get("arrays"), dict):
+        raise _binary_error('the header must be a JSON object with "arrays"')
+    offset, arrays = _padded(8 + size), {}
+    for name, meta in header.pop("arrays").items():
+        dtype = BINARY_DTYPES.get(meta.get("dtype")) if isinstance(meta, dict) else None
+        shape = meta.get("shape") if isinstance(meta, dict) else None
+        if dtype is None or not isinstance(shape, list) or not all(
+                type(d) is int and d >= 0 for d in shape):
+            raise _binary_error(f"{name}: needs a dtype ({', '.join(BINARY_DTYPES)}) and a "
+                                "shape (a list of sizes)")
+        count = int(np.prod(shape, dtype=np.int64))
+        end = offset + count * np.dtype(dtype).itemsize
+        if end > len(body):
+            raise _binary_error(f"{name}: {shape} {meta['dtype']} runs past the end of the "
+                                "body")
+        arrays[name] = np.frombuffer(body, dtype=dtype, count=count,
+                                     offset=offset).reshape(shape)
+        offset = _padded(end)
+    return header, arrays
+
+
+def _binary_array(name: str, array: np.ndarray, spec: ArraySpec
+                  ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
+    """A binary array checked like a JSON one (shape, integer dtype for indices, range)."""
+    shape = f"(n, {spec.cols})" if spec.cols else "(n,)"
+    if array.ndim != (2 if spec.cols else 1) or (spec.cols and array.shape[1] != spec.cols):
+        return None, [_error((name,), f"expected shape {shape}, got {list(array.shape)}",
+                             "shape")]
+    if len(array) < spec.min_rows:
+        return None, [_error((name,), f"List should have at least {spec.min_rows} item, "
+                             "not 0", "too_short")]
+    if spec.integer and array.dtype.kind not in "iu":
+        return None, [_error((name,), f"expected an integer dtype, got {array.dtype.str}",
+                             "dtype")]
+    values, errors = _numbers(name, array.ravel(), spec)
+    return (None if values is None else values.reshape(array.shape)), errors
+
+
+def binary_request(operation: str, body: bytes) -> tuple[dict[str, np.ndarray], BaseModel]:
+    """(arrays, params) of a binary body; the same 422 errors as :func:`request_arrays`."""
+    header, raw = parse_binary(body)
+    arrays: dict[str, np.ndarray] = {}
+    errors: list[dict[str, Any]] = []
+    for name, spec in ARRAYS[operation].items():
+        if name not in raw:
+            errors.append(_error((name,), "Field required", "missing"))
+            continue
+        array, found = _binary_array(name, raw.pop(name), spec)
+        errors += found
+        if array is not None:
+            arrays[name] = array
+    errors += [_error((name,), "Extra inputs are not permitted", "extra_forbidden")
+               for name in raw]
+    params = None
+    try:
+        params = PARAMS_MODELS[operation].model_validate(header)
+    except ValidationError as exc:
+        errors += exc.errors(include_url=False, include_input=False)[:MAX_ERRORS * 4]
+    if errors or params is None:
+        raise from_validation_errors(errors)
+    return arrays, params

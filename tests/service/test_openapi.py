@@ -57,7 +57,8 @@ def test_docs_page_and_served_document(client):
     for operation in ("forms", "integrability", "reconstruct", "deform", "parameterize",
                       "interpolate"):
         content = served["paths"][f"/v1/{operation}"]["post"]["requestBody"]["content"]
-        assert set(content) == {"application/json", "multipart/form-data"}
+        assert set(content) == {"application/json", "multipart/form-data",
+                                "application/vnd.ffs.arrays"}
 
 
 def _document() -> dict:

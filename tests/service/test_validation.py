@@ -4,10 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from service_helpers import bumpy_grid, forms_json, problem
 
 from service.problems import ProblemError
 from service.schemas import PARAMS_MODELS, REQUEST_MODELS, SessionParams, SessionRequest
-from service.validation import ARRAYS, MAX_ERRORS, as_array, request_arrays
+from service.validation import (
+    ARRAYS,
+    BINARY_MEDIA_TYPE,
+    MAX_ERRORS,
+    as_array,
+    binary_body,
+    request_arrays,
+)
 
 MESH = {"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0.5]], "faces": [[0, 1, 2]]}
 
@@ -86,3 +94,39 @@ def test_missing_array_and_non_object_body():
     errors = _errors("reconstruct", {"faces": [[0, 1, 2]], "edges": [], "lengths": []})
     assert {"field": "angles", "type": "missing"}.items() <= errors[0].items()
     assert _errors("forms", [1, 2, 3])[0]["reason"].startswith("Input should be a JSON object")
+
+
+def test_binary_body_gives_the_json_answer(client):
+    V, F = bumpy_grid(6, 5)
+    forms = forms_json(V, F)
+    params = {"options": {"orthonormalize": True}}
+    arrays = {k: np.asarray(forms[k]) for k in ("faces", "edges", "lengths", "angles")}
+    via_json = client.post("/v1/reconstruct", json={**forms, **params})
+    via_binary = client.post("/v1/reconstruct", content=binary_body(params, arrays),
+                             headers={"content-type": BINARY_MEDIA_TYPE})
+    assert via_json.status_code == via_binary.status_code == 200, via_binary.text
+    np.testing.assert_array_equal(via_binary.json()["vertices"], via_json.json()["vertices"])
+    mesh = client.post("/v1/mesh", content=binary_body({}, {"vertices": V, "faces": F}),
+                       headers={"content-type": BINARY_MEDIA_TYPE})
+    assert mesh.status_code == 200 and mesh.json()["vertices"] == V.tolist()
+
+
+def test_binary_body_errors(client):
+    def post(body):
+        return client.post("/v1/forms", content=body,
+                           headers={"content-type": BINARY_MEDIA_TYPE})
+
+    V = np.asarray(MESH["vertices"], dtype=float)
+    problem(post(b"nope"), 400, "malformed-request")
+    good = binary_body({}, {"vertices": V, "faces": np.array([[0, 1, 2]])})
+    problem(post(good[:-8]), 400, "malformed-request")  # truncated
+    doc = problem(post(binary_body({}, {"vertices": V, "faces": np.array([[0.0, 1.0, 2.0]])})),
+                  422, "validation-error")
+    assert doc["errors"][0]["field"] == "faces" and "integer dtype" in doc["errors"][0]["reason"]
+    doc = problem(post(binary_body({}, {"vertices": V.ravel(), "faces": np.array([[0, 1, 9]])})),
+                  422, "validation-error")
+    assert doc["errors"][0]["field"] == "vertices" and "shape (n, 3)" in doc["errors"][0]["reason"]
+    V[1, 2] = np.nan
+    doc = problem(post(binary_body({"tolerance": 1}, {"vertices": V, "faces": [[0, 1, 2]]})),
+                  422, "validation-error")
+    assert {e["pointer"] for e in doc["errors"]} == {"/vertices/1/2", "/tolerance"}

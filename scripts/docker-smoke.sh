@@ -18,8 +18,9 @@
 #      (scripts/docker_smoke.py compose).
 # Every container and image it made is removed on exit (trap), with the whole work folder
 # (FFS_SMOKE_KEEP=1 keeps them for debugging: export the CONTAINERS_* variables it prints).
-# Exit status: 0 = all checks passed (or skipped: not root / not Linux / no apt-get / no
-# python3, printed as SKIPPED); non-zero = a step failed (printed as FAILED).
+# Exit status: 0 = all checks passed, or skipped where no container can run here at all (not
+# Linux, not root, no CAP_SYS_ADMIN, no apt-get, no python3; printed as SKIPPED: <why>);
+# non-zero = a step failed (printed as FAILED: <step>, with the end of its log).
 set -euo pipefail
 
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -165,7 +166,8 @@ mmdebstrap --quiet --variant=apt "${slim[@]}" --include=python3,python3-venv,ca-
   --customize-hook='chroot "$1" python3 -m venv /opt/venv' \
   --customize-hook='rm -f "$1"/etc/apt/sources.list "$1"/etc/apt/sources.list.d/*' \
   --customize-hook="copy-in $WORK/debian.sources /etc/apt/sources.list.d/" \
-  "$codename" "$rootfs" "${sources[@]}" || fail "mmdebstrap"
+  "$codename" "$rootfs" "${sources[@]}" > "$WORK/mmdebstrap.log" 2>&1 \
+  || { tail -n 30 "$WORK/mmdebstrap.log"; fail "mmdebstrap"; }
 pip_ca=$(chroot "$rootfs" /opt/venv/bin/python -c \
   'from pip._vendor import certifi; print(certifi.where())' 2> /dev/null || true)
 path=/opt/venv/bin:/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin
@@ -182,9 +184,10 @@ cp -a "$npm_dir" "$rootfs/usr/local/lib/node_modules/npm"
 ln -s ../lib/node_modules/npm/bin/npm-cli.js "$rootfs/usr/local/bin/npm"
 ln -s ../lib/node_modules/npm/bin/npx-cli.js "$rootfs/usr/local/bin/npx"
 if ! chroot "$rootfs" /usr/local/bin/npm --version > /dev/null 2>&1; then
-  log "the host's node does not run in a minbase rootfs: Debian's nodejs + npm instead"
+  log "the host's node does not run in the stand-in rootfs: Debian's nodejs + npm instead"
   mmdebstrap --quiet --variant=apt "${slim[@]}" --include=nodejs,npm,ca-certificates \
-    "$codename" "$WORK/rootfs-node" "${sources[@]}" || fail "mmdebstrap (node)"
+    "$codename" "$WORK/rootfs-node" "${sources[@]}" > "$WORK/mmdebstrap.log" 2>&1 \
+    || { tail -n 30 "$WORK/mmdebstrap.log"; fail "mmdebstrap (node)"; }
   rm -rf "$rootfs" && rootfs=$WORK/rootfs-node
 fi
 chroot "$rootfs" npm --version > /dev/null || fail "npm does not run in the node rootfs"
@@ -199,11 +202,12 @@ log "base images: python:3.11-slim $(podman image inspect --format '{{.Size}}' p
 # -- 3. the image, from the Dockerfile unmodified ------------------------------------------------
 # RUN steps reach the registries as the host does: the host's CA bundle is bind-mounted (read
 # only) over the image's bundle and over the one pip vendors; nothing of that stays in the image.
+ca=/etc/ssl/certs/ca-certificates.crt
 mounts=()
-for target in /etc/ssl/certs/ca-certificates.crt "$pip_ca"; do
-  [ -s /etc/ssl/certs/ca-certificates.crt ] && [ -n "$target" ] \
-    && mounts+=(--volume "/etc/ssl/certs/ca-certificates.crt:$target:ro")
-done
+if [ -s "$ca" ]; then
+  mounts+=(--volume "$ca:$ca:ro")
+  [ -z "$pip_ca" ] || mounts+=(--volume "$ca:$pip_ca:ro")
+fi
 log "buildah bud (Dockerfile unmodified)"
 buildah bud --pull=never --format docker --isolation oci --network host --layers=false \
   --signature-policy "$WORK/policy.json" "${mounts[@]}" --tag "$IMAGE" \

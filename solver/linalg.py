@@ -362,7 +362,8 @@ class _AnalysisCache:
                 del self._entries[key]
 
     def clear(self) -> None:
-        """Free every kept analysis; handles of live factorizations are not affected."""
+        """Free every kept analysis and reset the counters; handles of live
+        factorizations are not affected."""
         with self._lock:
             self._drain()
             for entry in self._entries.values():
@@ -370,6 +371,7 @@ class _AnalysisCache:
                     handle.release()
             self._entries.clear()
             self._bytes = 0
+            self._counts = dict.fromkeys(self._counts, 0)
 
     def info(self) -> dict[str, int]:
         """Sizes and counters (see :func:`analysis_cache_info`)."""
@@ -385,7 +387,8 @@ _CACHE = _AnalysisCache()
 
 
 def clear_analysis_cache() -> None:
-    """Free every analysis kept by this process (live factorizations keep working)."""
+    """Free every analysis kept by this process and reset the counters of
+    :func:`analysis_cache_info` (live factorizations keep working)."""
     _CACHE.clear()
 
 
@@ -435,16 +438,18 @@ class _PardisoSolver:
         handle, perm = _CACHE.acquire(key) if ANALYSIS_CACHE_BYTES > 0 else (None, None)
         self.analysis = "computed" if perm is None else "cached"
         start = time.perf_counter()
+        reused = handle is not None
         if handle is None:
             handle = _PardisoHandle(mkl, self.n, perm)
             error = handle.call(11, self._a, self._ia, self._ja)  # ordering + symbolic
             self._raise_if_failed(handle, error)
             if perm is None and ANALYSIS_CACHE_BYTES > 0:
                 _CACHE.remember(key, handle.perm)
-        middle = time.perf_counter()
+        analysed = time.perf_counter()
         self._handle = handle
         self._raise_if_failed(handle, handle.call(22, self._a, self._ia, self._ja))
-        self.timings = {"analysis": middle - start, "factorization": time.perf_counter() - middle}
+        self.timings = {"analysis": 0.0 if reused else analysed - start,
+                        "factorization": time.perf_counter() - analysed}
         self._finalizer = weakref.finalize(self, _retire, handle, key)
 
     @staticmethod

@@ -142,6 +142,7 @@ class Deformer:
         self.rest_forms = forms
         self.last_report: dict[str, Any] = {"refined": False, "reason": "no solve yet"}
         self._refiner: Refiner | None = None
+        self._previous: tuple[np.ndarray, np.ndarray] | None = None  # (linear, refined)
 
         template = self._constraints(np.zeros((len(self.handles), 3)),
                                      np.tile(np.eye(3), (len(groups), 1, 1)))
@@ -276,9 +277,21 @@ class Deformer:
                                     "reason": "exact: the linear answer has the rest forms"}
             else:
                 soft = None if np.isinf(self._handle_weight) else P
-                fit = refiner.run(local, soft_positions=soft,
-                                  frame_edges=self._rest_face_edges(R))
+                edges = self._rest_face_edges(R)
+                refiner.set_handle_targets(soft, edges)
+                start = local
+                if self._previous is not None:
+                    # A session's next drag: the previous refined shape, moved by what the
+                    # linear answer moved (exactly the new targets at hard handles). Of the
+                    # two starts the nearer to the rest forms wins.
+                    warm = self._previous[1] + (local - self._previous[0])
+                    start = min((local, warm), key=refiner.energy)
+                linear_local = local
+                fit = refiner.run(start, keep_factor=True)
                 local, self.last_report = fit.vertices, fit.report
+                self.last_report["start"] = "previous drag" if start is not linear_local \
+                    else "linear answer"
+                self._previous = (linear_local, local)
         out = self.rest.copy()
         moving = self.in_roi[self.sub_vertices]
         out[self.sub_vertices[moving]] = local[moving]

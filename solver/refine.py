@@ -459,6 +459,17 @@ class Refiner:
         self.targets = targets
         self.backend = backend
         self.objective = _Objective(targets, handles, dim)
+        self._kept: tuple[Any, sp.csr_array] | None = None  # see run(keep_factor=True)
+        self._kept_damping = INITIAL_DAMPING
+
+    def set_handle_targets(self, soft_positions: np.ndarray | None = None,
+                           frame_edges: np.ndarray | None = None) -> None:
+        """Replace the soft handle positions (p, dim) and the orientation handles' target
+        edge vectors (q, 2, dim) (``None`` keeps the current ones)."""
+        if soft_positions is not None:
+            self.objective.soft_positions = np.asarray(soft_positions, dtype=np.float64)
+        if frame_edges is not None:
+            self.objective.frame_edges = np.asarray(frame_edges, dtype=np.float64)
 
     def energy(self, vertices: np.ndarray) -> float:
         """E of (n, dim) positions (fixed vertices as given)."""
@@ -471,18 +482,20 @@ class Refiner:
 
     def run(self, start: np.ndarray, *, soft_positions: np.ndarray | None = None,
             frame_edges: np.ndarray | None = None, max_iterations: int = MAX_ITERATIONS,
-            tolerance: float = TOLERANCE, time_limit: float | None = None) -> Refinement:
+            tolerance: float = TOLERANCE, time_limit: float | None = None,
+            keep_factor: bool = False) -> Refinement:
         """Refine from ``start`` (n, dim); fixed vertices keep their ``start`` positions.
 
         ``soft_positions`` (p, dim) and ``frame_edges`` (q, 2, dim) replace the handle
-        targets given at construction. See :func:`refine` for the rest.
+        targets given at construction. ``keep_factor``: start from the factorization the
+        previous ``keep_factor`` run ended with and keep this run's for the next (for a
+        session's drags, which are alike); convergence may then be declared on a step of
+        that kept factor, without a fresh factorization to confirm it. See :func:`refine`
+        for the rest.
         """
         clock = time.perf_counter()
         objective = self.objective
-        if soft_positions is not None:
-            objective.soft_positions = np.asarray(soft_positions, dtype=np.float64)
-        if frame_edges is not None:
-            objective.frame_edges = np.asarray(frame_edges, dtype=np.float64)
+        self.set_handle_targets(soft_positions, frame_edges)
         X = np.array(start, dtype=np.float64)
         before = self.residuals(X)
         energy0 = energy = objective.energy(X)
@@ -491,7 +504,11 @@ class Refiner:
         iterations = rejected = factorizations = 0
         stop, converged = "max_iterations", False
         trace, steps = [energy0], []
-        factor = model = None  # the last factorized damped matrix and its J^T J
+        # The last factorized damped matrix and its J^T J; with ``keep_factor`` the previous
+        # run's, as a start (consecutive drags of a session are alike).
+        factor, model = self._kept if keep_factor and self._kept else (None, None)
+        if factor is not None:
+            damping = self._kept_damping
         fresh = False  # whether ``factor`` was computed at the current X
         frozen_steps = 0
         while iterations < max_iterations and objective.n_free and not converged:
@@ -552,7 +569,9 @@ class Refiner:
                 if (full and small and slowing) or energy <= EXACT_ENERGY:
                     stop, converged = "converged", True
                 elif small and slowing and not fresh:
-                    frozen_steps = MAX_FROZEN_STEPS  # confirm with a fresh step
+                    if keep_factor:  # interactive: a small step on a kept factor is enough
+                        stop, converged = "converged", True
+                    frozen_steps = MAX_FROZEN_STEPS  # otherwise confirm with a fresh step
                 if fresh:  # Levenberg-Marquardt's damping update (Nielsen)
                     damping *= (max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
                                 if alpha == 1.0 else 2.0)
@@ -567,6 +586,8 @@ class Refiner:
                 stop, converged = "stationary", True
         if not objective.n_free:
             stop, converged = "no_free_vertices", True
+        if keep_factor and factor is not None:
+            self._kept, self._kept_damping = (factor, model), damping
         return Refinement(vertices=X, report={
             "refined": True,
             "converged": converged,

@@ -54,6 +54,21 @@ there and raises :class:`BackendUnavailableError` if that process lacks the back
 For worker pools it is therefore as cheap to send the matrix and call :func:`factorize`
 in the worker.
 
+Analysis cache (PARDISO): the analysis -- fill-reducing ordering (METIS nested dissection,
+PARDISO's default) and symbolic factorization, about two thirds of a cold factorization of
+the reconstruction system -- depends only on the sparsity pattern. Each process keeps it
+per pattern (a 128-bit digest of the upper triangle's CSR index arrays), LRU, within
+:data:`ANALYSIS_CACHE_BYTES`: the ordering, and the handles of dead factorizations with
+their numerical factor freed. A factorization of a known pattern takes such a handle and
+runs only the numerical factorization (PARDISO phase 22), or, if every handle of the
+pattern belongs to a live factorization, a new handle with the kept ordering (the symbolic
+factorization is redone). No handle is ever shared by two live factorizations, so this is
+thread safe. ``Factorization.analysis`` says ``"cached"`` or ``"computed"``;
+:func:`analysis_cache_info` and :func:`clear_analysis_cache` inspect and empty the cache.
+Repeated factorizations of one pattern with new values (refinement iterations, successive
+reconstructs of one mesh, new handle sets) therefore skip the analysis without any change
+to the calls. SuperLU and cholespy always compute their analysis.
+
 Thread safety: :meth:`Factorization.solve` may be called from several threads; solves on
 one factorization are serialized by a lock (the native solvers reuse workspaces), and
 different factorizations run in parallel where the backend releases the GIL.

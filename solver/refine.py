@@ -63,7 +63,7 @@ AREA_WEIGHT = 1.0
 HARD_FRAME_WEIGHT = 1e3
 """Weight standing in for a hard orientation handle (not eliminable in positions)."""
 MAX_ITERATIONS = 50
-TOLERANCE = 1e-3
+TOLERANCE = 1e-4
 """Stop after a full Gauss-Newton step that moved no vertex by more than this fraction of
 the mean target edge length (an energy criterion fails here: where the forms conflict, E
 stays large at the optimum, so its relative decrease says little about the positions)."""

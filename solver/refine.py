@@ -527,6 +527,7 @@ class Refiner:
                     diag = H.diagonal()
                     floor = 1e-9 * float(diag.mean())
                     D = sp.diags_array(damping * np.maximum(diag, floor) + floor)
+                    factor = None  # frees its analysis for the cache: the next one reuses it
                     try:
                         factor = factorize(H + D, self.backend, assume_symmetric=True)
                     except SingularSystemError:

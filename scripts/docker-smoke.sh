@@ -54,6 +54,10 @@ if [ "${#need[@]}" -gt 0 ]; then
     > /dev/null
 fi
 
+# The one file outside the work folder: containers/image's blob-info cache (root's is always
+# /var/lib/containers/cache). Removed on exit unless it was there before.
+BLOB_CACHE=/var/lib/containers/cache/blob-info-cache-v1.boltdb
+[ -e "$BLOB_CACHE" ] && had_blob_cache=1 || had_blob_cache=
 WORK=$(mktemp -d "${TMPDIR:-/var/tmp}/ffs-docker-smoke.XXXXXX")
 export CONTAINERS_STORAGE_CONF=$WORK/storage.conf
 export CONTAINERS_CONF=$WORK/containers.conf
@@ -79,6 +83,10 @@ cleanup() {
     umount -l "$m" 2> /dev/null || true
   done
   rm -rf "$WORK"
+  if [ -z "$had_blob_cache" ]; then
+    rm -f "$BLOB_CACHE"
+    rmdir "$(dirname "$BLOB_CACHE")" /var/lib/containers 2> /dev/null || true
+  fi
   if [ "$status" = 0 ]; then
     log "PASSED in $((SECONDS - START)) s (work folder removed)"
   else
@@ -168,6 +176,7 @@ mmdebstrap --quiet --variant=apt "${slim[@]}" --include=python3,python3-venv,ca-
   --customize-hook="copy-in $WORK/debian.sources /etc/apt/sources.list.d/" \
   "$codename" "$rootfs" "${sources[@]}" > "$WORK/mmdebstrap.log" 2>&1 \
   || { tail -n 30 "$WORK/mmdebstrap.log"; fail "mmdebstrap"; }
+log "rootfs ready ($(du -sm "$rootfs" | cut -f1) MB); podman import"
 pip_ca=$(chroot "$rootfs" /opt/venv/bin/python -c \
   'from pip._vendor import certifi; print(certifi.where())' 2> /dev/null || true)
 path=/opt/venv/bin:/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin

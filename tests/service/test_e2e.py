@@ -99,7 +99,10 @@ def test_twenty_simultaneous_requests(live_server):
     responses = asyncio.run(run())
     for (path, _, key, want), response in zip(work, responses, strict=True):
         assert response.status_code == 200, (path, response.text[:300])
-        np.testing.assert_allclose(response.json()[key], want, atol=1e-8, err_msg=path)
+        # deform and parameterize refine nonlinearly by default: the iterations stop at their
+        # tolerance, and the worker's BLAS threads differ from this process's.
+        atol = 1e-6 if path in ("/v1/deform", "/v1/parameterize") else 1e-8
+        np.testing.assert_allclose(response.json()[key], want, atol=atol, err_msg=path)
 
 
 def test_forms_reconstruct_roundtrip_over_http(live_server):

@@ -164,6 +164,10 @@ def test_result_of_unfinished_job_and_cancel_running(client):
     executor = client.app.state.executor
     job, location = submit_debug(client, seconds=30)
     doc, _ = wait_job(client, location, states=("running",))
+    deadline = time.monotonic() + 10  # "running" comes with the dispatch, the stage follows
+    while doc["progress"]["stage"] is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+        doc = client.get(location).json()
     assert doc["progress"]["stage"] == "solve"
     response = problem(client.get(f"{location}/result"), 409, "job-not-finished")
     assert response["job_status"] == "running"

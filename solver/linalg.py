@@ -664,6 +664,12 @@ def _upper_triangle(K: sp.csr_array) -> sp.csr_array:
     """Upper triangle of ``K`` (CSR, sorted int32 indices) with every diagonal entry
     stored, explicitly zero if need be (PARDISO requires them)."""
     n = K.shape[0]
+    rows = np.repeat(np.arange(n, dtype=np.int32), np.diff(K.indptr))
+    keep = K.indices >= rows
+    if np.count_nonzero(K.indices == rows) == n:  # every diagonal stored: mask in place
+        indptr = np.zeros(n + 1, dtype=np.int32)
+        np.cumsum(np.bincount(rows[keep], minlength=n), out=indptr[1:])
+        return sp.csr_array((K.data[keep], K.indices[keep], indptr), shape=K.shape)
     strict = sp.triu(K, k=1, format="coo")
     diagonal = np.arange(n, dtype=np.int64)
     upper = sp.csr_array(

@@ -256,6 +256,8 @@ class _Group:
     evaluate: Any                 # X -> (r (rows,), G (rows, q, dim) or None)
     hinge: bool = False                 # rows are hinges [i, j, a, b]
     scatter: np.ndarray | None = None   # positions in the block values, or None
+    gradient_index: np.ndarray | None = None   # positions in J^T r of the kept entries
+    gradient_select: np.ndarray | None = None  # kept gradient entries (None: all)
     select: np.ndarray | None = None    # entries of the outer products that are kept
 
 
@@ -393,6 +395,11 @@ class _Objective:
         d2 = self.dim * self.dim
         entry = np.arange(d2)
         for g, k in zip(self.groups, keys, strict=True):
+            # Where each (row, vertex, coordinate) gradient entry lands in J^T r.
+            local = index[g.vertices]
+            slots = (local[:, :, None] * self.dim + np.arange(self.dim)).ravel()
+            g.gradient_select = None if (local >= 0).all() else np.flatnonzero(slots >= 0)
+            g.gradient_index = slots if g.gradient_select is None else slots[g.gradient_select]
             flat = k.ravel()
             keep = flat >= 0
             block = np.searchsorted(self.pattern, flat[keep])
@@ -413,26 +420,24 @@ class _Objective:
         J^T r (n_free * dim,))."""
         dim, d2 = self.dim, self.dim * self.dim
         values = np.zeros(len(self.pattern) * d2) if matrix else None
-        gradient = np.zeros((self.n_free, dim))
+        gradient = np.zeros(self.n_free * dim)
         energy = 0.0
         for g in self.groups:
             r, G = g.evaluate(X)
             energy += 0.5 * float(np.dot(r, r))
-            local = self.index[g.vertices]                      # (rows, q)
-            contrib = r[:, None, None] * G                      # (rows, q, dim)
-            ok = local >= 0
-            for c in range(dim):
-                gradient[:, c] += np.bincount(local[ok], contrib[..., c][ok],
-                                              minlength=self.n_free)
+            contrib = (r[:, None, None] * G).ravel()            # (rows * q * dim,)
+            if g.gradient_select is not None:
+                contrib = contrib[g.gradient_select]
+            gradient += np.bincount(g.gradient_index, contrib, minlength=len(gradient))
             if values is not None:
                 outer = G[:, :, None, :, None] * G[:, None, :, None, :]  # (rows, q, q, d, d)
                 flat = outer.ravel() if g.select is None else outer.ravel()[g.select]
                 values += np.bincount(g.scatter, flat, minlength=len(values))
         if values is None:
-            return energy, None, gradient.ravel()
+            return energy, None, gradient
         H = sp.bsr_array((values.reshape(-1, dim, dim), self.block_indices, self.block_indptr),
                          shape=(self.n_free * dim, self.n_free * dim)).tocsr()
-        return energy, H, gradient.ravel()
+        return energy, H, gradient
 
 
 # --------------------------------------------------------------------------- the solver

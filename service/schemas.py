@@ -621,6 +621,9 @@ class InterpolateResponse(BaseModel):
     t: float | list[float]
     vertices: list[Vec3] | list[list[Vec3]]
     faces: list[Tri]
+    refinement: dict[str, Any] | list[dict[str, Any]] | None = Field(
+        None, description="Whether and how each blend was refined (nearest surface to the "
+        "blended forms): one report for a single t, a list for a list of t.")
 
 
 class ProblemItem(BaseModel):

@@ -491,12 +491,13 @@ def interpolate_task(payload: dict[str, Any], progress: Progress) -> dict[str, A
         raise TaskProblemError("not-acceptable", 406, "glTF holds one mesh: request a single "
                                "t, or Accept: application/json for a list of t")
     progress("solve", 0.0)
-    vertices = solver.interpolate(vertices_a, vertices_b, faces, t,
-                                  frame_weight=options["frame_weight"],
-                                  weighting=options["weighting"], backend=_backend(payload),
-                                  refine=options["refine"])
+    vertices, reports = solver.interpolate(
+        vertices_a, vertices_b, faces, t, frame_weight=options["frame_weight"],
+        weighting=options["weighting"], backend=_backend(payload), refine=options["refine"],
+        return_reports=True)
     faces = np.asarray(faces)
-    document = {"t": t, "vertices": vertices, "faces": faces}
+    document = {"t": t, "vertices": vertices, "faces": faces,
+                "refinement": reports[0] if np.ndim(t) == 0 else reports}
     mesh = (vertices, faces) if np.ndim(t) == 0 else None
     return _finish(payload, progress, document, mesh)
 

@@ -284,6 +284,10 @@ def test_refine_option_reaches_deform_parameterize_interpolate_and_sessions(clie
     pair = {"vertices_a": V.tolist(), "vertices_b": B.tolist(), "faces": F.tolist(), "t": 0.5}
     blend = {r: post("/v1/interpolate", pair, r) for r in (None, False)}
     assert not np.allclose(blend[None]["vertices"], blend[False]["vertices"], atol=1e-3)
+    assert blend[None]["refinement"]["refined"] is True
+    assert blend[None]["refinement"]["after"]["length_error"]["mean"] < \
+        blend[None]["refinement"]["before"]["length_error"]["mean"]
+    assert blend[False]["refinement"]["refined"] is False
     # A session drags linearly by default (latency); refine=true gives /v1/deform's answer.
     for refine, want in ((None, deform[False]), (True, deform[None])):
         options = {} if refine is None else {"refine": refine}

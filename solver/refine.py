@@ -403,7 +403,9 @@ class _Objective:
             flat = k.ravel()
             keep = flat >= 0
             block = np.searchsorted(self.pattern, flat[keep])
-            g.scatter = (block[:, None] * d2 + entry[None, :]).ravel()
+            scatter = (block[:, None] * d2 + entry[None, :]).ravel()
+            # int32 where it fits: these index arrays are the refinement's largest.
+            g.scatter = scatter.astype(np.int32) if len(self.pattern) * d2 < 2**31 else scatter
             # Entries of the (rows, q*q, dim, dim) outer products that land in the matrix.
             g.select = None if keep.all() else np.flatnonzero(np.repeat(keep, d2))
 

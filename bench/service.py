@@ -169,8 +169,10 @@ def report(lat: dict, tput: dict[int, dict[str, float]], repeats: int, n_request
         f"`python bench/service.py --repeats {repeats} --requests {n_requests}` on "
         f"{platform.machine()} with {os.cpu_count()} cores, Python "
         f"{platform.python_version()}; real uvicorn on loopback, medians of {repeats} rounds "
-        "after one warm-up round; each round runs the library call and the three HTTP "
-        "variants in turn.",
+        "after one warm-up round; each round runs the library call and the HTTP variants in "
+        f"turn. Load average (1 min) before / after the latency rounds: {lat['load'][0]:.1f} / "
+        f"{lat['load'][1]:.1f} (the HTTP path spreads over three processes, so a busy machine "
+        "penalizes it more than the single-process library call).",
         "",
         f"## Latency: reconstruct of {lat['mesh']} ({lat['faces']} faces, {lat['vertices']} "
         "vertices)",
@@ -220,7 +222,9 @@ def main() -> None:
     parser.add_argument("--requests", type=int, default=400)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "SERVICE.md")
     args = parser.parse_args()
+    load_before = os.getloadavg()[0]
     lat = latency(args.repeats)
+    lat["load"] = (load_before, os.getloadavg()[0])
     print(lat)
     tput = {w: throughput(w, args.requests) for w in (1, 2)}
     print(tput)

@@ -13,22 +13,43 @@ import re
 
 import httpx
 import numpy as np
+import pytest
 from web_helpers import ARTIFACTS, SMALL_VIEWPORT, VIEWPORT, assert_not_blank
 
 REPO_DATA = ARTIFACTS.parents[1] / "data"
 
-# Delays the page's fetch() of URLs containing window.__slow.pattern by window.__slow.ms
-# (a slow server, as the browser sees it; the page's code is untouched).
+# Delays the page's requests to URLs containing a pattern, from the page and from its worker
+# (a slow server, as the browser sees it; the page's code is untouched): the worker is started
+# through a wrapper module that patches its fetch() first. window.__setSlow(pattern, ms).
 SLOW_FETCH = """
-window.__slow = { pattern: null, ms: 0 };
-const realFetch = window.fetch.bind(window);
-window.fetch = async (input, init) => {
-  const url = typeof input === "string" ? input : input.url;
-  if (window.__slow.pattern && url.includes(window.__slow.pattern)) {
-    await new Promise((r) => setTimeout(r, window.__slow.ms));
-  }
-  return realFetch(input, init);
-};
+(() => {
+  const slowFetch = `
+    const slow = { pattern: null, ms: 0 };
+    new BroadcastChannel("slow").onmessage = (e) => Object.assign(slow, e.data);
+    const realFetch = self.fetch.bind(self);
+    self.fetch = async (input, init) => {
+      // (a worker started from a blob: URL resolves "/v1/..." against the page's origin)
+      if (typeof input === "string" && input.startsWith("/")) input = self.origin + input;
+      const url = typeof input === "string" ? input : input.url;
+      if (slow.pattern && url.includes(slow.pattern)) {
+        await new Promise((r) => setTimeout(r, slow.ms));
+      }
+      return realFetch(input, init);
+    };`;
+  eval(slowFetch.replaceAll("self.", "window."));
+  const channel = new BroadcastChannel("slow");
+  window.__setSlow = (pattern, ms) => {
+    channel.postMessage({ pattern, ms });
+    return new Promise((r) => setTimeout(r, 50));  // delivered to the worker too
+  };
+  const RealWorker = window.Worker;
+  window.Worker = function (url, options) {
+    const absolute = new URL(url, location.href).href;
+    const source = `${slowFetch}\nawait import(${JSON.stringify(absolute)});`;
+    const blob = new Blob([source], { type: "text/javascript" });
+    return new RealWorker(URL.createObjectURL(blob), { ...options, type: "module" });
+  };
+})();
 """
 
 
@@ -266,7 +287,7 @@ def test_no_stale_report_during_a_slow_load(web):
     page = web.open()
     page.click("#integrability-details summary")
     face_stats = page.locator("#integrability-stats").inner_text()
-    page.evaluate("window.__slow = { pattern: '/v1/integrability', ms: 2500 }")
+    page.evaluate("window.__setSlow('/v1/integrability', 2500)")
     page.select_option("#sample-select", "decimated-knight.off")
     page.wait_for_function("window.app.state.name === 'decimated-knight.off'")
     assert web.app("app.state.integrability") is None  # still on its way
@@ -289,7 +310,7 @@ def test_progress_bar_does_not_move_the_layout(web):
         return [page.locator(s).bounding_box() for s in selectors]
 
     before = boxes()
-    page.evaluate("window.__slow = { pattern: '/v1/forms', ms: 2000 }")
+    page.evaluate("window.__setSlow('/v1/forms', 2000)")
     page.select_option("#sample-select", "torus.off")
     page.locator("#progress").wait_for(state="visible")
     during = boxes()
@@ -405,3 +426,67 @@ def test_no_jargon_shown(web):
     assert not JARGON.search(shown), JARGON.search(shown)
     assert "Method" in page.locator("#forms-stats").inner_text()
     web.screenshot("19-rebuilt")
+
+
+# --------------------------------------------------------------------- rebuild, refined
+
+
+def test_rebuild_shows_refined_answer_and_compares_linear(web):
+    """Knight, angles x 0.8: the page shows the refined answer (the service's default), lists
+    both residuals, and its Linear switch shows the linear answer (refine: false), which
+    shrinks the knight."""
+    page = web.open("?sample=decimated-knight.off")
+    if not web.app("app.capabilities.refine"):
+        pytest.skip("this server's reconstruct has no options.refine")
+    page.click("#tab-forms")
+    page.fill("#angle-scale", "0.8")
+    page.click("#bend-forms")
+    page.wait_for_function("window.app.state.source === 'reconstruction'")
+    web.idle()
+    forms = web.app("app.state.reconstruction.input")
+    with httpx.Client(base_url=web.base, timeout=120) as http:
+        refined = http.post("/v1/reconstruct", json=forms).json()
+        linear = http.post("/v1/reconstruct", json={**forms, "options": {"refine": False}}).json()
+    assert refined["report"]["refinement"]["refined"] is True
+    np.testing.assert_allclose(_vertices(web), np.asarray(refined["vertices"]), atol=1e-6)
+    table = page.locator("#residuals").inner_text()
+    before = refined["report"]["refinement"]["before"]
+    after = refined["report"]["refinement"]["after"]
+    for summary in (before, after):  # both answers' max length error, as the page formats it
+        assert f"{100 * summary['length_error']['max']:.2f} %" in table, table
+    assert after["length_error"]["max"] < before["length_error"]["max"]
+    assert page.locator("#forms-note").inner_text().find("Switch to Linear") >= 0
+    web.screenshot("20-rebuild-refined")
+
+    page.locator("#compare-row label", has_text="Linear").click()
+    web.idle()
+    np.testing.assert_allclose(_vertices(web), np.asarray(linear["vertices"]), atol=1e-6)
+    assert "linear answer" in page.locator("#forms-stats").inner_text()
+    size = lambda v: np.ptp(np.asarray(v), axis=0).max()  # noqa: E731
+    assert size(linear["vertices"]) < 0.5 * size(refined["vertices"])  # the collapse
+    web.screenshot("21-rebuild-linear")
+    page.locator("#compare-row label", has_text="Refined").click()
+    web.idle()
+    np.testing.assert_allclose(_vertices(web), np.asarray(refined["vertices"]), atol=1e-6)
+    assert web.shown_errors() == []
+
+
+def test_refined_drags(web):
+    """With Refine on, the session is opened with options.refine and drags still land on
+    their handle targets."""
+    page = web.open()
+    if not web.app("app.capabilities.deformRefine"):
+        pytest.skip("this server's deform has no options.refine")
+    page.click("#tab-deform")
+    assert page.locator("#deform-refine").is_visible()
+    web.app("app.makeHandle([0, 1, 2])")
+    web.app("app.makeHandle(app.visibleVertices().slice(600, 620))")
+    web.app("app.setRefine(true)")
+    web.app("app.dragHandle(0, 0, 12)")
+    body = web.app("app.deformRequest()")
+    assert body["options"]["refine"] is True
+    got = _vertices(web)
+    handles = [h["vertex"] for h in body["handles"]]
+    targets = np.asarray([h["position"] for h in body["handles"]])
+    np.testing.assert_allclose(got[handles], targets, atol=2e-4)
+    assert web.shown_errors() == []

@@ -91,6 +91,7 @@ export async function capabilities() {
   return {
     sessions: "/v1/sessions" in paths,
     refine: "refine" in reconstructOptions,
+    deformRefine: "refine" in (doc.components?.schemas?.DeformOptions?.properties || {}),
     sessionSolve: Object.keys(paths).some((p) => /^\/v1\/sessions\/\{[^}]+\}\/solve$/.test(p)),
     version: doc.info?.version,
   };

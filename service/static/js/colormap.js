@@ -1,9 +1,18 @@
 // Viridis colour ramp (matplotlib's), per-vertex colour arrays and the legend gradient.
 
+import { select } from "./mesh.js";
+
 const VIRIDIS = [
   [68, 1, 84], [71, 45, 123], [59, 82, 139], [44, 114, 142], [33, 145, 140],
   [40, 174, 128], [94, 201, 98], [173, 220, 48], [253, 231, 37],
 ];
+
+/** The k-th smallest |value| (0-based). */
+function kthAbs(values, k) {
+  const a = new Float64Array(values.length);
+  for (let i = 0; i < a.length; i++) a[i] = Math.abs(values[i]);
+  return select(a, k);
+}
 
 /** sRGB [0, 255] triple of viridis at t in [0, 1]. */
 export function viridis(t) {
@@ -20,6 +29,11 @@ function toLinear(c) {
   const s = c / 255;
   return s <= 0.04045 ? s / 12.92 : Math.pow((s + 0.055) / 1.055, 2.4);
 }
+
+// Linear RGB of the ramp at 1024 steps: a colour per vertex is a table look-up.
+const STEPS = 1024;
+const TABLE = new Float32Array(3 * (STEPS + 1));
+for (let i = 0; i <= STEPS; i++) TABLE.set(viridis(i / STEPS).map(toLinear), 3 * i);
 
 /**
  * Scale of a scalar field: linear over [0, max], or log10 over [min positive, max] for values
@@ -39,8 +53,8 @@ export function scaleFor(values, { log = false, clip = 0.98, floor = 0, min, max
   if (!log) {
     // A few extreme values (a dragged spike) would leave the rest of the map one colour:
     // the ramp ends at the `clip` quantile and the legend says "≥".
-    const sorted = Float64Array.from(values, Math.abs).sort();
-    const q = sorted.length ? sorted[Math.min(sorted.length - 1, Math.floor(clip * sorted.length))] : 0;
+    const n = values.length;
+    const q = n ? kthAbs(values, Math.min(n - 1, Math.floor(clip * n))) : 0;
     if (max <= floor) return { log: false, min: 0, max: floor || 1, clipped: false, quiet: true };
     const end = Math.max(q, floor);
     return end > 0 && end < max ? { log: false, min: 0, max: end, clipped: true, quiet: false }
@@ -65,10 +79,11 @@ export function normalized(value, scale) {
 export function vertexColors(values, scale) {
   const out = new Float32Array(values.length * 3);
   for (let i = 0; i < values.length; i++) {
-    const [r, g, b] = viridis(normalized(values[i], scale));
-    out[3 * i] = toLinear(r);
-    out[3 * i + 1] = toLinear(g);
-    out[3 * i + 2] = toLinear(b);
+    const t = normalized(values[i], scale);
+    const k = 3 * Math.round(STEPS * Math.min(1, Math.max(0, Number.isFinite(t) ? t : 0)));
+    out[3 * i] = TABLE[k];
+    out[3 * i + 1] = TABLE[k + 1];
+    out[3 * i + 2] = TABLE[k + 2];
   }
   return out;
 }

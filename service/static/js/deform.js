@@ -21,7 +21,8 @@ export function deformBody(setup, positions, rotations) {
       (_, t) => [setup.faces[3 * t], setup.faces[3 * t + 1], setup.faces[3 * t + 2]]),
     handles: setup.handles.map((vertex, k) => ({ vertex,
       position: [positions[3 * k], positions[3 * k + 1], positions[3 * k + 2]] })),
-    options: { orthonormalize: setup.orthonormalize },
+    options: { orthonormalize: setup.orthonormalize,
+      ...(setup.refine === undefined ? {} : { refine: setup.refine }) },
   };
   if (setup.rotationGroups.length) {
     body.rotations = setup.rotationGroups.map((faces, k) => ({ faces, rotation: rotations[k] }));

@@ -8,7 +8,7 @@ import * as api from "./api.js";
 import { CSS_GRADIENT, scaleFor, uniformColors, vertexColors } from "./colormap.js";
 import { DeformTransport, SessionTransport, deformBody } from "./deform.js";
 import {
-  bounds, distortion, facesAround, flatten3, forms as meshForms, histogram, rows3, topology,
+  bounds, distortion, facesAround, flatten3, forms as meshForms, histogram, prepareMesh, rows3,
 } from "./mesh.js";
 import { FlatView, MeshView, axisVector } from "./viewer.js";
 
@@ -43,6 +43,7 @@ const state = {
   handles: [],
   active: null,
   orthonormalize: false,
+  refineDrags: false,
   transport: null,
   deformed: false,
   solving: null,
@@ -62,6 +63,33 @@ const state = {
 
 let view, flatView, caps = { sessions: false, refine: false };
 let samples = [];
+
+// ------------------------------------------------------------------------------ worker
+// Reading meshes and the big JSON of forms and reports happen in js/worker.js.
+
+const worker = new Worker("/static/js/worker.js", { type: "module" });
+const workerCalls = new Map();
+let workerCallId = 0;
+worker.onmessage = ({ data: { id, result, error } }) => {
+  const call = workerCalls.get(id);
+  workerCalls.delete(id);
+  if (!error) call.resolve(result);
+  else if (error.problem) call.reject(new api.ApiError(error.problem, error.context));
+  else call.reject(Object.assign(new Error(error.message), { name: error.name }));
+};
+worker.onerror = (event) => {
+  const err = new Error(`the page's worker failed: ${event.message || "could not start"}`);
+  for (const call of workerCalls.values()) call.reject(err);
+  workerCalls.clear();
+};
+
+function inWorker(kind, args) {
+  return new Promise((resolve, reject) => {
+    const id = ++workerCallId;
+    workerCalls.set(id, { resolve, reject });
+    worker.postMessage({ id, kind, args });
+  });
+}
 const TRANSPORT = new URLSearchParams(location.search).get("transport");
 let handleCounter = 0;
 
@@ -123,6 +151,7 @@ function updateStatus() {
 
 let busy = 0;
 const idleWaiters = [];
+const nextTask = () => new Promise((resolve) => setTimeout(resolve, 0));
 
 function track(promise) {
   busy++;
@@ -350,17 +379,6 @@ function setUp(up, source = "user") {
 
 // ---------------------------------------------------------------------------- loading
 
-function meanEdgeLength(vertices, edges) {
-  let sum = 0;
-  const E = edges.length / 2;
-  for (let e = 0; e < E; e++) {
-    const i = 3 * edges[2 * e], j = 3 * edges[2 * e + 1];
-    sum += Math.hypot(vertices[j] - vertices[i], vertices[j + 1] - vertices[i + 1],
-      vertices[j + 2] - vertices[i + 2]);
-  }
-  return E ? sum / E : 0;
-}
-
 function renderMeshStats() {
   const n = state.vertices.length / 3, m = state.faces.length / 3;
   const E = state.topo.edges.length / 2;
@@ -375,26 +393,20 @@ function renderMeshStats() {
   ]);
 }
 
-/** Show a mesh ({vertices, faces} as nested arrays) and analyse it. */
+/** Show a mesh (prepared by mesh.prepareMesh, or {vertices, faces} as nested arrays) and
+ * analyse it. */
 async function openMesh(mesh, name, source, extra = {}) {
+  const p = mesh.topo ? mesh : prepareMesh(mesh.vertices, mesh.faces);
   closeTransport();
   for (const h of state.handles) view.scene.remove(h.pivot);
   view.attachGizmo(null);
   Object.assign(state, {
-    name, source, vertices: flatten3(mesh.vertices), faces: flatten3(mesh.faces, Uint32Array),
+    name, source, vertices: p.vertices, faces: p.faces, topo: p.topo, reference: p.reference,
+    meanEdge: p.meanEdge, boundaryEdges: p.boundaryEdges, rest: p.vertices.slice(),
     handles: [], active: null, selection: [], deformed: false, distortion: null, flat: null,
     integrability: null, forms: null, lastSolveMs: null, solves: 0, undo: [], redo: [],
     analysisError: null, reconstruction: extra.reconstruction ?? null,
   });
-  const n = state.vertices.length / 3;
-  state.topo = topology(state.faces, n);
-  state.rest = state.vertices.slice();
-  state.reference = meshForms(state.vertices, state.faces, state.topo);
-  state.meanEdge = meanEdgeLength(state.vertices, state.topo.edges);
-  state.boundaryEdges = 0;
-  for (let e = 0; e < state.topo.edges.length / 2; e++) {
-    if (state.topo.right[e] < 0 || state.topo.left[e] < 0) state.boundaryEdges++;
-  }
   state.closed = state.boundaryEdges === 0;
   const { up, source: upSource } = extra.up ? { up: extra.up, source: "user" }
     : guessUp(state.vertices, extra.sampleUp);
@@ -403,6 +415,7 @@ async function openMesh(mesh, name, source, extra = {}) {
   $("up-axis").value = up;
   view.setUp(axisVector(up), { refit: false });
   view.setMesh(state.vertices, state.faces, state.topo.edges);
+  await nextTask();  // a big mesh: let the page breathe between building and panels
   $("empty-state").hidden = true;
   $("mesh-title").textContent = `${name}${source === "sample" ? " (sample)" : ""}`;
   if (source !== "sample") $("sample-select").value = "";
@@ -427,13 +440,15 @@ async function openMesh(mesh, name, source, extra = {}) {
 }
 
 async function analyze({ forms, integrability } = {}) {
+  const faces = state.faces;
   try {
-    await withProgress("Integrability report…", async () => {
-      const body = { vertices: rows3(state.vertices), faces: rows3(state.faces) };
-      state.forms = forms ?? await api.postJson("/v1/forms", body);
-      state.integrability = integrability ?? await api.postJson("/v1/integrability", state.forms);
-    });
+    const result = await withProgress("Integrability report…", async () => (forms && integrability
+      ? { forms, integrability } : inWorker("analyze", { vertices: state.vertices, faces })));
+    if (state.faces !== faces) return;  // another mesh was opened meanwhile
+    state.forms = result.forms;
+    state.integrability = result.integrability;
   } catch (err) {
+    if (state.faces !== faces) throw err;
     state.forms = state.integrability = null;
     state.analysisError = err?.name === "AbortError" ? null : api.describe(err);
     renderIntegrability();
@@ -520,14 +535,15 @@ async function fetchBlob(path) {
 async function loadSample(file) {
   const mesh = await withProgress(`Loading ${file}…`, async () => {
     const blob = await fetchBlob(`/static/samples/${encodeURIComponent(file)}`);
-    return api.readMeshFile(blob, file);
+    return inWorker("readMesh", { file: blob, name: file });
   });
   $("sample-select").value = file;
   await openMesh(mesh, file, "sample", { sampleUp: samples.find((s) => s.file === file)?.up });
 }
 
 async function openUpload(file) {
-  const mesh = await withProgress(`Reading ${file.name}…`, () => api.readMeshFile(file, file.name));
+  const mesh = await withProgress(`Reading ${file.name}…`, () => inWorker("readMesh", { file,
+    name: file.name }));
   $("sample-select").value = "";
   await openMesh(mesh, file.name, "upload");
 }
@@ -595,12 +611,30 @@ async function showAnswer(which) {
   updateStatus();
 }
 
-function residualText(r) {
-  const ratio = r.length_ratio;
-  return `lengths ${pct(residual(r, "length_error", "mean"))} mean, `
-    + `${pct(residual(r, "length_error", "max"))} max · angles `
-    + `${deg(residual(r, "angle_error", "mean"))} mean, ${deg(residual(r, "angle_error", "max"))} max`
-    + (ratio !== undefined && Math.abs(ratio - 1) > 0.01 ? ` · size × ${fmt(ratio, 2)}` : "");
+/** The residual table: length and angle errors of the linear and the refined answer. */
+function renderResiduals(f) {
+  $("residuals").hidden = !f?.refined;
+  const body = $("residual-rows");
+  body.replaceChildren();
+  if (!f?.refined) return;
+  const rows = [
+    ["Length error, mean", (r) => pct(residual(r, "length_error", "mean"))],
+    ["Length error, max", (r) => pct(residual(r, "length_error", "max"))],
+    ["Angle error, mean", (r) => deg(residual(r, "angle_error", "mean"))],
+    ["Angle error, max", (r) => deg(residual(r, "angle_error", "max"))],
+  ];
+  if (f.before.length_ratio !== undefined) {
+    rows.push(["Size (edge ratio)", (r) => `× ${fmt(r.length_ratio, 3)}`]);
+  }
+  for (const [label, cell] of rows) {
+    const tr = document.createElement("tr");
+    for (const text of [label, cell(f.before), cell(f.after)]) {
+      const td = document.createElement("td");
+      td.textContent = text;
+      tr.append(td);
+    }
+    body.append(tr);
+  }
 }
 
 /** A residual summary of report.refinement ("before"/"after"): nested summaries
@@ -615,6 +649,7 @@ function renderReconstruction() {
   $("compare-row").hidden = !(rec?.refinement?.refined && caps.refine);
   if (!rec) {
     setStats("forms-stats", []);
+    renderResiduals(null);
     $("forms-note").textContent = "";
     return;
   }
@@ -629,14 +664,13 @@ function renderReconstruction() {
   ];
   if (f?.refined) {
     if (caps.refine) rows.push(["Showing", rec.showing === "refined" ? "refined answer" : "linear answer"]);
-    rows.push(["Linear residual", residualText(f.before), "wrap"]);
-    rows.push(["Refined residual", residualText(f.after), "wrap"]);
     rows.push(["Refinement", num(`${f.iterations} steps, ${(1000 * f.seconds).toFixed(0)} ms`
       + (f.converged ? "" : " (not converged)"))]);
   } else if (seconds !== null) {
     rows.push(["Solve time", num(`${(1000 * (seconds + (f?.seconds ?? 0))).toFixed(0)} ms`)]);
   }
   setStats("forms-stats", rows);
+  renderResiduals(f);
   document.querySelector(`input[name="answer"][value="${rec.showing}"]`).checked = true;
   $("forms-note").textContent = f?.refined
     ? "The linear answer can shrink or crumple a surface whose forms do not fit; the refined "
@@ -656,14 +690,22 @@ async function openFormsFile(file) {
   await reconstructForms(doc, `${file.name} (reconstructed)`, file.name);
 }
 
+/** A forms document with plain arrays (faces, edges as rows) from typed or nested forms,
+ * the dihedral angles scaled by `scale` (and kept in [-pi, pi]). */
+function formsInput(f, scale = 1) {
+  const rows = (a, w) => (Array.isArray(a) ? a
+    : Array.from({ length: a.length / w }, (_, i) => Array.from(a.subarray(w * i, w * i + w))));
+  return { faces: rows(f.faces, 3), edges: rows(f.edges, 2), lengths: Array.from(f.lengths),
+    angles: Array.from(f.angles, (a) => Math.max(-Math.PI, Math.min(Math.PI, a * scale))) };
+}
+
 async function bendForms() {
   const scale = Number($("angle-scale").value);
   if (!Number.isFinite(scale)) throw new api.ApiError({ title: "Invalid angle scale",
     detail: "enter a number, e.g. 0.8" });
-  const base = state.forms;
-  const angles = base.angles.map((a) => Math.max(-Math.PI, Math.min(Math.PI, a * scale)));
+  if (!state.forms) return;
   const stem = state.name.replace(/ \(.*\)$/, "");
-  await reconstructForms({ ...base, angles }, `${stem} (angles × ${scale})`);
+  await reconstructForms(formsInput(state.forms, scale), `${stem} (angles × ${scale})`);
 }
 
 // ---------------------------------------------------------------------------- flatten
@@ -803,6 +845,8 @@ function setupFor() {
     handles: state.handles.flatMap((h) => h.vertices),
     rotationGroups: state.handles.filter((h) => h.rotationFaces.length).map((h) => h.rotationFaces),
     orthonormalize: state.orthonormalize,
+    // refine: sent only to servers that know it (a session's default is linear drags)
+    refine: caps.deformRefine ? state.refineDrags : undefined,
     initialPositions: positions, initialRotations: rotations,
   };
 }
@@ -881,13 +925,13 @@ function transportText() {
 /** What a transport was opened for: the rest shape, the handle set and the options. */
 function transportKey() {
   return { rest: state.rest, handles: state.handles.map((h) => h.id).join(","),
-    orthonormalize: state.orthonormalize };
+    orthonormalize: state.orthonormalize, refine: state.refineDrags };
 }
 
 function transportCurrent() {
   const key = state.transportKey, now = transportKey();
   return !!state.transport && !!key && key.rest === now.rest && key.handles === now.handles
-    && key.orthonormalize === now.orthonormalize;
+    && key.orthonormalize === now.orthonormalize && key.refine === now.refine;
 }
 
 function requestSolve() {
@@ -1296,6 +1340,10 @@ function installPanels() {
     state.orthonormalize = event.target.checked;
     if (state.handles.length) await rebuildTransport();
   }));
+  $("deform-refine").addEventListener("change", action(async (event) => {
+    state.refineDrags = event.target.checked;
+    if (state.handles.length) await rebuildTransport();
+  }));
   $("color-mode").addEventListener("change", (event) => setColorMode(event.target.value));
   for (const input of document.querySelectorAll('input[name="defect-part"]')) {
     input.addEventListener("change", () => {
@@ -1339,6 +1387,7 @@ async function start() {
   renderDistortion();
   const [, capabilities] = await Promise.all([loadSampleList(), api.capabilities()]);
   caps = capabilities;
+  $("deform-refine-label").hidden = !caps.deformRefine;
   const wanted = new URLSearchParams(location.search).get("sample");
   const first = wanted ?? samples[0]?.file;
   if (first) await loadSample(first);
@@ -1395,6 +1444,11 @@ window.app = {
   visibleVertices() {
     const r = view.canvas.getBoundingClientRect();
     return view.verticesInRect(r.left, r.top, r.right, r.bottom, { facing: state.closed });
+  },
+  setRefine: (on) => {
+    $("deform-refine").checked = on;
+    $("deform-refine").dispatchEvent(new Event("change"));
+    return idle();
   },
   setOrthonormalize: (on) => {
     $("orthonormalize").checked = on;

@@ -101,19 +101,63 @@ function wrap(angle) {
   return a <= -Math.PI ? Math.PI : a;
 }
 
+/** |values| as a new Float64Array. */
+function absolute(values) {
+  const out = new Float64Array(values.length);
+  for (let i = 0; i < out.length; i++) out[i] = Math.abs(values[i]);
+  return out;
+}
+
+/** Rearranges `a` (Float64Array) so that a[k] is its k-th smallest value, smaller ones before
+ * it and larger ones after (Hoare's selection: linear time on average, no full sort). */
+export function select(a, k) {
+  let lo = 0, hi = a.length - 1;
+  while (hi > lo) {
+    const pivot = a[(lo + hi) >> 1];
+    let i = lo, j = hi;
+    while (i <= j) {
+      while (a[i] < pivot) i++;
+      while (a[j] > pivot) j--;
+      if (i <= j) {
+        const t = a[i];
+        a[i] = a[j];
+        a[j] = t;
+        i++;
+        j--;
+      }
+    }
+    if (k <= j) hi = j;
+    else if (k >= i) lo = i;
+    else break;
+  }
+  return a[k];
+}
+
+/** The q-quantile of |values| with numpy's default (linear interpolation between the closest
+ * ranks). */
+export function absQuantile(values, q) {
+  const n = values.length;
+  if (!n) return 0;
+  const a = absolute(values);
+  const pos = q * (n - 1), lo = Math.floor(pos);
+  const low = select(a, lo);
+  if (lo + 1 >= n || pos === lo) return low;
+  let high = Infinity;  // the next order statistic: the smallest value right of lo
+  for (let i = lo + 1; i < n; i++) if (a[i] < high) high = a[i];
+  return low + (high - low) * (pos - lo);
+}
+
 export function summary(values) {
   const n = values.length;
   if (!n) return { mean: 0, rms: 0, max: 0, p95: 0 };
-  const abs = Float64Array.from(values, Math.abs).sort();
-  let sum = 0, sq = 0;
-  for (const v of abs) {
+  let sum = 0, sq = 0, max = 0;
+  for (let i = 0; i < n; i++) {
+    const v = Math.abs(values[i]);
     sum += v;
     sq += v * v;
+    if (v > max) max = v;
   }
-  // numpy's default percentile: linear interpolation between closest ranks.
-  const pos = 0.95 * (n - 1), lo = Math.floor(pos), hi = Math.min(n - 1, lo + 1);
-  const p95 = abs[lo] + (abs[hi] - abs[lo]) * (pos - lo);
-  return { mean: sum / n, rms: Math.sqrt(sq / n), max: abs[n - 1], p95 };
+  return { mean: sum / n, rms: Math.sqrt(sq / n), max, p95: absQuantile(values, 0.95) };
 }
 
 /**
@@ -181,4 +225,49 @@ export function maxAbsDifference(a, b) {
   let worst = 0;
   for (let i = 0; i < a.length; i++) worst = Math.max(worst, Math.abs(a[i] - b[i]));
   return worst;
+}
+
+export function meanEdgeLength(vertices, edges) {
+  let sum = 0;
+  const E = edges.length / 2;
+  for (let e = 0; e < E; e++) {
+    const i = 3 * edges[2 * e], j = 3 * edges[2 * e + 1];
+    sum += Math.hypot(vertices[j] - vertices[i], vertices[j + 1] - vertices[i + 1],
+      vertices[j + 2] - vertices[i + 2]);
+  }
+  return E ? sum / E : 0;
+}
+
+/**
+ * Everything the page derives from a mesh once: flat vertices Float64Array(3n) and faces
+ * Uint32Array(3m) (from nested rows or flat arrays), the edge topology, the reference forms
+ * (the distortion reference), the mean edge length and the number of boundary edges.
+ */
+export function prepareMesh(vertices, faces) {
+  const v = vertices instanceof Float64Array ? vertices : flatten3(vertices);
+  const f = faces instanceof Uint32Array ? faces : flatten3(faces, Uint32Array);
+  const topo = topology(f, v.length / 3);
+  let boundaryEdges = 0;
+  for (let e = 0; e < topo.left.length; e++) {
+    if (topo.right[e] < 0 || topo.left[e] < 0) boundaryEdges++;
+  }
+  return { vertices: v, faces: f, topo, reference: forms(v, f, topo),
+    meanEdge: meanEdgeLength(v, topo.edges), boundaryEdges };
+}
+
+/** The buffers of a prepared mesh, for postMessage's transfer list. */
+export function preparedBuffers(p) {
+  return [p.vertices.buffer, p.faces.buffer, p.topo.edges.buffer, p.topo.left.buffer,
+    p.topo.right.buffer, p.reference.lengths.buffer, p.reference.angles.buffer];
+}
+
+/** JSON text {"vertices": [[x, y, z], ...], "faces": [[i, j, k], ...]} of flat arrays (numbers
+ * print as the shortest text that reads back to the same double). */
+export function meshJson(vertices, faces) {
+  const rows = (flat) => {
+    const out = new Array(flat.length / 3);
+    for (let i = 0; i < out.length; i++) out[i] = `[${flat[3 * i]},${flat[3 * i + 1]},${flat[3 * i + 2]}]`;
+    return out.join(",");
+  };
+  return `{"vertices":[${rows(vertices)}],"faces":[${rows(faces)}]}`;
 }

@@ -53,6 +53,28 @@ function checkerTexture() {
   return texture;
 }
 
+/** Area-weighted vertex normals (Float32Array(3n)) of flat positions and faces: the same
+ * as BufferGeometry.computeVertexNormals, on the arrays directly (no per-vertex calls). */
+function vertexNormals(p, index, out) {
+  out.fill(0);
+  for (let t = 0; t < index.length; t += 3) {
+    const a = 3 * index[t], b = 3 * index[t + 1], c = 3 * index[t + 2];
+    const ux = p[b] - p[a], uy = p[b + 1] - p[a + 1], uz = p[b + 2] - p[a + 2];
+    const vx = p[c] - p[a], vy = p[c + 1] - p[a + 1], vz = p[c + 2] - p[a + 2];
+    const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
+    out[a] += nx; out[a + 1] += ny; out[a + 2] += nz;
+    out[b] += nx; out[b + 1] += ny; out[b + 2] += nz;
+    out[c] += nx; out[c + 1] += ny; out[c + 2] += nz;
+  }
+  for (let i = 0; i < out.length; i += 3) {
+    const len = Math.hypot(out[i], out[i + 1], out[i + 2]) || 1;
+    out[i] /= len;
+    out[i + 1] /= len;
+    out[i + 2] /= len;
+  }
+  return out;
+}
+
 function edgeIndex(edges) {
   return new THREE.BufferAttribute(edges instanceof Uint32Array ? edges : Uint32Array.from(edges), 1);
 }
@@ -209,7 +231,10 @@ export class MeshView extends RenderView {
     geometry.setAttribute("color", new THREE.BufferAttribute(new Float32Array(3 * n), 3));
     geometry.setAttribute("uv", new THREE.BufferAttribute(new Float32Array(2 * n), 2));
     geometry.setIndex(new THREE.BufferAttribute(new Uint32Array(faces), 1));
-    geometry.computeVertexNormals();
+    const normal = new THREE.BufferAttribute(vertexNormals(position.array, faces,
+      new Float32Array(3 * n)), 3);
+    normal.setUsage(THREE.DynamicDrawUsage);
+    geometry.setAttribute("normal", normal);
     geometry.computeBoundingSphere();
     this.mesh = new THREE.Mesh(geometry, this.material);
     const wireGeometry = new THREE.BufferGeometry();
@@ -289,7 +314,9 @@ export class MeshView extends RenderView {
     const position = this.mesh.geometry.getAttribute("position");
     position.array.set(vertices);
     position.needsUpdate = true;
-    this.mesh.geometry.computeVertexNormals();
+    const normal = this.mesh.geometry.getAttribute("normal");
+    vertexNormals(position.array, this.mesh.geometry.getIndex().array, normal.array);
+    normal.needsUpdate = true;
     this.mesh.geometry.computeBoundingSphere();
     this.request();
   }
@@ -411,6 +438,7 @@ export class MeshView extends RenderView {
   /** Screen position (client pixels) of a point, and whether it faces the camera. */
   project(x, y, z) {
     const rect = this.canvas.getBoundingClientRect();
+    this.camera.updateMatrixWorld();  // the camera may have moved since the last frame
     const v = new THREE.Vector3(x, y, z).project(this.camera);
     return { x: rect.left + ((v.x + 1) / 2) * rect.width,
       y: rect.top + ((1 - v.y) / 2) * rect.height };
@@ -422,6 +450,7 @@ export class MeshView extends RenderView {
     const geometry = this.mesh.geometry;
     const position = geometry.getAttribute("position"), normal = geometry.getAttribute("normal");
     const rect = this.canvas.getBoundingClientRect();
+    this.camera.updateMatrixWorld();
     const p = new THREE.Vector3(), nrm = new THREE.Vector3(), eye = new THREE.Vector3();
     const out = [];
     for (let i = 0; i < position.count; i++) {

@@ -1,0 +1,58 @@
+// The page's heavy lifting off the main thread: reading a mesh file through the service
+// (POST /v1/mesh), the JSON of big requests and answers, the edge topology and forms, and
+// the integrability report (POST /v1/forms, then POST /v1/integrability with the forms' own
+// text). Typed arrays go back to the page transferred, not copied, so opening a 100K-face
+// mesh never blocks the page for long.
+//
+// Messages: {id, kind, args} -> {id, result} or {id, error: {problem, context} | {name, message}}.
+
+import { ApiError, readMeshFile, request } from "./api.js";
+import { meshJson, prepareMesh, preparedBuffers } from "./mesh.js";
+
+const F64 = ["vertex_defect", "gauss_defect", "codazzi_defect"];
+
+function flatRows(rows, Type, width) {
+  const out = new Type(rows.length * width);
+  for (let i = 0; i < rows.length; i++) {
+    for (let k = 0; k < width; k++) out[width * i + k] = rows[i][k];
+  }
+  return out;
+}
+
+const handlers = {
+  /** A mesh file (Blob) -> the prepared mesh and the service's reading report. */
+  async readMesh({ file, name }) {
+    const mesh = await readMeshFile(file, name);
+    const prepared = prepareMesh(mesh.vertices, mesh.faces);
+    return [{ ...prepared, report: mesh.report }, preparedBuffers(prepared)];
+  },
+
+  /** Flat vertices and faces -> forms (typed) and the integrability report (per-vertex
+   * defects as Float64Array). */
+  async analyze({ vertices, faces }) {
+    const formsText = await (await request("/v1/forms", { body: meshJson(vertices, faces),
+      contentType: "application/json" })).text();
+    const reportText = await (await request("/v1/integrability", { body: formsText,
+      contentType: "application/json" })).text();
+    const doc = JSON.parse(formsText);
+    const forms = { faces: flatRows(doc.faces, Uint32Array, 3),
+      edges: flatRows(doc.edges, Uint32Array, 2),
+      lengths: Float64Array.from(doc.lengths), angles: Float64Array.from(doc.angles) };
+    const report = JSON.parse(reportText);
+    for (const key of F64) report[key] = Float64Array.from(report[key]);
+    const buffers = [forms.faces.buffer, forms.edges.buffer, forms.lengths.buffer,
+      forms.angles.buffer, ...F64.map((k) => report[k].buffer)];
+    return [{ forms, integrability: report }, buffers];
+  },
+};
+
+self.onmessage = async ({ data: { id, kind, args } }) => {
+  try {
+    const [result, transfer] = await handlers[kind](args);
+    self.postMessage({ id, result }, transfer);
+  } catch (err) {
+    const error = err instanceof ApiError ? { problem: err.problem, context: err.context }
+      : { name: err?.name ?? "Error", message: err?.message ?? String(err) };
+    self.postMessage({ id, error });
+  }
+};

@@ -6,12 +6,14 @@ from __future__ import annotations
 def main() -> None:
     import uvicorn
 
+    from service.server import PROTOCOL
     from service.settings import Settings
 
     settings = Settings()
     # Session WebSockets carry float32 vertex buffers: deflate costs more than it saves.
+    # The protocol adds a deadline for request headers (FFS_HEADER_TIMEOUT).
     uvicorn.run("service.app:app", host=settings.host, port=settings.port,
-                log_level=settings.log_level, ws_per_message_deflate=False)
+                log_level=settings.log_level, ws_per_message_deflate=False, http=PROTOCOL)
 
 
 if __name__ == "__main__":

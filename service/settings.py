@@ -87,6 +87,10 @@ class Settings(BaseSettings):
 
     max_body_bytes: int = Field(
         64 * 1024 * 1024, ge=1024, description="Largest request body (413 beyond).")
+    header_timeout: float = Field(
+        10.0, gt=0, description="Seconds a client may take to send a request's headers; then "
+                                "408 and the connection is closed (`python -m service`, or "
+                                "uvicorn with `--http service.server:HeaderTimeoutProtocol`).")
     body_timeout: float = Field(
         60.0, gt=0, description="Seconds a client may take to send a request body; then 408 "
                                 "and the connection is closed (slow or stalled uploads).")

@@ -92,7 +92,8 @@ def uvicorn_process(env: dict[str, str] | None = None,
     with open(log / f"uvicorn-{port}.log", "wb") as out:
         proc = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
-             "--port", str(port), "--log-level", "warning"],
+             "--port", str(port), "--log-level", "warning",
+             "--http", "service.server:HeaderTimeoutProtocol"],
             cwd=REPO, env=full_env, stdout=out, stderr=subprocess.STDOUT,
             start_new_session=True)
         base = f"http://127.0.0.1:{port}"

@@ -152,6 +152,47 @@ def test_slow_bodies_are_answered_408_and_closed():
         assert httpx.get(base + "/healthz").status_code == 200
 
 
+def test_slow_request_heads_are_closed():
+    timeout = 1.5
+    with uvicorn_server({"FFS_HEADER_TIMEOUT": str(timeout)}) as base:
+        head = (b"POST /v1/forms HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: "
+                b"application/json\r\nX-Slow: " + b"a" * 200)
+        socks = [socket.create_connection(_address(base), timeout=0.05) for _ in range(10)]
+        start, closed_at, replies = time.monotonic(), {}, {i: b"" for i in range(10)}
+        try:
+            for k in range(len(head)):
+                for i, sock in enumerate(socks):
+                    if i in closed_at:
+                        continue
+                    with contextlib.suppress(OSError):
+                        sock.sendall(head[k:k + 1])  # one header byte per round
+                    try:
+                        data = sock.recv(4096)
+                    except TimeoutError:
+                        continue
+                    except OSError:
+                        data = b""
+                    replies[i] += data
+                    if not data:
+                        closed_at[i] = time.monotonic() - start
+                if len(closed_at) == len(socks) or time.monotonic() > start + 4 * timeout + 5:
+                    break
+                time.sleep(0.2)
+        finally:
+            for sock in socks:
+                sock.close()
+        assert len(closed_at) == len(socks), f"{len(socks) - len(closed_at)} stayed open"
+        assert all(r.startswith(b"HTTP/1.1 408 ") for r in replies.values()), replies
+        assert max(closed_at.values()) < timeout + 3.0, closed_at
+        print(f"10 clients trickling headers closed after {min(closed_at.values()):.2f}-"
+              f"{max(closed_at.values()):.2f} s (FFS_HEADER_TIMEOUT={timeout})")
+        # Keep-alive connections and ordinary requests are unaffected.
+        with httpx.Client(base_url=base) as http:
+            for _ in range(3):
+                assert http.get("/healthz").status_code == 200
+                time.sleep(timeout / 2)
+
+
 # ----------------------------------------------- 1, 2: huge flat lists, main-process memory
 
 

@@ -15,10 +15,11 @@ with ``l_e`` and ``theta_e`` the edge lengths and signed dihedral angles of ``x`
 conventions of :mod:`solver.forms`), ``s`` the mean target length and ``F_t a_tc`` the target
 edge vectors of a face whose frame is prescribed (Eq. 3 with that frame). Hard position
 handles are eliminated. In the plane (``dim=2``, for parameterization) the second form is
-identically 0 and is replaced by the signed area of each face relative to its target area,
-which keeps faces from flipping::
+identically 0 and is replaced by a one-sided penalty on the signed area of each face
+relative to its target area, which pushes flipped and collapsing faces back without pulling
+on the others::
 
-    + gamma/2 sum_t (A_t^0 / mean A^0) ((A_t(x) - A_t^0) / A_t^0)^2
+    + gamma/2 sum_t (A_t^0 / mean A^0) min(0, A_t(x) / A_t^0 - a_min)^2
 
 Every residual is dimensionless, so the weights mean the same at every scale; ``beta`` is
 the weight of a radian of dihedral angle against a relative length change of 1 (a thin
@@ -58,8 +59,11 @@ DEFORM_ANGLE_WEIGHT = 0.3
 """Default ``beta`` for deformations, whose targets are the rest forms: stiffer bending,
 smoother shapes under conflicting handles (measured against libigl's ARAP in
 docs/refinement.md)."""
-AREA_WEIGHT = 1.0
-"""Default ``gamma`` (planar fits only): weight of the relative signed-area residual."""
+AREA_WEIGHT = 10.0
+"""Default ``gamma`` (planar fits only): weight of the one-sided signed-area residual."""
+AREA_FLOOR = 0.2
+"""Planar fits: a face whose signed area falls below this fraction of its target area (or
+flips) pays ``gamma/2 (A/A0 - AREA_FLOOR)^2``; larger faces pay nothing."""
 HARD_FRAME_WEIGHT = 1e3
 """Weight standing in for a hard orientation handle (not eliminable in positions)."""
 MAX_ITERATIONS = 50
@@ -327,9 +331,13 @@ class _Objective:
         faces = topo.faces
 
         def evaluate(X: np.ndarray, grad: bool = True):
+            # One-sided: only faces shrunk below AREA_FLOOR of their area, or flipped, pay;
+            # the others are left to the lengths (a two-sided area term costs length accuracy).
             area, G = signed_areas(X, faces, grad)
-            r = c * area - w
-            return r, (None if G is None else c[:, None, None] * G)
+            r = np.minimum(c * area - AREA_FLOOR * w, 0.0)
+            if G is None:
+                return r, None
+            return r, np.where(r < 0, c, 0.0)[:, None, None] * G
 
         self.groups.append(_Group(faces, evaluate))
 

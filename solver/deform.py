@@ -271,8 +271,7 @@ class Deformer:
         self.last_report = {"refined": False, "reason": "disabled (refine=false)"}
         if refine:
             refiner = self._refinement()
-            residual = refiner.residuals(local)
-            if max(residual["length_error"]["max"], residual["angle_error"]["max"]) <= 1e-9:
+            if refiner.reproduces(local):
                 self.last_report = {"refined": False,
                                     "reason": "exact: the linear answer has the rest forms"}
             else:

@@ -117,7 +117,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
     if refine is not False:
         refiner = Refiner(FormTargets(topology, forms.lengths, np.zeros_like(forms.angles),
                                       area_weight=area_weight), dim=2, backend=backend)
-        if refiner.residuals(uv)["length_error"]["max"] <= 1e-9:
+        if refiner.reproduces(uv):
             refinement = {"refined": False, "reason": "exact: the surface is developable"}
         else:
             notify("refine", 0.0)

@@ -27,7 +27,7 @@ from .integrability import (
     integration_forests,
 )
 from .linalg import resolve_backend
-from .refine import ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles, form_residuals
+from .refine import ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles, reproduces
 from .refine import refine as refine_forms
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
@@ -49,7 +49,6 @@ from .validation import as_indices, as_points, require_finite, require_unique
 Progress = Callable[[str, float], None]
 REGULARIZATION = 1e-6
 EXACT_TOLERANCE = 1e-10  # residual rows (normalized lengths) accepted without a solve
-FORMS_TOLERANCE = 1e-9  # relative length / angle (rad) error below which forms are met
 
 
 @dataclass
@@ -537,7 +536,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     orthonormality = _orthonormality_error(frames)
     refinement: dict[str, Any] = {"refined": False, "reason": "exact: tree integration"}
     if solve_path == "factorization":
-        exact = _reproduces(problem, vertices, L, A)
+        exact = reproduces(vertices, topology, L, A)
         want = refine is not False and not exact
         refinement = {"refined": False, "reason": "disabled (refine=false)" if refine is False
                       else "exact: the linear answer reproduces the forms"}
@@ -584,14 +583,6 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         "isolated_vertices": topology.isolated_vertices.tolist(),
     })
     return Reconstruction(vertices=vertices, frames=frames, report=report)
-
-
-def _reproduces(problem: ImmersionProblem, vertices: np.ndarray, lengths: np.ndarray,
-                angles: np.ndarray) -> bool:
-    """Whether ``vertices`` have the forms (to :data:`FORMS_TOLERANCE`)."""
-    residual = form_residuals(vertices, problem.topology, lengths, angles)
-    return bool(residual["length_error"]["max"] <= FORMS_TOLERANCE
-                and residual["angle_error"]["max"] <= FORMS_TOLERANCE)
 
 
 def _orthonormality_error(frames: np.ndarray) -> float:

@@ -76,6 +76,9 @@ ENERGY_TOLERANCE = 1e-3
 large residuals remain, e.g. strong deformations: measured to change the result's mean
 length and angle errors in the fourth digit)."""
 EXACT_ENERGY = 1e-24  # E below this: the forms are met to round-off
+FORMS_TOLERANCE = 1e-9
+"""Largest relative length error and angle error (rad) of an embedding that "has" the forms:
+then there is nothing to refine."""
 STEP_FRACTIONS = (1.0, 0.5, 0.25, 0.1)  # of a Gauss-Newton step tried before more damping
 ARMIJO = 1e-4  # sufficient decrease: E(x + a d) < E(x) + ARMIJO a g.d
 MAX_FROZEN_STEPS = 6  # steps on one factorization before it is rebuilt at the current X
@@ -247,6 +250,15 @@ def form_residuals(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
     else:
         out["angle_error"] = summary(np.zeros(0))
     return out
+
+
+def reproduces(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
+               angles: np.ndarray) -> bool:
+    """Whether ``X`` (n, 3) or (n, 2) has the target forms: every relative length error and
+    angle error (rad) within :data:`FORMS_TOLERANCE` (then there is nothing to refine)."""
+    residual = form_residuals(X, topology, lengths, angles)
+    return bool(max(residual["length_error"]["max"], residual["angle_error"]["max"])
+                <= FORMS_TOLERANCE)
 
 
 # ------------------------------------------------------------------------ the residuals
@@ -489,6 +501,11 @@ class Refiner:
     def energy(self, vertices: np.ndarray) -> float:
         """E of (n, dim) positions (fixed vertices as given)."""
         return self.objective.energy(np.asarray(vertices, dtype=np.float64))
+
+    def reproduces(self, vertices: np.ndarray) -> bool:
+        """Whether ``vertices`` already have the target forms (:func:`reproduces`)."""
+        t = self.targets
+        return reproduces(vertices, t.topology, t.lengths, t.angles)
 
     def residuals(self, vertices: np.ndarray) -> dict[str, Any]:
         """:func:`form_residuals` of ``vertices`` against the targets."""

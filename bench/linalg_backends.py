@@ -201,6 +201,7 @@ def _worker(npz: str, config: str, repeats: int) -> dict[str, Any]:
     x = None
     for _ in range(repeats):
         x = fact = None  # free the previous factorization first
+        linalg.clear_analysis_cache()  # every repeat is cold (no analysis reuse)
         c0, t0 = time.process_time(), time.perf_counter()
         fact = linalg.factorize(K, config) if variant is None else splu(K_csc, **variant)
         c1, t1 = time.process_time(), time.perf_counter()
@@ -226,8 +227,8 @@ def _factor_nnz(fact: Any) -> int | None:
     """Stored entries of the factor, where the library reports it (bench-only access to
     private attributes): PARDISO nnz(L), SuperLU nnz(L + U); CHOLMOD via cholespy: no."""
     native = getattr(fact, "_solver", None)
-    if native is not None and hasattr(native, "_iparm"):
-        return int(native._iparm[17])
+    if native is not None and hasattr(native, "_handle"):
+        return int(native._handle.iparm[17])
     lu = getattr(native, "_lu", fact)
     return int(lu.nnz) if hasattr(lu, "nnz") else None
 
@@ -536,6 +537,9 @@ NOTES = """Notes:
   checks and copy (about 0.4 s at icosphere(6)).
 - Pickling: every `Factorization` pickles (backend name + matrix) and factorizes again
   when unpickled; none of the libraries can serialize its native factor.
+- Every PARDISO row is cold: the analysis cache is cleared before each repeat. Reusing
+  the analysis of a known sparsity pattern (the default within a process) and the
+  orderings tried are measured by `bench/orderings.py` (bench/README.md).
 - `python-mumps` 0.0.2 fails to import with NumPy 2 ("numpy.core.multiarray failed to
   import"); `sksparse-minimal` 0.3 has no `sksparse` module (its module is
   `sksparse_minimal`, a CHOLMOD wrapper from cholespy's authors). Neither is a backend."""

@@ -602,8 +602,7 @@ async function showAnswer(which) {
     selection: [], deformed: false, distortion: null, undo: [], redo: [] });
   state.reference = meshForms(vertices, state.faces, state.topo);
   view.updatePositions(vertices);
-  view.buildHelpers();
-  view.frame({ keep: true });
+  view.buildHelpers();  // the camera stays: the two answers are seen at the same scale
   renderHandles();
   renderDistortion();
   renderReconstruction();
@@ -623,9 +622,6 @@ function renderResiduals(f) {
     ["Angle error, mean", (r) => deg(residual(r, "angle_error", "mean"))],
     ["Angle error, max", (r) => deg(residual(r, "angle_error", "max"))],
   ];
-  if (f.before.length_ratio !== undefined) {
-    rows.push(["Size (edge ratio)", (r) => `× ${fmt(r.length_ratio, 3)}`]);
-  }
   for (const [label, cell] of rows) {
     const tr = document.createElement("tr");
     for (const text of [label, cell(f.before), cell(f.after)]) {

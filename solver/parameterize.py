@@ -14,16 +14,19 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
 from .errors import TopologyError
 from .forms import fundamental_forms
+from .frames import face_edge_lengths, triangle_areas, triangle_layouts
+from .linalg import factorize
 from .metrics import corner_angles, histogram, summary
 from .reconstruct import ImmersionProblem, Progress
 from .refine import AREA_WEIGHT, FormTargets, Refiner
 from .serialization import JsonDataclass
-from .system import Weighting
-from .topology import build_topology
+from .system import Weighting, half_cotangents
+from .topology import MeshTopology, build_topology
 from .validation import as_points
 
 
@@ -60,6 +63,84 @@ def nearest_planar_rotation(frames: np.ndarray) -> np.ndarray:
     R = np.zeros_like(frames)
     R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
     return R
+
+
+def tutte_embedding(vertices: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
+                    ) -> np.ndarray | None:
+    """Tutte's embedding (n, 2): the longest boundary loop on a circle (by arc length), every
+    other vertex at the mean of its neighbours (uniform Laplacian), scaled to the target area.
+
+    Flip-free for a disk (Tutte's theorem); with more holes a good start all the same. Returns
+    None unless the mesh is one component with a boundary. Unused vertices stay at 0.
+    """
+    if topology.n_components != 1 or not topology.boundary_loops:
+        return None
+    loop = max(topology.boundary_loops, key=len)
+    n = topology.n_vertices
+    closing = np.linalg.norm(np.roll(vertices[loop], -1, axis=0) - vertices[loop], axis=1)
+    angle = 2 * np.pi * np.concatenate([[0.0], np.cumsum(closing)[:-1]]) / closing.sum()
+    uv = np.zeros((n, 2))
+    uv[loop] = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    edges = topology.edges
+    A = sp.coo_array((np.ones(2 * len(edges)), (np.concatenate([edges[:, 0], edges[:, 1]]),
+                                               np.concatenate([edges[:, 1], edges[:, 0]]))),
+                     shape=(n, n)).tocsr()
+    L = sp.diags_array(np.asarray(A.sum(axis=1)).ravel()) - A
+    inner = np.flatnonzero(topology.is_referenced & ~np.isin(np.arange(n), loop))
+    if len(inner):
+        rhs = -(L[inner][:, loop] @ uv[loop])
+        uv[inner] = factorize(L[inner][:, inner], assume_symmetric=True).solve(rhs)
+    F = topology.faces
+    e1, e2 = uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]]
+    area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+    if area < 0:  # the loop ran clockwise: mirror
+        uv[:, 1] *= -1
+        area = -area
+    target = triangle_areas(face_edge_lengths(topology, lengths)).sum()
+    return uv * np.sqrt(target / area) if area > 0 else None
+
+
+def local_global_flattening(topology: MeshTopology, lengths: np.ndarray, uv: np.ndarray,
+                            iterations: int = 30, backend: str = "auto") -> np.ndarray:
+    """As-rigid-as-possible flattening by local/global steps (Liu et al. 2008) from ``uv``.
+
+    Each face's layout (from ``lengths``) is fitted by a rotation (local step); then every
+    vertex is placed by one prefactorized cotangent-Laplacian solve (global step; weights
+    clamped to at least 1e-3 of their mean so the matrix stays positive definite, one vertex
+    pinned). A robust start for the planar refinement where the linear answer folds.
+    Returns (n, 2) float64.
+    """
+    F = topology.faces
+    n = topology.n_vertices
+    layouts = triangle_layouts(face_edge_lengths(topology, lengths), check=False)  # (m, 3, 2)
+    w = np.abs(half_cotangents(face_edge_lengths(topology, lengths)))     # (m, 3), edge k
+    w = np.maximum(w, 1e-3 * w.mean())
+    tail, head = F, np.roll(F, -1, axis=1)                                 # half-edge k
+    rest = np.roll(layouts, -1, axis=1) - layouts                          # (m, 3, 2)
+    rows = np.concatenate([tail.ravel(), head.ravel(), tail.ravel(), head.ravel()])
+    cols = np.concatenate([head.ravel(), tail.ravel(), tail.ravel(), head.ravel()])
+    vals = np.concatenate([-w.ravel(), -w.ravel(), w.ravel(), w.ravel()])
+    L = sp.coo_array((vals, (rows, cols)), shape=(n, n)).tocsr()
+    pinned = np.zeros(n, dtype=bool)
+    pinned[F[0, 0]] = True
+    pinned |= ~topology.is_referenced
+    free = np.flatnonzero(~pinned)
+    factor = factorize(L[free][:, free], backend, assume_symmetric=True)
+    coupling = L[free][:, np.flatnonzero(pinned)]
+    uv = np.array(uv, dtype=np.float64)
+    for _ in range(iterations):
+        current = uv[head] - uv[tail]                                      # (m, 3, 2)
+        J = np.einsum("tk,tki,tkj->tij", w, current, rest)                 # (m, 2, 2)
+        angle = np.arctan2(J[:, 1, 0] - J[:, 0, 1], J[:, 0, 0] + J[:, 1, 1])
+        c, s = np.cos(angle), np.sin(angle)
+        target = np.stack([c[:, None] * rest[..., 0] - s[:, None] * rest[..., 1],
+                           s[:, None] * rest[..., 0] + c[:, None] * rest[..., 1]], -1)
+        flow = w[..., None] * target                                      # (m, 3, 2)
+        b = np.stack([np.bincount(head.ravel(), flow[..., d].ravel(), n)
+                      - np.bincount(tail.ravel(), flow[..., d].ravel(), n)
+                      for d in range(2)], axis=1)
+        uv[free] = factor.solve(b[free] - coupling @ uv[pinned])
+    return uv
 
 
 def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool = True,
@@ -121,8 +202,18 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
             refinement = {"refined": False, "reason": "exact: the surface is developable"}
         else:
             notify("refine", 0.0)
-            fit = refiner.run(uv)
+            # Start from local/global steps begun at a Tutte embedding (robust under large
+            # distortion: bumpy-plane 0 flips against 4-146 from the folded linear answer,
+            # docs/refinement.md), or from the linear answer where there is no Tutte
+            # embedding (several components).
+            tutte = tutte_embedding(V, topology, forms.lengths)
+            start, name = uv, "linear answer"
+            if tutte is not None:
+                start = local_global_flattening(topology, forms.lengths, tutte, backend=backend)
+                name = "local/global from Tutte"
+            fit = refiner.run(start)
             uv, refinement = fit.vertices, fit.report
+            refinement["start"] = name
             notify("refine", 1.0)
     F = topology.faces
     e1, e2 = uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]]
@@ -154,4 +245,5 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
                             angle_distortion=angle_change, report=report)
 
 
-__all__ = ["Parameterization", "nearest_planar_rotation", "parameterize"]
+__all__ = ["Parameterization", "local_global_flattening", "nearest_planar_rotation",
+           "parameterize", "tutte_embedding"]

@@ -59,7 +59,7 @@ DEFORM_ANGLE_WEIGHT = 0.3
 """Default ``beta`` for deformations, whose targets are the rest forms: stiffer bending,
 smoother shapes under conflicting handles (measured against libigl's ARAP in
 docs/refinement.md)."""
-AREA_WEIGHT = 10.0
+AREA_WEIGHT = 100.0
 """Default ``gamma`` (planar fits only): weight of the one-sided signed-area residual."""
 AREA_FLOOR = 0.2
 """Planar fits: a face whose signed area falls below this fraction of its target area (or

@@ -43,11 +43,11 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from botsch_sorkine import load_case  # noqa: E402
+from libigl_reference import arap_deformation, arap_parameterization, flipped_faces  # noqa: E402
 from meshes import rigid_alignment_error  # noqa: E402
 
 import solver  # noqa: E402
 from solver.metrics import distortion  # noqa: E402
-from solver.refine import signed_areas  # noqa: E402
 from solver.topology import build_topology  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "meshes"
@@ -127,19 +127,6 @@ def case_kwargs(case) -> dict:
             "handle_rotations": case.transform[None, :3, :3], "roi": case.roi}
 
 
-def arap(case, iterations: int = 200) -> np.ndarray:
-    import igl
-
-    data = igl.ARAPData()
-    data.max_iter = iterations
-    b = np.concatenate([case.fixed, case.handles]).astype(np.int64)
-    igl.arap_precomputation(case.vertices, case.faces, 3, b, data)
-    start = case.vertices.copy()
-    start[case.handles] = case.handle_targets()
-    bc = np.concatenate([case.vertices[case.fixed], case.handle_targets()])
-    return igl.arap_solve(bc, data, start)
-
-
 def deform_section(cases: list[str]) -> None:
     print("\n### Botsch-Sorkine cases, positions + rotation handles\n")
     print("| case | faces | method | mean length change | mean dihedral change (rad) "
@@ -149,7 +136,7 @@ def deform_section(cases: list[str]) -> None:
         case = load_case(SHARED, name)
         runs = []
         try:
-            out, seconds = timed(arap, case)
+            out, seconds = timed(arap_deformation, case)
             runs.append(("libigl ARAP (200 it.)", out, "", seconds))
         except ImportError:
             print(f"| {name} | | libigl ARAP | not installed (pip install libigl) | | | | | |")
@@ -188,18 +175,6 @@ def interpolate_section(cases: list[str]) -> None:
               f" {change(0.5 * (case.vertices + pose)):.4f} | {seconds:.2f} |")
 
 
-def arap_parameterization(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    import igl
-
-    boundary = igl.boundary_loop(F)
-    start = igl.harmonic(V, F, boundary, igl.map_vertices_to_circle(V, boundary), 1)
-    data = igl.ARAPData()
-    data.max_iter = 200
-    pin = np.array([int(boundary[0])])
-    igl.arap_precomputation(V, F, 2, pin, data)
-    return igl.arap_solve(start[pin], data, start)
-
-
 def parameterize_section(meshes: list[str]) -> None:
     print("\n### Parameterization (flattening)\n")
     print("| mesh | faces | method | flipped faces | mean length change | iterations | s |")
@@ -209,8 +184,7 @@ def parameterize_section(meshes: list[str]) -> None:
         forms = solver.fundamental_forms(V, F)
         try:
             uv, seconds = timed(arap_parameterization, V, F)
-            area, _ = signed_areas(uv, F, gradients=False)
-            flips = min(int((area < 0).sum()), int((area > 0).sum()))
+            flips = flipped_faces(uv, F)
             print(f"| {name} | {len(F)} | libigl ARAP (200 it.) | {flips} | "
                   f"{np.abs(ratios(uv, forms) - 1).mean():.4f} | | {seconds:.2f} |")
         except ImportError:

@@ -38,11 +38,11 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
-        self._arm()
+        self._arm(answer=False)  # nothing sent yet (a browser's preconnect): close silently
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
-        self._arm()  # the first byte of a request (again on a kept-alive connection)
+        self._arm(answer=True)  # the first byte of a request (again on a kept-alive connection)
 
     def on_headers_complete(self) -> None:
         self._disarm()
@@ -52,19 +52,20 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
         self._disarm()
         super().connection_lost(exc)
 
-    def _arm(self) -> None:
+    def _arm(self, answer: bool) -> None:
         self._disarm()
-        self._head_timer = self.loop.call_later(self.header_timeout, self._too_slow)
+        self._head_timer = self.loop.call_later(self.header_timeout, self._too_slow, answer)
 
     def _disarm(self) -> None:
         if self._head_timer is not None:
             self._head_timer.cancel()
             self._head_timer = None
 
-    def _too_slow(self) -> None:
+    def _too_slow(self, answer: bool) -> None:
         self._head_timer = None
         if self.cycle is not None and not self.cycle.response_complete:
             return  # a request is being served: its head arrived (the body has its own timeout)
         if not self.transport.is_closing():
-            self.transport.write(TIMEOUT_RESPONSE)
+            if answer:  # a request began: say why (an idle connection is just closed)
+                self.transport.write(TIMEOUT_RESPONSE)
             self.transport.close()

@@ -18,6 +18,7 @@ Sections (``--sections``, default all):
   parameterization (harmonic start, 200 iterations).
 * ``drag``: a session's refined drag at ~20K faces against the linear drag and libigl ARAP
   with 10 iterations.
+* ``weights``: the measurements behind the default angle weights and the uniform weighting.
 
     pip install -e ".[bench]"
     python bench/refinement.py [--sections scale noise ...] [--large]
@@ -234,7 +235,43 @@ def drag_section() -> None:
         print("| libigl ARAP | not installed | | |")
 
 
-SECTIONS = ("scale", "noise", "interpolate", "deform", "parameterize", "drag")
+def weights_section() -> None:
+    """The measurements behind the default weights (docs/refinement.md, "Weights")."""
+    from solver.refine import FormTargets, Refiner
+
+    print("\n### Angle weight beta, prescribed forms: noise N(0, 1e-3), distance / diagonal\n")
+    print("| mesh | beta = 0.05 | 0.005 (default) | 0.0005 |")
+    print("|---|---|---|---|")
+    for name in ("octopus-low-surface.off", "face.off", "torus.off"):
+        V, F = load(name)
+        forms = solver.fundamental_forms(V, F)
+        inner = build_topology(F, len(V)).interior_edges
+        forms.angles[inner] += np.random.default_rng(5).normal(0, 1e-3, len(inner))
+        cells = [f"{rigid_alignment_error(reconstruct(forms, angle_weight=b).vertices, V):.2e}"
+                 for b in (0.05, 0.005, 0.0005)]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    print("\n### Angle weight beta and weighting, deformation: bar, positions + rotations\n")
+    print("| beta | weighting | mean length + mean dihedral change | max length change |")
+    print("|---|---|---|---|")
+    case = load_case(SHARED, "bar")
+    start = solver.deform(case.vertices, case.faces, case.handles, case.handle_targets(),
+                          orthonormalize=True, refine=False, **case_kwargs(case)).vertices
+    topology = build_topology(case.faces, len(case.vertices))
+    rest = solver.fundamental_forms(case.vertices, case.faces)
+    fixed = np.concatenate([case.fixed, case.handles])
+    from solver.refine import Handles
+
+    for beta, weighting in ((0.03, "uniform"), (0.1, "uniform"), (0.3, "uniform"),
+                            (0.3, "area")):
+        refiner = Refiner(FormTargets(topology, rest.lengths, rest.angles, angle_weight=beta,
+                                      weighting=weighting), Handles(fixed=fixed))
+        d = distortion(case.vertices, refiner.run(start).vertices, case.faces)
+        print(f"| {beta} | {weighting} | "
+              f"{d['length_summary']['mean'] + d['angle_summary']['mean']:.4f} | "
+              f"{d['length_summary']['max']:.3f} |")
+
+
+SECTIONS = ("scale", "noise", "interpolate", "deform", "parameterize", "drag", "weights")
 
 
 def main() -> None:
@@ -250,7 +287,8 @@ def main() -> None:
     run = {"scale": lambda: scale_section(scale), "noise": lambda: noise_section(noise),
            "interpolate": lambda: interpolate_section(["bar", "cylinder"]),
            "deform": lambda: deform_section(deform_cases),
-           "parameterize": lambda: parameterize_section(param), "drag": drag_section}
+           "parameterize": lambda: parameterize_section(param), "drag": drag_section,
+           "weights": weights_section}
     for section in args.sections:
         run[section]()
         sys.stdout.flush()

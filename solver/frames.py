@@ -37,6 +37,40 @@ def triangle_inequality_violations(face_lengths: np.ndarray) -> np.ndarray:
     return np.flatnonzero(slack < -TRIANGLE_SLACK * ordered[:, 2])
 
 
+def _as_written(value: float) -> str:
+    """A float as the caller most likely wrote it (``100``, ``1.41``): shortest repr."""
+    value = float(value)
+    return str(int(value)) if value.is_integer() and abs(value) < 1e15 else repr(value)
+
+
+def triangle_inequality_error(topology: MeshTopology, lengths: np.ndarray,
+                              bad: np.ndarray) -> TriangleInequalityError:
+    """The error for faces that violate the triangle inequality, in the caller's units.
+
+    Args:
+        topology: the mesh's topology.
+        lengths: (E,) float64 edge lengths exactly as the caller passed them (not normalized).
+        bad: (k,) int64 violating faces, k >= 1, from :func:`triangle_inequality_violations`.
+    Returns:
+        :class:`TriangleInequalityError` naming the first face, its three edges ``[i, j]``
+        and their lengths as given; ``details`` lists up to 100 faces, and the first face's
+        edge indices and lengths.
+    """
+    t = int(bad[0])
+    rows = topology.halfedge_edge.reshape(-1, 3)[t]  # edge of each half-edge of face t
+    sent = lengths[rows]
+    quoted = [_as_written(x) for x in sent]
+    order = np.argsort(sent, kind="stable")
+    return TriangleInequalityError(
+        f"edge lengths {', '.join(quoted)} of face {t} (edges "
+        f"{topology.edges[rows].tolist()}) violate the triangle inequality: "
+        f"{quoted[order[2]]} > {quoted[order[0]]} + {quoted[order[1]]}"
+        + (f" ({len(bad)} faces in all)" if len(bad) > 1 else ""),
+        field="faces", index=t,
+        details={"faces": bad[:100].tolist(), "edges": rows.tolist(),
+                 "lengths": sent.tolist()})
+
+
 def triangle_areas(face_lengths: np.ndarray) -> np.ndarray:
     """(m,) areas from edge lengths by Kahan's stable Heron formula (0 if degenerate)."""
     ordered = np.sort(face_lengths, axis=1)

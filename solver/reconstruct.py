@@ -18,9 +18,14 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
-from .errors import ConstraintError
+from .errors import ConstraintError, TriangleInequalityError
 from .forms import validate_forms
-from .frames import layout_frames
+from .frames import (
+    face_edge_lengths,
+    layout_frames,
+    triangle_inequality_error,
+    triangle_inequality_violations,
+)
 from .integrability import (
     integrability_from_terms,
     integrate_along_forests,
@@ -158,9 +163,15 @@ class ImmersionProblem:
         self.length_scale = float(lengths.mean()) if length_scale is None else float(length_scale)
         self.frame_weight = float(frame_weight)
         self.weighting = weighting
-        self.terms: EnergyTerms = energy_terms(
-            topology, lengths / self.length_scale, angles, weighting=weighting,
-            cotan_floor=cotan_floor, layout_angles=layout_angles)
+        try:
+            self.terms: EnergyTerms = energy_terms(
+                topology, lengths / self.length_scale, angles, weighting=weighting,
+                cotan_floor=cotan_floor, layout_angles=layout_angles)
+        except TriangleInequalityError:  # it saw normalized lengths: quote the caller's
+            bad = triangle_inequality_violations(face_edge_lengths(topology, lengths))
+            if not len(bad):
+                raise
+            raise triangle_inequality_error(topology, lengths, bad) from None
         self.A, self.row_weights, self.row_kind = least_squares_rows(self.terms, frame_weight)
 
     @functools.cached_property

@@ -1,5 +1,5 @@
 # syntax=docker/dockerfile:1
-# Fundamental-forms mesh service: FastAPI app served by uvicorn. Build/run: docs/deployment.md.
+# Fundamental-forms mesh service (python -m service: FastAPI on uvicorn). Build/run: docs/deployment.md.
 # Verified end to end (build, API, web page, compose topology) by scripts/docker-smoke.sh.
 
 # The web page's three.js modules: `npm ci --prefix web` installs them from the npm registry
@@ -39,13 +39,13 @@ RUN python -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['p
 
 FROM python:3.11-slim
 
-# WEB_CONCURRENCY=1 pins uvicorn to one worker: the app runs its own solver process pool,
-# sized by its settings (environment variables documented in README.md).
-# UVICORN_WS_PER_MESSAGE_DEFLATE=false: session WebSockets carry float32 vertex buffers,
-# which barely compress; deflating them costs ~5 ms per 20K-face reply (docs/service.md).
+# FFS_HOST/FFS_PORT: where `python -m service` (the CMD) listens. It runs one uvicorn process
+# (the app runs its own solver process pool, sized by its settings: docs/service.md) with the
+# deadline for request heads (FFS_HEADER_TIMEOUT, service.server) and without WebSocket
+# per-message deflate, neither of which plain `uvicorn service.app:app` has.
 # MKL_ENABLE_INSTRUCTIONS=AVX2: MKL's AVX2 kernels also on AVX-512 CPUs, because the image
 # keeps only those and the generic ones (scripts/prune_mkl.py, docs/deployment.md).
-# PYTHONPATH=/app: the application code is imported from /app by uvicorn and by the Dask
+# PYTHONPATH=/app: the application code is imported from /app by the service and by the Dask
 # scheduler (--preload service.cluster) and workers alike.
 ENV PATH=/opt/ffs/bin:$PATH \
     VIRTUAL_ENV=/opt/ffs \
@@ -54,8 +54,8 @@ ENV PATH=/opt/ffs/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    WEB_CONCURRENCY=1 \
-    UVICORN_WS_PER_MESSAGE_DEFLATE=false \
+    FFS_HOST=0.0.0.0 \
+    FFS_PORT=8000 \
     MKL_ENABLE_INSTRUCTIONS=AVX2
 
 RUN groupadd --system --gid 10001 app \
@@ -77,6 +77,6 @@ USER 10001:10001
 EXPOSE 8000 8786 8787
 
 HEALTHCHECK --interval=30s --timeout=5s --start-period=30s --retries=3 \
-    CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4)"]
+    CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/healthz' % os.environ.get('FFS_PORT', '8000'), timeout=4)"]
 
-CMD ["uvicorn", "service.app:app", "--host", "0.0.0.0", "--port", "8000"]
+CMD ["python", "-m", "service"]

@@ -9,7 +9,8 @@
 #      a venv stands in for python:3.11-slim; the same rootfs plus the host's node + npm for
 #      node:20-bookworm-slim;
 #   3. `buildah bud` of the Dockerfile; prints the image size;
-#   4. one container (the image's own CMD and HEALTHCHECK): /healthz, reconstructions (JSON,
+#   4. one container (the image's own CMD and HEALTHCHECK): /healthz, a slow-header client cut
+#      off with 408 after FFS_HEADER_TIMEOUT, reconstructions (JSON,
 #      PARDISO on noisy forms), a GLB the Khronos validator accepts, the web page and its
 #      vendored three.js modules (scripts/docker_smoke.py single);
 #   5. the docker-compose.yml topology from the same image: scheduler, two workers, two API

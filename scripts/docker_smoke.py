@@ -6,9 +6,10 @@ containers share the host network (no CNI bridge, no firewall rules needed), so 
 chosen free on the host; ``scheduler`` resolves to 127.0.0.1 (``--add-host``).
 
 ``single``
-    One container with the image's own CMD (and HEALTHCHECK, when port 8000 is free):
-    ``/healthz``; ``/v1/forms`` of a mesh file against edge lengths computed here; exact
-    forms reconstructed (lengths match the file's); perturbed, non-integrable forms
+    One container with the image's own CMD and HEALTHCHECK (FFS_PORT moved when 8000 is
+    taken): ``/healthz``; a client trickling its request head is answered 408 and cut off
+    after FFS_HEADER_TIMEOUT; ``/v1/forms`` of a mesh file against edge lengths computed
+    here; exact forms reconstructed (lengths match the file's); perturbed, non-integrable forms
     reconstructed by least squares with the PARDISO backend; a GLB that the Khronos
     validator (tools/gltf-validator) accepts; the web page, every module of its import map
     and every vendored three.js file; the MKL libraries the solver process has mapped.
@@ -31,6 +32,7 @@ import json
 import math
 import platform
 import re
+import select
 import shutil
 import socket
 import subprocess
@@ -44,6 +46,8 @@ from pathlib import Path
 from typing import Any
 
 PREFIX = "ffs-smoke"
+HEADER_TIMEOUT = 10.0
+"""FFS_HEADER_TIMEOUT's default (service/settings.py), unless the image sets it."""
 SAMPLES = "service/static/samples"
 Mesh = tuple[list[list[float]], list[list[int]]]
 
@@ -255,6 +259,47 @@ def image_cmd(image: str) -> list[str]:
     return json.loads(out)
 
 
+def image_env(image: str) -> dict[str, str]:
+    """The image's ENV (name -> value)."""
+    out = podman("image", "inspect", "--format", "{{json .Config.Env}}", image).stdout
+    return dict(item.split("=", 1) for item in json.loads(out))
+
+
+def check_header_timeout(base: str, timeout: float) -> None:
+    """A client that trickles its request head (one byte every 0.5 s, slow-loris) gets 408
+    and a closed connection ``timeout`` seconds after its first byte, while another client
+    is served meanwhile."""
+    host, port = base.removeprefix("http://").rsplit(":", 1)
+    with step(f"a head trickled at 2 bytes/s is cut off with 408 after ~{timeout:g} s"):
+        sock = socket.create_connection((host, int(port)), timeout=5)
+        with sock:
+            start = time.monotonic()
+            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: smoke\r\nX-Slow: ")
+            sock.setblocking(False)
+            received, sent, closed_at = b"", 0, None
+            while time.monotonic() - start < timeout + 10:
+                ready, _, _ = select.select([sock], [], [], 0.5)
+                if ready:
+                    chunk = sock.recv(4096)
+                    if not chunk:
+                        closed_at = time.monotonic() - start
+                        break
+                    received += chunk
+                    continue
+                with contextlib.suppress(OSError):  # the server may have closed already
+                    sock.send(b"a")
+                    sent += 1
+                if sent == 4:  # meanwhile the server answers others
+                    status, _, _ = http("GET", f"{base}/healthz", timeout=5)
+                    check(status == 200, f"/healthz during the trickle: {status}")
+        check(closed_at is not None, f"connection still open after {timeout + 10:g} s "
+                                     f"({sent} bytes trickled)")
+        check(received.startswith(b"HTTP/1.1 408"), f"answer {received[:80]!r}")
+        check(timeout - 0.5 <= closed_at <= timeout + 3,
+              f"closed after {closed_at:.1f} s, FFS_HEADER_TIMEOUT={timeout:g}")
+        note(f"408 and closed after {closed_at:.1f} s ({sent} header bytes trickled)")
+
+
 def check_forms_and_reconstruct(base: str, root: Path) -> None:
     """/v1/forms, exact reconstruction, PARDISO least squares, GLB (prints each step)."""
     mesh_path = root / SAMPLES / "torus.off"
@@ -352,28 +397,27 @@ def mapped_mkl(container: str) -> list[str]:
 def single(image: str, root: Path) -> None:
     """One container: the API, PARDISO, GLB, web page, healthcheck."""
     name = f"{PREFIX}-api"
-    cmd = image_cmd(image)
-    own_port = int(cmd[cmd.index("--port") + 1]) if "--port" in cmd else 8000
+    cmd, env = image_cmd(image), image_env(image)
+    own_port = int(env.get("FFS_PORT", "8000"))
     args = ["run", "-d", "--name", name, "--network", "host", "--read-only",
             "--tmpfs", "/tmp"]
     if port_is_free(own_port):
-        port, extra = own_port, []
+        port = own_port
     else:  # another process owns the image's port on this shared host
         port = free_port()
-        extra = [*cmd, "--port", str(port)]
-        print(f"    port {own_port} is taken on this host: CMD + --port {port}, "
-              "HEALTHCHECK not run", flush=True)
+        args += ["--env", f"FFS_PORT={port}"]
+        print(f"    port {own_port} is taken on this host: FFS_PORT={port}", flush=True)
     base = f"http://127.0.0.1:{port}"
-    print(f"single container, {' '.join(extra or cmd)}:", flush=True)
+    print(f"single container, {' '.join(cmd)}:", flush=True)
     try:
         with step("container starts, GET /healthz"):
-            podman(*args, image, *extra)
+            podman(*args, image)
             health = wait_http(f"{base}/healthz", name)
             check(health == {"status": "ok"}, f"/healthz: {health}")
-        if port == own_port:
-            with step("podman healthcheck run (the image's HEALTHCHECK)"):
-                proc = podman("healthcheck", "run", name, check_rc=False)
-                check(proc.returncode == 0, f"unhealthy: {proc.stdout!r} {proc.stderr!r}")
+        with step("podman healthcheck run (the image's HEALTHCHECK)"):
+            proc = podman("healthcheck", "run", name, check_rc=False)
+            check(proc.returncode == 0, f"unhealthy: {proc.stdout!r} {proc.stderr!r}")
+        check_header_timeout(base, float(env.get("FFS_HEADER_TIMEOUT", HEADER_TIMEOUT)))
         check_forms_and_reconstruct(base, root)
         check_web(base, root)
         with step("MKL libraries mapped in the container after the solves"):

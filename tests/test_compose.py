@@ -43,6 +43,29 @@ def test_api_runs_the_image_command_on_the_scheduler():
     port = scheduler[scheduler.index("--port") + 1]
     assert settings.dask_scheduler_address == f"tcp://scheduler:{port}"
     assert SERVICES["worker"]["command"][:3] == ["dask", "worker", f"tcp://scheduler:{port}"]
+    (published,) = api["ports"]
+    assert published.rsplit(":", 1)[1] == str(settings.port)  # the container port it serves
+
+
+def _host_ports(published: str) -> range:
+    """``"8000-8003:8000"`` -> range(8000, 8004); ``"8000:8000"`` -> range(8000, 8001)."""
+    host = published.rsplit(":", 1)[0].rsplit(":", 1)[-1]  # drop a container port, a host IP
+    low, _, high = host.partition("-")
+    return range(int(low), int(high or low) + 1)
+
+
+def test_scaled_api_replicas_fit_the_published_ports():
+    """Every ``--scale api=N`` that the docs and the compose file show has N host ports to
+    publish on (a single fixed port would make the second replica fail to start)."""
+    (published,) = SERVICES["api"]["ports"]
+    ports = _host_ports(published)
+    assert ports.start == 8000  # the port the README and docs/distributed.md name
+    texts = [(ROOT / name).read_text() for name in
+             ("docker-compose.yml", "README.md", "docs/distributed.md", "docs/deployment.md")]
+    scales = [int(n) for text in texts for n in re.findall(r"--scale api=(\d+)", text)]
+    assert scales, "no --scale api=N example left: say how API replicas scale"
+    assert max(scales) <= len(ports), (scales, published)
+    assert f"up to {len(ports)} replicas" in (ROOT / "docs" / "distributed.md").read_text()
 
 
 def test_scheduler_preload_and_retry_policy():

@@ -19,11 +19,13 @@ from pathlib import Path
 
 import pytest
 
+from service.settings import Settings
+
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "Dockerfile"
 DOCKERIGNORE = ROOT / ".dockerignore"
 README = ROOT / "README.md"
-SERVE_MARKER = "uvicorn service.app:app"
+SERVE_MARKER = "python -m service"
 
 
 def _hadolint() -> str:
@@ -59,7 +61,7 @@ def _instructions(text: str) -> list[tuple[str, str]]:
 
 
 def _serve_commands_in_readme(text: str) -> list[list[str]]:
-    """argv of every README command line containing ``uvicorn service.app:app``."""
+    """argv of every README command line containing ``python -m service``."""
     joined = re.sub(r"\\\n\s*", " ", text)  # shell line continuations
     commands = []
     for line in joined.splitlines():
@@ -74,7 +76,7 @@ def _serve_commands_in_readme(text: str) -> list[list[str]]:
 def _cmd_argv() -> list[str]:
     cmds = [args for kw, args in _instructions(DOCKERFILE.read_text()) if kw == "CMD"]
     assert cmds, "Dockerfile has no CMD"
-    argv = json.loads(cmds[-1])  # exec form (JSON array) required: signals reach uvicorn
+    argv = json.loads(cmds[-1])  # exec form (JSON array) required: signals reach the server
     assert isinstance(argv, list) and all(isinstance(a, str) for a in argv)
     return argv
 
@@ -103,15 +105,32 @@ def test_cmd_matches_readme_serve_command() -> None:
         f"{[shlex.join(c) for c in readme_cmds]}")
 
 
-def test_single_uvicorn_worker_and_port() -> None:
-    argv = _cmd_argv()
-    assert argv[:2] == ["uvicorn", "service.app:app"]
-    assert argv[argv.index("--host") + 1] == "0.0.0.0"
-    assert argv[argv.index("--port") + 1] == "8000"
-    env = " ".join(args for kw, args in _instructions(DOCKERFILE.read_text()) if kw == "ENV")
-    one_worker = ("--workers" in argv and argv[argv.index("--workers") + 1] == "1") or (
-        "--workers" not in argv and re.search(r"\bWEB_CONCURRENCY=1\b", env) is not None)
-    assert one_worker, "the app has its own process pool: run exactly one uvicorn worker"
+def _image_env() -> dict[str, str]:
+    """The final stage's ENV instructions (``NAME=value`` pairs) as a dict."""
+    instructions = _instructions(DOCKERFILE.read_text())
+    final = max(i for i, (kw, _) in enumerate(instructions) if kw == "FROM")
+    env: dict[str, str] = {}
+    for kw, args in instructions[final:]:
+        if kw == "ENV":
+            env.update(item.split("=", 1) for item in shlex.split(args))
+    return env
+
+
+def test_cmd_serves_the_exposed_port_with_the_head_deadline() -> None:
+    """``python -m service`` (service/__main__.py: one uvicorn process with the head-deadline
+    protocol) listens where the image's ENV says, as read by the service's own settings, on
+    the port the image exposes and its HEALTHCHECK probes."""
+    assert _cmd_argv() == ["python", "-m", "service"]
+    env = _image_env()
+    settings = Settings(**{k.removeprefix("FFS_").lower(): v for k, v in env.items()
+                           if k.startswith("FFS_")})
+    assert (settings.host, settings.port) == ("0.0.0.0", 8000)
+    ins = _instructions(DOCKERFILE.read_text())
+    exposed = {int(p) for kw, args in ins if kw == "EXPOSE" for p in args.split()}
+    assert settings.port in exposed
+    (health,) = [args for kw, args in ins if kw == "HEALTHCHECK"]
+    assert "os.environ.get('FFS_PORT', '8000')" in health  # follows a moved FFS_PORT
+    assert not {"WEB_CONCURRENCY", "UVICORN_WS_PER_MESSAGE_DEFLATE"} & set(env)  # CLI-only
 
 
 def test_dockerfile_basics() -> None:

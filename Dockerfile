@@ -41,12 +41,12 @@ FROM python:3.11-slim
 
 # FFS_HOST/FFS_PORT: where `python -m service` (the CMD) listens. It runs one uvicorn process
 # (the app runs its own solver process pool, sized by its settings: docs/service.md) with the
-# deadline for request heads (FFS_HEADER_TIMEOUT, service.server) and without WebSocket
+# deadline for request heads (FFS_HEADER_TIMEOUT, service.http.server) and without WebSocket
 # per-message deflate, neither of which plain `uvicorn service.app:app` has.
 # MKL_ENABLE_INSTRUCTIONS=AVX2: MKL's AVX2 kernels also on AVX-512 CPUs, because the image
 # keeps only those and the generic ones (scripts/prune_mkl.py, docs/deployment.md).
 # PYTHONPATH=/app: the application code is imported from /app by the service and by the Dask
-# scheduler (--preload service.cluster) and workers alike.
+# scheduler (--preload service.backends.dask) and workers alike.
 ENV PATH=/opt/ffs/bin:$PATH \
     VIRTUAL_ENV=/opt/ffs \
     PYTHONPATH=/app \

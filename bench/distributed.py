@@ -6,7 +6,7 @@ real ``uvicorn service.app:app`` on loopback, with 1 and 2 workers:
 
 * local: ``FFS_EXECUTOR=local``, ``FFS_WORKERS`` = 1 or 2;
 * Dask: ``FFS_EXECUTOR=dask`` on a cluster started like docker-compose.yml (``dask
-  scheduler --preload service.cluster`` and ``dask worker --nworkers N --nthreads 1``).
+  scheduler --preload service.backends.dask`` and ``dask worker --nworkers N --nthreads 1``).
 
 Every worker uses one BLAS thread (``FFS_THREADS_PER_WORKER=1``), so both backends do the
 same arithmetic; the script checks that their vertices are equal to the last bit.

@@ -1,5 +1,5 @@
 """Servers for the benchmarks: a real uvicorn running the service, and a Dask cluster started
-with the same commands as docker-compose.yml (``dask scheduler --preload service.cluster``,
+with the same commands as docker-compose.yml (``dask scheduler --preload service.backends.dask``,
 ``dask worker ... --nthreads 1``), all on loopback."""
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ def dask_cluster(n_workers: int) -> Iterator[str]:
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
     scheduler = subprocess.Popen(
         [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-         "--port", str(port), "--dashboard-address", ":0", "--preload", "service.cluster"],
+         "--port", str(port), "--dashboard-address", ":0", "--preload", "service.backends.dask"],
         cwd=REPO, env=env, start_new_session=True, **quiet)
     workers = subprocess.Popen(
         [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nworkers",

@@ -38,7 +38,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import solver  # noqa: E402
-from service.validation import BINARY_MEDIA_TYPE, binary_body  # noqa: E402
+from service.api.decoding import BINARY_MEDIA_TYPE, binary_body  # noqa: E402
 from solver.io import load_mesh_file  # noqa: E402
 
 SHARED_MESH = REPO.parent / "shared" / "meshes" / "rocker-arm.obj"

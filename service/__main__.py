@@ -6,7 +6,7 @@ from __future__ import annotations
 def main() -> None:
     import uvicorn
 
-    from service.server import PROTOCOL
+    from service.http.server import PROTOCOL
     from service.settings import Settings
 
     settings = Settings()

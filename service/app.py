@@ -1,10 +1,10 @@
 """The FastAPI application: ``create_app(settings)`` and the module-level ``app``.
 
-Serve with ``uvicorn service.app:app --host 0.0.0.0 --port 8000`` or ``python -m service``.
-The worker pool starts in the lifespan (``/readyz`` turns 200 when a worker is up) and stops
-with it. ``FFS_EXECUTOR`` picks the backend of the pool, the jobs and the sessions: ``local``
-(processes of this service, jobs in memory) or ``dask`` (a Dask cluster shared by every
-replica; :mod:`service.cluster`).
+Serve with ``python -m service`` (or ``uvicorn service.app:app``). The backend
+(``FFS_EXECUTOR``: ``local`` processes of this service, or ``dask``, a cluster shared by
+every replica; :mod:`service.backends`) starts in the lifespan (``/readyz`` turns 200 when
+a worker is up) and stops with it. Routes get it through typed dependencies
+(:mod:`service.http.dependencies`).
 """
 
 from __future__ import annotations
@@ -18,13 +18,13 @@ from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
 from starlette.middleware.gzip import GZipMiddleware
 
-from service import openapi
-from service.executor import make_executor
-from service.jobs import JobManager, MemoryJobStore
-from service.metrics import MetricsMiddleware, ServiceMetrics
-from service.problems import install_handlers
-from service.routes import health, jobs, operations, sessions, web
-from service.sessions import make_sessions
+from service.api.task import TaskResult
+from service.backends import make_backend
+from service.http import openapi
+from service.http.dependencies import Services
+from service.http.metrics import MetricsMiddleware, ServiceMetrics
+from service.http.problems import install_handlers
+from service.http.routes import health, jobs, operations, sessions, web
 from service.settings import Settings
 
 VERSION = "1.0.0"
@@ -55,57 +55,34 @@ TAGS = [
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """Build the app (the worker pool starts with the lifespan, not here)."""
+    """Build the app (the backend starts with the lifespan, not here)."""
     settings = settings or Settings()
     logging.getLogger("service").setLevel(settings.log_level.upper())
     metrics = ServiceMetrics()
 
-    def on_job_finished(operation: str, result: dict[str, Any]) -> None:
+    def on_job_finished(operation: str, result: TaskResult) -> None:
         metrics.observe_task(operation, result, "ok")
 
-    manager: Any
-    if settings.executor == "dask":
-        from service.cluster import make_backend
-
-        executor, manager, session_backend = make_backend(settings)
-        manager._on_result = on_job_finished
-    else:
-        executor = make_executor(settings)
-        manager = JobManager(MemoryJobStore(), executor, ttl=settings.job_ttl,
-                             timeout=settings.job_timeout, max_jobs=settings.max_jobs,
-                             on_result=on_job_finished)
-        session_backend = make_sessions(settings)
-    metrics.bind(executor, manager.counts)
-    metrics.bind_sessions(session_backend)
+    services = Services(settings, make_backend(settings, on_job_finished), metrics)
+    metrics.bind(services.backend)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        await executor.start()
-        await manager.start()
-        await session_backend.start()
-        app.state.started = True
+        await services.backend.start()
+        services.started = True
         try:
             yield
         finally:
-            app.state.started = False
-            await session_backend.stop()
-            await manager.stop()
-            await executor.shutdown()
+            services.started = False
+            await services.backend.stop()
 
     app = FastAPI(title="Fundamental forms service", version=VERSION, description=DESCRIPTION,
                   lifespan=lifespan, openapi_tags=TAGS, separate_input_output_schemas=False)
-    app.state.settings = settings
-    app.state.executor = executor
-    app.state.jobs = manager
-    app.state.sessions = session_backend
-    app.state.metrics = metrics
-    app.state.started = False
+    app.state.services = services
     install_handlers(app)
-    app.include_router(operations.router)
-    app.include_router(jobs.router)
-    app.include_router(sessions.router)
-    app.include_router(health.router)
-    app.include_router(web.router)
+    for router in (operations.router, jobs.router, sessions.router, health.router,
+                   web.router):
+        app.include_router(router)
     app.mount("/static", web.static_files(), name="static")
 
     app.add_middleware(MetricsMiddleware, metrics=metrics)

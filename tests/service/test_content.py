@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import trimesh
 from gltf_validator import validate_gltf
-from service_helpers import bumpy_grid, forms_json, icosphere, load, mesh_json
+from helpers.service import bumpy_grid, forms_json, icosphere, load, mesh_json
 
-from service.negotiation import negotiate
-from service.problems import ProblemError
+from service.api.problems import ProblemError
+from service.http.negotiation import negotiate
 
 
 def _glb_json(data: bytes) -> dict:

@@ -8,7 +8,6 @@ session records in the scheduler) is also tested on its own, without a cluster.
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import pickle
@@ -19,14 +18,14 @@ import time
 import dask
 import numpy as np
 import pytest
-from conftest import running_app
 from distributed import Client, LocalCluster
 from distributed.scheduler import KilledWorker
-from service_helpers import forms_json, icosphere, problem
-from session_helpers import reference_solves, rotation_z
+from helpers.servers import running_app
+from helpers.service import debug_task, forms_json, icosphere, problem
+from helpers.sessions import reference_solves, rotation_z
 
-from service.cluster import Registry
-from service.jobs import Job
+from service.backends.dask.registry import Registry
+from service.backends.jobs import Job
 
 HANDLES = [0, 40, 80, 120]
 GROUP = list(range(500, 506))
@@ -146,9 +145,9 @@ def test_failed_and_cancelled_jobs_across_replicas(replicas):
     doc = problem(b.get(bad.headers["location"] + "/result"), 409, "job-failed")
     assert doc["error"]["status"] == 422
 
-    manager = a.app.state.jobs
-    job = a.portal.call(functools.partial(manager.submit, "deform",
-                                          {"seconds": 2.0, "steps": 40}, task="debug.sleep"))
+    manager = a.app.state.services.backend.jobs
+    job = a.portal.call(manager.submit,
+                        debug_task("debug.sleep", "deform", seconds=2.0, steps=40))
     location = f"/v1/jobs/{job.id}"
     running = wait_job(b, location, states=("running",))
     deadline = time.monotonic() + 10
@@ -186,9 +185,8 @@ def test_worker_killed_during_a_large_job_is_retried(replicas, client, inspector
 
 def test_a_task_whose_workers_keep_dying_fails_with_the_reason(replicas):
     a, b = replicas
-    manager = a.app.state.jobs
-    job = a.portal.call(functools.partial(manager.submit, "deform", {"code": 3},
-                                          task="debug.crash"))
+    manager = a.app.state.services.backend.jobs
+    job = a.portal.call(manager.submit, debug_task("debug.crash", "deform", code=3))
     final = wait_job(b, f"/v1/jobs/{job.id}", timeout=120)
     assert final["status"] == "failed"
     assert final["error"]["kind"] == "worker-died"
@@ -234,17 +232,17 @@ def test_session_limits_and_worker_death_on_dask(replicas, inspector):
     V, F = icosphere(2)
     body = {"vertices": V.tolist(), "faces": F.tolist(),
             "handles": [{"vertex": h} for h in HANDLES]}
-    sessions = a.app.state.sessions
-    sessions.max_sessions = 1
+    sessions = a.app.state.services.backend.sessions
+    sessions.policy.max_sessions = 1
     try:
         first = a.post("/v1/sessions", json=body)
         assert first.status_code == 201
         problem(a.post("/v1/sessions", json=body), 429, "too-many-sessions")
-        sessions.max_sessions = 8
-        sessions.max_memory = 1024
+        sessions.policy.max_sessions = 8
+        sessions.policy.max_memory = 1024
         problem(a.post("/v1/sessions", json=body), 503, "session-memory")
     finally:
-        sessions.max_sessions, sessions.max_memory = 8, 4 * 1024**3
+        sessions.policy.max_sessions, sessions.policy.max_memory = 8, 4 * 1024**3
     location = first.headers["location"]
     target = {"handle_positions": V[HANDLES].tolist()}
     assert b.post(f"{location}/solve", json=target).status_code == 200

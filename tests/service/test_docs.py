@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 import pytest
-from service_helpers import REPO
+from helpers.service import REPO
 
 from service.settings import ENV_PREFIX, Settings
 

@@ -11,7 +11,7 @@ import httpx
 import numpy as np
 import trimesh
 from gltf_validator import validate_gltf
-from service_helpers import DATA, bumpy_grid, forms_json, icosphere, load, mesh_json, rigid_error
+from helpers.service import DATA, bumpy_grid, forms_json, icosphere, load, mesh_json, rigid_error
 
 import solver
 

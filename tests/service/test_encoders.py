@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.encoders import (
+from service.worker.gltf import (
     MEDIA_TYPES,
     color_ramp,
     encode_gltf,

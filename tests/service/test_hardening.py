@@ -19,8 +19,8 @@ import httpx
 import numpy as np
 import orjson
 import pytest
-from conftest import REPO, uvicorn_process, uvicorn_server
-from service_helpers import forms_json, icosphere, metric_value
+from helpers.servers import REPO, uvicorn_process, uvicorn_server
+from helpers.service import forms_json, icosphere, metric_value
 
 
 def _address(base: str) -> tuple[str, int]:

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import pytest
-from conftest import running_app
-from service_helpers import icosphere, mesh_json
+from helpers.servers import running_app
+from helpers.service import icosphere, mesh_json
 from starlette.testclient import TestClient
 
+from service.api.problems import PROBLEM_KINDS
 from service.app import create_app
-from service.problems import PROBLEM_KINDS
 from service.settings import Settings
 
 
@@ -99,7 +99,7 @@ def test_settings_from_environment(monkeypatch):
 
 def test_default_backend_setting_is_used():
     with running_app(workers=1, solver_backend="superlu") as c:
-        from service.schemas import EXAMPLE_FORMS
+        from service.api.schemas import EXAMPLE_FORMS
 
         direct = {"exact_shortcut": False}  # exact forms would skip the factorization
         doc = c.post("/v1/reconstruct", json={**EXAMPLE_FORMS, "options": direct}).json()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import signal
@@ -10,11 +9,11 @@ import time
 
 import numpy as np
 import pytest
-from conftest import running_app
-from service_helpers import DATA, forms_json, icosphere, load, mesh_json, problem
+from helpers.servers import running_app
+from helpers.service import DATA, debug_task, forms_json, icosphere, load, mesh_json, problem
 
 import solver
-from service.schemas import EXAMPLE_FORMS
+from service.api.schemas import EXAMPLE_FORMS
 
 
 def wait_job(client, location, states=("succeeded", "failed", "cancelled"), timeout=60.0):
@@ -32,9 +31,9 @@ def wait_job(client, location, states=("succeeded", "failed", "cancelled"), time
 
 def submit_debug(client, seconds=5.0, operation="deform", task="debug.sleep"):
     """Start a job that runs a test-only task (sleep or crash) through the job manager."""
-    manager = client.app.state.jobs
-    job = client.portal.call(functools.partial(
-        manager.submit, operation, {"seconds": seconds, "steps": 50}, task=task))
+    manager = client.app.state.services.backend.jobs
+    job = client.portal.call(manager.submit,
+                             debug_task(task, operation, seconds=seconds, steps=50))
     return job, f"/v1/jobs/{job.id}"
 
 
@@ -114,9 +113,9 @@ def test_job_from_a_file_upload(client):
 @pytest.mark.parametrize("operation", ["forms", "integrability", "parameterize",
                                        "interpolate"])
 def test_jobs_for_every_operation(client, operation):
-    from service.schemas import REQUEST_MODELS
+    from service.operations import OPERATIONS
 
-    example = REQUEST_MODELS[operation].model_config["json_schema_extra"]["examples"][0]
+    example = OPERATIONS[operation].request.model_config["json_schema_extra"]["examples"][0]
     response = client.post("/v1/jobs", json={"operation": operation, "input": example})
     final, _ = wait_job(client, response.headers["location"])
     assert final["status"] == "succeeded", final
@@ -163,7 +162,7 @@ def test_failed_job_reports_the_problem(client):
 
 
 def test_result_of_unfinished_job_and_cancel_running(client):
-    executor = client.app.state.executor
+    executor = client.app.state.services.backend.executor
     job, location = submit_debug(client, seconds=30)
     doc, _ = wait_job(client, location, states=("running",))
     deadline = time.monotonic() + 10  # "running" comes with the dispatch, the stage follows
@@ -194,7 +193,7 @@ def _wait_pool(client, workers, timeout=30.0):
 
 
 def test_worker_death_fails_the_job_and_the_service_keeps_serving(client):
-    executor = client.app.state.executor
+    executor = client.app.state.services.backend.executor
     # A worker that exits on its own.
     _, location = submit_debug(client, task="debug.crash")
     final, _ = wait_job(client, location)
@@ -215,7 +214,7 @@ def test_worker_death_fails_the_job_and_the_service_keeps_serving(client):
 
 def test_queued_job_cancel_keeps_the_running_worker():
     with running_app(workers=1) as c:
-        executor = c.app.state.executor
+        executor = c.app.state.services.backend.executor
         running, running_at = submit_debug(c, seconds=30)
         wait_job(c, running_at, states=("running",))
         pid = executor.running_pid(running.id)
@@ -247,7 +246,7 @@ def test_job_timeout_ttl_and_store_limit():
 
 
 def test_progress_is_honest_when_the_solver_goes_back_to_factorize():
-    from service.jobs import Job
+    from service.backends.jobs import Job
 
     V, F = icosphere(2)
     forms = solver.fundamental_forms(V, F)

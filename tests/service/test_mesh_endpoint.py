@@ -8,7 +8,7 @@ import io
 import numpy as np
 import trimesh
 from gltf_validator import validate_gltf
-from service_helpers import DATA, load, problem
+from helpers.service import DATA, load, problem
 
 
 def test_upload_returns_file_order_and_report(client):

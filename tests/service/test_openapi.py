@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 
-from service_helpers import REPO
+from helpers.service import REPO
 
 
 def _script():
@@ -90,25 +90,26 @@ def test_every_reference_resolves():
 
 
 def test_color_is_documented_only_where_it_works():
-    from service.tasks import COLOR_FIELDS
+    from service.operations import OPERATIONS
 
     doc = _document()
     for operation in ("forms", "integrability", "reconstruct", "deform", "parameterize",
                       "interpolate", "mesh"):
         params = {p["name"]: p for p in
                   doc["paths"][f"/v1/{operation}"]["post"].get("parameters", [])}
-        if operation not in COLOR_FIELDS:
+        if not OPERATIONS[operation].colors:
             assert "color" not in params, operation
             continue
         options = {s.get("const") for s in params["color"]["schema"]["anyOf"]} - {None}
-        assert options == set(COLOR_FIELDS[operation]), (operation, options)
+        assert options == set(OPERATIONS[operation].colors), (operation, options)
 
 
 def test_multipart_parameter_fields_are_documented_as_json():
-    from service.schemas import PARAMS_MODELS
+    from service.operations import OPERATIONS
 
     doc = _document()
-    for operation, model in PARAMS_MODELS.items():
+    for operation, spec in OPERATIONS.items():
+        model = spec.params
         form = doc["paths"][f"/v1/{operation}"]["post"]["requestBody"]["content"][
             "multipart/form-data"]
         assert set(form["encoding"]) == set(model.model_fields), operation

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from service_helpers import (
+from helpers.service import (
     bumpy_grid,
     forms_json,
     icosphere,
@@ -15,12 +15,12 @@ from service_helpers import (
 )
 
 import solver
-from service.schemas import REQUEST_MODELS
+from service.operations import OPERATIONS
 
 
-@pytest.mark.parametrize("operation", list(REQUEST_MODELS))
+@pytest.mark.parametrize("operation", list(OPERATIONS))
 def test_schema_example_is_a_valid_request(client, operation):
-    example = REQUEST_MODELS[operation].model_config["json_schema_extra"]["examples"][0]
+    example = OPERATIONS[operation].request.model_config["json_schema_extra"]["examples"][0]
     response = client.post(f"/v1/{operation}", json=example)
     assert response.status_code == 200, response.text
     assert response.headers["content-type"] == "application/json"

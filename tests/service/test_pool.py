@@ -3,35 +3,34 @@
 from __future__ import annotations
 
 import asyncio
-import functools
 import os
 import signal
 import threading
 import time
 
 import pytest
-from conftest import running_app
-from service_helpers import forms_json, icosphere, mesh_json, problem
+from helpers.servers import running_app
+from helpers.service import debug_task, forms_json, forms_task, icosphere, mesh_json, problem
 
-from service.executor import (
+from service.backends.errors import (
     ExecutorClosedError,
-    ProcessExecutor,
     QueueFullError,
     TaskCancelledError,
     TaskFailedError,
     WorkerDiedError,
 )
+from service.backends.local.executor import ProcessExecutor
 
 
-def _submit(client, fn_name, payload):
-    return client.portal.call(functools.partial(client.app.state.executor.submit, fn_name,
-                                                payload))
+def _submit(client, task, **params):
+    return client.portal.call(client.app.state.services.backend.executor.submit,
+                              debug_task(task, **params))
 
 
 def test_queue_full_is_503_with_retry_after():
     with running_app(workers=1, queue_size=1) as c:
-        busy = _submit(c, "debug.sleep", {"seconds": 30})
-        waiting = _submit(c, "debug.sleep", {"seconds": 30})
+        busy = _submit(c, "debug.sleep", seconds=30)
+        waiting = _submit(c, "debug.sleep", seconds=30)
         assert c.get("/readyz").json() == {"status": "ready", "workers": 1, "workers_ready": 1,
                                            "busy": 1, "queue_depth": 1}
         response = c.post("/v1/forms", json=mesh_json(*icosphere(0)))
@@ -42,7 +41,7 @@ def test_queue_full_is_503_with_retry_after():
         problem(job, 503, "queue-full")
         metrics = c.get("/metrics").text
         assert "ffs_queue_depth 1.0" in metrics and "ffs_pool_busy_workers 1.0" in metrics
-        executor = c.app.state.executor
+        executor = c.app.state.services.backend.executor
         for handle in (waiting, busy):
             assert c.portal.call(executor.cancel, handle.id)
         deadline = time.monotonic() + 30
@@ -53,7 +52,7 @@ def test_queue_full_is_503_with_retry_after():
 
 def test_sync_timeout_is_504_and_frees_the_worker():
     with running_app(workers=1, request_timeout=0.05) as c:
-        executor = c.app.state.executor
+        executor = c.app.state.services.backend.executor
         pid = executor.worker_pids()[0]
         V, F = icosphere(5)  # ~1 s of work: far beyond the 50 ms timeout
         doc = problem(c.post("/v1/reconstruct", json=forms_json(V, F)), 504, "timeout")
@@ -71,7 +70,7 @@ def test_sync_timeout_is_504_and_frees_the_worker():
 
 
 def test_sync_request_whose_worker_dies_is_500_and_the_pool_recovers(client):
-    executor = client.app.state.executor
+    executor = client.app.state.services.backend.executor
     V, F = icosphere(5)
     body = {**forms_json(V, F), "options": {"exact_shortcut": False}}  # ~1 s: factorize
     result = {}
@@ -101,34 +100,34 @@ def test_process_executor_directly():
     async def scenario():
         executor = ProcessExecutor(2, 1, start_method="forkserver", threads_per_worker=1)
         with pytest.raises(ExecutorClosedError):
-            await executor.submit("debug.sleep", {"seconds": 0})
+            await executor.submit(debug_task("debug.sleep", seconds=0))
         await executor.start()
         try:
             events = []
             handle = await executor.submit(
-                "debug.sleep", {"seconds": 0.05, "steps": 5},
+                debug_task("debug.sleep", seconds=0.05, steps=5),
                 progress_cb=lambda stage, f: events.append((stage, f)),
                 on_start=lambda: events.append(("start", 0.0)))
             result = await handle.future
-            assert result["body"] == b'{"slept": true}' and "solve" in result["timings"]
+            assert result.body == b'{"slept": true}' and "solve" in result.timings
             assert events[0] == ("start", 0.0)
             assert [f for _, f in events[1:]] == [0.0, 0.2, 0.4, 0.6, 0.8]
 
-            failing = await executor.submit("debug.raise", {"message": "kaput"})
+            failing = await executor.submit(debug_task("debug.raise", message="kaput"))
             with pytest.raises(TaskFailedError) as info:
                 await failing.future
             assert info.value.error["category"] == "internal"
             assert info.value.error["exception"] == "RuntimeError"
 
-            crash = await executor.submit("debug.crash", {"code": 7})
+            crash = await executor.submit(debug_task("debug.crash", code=7))
             with pytest.raises(WorkerDiedError, match="exit code 7"):
                 await crash.future
 
-            a = await executor.submit("debug.sleep", {"seconds": 30})
-            b = await executor.submit("debug.sleep", {"seconds": 30})
-            c = await executor.submit("debug.sleep", {"seconds": 30})
+            a = await executor.submit(debug_task("debug.sleep", seconds=30))
+            b = await executor.submit(debug_task("debug.sleep", seconds=30))
+            c = await executor.submit(debug_task("debug.sleep", seconds=30))
             with pytest.raises(QueueFullError):
-                await executor.submit("debug.sleep", {"seconds": 30})
+                await executor.submit(debug_task("debug.sleep", seconds=30))
             assert executor.queue_depth() >= 1
             for handle in (c, b, a):
                 assert await executor.cancel(handle.id)
@@ -139,13 +138,9 @@ def test_process_executor_directly():
             deadline = time.monotonic() + 30
             while executor.workers_ready() < 2 and time.monotonic() < deadline:
                 await asyncio.sleep(0.05)
-            again = await executor.submit("forms", {
-                "source": {"kind": "arrays", "vertices": icosphere(0)[0],
-                           "faces": icosphere(0)[1]},
-                "params": {}, "limits": {"max_vertices": 100, "max_faces": 100},
-                "output": {"format": "json"}})
-            assert (await again.future)["media_type"] == "application/json"
-            pending = await executor.submit("debug.sleep", {"seconds": 30})
+            again = await executor.submit(forms_task(*icosphere(0)))
+            assert (await again.future).media_type == "application/json"
+            pending = await executor.submit(debug_task("debug.sleep", seconds=30))
         finally:
             await executor.shutdown()
         with pytest.raises(ExecutorClosedError):

@@ -16,7 +16,8 @@ from collections.abc import Iterator
 import httpx
 import pytest
 import schemathesis
-from conftest import uvicorn_server
+from helpers.servers import uvicorn_server
+from helpers.service import metric_value
 from hypothesis import HealthCheck, settings
 from schemathesis.checks import (
     content_type_conformance,
@@ -26,9 +27,8 @@ from schemathesis.checks import (
     status_code_conformance,
 )
 from schemathesis.specs.openapi.checks import use_after_free
-from service_helpers import metric_value
 
-from service.validation import BINARY_MEDIA_TYPE
+from service.api.decoding import BINARY_MEDIA_TYPE
 
 
 @schemathesis.serializer(BINARY_MEDIA_TYPE)

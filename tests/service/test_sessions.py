@@ -15,9 +15,9 @@ import time
 import httpx
 import numpy as np
 import pytest
-from conftest import running_app, uvicorn_server
-from service_helpers import icosphere, problem
-from session_helpers import reference_solves, rotation_z
+from helpers.servers import running_app, uvicorn_server
+from helpers.service import icosphere, problem
+from helpers.sessions import reference_solves, rotation_z
 
 HANDLES = [0, 40, 80, 120]
 GROUP = list(range(500, 506))
@@ -34,7 +34,7 @@ def _targets(V, count, seed=0):
 
 def _threads(client):
     """BLAS threads of the app's session processes (the reference must use as many)."""
-    return client.app.state.sessions.threads
+    return client.app.state.services.backend.sessions.policy.threads
 
 
 def _create(client, V, F, **extra):
@@ -135,7 +135,7 @@ def test_cap_memory_limit_expiry_worker_death_and_timeout(sphere):
     V, F = sphere
     small_V, small_F = icosphere(2)
     with running_app(workers=1, max_sessions=2, session_ttl=30.0) as c:
-        sessions = c.app.state.sessions
+        sessions = c.app.state.services.backend.sessions
         first = _create(c, V, F).headers["location"]
         second = _create(c, small_V, small_F).headers["location"]
         # Cap on live sessions: 429 with Retry-After.
@@ -148,13 +148,13 @@ def test_cap_memory_limit_expiry_worker_death_and_timeout(sphere):
         assert c.delete(second).status_code == 204
 
         # Memory limit: 503 with a clear body.
-        sessions.max_memory = sessions.memory() + 1024
+        sessions.policy.max_memory = sessions.memory() + 1024
         doc = problem(c.post("/v1/sessions", json={"vertices": small_V.tolist(),
                                                    "faces": small_F.tolist(),
                                                    "handles": [{"vertex": 0}]}),
                       503, "session-memory")
         assert "FFS_MAX_SESSION_MEMORY" in doc["detail"] and doc["memory_limit"] > 0
-        sessions.max_memory = 8 * 1024**3
+        sessions.policy.max_memory = 8 * 1024**3
 
         # Worker death: 410 with the reason, never a hang; other sessions keep working.
         victim = _create(c, small_V, small_F).headers["location"]
@@ -173,17 +173,17 @@ def test_cap_memory_limit_expiry_worker_death_and_timeout(sphere):
                       ).status_code == 200
 
         # A solve beyond FFS_SESSION_SOLVE_TIMEOUT: 504, then the session is gone (410).
-        sessions.solve_timeout = 1e-4
+        sessions.policy.solve_timeout = 1e-4
         problem(c.post(f"{first}/solve", json={"handle_positions": V[HANDLES].tolist()}),
                 504, "timeout")
-        sessions.solve_timeout = 30.0
+        sessions.policy.solve_timeout = 30.0
         doc = problem(c.get(first), 410, "session-gone")
         assert "FFS_SESSION_SOLVE_TIMEOUT" in doc["detail"]
         assert sessions.count() == 0
 
         # Idle expiry (the sweeper's work, run here at once): 410 for one more TTL, then 404.
         idle = _create(c, small_V, small_F).headers["location"]
-        sessions.ttl = 0.5
+        sessions.policy.ttl = 0.5
         time.sleep(0.7)
         assert c.portal.call(sessions.expire) == 1
         doc = problem(c.get(idle), 410, "session-gone")

@@ -7,7 +7,7 @@ import re
 
 import numpy as np
 import pytest
-from service_helpers import DATA, bumpy_grid, problem, rigid_error
+from helpers.service import DATA, bumpy_grid, problem, rigid_error
 
 import solver
 from solver.io import load_mesh, save_mesh

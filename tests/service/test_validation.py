@@ -1,33 +1,40 @@
-"""service.validation: JSON arrays checked as arrays, with the request models' rules."""
+"""service.api.decoding: JSON arrays checked as arrays, with the request models' rules."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from service_helpers import bumpy_grid, forms_json, problem
+from helpers.service import bumpy_grid, forms_json, problem
 
-from service.problems import ProblemError
-from service.schemas import PARAMS_MODELS, REQUEST_MODELS, SessionParams, SessionRequest
-from service.validation import (
-    ARRAYS,
+from service.api.decoding import (
     BINARY_MEDIA_TYPE,
     MAX_ERRORS,
+    MESH_ARRAYS,
     as_array,
     binary_body,
-    request_arrays,
+    decode_json,
 )
+from service.api.problems import ProblemError
+from service.api.schemas import SessionParams, SessionRequest
+from service.operations import OPERATIONS
+
+
+def request_arrays(operation, doc):
+    spec = OPERATIONS[operation]
+    return decode_json(spec.arrays, spec.params, doc)
 
 MESH = {"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0.5]], "faces": [[0, 1, 2]]}
 
 
-@pytest.mark.parametrize("operation", sorted(REQUEST_MODELS))
+@pytest.mark.parametrize("operation", sorted(OPERATIONS))
 def test_the_arrays_are_the_request_model_minus_its_params(operation):
-    documented = set(REQUEST_MODELS[operation].model_fields)
-    assert set(ARRAYS[operation]) == documented - set(PARAMS_MODELS[operation].model_fields)
+    spec = OPERATIONS[operation]
+    documented = set(spec.request.model_fields)
+    assert set(spec.arrays) == documented - set(spec.params.model_fields)
 
 
 def test_session_arrays_match_the_session_model():
-    assert set(ARRAYS["session"]) == (set(SessionRequest.model_fields)
+    assert set(MESH_ARRAYS) == (set(SessionRequest.model_fields)
                                       - set(SessionParams.model_fields))
 
 
@@ -84,7 +91,7 @@ def test_errors_are_capped_and_arrays_and_params_reported_together():
 
 
 def test_flat_list_of_a_million_numbers_is_one_error():
-    values, errors = as_array("vertices", [0.5] * 1_000_000, ARRAYS["forms"]["vertices"])
+    values, errors = as_array("vertices", [0.5] * 1_000_000, MESH_ARRAYS["vertices"])
     assert values is None and len(errors) == 1
     assert "flat list of 1000000 numbers" in errors[0]["msg"]
     assert "333333 rows" not in errors[0]["msg"]  # 10**6 is not a multiple of 3

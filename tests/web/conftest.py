@@ -1,4 +1,4 @@
-"""Fixtures of the browser tests: a real uvicorn on loopback (the helper of tests/service), a
+"""Fixtures of the browser tests: a real uvicorn on loopback (:mod:`helpers.servers`), a
 headless Debian Chromium driven by Python Playwright, and a page whose console errors fail
 the test.
 
@@ -11,7 +11,6 @@ Screenshots go to ``tests/artifacts/web/`` (git-ignored).
 
 from __future__ import annotations
 
-import importlib.util
 import re
 import time
 from collections.abc import Iterator
@@ -20,25 +19,15 @@ from typing import Any
 
 import httpx
 import pytest
+from helpers.servers import uvicorn_server
 from web_helpers import (
     ARTIFACTS,
     CHROMIUM_ARGS,
-    REPO,
     SMALL_VIEWPORT,
     VENDOR_MANIFEST,
     VIEWPORT,
     chromium_path,
 )
-
-
-def _service_helpers() -> Any:
-    """tests/service/conftest.py (uvicorn_server, wait_ready), loaded under its own name."""
-    spec = importlib.util.spec_from_file_location(
-        "_service_conftest", REPO / "tests" / "service" / "conftest.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="session")
@@ -47,7 +36,7 @@ def web_server() -> Iterator[str]:
     if not VENDOR_MANIFEST.is_file():
         pytest.fail("the page's three.js modules are not built: run `npm ci --prefix web` "
                     "(scripts/test.sh does)")
-    with _service_helpers().uvicorn_server({"FFS_MAX_SESSIONS": "16"}) as base:
+    with uvicorn_server({"FFS_MAX_SESSIONS": "16"}) as base:
         yield base
 
 

@@ -58,7 +58,7 @@ def test_every_import_resolves(plain_client):
 
 
 def test_missing_build_names_the_command(plain_client, monkeypatch, tmp_path):
-    from service.routes import web
+    from service.http.routes import web
 
     monkeypatch.setattr(web, "VENDOR_MANIFEST", tmp_path / "missing.json")
     response = plain_client.get("/")

@@ -1,0 +1,404 @@
+"""Request bodies decoded as arrays: orjson parses, numpy checks the large arrays (shapes,
+dtypes, ranges), pydantic validates the small rest (the operation's params model). JSON
+bodies and binary ``application/vnd.ffs.arrays`` bodies decode to the same arrays.
+
+The request models in :mod:`service.api.schemas` document the bodies; this module enforces the
+same rules on the large arrays without one Python object per element error:
+
+* shapes and element types are checked with C-level passes (``map``/``set``/``np.fromiter``)
+  before any element-wise work, so a flat list of a million numbers where ``[x, y, z]`` rows
+  belong is one error found in milliseconds;
+* at most :data:`MAX_ERRORS` errors are collected per array, and the params models' lists
+  fail fast (``Field(fail_fast=True)``);
+* the result is the numpy arrays the workers use, so nothing is converted twice.
+
+Synchronous operations run this in the worker process (the event loop and the main process's
+memory never see the parsed body); jobs and sessions run it in a thread of the main process.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from itertools import chain
+from typing import Any, Protocol
+
+import numpy as np
+import orjson
+from pydantic import BaseModel, ValidationError
+
+from service.api.problems import ProblemError, from_validation_errors
+from service.api.schemas import MAX_INDEX, MAX_MAGNITUDE
+from service.api.task import (
+    ARRAY_SOURCES,
+    FormsArrays,
+    Limits,
+    MeshArrays,
+    MeshPair,
+    RawBody,
+    TaskRequest,
+)
+
+MAX_ERRORS = 5
+"""Errors reported per array (the first ones in element order)."""
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """One large array of a request body: rows of ``cols`` values (``cols == 0``: a flat
+    vector), integer indices in [0, MAX_INDEX] or reals in [-MAX_MAGNITUDE, MAX_MAGNITUDE]."""
+
+    cols: int
+    integer: bool
+    min_rows: int = 0
+
+    @property
+    def dtype(self) -> type:
+        return np.int64 if self.integer else np.float64
+
+    @property
+    def what(self) -> str:
+        return "integer" if self.integer else "number"
+
+
+_POINTS = ArraySpec(3, False, 1)
+_TRIANGLES = ArraySpec(3, True, 1)
+MESH_ARRAYS: dict[str, ArraySpec] = {"vertices": _POINTS, "faces": _TRIANGLES}
+FORMS_ARRAYS: dict[str, ArraySpec] = {"faces": _TRIANGLES, "edges": ArraySpec(2, True),
+                                      "lengths": ArraySpec(0, False),
+                                      "angles": ArraySpec(0, False)}
+PAIR_ARRAYS: dict[str, ArraySpec] = {"vertices_a": _POINTS, "vertices_b": _POINTS,
+                                     "faces": _TRIANGLES}
+ArraySpecs = Mapping[str, ArraySpec]
+"""The large arrays of a body (its request model's fields minus its params model's)."""
+
+_NUMBER_TYPES = frozenset({int, float})
+_JSON_TYPES = {dict: "an object", list: "a list", str: "a string", bool: "a boolean",
+               type(None): "null", int: "an integer", float: "a number"}
+
+
+def parse_json(body: bytes) -> Any:
+    """The parsed body; a 400 ``malformed-json`` problem when it is empty or not JSON.
+
+    ``NaN``, ``Infinity`` and overflowing numbers such as ``1e400`` (which Python's ``json``
+    writes and reads) parse, as non-finite floats, so that the schema check names the element
+    (422) instead of calling the whole body malformed."""
+    if not body.strip():
+        raise ProblemError("malformed-json", "the body is empty; send a JSON object")
+    try:
+        return orjson.loads(body)
+    except orjson.JSONDecodeError as exc:
+        try:  # only on the error path: the stdlib parser reads the non-finite literals
+            return json.loads(body)
+        except (ValueError, RecursionError):
+            pass
+        raise ProblemError("malformed-json", f"the body is not valid JSON: {exc}") from None
+
+
+def _error(loc: Sequence[Any], msg: str, kind: str) -> dict[str, Any]:
+    return {"loc": tuple(loc), "msg": msg, "type": kind}
+
+
+def _json_type(value: Any) -> str:
+    return _JSON_TYPES.get(type(value), type(value).__name__)
+
+
+def _first(mask: np.ndarray) -> list[int]:
+    return np.flatnonzero(mask)[:MAX_ERRORS].tolist()
+
+
+def _flat(name: str, value: list[Any], spec: ArraySpec) -> tuple[list[Any], list[dict[str, Any]]]:
+    """The values of a list of rows in row-major order, or the structure errors."""
+    n, cols = len(value), spec.cols
+    if n and set(map(type, value)) != {list}:
+        if set(map(type, value)) <= _NUMBER_TYPES:
+            rows = f"{n // cols}" if n % cols == 0 else "n"
+            return [], [_error((name,), f"expected a list of {rows} rows of {cols} "
+                               f"{spec.what}s, got a flat list of {n} {spec.what}s; nest "
+                               "each row: [[...], [...], ...]", "list_of_rows")]
+        is_row = np.fromiter(map(list.__instancecheck__, value), bool, n)
+        return [], [_error((name, i), f"expected a list of {cols} {spec.what}s, got "
+                           f"{_json_type(value[i])}", "row_type") for i in _first(~is_row)]
+    lengths = np.fromiter(map(len, value), np.intp, n)
+    wrong = lengths != cols
+    if wrong.any():
+        return [], [_error((name, i), f"expected {cols} values, got {int(lengths[i])}",
+                           "row_length") for i in _first(wrong)]
+    return list(chain.from_iterable(value)), []
+
+
+def _numbers(name: str, flat: list[Any] | np.ndarray, spec: ArraySpec
+             ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
+    """A 1-D array of ``flat`` (int64 or float64 per ``spec``), or the element errors."""
+    cols = max(spec.cols, 1)
+
+    def loc(k: int) -> tuple[Any, ...]:
+        return (name, k // cols, k % cols) if spec.cols else (name, k)
+
+    if isinstance(flat, np.ndarray):  # a binary body: already numbers
+        return _checked(flat.astype(spec.dtype if flat.dtype.kind in "iu" else np.float64),
+                        spec, loc)
+    kinds = set(map(type, flat))
+    if not kinds <= _NUMBER_TYPES:
+        ok = np.fromiter(map(_NUMBER_TYPES.__contains__, map(type, flat)), bool, len(flat))
+        return None, [_error(loc(k), f"Input should be a valid {spec.what}, got "
+                             f"{_json_type(flat[k])}", f"{spec.what}_type")
+                      for k in _first(~ok)]
+    if spec.integer and float not in kinds:
+        try:
+            array = np.array(flat, dtype=np.int64)
+        except OverflowError:  # beyond int64: certainly beyond MAX_INDEX
+            array = np.array(flat, dtype=np.float64)
+    else:
+        array = np.array(flat, dtype=np.float64)
+    return _checked(array, spec, loc)
+
+
+def _checked(array: np.ndarray, spec: ArraySpec, loc: Any
+             ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
+    """``array`` cast to the spec's dtype, or its first integrality and range errors."""
+    errors = []
+    if spec.integer and array.dtype == np.float64:
+        fractional = array != np.trunc(array)
+        errors += [_error(loc(k), "Input should be a valid integer, got a number with a "
+                          "fractional part", "int_from_float") for k in _first(fractional)]
+    low, high = (0, MAX_INDEX) if spec.integer else (-MAX_MAGNITUDE, MAX_MAGNITUDE)
+    errors += [_error(loc(k), f"Input should be greater than or equal to {low}",
+                      "greater_than_equal") for k in _first(array < low)]
+    errors += [_error(loc(k), f"Input should be less than or equal to {high}",
+                      "less_than_equal") for k in _first(array > high)]
+    if not spec.integer:
+        errors += [_error(loc(k), "Input should be a finite number", "finite_number")
+                   for k in _first(~np.isfinite(array))]
+    if errors:
+        return None, errors[:MAX_ERRORS]
+    return array.astype(spec.dtype, copy=False), []
+
+
+def as_array(name: str, value: Any, spec: ArraySpec
+             ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
+    """``value`` (parsed JSON) as an (n, cols) or (n,) array, or at most MAX_ERRORS errors
+    in pydantic's shape (``loc``, ``msg``, ``type``)."""
+    if not isinstance(value, list):
+        return None, [_error((name,), f"Input should be a valid list, got {_json_type(value)}",
+                             "list_type")]
+    if len(value) < spec.min_rows:
+        return None, [_error((name,), f"List should have at least {spec.min_rows} item, "
+                             f"not {len(value)}", "too_short")]
+    flat, errors = _flat(name, value, spec) if spec.cols else (value, [])
+    if errors:
+        return None, errors
+    array, errors = _numbers(name, flat, spec)
+    if array is None:
+        return None, errors
+    return (array.reshape(-1, spec.cols) if spec.cols else array), []
+
+
+def decode_json(specs: ArraySpecs, params_model: type[BaseModel], doc: Any,
+                prefix: tuple[Any, ...] = ()) -> tuple[dict[str, np.ndarray], BaseModel]:
+    """(arrays, params) of a parsed JSON body with the large arrays ``specs`` and the rest
+    validated by ``params_model``.
+
+    Raises one 422 ``validation-error`` listing the first errors of every array and of the
+    params (pointers below ``prefix``, e.g. ``("input",)`` for a job).
+    """
+    if not isinstance(doc, Mapping):
+        raise from_validation_errors([_error((), f"Input should be a JSON object, got "
+                                              f"{_json_type(doc)}", "model_type")], prefix)
+    rest = dict(doc)
+    sent = {name: rest.pop(name) for name in specs if name in rest}
+    return _decode(specs, params_model, sent, rest, as_array, prefix)
+
+
+def _decode(specs: ArraySpecs, params_model: type[BaseModel], sent: dict[str, Any],
+            rest: Mapping[str, Any], convert: Any, prefix: tuple[Any, ...] = ()
+            ) -> tuple[dict[str, np.ndarray], BaseModel]:
+    """Arrays ``sent`` checked by ``convert(name, value, spec)`` against ``specs`` (missing
+    and unknown ones are errors), ``rest`` by ``params_model``; one 422 for all errors."""
+    arrays: dict[str, np.ndarray] = {}
+    errors: list[dict[str, Any]] = []
+    for name, spec in specs.items():
+        if name not in sent:
+            errors.append(_error((name,), "Field required", "missing"))
+            continue
+        array, found = convert(name, sent.pop(name), spec)
+        errors += found
+        if array is not None:
+            arrays[name] = array
+    errors += [_error((name,), "Extra inputs are not permitted", "extra_forbidden")
+               for name in sent]
+    params = None
+    try:
+        params = params_model.model_validate(rest)
+    except ValidationError as exc:
+        errors += exc.errors(include_url=False, include_input=False)[:MAX_ERRORS * 4]
+    if errors or params is None:
+        raise from_validation_errors(errors, prefix)
+    return arrays, params
+
+
+# ------------------------------------------------------------------------- binary bodies
+
+BINARY_MEDIA_TYPE = "application/vnd.ffs.arrays"
+"""A request body with the large arrays as raw little-endian bytes (docs/service.md)::
+
+    b"FFSA" | uint32 LE header length H | H bytes of UTF-8 JSON header | zero padding to a
+    multiple of 8 | each array's bytes (C order), each padded to a multiple of 8
+
+The header is the JSON body without its large arrays, plus ``"arrays": {name: {"dtype",
+"shape"}}`` in the order the arrays follow. dtypes: ``<f8`` ``<f4`` (reals), ``<i4`` ``<i8``
+``<u4`` (indices).
+"""
+BINARY_MAGIC = b"FFSA"
+BINARY_DTYPES = {"<f8": np.float64, "<f4": np.float32, "<i4": np.int32, "<i8": np.int64,
+                 "<u4": np.uint32}
+
+
+def binary_body(params: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> bytes:
+    """A :data:`BINARY_MEDIA_TYPE` body (the reference encoder; tests, benchmarks, clients):
+    ``params`` are the JSON body's other fields, ``arrays`` its large arrays (cast to
+    ``<f8`` for reals and ``<i4`` for integer arrays)."""
+    parts, meta = [], {}
+    for name, value in arrays.items():
+        array = np.asarray(value)
+        array = array.astype("<i4" if array.dtype.kind in "iub" else "<f8", copy=False)
+        meta[name] = {"dtype": array.dtype.str, "shape": list(array.shape)}
+        raw = np.ascontiguousarray(array).tobytes()
+        parts.append(raw + b"\0" * (_padded(len(raw)) - len(raw)))
+    header = orjson.dumps({**params, "arrays": meta}, option=orjson.OPT_SERIALIZE_NUMPY)
+    head = BINARY_MAGIC + len(header).to_bytes(4, "little") + header
+    return head + b"\0" * (_padded(len(head)) - len(head)) + b"".join(parts)
+
+
+def _binary_error(detail: str) -> ProblemError:
+    return ProblemError("malformed-request", f"cannot read the {BINARY_MEDIA_TYPE} body: "
+                        f"{detail}", errors=[{"field": "body", "index": None,
+                                              "reason": detail}])
+
+
+def _padded(n: int) -> int:
+    return -(-n // 8) * 8
+
+
+def parse_binary(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """(header without ``arrays``, {name: array view into ``body``}) of a binary body; a 400
+    ``malformed-request`` problem when the framing is wrong."""
+    if len(body) < 8 or body[:4] != BINARY_MAGIC:
+        raise _binary_error(f"it must start with {BINARY_MAGIC!r} and a uint32 header length")
+    size = int.from_bytes(body[4:8], "little")
+    if 8 + size > len(body):
+        raise _binary_error(f"the header length {size} runs past the end of the body")
+    try:
+        header = orjson.loads(body[8:8 + size])
+    except orjson.JSONDecodeError as exc:
+        raise _binary_error(f"the header is not JSON: {exc}") from None
+    if not isinstance(header, dict) or not isinstance(header.get("arrays"), dict):
+        raise _binary_error('the header must be a JSON object with "arrays"')
+    offset, arrays = _padded(8 + size), {}
+    for name, meta in header.pop("arrays").items():
+        dtype = BINARY_DTYPES.get(meta.get("dtype")) if isinstance(meta, dict) else None
+        shape = meta.get("shape") if isinstance(meta, dict) else None
+        if dtype is None or not isinstance(shape, list) or not all(
+                type(d) is int and d >= 0 for d in shape):
+            raise _binary_error(f"{name}: needs a dtype ({', '.join(BINARY_DTYPES)}) and a "
+                                "shape (a list of sizes)")
+        count = int(np.prod(shape, dtype=np.int64))
+        end = offset + count * np.dtype(dtype).itemsize
+        if end > len(body):
+            raise _binary_error(f"{name}: {shape} {meta['dtype']} runs past the end of the "
+                                "body")
+        arrays[name] = np.frombuffer(body, dtype=dtype, count=count,
+                                     offset=offset).reshape(shape)
+        offset = _padded(end)
+    return header, arrays
+
+
+def _binary_array(name: str, array: np.ndarray, spec: ArraySpec
+                  ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
+    """A binary array checked like a JSON one (shape, integer dtype for indices, range)."""
+    shape = f"(n, {spec.cols})" if spec.cols else "(n,)"
+    if array.ndim != (2 if spec.cols else 1) or (spec.cols and array.shape[1] != spec.cols):
+        return None, [_error((name,), f"expected shape {shape}, got {list(array.shape)}",
+                             "shape")]
+    if len(array) < spec.min_rows:
+        return None, [_error((name,), f"List should have at least {spec.min_rows} item, "
+                             "not 0", "too_short")]
+    if spec.integer and array.dtype.kind not in "iu":
+        return None, [_error((name,), f"expected an integer dtype, got {array.dtype.str}",
+                             "dtype")]
+    values, errors = _numbers(name, array.ravel(), spec)
+    return (None if values is None else values.reshape(array.shape)), errors
+
+
+def decode_binary(specs: ArraySpecs, params_model: type[BaseModel], body: bytes
+                  ) -> tuple[dict[str, np.ndarray], BaseModel]:
+    """(arrays, params) of a binary body; the same 422 errors as :func:`decode_json`."""
+    header, raw = parse_binary(body)
+    return _decode(specs, params_model, raw, header, _binary_array)
+
+
+# ------------------------------------------------------------------------------ requests
+
+
+class BodySpec(Protocol):
+    """What decoding needs of an operation (:class:`service.operations.OperationSpec`)."""
+
+    @property
+    def arrays(self) -> ArraySpecs: ...
+
+    @property
+    def params(self) -> type[BaseModel]: ...
+
+    @property
+    def source(self) -> str: ...
+
+
+def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> None:
+    """Raise a 413 ``mesh-too-large`` problem beyond the vertex or face limit."""
+    errors = []
+    if n_vertices > limits.max_vertices:
+        errors.append({"field": field, "index": None,
+                       "reason": f"{n_vertices} vertices exceed the limit of "
+                                 f"{limits.max_vertices}"})
+    if n_faces > limits.max_faces:
+        errors.append({"field": field, "index": None,
+                       "reason": f"{n_faces} faces exceed the limit of {limits.max_faces}"})
+    if errors:
+        raise ProblemError("mesh-too-large", errors[0]["reason"], errors=errors)
+
+
+def array_source(kind: str, arrays: Mapping[str, np.ndarray], limits: Limits
+                 ) -> MeshArrays | FormsArrays | MeshPair:
+    """The task source of decoded arrays (``kind``: ``mesh``, ``forms`` or ``pair``), after
+    the vertex and face limits (413)."""
+    faces = arrays["faces"]
+    if kind == "forms":
+        n_vertices, field = (int(faces.max()) + 1 if faces.size else 0), "faces"
+    elif kind == "pair":
+        n_vertices = max(len(arrays["vertices_a"]), len(arrays["vertices_b"]))
+        field = "vertices_a"
+    else:
+        n_vertices, field = len(arrays["vertices"]), "vertices"
+    check_limits(n_vertices, len(faces), limits, field)
+    return ARRAY_SOURCES[kind](**arrays)
+
+
+def decode_document(spec: BodySpec, doc: Any, limits: Limits, prefix: tuple[Any, ...] = ()
+                    ) -> tuple[MeshArrays | FormsArrays | MeshPair, dict[str, Any]]:
+    """(source, dumped params) of a parsed JSON body (a synchronous body or a job's
+    ``input``, whose errors point below ``prefix = ("input",)``)."""
+    arrays, params = decode_json(spec.arrays, spec.params, doc, prefix)
+    return array_source(spec.source, arrays, limits), params.model_dump()
+
+
+def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
+    """``request`` with its :class:`RawBody` source parsed and validated (in the worker)."""
+    raw = request.source
+    assert isinstance(raw, RawBody)
+    if raw.kind == "binary":
+        arrays, model = decode_binary(spec.arrays, spec.params, raw.body)
+        source, params = array_source(spec.source, arrays, request.limits), model.model_dump()
+    else:
+        source, params = decode_document(spec, parse_json(raw.body), request.limits)
+    return replace(request, source=source, params=params)

@@ -1,0 +1,314 @@
+"""Pydantic v2 models of what the API answers: results, job and session documents,
+problem documents, health. They produce the OpenAPI document's response schemas (the
+bodies themselves are encoded by the workers, :mod:`service.worker.output`); every model
+carries an example.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.api.schemas import (
+    EXAMPLE_FORMS,
+    EXAMPLE_MESH,
+    JobState,
+    Operation,
+    Tri,
+    Vec3,
+)
+
+
+class SessionInfo(BaseModel):
+    """A deformation session."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"id": "9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d", "n_vertices": 5, "n_faces": 4,
+         "handles": [0, 1, 2, 3, 4], "n_rotation_groups": 0, "expires_in": 600.0,
+         "setup_seconds": 0.004, "backend": "pardiso", "executor": "local",
+         "memory_bytes": 92274688, "solves": 0,
+         "links": {"self": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d",
+                   "solve": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d/solve",
+                   "ws": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d/ws"}}]})
+
+    id: str
+    n_vertices: int
+    n_faces: int
+    handles: list[int] = Field(description="Handle vertices, in the order of "
+                                           "`handle_positions`.")
+    n_rotation_groups: int
+    expires_in: float = Field(description="Seconds until the session expires unless it "
+                                          "solves again.")
+    setup_seconds: float = Field(description="Time to assemble and factorize.")
+    backend: str = Field(description="Sparse factorization backend.")
+    executor: Literal["local", "dask"] = Field(description="Where the session lives.")
+    memory_bytes: int = Field(description="Memory the session holds (counts towards "
+                                          "FFS_MAX_SESSION_MEMORY).")
+    solves: int
+    links: dict[str, str]
+
+
+class SessionVertices(BaseModel):
+    """Result of a session solve in JSON: the deformed vertices in input order."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"vertices": EXAMPLE_MESH["vertices"]}]})
+
+    vertices: list[Vec3]
+
+
+# --------------------------------------------------------------------------- responses
+
+
+class FormsResponse(BaseModel):
+    """Result of ``POST /v1/forms``; a valid body for /v1/integrability and /v1/reconstruct."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [EXAMPLE_FORMS]})
+
+    faces: list[Tri]
+    edges: list[Annotated[list[int], Field(min_length=2, max_length=2)]]
+    lengths: list[float]
+    angles: list[float]
+
+
+class HolonomyLoop(BaseModel):
+    """One homology generator of the global integrability check."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"kind": "rotation", "component": 0, "edge": [3, 7], "faces": [4, 9], "edge_index": 12,
+         "angle": 0.0, "translation": [0.0, 0.0, 0.0], "magnitude": 0.0, "passes": True}]})
+
+    kind: Literal["rotation", "translation"]
+    component: int
+    edge: list[int] = Field(description="[i, j], the edge that closes the loop.")
+    faces: list[int]
+    edge_index: int = Field(description="Row of that edge in the sorted edge list.")
+    angle: float
+    translation: list[float]
+    magnitude: float
+    passes: bool
+
+
+class ComponentSummary(BaseModel):
+    """Topology of one connected component."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"component": 0, "vertices": 5, "edges": 8, "faces": 4, "boundary_loops": 1,
+         "euler_characteristic": 1, "genus": 0, "closed": False}]})
+
+    component: int
+    vertices: int
+    edges: int
+    faces: int
+    boundary_loops: int
+    euler_characteristic: int
+    genus: int
+    closed: bool
+
+
+class Topology(BaseModel):
+    """Components, boundary loops and genus of the mesh."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"n_components": 1, "euler_characteristic": 1, "genus": 0,
+         "boundary_loops": [[0, 1, 2, 3]], "isolated_vertices": [],
+         "components": ComponentSummary.model_config["json_schema_extra"]["examples"]}]})
+
+    n_components: int
+    euler_characteristic: int
+    genus: int
+    boundary_loops: list[list[int]]
+    isolated_vertices: list[int]
+    components: list[ComponentSummary]
+
+
+class GlobalHolonomy(BaseModel):
+    """Holonomy along the homology generators (non-empty for genus > 0 or several holes)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"rotation": [],
+                                                               "translation": []}]})
+
+    rotation: list[HolonomyLoop]
+    translation: list[HolonomyLoop]
+
+
+class IntegrabilityResponse(BaseModel):
+    """The integrability report."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "integrable": True, "local_integrable": True, "global_integrable": True,
+        "max_defect": 5.2e-16, "tolerance": 1e-8,
+        "vertex_defect": [0.0, 0.0, 0.0, 0.0, 5.2e-16],
+        "gauss_defect": [0.0, 0.0, 0.0, 0.0, 3.7e-16],
+        "codazzi_defect": [0.0, 0.0, 0.0, 0.0, 3.8e-16], "failing_vertices": [],
+        "worst_vertices": [4], "triangle_violations": [],
+        "topology": Topology.model_config["json_schema_extra"]["examples"][0],
+        "global_holonomy": {"rotation": [], "translation": []}}]})
+
+    integrable: bool
+    local_integrable: bool
+    global_integrable: bool
+    max_defect: float
+    tolerance: float
+    vertex_defect: list[float]
+    gauss_defect: list[float]
+    codazzi_defect: list[float]
+    failing_vertices: list[int]
+    worst_vertices: list[int]
+    triangle_violations: list[int]
+    topology: Topology
+    global_holonomy: GlobalHolonomy
+
+
+_REPORT_EXAMPLE = {"integrability": {"integrable": True, "max_defect": 5.2e-16,
+                                     "worst_vertices": [{"vertex": 4, "defect": 5.2e-16}],
+                                     "rotation_holonomy": [], "translation_holonomy": []},
+                   "backend": "pardiso", "timings": {"validate": 0.002, "assemble": 0.008,
+                                                     "factorize": 0.02, "solve": 0.001}}
+
+
+class MeshResponse(BaseModel):
+    """A mesh result (reconstruct, deform): vertices in input order, faces, and a report.
+
+    With ``?color=...`` the JSON also carries ``colors`` (n, 4) linear RGBA.
+    """
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {**EXAMPLE_MESH, "report": _REPORT_EXAMPLE}]})
+
+    vertices: list[Vec3]
+    faces: list[Tri]
+    report: dict[str, Any]
+    colors: list[Annotated[list[float], Field(min_length=4, max_length=4)]] | None = None
+
+
+class ParameterizeResponse(BaseModel):
+    """Planar coordinates per vertex, faces whose orientation flipped, and a report."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"uv": [[0.0, 0.0], [1.058, 0.0], [1.049, 1.04], [0.009, 1.04], [0.529, 0.543]],
+         "flipped_faces": [], "report": {"flipped_count": 0, "backend": "pardiso"}}]})
+
+    uv: list[Annotated[list[float], Field(min_length=2, max_length=2)]]
+    flipped_faces: list[int]
+    report: dict[str, Any]
+
+
+class InterpolateResponse(BaseModel):
+    """Vertices per t: (n, 3) for a single t, (k, n, 3) for a list of k values."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"t": 0.5, **EXAMPLE_MESH}]})
+
+    t: float | list[float]
+    vertices: list[Vec3] | list[list[Vec3]]
+    faces: list[Tri]
+    refinement: dict[str, Any] | list[dict[str, Any]] | None = Field(
+        None, description="Whether and how each blend was refined (nearest surface to the "
+        "blended forms): one report for a single t, a list for a list of t.")
+
+
+class ProblemItem(BaseModel):
+    """One machine-readable pointer to what is wrong."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [
+        {"field": "faces", "index": 17, "reason": "index 9001 out of range [0, 100)"}]})
+
+    field: str | None = None
+    index: int | None = None
+    reason: str
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem document (``application/problem+json``)."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [
+        {"type": "/problems/index-out-of-range", "title": "Index out of range",
+         "status": 422, "detail": "faces[17]: index 9001 out of range [0, 100)",
+         "instance": "/v1/forms", "kind": "index-out-of-range",
+         "errors": [{"field": "faces", "index": 17,
+                     "reason": "index 9001 out of range [0, 100)", "value": 9001}]}]})
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    instance: str | None = None
+    kind: str
+    errors: list[ProblemItem] = Field(default_factory=list)
+
+
+class JobProgress(BaseModel):
+    """Progress of a job: the current stage, the fraction done of each stage and overall."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"stage": "factorize", "fraction": 0.5,
+         "stages": {"validate": 1.0, "assemble": 1.0, "factorize": 0.0, "solve": 0.0,
+                    "refine": 0.0, "encode": 0.0}}]})
+
+    stage: str | None
+    fraction: float
+    stages: dict[str, float]
+
+
+class JobStatus(BaseModel):
+    """State of an asynchronous job."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"id": "6f1c2b0e9a7d4c55b1f0e2d3c4b5a697", "operation": "reconstruct",
+         "status": "running", "progress": JobProgress.model_config[
+             "json_schema_extra"]["examples"][0],
+         "timings": {"queued": 0.001, "validate": 0.01, "assemble": 0.05},
+         "created_at": "2025-01-01T12:00:00.000Z", "started_at": "2025-01-01T12:00:00.001Z",
+         "finished_at": None, "expires_at": None, "error": None,
+         "links": {"self": "/v1/jobs/6f1c2b0e9a7d4c55b1f0e2d3c4b5a697",
+                   "result": "/v1/jobs/6f1c2b0e9a7d4c55b1f0e2d3c4b5a697/result"}}]})
+
+    id: str
+    operation: Operation
+    status: JobState
+    progress: JobProgress
+    timings: dict[str, float]
+    created_at: str
+    started_at: str | None
+    finished_at: str | None
+    expires_at: str | None
+    error: Problem | None
+    links: dict[str, str]
+
+
+class Health(BaseModel):
+    """Liveness."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"status": "ok"}]})
+
+    status: str
+
+
+class Readiness(BaseModel):
+    """Readiness: the worker pool is up."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"status": "ready", "workers": 2, "workers_ready": 2, "busy": 0, "queue_depth": 0}]})
+
+    status: Literal["ready", "starting", "unavailable"]
+    workers: int
+    workers_ready: int
+    busy: int
+    queue_depth: int
+
+
+class ProblemKind(BaseModel):
+    """Description of one problem type."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"type": "/problems/queue-full", "kind": "queue-full", "status": 503,
+         "title": "Server busy",
+         "description": "The work queue is full; retry after Retry-After seconds."}]})
+
+    type: str
+    kind: str
+    status: int
+    title: str
+    description: str

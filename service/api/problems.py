@@ -1,0 +1,202 @@
+"""Problems: the failures a client caused or must know about, with their kinds.
+
+A :class:`ProblemError` carries a problem ``kind`` (a key of :data:`PROBLEM_KINDS`, which
+gives its status and title), a ``detail`` and ``errors`` pointers naming the offending
+elements. Workers raise it, backends' failures are converted to it, and the HTTP edge
+(:mod:`service.http.problems`) renders it as an RFC 9457 document::
+
+    {"type": "/problems/index-out-of-range", "title": "Index out of range", "status": 422,
+     "detail": "faces[17]: index 9001 out of range [0, 100)", "instance": "/v1/forms",
+     "kind": "index-out-of-range",
+     "errors": [{"field": "faces", "index": 17, "reason": "index 9001 out of range [0, 100)"}]}
+
+A failure leaves a worker process as a plain dict (:func:`service.worker.runtime.describe_error`,
+"a failure"); :func:`from_failure` turns it back into a :class:`ProblemError`. Each
+:class:`solver.errors.SolverInputError` kind maps to 422, schema violations to 422
+(``validation-error``), malformed bodies to 400, unsupported media types to 415 and oversize
+input to 413.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+from solver.errors import ERROR_KINDS, SolverInputError
+
+PROBLEM_BASE = "/problems/"
+
+PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
+    # Service-level kinds: kind -> (status, title, description).
+    "validation-error": (422, "Request does not match the schema",
+                         "A field is missing, has the wrong type, is not finite (NaN or "
+                         "infinity) or is out of its allowed range; `errors` names each one."),
+    "malformed-json": (400, "Malformed JSON", "The body is not valid JSON."),
+    "malformed-request": (400, "Malformed request",
+                          "The multipart body or a form field could not be read."),
+    "unreadable-file": (400, "Unreadable mesh file",
+                        "The uploaded mesh file could not be parsed."),
+    "unsupported-media-type": (415, "Unsupported media type",
+                               "Send application/json or multipart/form-data."),
+    "unsupported-file-type": (415, "Unsupported mesh file type",
+                              "Upload an OBJ, PLY, OFF, STL or GLB file."),
+    "payload-too-large": (413, "Request body too large",
+                          "The body exceeds FFS_MAX_BODY_BYTES."),
+    "body-timeout": (408, "Request body too slow",
+                     "The body did not arrive within FFS_BODY_TIMEOUT seconds; the connection "
+                     "is closed."),
+    "mesh-too-large": (413, "Mesh too large",
+                       "The mesh exceeds FFS_MAX_VERTICES or FFS_MAX_FACES."),
+    "not-acceptable": (406, "Not acceptable",
+                       "None of the media types in Accept can be produced for this result."),
+    "unsupported-color": (422, "Colour field not available",
+                          "The requested vertex colour field is not produced by this operation."),
+    "invalid-option": (422, "Invalid option", "An option has a value the solver cannot use."),
+    "not-integrable": (422, "Forms are not integrable",
+                       "options.require_integrable is set and the integrability check failed; "
+                       "`errors` names the worst vertices."),
+    "singular-system": (422, "Singular linear system",
+                        "The constraints leave the linear system singular or ill-posed."),
+    "not-found": (404, "Not found", "No such resource (or the job expired)."),
+    "method-not-allowed": (405, "Method not allowed", "The path does not accept this method."),
+    "job-not-finished": (409, "Job not finished", "The job is still queued or running."),
+    "job-failed": (409, "Job failed", "The job failed; `error` holds its problem document."),
+    "job-cancelled": (409, "Job cancelled", "The job was cancelled; it has no result."),
+    "color-not-computed": (409, "Colour not computed",
+                           "Submit the job with that `color` to fetch its result coloured."),
+    "queue-full": (503, "Server busy", "The work queue is full; retry after Retry-After seconds."),
+    "too-many-jobs": (503, "Too many jobs", "The job store is full; retry later."),
+    "unavailable": (503, "Service unavailable", "The worker pool is not running."),
+    "too-many-sessions": (429, "Too many sessions",
+                          "FFS_MAX_SESSIONS deformation sessions are open; delete one or retry "
+                          "after Retry-After seconds."),
+    "session-memory": (503, "Session memory exhausted",
+                       "The open sessions and this one would exceed FFS_MAX_SESSION_MEMORY."),
+    "session-gone": (410, "Session gone",
+                     "The session expired (FFS_SESSION_TTL) or the worker holding it died; "
+                     "`reason` says which. Create a new session."),
+    "timeout": (504, "Timed out", "The result was not ready within FFS_REQUEST_TIMEOUT."),
+    "worker-died": (500, "Worker died", "The worker process running the request exited."),
+    "internal-error": (500, "Internal error", "An unexpected error; it has been logged."),
+    "http-error": (400, "HTTP error", "A generic HTTP error."),
+}
+for _cls in ERROR_KINDS:
+    PROBLEM_KINDS[_cls.kind] = (422, _cls.kind.replace("-", " ").capitalize(),
+                                (_cls.__doc__ or "").strip().splitlines()[0])
+PROBLEM_KINDS[SolverInputError.kind] = (422, "Invalid input", "Invalid input data.")
+
+
+def problem_type(kind: str) -> str:
+    """The ``type`` URI of a problem kind."""
+    return PROBLEM_BASE + kind
+
+
+class ProblemError(Exception):
+    """An error that the app's handler turns into a problem document.
+
+    Attributes:
+        kind: the problem kind (a key of :data:`PROBLEM_KINDS`).
+        status: HTTP status (defaults to the kind's).
+        detail: human-readable explanation of this occurrence.
+        errors: machine-readable pointers ``[{"field", "index", "reason", ...}]``.
+        headers: extra response headers (e.g. Retry-After).
+        extensions: extra top-level members.
+    """
+
+    def __init__(self, kind: str, detail: str, *, status: int | None = None,
+                 errors: Sequence[Mapping[str, Any]] | None = None,
+                 headers: Mapping[str, str] | None = None, **extensions: Any) -> None:
+        super().__init__(detail)
+        self.kind = kind
+        self.status = status or PROBLEM_KINDS.get(kind, (500,))[0]
+        self.detail = detail
+        self.errors = [dict(e) for e in (errors or [])]
+        self.headers = dict(headers or {})
+        self.extensions = extensions
+
+    def to_dict(self, instance: str | None = None) -> dict[str, Any]:
+        """The problem document."""
+        title = PROBLEM_KINDS.get(self.kind, (0, "Error"))[1]
+        doc: dict[str, Any] = {"type": problem_type(self.kind), "title": title,
+                               "status": self.status, "detail": self.detail, "kind": self.kind}
+        if instance:
+            doc["instance"] = instance
+        doc["errors"] = self.errors
+        doc.update(self.extensions)
+        return doc
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> ProblemError:
+        """Rebuild from a document made by :meth:`to_dict` (e.g. a stored job error)."""
+        known = {"type", "title", "status", "detail", "kind", "instance", "errors"}
+        return cls(str(doc.get("kind", "internal-error")), str(doc.get("detail", "")),
+                   status=int(doc.get("status", 500)), errors=doc.get("errors"),
+                   **{k: v for k, v in doc.items() if k not in known})
+
+
+# ----------------------------------------------------------------------------- conversions
+
+
+def from_solver_error(error: Mapping[str, Any], message: str | None = None) -> ProblemError:
+    """Problem for a serialized :class:`SolverInputError` (``to_dict()``): always 422."""
+    item = {k: v for k, v in error.items() if k != "kind"}
+    kind = str(error.get("kind") or SolverInputError.kind)
+    if kind not in PROBLEM_KINDS:
+        kind = SolverInputError.kind
+    return ProblemError(kind, message or str(error.get("reason", "invalid input")), status=422,
+                        errors=[item])
+
+
+def pointer_from_loc(loc: Iterable[Any]) -> dict[str, Any]:
+    """Map a pydantic error location to ``{"field", "index", "pointer"}``.
+
+    ``("constraints", "positions", 2, "vertex")`` -> field ``constraints.positions.vertex``,
+    index 2 (the first list index), pointer ``/constraints/positions/2/vertex``. Union tags
+    such as ``list[float]`` are dropped.
+    """
+    parts = [p for p in loc if not (isinstance(p, str) and ("[" in p or p in _UNION_TAGS))]
+    names = [str(p) for p in parts if isinstance(p, str)]
+    indices = [p for p in parts if isinstance(p, int)]
+    return {"field": ".".join(names) or None, "index": indices[0] if indices else None,
+            "pointer": "/" + "/".join(str(p) for p in parts) if parts else ""}
+
+
+_UNION_TAGS = {"float", "int", "str", "bool", "function-after", "function-before"}
+
+
+def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence[Any] = (),
+                           limit: int = 50) -> ProblemError:
+    """422 ``validation-error`` listing pydantic errors as pointers (at most ``limit``)."""
+    items = []
+    for err in errors[:limit]:
+        loc = (*prefix, *err.get("loc", ()))
+        item = pointer_from_loc(loc)
+        item["reason"] = str(err.get("msg", "invalid"))
+        item["type"] = str(err.get("type", ""))
+        items.append(item)
+    first = items[0] if items else {"field": None, "reason": "invalid"}
+    where = first["field"] or "body"
+    if first.get("index") is not None:
+        where += f"[{first['index']}]"
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return ProblemError("validation-error", f"{where}: {first['reason']}{more}", status=422,
+                        errors=items)
+
+
+def failure(kind: str, detail: str, **extensions: Any) -> dict[str, Any]:
+    """A failure dict of problem ``kind`` (how backends record e.g. a job's timeout)."""
+    return {"category": "problem", "kind": kind, "detail": detail, "extensions": extensions}
+
+
+def from_failure(error: Mapping[str, Any]) -> ProblemError:
+    """The problem of a failure dict (:func:`service.worker.runtime.describe_error`, or
+    :func:`failure`). An internal failure (a bug) becomes a 500 that shows nothing of it."""
+    category = error.get("category")
+    if category == "input":
+        return from_solver_error(error["error"], error.get("message"))
+    if category == "problem":
+        return ProblemError(str(error["kind"]), str(error["detail"]),
+                            status=int(error.get("status") or 0) or None,
+                            errors=error.get("errors"), **dict(error.get("extensions") or {}))
+    return ProblemError("internal-error", "the solver failed unexpectedly; the error has been "
+                        "logged", status=500)

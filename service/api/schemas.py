@@ -1,0 +1,436 @@
+"""Pydantic v2 models of the API's request bodies (the responses: :mod:`service.api.documents`).
+
+Request models reject NaN and infinities at the schema (``allow_inf_nan=False``) and unknown
+fields (``extra="forbid"``). Large arrays are typed as lists of fixed-size tuples, which
+pydantic-core validates in Rust; routes turn them into numpy arrays once. Every model carries
+an example (``json_schema_extra``) that the OpenAPI document and the docs page show; the
+request examples are valid requests (a test posts each one).
+
+Request models for the multipart upload form are split into a *mesh* part (taken from the
+uploaded file) and a *params* part (the other form fields); see :data:`PARAMS_MODELS`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from solver.linalg import BACKENDS
+
+# ---------------------------------------------------------------------------- examples
+
+_V = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.5, 0.5, 0.5]]
+_F = [[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]]
+_E = [[0, 1], [0, 3], [0, 4], [1, 2], [1, 4], [2, 3], [2, 4], [3, 4]]
+_S = 0.8660254037844386  # slanted edge length of the example pyramid
+_A = 1.0471975511965979  # its dihedral angle (pi / 3)
+_L = [1.0, 1.0, _S, 1.0, _S, 1.0, _S, _S]
+_ANG = [0.0, 0.0, _A, 0.0, _A, 0.0, _A, _A]
+_V_UP = [*_V[:4], [0.5, 0.5, 0.8]]
+EXAMPLE_MESH: dict[str, Any] = {"vertices": _V, "faces": _F}
+EXAMPLE_FORMS: dict[str, Any] = {"faces": _F, "edges": _E, "lengths": _L, "angles": _ANG}
+_IDENTITY = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+Operation = Literal["reconstruct", "deform", "parameterize", "integrability", "forms",
+                    "interpolate", "mesh"]
+ColorField = Literal["defect", "distortion"]
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+
+MAX_MAGNITUDE = 1e60
+"""Largest accepted |coordinate| or length (Heron's formula takes 4th powers of lengths)."""
+MAX_INDEX = 2**31 - 1
+
+MAX_WEIGHT = 1e12
+"""Largest accepted energy weight (frame, orthonormalization, soft constraint)."""
+
+Real = Annotated[float, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
+Weight = Annotated[float, Field(gt=0, le=MAX_WEIGHT)]
+Index = Annotated[int, Field(ge=0, le=MAX_INDEX)]
+# Fixed-length rows are lists with a length (not tuples): the same rule, and a JSON schema
+# (`items` + `minItems`/`maxItems`) that every OpenAPI tool reads (`prefixItems` is 3.1-only).
+Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3)]
+Tri = Annotated[list[Index], Field(min_length=3, max_length=3)]
+Pair = Annotated[list[Index], Field(min_length=2, max_length=2)]
+Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
+SolverName = Literal["auto", *sorted(BACKENDS)]  # type: ignore[valid-type]
+Weighting = Literal["uniform", "cotan", "cotan_clamped"]
+
+
+REFINE_DESCRIPTION = (
+    "Nearest-surface refinement (Levenberg-Marquardt on edge lengths and dihedral angles, "
+    "started from the linear answer): `null` (default) refines when the linear answer does "
+    "not reproduce the forms; `false` returns the linear answer of Eq. 5 (fast; it shrinks "
+    "non-integrable forms); `true` refines whenever the answer is not exact. "
+    "`report.refinement` says whether and how it refined.")
+
+
+class ApiModel(BaseModel):
+    """Base of the request models: finite floats only, unknown fields rejected."""
+
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
+
+
+def _example(example: dict[str, Any], model: type[BaseModel] = ApiModel) -> ConfigDict:
+    config = ConfigDict(**model.model_config)
+    config["json_schema_extra"] = {"examples": [example]}
+    return config
+
+
+# ------------------------------------------------------------------------ mesh sources
+
+
+class MeshPart(ApiModel):
+    """A triangle mesh: vertex positions and counter-clockwise faces (0-based)."""
+
+    model_config = _example(EXAMPLE_MESH)
+
+    vertices: list[Vec3] = Field(min_length=1, fail_fast=True,
+                                description="(n, 3) vertex positions.")
+    faces: list[Tri] = Field(min_length=1, fail_fast=True,
+                             description="(m, 3) vertex indices, 0-based, "
+                             "counter-clockwise seen from outside.")
+
+
+class FormsPart(ApiModel):
+    """Discrete fundamental forms: the output of ``POST /v1/forms``."""
+
+    model_config = _example(EXAMPLE_FORMS)
+
+    faces: list[Tri] = Field(min_length=1, fail_fast=True,
+                             description="(m, 3) vertex indices.")
+    edges: list[Pair] = Field(
+        fail_fast=True,
+        description="(E, 2) the faces' edges [i, j], i < j, sorted lexicographically.")
+    lengths: list[Real] = Field(fail_fast=True,
+                                description="(E,) edge lengths (first fundamental form).")
+    angles: list[Real] = Field(
+        fail_fast=True,
+        description="(E,) signed dihedral angles in (-pi, pi], positive where convex, 0 on "
+                    "boundary edges (second fundamental form).")
+
+
+# ------------------------------------------------------------------------- parameters
+
+
+class FormsParams(ApiModel):
+    """``POST /v1/forms`` takes no parameters besides the mesh."""
+
+    model_config = _example({})
+
+
+class MeshParams(ApiModel):
+    """``POST /v1/mesh`` takes no parameters besides the mesh."""
+
+    model_config = _example({})
+
+
+class IntegrabilityParams(ApiModel):
+    """Parameters of ``POST /v1/integrability``."""
+
+    model_config = _example({"tolerance": 1e-8})
+
+    tolerance: float = Field(1e-8, gt=0, description="Tolerance on vertex defects and global "
+                             "holonomy (radians; translation relative to the mean edge).")
+
+
+class PositionConstraint(ApiModel):
+    """Pin one vertex to a position; ``weight`` omitted = hard constraint."""
+
+    model_config = _example({"vertex": 0, "position": [0.0, 0.0, 0.0]})
+
+    vertex: Index = Field(description="Vertex index.")
+    position: Vec3 = Field(description="Target position.")
+    weight: Weight | None = Field(None, description="Soft weight; omit for hard.")
+
+
+class FrameConstraint(ApiModel):
+    """Fix the frame of one face (a rotation: columns edge direction, in-plane normal,
+    face normal); ``weight`` omitted = hard."""
+
+    model_config = _example({"face": 0, "frame": _IDENTITY})
+
+    face: Index = Field(description="Face index.")
+    frame: Mat3 = Field(description="3x3 rotation matrix (rows).")
+    weight: Weight | None = Field(None, description="Soft weight; omit for hard.")
+
+
+class Constraints(ApiModel):
+    """Position and frame constraints of a reconstruction."""
+
+    model_config = _example({"positions": [{"vertex": 0, "position": [0.0, 0.0, 0.0]}],
+                             "frames": [{"face": 0, "frame": _IDENTITY}]})
+
+    positions: list[PositionConstraint] = Field(default_factory=list, fail_fast=True)
+    frames: list[FrameConstraint] = Field(default_factory=list, fail_fast=True)
+
+
+class ReconstructOptions(ApiModel):
+    """Options of ``POST /v1/reconstruct``."""
+
+    model_config = _example({"frame_weight": 1000.0, "orthonormalize": False,
+                             "solver": "auto", "require_integrable": False})
+
+    frame_weight: Weight = Field(1000.0, description="Weight w of the frame term.")
+    orthonormalize: bool = Field(False, description="Second solve with frames projected "
+                                 "to rotations (Sec. 4).")
+    orthonormal_weight: Weight = Field(1000.0,
+                                       description="Weight of that second solve's targets.")
+    weighting: Weighting = Field("uniform", description="Edge weighting of the energy.")
+    solver: SolverName | None = Field(None, description="Sparse backend; default "
+                                      "FFS_SOLVER_BACKEND.")
+    require_integrable: bool = Field(
+        False, description="Fail with 422 naming the worst vertices instead of returning a "
+                           "least-squares answer when the forms are not integrable.")
+    tolerance: float = Field(1e-8, gt=0, description="Integrability tolerance.")
+    exact_shortcut: bool = Field(
+        True, description="Without constraints, integrate the forms along spanning trees "
+        "first and skip the factorization when that immersion already has zero energy "
+        "(integrable forms; report.solve_path = tree-integration).")
+    refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
+
+
+class ReconstructParams(ApiModel):
+    """Parameters of ``POST /v1/reconstruct`` besides the forms (or mesh file)."""
+
+    model_config = _example({"constraints": {"positions": [{"vertex": 0,
+                                                             "position": [0.0, 0.0, 0.0]}]},
+                             "options": {"orthonormalize": True}})
+
+    constraints: Constraints | None = None
+    options: ReconstructOptions = Field(default_factory=ReconstructOptions)
+
+
+class HandleTarget(ApiModel):
+    """Move vertex ``vertex`` to ``position``."""
+
+    model_config = _example({"vertex": 4, "position": [0.5, 0.5, 0.8]})
+
+    vertex: Index
+    position: Vec3
+
+
+class RotationHandle(ApiModel):
+    """Rotate the frames of a group of faces by ``rotation``."""
+
+    model_config = _example({"faces": [0, 1], "rotation": _IDENTITY})
+
+    faces: list[Index] = Field(min_length=1, fail_fast=True)
+    rotation: Mat3
+
+
+class DeformOptions(ApiModel):
+    """Options of ``POST /v1/deform``."""
+
+    model_config = _example({"frame_weight": 1000.0, "orthonormalize": False,
+                             "solver": "auto"})
+
+    frame_weight: Weight = 1000.0
+    orthonormalize: bool = False
+    orthonormal_weight: Weight = 1000.0
+    weighting: Weighting = "uniform"
+    solver: SolverName | None = None
+    refine: bool | None = Field(
+        None, description=REFINE_DESCRIPTION + " In a session (`POST /v1/sessions`) `null` "
+        "means off: each refined drag costs several factorizations.")
+
+
+class DeformParams(ApiModel):
+    """Parameters of ``POST /v1/deform`` besides the mesh."""
+
+    model_config = _example({"handles": [{"vertex": 0, "position": [0.0, 0.0, 0.0]},
+                                         {"vertex": 4, "position": [0.5, 0.5, 0.8]}]})
+
+    handles: list[HandleTarget] = Field(min_length=1, fail_fast=True)
+    rotations: list[RotationHandle] | None = Field(None, fail_fast=True)
+    roi: list[Index] | None = Field(None, description="Vertices that may move (default all).",
+                                    fail_fast=True)
+    options: DeformOptions = Field(default_factory=DeformOptions)
+
+
+class ParameterizeOptions(ApiModel):
+    """Options of ``POST /v1/parameterize``."""
+
+    model_config = _example({"orthonormalize": True, "solver": "auto"})
+
+    orthonormalize: bool = True
+    orthonormal_weight: Weight = 1000.0
+    frame_weight: Weight = 1000.0
+    weighting: Weighting = "uniform"
+    solver: SolverName | None = None
+    refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
+
+
+class ParameterizeParams(ApiModel):
+    """Parameters of ``POST /v1/parameterize`` besides the mesh."""
+
+    model_config = _example({"options": {"orthonormalize": True}})
+
+    options: ParameterizeOptions = Field(default_factory=ParameterizeOptions)
+
+
+class InterpolateOptions(ApiModel):
+    """Options of ``POST /v1/interpolate``."""
+
+    model_config = _example({"frame_weight": 1000.0, "solver": "auto"})
+
+    frame_weight: Weight = 1000.0
+    weighting: Weighting = "uniform"
+    solver: SolverName | None = None
+    refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
+
+
+class InterpolateParams(ApiModel):
+    """Parameters of ``POST /v1/interpolate`` besides the two meshes."""
+
+    model_config = _example({"t": [0.0, 0.5, 1.0]})
+
+    t: Real | Annotated[list[Real], Field(fail_fast=True)] = Field(
+        description="Blend value(s); 0 gives A, 1 gives B.")
+    options: InterpolateOptions = Field(default_factory=InterpolateOptions)
+
+
+# ---------------------------------------------------------------------- request bodies
+
+
+class FormsRequest(MeshPart, FormsParams):
+    """Body of ``POST /v1/forms``."""
+
+    model_config = _example(EXAMPLE_MESH)
+
+
+class IntegrabilityRequest(FormsPart, IntegrabilityParams):
+    """Body of ``POST /v1/integrability``."""
+
+    model_config = _example({**EXAMPLE_FORMS, "tolerance": 1e-8})
+
+
+class ReconstructRequest(FormsPart, ReconstructParams):
+    """Body of ``POST /v1/reconstruct``: the forms, optional constraints and options."""
+
+    model_config = _example({**EXAMPLE_FORMS, "constraints": {
+        "positions": [{"vertex": 0, "position": [0.0, 0.0, 0.0]}],
+        "frames": [{"face": 0, "frame": [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0],
+                                         [0.0, 1.0, 0.0]]}]},
+        "options": {"frame_weight": 1000.0, "orthonormalize": False, "solver": "auto",
+                    "require_integrable": True}})
+
+
+class DeformRequest(MeshPart, DeformParams):
+    """Body of ``POST /v1/deform``."""
+
+    model_config = _example({**EXAMPLE_MESH, "handles": [
+        {"vertex": 0, "position": [0.0, 0.0, 0.0]}, {"vertex": 1, "position": [1.0, 0.0, 0.0]},
+        {"vertex": 2, "position": [1.0, 1.0, 0.0]}, {"vertex": 3, "position": [0.0, 1.0, 0.0]},
+        {"vertex": 4, "position": [0.5, 0.5, 0.8]}], "options": {"orthonormalize": False}})
+
+
+class ParameterizeRequest(MeshPart, ParameterizeParams):
+    """Body of ``POST /v1/parameterize`` (a mesh with boundary)."""
+
+    model_config = _example({**EXAMPLE_MESH, "options": {"orthonormalize": True}})
+
+
+class MeshRequest(MeshPart, MeshParams):
+    """Body of ``POST /v1/mesh`` (the JSON form is useful for GLB/glTF output)."""
+
+    model_config = _example(EXAMPLE_MESH)
+
+
+class InterpolateRequest(InterpolateParams):
+    """Body of ``POST /v1/interpolate``: two embeddings of the same faces and t."""
+
+    model_config = _example({"vertices_a": _V, "vertices_b": _V_UP, "faces": _F,
+                             "t": [0.0, 0.5, 1.0]})
+
+    vertices_a: list[Vec3] = Field(min_length=1, fail_fast=True)
+    vertices_b: list[Vec3] = Field(min_length=1, fail_fast=True)
+    faces: list[Tri] = Field(min_length=1, fail_fast=True)
+
+
+REQUEST_MODELS: dict[str, type[ApiModel]] = {
+    "forms": FormsRequest, "integrability": IntegrabilityRequest,
+    "reconstruct": ReconstructRequest, "deform": DeformRequest,
+    "parameterize": ParameterizeRequest, "interpolate": InterpolateRequest,
+    "mesh": MeshRequest,
+}
+PARAMS_MODELS: dict[str, type[ApiModel]] = {
+    "forms": FormsParams, "integrability": IntegrabilityParams,
+    "reconstruct": ReconstructParams, "deform": DeformParams,
+    "parameterize": ParameterizeParams, "interpolate": InterpolateParams,
+    "mesh": MeshParams,
+}
+"""The non-mesh fields of each operation: the other form fields of a multipart upload."""
+
+
+class JobRequest(BaseModel):
+    """Body of ``POST /v1/jobs``: an operation and its input (the operation's JSON body)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"operation": "reconstruct", "input": ReconstructRequest.model_config[
+            "json_schema_extra"]["examples"][0], "color": "defect"}]})
+
+    operation: Operation
+    input: dict[str, Any] = Field(description="The body the synchronous endpoint takes.")
+    color: ColorField | None = Field(
+        None, description="Precompute this vertex colour field so that "
+                          "GET /v1/jobs/{id}/result?color=... can add it.")
+
+
+# ---------------------------------------------------------------------------- sessions
+
+
+class SessionHandle(ApiModel):
+    """A handle vertex of a session; ``position`` is optional and unused at creation (each
+    solve brings the targets), so a ``/v1/deform`` body can be reused as is."""
+
+    model_config = _example({"vertex": 4, "position": [0.5, 0.5, 0.5]})
+
+    vertex: Index
+    position: Vec3 | None = None
+
+
+class SessionRotationHandle(ApiModel):
+    """A group of faces whose frames each solve rotates by one matrix (``rotation`` is
+    optional and unused at creation)."""
+
+    model_config = _example({"faces": [0, 1]})
+
+    faces: list[Index] = Field(min_length=1, fail_fast=True)
+    rotation: Mat3 | None = None
+
+
+class SessionParams(ApiModel):
+    """The fields of ``POST /v1/sessions`` besides the mesh."""
+
+    model_config = _example({"handles": [{"vertex": 0}, {"vertex": 4}]})
+
+    handles: list[SessionHandle] = Field(min_length=1, fail_fast=True)
+    rotations: list[SessionRotationHandle] | None = Field(None, fail_fast=True)
+    roi: list[Index] | None = Field(None, description="Vertices that may move (default all).",
+                                    fail_fast=True)
+    options: DeformOptions = Field(default_factory=DeformOptions)
+
+
+class SessionRequest(MeshPart, SessionParams):
+    """Body of ``POST /v1/sessions``: the rest mesh, the handles (vertex indices and,
+    optionally, face groups with a rotation handle), an optional region of interest and
+    the deformation options. The system is factorized once here."""
+
+    model_config = _example({**EXAMPLE_MESH, "handles": [
+        {"vertex": 0}, {"vertex": 1}, {"vertex": 2}, {"vertex": 3},
+        {"vertex": 4, "position": [0.5, 0.5, 0.5]}]})
+
+
+class SessionDrag(ApiModel):
+    """Body of ``POST /v1/sessions/{id}/solve`` (and a JSON WebSocket message): one target
+    per handle, in the order of the session's ``handles``, and one rotation per rotation
+    group (default: identity). ``seq`` (WebSocket only) is echoed in the reply header."""
+
+    model_config = _example({"handle_positions": [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0],
+                                                  [1.0, 1.0, 0.0], [0.0, 1.0, 0.0],
+                                                  [0.5, 0.5, 0.8]]})
+
+    handle_positions: list[Vec3] = Field(min_length=1, fail_fast=True)
+    handle_rotations: list[Mat3] | None = Field(None, fail_fast=True)
+    seq: int | None = Field(None, ge=0, le=2**32 - 1)

@@ -1,0 +1,168 @@
+"""What crosses the process boundary: a :class:`TaskRequest` in, a :class:`TaskResult` out.
+
+The HTTP edge builds one immutable request per operation call (arrays already numpy, or the
+raw body when the worker is to parse it); a backend carries it to a worker process (a local
+pool worker, or a Dask worker) unchanged; :func:`service.worker.runtime.run` answers with a
+result or a failure dict. Everything here is a frozen dataclass of numpy arrays, bytes and
+JSON-able values, importable at top level, so it pickles under ``spawn``/``forkserver`` and
+through Dask.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
+
+import numpy as np
+
+Format = Literal["json", "glb", "gltf"]
+
+
+@dataclass(frozen=True)
+class MeshArrays:
+    """A mesh sent as arrays: ``vertices`` (n, 3) float64, ``faces`` (m, 3) int64."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+@dataclass(frozen=True)
+class FormsArrays:
+    """Fundamental forms sent as arrays: ``faces`` (m, 3), ``edges`` (E, 2) int64,
+    ``lengths`` and ``angles`` (E,) float64 aligned with ``edges``."""
+
+    faces: np.ndarray
+    edges: np.ndarray
+    lengths: np.ndarray
+    angles: np.ndarray
+
+
+@dataclass(frozen=True)
+class MeshPair:
+    """Two embeddings of one connectivity (``interpolate``)."""
+
+    vertices_a: np.ndarray
+    vertices_b: np.ndarray
+    faces: np.ndarray
+
+
+@dataclass(frozen=True)
+class MeshFile:
+    """An uploaded mesh file: its bytes and the name (or media type) that says its format."""
+
+    data: bytes
+    filename: str
+    field: str = "file"
+
+
+@dataclass(frozen=True)
+class RawBody:
+    """A JSON or binary (``application/vnd.ffs.arrays``) body the worker parses and
+    validates itself, so that the main process never holds the parsed arrays."""
+
+    kind: Literal["json", "binary"]
+    body: bytes
+
+
+MeshFiles = tuple[MeshFile, MeshFile]
+"""Two uploaded mesh files (``interpolate``: ``file_a``, ``file_b``)."""
+Source = MeshArrays | FormsArrays | MeshPair | MeshFile | MeshFiles | RawBody | None
+ARRAY_SOURCES: dict[str, type] = {"mesh": MeshArrays, "forms": FormsArrays, "pair": MeshPair}
+"""The array source of each operation's ``source`` kind (:mod:`service.operations`)."""
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Size limits of one request (``FFS_MAX_VERTICES``, ``FFS_MAX_FACES``)."""
+
+    max_vertices: int
+    max_faces: int
+
+
+@dataclass(frozen=True)
+class Output:
+    """How the result is wanted: ``format``; ``color`` (a vertex colour field added to the
+    body); ``compute`` (colour fields to keep for later, jobs); ``keep`` (keep the mesh
+    arrays next to the body, so that a job's result can be re-encoded)."""
+
+    format: Format = "json"
+    color: str | None = None
+    compute: tuple[str, ...] = ()
+    keep: bool = False
+
+    def wants(self, field_name: str) -> bool:
+        """Whether the colour field ``field_name`` must be computed."""
+        return self.color == field_name or field_name in self.compute
+
+
+@dataclass(frozen=True)
+class TaskRequest:
+    """One call of an operation.
+
+    Attributes:
+        operation: the API operation (a key of :data:`service.operations.OPERATIONS`).
+        source: the input mesh, forms or files; a :class:`RawBody` until the worker parses
+            it; ``None`` for the test-only debug tasks.
+        params: the operation's params model, dumped (``{}`` until a raw body is parsed).
+        limits: the vertex and face limits.
+        backend: the default linear-solver backend (``FFS_SOLVER_BACKEND``), used when
+            ``options.solver`` is not given.
+        output: the wanted result.
+        task: the worker function to run when it is not the operation's own (test-only
+            ``debug.*`` tasks, which report the operation's stages).
+    """
+
+    operation: str
+    source: Source
+    params: dict[str, Any] = field(default_factory=dict)
+    limits: Limits = Limits(10**9, 10**9)
+    backend: str = "auto"
+    output: Output = Output()
+    task: str | None = None
+
+    @property
+    def task_name(self) -> str:
+        return self.task or self.operation
+
+    @property
+    def solver_backend(self) -> str:
+        """``options.solver`` if given, else the service's default backend."""
+        return (self.params.get("options") or {}).get("solver") or self.backend
+
+    def with_output(self, output: Output) -> TaskRequest:
+        return replace(self, output=output)
+
+
+@dataclass
+class TaskResult:
+    """A finished task: the response ``body`` in ``media_type``; with ``output.keep`` also
+    the ``mesh`` (vertices, faces) and the per-vertex ``colors`` for re-encoding; the
+    wall time of each stage in ``timings`` (seconds)."""
+
+    media_type: str
+    body: bytes
+    mesh: tuple[np.ndarray, np.ndarray] | None = None
+    colors: dict[str, np.ndarray] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """What a deformation session is built from (``POST /v1/sessions``).
+
+    Attributes:
+        vertices: (n, 3) float64 rest positions; ``faces`` (m, 3) int64.
+        handles: (h,) int64 handle vertices, in the order of every drag's targets.
+        rotations: one (k,) int64 face-index array per rotation group.
+        roi: (r,) int64 vertices that may move, or ``None`` (all).
+        options: the deformation options (``DeformOptions``, dumped).
+        backend: the default linear-solver backend, used when ``options.solver`` is unset.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    handles: np.ndarray
+    rotations: tuple[np.ndarray, ...] = ()
+    roi: np.ndarray | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+    backend: str = "auto"

@@ -1,0 +1,197 @@
+"""The backend contract: what the HTTP edge needs from a compute backend.
+
+A backend is three collaborators sharing one set of workers (:class:`Backend`):
+
+* an :class:`Executor` runs one :class:`~service.api.task.TaskRequest` in a worker and
+  resolves a future with its :class:`~service.api.task.TaskResult`;
+* a :class:`JobService` keeps asynchronous jobs (:class:`~service.backends.jobs.Job`);
+* a :class:`SessionBackend` keeps deformation sessions warm with one worker each.
+
+The local implementation lives in :mod:`service.backends.local`, the Dask one in
+:mod:`service.backends.dask`; :func:`service.backends.make_backend` picks one by
+``FFS_EXECUTOR``. Failures are the domain errors of :mod:`service.backends.errors`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from service.api.task import SessionSpec, TaskRequest, TaskResult
+from service.backends.jobs import Job
+
+ProgressCallback = Callable[[str, float], None]
+StartCallback = Callable[[], None]
+ResultCallback = Callable[[str, TaskResult], None]
+"""``on_result(operation, result)``: a job finished (the app counts it in its metrics)."""
+
+
+@dataclass
+class TaskHandle:
+    """A submitted task: its id and an asyncio future of its :class:`TaskResult`."""
+
+    id: str
+    future: asyncio.Future[TaskResult]
+
+
+class Executor(Protocol):
+    """Runs tasks in workers (local processes, or a Dask cluster)."""
+
+    restarts: int
+    """Workers replaced so far (crash, cancel, timeout)."""
+
+    async def start(self) -> None:
+        """Start the workers (called once from the app's lifespan)."""
+
+    async def shutdown(self) -> None:
+        """Stop the workers; pending tasks fail with ``ExecutorClosedError``."""
+
+    async def submit(self, request: TaskRequest, *, progress_cb: ProgressCallback | None = None,
+                     on_start: StartCallback | None = None,
+                     task_id: str | None = None) -> TaskHandle:
+        """Queue ``request``; ``QueueFullError`` at once when there is no room. The future
+        fails with ``TaskFailedError``, ``WorkerDiedError`` or ``TaskCancelledError``.
+        ``progress_cb(stage, fraction)`` and ``on_start()`` are called on the event loop."""
+
+    async def cancel(self, task_id: str) -> bool:
+        """Cancel a queued or running task (a running one loses its worker); True if it was
+        still pending."""
+
+    def ready(self) -> bool:
+        """At least one worker can take work."""
+
+    def queue_depth(self) -> int:
+        """Tasks waiting for a worker."""
+
+    def size(self) -> int:
+        """Configured number of workers."""
+
+    def busy(self) -> int:
+        """Workers running a task."""
+
+    def workers_ready(self) -> int:
+        """Workers started and idle or busy."""
+
+
+class JobService(Protocol):
+    """Asynchronous jobs: one task each, a record with progress, a result kept for a TTL."""
+
+    async def start(self) -> None: ...
+
+    async def stop(self) -> None: ...
+
+    async def submit(self, request: TaskRequest, *, color: str | None = None) -> Job:
+        """Create and queue a job; ``JobStoreFullError``, ``QueueFullError`` or
+        ``ExecutorClosedError`` when it cannot."""
+
+    async def get(self, job_id: str) -> Job | None:
+        """The job, or None when it is unknown or expired."""
+
+    async def result(self, job: Job) -> TaskResult:
+        """The result of a succeeded job (``TaskFailedError`` if it cannot be had)."""
+
+    async def cancel(self, job: Job) -> None:
+        """Cancel a queued or running job."""
+
+    async def delete(self, job: Job) -> None:
+        """Forget a finished job and its result."""
+
+    def counts(self) -> dict[str, int]:
+        """Number of jobs per status (for the metrics)."""
+
+
+@dataclass
+class JobPolicy:
+    """How long jobs may run and stay (``FFS_JOB_TIMEOUT``, ``FFS_JOB_TTL``), how many may
+    be stored (``FFS_MAX_JOBS``)."""
+
+    ttl: float
+    timeout: float
+    max_jobs: int
+
+
+@dataclass
+class SessionPolicy:
+    """The session settings: idle ``ttl`` (``FFS_SESSION_TTL``), admission
+    (``FFS_MAX_SESSIONS``, ``FFS_MAX_SESSION_MEMORY`` bytes), ``threads`` per session, the
+    deadlines of one solve (``FFS_SESSION_SOLVE_TIMEOUT``) and of the set-up
+    (``FFS_REQUEST_TIMEOUT``)."""
+
+    ttl: float
+    max_sessions: int
+    max_memory: int
+    threads: int
+    solve_timeout: float
+    setup_timeout: float
+
+
+@dataclass(frozen=True)
+class SessionRecord:
+    """What a backend knows of a live session (rendered by the HTTP edge).
+
+    ``info`` is :meth:`service.worker.session.SessionState.info`; ``executor`` the
+    backend's name (``local`` or ``dask``)."""
+
+    id: str
+    info: dict[str, Any]
+    expires_in: float
+    memory: int
+    solves: int
+    executor: str
+
+
+class SessionBackend(Protocol):
+    """Deformation sessions, each warm in exactly one worker. Unknown ids raise
+    ``SessionNotFoundError``; expired ones and those whose worker died
+    ``SessionGoneError``."""
+
+    name: str
+
+    async def start(self) -> None: ...
+
+    async def stop(self) -> None: ...
+
+    async def create(self, spec: SessionSpec) -> SessionRecord:
+        """Build a session (``TooManySessionsError``, ``SessionMemoryError``,
+        ``TaskFailedError`` for a bad mesh, ``DeadlineError``, ``WorkerDiedError``)."""
+
+    async def describe(self, session_id: str) -> SessionRecord: ...
+
+    async def shape(self, session_id: str) -> tuple[int, int]:
+        """(handles, rotation groups) of a session."""
+
+    async def solve(self, session_id: str, positions: np.ndarray,
+                    rotations: np.ndarray | None, fmt: str) -> tuple[bytes, dict[str, float]]:
+        """One drag: (encoded vertices, timings); ``DeadlineError`` closes the session."""
+
+    async def delete(self, session_id: str) -> None:
+        """Close a session (a gone one is forgotten)."""
+
+    def count(self) -> int:
+        """Live sessions (as last seen)."""
+
+    def memory(self) -> int:
+        """Bytes held by live sessions (as last seen)."""
+
+
+@dataclass(frozen=True)
+class Backend:
+    """The three collaborators of one backend, started and stopped together."""
+
+    executor: Executor
+    jobs: JobService
+    sessions: SessionBackend
+
+    async def start(self) -> None:
+        await self.executor.start()
+        await self.jobs.start()
+        await self.sessions.start()
+
+    async def stop(self) -> None:
+        await self.sessions.stop()
+        await self.jobs.stop()
+        await self.executor.shutdown()

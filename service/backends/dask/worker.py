@@ -1,0 +1,113 @@
+"""What runs on a Dask worker: :func:`run_task` (one task) and :class:`SessionActor`.
+
+Failures come back as values (the same failure dicts as the local pool), so Dask retries
+only what dies with its worker. A job's progress goes to the scheduler as events
+(:data:`~service.backends.dask.registry.PROGRESS_TOPIC`), where the registry folds it into
+the job's record.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from service.api.task import SessionSpec, TaskRequest
+from service.backends.admission import estimate_memory
+from service.backends.dask.registry import PROGRESS_TOPIC
+from service.memory import process_memory
+
+_initialized: set[int] = set()
+
+
+def _init_worker(threads: int) -> None:
+    """Warm this worker process once (the backends, the thread caps)."""
+    pid = os.getpid()
+    if pid not in _initialized:
+        from service.worker import runtime
+
+        runtime.initialize_worker(threads)
+        _initialized.add(pid)
+
+
+class _EventProgress:
+    """``progress(stage, fraction)`` -> scheduler events (stage changes, <= 5 per second)."""
+
+    def __init__(self, job_id: str) -> None:
+        from distributed import get_worker
+
+        self.job_id = job_id
+        self.worker = get_worker()
+        self.stage: str | None = None
+        self.last = 0.0
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        now = time.monotonic()
+        if stage == self.stage and now - self.last < 0.2:
+            return
+        self.stage, self.last = stage, now
+        self.worker.log_event(PROGRESS_TOPIC, {"id": self.job_id, "stage": stage,
+                                               "fraction": float(fraction)})
+
+    def fail(self, error: dict[str, Any]) -> None:
+        self.worker.log_event(PROGRESS_TOPIC, {"id": self.job_id, "error": error})
+
+
+def run_task(request: TaskRequest, job_id: str | None = None,
+             threads: int = 1) -> dict[str, Any]:
+    """A task on a Dask worker: ``{"ok": True, "result"}`` or ``{"ok": False, "error"}``."""
+    from service.worker import runtime
+
+    _init_worker(threads)
+    report = _EventProgress(job_id) if job_id else None
+    try:
+        result = runtime.run(request, report or (lambda stage, fraction: None))
+    except Exception as exc:
+        error = runtime.describe_error(exc)
+        if report is not None:
+            report.fail(error)
+        return {"ok": False, "error": error}
+    return {"ok": True, "result": result}
+
+
+class SessionActor:
+    """A session on a Dask worker (an actor: its state stays on that worker)."""
+
+    def __init__(self, spec: SessionSpec, threads: int = 1) -> None:
+        from distributed import get_worker
+
+        from service.worker import runtime
+        from service.worker.session import SessionState
+
+        _init_worker(threads)
+        self.worker = get_worker().address
+        self.error: dict[str, Any] | None = None
+        self.state: SessionState | None = None
+        estimate = estimate_memory(len(spec.vertices), len(spec.faces))
+        before = process_memory()
+        try:
+            self.state = SessionState(spec)
+        except Exception as exc:
+            self.error = runtime.describe_error(exc)
+        grown = process_memory() - before
+        # Memory growth of the shared worker process is a rough measure (other tasks run
+        # there too); it never counts for less than half the estimate.
+        self.memory = max(grown, estimate // 2)
+
+    def info(self) -> dict[str, Any]:
+        if self.state is None:
+            return {"error": self.error}
+        return {"info": self.state.info(), "memory": self.memory, "worker": self.worker}
+
+    def solve(self, positions: np.ndarray, rotations: np.ndarray | None,
+              fmt: str) -> tuple[str, Any, Any]:
+        from service.worker import runtime
+
+        assert self.state is not None
+        try:
+            body, timings = self.state.solve(positions, rotations, fmt)
+        except Exception as exc:
+            return ("error", runtime.describe_error(exc), None)
+        return ("ok", body, timings)

@@ -1,0 +1,97 @@
+"""The backends' failures, as domain errors (no HTTP here).
+
+Backends raise these; :mod:`service.http.problems` maps each one to its problem document
+(``QueueFullError`` -> 503 ``queue-full`` with Retry-After, ``SessionGoneError`` -> 410, ...).
+A task's own failure travels as a failure dict (:func:`service.worker.runtime.describe_error`)
+inside :class:`TaskFailedError`, and a job records its failure as such a dict
+(:func:`service.api.problems.failure`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class BackendError(Exception):
+    """Base class of the backends' failures."""
+
+
+class QueueFullError(BackendError):
+    """No capacity: every worker busy and the queue full."""
+
+    def __init__(self, retry_after: int) -> None:
+        super().__init__(f"the work queue is full; retry after {retry_after} s")
+        self.retry_after = retry_after
+
+
+class ExecutorClosedError(BackendError):
+    """The backend is not running (not started, shutting down, or its cluster is gone)."""
+
+
+class TaskCancelledError(BackendError):
+    """The task was cancelled before it finished."""
+
+
+class WorkerDiedError(BackendError):
+    """The worker process running the task (or holding the session) exited."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class TaskFailedError(BackendError):
+    """The task raised; ``error`` is its failure dict."""
+
+    def __init__(self, error: dict[str, Any]) -> None:
+        super().__init__(str(error.get("message") or error.get("detail") or error))
+        self.error = error
+
+
+class DeadlineError(BackendError):
+    """No result within a configured time; ``detail`` names the setting."""
+
+
+class JobStoreFullError(BackendError):
+    """``FFS_MAX_JOBS`` jobs are stored."""
+
+    def __init__(self, count: int, limit: int) -> None:
+        super().__init__(f"{count} jobs are stored (limit {limit}); fetch or delete finished "
+                         "jobs, or retry later")
+        self.count, self.limit = count, limit
+
+
+class SessionNotFoundError(BackendError):
+    """No such session (never created, deleted, or gone long ago)."""
+
+    def __init__(self, session_id: str) -> None:
+        super().__init__(f"no session {session_id!r} (it may have been deleted, or it expired "
+                         "long ago)")
+        self.session_id = session_id
+
+
+class SessionGoneError(BackendError):
+    """The session expired or its worker died; ``reason`` says which."""
+
+    def __init__(self, session_id: str, reason: str) -> None:
+        super().__init__(f"session {session_id} is gone: {reason}; create a new one")
+        self.session_id, self.reason = session_id, reason
+
+
+class TooManySessionsError(BackendError):
+    """``FFS_MAX_SESSIONS`` sessions are open."""
+
+    def __init__(self, count: int, limit: int, retry_after: int) -> None:
+        super().__init__(f"{count} sessions are open (limit {limit}, FFS_MAX_SESSIONS); delete "
+                         "one or wait until an idle one expires")
+        self.count, self.limit, self.retry_after = count, limit, retry_after
+
+
+class SessionMemoryError(BackendError):
+    """The open sessions and a new one would exceed ``FFS_MAX_SESSION_MEMORY``."""
+
+    def __init__(self, used: int, needed: int, limit: int) -> None:
+        super().__init__(f"sessions hold {used / 2**20:.0f} MiB and this one needs about "
+                         f"{needed / 2**20:.0f} MiB more; the limit is {limit / 2**20:.0f} MiB "
+                         "(FFS_MAX_SESSION_MEMORY)")
+        self.used, self.needed, self.limit = used, needed, limit

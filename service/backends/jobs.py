@@ -1,0 +1,120 @@
+"""A job's record: state, progress by stage, timings, failure. Shared by every backend.
+
+The local backend keeps :class:`Job` objects in memory; the Dask backend keeps them in the
+scheduler and ships their fields (:func:`job_fields`) to the replicas. ``error`` is the
+failure dict of a failed job (:func:`service.api.problems.failure`, or the worker's
+:func:`service.worker.runtime.describe_error`); the HTTP edge renders it as a problem
+document.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from service.api.task import TaskResult
+
+STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+@dataclass
+class Job:
+    """One asynchronous job (times are ``time.time()`` seconds)."""
+
+    id: str
+    operation: str
+    color: str | None = None
+    status: str = "queued"
+    created_at: float = field(default_factory=time.time)
+    started_at: float | None = None
+    finished_at: float | None = None
+    expires_at: float | None = None
+    stages: dict[str, float] = field(default_factory=dict)
+    stage: str | None = None
+    stage_started: float | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+    error: dict[str, Any] | None = None
+    result: TaskResult | None = None
+
+    def __post_init__(self) -> None:
+        if not self.stages:
+            from service.operations import OPERATIONS
+
+            spec = OPERATIONS.get(self.operation)
+            self.stages = dict.fromkeys(spec.stages if spec else ("solve",), 0.0)
+
+    @property
+    def done(self) -> bool:
+        return self.status in TERMINAL
+
+    def mark_running(self) -> None:
+        if self.status == "queued":
+            self.status = "running"
+            self.started_at = time.time()
+            self.timings["queued"] = self.started_at - self.created_at
+
+    def update_progress(self, stage: str, fraction: float) -> None:
+        """Record ``progress(stage, fraction)``: earlier stages are complete, later ones are
+        not (a solver may go back, e.g. from a failed shortcut to the factorization)."""
+        if self.done:
+            return
+        self.mark_running()
+        now = time.time()
+        previous = self.stage
+        if stage != self.stage:
+            if self.stage is not None and self.stage_started is not None:
+                self.timings[self.stage] = (self.timings.get(self.stage, 0.0)
+                                            + now - self.stage_started)
+            self.stage, self.stage_started = stage, now
+        names = list(self.stages)
+        if stage not in names:
+            return
+        at = names.index(stage)
+        fraction = min(1.0, max(0.0, fraction))
+        if previous in names and names.index(previous) > at:
+            # Back to an earlier stage (e.g. the tree integration reported `solve`, did not
+            # reproduce the forms, and the solver now factorizes): the later stages are not
+            # done, and this one is only as far as it says.
+            for later in names[at:]:
+                self.stages[later] = 0.0
+        for earlier in names[:at]:
+            self.stages[earlier] = 1.0
+        self.stages[stage] = max(self.stages[stage], fraction)
+
+    def finish(self, status: str, ttl: float) -> None:
+        now = time.time()
+        if self.stage is not None and self.stage_started is not None and status == "succeeded":
+            self.timings.setdefault(self.stage, now - self.stage_started)
+        self.status = status
+        self.finished_at = now
+        self.expires_at = now + ttl
+        if status == "succeeded":
+            self.stages = dict.fromkeys(self.stages, 1.0)
+        self.stage_started = None
+
+    @property
+    def fraction(self) -> float:
+        """Overall progress in [0, 1]: mean of the stage fractions."""
+        if self.status == "succeeded":
+            return 1.0
+        return sum(self.stages.values()) / max(1, len(self.stages))
+
+
+FIELDS = tuple(f.name for f in dataclasses.fields(Job) if f.name != "result")
+"""The fields of a job record that travel between processes (the result stays put)."""
+
+
+def job_fields(job: Job) -> dict[str, Any]:
+    """The record of ``job`` as a dict (``Job(**job_fields(job))`` rebuilds it)."""
+    return {name: getattr(job, name) for name in FIELDS}
+
+
+def count_states(jobs: Any) -> dict[str, int]:
+    """Number of jobs per state among ``jobs`` (an iterable of :class:`Job`)."""
+    out = dict.fromkeys(STATES, 0)
+    for job in jobs:
+        out[job.status] += 1
+    return out

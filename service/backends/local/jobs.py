@@ -1,0 +1,181 @@
+"""Local jobs: records in this process's memory (:class:`MemoryJobStore`), run on the
+local executor by :class:`JobManager` (the local :class:`~service.backends.contracts.JobService`).
+
+A job runs one task on the executor. Its record (:class:`~service.backends.jobs.Job`) holds
+the state, per-stage progress and timings, the failure, and the result (the encoded body
+plus the mesh arrays, so that ``GET /v1/jobs/{id}/result`` can return glTF or add
+colours). Finished jobs expire ``FFS_JOB_TTL`` seconds after they finish; a sweeper removes
+them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+import uuid
+from typing import Any, Protocol
+
+from service.api.problems import failure
+from service.api.task import TaskRequest, TaskResult
+from service.backends.contracts import Executor, JobPolicy, ResultCallback
+from service.backends.errors import (
+    ExecutorClosedError,
+    JobStoreFullError,
+    TaskCancelledError,
+    TaskFailedError,
+    WorkerDiedError,
+)
+from service.backends.jobs import Job, count_states
+from service.backends.loops import sweep_forever
+
+logger = logging.getLogger("service.jobs")
+
+
+class JobStore(Protocol):
+    """Where jobs live. The in-memory store is per process; a shared one could replace it."""
+
+    def add(self, job: Job) -> None: ...
+
+    def get(self, job_id: str) -> Job | None: ...
+
+    def remove(self, job_id: str) -> None: ...
+
+    def expired(self, now: float) -> list[str]:
+        """Ids of finished jobs whose TTL has passed."""
+
+    def __len__(self) -> int: ...
+
+    def counts(self) -> dict[str, int]:
+        """Number of jobs per status."""
+
+
+class MemoryJobStore:
+    """A dict of jobs (the default :class:`JobStore`)."""
+
+    def __init__(self) -> None:
+        self._jobs: dict[str, Job] = {}
+
+    def add(self, job: Job) -> None:
+        self._jobs[job.id] = job
+
+    def get(self, job_id: str) -> Job | None:
+        return self._jobs.get(job_id)
+
+    def remove(self, job_id: str) -> None:
+        self._jobs.pop(job_id, None)
+
+    def expired(self, now: float) -> list[str]:
+        return [j.id for j in self._jobs.values()
+                if j.expires_at is not None and j.expires_at <= now]
+
+    def __len__(self) -> int:
+        return len(self._jobs)
+
+    def counts(self) -> dict[str, int]:
+        return count_states(self._jobs.values())
+
+
+class JobManager:
+    """Runs jobs on the executor and keeps their records in a :class:`JobStore`."""
+
+    def __init__(self, store: JobStore, executor: Executor, policy: JobPolicy,
+                 on_result: ResultCallback | None = None) -> None:
+        self.store, self.executor, self.policy = store, executor, policy
+        self.on_result = on_result
+        self._runners: dict[str, asyncio.Task[None]] = {}
+        self._sweeper: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        self._sweeper = asyncio.create_task(
+            sweep_forever(self.policy.ttl, self._expire_async, "job sweeper", ceiling=30.0))
+
+    async def stop(self) -> None:
+        tasks = [t for t in (self._sweeper, *self._runners.values()) if t is not None]
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+
+    def expire(self) -> int:
+        """Remove expired jobs now; returns how many."""
+        ids = self.store.expired(time.time())
+        for job_id in ids:
+            self.store.remove(job_id)
+        return len(ids)
+
+    async def _expire_async(self) -> None:
+        self.expire()
+
+    async def submit(self, request: TaskRequest, *, color: str | None = None) -> Job:
+        """Create a job and queue it (``JobStoreFullError``, ``QueueFullError``,
+        ``ExecutorClosedError``)."""
+        self.expire()
+        if len(self.store) >= self.policy.max_jobs:
+            raise JobStoreFullError(len(self.store), self.policy.max_jobs)
+        job = Job(id=uuid.uuid4().hex, operation=request.operation, color=color)
+        handle = await self.executor.submit(request, task_id=job.id,
+                                            progress_cb=job.update_progress,
+                                            on_start=job.mark_running)
+        self.store.add(job)
+        self._runners[job.id] = asyncio.create_task(self._run(job, handle.future))
+        return job
+
+    async def _run(self, job: Job, future: asyncio.Future[Any]) -> None:
+        try:
+            result = await asyncio.wait_for(asyncio.shield(future), self.policy.timeout)
+        except TimeoutError:
+            await self.executor.cancel(job.id)
+            self._fail(job, failure("timeout", f"the job did not finish within "
+                                               f"{self.policy.timeout:g} s (FFS_JOB_TIMEOUT)"))
+        except TaskCancelledError:
+            if not job.done:
+                job.finish("cancelled", self.policy.ttl)
+        except TaskFailedError as exc:
+            self._fail(job, exc.error)
+        except WorkerDiedError as exc:
+            self._fail(job, failure("worker-died", exc.reason))
+        except ExecutorClosedError as exc:
+            self._fail(job, failure("unavailable", str(exc)))
+        except asyncio.CancelledError:
+            await self.executor.cancel(job.id)
+            if not job.done:
+                job.finish("cancelled", self.policy.ttl)
+            raise
+        else:
+            if not job.done:
+                job.result = result
+                job.finish("succeeded", self.policy.ttl)
+                if self.on_result is not None:
+                    self.on_result(job.operation, result)
+        finally:
+            self._runners.pop(job.id, None)
+
+    async def get(self, job_id: str) -> Job | None:
+        return self.store.get(job_id)
+
+    async def result(self, job: Job) -> TaskResult:
+        assert job.result is not None, "only a succeeded job is asked for its result"
+        return job.result
+
+    async def delete(self, job: Job) -> None:
+        self.store.remove(job.id)
+
+    def counts(self) -> dict[str, int]:
+        return self.store.counts()
+
+    def _fail(self, job: Job, error: dict[str, Any]) -> None:
+        if job.done:
+            return
+        job.error = error
+        job.finish("failed", self.policy.ttl)
+
+    async def cancel(self, job: Job) -> None:
+        """Cancel a queued or running job (its worker is replaced if it was running)."""
+        if job.done:
+            return
+        await self.executor.cancel(job.id)
+        if not job.done:
+            job.finish("cancelled", self.policy.ttl)

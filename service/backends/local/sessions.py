@@ -1,0 +1,307 @@
+"""Local deformation sessions: one dedicated process per session (:class:`LocalSessions`).
+
+``create`` starts a :class:`~service.backends.processes.WorkerProcess` outside the stateless
+task pool, which builds a :class:`~service.worker.session.SessionState` (the factorization)
+and then serves solves over its own pipe. A crash, an OOM kill or a solve beyond
+``FFS_SESSION_SOLVE_TIMEOUT`` ends only that session, which then answers
+:class:`SessionGoneError`. Idle sessions close after ``FFS_SESSION_TTL`` seconds; a session
+that expired or whose process died stays "gone" for another TTL, then it is unknown.
+Admission: :mod:`service.backends.sessions`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+import uuid
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from typing import Any
+
+from service.api.task import SessionSpec
+from service.backends import errors
+from service.backends.admission import estimate_memory, too_many
+from service.backends.contracts import SessionPolicy, SessionRecord
+from service.backends.loops import new_future, settle, sweep_forever
+from service.backends.processes import Message, WorkerProcess
+from service.memory import process_memory
+
+logger = logging.getLogger("service.sessions")
+
+
+def _session_main(conn: Connection, threads: int) -> None:
+    """Entry point of a local session process: build the session, then serve solves."""
+    from service.worker import runtime
+
+    runtime.start_worker_process(threads)
+    from service.worker.session import SessionState
+
+    try:
+        spec = conn.recv()
+        try:
+            state = SessionState(spec)
+        except Exception as exc:
+            conn.send(("error", runtime.describe_error(exc)))
+            return
+        del spec
+        conn.send(("ready", state.info(), process_memory()))
+        while True:
+            message = conn.recv()
+            if message is None:
+                return
+            positions, rotations, fmt = message
+            try:
+                body, timings = state.solve(positions, rotations, fmt)
+            except Exception as exc:
+                conn.send(("error", runtime.describe_error(exc)))
+            else:
+                conn.send(("ok", body, timings))
+    except (EOFError, OSError):  # the service went away
+        return
+
+
+@dataclass
+class _LocalSession:
+    id: str
+    proc: WorkerProcess
+    info: dict[str, Any]
+    memory: int
+    last_used: float = field(default_factory=time.monotonic)
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    pending: asyncio.Future[Any] | None = None
+    alive: bool = True
+    closing: bool = False
+    reason: str | None = None
+    solves: int = 0
+
+
+class LocalSessions:
+    """One dedicated process per session (see the module docstring)."""
+
+    name = "local"
+
+    def __init__(self, policy: SessionPolicy, start_method: str = "forkserver") -> None:
+        self.policy = policy
+        self.start_method = start_method
+        self._sessions: dict[str, _LocalSession] = {}
+        self._gone: dict[str, tuple[str, float]] = {}
+        self._reserved: dict[str, int] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._sweeper: asyncio.Task[None] | None = None
+        self.deaths = 0
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._sweeper = asyncio.create_task(
+            sweep_forever(self.policy.ttl, self.expire, "session sweeper", ceiling=10.0))
+
+    async def stop(self) -> None:
+        if self._sweeper is not None:
+            self._sweeper.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._sweeper
+        sessions = list(self._sessions.values())
+        self._sessions.clear()
+        await asyncio.gather(*(asyncio.to_thread(self._close, s) for s in sessions))
+
+    async def expire(self) -> int:
+        """Close sessions idle for longer than the TTL; drop old tombstones."""
+        now = time.monotonic()
+        idle = [s for s in self._sessions.values()
+                if s.alive and not s.lock.locked() and now - s.last_used > self.policy.ttl]
+        for s in idle:
+            self._bury(s, f"it expired after {self.policy.ttl:g} s without a solve "
+                          "(FFS_SESSION_TTL)")
+            await asyncio.to_thread(self._close, s)
+        for sid, (_, until) in list(self._gone.items()):
+            if until <= now:
+                del self._gone[sid]
+        return len(idle)
+
+    # ---------------------------------------------------------------------- state
+
+    def count(self) -> int:
+        return sum(1 for s in self._sessions.values() if s.alive)
+
+    def memory(self) -> int:
+        return sum(s.memory for s in self._sessions.values() if s.alive)
+
+    def pids(self) -> dict[str, int]:
+        """Session id -> process id (tests and diagnostics)."""
+        return {s.id: s.proc.pid for s in self._sessions.values() if s.alive}
+
+    def _get(self, session_id: str) -> _LocalSession:
+        session = self._sessions.get(session_id)
+        if session is not None and session.alive:
+            return session
+        gone = self._gone.get(session_id)
+        if gone is not None:
+            raise errors.SessionGoneError(session_id, gone[0])
+        raise errors.SessionNotFoundError(session_id)
+
+    def _bury(self, session: _LocalSession, reason: str) -> None:
+        """Mark a session gone (for one more TTL)."""
+        session.alive = False
+        session.reason = session.reason or reason
+        self._sessions.pop(session.id, None)
+        self._gone[session.id] = (session.reason, time.monotonic() + self.policy.ttl)
+        if session.pending is not None:
+            settle(session.pending, exc=errors.SessionGoneError(session.id, session.reason))
+
+    def _record(self, session: _LocalSession) -> SessionRecord:
+        expires = self.policy.ttl - (time.monotonic() - session.last_used)
+        return SessionRecord(session.id, session.info, max(0.0, expires), session.memory,
+                             session.solves, self.name)
+
+    # --------------------------------------------------------------------- create
+
+    def _spawn(self, session_id: str, spec: SessionSpec) -> WorkerProcess:
+        proc = WorkerProcess.spawn(_session_main, self.policy.threads,
+                                   f"ffs-session-{session_id[:8]}", self.start_method)
+        try:
+            proc.conn.send(spec)
+        except BaseException:
+            proc.kill()
+            raise
+        return proc
+
+    def _admit(self, estimate: int) -> None:
+        open_now = self.count() + len(self._reserved)
+        if open_now >= self.policy.max_sessions:
+            raise too_many(open_now, self.policy.max_sessions, self.policy.ttl)
+        used = self.memory() + sum(self._reserved.values())
+        if used + estimate > self.policy.max_memory:
+            raise errors.SessionMemoryError(used, estimate, self.policy.max_memory)
+
+    async def create(self, spec: SessionSpec) -> SessionRecord:
+        await self.expire()
+        estimate = estimate_memory(len(spec.vertices), len(spec.faces))
+        self._admit(estimate)
+        session_id = uuid.uuid4().hex
+        self._reserved[session_id] = estimate
+        proc: WorkerProcess | None = None
+        try:
+            try:
+                proc = await asyncio.to_thread(self._spawn, session_id, spec)
+            except OSError as exc:  # it died before it read the mesh
+                raise errors.WorkerDiedError(f"the session process could not start or died at once "
+                                      f"({exc})") from None
+            message = await asyncio.to_thread(_wait_ready, proc, self.policy.setup_timeout)
+            if message is None:
+                raise errors.DeadlineError(f"the session was not ready within "
+                                    f"{self.policy.setup_timeout:g} s (FFS_REQUEST_TIMEOUT)")
+            if message[0] == "error":
+                raise errors.TaskFailedError(message[1])
+            _, info, memory = message
+            session = _LocalSession(id=session_id, proc=proc, info=info,
+                                    memory=int(memory) or estimate)
+        except BaseException:
+            self._reserved.pop(session_id, None)
+            if proc is not None:
+                await asyncio.to_thread(proc.kill)
+            raise
+        self._reserved.pop(session_id, None)
+        used = self.memory()
+        if used + session.memory > self.policy.max_memory:  # measured beyond the estimate
+            await asyncio.to_thread(proc.kill)
+            raise errors.SessionMemoryError(used, session.memory, self.policy.max_memory)
+        self._sessions[session_id] = session
+        proc.read(self._loop, lambda message: self._on_message(session, message),
+                  lambda: self._on_exit(session), _unreadable,
+                  f"ffs-session-reader-{session_id[:8]}")
+        return self._record(session)
+
+    # ---------------------------------------------------------------------- solve
+
+    async def describe(self, session_id: str) -> SessionRecord:
+        return self._record(self._get(session_id))
+
+    async def shape(self, session_id: str) -> tuple[int, int]:
+        info = self._get(session_id).info
+        return len(info["handles"]), int(info["n_rotation_groups"])
+
+    async def solve(self, session_id: str, positions: Any, rotations: Any,
+                    fmt: str) -> tuple[bytes, dict[str, float]]:
+        session = self._get(session_id)
+        async with session.lock:
+            if not session.alive:
+                raise errors.SessionGoneError(session_id, session.reason or "closed")
+            future = session.pending = new_future()
+            try:
+                session.proc.conn.send((positions, rotations, fmt))
+                message = await asyncio.wait_for(asyncio.shield(future), self.policy.solve_timeout)
+            except TimeoutError:  # (a subclass of OSError: first)
+                self._bury(session, f"a solve took longer than {self.policy.solve_timeout:g} s "
+                                    "(FFS_SESSION_SOLVE_TIMEOUT); the session was closed")
+                await asyncio.to_thread(session.proc.kill)
+                raise errors.DeadlineError(f"no result within {self.policy.solve_timeout:g} s "
+                                    "(FFS_SESSION_SOLVE_TIMEOUT); the session was closed"
+                                    ) from None
+            except OSError:
+                self._bury(session, "its process is gone")
+                raise errors.SessionGoneError(session_id, session.reason or "gone") from None
+            finally:
+                session.pending = None
+            session.last_used = time.monotonic()
+        if message[0] == "ok":
+            session.solves += 1
+            return message[1], message[2]
+        raise errors.TaskFailedError(message[1])
+
+    async def delete(self, session_id: str) -> None:
+        if self._gone.pop(session_id, None) is not None:
+            return
+        session = self._sessions.get(session_id)
+        if session is None:
+            raise errors.SessionNotFoundError(session_id)
+        session.closing = True
+        self._sessions.pop(session_id, None)
+        session.alive = False
+        session.reason = "deleted"
+        if session.pending is not None:
+            settle(session.pending, exc=errors.SessionNotFoundError(session_id))
+        await asyncio.to_thread(self._close, session)
+
+    # ------------------------------------------------------------ process plumbing
+
+    @staticmethod
+    def _on_message(session: _LocalSession, message: Message) -> None:
+        if session.pending is not None:
+            settle(session.pending, result=message)
+
+    def _on_exit(self, session: _LocalSession) -> None:
+        if session.closing or not session.alive:
+            return
+        self.deaths += 1
+        reason = (f"its worker process (pid {session.proc.pid}) died "
+                  f"({session.proc.exit_reason()})")
+        logger.error("session %s: %s", session.id, reason)
+        self._bury(session, reason)
+
+    @staticmethod
+    def _close(session: _LocalSession) -> None:
+        session.closing = True
+        session.proc.close()
+
+
+def _wait_ready(proc: WorkerProcess, timeout: float) -> Message | None:
+    """The session process's first message (ready or error); None after ``timeout`` s."""
+    try:
+        if not proc.conn.poll(timeout):
+            return None
+        return proc.conn.recv()
+    except (EOFError, OSError):
+        proc.process.join(5.0)
+        raise errors.WorkerDiedError(
+            f"the session process (pid {proc.pid}) died while it factorized "
+            f"({proc.exit_reason()}); the mesh may be too large for the memory available"
+        ) from None
+
+
+def _unreadable(exc: Exception) -> Message:
+    return ("error", {"category": "internal", "exception": type(exc).__name__,
+                      "message": f"unreadable session reply: {exc}"})

@@ -1,0 +1,179 @@
+"""Reading request bodies: media types, the body limit and timeout, multipart forms,
+uploaded files, and parsing off the event loop.
+
+Bodies are read here (not by FastAPI) so that one endpoint takes ``application/json``,
+``multipart/form-data`` (a mesh file in ``file``, every other field as a JSON-encoded form
+value) and ``application/vnd.ffs.arrays`` (the large arrays as raw bytes), and so that the
+body limit and the body timeout are enforced while streaming. What a body becomes is
+:mod:`service.http.payloads`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+from typing import Any
+
+import anyio
+import orjson
+from pydantic import BaseModel, ValidationError
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import Request
+
+from service.api.decoding import BINARY_MEDIA_TYPE
+from service.api.problems import ProblemError, from_validation_errors
+from service.api.task import MeshFile
+from service.memory import release_memory
+from service.settings import Settings
+
+FILE_TYPES = ("obj", "ply", "off", "stl", "glb", "gltf")
+THREAD_THRESHOLD = 256 * 1024
+"""Bodies larger than this are validated in a worker thread, off the event loop."""
+
+
+def media_type(request: Request) -> str:
+    """The request's media type without parameters (``application/json`` if absent)."""
+    value = request.headers.get("content-type", "")
+    return value.split(";", 1)[0].strip().lower() or "application/json"
+
+
+def is_json(mtype: str) -> bool:
+    return mtype == "application/json" or mtype.endswith("+json")
+
+
+async def read_body(request: Request, settings: Settings) -> bytes:
+    """The whole body: a 413 problem as soon as it exceeds FFS_MAX_BODY_BYTES, a 408 (and the
+    connection closed) when it takes longer than FFS_BODY_TIMEOUT to arrive. A client that
+    disconnects mid-body raises :class:`starlette.requests.ClientDisconnect` (answered 499 and
+    logged without a traceback by the app's handler)."""
+    limit = settings.max_body_bytes
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise _too_large(int(declared), limit)
+    chunks, size = [], 0
+    try:
+        async with asyncio.timeout(settings.body_timeout):
+            async for chunk in request.stream():
+                size += len(chunk)
+                if size > limit:
+                    raise _too_large(size, limit)
+                chunks.append(chunk)
+    except TimeoutError:
+        raise ProblemError(
+            "body-timeout", f"the body did not arrive within {settings.body_timeout:g} s "
+            f"(FFS_BODY_TIMEOUT; {size} bytes received)", headers={"Connection": "close"},
+            errors=[{"field": "body", "index": None,
+                     "reason": f"{size} bytes in {settings.body_timeout:g} s"}]) from None
+    return b"".join(chunks)
+
+
+def _too_large(size: int, limit: int) -> ProblemError:
+    return ProblemError("payload-too-large",
+                        f"the body has at least {size} bytes; the limit is {limit} "
+                        "(FFS_MAX_BODY_BYTES)",
+                        errors=[{"field": "body", "index": None,
+                                 "reason": f"more than {limit} bytes"}])
+
+
+def validate_object(model: type[BaseModel], data: Any, prefix: tuple[Any, ...] = ()) -> Any:
+    """Validate already-parsed data; errors point below ``prefix``."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise from_validation_errors(exc.errors(include_url=False, include_input=False),
+                                     prefix) from None
+
+
+async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any],
+                                                                   dict[str, UploadFile]]:
+    """Parse a multipart body: (JSON-decoded fields, uploaded files)."""
+    body = await read_body(request, settings)
+    sent = False
+
+    async def receive() -> dict[str, Any]:
+        nonlocal sent
+        if sent:
+            return {"type": "http.disconnect"}
+        sent = True
+        return {"type": "http.request", "body": body, "more_body": False}
+
+    replay = Request(request.scope, receive)
+    try:
+        form = await replay.form(max_files=4, max_fields=64,
+                                 max_part_size=settings.max_body_bytes)
+    except StarletteHTTPException as exc:
+        raise ProblemError("malformed-request", f"cannot read the multipart body: {exc.detail}"
+                           ) from None
+    except Exception as exc:  # python-multipart parse errors
+        raise ProblemError("malformed-request", f"cannot read the multipart body: {exc}"
+                           ) from None
+    fields: dict[str, Any] = {}
+    files: dict[str, UploadFile] = {}
+    for key, value in form.multi_items():
+        if isinstance(value, UploadFile):
+            files[key] = value
+        elif key in fields:
+            raise ProblemError("malformed-request", f"form field {key!r} is given twice",
+                               errors=[{"field": key, "index": None, "reason": "repeated"}])
+        else:
+            fields[key] = _decode_field(value)
+    return fields, files
+
+
+def _decode_field(value: str) -> Any:
+    """Form values are JSON (``{"a": 1}``, ``[1, 2]``, ``0.5``, ``true``) or plain strings."""
+    try:
+        return orjson.loads(value)
+    except orjson.JSONDecodeError:
+        return value
+
+
+async def upload(file: UploadFile, field: str) -> MeshFile:
+    """Read one uploaded mesh file; 415 for an unknown type, 400 for an empty file."""
+    from solver.io import UnsupportedFormatError, resolve_format
+
+    name = file.filename or ""
+    try:
+        resolve_format(name if "." in name else (file.content_type or name))
+    except UnsupportedFormatError as exc:
+        raise ProblemError(
+            "unsupported-file-type",
+            f"{field}: {name or file.content_type!r} is not a supported mesh file; upload "
+            f"one of {', '.join(FILE_TYPES)}",
+            errors=[{"field": field, "index": None, "reason": exc.reason}]) from None
+    data = await file.read()
+    if not data:
+        raise ProblemError("unreadable-file", f"{field}: the file is empty",
+                           errors=[{"field": field, "index": None, "reason": "empty file"}])
+    return MeshFile(data, name if "." in name else (file.content_type or name), field)
+
+
+async def off_loop(size: int, fn: Any, *args: Any) -> Any:
+    """Run ``fn(*args)`` in a thread when the input is large (> THREAD_THRESHOLD bytes), then
+    give the memory of the parse back to the system before answering."""
+    if size <= THREAD_THRESHOLD:
+        return fn(*args)
+    result, error = await anyio.to_thread.run_sync(_capture, fn, *args)
+    gc.collect()
+    release_memory()
+    if error is not None:
+        raise error
+    return result
+
+
+def _capture(fn: Any, *args: Any) -> tuple[Any, BaseException | None]:
+    """``(fn(*args), None)`` or ``(None, error)`` with the error's traceback and context
+    dropped: their frames hold the parsed body, which must be freed before trimming."""
+    try:
+        return fn(*args), None
+    except Exception as exc:
+        exc.__traceback__ = exc.__context__ = exc.__cause__ = None
+        return None, exc
+
+
+def unsupported_media_type(mtype: str) -> ProblemError:
+    return ProblemError("unsupported-media-type",
+                        f"Content-Type {mtype!r} is not supported; send application/json, "
+                        f"multipart/form-data with the mesh in `file`, or {BINARY_MEDIA_TYPE}",
+                        errors=[{"field": "Content-Type", "index": None, "reason": mtype}])

@@ -1,0 +1,186 @@
+"""The OpenAPI document: request bodies that FastAPI cannot infer (JSON *or* multipart),
+problem responses as ``application/problem+json``, and every schema with an example.
+
+``scripts/generate_openapi.py`` writes it to ``openapi/openapi.json``; a test fails when that
+file is stale.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+from pydantic import BaseModel
+from pydantic.json_schema import models_json_schema
+
+from service.api.decoding import BINARY_DTYPES, BINARY_MEDIA_TYPE
+from service.api.documents import Problem
+from service.api.schemas import JobRequest, SessionDrag, SessionRequest
+from service.http.problems import PROBLEM_MEDIA_TYPE
+from service.operations import OPERATIONS, OperationSpec
+
+REF = "#/components/schemas/{model}"
+ERROR_DESCRIPTIONS: dict[int, str] = {
+    400: "Malformed JSON, multipart body or mesh file.",
+    404: "Unknown job or session (or it expired).",
+    408: "The body did not arrive within FFS_BODY_TIMEOUT seconds.",
+    406: "None of the Accept media types can be produced.",
+    409: "The job has no result (not finished, failed or cancelled).",
+    410: "The session expired or its worker died.",
+    413: "Body, vertex or face count over the limit.",
+    415: "Unsupported Content-Type or mesh file type.",
+    429: "Too many open sessions (FFS_MAX_SESSIONS).",
+    422: "Schema violation, or a solver input error (one problem kind per error class).",
+    500: "A worker process died.",
+    503: "Queue full (Retry-After), the pool is not running, or session memory is "
+         "exhausted.",
+    504: "No result within FFS_REQUEST_TIMEOUT.",
+}
+
+
+GLTF_CONTENT = {
+    "model/gltf-binary": {"schema": {"type": "string", "format": "binary"}},
+    "model/gltf+json": {"schema": {"type": "object",
+                                   "description": "glTF 2.0 with the buffer as a data URI."}},
+}
+"""The glTF media types of a mesh result."""
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` entries for problem documents (content filled in by :func:`build`)."""
+    return {code: {"description": ERROR_DESCRIPTIONS[code]} for code in codes}
+
+
+def created(description: str, location: str, parameter: str,
+            targets: dict[str, str]) -> dict[str, Any]:
+    """A 201/202 response: its ``Location`` header and OpenAPI ``links`` from the created
+    resource's ``id`` to the operations on it (clients and stateful fuzzers follow them)."""
+    return {"description": description,
+            "headers": {"Location": {"schema": {"type": "string"}, "description": location}},
+            "links": {name: {"operationId": operation,
+                             "parameters": {parameter: "$response.body#/id"}}
+                      for name, operation in targets.items()}}
+
+
+def _example(model: type[BaseModel]) -> Any:
+    extra = model.model_config.get("json_schema_extra") or {}
+    examples = extra.get("examples") if isinstance(extra, dict) else None
+    return copy.deepcopy(examples[0]) if examples else None
+
+
+def multipart_schema(spec: OperationSpec) -> dict[str, Any]:
+    """Schema of the multipart form: the mesh file(s) plus the parameter fields, each
+    documented with its real schema (they are parsed as JSON; see :func:`form_encoding`)."""
+    params = spec.params
+    properties: dict[str, Any] = {}
+    for name in spec.files:
+        properties[name] = {"type": "string", "format": "binary",
+                            "description": "Mesh file: OBJ, PLY, OFF, STL or GLB (vertex order "
+                                           "and faces are kept as in the file)."}
+    field_schemas = params_schema(params)["properties"]
+    for name, info in params.model_fields.items():
+        properties[name] = {**field_schemas[name],
+                            "description": f"`{name}` as JSON (a form value such as "
+                                           f"`{{\"a\": 1}}`, `[1, 2]` or `0.5`)"
+                                           + (f": {info.description}" if info.description
+                                              else "") + "."}
+    required = [*spec.files, *(n for n, f in params.model_fields.items() if f.is_required())]
+    example = {name: f"<{name}.off>" for name in spec.files}
+    sample = _example(params) or {}
+    example.update(sample)  # JSON parts (form_encoding): the values themselves
+    return {"type": "object", "properties": properties, "required": required,
+            "examples": [example]}
+
+
+def params_schema(model: type[BaseModel]) -> dict[str, Any]:
+    """JSON schema of a params model with references into ``components/schemas``."""
+    _, defs = models_json_schema([(model, "validation")], ref_template=REF)
+    return defs["$defs"][model.__name__]
+
+
+def form_encoding(spec: OperationSpec) -> dict[str, Any]:
+    """The multipart ``encoding``: every parameter field is an ``application/json`` part."""
+    return {name: {"contentType": "application/json"} for name in spec.params.model_fields}
+
+
+def operation_body(spec: OperationSpec) -> dict[str, Any]:
+    """``openapi_extra`` of a synchronous operation: JSON body or a multipart upload."""
+    model = spec.request
+    return {"requestBody": {"required": True, "content": {
+        "application/json": {"schema": {"$ref": REF.format(model=model.__name__)},
+                             "example": _example(model)},
+        "multipart/form-data": {"schema": multipart_schema(spec),
+                                "encoding": form_encoding(spec)},
+        BINARY_MEDIA_TYPE: {"schema": {
+            "type": "string", "format": "binary",
+            "description": binary_description(spec),
+            "examples": ["FFSA <uint32 header length> <JSON header> <padding> <arrays>"]}},
+    }}}
+
+
+def binary_description(spec: OperationSpec) -> str:
+    """What a binary body of ``operation`` holds (the format: docs/service.md)."""
+    names = ", ".join(f"`{n}` ({f'(n, {s.cols})' if s.cols else '(n,)'} "
+                      f"{'indices' if s.integer else 'reals'})"
+                      for n, s in spec.arrays.items())
+    return ("The JSON body with its large arrays as raw little-endian bytes: `FFSA`, a uint32 "
+            "header length, a JSON header (the other fields of the JSON body plus "
+            "`\"arrays\": {name: {\"dtype\", \"shape\"}}` in the order they follow), zero "
+            "padding to a multiple of 8, then each array (C order) padded to a multiple of 8. "
+            f"dtypes: {', '.join(f'`{d}`' for d in BINARY_DTYPES)}. Arrays: {names}.")
+
+
+def jobs_body() -> dict[str, Any]:
+    """``openapi_extra`` of ``POST /v1/jobs``."""
+    upload = {"type": "object", "required": ["operation", "file"],
+              "properties": {
+                  "operation": {"type": "string", "enum": list(OPERATIONS)},
+                  "color": {"type": "string", "enum": ["defect", "distortion"]},
+                  "file": {"type": "string", "format": "binary",
+                           "description": "Mesh file (file_a and file_b for interpolate)."},
+                  "file_a": {"type": "string", "format": "binary"},
+                  "file_b": {"type": "string", "format": "binary"},
+              },
+              "additionalProperties": {"description": "The operation's other parameters "
+                                                      "(options, handles, t, ...), each a "
+                                                      "JSON form value."},
+              "examples": [{"operation": "reconstruct", "file": "<face.off>",
+                            "options": {"orthonormalize": True}}]}
+    return {"requestBody": {"required": True, "content": {
+        "application/json": {"schema": {"$ref": REF.format(model=JobRequest.__name__)},
+                             "example": _example(JobRequest)},
+        "multipart/form-data": {"schema": upload},
+    }}}
+
+
+EXTRA_MODELS: tuple[type[BaseModel], ...] = (*(s.request for s in OPERATIONS.values()),
+                                              JobRequest, Problem, SessionRequest, SessionDrag)
+"""Models referenced by hand-written request bodies: every ``$ref`` must resolve."""
+
+
+def build(app: FastAPI) -> dict[str, Any]:
+    """The app's OpenAPI document (cached on the app)."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    schema = get_openapi(title=app.title, version=app.version, description=app.description,
+                         routes=app.routes, tags=app.openapi_tags)
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    _, defs = models_json_schema([(m, "validation") for m in EXTRA_MODELS], ref_template=REF)
+    for name, definition in defs.get("$defs", {}).items():
+        components.setdefault(name, definition)
+    for name in ("HTTPValidationError", "ValidationError"):
+        components.pop(name, None)
+    problem_ref = {"$ref": REF.format(model="Problem")}
+    for path_item in schema.get("paths", {}).values():
+        for operation in path_item.values():
+            for code, response in operation.get("responses", {}).items():
+                if code.isdigit() and int(code) >= 400 and "readyz" not in str(
+                        operation.get("operationId")):
+                    response["content"] = {PROBLEM_MEDIA_TYPE: {"schema": problem_ref}}
+                    if int(code) == 422 and response.get("description") == "Validation Error":
+                        response["description"] = ERROR_DESCRIPTIONS[422]
+    schema["components"]["schemas"] = dict(sorted(components.items()))
+    app.openapi_schema = schema
+    return schema

@@ -1,0 +1,139 @@
+"""What a request body becomes: a :class:`~service.api.task.TaskRequest` (an operation or a
+job) or a :class:`~service.api.task.SessionSpec` (a session), built once, here.
+
+* A synchronous JSON or binary body goes to the worker as bytes (a ``RawBody``): the worker
+  parses and validates it (:func:`service.api.decoding.decode_raw`), so the event loop and
+  the main process's memory never hold the parsed arrays.
+* A multipart upload: the form fields are validated here against the operation's params
+  model; the files go to the worker, which reads them.
+* A JSON job and a session body are parsed here (the job's ``operation`` and the session's
+  handles are needed before anything runs), in a thread when they are large
+  (:func:`service.http.bodies.off_loop`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from starlette.datastructures import UploadFile
+from starlette.requests import Request
+
+from service.api.decoding import (
+    BINARY_MEDIA_TYPE,
+    MESH_ARRAYS,
+    check_limits,
+    decode_document,
+    decode_json,
+    parse_json,
+)
+from service.api.problems import ProblemError
+from service.api.schemas import JobRequest, SessionParams
+from service.api.task import (
+    Limits,
+    Output,
+    RawBody,
+    SessionSpec,
+    TaskRequest,
+)
+from service.http.bodies import (
+    is_json,
+    media_type,
+    off_loop,
+    read_body,
+    read_form,
+    unsupported_media_type,
+    upload,
+    validate_object,
+)
+from service.operations import OPERATIONS, OperationSpec
+from service.settings import Settings
+
+
+def limits(settings: Settings) -> Limits:
+    return Limits(settings.max_vertices, settings.max_faces)
+
+
+async def operation_request(request: Request, spec: OperationSpec, settings: Settings,
+                            output: Output) -> TaskRequest:
+    """The task of a synchronous operation request (JSON, binary or multipart)."""
+    mtype = media_type(request)
+    if mtype == "multipart/form-data":
+        fields, files = await read_form(request, settings)
+        return await form_request(spec, fields, files, settings, output)
+    if is_json(mtype) or mtype == BINARY_MEDIA_TYPE:
+        body = await read_body(request, settings)
+        kind = "binary" if mtype == BINARY_MEDIA_TYPE else "json"
+        return TaskRequest(spec.name, RawBody(kind, body), limits=limits(settings),
+                           backend=settings.solver_backend, output=output)
+    raise unsupported_media_type(mtype)
+
+
+async def form_request(spec: OperationSpec, fields: dict[str, Any],
+                       files: dict[str, UploadFile], settings: Settings,
+                       output: Output) -> TaskRequest:
+    """The task of a multipart upload (mesh file(s) + JSON-encoded form fields)."""
+    missing = [n for n in spec.files if n not in files]
+    unexpected = [n for n in files if n not in spec.files]
+    if missing or unexpected:
+        errors = [{"field": n, "index": None, "reason": "a mesh file is required"}
+                  for n in missing]
+        errors += [{"field": n, "index": None, "reason": f"unexpected file (use {spec.files})"}
+                   for n in unexpected]
+        raise ProblemError("validation-error", errors[0]["field"] + ": " + errors[0]["reason"],
+                           errors=errors)
+    params = validate_object(spec.params, fields)
+    uploads = [await upload(files[n], n) for n in spec.files]
+    source = (uploads[0], uploads[1]) if len(uploads) == 2 else uploads[0]
+    return TaskRequest(spec.name, source, params.model_dump(), limits(settings),
+                       settings.solver_backend, output)
+
+
+async def job_request(request: Request, settings: Settings) -> tuple[str | None, TaskRequest]:
+    """(colour, task) of ``POST /v1/jobs``: JSON ``{"operation", "input", "color"?}`` (the
+    input validated like the synchronous body) or a multipart upload with ``operation``
+    and ``color`` fields. The task keeps its mesh arrays and the wanted colour for later."""
+    mtype = media_type(request)
+    if mtype == "multipart/form-data":
+        fields, files = await read_form(request, settings)
+        head = validate_object(JobRequest, {"operation": fields.pop("operation", None),
+                                            "color": fields.pop("color", None), "input": {}})
+        task = await form_request(OPERATIONS[head.operation], fields, files, settings,
+                                  Output())
+    elif is_json(mtype):
+        body = await read_body(request, settings)
+        head, task = await off_loop(len(body), _json_job, body, settings)
+    else:
+        raise unsupported_media_type(mtype)
+    return head.color, task.with_output(Output(compute=(head.color,) if head.color else (),
+                                               keep=True))
+
+
+def _json_job(body: bytes, settings: Settings) -> tuple[JobRequest, TaskRequest]:
+    head = validate_object(JobRequest, parse_json(body))
+    source, params = decode_document(OPERATIONS[head.operation], head.input, limits(settings),
+                                     prefix=("input",))
+    return head, TaskRequest(head.operation, source, params, limits(settings),
+                             settings.solver_backend)
+
+
+async def session_spec(request: Request, settings: Settings) -> SessionSpec:
+    """The spec of ``POST /v1/sessions`` (JSON only; the mesh is validated as arrays)."""
+    mtype = media_type(request)
+    if not is_json(mtype):
+        raise unsupported_media_type(mtype)
+    body = await read_body(request, settings)
+    spec: SessionSpec = await off_loop(len(body), _session_spec, body, settings)
+    return spec
+
+
+def _session_spec(body: bytes, settings: Settings) -> SessionSpec:
+    arrays, model = decode_json(MESH_ARRAYS, SessionParams, parse_json(body))
+    vertices, faces = arrays["vertices"], arrays["faces"]
+    check_limits(len(vertices), len(faces), limits(settings), "vertices")
+    assert isinstance(model, SessionParams)
+    return SessionSpec(
+        vertices, faces, np.array([h.vertex for h in model.handles], dtype=np.int64),
+        tuple(np.asarray(r.faces, dtype=np.int64) for r in model.rotations or []),
+        None if model.roi is None else np.asarray(model.roi, dtype=np.int64),
+        model.options.model_dump(), settings.solver_backend)

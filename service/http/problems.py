@@ -1,0 +1,136 @@
+"""Problems at the HTTP edge: RFC 9457 responses, the app's error handlers, and the one
+mapping from backend failures to problems.
+
+Every error response is an ``application/problem+json`` document
+(:meth:`service.api.problems.ProblemError.to_dict`); ``GET /problems/{kind}`` describes
+each kind. :func:`problem_for` is where the backends' domain errors
+(:mod:`service.backends.errors`) and task failures become problems, so no backend knows
+about HTTP.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import orjson
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
+from starlette.responses import Response
+
+from service.api.problems import (
+    ProblemError,
+    from_failure,
+    from_solver_error,
+    from_validation_errors,
+)
+from service.backends import errors as backend
+from solver.errors import SolverInputError
+
+logger = logging.getLogger("service")
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+CLIENT_CLOSED = 499
+"""Status recorded (never seen by anyone) when the client disconnected before the answer."""
+RETRY_SOON = {"Retry-After": "5"}
+
+
+def problem_for(exc: backend.BackendError) -> ProblemError:
+    """The problem document a backend failure answers with."""
+    if isinstance(exc, backend.TaskFailedError):
+        return from_failure(exc.error)  # an internal one was logged where it happened
+    if isinstance(exc, backend.QueueFullError):
+        return ProblemError("queue-full", str(exc),
+                            headers={"Retry-After": str(exc.retry_after)},
+                            retry_after=exc.retry_after)
+    if isinstance(exc, backend.TooManySessionsError):
+        return ProblemError("too-many-sessions", str(exc),
+                            headers={"Retry-After": str(exc.retry_after)}, limit=exc.limit,
+                            count=exc.count, retry_after=exc.retry_after)
+    if isinstance(exc, backend.SessionMemoryError):
+        return ProblemError("session-memory", str(exc), headers={"Retry-After": "30"},
+                            memory_used=exc.used, memory_needed=exc.needed,
+                            memory_limit=exc.limit)
+    if isinstance(exc, backend.SessionGoneError):
+        return ProblemError("session-gone", str(exc), reason=exc.reason)
+    if isinstance(exc, backend.SessionNotFoundError):
+        return ProblemError("not-found", str(exc))
+    if isinstance(exc, backend.JobStoreFullError):
+        return ProblemError("too-many-jobs", str(exc), headers=RETRY_SOON)
+    if isinstance(exc, backend.WorkerDiedError):
+        return ProblemError("worker-died", exc.reason)
+    if isinstance(exc, backend.DeadlineError):
+        return ProblemError("timeout", str(exc))
+    if isinstance(exc, backend.TaskCancelledError):
+        return ProblemError("unavailable", f"the task was stopped: {exc}", headers=RETRY_SOON)
+    return ProblemError("unavailable", str(exc), headers=RETRY_SOON)  # ExecutorClosedError
+
+
+def problem_response(problem: ProblemError, instance: str | None = None) -> Response:
+    """An ``application/problem+json`` response for ``problem``."""
+    body = orjson.dumps(problem.to_dict(instance), option=orjson.OPT_SERIALIZE_NUMPY,
+                        default=_fallback)
+    return Response(body, status_code=problem.status, media_type=PROBLEM_MEDIA_TYPE,
+                    headers=problem.headers)
+
+
+def _fallback(value: Any) -> Any:
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    return str(value)
+
+
+def install_handlers(app: FastAPI) -> None:
+    """Register handlers so that every error leaves the app as a problem document."""
+
+    async def on_problem(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, ProblemError)
+        return problem_response(exc, request.url.path)
+
+    async def on_backend(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, backend.BackendError)
+        return problem_response(problem_for(exc), request.url.path)
+
+    async def on_request_validation(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, RequestValidationError)
+        return problem_response(from_validation_errors(exc.errors()), request.url.path)
+
+    async def on_pydantic(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, ValidationError)
+        return problem_response(from_validation_errors(exc.errors()), request.url.path)
+
+    async def on_solver_error(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, SolverInputError)
+        return problem_response(from_solver_error(exc.to_dict(), str(exc)), request.url.path)
+
+    async def on_http(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, StarletteHTTPException)
+        kind = {404: "not-found", 405: "method-not-allowed", 413: "payload-too-large",
+                415: "unsupported-media-type"}.get(exc.status_code, "http-error")
+        problem = ProblemError(kind, str(exc.detail), status=exc.status_code,
+                               headers=exc.headers)
+        return problem_response(problem, request.url.path)
+
+    async def on_disconnect(request: Request, exc: Exception) -> Response:
+        # The client closed the connection before its body arrived: nobody reads an answer.
+        # 499 (nginx's "client closed request") keeps it apart from server errors in metrics.
+        logger.info("client disconnected during %s %s", request.method, request.url.path)
+        return Response(status_code=CLIENT_CLOSED)
+
+    async def on_unexpected(request: Request, exc: Exception) -> Response:
+        logger.exception("unhandled error on %s %s", request.method, request.url.path)
+        problem = ProblemError("internal-error", "an unexpected error; it has been logged",
+                               status=500)
+        return problem_response(problem, request.url.path)
+
+    app.add_exception_handler(ProblemError, on_problem)
+    app.add_exception_handler(backend.BackendError, on_backend)
+    app.add_exception_handler(RequestValidationError, on_request_validation)
+    app.add_exception_handler(ValidationError, on_pydantic)
+    app.add_exception_handler(SolverInputError, on_solver_error)
+    app.add_exception_handler(StarletteHTTPException, on_http)
+    app.add_exception_handler(ClientDisconnect, on_disconnect)
+    app.add_exception_handler(Exception, on_unexpected)

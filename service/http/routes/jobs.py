@@ -1,0 +1,161 @@
+"""Asynchronous jobs: submit (JSON or multipart upload), poll, fetch the result, cancel."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Annotated, Any
+
+import anyio
+from fastapi import APIRouter, Path, Query, Request
+from starlette.responses import Response
+
+from service.api.documents import JobStatus
+from service.api.problems import ProblemError, from_failure
+from service.api.schemas import ColorField
+from service.api.task import TaskResult
+from service.backends.jobs import Job
+from service.http.dependencies import JobsDep, SettingsDep
+from service.http.negotiation import negotiate
+from service.http.openapi import created, error_responses, jobs_body
+from service.http.payloads import job_request
+from service.http.routes.operations import check_color, formats
+from service.operations import OPERATIONS
+from service.worker.output import MEDIA_TYPES, colors_for, json_bytes, mesh_bytes, with_colors
+
+router = APIRouter(tags=["jobs"])
+
+JobId = Annotated[str, Path(description="Job id (from the Location header).")]
+ColorQuery = Annotated[ColorField | None, Query(
+    description="Add a per-vertex colour ramp of this field (a job precomputed with `color`): "
+                "`defect` (reconstruct: the integrability defect) or `distortion` (deform). "
+                "glTF gets COLOR_0, JSON a `colors` array.")]
+
+_RESULT_CONTENT = {
+    "application/json": {"schema": {"type": "object", "description": "The body the "
+                                    "synchronous endpoint of the job's operation returns."}},
+    "model/gltf-binary": {"schema": {"type": "string", "format": "binary"}},
+    "model/gltf+json": {"schema": {"type": "object"}},
+}
+
+
+def _iso(timestamp: float | None) -> str | None:
+    if timestamp is None:
+        return None
+    return datetime.fromtimestamp(timestamp, UTC).isoformat(timespec="milliseconds").replace(
+        "+00:00", "Z")
+
+
+def job_document(job: Job) -> dict[str, Any]:
+    """The ``GET /v1/jobs/{id}`` document (``JobStatus``); a failure as a problem document."""
+    base = f"/v1/jobs/{job.id}"
+    error = None if job.error is None else from_failure(job.error).to_dict(base)
+    return {
+        "id": job.id, "operation": job.operation, "status": job.status,
+        "progress": {"stage": job.stage, "fraction": round(job.fraction, 4),
+                     "stages": dict(job.stages)},
+        "timings": dict(job.timings),
+        "created_at": _iso(job.created_at), "started_at": _iso(job.started_at),
+        "finished_at": _iso(job.finished_at), "expires_at": _iso(job.expires_at),
+        "error": error, "links": {"self": base, "result": f"{base}/result"},
+    }
+
+
+def _status_response(job: Job, status_code: int = 200,
+                     headers: dict[str, str] | None = None) -> Response:
+    return Response(json_bytes(job_document(job)), status_code=status_code,
+                    media_type="application/json", headers=headers)
+
+
+async def _get(jobs: JobsDep, job_id: str) -> Job:
+    job = await jobs.get(job_id)
+    if job is None:
+        raise ProblemError("not-found", f"no job {job_id!r} (it may have expired)")
+    return job
+
+
+@router.post("/v1/jobs", status_code=202, response_model=JobStatus, summary="Submit a job",
+             description="Queues an operation and answers 202 with Location: /v1/jobs/{id}. "
+                         "JSON: `{\"operation\", \"input\", \"color\"?}` where `input` is the "
+                         "body the synchronous endpoint takes. Multipart: form fields "
+                         "`operation`, optional `color`, the mesh in `file` (`file_a`/`file_b` "
+                         "for interpolate) and the operation's other fields JSON-encoded.",
+             response_class=Response, openapi_extra=jobs_body(), operation_id="submit_job",
+             responses={202: created("Accepted; poll the Location.", "/v1/jobs/{id}", "job_id",
+                                     {"GetJob": "get_job", "GetJobResult": "get_job_result",
+                                      "DeleteJob": "delete_job"}),
+                        **error_responses(400, 408, 413, 415, 422, 503)})
+async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep) -> Response:
+    color, task = await job_request(request, settings)
+    check_color(OPERATIONS[task.operation], color)
+    job = await jobs.submit(task, color=color)
+    return _status_response(job, 202, {"Location": f"/v1/jobs/{job.id}"})
+
+
+@router.get("/v1/jobs/{job_id}", response_model=JobStatus, summary="Job status",
+            operation_id="get_job",
+            description="State, progress by stage with fractions, timings and the error "
+                        "(a problem document) of a job.",
+            response_class=Response, responses=error_responses(404, 422))
+async def get_job(jobs: JobsDep, job_id: JobId) -> Response:
+    return _status_response(await _get(jobs, job_id))
+
+
+@router.get("/v1/jobs/{job_id}/result", summary="Job result", operation_id="get_job_result",
+            description="The result with the same content negotiation as the synchronous "
+                        "endpoint (JSON, GLB, glTF; `?color=`). 409 while the job is not "
+                        "finished, or when it failed or was cancelled.",
+            response_class=Response,
+            responses={200: {"description": "The result.", "content": _RESULT_CONTENT},
+                       **error_responses(404, 406, 409, 422)})
+async def get_result(request: Request, jobs: JobsDep, job_id: JobId,
+                     color: ColorQuery = None) -> Response:
+    job = await _get(jobs, job_id)
+    spec = OPERATIONS[job.operation]
+    fmt = negotiate(request.headers.get("accept"), formats(spec))
+    check_color(spec, color)
+    if job.status in ("queued", "running"):
+        raise ProblemError("job-not-finished", f"job {job.id} is {job.status}",
+                           headers={"Retry-After": "1"}, job_status=job.status)
+    if job.status == "cancelled":
+        raise ProblemError("job-cancelled", f"job {job.id} was cancelled")
+    if job.status == "failed":
+        error = job_document(job)["error"]
+        raise ProblemError("job-failed", f"job {job.id} failed: "
+                           f"{(error or {}).get('detail', 'no result')}", error=error)
+    result = await jobs.result(job)
+    values = None
+    if color is not None:
+        values = result.colors.get(color)
+        if values is None:
+            raise ProblemError(
+                "color-not-computed",
+                f"job {job.id} was submitted without \"color\": \"{color}\"; submit it with "
+                "that field to get this colour", errors=[{"field": "color", "index": None,
+                                                          "reason": "not computed"}])
+    body = await anyio.to_thread.run_sync(_encode, result, fmt, values)
+    return Response(body, media_type=MEDIA_TYPES[fmt])
+
+
+def _encode(result: TaskResult, fmt: str, values: Any) -> bytes:
+    if fmt == "json":
+        return result.body if values is None else with_colors(result.body, colors_for(values))
+    if result.mesh is None:
+        raise ProblemError("not-acceptable", "this result is not a single mesh; use "
+                           "Accept: application/json")
+    return mesh_bytes(fmt, result.mesh[0], result.mesh[1], values)
+
+
+@router.delete("/v1/jobs/{job_id}", response_model=JobStatus, summary="Cancel or delete a job",
+               operation_id="delete_job",
+               description="Cancels a queued or running job (200, status `cancelled`; a "
+                           "running solve is stopped by replacing its worker). A finished "
+                           "job is deleted with its result (204).",
+               response_class=Response,
+               responses={204: {"description": "Deleted."}, **error_responses(404, 422)})
+async def delete_job(jobs: JobsDep, job_id: JobId) -> Response:
+    job = await _get(jobs, job_id)
+    if job.done:
+        await jobs.delete(job)
+        return Response(status_code=204)
+    await jobs.cancel(job)
+    return _status_response(job)

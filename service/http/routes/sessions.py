@@ -1,0 +1,257 @@
+"""Interactive deformation sessions: create (factorize once), solve per drag over HTTP or a
+WebSocket, inspect, delete. The wire formats are described in :mod:`service.http.drags` and
+docs/service.md.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from typing import Annotated, Any
+
+import numpy as np
+import orjson
+from fastapi import APIRouter, Path, Request, WebSocket
+from starlette.responses import Response
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from service.api.documents import SessionInfo, SessionVertices
+from service.api.problems import ProblemError
+from service.api.schemas import SessionDrag, SessionRequest
+from service.backends.contracts import SessionRecord
+from service.backends.errors import BackendError
+from service.http.bodies import is_json, media_type, read_body
+from service.http.dependencies import MetricsDep, SessionsDep, SettingsDep
+from service.http.drags import parse_drag_binary, parse_drag_json, ws_reply
+from service.http.negotiation import negotiate
+from service.http.openapi import created, error_responses
+from service.http.payloads import session_spec
+from service.http.problems import problem_for
+from service.http.running import server_timing
+from service.worker.output import MEDIA_TYPES, json_bytes
+from service.worker.session import SESSION_FORMATS
+
+logger = logging.getLogger("service.sessions")
+router = APIRouter(tags=["sessions"])
+
+SessionId = Annotated[str, Path(description="Session id (from the Location header).")]
+OCTET = "application/octet-stream"
+
+
+def session_document(record: SessionRecord) -> dict[str, Any]:
+    """The 201 body of ``POST /v1/sessions`` and the body of ``GET /v1/sessions/{id}``."""
+    base = f"/v1/sessions/{record.id}"
+    info = record.info
+    return {"id": record.id, "n_vertices": info["n_vertices"], "n_faces": info["n_faces"],
+            "handles": info["handles"], "n_rotation_groups": info["n_rotation_groups"],
+            "expires_in": round(max(0.0, record.expires_in), 3),
+            "setup_seconds": round(info["setup_seconds"], 6), "backend": info["backend"],
+            "executor": record.executor, "memory_bytes": int(record.memory),
+            "solves": int(record.solves),
+            "links": {"self": base, "solve": f"{base}/solve", "ws": f"{base}/ws"}}
+
+
+@router.post("/v1/sessions", status_code=201, response_model=SessionInfo,
+             summary="Open a deformation session",
+             description="Factorizes the rest mesh's deformation system once and keeps it "
+                         "warm with one worker (a dedicated process, or a Dask actor). Each "
+                         "drag then only back-substitutes: `POST /v1/sessions/{id}/solve` or "
+                         "the WebSocket `/v1/sessions/{id}/ws`. Answers 201 with Location. "
+                         "Idle sessions expire after FFS_SESSION_TTL seconds.",
+             response_class=Response,
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "application/json": {"schema": {"$ref": "#/components/schemas/"
+                                                         "SessionRequest"},
+                                      "example": SessionRequest.model_config[
+                                          "json_schema_extra"]["examples"][0]}}}},
+             operation_id="create_session",
+             responses={201: created("Created.", "/v1/sessions/{id}", "session_id", {
+                                 "SolveSession": "solve_session", "GetSession": "get_session",
+                                 "DeleteSession": "delete_session"}),
+                        **error_responses(400, 408, 413, 415, 422, 429, 500, 503, 504)})
+async def create_session(request: Request, settings: SettingsDep, sessions: SessionsDep,
+                         metrics: MetricsDep) -> Response:
+    spec = await session_spec(request, settings)
+    doc = session_document(await sessions.create(spec))
+    metrics.session_created()
+    return Response(json_bytes(doc), status_code=201, media_type="application/json",
+                    headers={"Location": doc["links"]["self"]})
+
+
+@router.get("/v1/sessions/{session_id}", response_model=SessionInfo, summary="Session state",
+            operation_id="get_session",
+            response_class=Response, responses=error_responses(404, 410))
+async def get_session(sessions: SessionsDep, session_id: SessionId) -> Response:
+    doc = session_document(await sessions.describe(session_id))
+    return Response(json_bytes(doc), media_type="application/json")
+
+
+@router.delete("/v1/sessions/{session_id}", status_code=204, summary="Close a session",
+               operation_id="delete_session",
+               description="Frees the session's factorization (204). A session that expired "
+                           "or whose worker died is forgotten as well.",
+               response_class=Response, responses=error_responses(404))
+async def delete_session(sessions: SessionsDep, session_id: SessionId) -> Response:
+    await sessions.delete(session_id)
+    return Response(status_code=204)
+
+
+_SOLVE_CONTENT = {
+    "application/json": {"schema": {"$ref": "#/components/schemas/SessionVertices"}},
+    "application/octet-stream": {"schema": {"type": "string", "format": "binary",
+                                            "description": "Little-endian float32, n x 3."}},
+    "model/gltf-binary": {"schema": {"type": "string", "format": "binary"}},
+    "model/gltf+json": {"schema": {"type": "object"}},
+}
+
+
+@router.post("/v1/sessions/{session_id}/solve", response_model=SessionVertices,
+             operation_id="solve_session",
+             summary="Solve one drag",
+             description="New targets for the handles (and rotations for the rotation "
+                         "groups) -> the deformed vertices, by back-substitution only. Body: "
+                         "JSON `{\"handle_positions\", \"handle_rotations\"?}` or "
+                         "`application/octet-stream` (little-endian float32: 3 h positions, "
+                         "optionally followed by 9 g rotation entries). Result by `Accept`: "
+                         "JSON (default), `application/octet-stream` (little-endian float32 "
+                         "n x 3, ready for a vertex buffer), GLB or glTF.",
+             response_class=Response,
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "application/json": {"schema": {"$ref": "#/components/schemas/SessionDrag"},
+                                      "example": SessionDrag.model_config[
+                                          "json_schema_extra"]["examples"][0]},
+                 OCTET: {"schema": {"type": "string", "format": "binary",
+                                    "examples": ["<3 h float32 values>"]}}}}},
+             responses={200: {"description": "The deformed vertices.",
+                              "content": _SOLVE_CONTENT},
+                        **error_responses(400, 404, 406, 408, 410, 413, 415, 422, 503, 504)})
+async def solve_session(request: Request, session_id: SessionId, settings: SettingsDep,
+                        sessions: SessionsDep, metrics: MetricsDep) -> Response:
+    fmt = negotiate(request.headers.get("accept"), SESSION_FORMATS)
+    n_handles, n_groups = await sessions.shape(session_id)
+    mtype = media_type(request)
+    body = await read_body(request, settings)
+    if mtype == OCTET:
+        positions, rotations = parse_drag_binary(body, n_handles, n_groups)
+    elif is_json(mtype):
+        if not body.strip():
+            raise ProblemError("malformed-json", "the body is empty; send a JSON object")
+        try:
+            doc = orjson.loads(body)
+        except orjson.JSONDecodeError as exc:
+            raise ProblemError("malformed-json", f"the body is not valid JSON: {exc}") from None
+        positions, rotations, _ = parse_drag_json(doc, n_handles, n_groups)
+    else:
+        raise ProblemError("unsupported-media-type",
+                           f"Content-Type {mtype!r} is not supported; send application/json "
+                           "or application/octet-stream",
+                           errors=[{"field": "Content-Type", "index": None, "reason": mtype}])
+    start = time.perf_counter()
+    result, timings = await sessions.solve(session_id, positions, rotations, fmt)
+    metrics.session_solve("http", time.perf_counter() - start)
+    return Response(result, media_type=MEDIA_TYPES[fmt], headers=server_timing(timings))
+
+
+def _problem_text(problem: ProblemError, instance: str, seq: int | None) -> str:
+    doc = problem.to_dict(instance)
+    if seq is not None:
+        doc["seq"] = seq
+    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY).decode()
+
+
+@router.websocket("/v1/sessions/{session_id}/ws")
+async def session_ws(websocket: WebSocket, session_id: str, sessions: SessionsDep,
+                     metrics: MetricsDep) -> None:
+    """Drags in, vertices out; the newest drag wins (see docs/service.md)."""
+    instance = f"/v1/sessions/{session_id}/ws"
+    await websocket.accept()
+    send_lock = asyncio.Lock()
+
+    async def send_problem(problem: ProblemError, seq: int | None) -> None:
+        async with send_lock:
+            await websocket.send_text(_problem_text(problem, instance, seq))
+
+    try:
+        n_handles, n_groups = await sessions.shape(session_id)
+    except BackendError as exc:
+        problem = problem_for(exc)
+        await send_problem(problem, None)
+        await websocket.close(code=4000 + problem.status, reason=problem.kind)
+        return
+
+    latest: list[tuple[int, np.ndarray, np.ndarray | None] | None] = [None]
+    wake = asyncio.Event()
+    closed = False
+
+    async def receive() -> None:
+        nonlocal closed
+        count = 0
+        try:
+            while True:
+                message = await websocket.receive()
+                if message["type"] == "websocket.disconnect":
+                    break
+                count += 1
+                seq: int | None = count
+                try:
+                    if message.get("bytes") is not None:
+                        positions, rotations = parse_drag_binary(message["bytes"], n_handles,
+                                                                 n_groups)
+                    else:
+                        try:
+                            doc = orjson.loads(message.get("text") or "")
+                        except orjson.JSONDecodeError as exc:
+                            raise ProblemError("malformed-json",
+                                               f"the message is not valid JSON: {exc}"
+                                               ) from None
+                        positions, rotations, given = parse_drag_json(doc, n_handles,
+                                                                      n_groups)
+                        seq = count if given is None else given
+                except ProblemError as exc:
+                    await send_problem(exc, seq)
+                    continue
+                if latest[0] is not None:
+                    metrics.session_dropped()
+                latest[0] = (seq, positions, rotations)
+                wake.set()
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            closed = True
+            wake.set()
+
+    receiver = asyncio.create_task(receive())
+    try:
+        while True:
+            await wake.wait()
+            wake.clear()
+            if closed:
+                break
+            item, latest[0] = latest[0], None
+            if item is None:
+                continue
+            seq, positions, rotations = item
+            start = time.perf_counter()
+            try:
+                body, _ = await sessions.solve(session_id, positions, rotations, "f32")
+            except BackendError as exc:
+                problem = problem_for(exc)
+                await send_problem(problem, seq)
+                if problem.status in (404, 410):
+                    await websocket.close(code=4000 + problem.status, reason=problem.kind)
+                    break
+                continue
+            metrics.session_solve("ws", time.perf_counter() - start)
+            async with send_lock:
+                await websocket.send_bytes(ws_reply(seq, body))
+    except (WebSocketDisconnect, RuntimeError, OSError):
+        pass
+    finally:
+        receiver.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await receiver
+        if websocket.application_state != WebSocketState.DISCONNECTED:
+            with contextlib.suppress(Exception):
+                await websocket.close()

@@ -1,0 +1,71 @@
+"""uvicorn's HTTP protocol with a deadline for the request head (slow clients, slow-loris).
+
+uvicorn bounds the idle time between requests (``--timeout-keep-alive``) but not the time a
+client takes to send a request's headers: a connection that trickles one header byte per
+second stays open for ever. :class:`HeaderTimeoutProtocol` answers 408 and closes the
+connection when the head of a request is not complete within FFS_HEADER_TIMEOUT seconds of
+its first byte (or of the connection). The body has its own deadline (FFS_BODY_TIMEOUT,
+:func:`service.http.bodies.read_body`).
+
+Use it with ``python -m service``, or ``uvicorn service.app:app --http
+service.server:HeaderTimeoutProtocol``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+
+from service.settings import Settings
+
+PROTOCOL = "service.http.server:HeaderTimeoutProtocol"
+"""The import string to give uvicorn's ``http`` option."""
+TIMEOUT_RESPONSE = (b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\n"
+                    b"connection: close\r\ncontent-length: 37\r\n\r\n"
+                    b"request headers not complete in time\n")
+
+
+class HeaderTimeoutProtocol(HttpToolsProtocol):
+    """:class:`HttpToolsProtocol` that closes connections whose request head is too slow."""
+
+    header_timeout: float = Settings().header_timeout
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._head_timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._arm(answer=False)  # nothing sent yet (a browser's preconnect): close silently
+
+    def on_message_begin(self) -> None:
+        super().on_message_begin()
+        self._arm(answer=True)  # the first byte of a request (again on a kept-alive connection)
+
+    def on_headers_complete(self) -> None:
+        self._disarm()
+        super().on_headers_complete()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)
+
+    def _arm(self, answer: bool) -> None:
+        self._disarm()
+        self._head_timer = self.loop.call_later(self.header_timeout, self._too_slow, answer)
+
+    def _disarm(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+            self._head_timer = None
+
+    def _too_slow(self, answer: bool) -> None:
+        self._head_timer = None
+        if self.cycle is not None and not self.cycle.response_complete:
+            return  # a request is being served: its head arrived (the body has its own timeout)
+        if not self.transport.is_closing():
+            if answer:  # a request began: say why (an idle connection is just closed)
+                self.transport.write(TIMEOUT_RESPONSE)
+            self.transport.close()

@@ -1,0 +1,126 @@
+"""The worker process's side of a task: set-up, :func:`run`, and failures as dicts.
+
+A process of this service (a local pool worker, a session process) calls
+:func:`start_worker_process` first, a Dask worker :func:`initialize_worker` once; then
+:func:`run` per task. A task's failure leaves the process as a plain dict
+(:func:`describe_error`), never as a pickled exception; :func:`service.api.problems.from_failure`
+turns it back into a problem on the HTTP side.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+from service.api.decoding import decode_raw
+from service.api.problems import ProblemError
+from service.api.task import RawBody, TaskRequest, TaskResult
+
+Progress = Callable[[str, float], None]
+logger = logging.getLogger("service.worker")
+
+
+def start_worker_process(threads: int) -> None:
+    """First thing in a worker or session process of this service: cap the threads of numpy
+    and MKL before they load (MKL reads the variables only at load time), leave Ctrl-C to
+    the parent, which shuts the process down, then :func:`initialize_worker`."""
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(threads)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    initialize_worker(threads)
+
+
+def initialize_worker(threads: int) -> None:
+    """Warm a worker: load the sparse backends once and cap BLAS/MKL threads."""
+    from solver import linalg
+
+    linalg.available_backends()
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(threads)
+    except Exception:  # threadpoolctl missing or a library it cannot control
+        pass
+
+
+def run(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Run ``request`` with stage timing; the entry point of every worker.
+
+    A raw body (:class:`RawBody`) is parsed and validated here first, as part of the
+    ``validate`` stage."""
+    from service.operations import OPERATIONS
+    from service.worker.tasks import DEBUG_TASKS
+
+    clock = _Clock(progress)
+    if isinstance(request.source, RawBody):
+        clock("validate", 0.0)
+        request = decode_raw(OPERATIONS[request.operation], request)
+    task = DEBUG_TASKS.get(request.task_name) or OPERATIONS[request.task_name].task
+    result: TaskResult = task(request, clock)
+    result.timings = clock.finish()
+    return result
+
+
+class _Clock:
+    """Wraps ``progress`` and measures the wall time of each stage."""
+
+    def __init__(self, progress: Progress) -> None:
+        self._progress = progress
+        self.stage: str | None = None
+        self._since = time.perf_counter()
+        self.timings: dict[str, float] = {}
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        self._lap(stage)
+        self._progress(stage, fraction)
+
+    def _lap(self, stage: str | None) -> None:
+        now = time.perf_counter()
+        if stage != self.stage:
+            if self.stage is not None:
+                self.timings[self.stage] = self.timings.get(self.stage, 0.0) + now - self._since
+            self.stage, self._since = stage, now
+
+    def finish(self) -> dict[str, float]:
+        self._lap(None)
+        return self.timings
+
+
+# ------------------------------------------------------------------------------ failures
+
+
+def describe_error(exc: BaseException) -> dict[str, Any]:
+    """A picklable description of a task failure ("a failure": category ``input``,
+    ``problem`` or ``internal``; see :func:`service.api.problems.from_failure`)."""
+    from solver.errors import SolverInputError
+
+    if isinstance(exc, SolverInputError):
+        return {"category": "input", "error": exc.to_dict(), "message": str(exc)}
+    problem = exc if isinstance(exc, ProblemError) else _client_caused(exc)
+    if problem is not None:
+        return {"category": "problem", "kind": problem.kind, "status": problem.status,
+                "detail": problem.detail, "errors": problem.errors,
+                "extensions": problem.extensions}
+    logger.error("task failed: %s: %s", type(exc).__name__, exc, exc_info=exc)
+    return {"category": "internal", "exception": type(exc).__name__, "message": str(exc),
+            "traceback": traceback.format_exc()}
+
+
+def _client_caused(exc: BaseException) -> ProblemError | None:
+    """Client-caused solver failures that are not SolverInputErrors."""
+    from solver import linalg
+
+    if isinstance(exc, linalg.BackendUnavailableError):
+        return ProblemError("invalid-option", str(exc), errors=[
+            {"field": "options.solver", "index": None, "reason": str(exc)}])
+    if isinstance(exc, linalg.SingularSystemError):
+        return ProblemError("singular-system", f"the linear system is singular: {exc}",
+                            errors=[{"field": "constraints", "index": None, "reason": str(exc)}])
+    if isinstance(exc, MemoryError):
+        return ProblemError("mesh-too-large", "the input needs more memory than is available")
+    return None

@@ -1,0 +1,370 @@
+"""The operations' task functions, run in the worker processes.
+
+Each takes a :class:`service.api.task.TaskRequest` whose source is decoded (numpy arrays or
+an uploaded file) and a ``progress(stage, fraction)`` callback, calls :mod:`solver`, and
+returns a :class:`service.api.task.TaskResult` with the response body in the requested
+format. Client-caused failures raise :class:`service.api.problems.ProblemError` (or the
+solver's :class:`solver.errors.SolverInputError`). The registry
+(:data:`service.operations.OPERATIONS`) names the task of each operation.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+import solver
+from service.api.decoding import check_limits
+from service.api.problems import ProblemError
+from service.api.task import (
+    FormsArrays,
+    MeshArrays,
+    MeshFile,
+    MeshPair,
+    TaskRequest,
+    TaskResult,
+)
+from service.worker import output
+from solver.errors import TriangleInequalityError
+
+Progress = Callable[[str, float], None]
+TaskFn = Callable[[TaskRequest, Progress], TaskResult]
+
+
+# ------------------------------------------------------------------------------ inputs
+
+
+def _load_file(upload: MeshFile, request: TaskRequest) -> tuple[np.ndarray, np.ndarray]:
+    from solver.io import MeshFileError, UnsupportedFormatError, load_mesh
+
+    field = upload.field
+    try:
+        vertices, faces = load_mesh(upload.data, upload.filename)
+    except UnsupportedFormatError as exc:
+        raise ProblemError("unsupported-file-type", str(exc), errors=[
+            {"field": field, "index": None, "reason": exc.reason}]) from exc
+    except MeshFileError as exc:
+        raise ProblemError("unreadable-file", f"{upload.filename}: {exc}", errors=[
+            {"field": field, "index": None, "reason": exc.reason, **exc.details}]) from exc
+    check_limits(len(vertices), len(faces), request.limits, field)
+    return vertices, faces
+
+
+def _mesh(request: TaskRequest) -> tuple[np.ndarray, np.ndarray]:
+    source = request.source
+    if isinstance(source, MeshFile):
+        return _load_file(source, request)
+    assert isinstance(source, MeshArrays)
+    return source.vertices, source.faces
+
+
+def _forms(request: TaskRequest) -> tuple[FormsArrays, int | None]:
+    """Forms from the request (computed from the mesh for a file upload) and n_vertices."""
+    if isinstance(request.source, FormsArrays):
+        return request.source, None
+    vertices, faces = _mesh(request)
+    forms = solver.fundamental_forms(vertices, faces)
+    return FormsArrays(forms.faces, forms.edges, forms.lengths, forms.angles), len(vertices)
+
+
+def _finish(request: TaskRequest, progress: Progress, document: dict[str, Any],
+            mesh: tuple[np.ndarray, np.ndarray] | None = None,
+            colors: dict[str, np.ndarray] | None = None) -> TaskResult:
+    """The encode stage: the response body in the requested format (+ kept data for jobs)."""
+    progress("encode", 0.0)
+    out = request.output
+    colors = colors or {}
+    values = colors.get(out.color) if out.color else None
+    if out.format == "json":
+        if values is not None:
+            document["colors"] = output.colors_for(values)
+        body = output.json_bytes(document)
+    else:
+        if mesh is None:
+            raise ProblemError("not-acceptable", "this result is not a single mesh")
+        body = output.mesh_bytes(out.format, mesh[0], mesh[1], values)
+    result = TaskResult(output.MEDIA_TYPES[out.format], body)
+    if out.keep:
+        result.mesh, result.colors = mesh, colors
+    progress("encode", 1.0)
+    return result
+
+
+# ------------------------------------------------------------------------------- tasks
+
+
+def forms_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Edge lengths and dihedral angles of a mesh."""
+    progress("validate", 0.0)
+    vertices, faces = _mesh(request)
+    progress("solve", 0.0)
+    forms = solver.fundamental_forms(vertices, faces)
+    document = {"faces": forms.faces, "edges": forms.edges, "lengths": forms.lengths,
+                "angles": forms.angles}
+    return _finish(request, progress, document)
+
+
+def integrability_document(report: solver.IntegrabilityReport) -> dict[str, Any]:
+    """The API shape of an :class:`solver.IntegrabilityReport`."""
+    return {
+        "integrable": report.integrable, "local_integrable": report.local_integrable,
+        "global_integrable": report.global_integrable, "max_defect": report.max_defect,
+        "tolerance": report.tolerance, "vertex_defect": report.vertex_defect,
+        "gauss_defect": report.gauss_defect, "codazzi_defect": report.codazzi_defect,
+        "failing_vertices": report.failing_vertices, "worst_vertices": report.worst_vertices,
+        "triangle_violations": report.triangle_violations,
+        "topology": {"n_components": report.n_components,
+                     "euler_characteristic": report.euler_characteristic,
+                     "genus": report.genus, "boundary_loops": report.boundary_loops,
+                     "isolated_vertices": report.isolated_vertices,
+                     "components": report.components},
+        "global_holonomy": {"rotation": [g.to_dict() for g in report.rotation_holonomy],
+                            "translation": [g.to_dict() for g in report.translation_holonomy]},
+    }
+
+
+def integrability_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """The integrability report of a set of forms (or of a mesh file's forms)."""
+    progress("validate", 0.0)
+    forms, n_vertices = _forms(request)
+    progress("solve", 0.0)
+    report = solver.check_integrability(forms.faces, forms.edges, forms.lengths, forms.angles,
+                                        tol=request.params["tolerance"], n_vertices=n_vertices)
+    return _finish(request, progress, integrability_document(report))
+
+
+def _not_integrable(report: solver.IntegrabilityReport) -> ProblemError:
+    """422 ``not-integrable`` naming the worst vertices, failing loops and bad triangles."""
+    errors: list[dict[str, Any]] = [
+        {"field": "vertices", "index": int(v), "reason":
+         f"holonomy defect {report.vertex_defect[v]:.3g} rad around vertex {int(v)} exceeds "
+         f"the tolerance {report.tolerance:g}", "defect": float(report.vertex_defect[v])}
+        for v in report.worst_vertices if report.vertex_defect[v] > report.tolerance]
+    for loop in report.rotation_holonomy + report.translation_holonomy:
+        if not loop.passes:
+            what = ("rotation" if loop.kind == "rotation" else "translation")
+            errors.append({"field": "edges", "index": loop.edge_index,
+                           "reason": f"global {what} holonomy {loop.magnitude:.3g} along the "
+                                     f"generator loop closed by edge {loop.edge}",
+                           "magnitude": loop.magnitude})
+    errors.extend({"field": "faces", "index": int(t),
+                   "reason": "edge lengths violate the triangle inequality"}
+                  for t in report.triangle_violations[:20])
+    worst = [int(v) for v in report.worst_vertices]
+    return ProblemError(
+        "not-integrable",
+        f"the forms are not integrable: max defect {report.max_defect:.3g} (tolerance "
+        f"{report.tolerance:g}); worst vertices {worst}", errors=errors,
+        worst_vertices=worst, integrability=report.summary())
+
+
+def _constraints(data: dict[str, Any] | None) -> solver.Constraints | None:
+    if not data:
+        return None
+    positions, frames = data.get("positions") or [], data.get("frames") or []
+    if not positions and not frames:
+        return None
+
+    def weights(items: list[dict[str, Any]]) -> np.ndarray:
+        return np.array([np.inf if c.get("weight") is None else c["weight"] for c in items],
+                        dtype=np.float64)
+
+    return solver.Constraints(
+        position_vertices=np.array([c["vertex"] for c in positions], dtype=np.int64),
+        positions=np.array([c["position"] for c in positions], dtype=np.float64).reshape(-1, 3),
+        position_weights=weights(positions),
+        frame_faces=np.array([c["face"] for c in frames], dtype=np.int64),
+        frames=np.array([c["frame"] for c in frames], dtype=np.float64).reshape(-1, 3, 3),
+        frame_weights=weights(frames))
+
+
+def _number(value: float) -> str:
+    """A float as the client most likely wrote it (``100``, ``1.41``)."""
+    value = float(value)
+    return str(int(value)) if value.is_integer() and abs(value) < 1e15 else repr(value)
+
+
+def _quote_sent_lengths(exc: TriangleInequalityError, forms: FormsArrays
+                        ) -> TriangleInequalityError:
+    """The solver's triangle-inequality error (it sees lengths divided by the mean edge
+    length) restated with the lengths as sent, and the edges they belong to."""
+    t = exc.index
+    if t is None:
+        return exc
+    faces, edges = np.asarray(forms.faces), np.asarray(forms.edges)
+    a, b, c = (int(v) for v in faces[t])
+    pairs = np.sort(np.array([[a, b], [b, c], [c, a]]), axis=1)
+    base = int(max(edges.max(), pairs.max())) + 1
+    rows = np.searchsorted(edges[:, 0] * base + edges[:, 1], pairs[:, 0] * base + pairs[:, 1])
+    sent = np.asarray(forms.lengths)[rows]
+    order = np.argsort(sent)
+    quoted = [_number(v) for v in sent]
+    longest, others = quoted[order[2]], [quoted[order[0]], quoted[order[1]]]
+    count = len(exc.details.get("faces", [t]))
+    return TriangleInequalityError(
+        f"edge lengths {', '.join(quoted)} of face {t} (edges {pairs.tolist()}) violate the "
+        f"triangle inequality: {longest} > {others[0]} + {others[1]}"
+        + (f" ({count} faces in all)" if count > 1 else ""),
+        field="faces", index=t,
+        details={**exc.details, "edges": rows.tolist(), "lengths": sent.tolist()})
+
+
+def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Vertex positions from forms; validates integrability first (see the API docs)."""
+    params = request.params
+    options = params["options"]
+    progress("validate", 0.0)
+    forms, n_vertices = _forms(request)
+    full_report = None
+    if options["require_integrable"] or request.output.wants("defect"):
+        full_report = solver.check_integrability(
+            forms.faces, forms.edges, forms.lengths, forms.angles, tol=options["tolerance"],
+            n_vertices=n_vertices)
+        if options["require_integrable"] and not full_report.integrable:
+            raise _not_integrable(full_report)
+    try:
+        result = solver.reconstruct(
+            forms.faces, forms.edges, forms.lengths, forms.angles,
+            constraints=_constraints(params.get("constraints")),
+            frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
+            orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
+            backend=request.solver_backend, n_vertices=n_vertices,
+            check_integrability=full_report is None, integrability_tol=options["tolerance"],
+            exact_shortcut=options["exact_shortcut"], refine=options["refine"],
+            progress=progress)
+    except TriangleInequalityError as exc:
+        raise _quote_sent_lengths(exc, forms) from None
+    report = dict(result.report)
+    if full_report is not None:
+        report = {"integrability": full_report.summary(), **report}
+    faces = np.asarray(forms.faces)
+    colors = {"defect": full_report.vertex_defect} if full_report is not None else {}
+    document = {"vertices": result.vertices, "faces": faces, "report": report}
+    return _finish(request, progress, document, (result.vertices, faces), colors)
+
+
+def deform_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Deform a mesh with position handles (and optional rotation handles / ROI)."""
+    params = request.params
+    options = params["options"]
+    progress("validate", 0.0)
+    vertices, faces = _mesh(request)
+    handles = params["handles"]
+    rotations = params.get("rotations") or []
+    roi = params.get("roi")
+    result = solver.deform(
+        vertices, faces, np.array([h["vertex"] for h in handles], dtype=np.int64),
+        np.array([h["position"] for h in handles], dtype=np.float64).reshape(-1, 3),
+        rotation_handles=[np.asarray(r["faces"], dtype=np.int64) for r in rotations] or None,
+        handle_rotations=(np.array([r["rotation"] for r in rotations], dtype=np.float64)
+                          if rotations else None),
+        roi=None if roi is None else np.asarray(roi, dtype=np.int64),
+        frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
+        orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
+        backend=request.solver_backend, refine=options["refine"], progress=progress)
+    distortion = (result.report.get("distortion") or {}).get("vertex")
+    colors = {} if distortion is None else {"distortion": np.asarray(distortion)}
+    document = {"vertices": result.vertices, "faces": faces, "report": result.report}
+    return _finish(request, progress, document, (result.vertices, faces), colors)
+
+
+def parameterize_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Flatten a mesh with boundary; glTF output is the flat mesh (u, v, 0)."""
+    options = request.params["options"]
+    progress("validate", 0.0)
+    vertices, faces = _mesh(request)
+    result = solver.parameterize(
+        vertices, faces, orthonormalize=options["orthonormalize"],
+        orthonormal_weight=options["orthonormal_weight"], frame_weight=options["frame_weight"],
+        weighting=options["weighting"], backend=request.solver_backend,
+        refine=options["refine"], progress=progress)
+    document = {"uv": result.uv, "flipped_faces": result.flipped_faces, "report": result.report}
+    flat = np.column_stack([result.uv, np.zeros(len(result.uv))])
+    return _finish(request, progress, document, (flat, np.asarray(faces)))
+
+
+def interpolate_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Blend two embeddings of one connectivity in form space for one or several t."""
+    params = request.params
+    options = params["options"]
+    progress("validate", 0.0)
+    source = request.source
+    if isinstance(source, tuple):  # two uploads
+        vertices_a, faces = _load_file(source[0], request)
+        vertices_b, faces_b = _load_file(source[1], request)
+        if faces_b.shape != faces.shape or not np.array_equal(faces, faces_b):
+            raise ProblemError("shape-mismatch", "file_b must have the same faces as file_a",
+                               status=422, errors=[{"field": "file_b", "index": None,
+                                                    "reason": "faces differ from file_a's"}])
+    else:
+        assert isinstance(source, MeshPair)
+        vertices_a, vertices_b, faces = source.vertices_a, source.vertices_b, source.faces
+    t = params["t"]
+    if isinstance(t, list) and request.output.format != "json":
+        raise ProblemError("not-acceptable", "glTF holds one mesh: request a single t, or "
+                           "Accept: application/json for a list of t")
+    progress("solve", 0.0)
+    vertices, reports = solver.interpolate(
+        vertices_a, vertices_b, faces, t, frame_weight=options["frame_weight"],
+        weighting=options["weighting"], backend=request.solver_backend,
+        refine=options["refine"], return_reports=True)
+    faces = np.asarray(faces)
+    document = {"t": t, "vertices": vertices, "faces": faces,
+                "refinement": reports[0] if np.ndim(t) == 0 else reports}
+    mesh = (vertices, faces) if np.ndim(t) == 0 else None
+    return _finish(request, progress, document, mesh)
+
+
+def mesh_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """A mesh file (or JSON mesh) read and checked: vertices in file order, faces, a summary.
+
+    The connectivity is validated like every other operation does it (index range,
+    manifoldness, orientation), so a viewer learns early why a mesh will not work.
+    """
+    from solver.topology import build_topology
+
+    progress("validate", 0.0)
+    vertices, faces = _mesh(request)
+    progress("solve", 0.0)
+    topology = build_topology(faces, n_vertices=len(vertices))
+    faces = topology.faces
+    edges = topology.edges
+    lengths = np.linalg.norm(vertices[edges[:, 1]] - vertices[edges[:, 0]], axis=1)
+    report = {"n_vertices": len(vertices), "n_faces": len(faces), "n_edges": len(edges),
+              "bounds": [vertices.min(axis=0), vertices.max(axis=0)],
+              "mean_edge_length": float(lengths.mean()) if len(lengths) else 0.0}
+    document = {"vertices": vertices, "faces": faces, "report": report}
+    return _finish(request, progress, document, (vertices, faces))
+
+
+# ---------------------------------------------------------------------- test-only tasks
+
+
+def _debug_sleep(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Sleep ``params["seconds"]`` reporting progress in ``params["steps"]`` steps."""
+    steps = max(1, int(request.params.get("steps", 10)))
+    for i in range(steps):
+        progress("solve", i / steps)
+        time.sleep(float(request.params.get("seconds", 1.0)) / steps)
+    return TaskResult("application/json", b'{"slept": true}')
+
+
+def _debug_crash(request: TaskRequest, progress: Progress) -> TaskResult:
+    """The worker process dies abruptly (exit code ``params["code"]``)."""
+    import os
+
+    progress("solve", 0.0)
+    os._exit(int(request.params.get("code", 3)))
+
+
+def _debug_raise(request: TaskRequest, progress: Progress) -> TaskResult:
+    """An unexpected exception (a bug)."""
+    raise RuntimeError(str(request.params.get("message", "boom")))
+
+
+DEBUG_TASKS: dict[str, TaskFn] = {"debug.sleep": _debug_sleep, "debug.crash": _debug_crash,
+                                  "debug.raise": _debug_raise}
+"""Tasks for the tests of the backends (``TaskRequest.task``); not reachable over HTTP."""

@@ -30,7 +30,8 @@ async function problemFrom(response, context) {
   return new ApiError(problem, context);
 }
 
-/** fetch() with problem-document errors. `json` or `form` is the body. */
+/** fetch() with problem-document errors. `json` or `form` is the body, or `body` with its
+ * `contentType` (e.g. from arraysBody). */
 export async function request(path, { method = "POST", json, form, body, contentType,
   accept = "application/json", signal, keepalive = false } = {}) {
   const headers = { Accept: accept };
@@ -55,6 +56,93 @@ export async function request(path, { method = "POST", json, form, body, content
   return response;
 }
 
+// ------------------------------------------------------------------------ binary bodies
+
+/** The operations' binary body (docs/service.md, "Binary bodies"): the large arrays as raw
+ * little-endian bytes behind a JSON header, so nothing is printed or parsed number by
+ * number. The synchronous operations take it; jobs and sessions take JSON only. */
+export const ARRAYS_TYPE = "application/vnd.ffs.arrays";
+
+const DTYPES = new Map([[Float64Array, ["<f8", "setFloat64"]], [Float32Array, ["<f4", "setFloat32"]],
+  [Int32Array, ["<i4", "setInt32"]], [Uint32Array, ["<u4", "setUint32"]]]);
+const LITTLE_ENDIAN = new Uint8Array(new Uint16Array([1]).buffer)[0] === 1;
+const padded = (n) => Math.ceil(n / 8) * 8;
+
+/**
+ * `{body, contentType}` of a binary body, to spread into request() options. `params` are the
+ * body's other (small) fields; `arrays` maps a name to [typed array (flat, C order), shape],
+ * e.g. {vertices: [Float64Array(3n), [n, 3]], faces: [Uint32Array(3m), [m, 3]]}.
+ */
+export function arraysBody(params, arrays) {
+  const meta = {};
+  for (const [name, [data, shape]] of Object.entries(arrays)) {
+    const dtype = DTYPES.get(data.constructor);
+    if (!dtype) throw new TypeError(`${name}: no binary dtype for ${data.constructor.name}`);
+    if (shape.reduce((a, b) => a * b, 1) !== data.length) {
+      throw new RangeError(`${name}: ${data.length} values do not fill the shape [${shape}]`);
+    }
+    meta[name] = { dtype: dtype[0], shape };
+  }
+  const header = new TextEncoder().encode(JSON.stringify({ ...params, arrays: meta }));
+  let size = padded(8 + header.length);
+  for (const [data] of Object.values(arrays)) size += padded(data.byteLength);
+  const bytes = new Uint8Array(size);  // zero-filled: the padding
+  const view = new DataView(bytes.buffer);
+  bytes.set([0x46, 0x46, 0x53, 0x41]);  // "FFSA"
+  view.setUint32(4, header.length, true);
+  bytes.set(header, 8);
+  let offset = padded(8 + header.length);
+  for (const [data] of Object.values(arrays)) {
+    if (LITTLE_ENDIAN) {
+      bytes.set(new Uint8Array(data.buffer, data.byteOffset, data.byteLength), offset);
+    } else {
+      const setter = DTYPES.get(data.constructor)[1];
+      for (let i = 0; i < data.length; i++) view[setter](offset + i * data.BYTES_PER_ELEMENT, data[i], true);
+    }
+    offset += padded(data.byteLength);
+  }
+  return { body: bytes, contentType: ARRAYS_TYPE };
+}
+
+/**
+ * Nested JSON rows (`[[a, b, c], ...]`, or a flat list when `width` is 0) as a typed array
+ * and its shape, for arraysBody(); null unless every row has `width` numbers (integers that
+ * `Type` holds exactly, for indices). On null the caller sends JSON, so that the service's
+ * answer names the element that is wrong, as sent.
+ */
+export function packRows(rows, width, Type = Float64Array) {
+  if (!Array.isArray(rows)) return null;
+  const integer = Type !== Float64Array && Type !== Float32Array;
+  const low = Type === Uint32Array ? 0 : -(2 ** 31), high = Type === Uint32Array ? 2 ** 32 : 2 ** 31;
+  const ok = (x) => typeof x === "number" && (!integer || (Number.isInteger(x) && x >= low && x < high));
+  const out = new Type(rows.length * (width || 1));
+  for (let i = 0; i < rows.length; i++) {
+    const row = rows[i];
+    if (width === 0) {
+      if (!ok(row)) return null;
+      out[i] = row;
+      continue;
+    }
+    if (!Array.isArray(row) || row.length !== width) return null;
+    for (let k = 0; k < width; k++) {
+      if (!ok(row[k])) return null;
+      out[width * i + k] = row[k];
+    }
+  }
+  return [out, width ? [rows.length, width] : [rows.length]];
+}
+
+/** A forms document's arrays (faces, edges, lengths, angles; nested rows or flat typed
+ * arrays) for arraysBody(), or null when one of them is not well-formed (see packRows). */
+export function formsArrays(doc) {
+  const pack = (value, width, Type) => (value instanceof Type
+    ? [value, width ? [value.length / width, width] : [value.length]]
+    : packRows(value, width, Type));
+  const arrays = { faces: pack(doc.faces, 3, Uint32Array), edges: pack(doc.edges, 2, Uint32Array),
+    lengths: pack(doc.lengths, 0, Float64Array), angles: pack(doc.angles, 0, Float64Array) };
+  return Object.values(arrays).every(Boolean) ? arrays : null;
+}
+
 export async function getJson(path, options = {}) {
   return (await request(path, { method: "GET", ...options })).json();
 }
@@ -77,10 +165,17 @@ export async function readMeshFile(file, name) {
   return (await request("/v1/mesh", { form: fileForm(file, name) })).json();
 }
 
+/** The mesh (flat Float64Array(3n) vertices, Uint32Array(3m) faces) as a GLB file (Blob). */
 export async function meshGlb(vertices, faces) {
-  const response = await request("/v1/mesh", { json: { vertices, faces },
-    accept: "model/gltf-binary" });
+  const response = await request("/v1/mesh", { ...arraysBody({}, {
+    vertices: [vertices, [vertices.length / 3, 3]], faces: [faces, [faces.length / 3, 3]] }),
+  accept: "model/gltf-binary" });
   return response.blob();
+}
+
+/** POST a binary body (arraysBody) and return the JSON answer. */
+export async function postArrays(path, params, arrays, options = {}) {
+  return (await request(path, { ...arraysBody(params, arrays), ...options })).json();
 }
 
 /** Which optional parts of the API this server has (from its OpenAPI document). */

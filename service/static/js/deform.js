@@ -4,30 +4,35 @@
 //   SessionTransport  POST /v1/sessions once (the factorization), then per update the session
 //                     WebSocket (links.ws of the session), or POST /v1/sessions/{id}/solve
 //                     with a float32 answer when there is no socket;
-//   DeformTransport   POST /v1/deform per update (servers without sessions).
+//   DeformTransport   POST /v1/deform per update (servers without sessions), the mesh
+//                     in a binary body (application/vnd.ffs.arrays).
 // Wire formats (docs/service.md): a drag is JSON {handle_positions, handle_rotations?, seq?};
 // vertices come back as little-endian float32 (n, 3); a WebSocket reply puts an 8-byte header
 // in front (uint32 seq, uint32 n) and a text frame is a problem document (with "seq").
 // The page keeps one drag in flight, so the server's "newest drag wins" never drops one.
 
-import { ApiError, request, postJson } from "./api.js";
+import { ApiError, postArrays, request } from "./api.js";
 import { flatten3, rows3 } from "./mesh.js";
 
-/** Body of POST /v1/deform (and of POST /v1/sessions) for a set-up and handle targets. */
-export function deformBody(setup, positions, rotations) {
-  const body = {
-    vertices: rows3(setup.rest),
-    faces: Array.from({ length: setup.faces.length / 3 },
-      (_, t) => [setup.faces[3 * t], setup.faces[3 * t + 1], setup.faces[3 * t + 2]]),
+/** The small fields of a deformation body (handles, rotations, options) for a set-up and
+ * handle targets: everything but the mesh. */
+export function deformParams(setup, positions, rotations) {
+  const params = {
     handles: setup.handles.map((vertex, k) => ({ vertex,
       position: [positions[3 * k], positions[3 * k + 1], positions[3 * k + 2]] })),
     options: { orthonormalize: setup.orthonormalize,
       ...(setup.refine === undefined ? {} : { refine: setup.refine }) },
   };
   if (setup.rotationGroups.length) {
-    body.rotations = setup.rotationGroups.map((faces, k) => ({ faces, rotation: rotations[k] }));
+    params.rotations = setup.rotationGroups.map((faces, k) => ({ faces, rotation: rotations[k] }));
   }
-  return body;
+  return params;
+}
+
+/** JSON body of POST /v1/sessions (and of POST /v1/deform) for a set-up and handle targets. */
+export function deformBody(setup, positions, rotations) {
+  return { vertices: rows3(setup.rest), faces: rows3(setup.faces),
+    ...deformParams(setup, positions, rotations) };
 }
 
 /** Little-endian float32 (n, 3) from byte `offset` -> Float64Array(3n). */
@@ -53,7 +58,10 @@ export class DeformTransport {
   async open() {}
 
   async solve(positions, rotations) {
-    const result = await postJson("/v1/deform", deformBody(this.setup, positions, rotations));
+    // The mesh as a binary body (application/vnd.ffs.arrays): it goes with every update.
+    const { rest, faces } = this.setup;
+    const result = await postArrays("/v1/deform", deformParams(this.setup, positions, rotations),
+      { vertices: [rest, [rest.length / 3, 3]], faces: [faces, [faces.length / 3, 3]] });
     return flatten3(result.vertices);
   }
 

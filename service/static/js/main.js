@@ -570,7 +570,9 @@ async function reconstructForms(doc, name, source = name) {
   }
   const input = Object.fromEntries(FORM_KEYS.map((k) => [k, doc[k]]));
   const { integrability, result } = await withProgress("Rebuilding the surface…", async (signal) => {
-    const report = await api.postJson("/v1/integrability", input, { signal });
+    const arrays = api.formsArrays(input);  // null: not well-formed, JSON names the element
+    const report = arrays ? await api.postArrays("/v1/integrability", {}, arrays, { signal })
+      : await api.postJson("/v1/integrability", input, { signal });
     const mesh = await api.runJob("reconstruct", reconstructInput(input), { signal,
       onProgress: jobProgress("Rebuild") });
     return { integrability: report, result: mesh };
@@ -1167,8 +1169,8 @@ function renderDistortion() {
 // ---------------------------------------------------------------------------- download
 
 async function downloadGlb() {
-  const blob = await withProgress("Encoding GLB…", () => api.meshGlb(rows3(state.vertices),
-    rows3(state.faces)));
+  const blob = await withProgress("Encoding GLB…", () => api.meshGlb(state.vertices,
+    state.faces));
   const url = URL.createObjectURL(blob);
   const a = document.createElement("a");
   a.href = url;

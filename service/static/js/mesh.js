@@ -260,14 +260,3 @@ export function preparedBuffers(p) {
   return [p.vertices.buffer, p.faces.buffer, p.topo.edges.buffer, p.topo.left.buffer,
     p.topo.right.buffer, p.reference.lengths.buffer, p.reference.angles.buffer];
 }
-
-/** JSON text {"vertices": [[x, y, z], ...], "faces": [[i, j, k], ...]} of flat arrays (numbers
- * print as the shortest text that reads back to the same double). */
-export function meshJson(vertices, faces) {
-  const rows = (flat) => {
-    const out = new Array(flat.length / 3);
-    for (let i = 0; i < out.length; i++) out[i] = `[${flat[3 * i]},${flat[3 * i + 1]},${flat[3 * i + 2]}]`;
-    return out.join(",");
-  };
-  return `{"vertices":[${rows(vertices)}],"faces":[${rows(faces)}]}`;
-}

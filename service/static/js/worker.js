@@ -1,13 +1,13 @@
 // The page's heavy lifting off the main thread: reading a mesh file through the service
-// (POST /v1/mesh), the JSON of big requests and answers, the edge topology and forms, and
-// the integrability report (POST /v1/forms, then POST /v1/integrability with the forms' own
-// text). Typed arrays go back to the page transferred, not copied, so opening a 100K-face
-// mesh never blocks the page for long.
+// (POST /v1/mesh), the JSON of big answers, the edge topology and forms, and the
+// integrability report (POST /v1/forms, then POST /v1/integrability, both with binary bodies:
+// application/vnd.ffs.arrays). Typed arrays go back to the page transferred, not copied, so
+// opening a 100K-face mesh never blocks the page for long.
 //
 // Messages: {id, kind, args} -> {id, result} or {id, error: {problem, context} | {name, message}}.
 
-import { ApiError, readMeshFile, request } from "./api.js";
-import { meshJson, prepareMesh, preparedBuffers } from "./mesh.js";
+import { ApiError, arraysBody, readMeshFile, request } from "./api.js";
+import { prepareMesh, preparedBuffers } from "./mesh.js";
 
 const F64 = ["vertex_defect", "gauss_defect", "codazzi_defect"];
 
@@ -30,15 +30,17 @@ const handlers = {
   /** Flat vertices and faces -> forms (typed) and the integrability report (per-vertex
    * defects as Float64Array). */
   async analyze({ vertices, faces }) {
-    const formsText = await (await request("/v1/forms", { body: meshJson(vertices, faces),
-      contentType: "application/json" })).text();
-    const reportText = await (await request("/v1/integrability", { body: formsText,
-      contentType: "application/json" })).text();
-    const doc = JSON.parse(formsText);
+    const doc = await (await request("/v1/forms", arraysBody({}, {
+      vertices: [vertices, [vertices.length / 3, 3]], faces: [faces, [faces.length / 3, 3]] })))
+      .json();
     const forms = { faces: flatRows(doc.faces, Uint32Array, 3),
       edges: flatRows(doc.edges, Uint32Array, 2),
       lengths: Float64Array.from(doc.lengths), angles: Float64Array.from(doc.angles) };
-    const report = JSON.parse(reportText);
+    const report = await (await request("/v1/integrability", arraysBody({}, {
+      faces: [forms.faces, [forms.faces.length / 3, 3]],
+      edges: [forms.edges, [forms.edges.length / 2, 2]],
+      lengths: [forms.lengths, [forms.lengths.length]],
+      angles: [forms.angles, [forms.angles.length]] }))).json();
     for (const key of F64) report[key] = Float64Array.from(report[key]);
     const buffers = [forms.faces.buffer, forms.edges.buffer, forms.lengths.buffer,
       forms.angles.buffer, ...F64.map((k) => report[k].buffer)];

@@ -398,7 +398,7 @@ def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
     assert isinstance(raw, RawBody)
     if raw.kind == "binary":
         arrays, model = decode_binary(spec.arrays, spec.params, raw.body)
-        source, params = array_source(spec.source, arrays, request.limits), model.model_dump()
     else:
-        source, params = decode_document(spec, parse_json(raw.body), request.limits)
-    return replace(request, source=source, params=params)
+        arrays, model = decode_json(spec.arrays, spec.params, parse_json(raw.body))
+    return replace(request, source=array_source(spec.source, arrays, request.limits),
+                   params=model.model_dump())

@@ -28,7 +28,6 @@ from service.api.task import (
     TaskResult,
 )
 from service.worker import output
-from solver.errors import TriangleInequalityError
 
 Progress = Callable[[str, float], None]
 TaskFn = Callable[[TaskRequest, Progress], TaskResult]
@@ -181,37 +180,6 @@ def _constraints(data: dict[str, Any] | None) -> solver.Constraints | None:
         frame_weights=weights(frames))
 
 
-def _number(value: float) -> str:
-    """A float as the client most likely wrote it (``100``, ``1.41``)."""
-    value = float(value)
-    return str(int(value)) if value.is_integer() and abs(value) < 1e15 else repr(value)
-
-
-def _quote_sent_lengths(exc: TriangleInequalityError, forms: FormsArrays
-                        ) -> TriangleInequalityError:
-    """The solver's triangle-inequality error (it sees lengths divided by the mean edge
-    length) restated with the lengths as sent, and the edges they belong to."""
-    t = exc.index
-    if t is None:
-        return exc
-    faces, edges = np.asarray(forms.faces), np.asarray(forms.edges)
-    a, b, c = (int(v) for v in faces[t])
-    pairs = np.sort(np.array([[a, b], [b, c], [c, a]]), axis=1)
-    base = int(max(edges.max(), pairs.max())) + 1
-    rows = np.searchsorted(edges[:, 0] * base + edges[:, 1], pairs[:, 0] * base + pairs[:, 1])
-    sent = np.asarray(forms.lengths)[rows]
-    order = np.argsort(sent)
-    quoted = [_number(v) for v in sent]
-    longest, others = quoted[order[2]], [quoted[order[0]], quoted[order[1]]]
-    count = len(exc.details.get("faces", [t]))
-    return TriangleInequalityError(
-        f"edge lengths {', '.join(quoted)} of face {t} (edges {pairs.tolist()}) violate the "
-        f"triangle inequality: {longest} > {others[0]} + {others[1]}"
-        + (f" ({count} faces in all)" if count > 1 else ""),
-        field="faces", index=t,
-        details={**exc.details, "edges": rows.tolist(), "lengths": sent.tolist()})
-
-
 def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
     """Vertex positions from forms; validates integrability first (see the API docs)."""
     params = request.params
@@ -225,18 +193,15 @@ def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
             n_vertices=n_vertices)
         if options["require_integrable"] and not full_report.integrable:
             raise _not_integrable(full_report)
-    try:
-        result = solver.reconstruct(
-            forms.faces, forms.edges, forms.lengths, forms.angles,
-            constraints=_constraints(params.get("constraints")),
-            frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
-            orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
-            backend=request.solver_backend, n_vertices=n_vertices,
-            check_integrability=full_report is None, integrability_tol=options["tolerance"],
-            exact_shortcut=options["exact_shortcut"], refine=options["refine"],
-            progress=progress)
-    except TriangleInequalityError as exc:
-        raise _quote_sent_lengths(exc, forms) from None
+    result = solver.reconstruct(
+        forms.faces, forms.edges, forms.lengths, forms.angles,
+        constraints=_constraints(params.get("constraints")),
+        frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
+        orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
+        backend=request.solver_backend, n_vertices=n_vertices,
+        check_integrability=full_report is None, integrability_tol=options["tolerance"],
+        exact_shortcut=options["exact_shortcut"], refine=options["refine"],
+        progress=progress)
     report = dict(result.report)
     if full_report is not None:
         report = {"integrability": full_report.summary(), **report}

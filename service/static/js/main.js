@@ -1107,21 +1107,17 @@ async function restore(snap) {
   updateStatus();
 }
 
-async function undo() {
+// Undo and redo: take the newest snapshot of one stack, keep the current state on the other.
+async function travel(from, to) {
   if (state.solving) await state.solving;
-  const snap = state.undo.pop();
+  const snap = from.pop();
   if (!snap) return;
-  state.redo.push(snapshot());
+  to.push(snapshot());
   await restore(snap);
 }
 
-async function redo() {
-  if (state.solving) await state.solving;
-  const snap = state.redo.pop();
-  if (!snap) return;
-  state.undo.push(snapshot());
-  await restore(snap);
-}
+function undo() { return travel(state.undo, state.redo); }
+function redo() { return travel(state.redo, state.undo); }
 
 function renderDistortion() {
   const canvas = $("histogram");

@@ -6,6 +6,7 @@ what it answers (response model, whether the result is a mesh, which vertex colo
 add), how it reports progress (stages) and which worker function computes it. The routes,
 the request parsing, the OpenAPI document, the jobs and the workers all read
 :data:`OPERATIONS`; adding an operation means a spec here and its task function.
+:func:`run` is how every worker runs one.
 """
 
 from __future__ import annotations
@@ -17,8 +18,10 @@ from typing import Any, Literal
 from pydantic import BaseModel
 
 from service.api import documents, schemas
-from service.api.decoding import FORMS_ARRAYS, MESH_ARRAYS, PAIR_ARRAYS, ArraySpecs
+from service.api.decoding import FORMS_ARRAYS, MESH_ARRAYS, PAIR_ARRAYS, ArraySpecs, decode_raw
+from service.api.task import RawBody, TaskRequest, TaskResult
 from service.worker import tasks
+from service.worker.runtime import Progress, StageClock
 
 STAGES_SOLVE: tuple[str, ...] = ("validate", "assemble", "factorize", "solve", "refine",
                                   "encode")
@@ -116,3 +119,19 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
 )}
 """Every operation, by name, in the order the API documents them."""
 
+
+
+def run(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Run ``request`` with stage timing: the entry point of every worker.
+
+    A raw body (:class:`~service.api.task.RawBody`) is parsed and validated first, as part
+    of the ``validate`` stage; ``request.task`` names a test-only task instead of the
+    operation's own."""
+    clock = StageClock(progress)
+    if isinstance(request.source, RawBody):
+        clock("validate", 0.0)
+        request = decode_raw(OPERATIONS[request.operation], request)
+    task = tasks.DEBUG_TASKS.get(request.task_name) or OPERATIONS[request.task_name].task
+    result: TaskResult = task(request, clock)
+    result.timings = clock.finish()
+    return result

@@ -2,7 +2,7 @@
 
 The HTTP edge builds one immutable request per operation call (arrays already numpy, or the
 raw body when the worker is to parse it); a backend carries it to a worker process (a local
-pool worker, or a Dask worker) unchanged; :func:`service.worker.runtime.run` answers with a
+pool worker, or a Dask worker) unchanged; :func:`service.operations.run` answers with a
 result or a failure dict. Everything here is a frozen dataclass of numpy arrays, bytes and
 JSON-able values, importable at top level, so it pickles under ``spawn``/``forkserver`` and
 through Dask.

@@ -20,7 +20,7 @@ from typing import Any
 
 from service.backends.loops import post_threadsafe
 
-PRELOAD = ["service.worker.runtime"]
+PRELOAD = ["service.operations"]
 """Modules the forkserver imports once, so that each new worker starts warm."""
 
 Message = tuple[Any, ...]

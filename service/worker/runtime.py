@@ -1,10 +1,11 @@
-"""The worker process's side of a task: set-up, :func:`run`, and failures as dicts.
+"""The worker process's side of a task: set-up, stage timing, and failures as dicts.
 
 A process of this service (a local pool worker, a session process) calls
 :func:`start_worker_process` first, a Dask worker :func:`initialize_worker` once; then
-:func:`run` per task. A task's failure leaves the process as a plain dict
-(:func:`describe_error`), never as a pickled exception; :func:`service.api.problems.from_failure`
-turns it back into a problem on the HTTP side.
+:func:`service.operations.run` per task, which times its stages with :class:`StageClock`.
+A task's failure leaves the process as a plain dict (:func:`describe_error`), never as a
+pickled exception; :func:`service.api.problems.from_failure` turns it back into a problem
+on the HTTP side.
 """
 
 from __future__ import annotations
@@ -17,9 +18,7 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
-from service.api.decoding import decode_raw
 from service.api.problems import ProblemError
-from service.api.task import RawBody, TaskRequest, TaskResult
 
 Progress = Callable[[str, float], None]
 logger = logging.getLogger("service.worker")
@@ -48,26 +47,8 @@ def initialize_worker(threads: int) -> None:
         pass
 
 
-def run(request: TaskRequest, progress: Progress) -> TaskResult:
-    """Run ``request`` with stage timing; the entry point of every worker.
-
-    A raw body (:class:`RawBody`) is parsed and validated here first, as part of the
-    ``validate`` stage."""
-    from service.operations import OPERATIONS
-    from service.worker.tasks import DEBUG_TASKS
-
-    clock = _Clock(progress)
-    if isinstance(request.source, RawBody):
-        clock("validate", 0.0)
-        request = decode_raw(OPERATIONS[request.operation], request)
-    task = DEBUG_TASKS.get(request.task_name) or OPERATIONS[request.task_name].task
-    result: TaskResult = task(request, clock)
-    result.timings = clock.finish()
-    return result
-
-
-class _Clock:
-    """Wraps ``progress`` and measures the wall time of each stage."""
+class StageClock:
+    """Wraps ``progress(stage, fraction)`` and measures the wall time of each stage."""
 
     def __init__(self, progress: Progress) -> None:
         self._progress = progress

@@ -58,12 +58,13 @@ class _EventProgress:
 def run_task(request: TaskRequest, job_id: str | None = None,
              threads: int = 1) -> dict[str, Any]:
     """A task on a Dask worker: ``{"ok": True, "result"}`` or ``{"ok": False, "error"}``."""
+    from service import operations
     from service.worker import runtime
 
     _init_worker(threads)
     report = _EventProgress(job_id) if job_id else None
     try:
-        result = runtime.run(request, report or (lambda stage, fraction: None))
+        result = operations.run(request, report or (lambda stage, fraction: None))
     except Exception as exc:
         error = runtime.describe_error(exc)
         if report is not None:

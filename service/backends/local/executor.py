@@ -48,6 +48,8 @@ def _worker_main(conn: Connection, threads: int) -> None:
     from service.worker import runtime
 
     runtime.start_worker_process(threads)
+    from service import operations
+
     try:
         conn.send(("ready", os.getpid()))
     except OSError:  # the service stopped while this worker was starting
@@ -66,7 +68,7 @@ def _worker_main(conn: Connection, threads: int) -> None:
 
         try:
             try:
-                result = runtime.run(request, progress)
+                result = operations.run(request, progress)
                 conn.send(("ok", task_id, result))
             except OSError:
                 raise

@@ -199,7 +199,8 @@ def test_rebuild_check_is_binary_its_job_json_and_the_glb_download_binary(web, t
     page.keyboard.press("4")  # the Rebuild tab
     page.fill("#angle-scale", "0.9")
     page.click("#bend-forms")
-    page.wait_for_function("window.app.state.source === 'reconstruction'")
+    # A job with refinement: on a loaded machine it can take longer than the default 30 s.
+    page.wait_for_function("window.app.state.source === 'reconstruction'", timeout=180_000)
     web.idle()
 
     (check_request,) = _only(sent, "POST", "/v1/integrability")

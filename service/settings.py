@@ -90,7 +90,7 @@ class Settings(BaseSettings):
     header_timeout: float = Field(
         10.0, gt=0, description="Seconds a client may take to send a request's headers; then "
                                 "408 and the connection is closed (`python -m service`, or "
-                                "uvicorn with `--http service.server:HeaderTimeoutProtocol`).")
+                                "uvicorn with `--http service.http.server:HeaderTimeoutProtocol`).")
     body_timeout: float = Field(
         60.0, gt=0, description="Seconds a client may take to send a request body; then 408 "
                                 "and the connection is closed (slow or stalled uploads).")

@@ -8,7 +8,7 @@ its first byte (or of the connection). The body has its own deadline (FFS_BODY_T
 :func:`service.http.bodies.read_body`).
 
 Use it with ``python -m service``, or ``uvicorn service.app:app --http
-service.server:HeaderTimeoutProtocol``.
+service.http.server:HeaderTimeoutProtocol``.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .errors import ConstraintError
-from .forms import fundamental_forms
+from .forms import forms_of
 from .frames import layout_frames
 from .metrics import compact, distortion
 from .reconstruct import Constraints, ImmersionProblem, Progress
@@ -121,9 +121,12 @@ class Deformer:
         face_local[self.sub_faces] = np.arange(len(self.sub_faces))
 
         sub_rest = self.rest[self.sub_vertices]
-        forms = fundamental_forms(sub_rest, local_faces)
+        # The mesh's topology is built once: the whole mesh's serves when the system covers
+        # it (every vertex used, every face in the ROI), else the sub-mesh's is built.
+        whole = len(self.sub_vertices) == n and len(self.sub_faces) == len(self.faces)
+        topology = full if whole else build_topology(local_faces, n_vertices=len(sub_rest))
+        forms = forms_of(sub_rest, topology)
         notify("assemble", 0.0)
-        topology = build_topology(forms.faces, n_vertices=len(sub_rest))
         self.problem = ImmersionProblem(topology, forms.lengths, forms.angles,
                                         frame_weight=frame_weight, weighting=weighting)
         self.rest_frames = layout_frames(sub_rest / self.problem.length_scale, forms.faces,

@@ -92,7 +92,12 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
         of zero area (its normal, hence the dihedral angles, is undefined).
     """
     V = as_points(vertices, "vertices")
-    topology = build_topology(faces, n_vertices=len(V))
+    return forms_of(V, build_topology(faces, n_vertices=len(V)))
+
+
+def forms_of(V: np.ndarray, topology: MeshTopology) -> Forms:
+    """:func:`fundamental_forms` of validated vertices (n, 3) float64 on a topology built
+    already (so callers that have one do not build it again); same errors."""
     with np.errstate(over="ignore", invalid="ignore"):
         normals, areas = face_normals(V, topology.faces)
         lengths = np.linalg.norm(V[topology.edges[:, 1]] - V[topology.edges[:, 0]], axis=1)

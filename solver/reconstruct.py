@@ -47,6 +47,7 @@ from .system import (
     frame_columns,
     least_squares_rows,
     normal_matrix,
+    unknown_groups,
 )
 from .topology import MeshTopology
 from .validation import as_indices, as_points, require_finite, require_unique
@@ -373,7 +374,9 @@ class ImmersionProblem:
             soft_cols = np.concatenate([soft_cols, extra_penalty_columns])
             soft_w = np.concatenate([soft_w, np.full(len(extra_penalty_columns),
                                                      extra_penalty_weight)])
-        return ConstrainedSystem(self.K, constraints.hard_columns, soft_cols, soft_w, backend)
+        topo = self.topology
+        return ConstrainedSystem(self.K, constraints.hard_columns, soft_cols, soft_w, backend,
+                                 unknown_groups(topo.n_vertices, topo.n_faces))
 
     def refinement_handles(self, constraints: Constraints) -> Handles:
         """The user's constraints as :class:`solver.refine.Handles`: hard positions fixed,

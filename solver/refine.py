@@ -394,6 +394,8 @@ class _Objective:
         index[self.free] = np.arange(int(self.free.sum()))
         self.index = index
         n_free = self.n_free = int(self.free.sum())
+        # Ordering hint of the factorization: a vertex's dim coordinates couple alike.
+        self.ordering_groups = np.repeat(np.arange(n_free), self.dim)
         keys = []
         for g in self.groups:
             local = index[g.vertices]                                   # (rows, q)
@@ -561,7 +563,8 @@ class Refiner:
                     D = sp.diags_array(damping * np.maximum(diag, floor) + floor)
                     factor = None  # frees its analysis for the cache: the next one reuses it
                     try:
-                        factor = factorize(H + D, self.backend, assume_symmetric=True)
+                        factor = factorize(H + D, self.backend, assume_symmetric=True,
+                                           groups=objective.ordering_groups)
                     except SingularSystemError:
                         damping, rejected = damping * 10.0, rejected + 1
                         continue

@@ -164,6 +164,13 @@ def least_squares_rows(terms: EnergyTerms, frame_weight: float) -> tuple[sp.csr_
     return A, weights, kind
 
 
+def unknown_groups(n_vertices: int, n_faces: int) -> np.ndarray:
+    """(n + 3 m,) int64 ordering hint of :func:`solver.linalg.factorize`: one group per
+    vertex and one per face (its three frame unknowns couple with the same others)."""
+    return np.concatenate([np.arange(n_vertices),
+                           n_vertices + np.repeat(np.arange(n_faces), 3)])
+
+
 def frame_columns(n_vertices: int, faces: np.ndarray) -> np.ndarray:
     """(k, 3) unknown indices of frame rows ``f_t[k, 0..2]`` for faces (k,)."""
     return n_vertices + 3 * np.asarray(faces)[:, None] + np.arange(3)[None, :]
@@ -214,7 +221,8 @@ class ConstrainedSystem:
     """
 
     def __init__(self, K: sp.spmatrix, hard_columns: np.ndarray, soft_columns: np.ndarray,
-                 soft_weights: np.ndarray, backend: str = "auto") -> None:
+                 soft_weights: np.ndarray, backend: str = "auto",
+                 groups: np.ndarray | None = None) -> None:
         N = K.shape[0]
         self.size = N
         self.hard_columns = np.asarray(hard_columns, dtype=np.int64)
@@ -234,7 +242,8 @@ class ConstrainedSystem:
         # Explicit zeros kept on purpose (see the class docstring).
         reduced = sp.csr_matrix((K.data * keep, cols, K.indptr), shape=K.shape)
         self.hard_diagonal = reduced.diagonal()[self.hard_columns]
-        self.factor: Factorization = factorize(reduced, backend, assume_symmetric=True)
+        self.factor: Factorization = factorize(reduced, backend, assume_symmetric=True,
+                                               groups=groups)
 
     @property
     def backend(self) -> str:

@@ -9,7 +9,10 @@ touch the ROI only, so the cost follows the ROI size.
 
 from __future__ import annotations
 
+import hashlib
+import threading
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -38,6 +41,74 @@ class Deformation(JsonDataclass):
     report: dict[str, Any]
 
     _array_fields: ClassVar[dict[str, Any]] = {"vertices": np.float64}
+
+
+@dataclass(frozen=True)
+class _RestState:
+    """What a :class:`Deformer` derives from the rest mesh alone (shared, never mutated):
+    the ROI's rest forms, its assembled :class:`ImmersionProblem` (with K) and rest frames."""
+
+    forms: Any
+    problem: ImmersionProblem
+    frames: np.ndarray
+
+
+class _RestCache:
+    """Per-process LRU of the last :data:`REST_CACHE_SIZE` rest states, keyed by a digest
+    of the rest vertices, faces, ROI and energy options: a new handle set on a mesh (a
+    session's next handle set) skips the forms and the assembly."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._entries: OrderedDict[bytes, _RestState] = OrderedDict()
+        self.counts = {"computed": 0, "cached": 0}
+
+    def get(self, key: bytes) -> _RestState | None:
+        with self._lock:
+            state = self._entries.get(key)
+            self.counts["computed" if state is None else "cached"] += 1
+            if state is not None:
+                self._entries.move_to_end(key)
+            return state
+
+    def put(self, key: bytes, state: _RestState) -> None:
+        with self._lock:
+            self._entries[key] = state
+            self._entries.move_to_end(key)
+            while len(self._entries) > max(REST_CACHE_SIZE, 0):
+                self._entries.popitem(last=False)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+            self.counts = dict.fromkeys(self.counts, 0)
+
+
+REST_CACHE_SIZE = 2
+"""Rest states (meshes with their ROI) a process keeps for new :class:`Deformer` handle
+sets; about 2 KB per face each (K and A). 0 disables the cache."""
+_REST_CACHE = _RestCache()
+
+
+def clear_rest_cache() -> None:
+    """Forget every kept rest state and reset :func:`rest_cache_info`'s counters."""
+    _REST_CACHE.clear()
+
+
+def rest_cache_info() -> dict[str, int]:
+    """``entries`` kept, and how many Deformers ``computed`` or reused (``cached``) theirs."""
+    with _REST_CACHE._lock:
+        return {"entries": len(_REST_CACHE._entries), **_REST_CACHE.counts}
+
+
+def _rest_key(rest: np.ndarray, faces: np.ndarray, in_roi: np.ndarray, frame_weight: float,
+              weighting: str) -> bytes:
+    """128-bit digest of everything a :class:`_RestState` depends on."""
+    digest = hashlib.blake2b(digest_size=16)
+    digest.update(repr((rest.shape, faces.shape, float(frame_weight), weighting)).encode())
+    for array in (rest, faces, in_roi):
+        digest.update(memoryview(np.ascontiguousarray(array)).cast("B"))
+    return digest.digest()
 
 
 class Deformer:
@@ -121,16 +192,23 @@ class Deformer:
         face_local[self.sub_faces] = np.arange(len(self.sub_faces))
 
         sub_rest = self.rest[self.sub_vertices]
-        # The mesh's topology is built once: the whole mesh's serves when the system covers
-        # it (every vertex used, every face in the ROI), else the sub-mesh's is built.
-        whole = len(self.sub_vertices) == n and len(self.sub_faces) == len(self.faces)
-        topology = full if whole else build_topology(local_faces, n_vertices=len(sub_rest))
-        forms = forms_of(sub_rest, topology)
         notify("assemble", 0.0)
-        self.problem = ImmersionProblem(topology, forms.lengths, forms.angles,
-                                        frame_weight=frame_weight, weighting=weighting)
-        self.rest_frames = layout_frames(sub_rest / self.problem.length_scale, forms.faces,
-                                         self.problem.terms.layouts)
+        key = _rest_key(self.rest, self.faces, in_roi, frame_weight, weighting)
+        rest = _REST_CACHE.get(key)
+        self.rest_state = "computed" if rest is None else "cached"
+        if rest is None:
+            # The mesh's topology is built once: the whole mesh's serves when the system
+            # covers it (every vertex used, every face in the ROI), else the sub-mesh's.
+            whole = len(self.sub_vertices) == n and len(self.sub_faces) == len(self.faces)
+            topology = full if whole else build_topology(local_faces,
+                                                         n_vertices=len(sub_rest))
+            forms = forms_of(sub_rest, topology)
+            problem = ImmersionProblem(topology, forms.lengths, forms.angles,
+                                       frame_weight=frame_weight, weighting=weighting)
+            frames = layout_frames(sub_rest / problem.length_scale, forms.faces,
+                                   problem.terms.layouts)
+            rest = _RestState(forms, problem, frames)
+        forms, self.problem, self.rest_frames = rest.forms, rest.problem, rest.frames
         fixed_local = np.flatnonzero(~in_roi[self.sub_vertices])
         self._handle_local = local_index[self.handles]
         self._fixed_local = fixed_local
@@ -158,6 +236,7 @@ class Deformer:
         linear = linear.extended(self._anchor)
         notify("factorize", 0.0)
         self.system: ConstrainedSystem = self.problem.system(linear, backend)
+        _REST_CACHE.put(key, rest)  # after the first factorization: K is assembled
         self._linear = linear
         self.system_orthonormal: ConstrainedSystem | None = None
         if orthonormalize or refine:

@@ -29,7 +29,7 @@ from .refine import DEFORM_ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
 from .system import ConstrainedSystem, Weighting
-from .topology import build_topology
+from .topology import MeshTopology, build_topology
 from .validation import as_indices, as_points, require_unique
 
 
@@ -46,8 +46,10 @@ class Deformation(JsonDataclass):
 @dataclass(frozen=True)
 class _RestState:
     """What a :class:`Deformer` derives from the rest mesh alone (shared, never mutated):
-    the ROI's rest forms, its assembled :class:`ImmersionProblem` (with K) and rest frames."""
+    the whole mesh's validated topology, the ROI's rest forms, its assembled
+    :class:`ImmersionProblem` (with K) and rest frames."""
 
+    topology: MeshTopology
     forms: Any
     problem: ImmersionProblem
     frames: np.ndarray
@@ -111,6 +113,27 @@ def _rest_key(rest: np.ndarray, faces: np.ndarray, in_roi: np.ndarray, frame_wei
     return digest.digest()
 
 
+def _face_array(faces: ArrayLike) -> np.ndarray | None:
+    """``faces`` as a C-contiguous (m, 3) int64 array when it plainly is one, else None
+    (then only :func:`build_topology` looks at it, with its own errors)."""
+    try:
+        array = np.asarray(faces)
+    except (TypeError, ValueError):
+        return None
+    if array.ndim != 2 or array.shape[1:] != (3,) or array.dtype.kind not in "iu":
+        return None
+    return np.ascontiguousarray(array, dtype=np.int64)
+
+
+def _roi_mask(roi: ArrayLike | None, n: int) -> np.ndarray:
+    """(n,) bool: the vertices that may move (all of them without a ``roi``)."""
+    if roi is None:
+        return np.ones(n, dtype=bool)
+    in_roi = np.zeros(n, dtype=bool)
+    in_roi[as_indices(roi, "roi", upper=n)] = True
+    return in_roi
+
+
 class Deformer:
     """Prefactorized deformation of one mesh under one set of handles.
 
@@ -148,9 +171,16 @@ class Deformer:
         start = time.perf_counter()
         notify("validate", 0.0)
         self.rest = as_points(vertices, "vertices")
-        full = build_topology(faces, n_vertices=len(self.rest))
-        self.faces = full.faces
         n = len(self.rest)
+        # The rest-state cache is keyed by the faces as given (when they are an (m, 3)
+        # integer array): a hit also skips validating the same connectivity again.
+        given = _face_array(faces)
+        in_roi = _roi_mask(roi, n)
+        key = None if given is None else _rest_key(self.rest, given, in_roi, frame_weight,
+                                                   weighting)
+        rest = None if key is None else _REST_CACHE.get(key)
+        full = rest.topology if rest is not None else build_topology(faces, n_vertices=n)
+        self.faces = full.faces
         self.handles = as_indices(handles, "handles", upper=n)
         require_unique(self.handles, "handles", "vertex")
         groups = [as_indices(g, f"rotations[{i}].faces", upper=len(self.faces))
@@ -166,11 +196,6 @@ class Deformer:
                                   field="handles")
 
         # Region of interest: faces touching it form the system; other vertices are fixed.
-        if roi is None:
-            in_roi = np.ones(n, dtype=bool)
-        else:
-            in_roi = np.zeros(n, dtype=bool)
-            in_roi[as_indices(roi, "roi", upper=n)] = True
         outside = np.flatnonzero(~in_roi[self.handles])
         if len(outside):
             raise ConstraintError(f"handle vertex {int(self.handles[outside[0]])} is outside "
@@ -193,8 +218,6 @@ class Deformer:
 
         sub_rest = self.rest[self.sub_vertices]
         notify("assemble", 0.0)
-        key = _rest_key(self.rest, self.faces, in_roi, frame_weight, weighting)
-        rest = _REST_CACHE.get(key)
         self.rest_state = "computed" if rest is None else "cached"
         if rest is None:
             # The mesh's topology is built once: the whole mesh's serves when the system
@@ -207,7 +230,7 @@ class Deformer:
                                        frame_weight=frame_weight, weighting=weighting)
             frames = layout_frames(sub_rest / problem.length_scale, forms.faces,
                                    problem.terms.layouts)
-            rest = _RestState(forms, problem, frames)
+            rest = _RestState(full, forms, problem, frames)
         forms, self.problem, self.rest_frames = rest.forms, rest.problem, rest.frames
         fixed_local = np.flatnonzero(~in_roi[self.sub_vertices])
         self._handle_local = local_index[self.handles]
@@ -236,7 +259,8 @@ class Deformer:
         linear = linear.extended(self._anchor)
         notify("factorize", 0.0)
         self.system: ConstrainedSystem = self.problem.system(linear, backend)
-        _REST_CACHE.put(key, rest)  # after the first factorization: K is assembled
+        if key is not None:
+            _REST_CACHE.put(key, rest)  # after the first factorization: K is assembled
         self._linear = linear
         self.system_orthonormal: ConstrainedSystem | None = None
         if orthonormalize or refine:

@@ -84,3 +84,20 @@ def test_the_cache_is_bounded_least_recently_used_first():
     assert deform.rest_cache_info()["entries"] == deform.REST_CACHE_SIZE == 2
     assert deform.Deformer(meshes[2], F, handles, backend="superlu").rest_state == "cached"
     assert deform.Deformer(meshes[0], F, handles, backend="superlu").rest_state == "computed"
+
+
+def test_faces_as_given_key_the_cache_and_invalid_faces_are_never_kept():
+    from solver.errors import SolverInputError
+
+    V, F = _mesh()
+    handles = np.array([0, 5, 17])
+    first = deform.Deformer(V, F, handles, backend="superlu")
+    again = deform.Deformer(V, F.tolist(), handles[::-1], backend="superlu")  # a list
+    assert (first.rest_state, again.rest_state) == ("computed", "cached")
+    np.testing.assert_array_equal(again.faces, first.faces)
+    bad = F.copy()
+    bad[0] = [0, 0, 1]  # a degenerate face: the topology check refuses it, every time
+    for _ in range(2):
+        with pytest.raises(SolverInputError):
+            deform.Deformer(V, bad, handles, backend="superlu")
+    assert deform.rest_cache_info()["entries"] == 1

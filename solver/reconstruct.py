@@ -464,7 +464,9 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             lengths normalized), that immersion is the minimizer and no factorization is
             needed (report ``solve_path`` = "tree-integration", ``backend`` = "none",
             ``timings["factorize"]`` = 0).
-            Otherwise, and always with constraints, the system is factorized.
+            Otherwise, and always with constraints or when ``check_integrability`` found
+            the forms not integrable (then no such immersion exists: the tree integration
+            is not tried), the system is factorized.
         refine: the nearest surface (:mod:`solver.refine`). ``None`` (default): when the
             linear answer does not reproduce the forms (they do not integrate, or the
             constraints conflict with them), refine it with Levenberg-Marquardt on the
@@ -499,10 +501,16 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                                cotan_floor=cotan_floor, length_scale=length_scale,
                                layout_angles=layout_angles)
     report: dict[str, Any] = {}
+    known_not_integrable = False
     if check_integrability:
-        report["integrability"] = integrability_from_terms(
+        checked = integrability_from_terms(
             problem.terms, integrability_tol, mean_length=float(L.mean()) /
-            problem.length_scale, length_unit=problem.length_scale).summary()
+            problem.length_scale, length_unit=problem.length_scale)
+        report["integrability"] = checked.summary()
+        # Forms that fail the check cannot have a zero-energy immersion: the tree
+        # integration below would be built only to be refused. (Skipping it is never
+        # wrong: the factorization gives the minimizer in every case.)
+        known_not_integrable = not checked.integrable
     linear = problem.linear_constraints(user)
     touched = problem.constrained_components(user)
     anchor, anchored = problem.anchors(~touched)
@@ -524,7 +532,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         lap("factorize")
 
     u = None
-    if exact_shortcut and not touched.any():
+    if exact_shortcut and not touched.any() and not known_not_integrable:
         # Integrable forms: the immersion integrated along spanning trees already has zero
         # energy, so it is the minimizer of Eq. 5 with these anchors (checked row by row).
         notify("solve", 0.0)

@@ -173,7 +173,8 @@ def test_cap_memory_limit_expiry_worker_death_and_timeout(sphere):
                       ).status_code == 200
 
         # A solve beyond FFS_SESSION_SOLVE_TIMEOUT: 504, then the session is gone (410).
-        sessions.policy.solve_timeout = 1e-4
+        # (0 s: no reply can be there yet; 1e-4 s was raced by a fast reply on a quiet box.)
+        sessions.policy.solve_timeout = 0.0
         problem(c.post(f"{first}/solve", json={"handle_positions": V[HANDLES].tolist()}),
                 504, "timeout")
         sessions.policy.solve_timeout = 30.0

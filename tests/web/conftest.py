@@ -76,8 +76,16 @@ class WebPage:
         self.idle()
         return self.page
 
-    def idle(self) -> None:
-        self.page.evaluate("window.app.idle()")
+    def idle(self, timeout: float = 120.0) -> None:
+        """Wait until the page has no tracked work left; fail (not hang) after ``timeout``."""
+        done = self.page.evaluate(
+            "(ms) => Promise.race([window.app.idle().then(() => true),"
+            " new Promise((r) => setTimeout(() => r(false), ms))])", int(timeout * 1000))
+        if not done:
+            state = self.page.evaluate(
+                "({name: window.app.state.name, errors: window.app.state.errors,"
+                " progress: document.querySelector('#progress')?.textContent})")
+            raise AssertionError(f"the page was still busy after {timeout:g} s: {state}")
 
     def app(self, expression: str, arg: Any = None) -> Any:
         """Evaluate ``expression`` (a function of ``app`` and ``arg``) and await it."""

@@ -241,8 +241,11 @@ class LocalSessions:
                 raise errors.DeadlineError(f"no result within {self.policy.solve_timeout:g} s "
                                     "(FFS_SESSION_SOLVE_TIMEOUT); the session was closed"
                                     ) from None
-            except OSError:
-                self._bury(session, "its process is gone")
+            except OSError:  # the process died before it read the drag: say how
+                await asyncio.to_thread(session.proc.process.join, 2.0)
+                if session.alive:  # (else the reader thread saw the exit first)
+                    self.deaths += 1
+                self._bury(session, self._death(session))
                 raise errors.SessionGoneError(session_id, session.reason or "gone") from None
             finally:
                 session.pending = None
@@ -277,10 +280,14 @@ class LocalSessions:
         if session.closing or not session.alive:
             return
         self.deaths += 1
-        reason = (f"its worker process (pid {session.proc.pid}) died "
-                  f"({session.proc.exit_reason()})")
+        reason = self._death(session)
         logger.error("session %s: %s", session.id, reason)
         self._bury(session, reason)
+
+    @staticmethod
+    def _death(session: _LocalSession) -> str:
+        return (f"its worker process (pid {session.proc.pid}) died "
+                f"({session.proc.exit_reason()})")
 
     @staticmethod
     def _close(session: _LocalSession) -> None:

@@ -39,6 +39,7 @@ from service.api.task import (
     RawBody,
     TaskRequest,
 )
+from service.memory import gc_paused
 
 MAX_ERRORS = 5
 """Errors reported per array (the first ones in element order)."""
@@ -399,6 +400,7 @@ def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
     if raw.kind == "binary":
         arrays, model = decode_binary(spec.arrays, spec.params, raw.body)
     else:
-        arrays, model = decode_json(spec.arrays, spec.params, parse_json(raw.body))
+        with gc_paused():
+            arrays, model = decode_json(spec.arrays, spec.params, parse_json(raw.body))
     return replace(request, source=array_source(spec.source, arrays, request.limits),
                    params=model.model_dump())

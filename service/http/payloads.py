@@ -46,6 +46,7 @@ from service.http.bodies import (
     upload,
     validate_object,
 )
+from service.memory import gc_paused
 from service.operations import OPERATIONS, OperationSpec
 from service.settings import Settings
 
@@ -110,9 +111,10 @@ async def job_request(request: Request, settings: Settings) -> tuple[str | None,
 
 
 def _json_job(body: bytes, settings: Settings) -> tuple[JobRequest, TaskRequest]:
-    head = validate_object(JobRequest, parse_json(body))
-    source, params = decode_document(OPERATIONS[head.operation], head.input, limits(settings),
-                                     prefix=("input",))
+    with gc_paused():
+        head = validate_object(JobRequest, parse_json(body))
+        source, params = decode_document(OPERATIONS[head.operation], head.input,
+                                         limits(settings), prefix=("input",))
     return head, TaskRequest(head.operation, source, params, limits(settings),
                              settings.solver_backend)
 
@@ -128,7 +130,8 @@ async def session_spec(request: Request, settings: Settings) -> SessionSpec:
 
 
 def _session_spec(body: bytes, settings: Settings) -> SessionSpec:
-    arrays, model = decode_json(MESH_ARRAYS, SessionParams, parse_json(body))
+    with gc_paused():
+        arrays, model = decode_json(MESH_ARRAYS, SessionParams, parse_json(body))
     vertices, faces = arrays["vertices"], arrays["faces"]
     check_limits(len(vertices), len(faces), limits(settings), "vertices")
     assert isinstance(model, SessionParams)

@@ -10,6 +10,7 @@ on the HTTP side.
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import signal
@@ -35,7 +36,10 @@ def start_worker_process(threads: int) -> None:
 
 
 def initialize_worker(threads: int) -> None:
-    """Warm a worker: load the sparse backends once and cap BLAS/MKL threads."""
+    """Warm a worker: load the sparse backends once, cap BLAS/MKL threads, and move every
+    object loaded so far out of the garbage collector's sight (``gc.freeze``: the modules
+    of numpy, scipy, pydantic... are never garbage, and each collection would traverse
+    them again)."""
     from solver import linalg
 
     linalg.available_backends()
@@ -45,6 +49,8 @@ def initialize_worker(threads: int) -> None:
         threadpool_limits(threads)
     except Exception:  # threadpoolctl missing or a library it cannot control
         pass
+    gc.collect()
+    gc.freeze()
 
 
 class StageClock:

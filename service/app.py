@@ -16,11 +16,11 @@ from typing import Any
 
 from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
-from starlette.middleware.gzip import GZipMiddleware
 
 from service.api.task import TaskResult
 from service.backends import make_backend
 from service.http import openapi
+from service.http.compression import ParallelGZipMiddleware
 from service.http.dependencies import Services
 from service.http.metrics import MetricsMiddleware, ServiceMetrics
 from service.http.problems import install_handlers
@@ -86,7 +86,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.mount("/static", web.static_files(), name="static")
 
     app.add_middleware(MetricsMiddleware, metrics=metrics)
-    app.add_middleware(GZipMiddleware, minimum_size=settings.gzip_minimum_size,
+    app.add_middleware(ParallelGZipMiddleware, minimum_size=settings.gzip_minimum_size,
                        compresslevel=settings.gzip_level)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,

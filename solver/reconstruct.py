@@ -552,13 +552,13 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         u = system.solve(linear.hard_values, linear.soft_values)
         lap("solve")
 
-    first_energy = problem.energies(u)
+    first_u, first_energy = u, problem.energies(u)
     vertices, frames = problem.unknowns_to_geometry(u, user)
     vertices = problem.recenter(vertices, user, ref_v)
     orthonormality = _orthonormality_error(frames)
     refinement: dict[str, Any] = {"refined": False, "reason": "exact: tree integration"}
     if solve_path == "factorization":
-        exact = reproduces(vertices, topology, L, A)
+        exact = refine is not False and reproduces(vertices, topology, L, A)
         want = refine is not False and not exact
         refinement = {"refined": False, "reason": "disabled (refine=false)" if refine is False
                       else "exact: the linear answer reproduces the forms"}
@@ -587,7 +587,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         notify("refine", 1.0)
 
     report.update({
-        "energy": problem.energies(u),
+        "energy": dict(first_energy) if u is first_u else problem.energies(u),
         "first_solve_energy": first_energy,
         "frame_orthonormality_error": orthonormality,
         "orthonormalized": bool(orthonormalize),

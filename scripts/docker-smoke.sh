@@ -10,7 +10,8 @@
 #      node:20-bookworm-slim;
 #   3. `buildah bud` of the Dockerfile; prints the image size;
 #   4. one container (the image's own CMD and HEALTHCHECK): /healthz, a slow-header client cut
-#      off with 408 after FFS_HEADER_TIMEOUT, reconstructions (JSON,
+#      off with 408 after FFS_HEADER_TIMEOUT, a slow-body client cut off with the 408
+#      body-timeout problem after FFS_BODY_TIMEOUT (5 s here), reconstructions (JSON,
 #      PARDISO on noisy forms), a GLB the Khronos validator accepts, the web page and its
 #      vendored three.js modules (scripts/docker_smoke.py single);
 #   5. the docker-compose.yml topology from the same image: scheduler, two workers, two API

@@ -7,12 +7,14 @@ chosen free on the host; ``scheduler`` resolves to 127.0.0.1 (``--add-host``).
 
 ``single``
     One container with the image's own CMD and HEALTHCHECK (FFS_PORT moved when 8000 is
-    taken): ``/healthz``; a client trickling its request head is answered 408 and cut off
-    after FFS_HEADER_TIMEOUT; ``/v1/forms`` of a mesh file against edge lengths computed
-    here; exact forms reconstructed (lengths match the file's); perturbed, non-integrable forms
-    reconstructed by least squares with the PARDISO backend; a GLB that the Khronos
-    validator (tools/gltf-validator) accepts; the web page, every module of its import map
-    and every vendored three.js file; the MKL libraries the solver process has mapped.
+    taken; FFS_BODY_TIMEOUT=5): ``/healthz``; a client trickling its request head is
+    answered 408 and cut off after FFS_HEADER_TIMEOUT, one trickling its body after a complete
+    head gets the 408 ``body-timeout`` problem after FFS_BODY_TIMEOUT; ``/v1/forms`` of a
+    mesh file against edge lengths computed here; exact forms reconstructed (lengths match
+    the file's); perturbed, non-integrable forms reconstructed by least squares with the
+    PARDISO backend; a GLB that the Khronos validator (tools/gltf-validator) accepts; the web
+    page, every module of its import map and every vendored three.js file; the MKL libraries
+    the solver process has mapped.
 ``compose``
     docker-compose.yml's services (command, environment, read-only root, tmpfs,
     healthcheck, replicas) from the same image: the scheduler (waited for until healthy),
@@ -48,6 +50,9 @@ from typing import Any
 PREFIX = "ffs-smoke"
 HEADER_TIMEOUT = 10.0
 """FFS_HEADER_TIMEOUT's default (service/settings.py), unless the image sets it."""
+BODY_TIMEOUT = 5.0
+"""FFS_BODY_TIMEOUT of the single container (its default, 60 s, would make the check last a
+minute; the value only sets how long the trickled body is waited for)."""
 SAMPLES = "service/static/samples"
 Mesh = tuple[list[list[float]], list[list[int]]]
 
@@ -265,39 +270,73 @@ def image_env(image: str) -> dict[str, str]:
     return dict(item.split("=", 1) for item in json.loads(out))
 
 
+def trickle(base: str, first: bytes, limit: float) -> tuple[bytes, int, float | None]:
+    """Send ``first`` on a new connection, then one more byte every 0.5 s (slow-loris) until
+    the server closes it or ``limit`` s pass; after the 4th byte another client must get
+    /healthz. Returns (what the server answered, bytes trickled, seconds until it closed)."""
+    host, port = base.removeprefix("http://").rsplit(":", 1)
+    sock = socket.create_connection((host, int(port)), timeout=5)
+    with sock:
+        start = time.monotonic()
+        sock.sendall(first)
+        sock.setblocking(False)
+        received, sent, closed_at = b"", 0, None
+        while time.monotonic() - start < limit:
+            ready, _, _ = select.select([sock], [], [], 0.5)
+            if ready:
+                try:
+                    chunk = sock.recv(4096)
+                except ConnectionResetError:  # closed with our trickled bytes unread
+                    chunk = b""
+                if not chunk:
+                    closed_at = time.monotonic() - start
+                    break
+                received += chunk
+                continue
+            with contextlib.suppress(OSError):  # the server may have closed already
+                sock.send(b"a")
+                sent += 1
+            if sent == 4:  # meanwhile the server answers others
+                status, _, _ = http("GET", f"{base}/healthz", timeout=5)
+                check(status == 200, f"/healthz during the trickle: {status}")
+    return received, sent, closed_at
+
+
 def check_header_timeout(base: str, timeout: float) -> None:
     """A client that trickles its request head (one byte every 0.5 s, slow-loris) gets 408
     and a closed connection ``timeout`` seconds after its first byte, while another client
     is served meanwhile."""
-    host, port = base.removeprefix("http://").rsplit(":", 1)
     with step(f"a head trickled at 2 bytes/s is cut off with 408 after ~{timeout:g} s"):
-        sock = socket.create_connection((host, int(port)), timeout=5)
-        with sock:
-            start = time.monotonic()
-            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: smoke\r\nX-Slow: ")
-            sock.setblocking(False)
-            received, sent, closed_at = b"", 0, None
-            while time.monotonic() - start < timeout + 10:
-                ready, _, _ = select.select([sock], [], [], 0.5)
-                if ready:
-                    chunk = sock.recv(4096)
-                    if not chunk:
-                        closed_at = time.monotonic() - start
-                        break
-                    received += chunk
-                    continue
-                with contextlib.suppress(OSError):  # the server may have closed already
-                    sock.send(b"a")
-                    sent += 1
-                if sent == 4:  # meanwhile the server answers others
-                    status, _, _ = http("GET", f"{base}/healthz", timeout=5)
-                    check(status == 200, f"/healthz during the trickle: {status}")
+        received, sent, closed_at = trickle(
+            base, b"GET /healthz HTTP/1.1\r\nHost: smoke\r\nX-Slow: ", timeout + 10)
         check(closed_at is not None, f"connection still open after {timeout + 10:g} s "
                                      f"({sent} bytes trickled)")
         check(received.startswith(b"HTTP/1.1 408"), f"answer {received[:80]!r}")
         check(timeout - 0.5 <= closed_at <= timeout + 3,
               f"closed after {closed_at:.1f} s, FFS_HEADER_TIMEOUT={timeout:g}")
         note(f"408 and closed after {closed_at:.1f} s ({sent} header bytes trickled)")
+
+
+def check_body_timeout(base: str, timeout: float) -> None:
+    """A client that sends a complete head (Content-Length 1000) and then trickles the body
+    (one byte every 0.5 s) gets the 408 ``body-timeout`` problem and a closed connection
+    FFS_BODY_TIMEOUT after its head, while another client is served meanwhile."""
+    with step(f"a body trickled at 2 bytes/s is cut off with 408 body-timeout after "
+              f"~{timeout:g} s"):
+        head = (b"POST /v1/forms HTTP/1.1\r\nHost: smoke\r\nContent-Type: application/json"
+                b"\r\nContent-Length: 1000\r\n\r\n{")
+        received, sent, closed_at = trickle(base, head, timeout + 10)
+        check(closed_at is not None, f"connection still open after {timeout + 10:g} s "
+                                     f"({sent} body bytes trickled)")
+        status_line, _, rest = received.partition(b"\r\n")
+        check(status_line.startswith(b"HTTP/1.1 408"), f"answer {received[:80]!r}")
+        doc = json.loads(rest.partition(b"\r\n\r\n")[2] or b"{}")
+        check(doc.get("kind") == "body-timeout" and doc.get("status") == 408,
+              f"problem document {doc}")
+        check(timeout - 0.5 <= closed_at <= timeout + 3,
+              f"closed after {closed_at:.1f} s, FFS_BODY_TIMEOUT={timeout:g}")
+        note(f"408 body-timeout and closed after {closed_at:.1f} s ({sent} body bytes "
+             f"trickled): {doc.get('detail')}")
 
 
 def check_forms_and_reconstruct(base: str, root: Path) -> None:
@@ -400,7 +439,7 @@ def single(image: str, root: Path) -> None:
     cmd, env = image_cmd(image), image_env(image)
     own_port = int(env.get("FFS_PORT", "8000"))
     args = ["run", "-d", "--name", name, "--network", "host", "--read-only",
-            "--tmpfs", "/tmp"]
+            "--tmpfs", "/tmp", "--env", f"FFS_BODY_TIMEOUT={BODY_TIMEOUT:g}"]
     if port_is_free(own_port):
         port = own_port
     else:  # another process owns the image's port on this shared host
@@ -418,6 +457,7 @@ def single(image: str, root: Path) -> None:
             proc = podman("healthcheck", "run", name, check_rc=False)
             check(proc.returncode == 0, f"unhealthy: {proc.stdout!r} {proc.stderr!r}")
         check_header_timeout(base, float(env.get("FFS_HEADER_TIMEOUT", HEADER_TIMEOUT)))
+        check_body_timeout(base, BODY_TIMEOUT)
         check_forms_and_reconstruct(base, root)
         check_web(base, root)
         with step("MKL libraries mapped in the container after the solves"):

@@ -197,12 +197,14 @@ def report(lat: dict, tput: dict[int, dict[str, float]], repeats: int, n_request
         f"Targets: JSON <= 1.15 x library: {'met' if json_ratio <= 1.15 else 'NOT met'} "
         f"(worst JSON variant {json_ratio:.2f} x); binary <= 1.05 x: "
         f"{'met' if binary_ratio <= 1.05 else 'NOT met'} ({binary_ratio:.2f} x). Worker stage "
-        f"timings of one JSON request (`Server-Timing`, ms): `{lat['server_timing']}`. The "
-        "worker makes the same library call; the HTTP cost is the body on loopback, parsing "
-        "and validating it in the worker (orjson + numpy for JSON, a view of the bytes for "
-        "the binary body), the pipe to the worker and the response. Run-to-run noise on a "
-        "2-core machine is about 10 %, which is why an HTTP median can come out below the "
-        "library's.",
+        f"timings of one JSON request (`Server-Timing`, ms): `{lat['server_timing']}` "
+        "(`validate` holds the body's parse and checks, ~20 ms for JSON, and the solver's "
+        "own input validation, ~15 ms, which the library call makes too). The worker makes "
+        "the same library call; the HTTP cost is the body on loopback (~6 ms for this body "
+        "and answer through any uvicorn app here), parsing and validating it in the worker "
+        "(orjson + numpy for JSON, a view of the bytes for the binary body), the pipe to the "
+        "worker and the response. Run-to-run noise on a 2-core machine is about 10 %, which "
+        "is why an HTTP median can come out below the library's.",
         "",
         f"## Throughput of small requests ({n_requests} requests, 8 concurrent clients)",
         "",

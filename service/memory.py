@@ -64,6 +64,9 @@ def release_between_tasks(next_task_waiting: Any) -> None:
     process holds more than :data:`RELEASE_ABOVE`, else only when
     ``next_task_waiting(IDLE_RELEASE)`` (e.g. ``Connection.poll``) says no task came."""
     if resident_memory() > RELEASE_ABOVE or not next_task_waiting(IDLE_RELEASE):
+        from solver.linalg import release_cached_factors
+
+        release_cached_factors()  # the factor memory PARDISO's idle handles keep
         release_memory()
 
 

@@ -117,8 +117,9 @@ REFINEMENT_STEPS: int = 3  # iterative-refinement steps tried before a solve is 
 
 ANALYSIS_CACHE_BYTES: int = 512 * 2**20
 """Memory limit (bytes) of this process's cache of PARDISO analyses (orderings and symbolic
-factorizations, keyed by sparsity pattern; see :func:`analysis_cache_info`). Assign a new
-value at any time; it applies from the next factorization. 0 disables the cache."""
+factorizations, keyed by sparsity pattern, and the factor memory of idle handles, dropped
+first; see :func:`analysis_cache_info`). Assign a new value at any time; it applies from the
+next factorization. 0 disables the cache."""
 
 _PIP_PACKAGE: dict[str, str] = {"pardiso": "pypardiso", "cholespy": "cholespy", "superlu": "scipy"}
 
@@ -245,6 +246,7 @@ class _PardisoHandle:
         # iparm[4] = 1: use the ordering in perm; 2: compute it and return it in perm.
         self.perm = np.zeros(n, dtype=np.int32) if perm is None else perm.copy()
         self.iparm[4] = 2 if perm is None else 1
+        self.factored = False  # holds a numerical factor (phase 22 done, no phase 0 since)
 
     def call(self, phase: int, a: np.ndarray, ia: np.ndarray, ja: np.ndarray,
              b: np.ndarray | None = None, x: np.ndarray | None = None, nrhs: int = 1) -> int:
@@ -267,6 +269,7 @@ class _PardisoHandle:
     def drop_factor(self) -> None:
         """Free the numerical factor, keep the analysis (phase 0)."""
         self._call_without_matrix(0)
+        self.factored = False
 
     def release(self) -> None:
         """Free all MKL memory of the handle (phase -1)."""
@@ -276,6 +279,16 @@ class _PardisoHandle:
     def analysis_bytes(self) -> int:
         """Memory the analysis keeps after :meth:`drop_factor` (iparm[15], in KB), plus perm."""
         return int(self.iparm[15]) * 1024 + self.perm.nbytes
+
+    @property
+    def factor_bytes(self) -> int:
+        """Memory of the numerical factor while it is held (iparm[16], in KB), else 0."""
+        return int(self.iparm[16]) * 1024 if self.factored else 0
+
+    @property
+    def held_bytes(self) -> int:
+        """All the memory the handle holds: analysis, ordering and factor."""
+        return self.analysis_bytes + self.factor_bytes
 
 
 # --------------------------------------------------------------------- analysis cache
@@ -290,21 +303,23 @@ class _CacheEntry:
 
     @property
     def nbytes(self) -> int:
-        return self.perm.nbytes + sum(h.analysis_bytes for h in self.idle)
+        return self.perm.nbytes + sum(h.held_bytes for h in self.idle)
 
 
 class _AnalysisCache:
     """Per-process LRU cache of PARDISO analyses, keyed by sparsity pattern.
 
     For each pattern it keeps the fill-reducing ordering (``4 N`` bytes) and the handles of
-    factorizations that were garbage collected, with their numerical factor freed but their
-    analysis (ordering + symbolic factorization) kept. A new factorization of the same
-    pattern takes an idle handle for itself (then it pays only the numerical factorization,
-    phase 22) or, when all handles of that pattern are in use, a fresh handle with the kept
-    ordering (phase 11 skips the ordering but redoes the symbolic factorization). A handle is
-    never shared by two live factorizations, so factorizations of one pattern run in
-    parallel safely. The total size stays below :data:`ANALYSIS_CACHE_BYTES`: least recently
-    used patterns lose their idle handles first, then their ordering.
+    factorizations that were garbage collected, with their analysis (ordering + symbolic
+    factorization) and, while memory allows, the memory of their numerical factor. A new
+    factorization of the same pattern takes an idle handle for itself (then it pays only the
+    numerical factorization, phase 22, in memory that is already mapped: on this project's
+    VM, faulting a fresh factor's pages in cost 10-30 % of a warm factorization) or, when
+    all handles of that pattern are in use, a fresh handle with the kept ordering (phase 11
+    skips the ordering but redoes the symbolic factorization). A handle is never shared by
+    two live factorizations, so factorizations of one pattern run in parallel safely. The
+    total size stays below :data:`ANALYSIS_CACHE_BYTES`: least recently used patterns lose
+    their idle handles' factors first, then their idle handles, then their ordering.
     """
 
     def __init__(self) -> None:
@@ -326,7 +341,7 @@ class _AnalysisCache:
             self._entries.move_to_end(key)
             if entry.idle:
                 handle = entry.idle.pop()
-                self._bytes -= handle.analysis_bytes
+                self._bytes -= handle.held_bytes
                 self._counts["cached_handle"] += 1
                 return handle, entry.perm
             self._counts["cached_ordering"] += 1
@@ -346,8 +361,7 @@ class _AnalysisCache:
     def park(self, key: bytes, handle: _PardisoHandle) -> None:
         """Take back the handle of a dead factorization (called by its finalizer, in any
         thread, possibly during garbage collection: so no lock here, only an atomic
-        append; the handle is filed at the next cache operation)."""
-        handle.drop_factor()
+        append; the handle, factor memory included, is filed at the next cache operation)."""
         self._returned.append((key, handle))
 
     def _drain(self) -> None:
@@ -359,18 +373,30 @@ class _AnalysisCache:
                 handle.release()
                 continue
             entry.idle.append(handle)
-            self._bytes += handle.analysis_bytes
+            self._bytes += handle.held_bytes
         self._evict()
 
+    def _drop_factors(self, limit: float) -> None:
+        """Free idle handles' factors, least recently used first, until the cache holds at
+        most ``limit`` bytes (lock held)."""
+        for entry in self._entries.values():
+            for handle in entry.idle:
+                if self._bytes <= limit:
+                    return
+                self._bytes -= handle.factor_bytes
+                handle.drop_factor()
+
     def _evict(self) -> None:
-        """Free least recently used analyses until the cache fits its limit (lock held)."""
+        """Free least recently used factors, then analyses, until the cache fits its limit
+        (lock held)."""
+        self._drop_factors(ANALYSIS_CACHE_BYTES)
         for key in list(self._entries):
             if self._bytes <= ANALYSIS_CACHE_BYTES:
                 return
             entry = self._entries[key]
             while entry.idle and self._bytes > ANALYSIS_CACHE_BYTES:
                 handle = entry.idle.pop(0)
-                self._bytes -= handle.analysis_bytes
+                self._bytes -= handle.held_bytes
                 handle.release()
             if self._bytes > ANALYSIS_CACHE_BYTES:
                 self._bytes -= entry.nbytes
@@ -388,14 +414,20 @@ class _AnalysisCache:
             self._bytes = 0
             self._counts = dict.fromkeys(self._counts, 0)
 
+    def release_factors(self) -> None:
+        """Free the factors of every idle handle, keeping their analyses."""
+        with self._lock:
+            self._drain()
+            self._drop_factors(0)
+
     def info(self) -> dict[str, int]:
         """Sizes and counters (see :func:`analysis_cache_info`)."""
         with self._lock:
             self._drain()
-            return {"patterns": len(self._entries),
-                    "idle_handles": sum(len(e.idle) for e in self._entries.values()),
-                    "bytes": self._bytes, "limit_bytes": int(ANALYSIS_CACHE_BYTES),
-                    **self._counts}
+            idle = [h for e in self._entries.values() for h in e.idle]
+            return {"patterns": len(self._entries), "idle_handles": len(idle),
+                    "bytes": self._bytes, "factor_bytes": sum(h.factor_bytes for h in idle),
+                    "limit_bytes": int(ANALYSIS_CACHE_BYTES), **self._counts}
 
 
 _CACHE = _AnalysisCache()
@@ -407,13 +439,22 @@ def clear_analysis_cache() -> None:
     _CACHE.clear()
 
 
+def release_cached_factors() -> None:
+    """Free the numerical factors kept by idle PARDISO handles of this process's analysis
+    cache; their analyses stay (the next factorization of a pattern pays its page faults
+    again, not its analysis). For a process about to sit idle."""
+    _CACHE.release_factors()
+
+
 def analysis_cache_info() -> dict[str, int]:
     """The analysis cache of this process: ``patterns`` (sparsity patterns kept),
     ``idle_handles`` (analysed PARDISO handles without an owner), ``bytes`` (their size
-    and the orderings'), ``limit_bytes`` (:data:`ANALYSIS_CACHE_BYTES`), and how many
-    PARDISO factorizations ``computed`` their analysis, reused an idle handle
-    (``cached_handle``: numerical factorization only) or reused an ordering
-    (``cached_ordering``: symbolic factorization and numerical factorization)."""
+    and the orderings'), ``factor_bytes`` (the part of it that is idle handles' numerical
+    factors, see :func:`release_cached_factors`), ``limit_bytes``
+    (:data:`ANALYSIS_CACHE_BYTES`), and how many PARDISO factorizations ``computed`` their
+    analysis, reused an idle handle (``cached_handle``: numerical factorization only) or
+    reused an ordering (``cached_ordering``: symbolic factorization and numerical
+    factorization)."""
     return _CACHE.info()
 
 
@@ -513,6 +554,7 @@ class _PardisoSolver:
         analysed = time.perf_counter()
         self._handle = handle
         self._raise_if_failed(handle, handle.call(22, self._a, self._ia, self._ja))
+        handle.factored = True
         self.timings = {"analysis": 0.0 if reused else analysed - start,
                         "factorization": time.perf_counter() - analysed}
         self._finalizer = weakref.finalize(self, _retire, handle, key)

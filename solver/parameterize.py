@@ -186,6 +186,9 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
         _, frames = problem.unknowns_to_geometry(u)
         targets = np.swapaxes(nearest_planar_rotation(frames), 1, 2).reshape(-1, 3)
         notify("factorize", 0.5)
+        # Dropping the first factorization first hands its analysis (same pattern) to this
+        # one: only the numerical factorization is redone (solver.linalg's cache).
+        del system
         system = problem.system(anchor, backend, problem.all_frame_columns(), orthonormal_weight)
         notify("solve", 0.5)
         u = system.solve(anchor.hard_values, targets)

@@ -543,13 +543,17 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             timings["factorize"] = 0.0
             notify("factorize", 1.0)
     solve_path = "tree-integration" if u is not None else "factorization"
-    system: ConstrainedSystem | None = None
+    factorized = {"backend": "none", "analysis": "none"}
     if u is None:
         notify("factorize", 0.0)
         system = problem.system(linear, backend)
         lap("factorize")
         notify("solve", 0.0)
         u = system.solve(linear.hard_values, linear.soft_values)
+        factorized = {"backend": system.backend, "analysis": system.analysis}
+        # Dropped now, its analysis (the pattern of K) serves the orthonormalization's
+        # factorization below: only the numerical phase is redone (solver.linalg's cache).
+        del system
         lap("solve")
 
     first_u, first_energy = u, problem.energies(u)
@@ -593,8 +597,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         "orthonormalized": bool(orthonormalize),
         "refinement": refinement,
         "timings": timings,
-        "backend": system.backend if system is not None else "none",
-        "analysis": system.analysis if system is not None else "none",
+        **factorized,
         "solve_path": solve_path,
         "n_unknowns": problem.n_unknowns,
         "frame_weight": problem.frame_weight,

@@ -140,6 +140,7 @@ def test_cache_stays_within_its_limit_lru_first() -> None:
     sizes = [8, 9, 10, 11, 12, 13]
     systems = [noisy_system(*grid_mesh(k, False)) for k in sizes]
     factorize(systems[-1][0], "pardiso")  # the largest entry (ordering + idle handle)
+    linalg.release_cached_factors()  # its analysis alone
     largest = analysis_cache_info()["bytes"]
     linalg.clear_analysis_cache()
     linalg.ANALYSIS_CACHE_BYTES = int(2.5 * largest)  # room for about two patterns
@@ -150,6 +151,33 @@ def test_cache_stays_within_its_limit_lru_first() -> None:
     assert analysis_cache_info()["patterns"] < len(sizes)
     assert factorize(systems[-1][0], "pardiso").analysis == "cached"  # recent: kept
     assert factorize(systems[0][0], "pardiso").analysis == "computed"  # oldest: evicted
+
+
+def test_idle_handles_keep_their_factor_memory_within_the_limit() -> None:
+    """A parked handle keeps its numerical factor's memory (counted in the cache's bytes),
+    the next factorization of the pattern refactorizes into it with the same answer, and
+    the factor is what goes first: at a limit below it, or when asked to."""
+    K, b = noisy_system(*grid_mesh(12, False))
+    reference = spsolve(sp.csc_array(K), b)
+    factorize(K, "pardiso").solve(b)
+    info = analysis_cache_info()
+    assert info["idle_handles"] == 1 and 0 < info["factor_bytes"] < info["bytes"]
+    again = factorize(K * 1.5, "pardiso")  # new values, the kept handle and its memory
+    assert again.analysis == "cached" and analysis_cache_info()["cached_handle"] == 1
+    assert relative(1.5 * again.solve(b), reference) < 1e-10
+    del again
+    held = analysis_cache_info()
+    linalg.release_cached_factors()
+    after = analysis_cache_info()
+    assert after["factor_bytes"] == 0 and after["idle_handles"] == 1
+    assert after["bytes"] == held["bytes"] - held["factor_bytes"]
+    assert factorize(K, "pardiso").analysis == "cached"  # the analysis stayed
+    gc.collect()
+    linalg.ANALYSIS_CACHE_BYTES = analysis_cache_info()["bytes"] - 1  # not room for both
+    factorize(K * 2.0, "pardiso")
+    info = analysis_cache_info()
+    assert info["idle_handles"] == 1 and info["factor_bytes"] == 0
+    assert 0 < info["bytes"] <= linalg.ANALYSIS_CACHE_BYTES
 
 
 def test_clear_frees_everything_and_live_factors_keep_working() -> None:

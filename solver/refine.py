@@ -533,7 +533,6 @@ class Refiner:
         X = np.array(start, dtype=np.float64)
         before = self.residuals(X)
         energy0 = energy = objective.energy(X)
-        free, dim = objective.free, objective.dim
         damping, growth = INITIAL_DAMPING, 2.0
         iterations = rejected = factorizations = 0
         stop, converged = "max_iterations", False
@@ -558,13 +557,9 @@ class Refiner:
             accepted = False
             while not accepted and damping <= MAX_DAMPING:
                 if refresh:
-                    diag = H.diagonal()
-                    floor = 1e-9 * float(diag.mean())
-                    D = sp.diags_array(damping * np.maximum(diag, floor) + floor)
                     factor = None  # frees its analysis for the cache: the next one reuses it
                     try:
-                        factor = factorize(H + D, self.backend, assume_symmetric=True,
-                                           groups=objective.ordering_groups)
+                        factor = self._damped_factor(H, damping)
                     except SingularSystemError:
                         damping, rejected = damping * 10.0, rejected + 1
                         continue
@@ -574,14 +569,9 @@ class Refiner:
                 slope = float(g @ step)  # < 0: a descent direction (H + D is SPD)
                 # Gain ratio of the full step: actual decrease over the Gauss-Newton model's.
                 predicted = -slope - 0.5 * float(step @ (model @ step))
-                for alpha in STEP_FRACTIONS:  # backtracking costs energies, not factorizations
-                    trial = X.copy()
-                    trial[free] += alpha * step.reshape(-1, dim)
-                    new_energy = objective.energy(trial)
-                    if np.isfinite(new_energy) and new_energy < energy + ARMIJO * alpha * slope:
-                        accepted = True
-                        break
-                if not accepted:
+                found = self._line_search(X, step, energy, slope)
+                accepted = found is not None
+                if found is None:
                     rejected += 1
                     if fresh:
                         damping *= growth
@@ -590,6 +580,7 @@ class Refiner:
                         energy, H, g = objective.normal_equations(X)
                     refresh = True
                     continue
+                alpha, trial, new_energy = found
                 gain = (energy - new_energy) / predicted if predicted > 0 else 0.0
                 # A full Gauss-Newton step (fresh matrix, little damping) that barely lowers
                 # E: converged. A frozen, shortened or heavily damped step says nothing.
@@ -640,6 +631,31 @@ class Refiner:
             "angle_weight": self.targets.angle_weight,
             "seconds": time.perf_counter() - clock,
         })
+
+    def _damped_factor(self, H: sp.csr_array, damping: float) -> Any:
+        """Factorization of ``H + damping diag(H)`` (Levenberg-Marquardt; the diagonal is
+        floored at 1e-9 of its mean, which is also added, so that H + D is definite).
+        Raises :class:`SingularSystemError` where the backend finds it singular."""
+        diag = H.diagonal()
+        floor = 1e-9 * float(diag.mean())
+        D = sp.diags_array(damping * np.maximum(diag, floor) + floor)
+        return factorize(H + D, self.backend, assume_symmetric=True,
+                         groups=self.objective.ordering_groups)
+
+    def _line_search(self, X: np.ndarray, step: np.ndarray, energy: float, slope: float,
+                     ) -> tuple[float, np.ndarray, float] | None:
+        """Backtracking along ``step`` (n_free * dim,) from ``X`` (n, dim) at energy
+        ``energy`` with directional derivative ``slope`` < 0: the first of
+        :data:`STEP_FRACTIONS` that decreases E sufficiently (Armijo), as ``(fraction, new
+        positions, new E)``, or None. It costs energies, never factorizations."""
+        objective = self.objective
+        for alpha in STEP_FRACTIONS:
+            trial = X.copy()
+            trial[objective.free] += alpha * step.reshape(-1, objective.dim)
+            new_energy = objective.energy(trial)
+            if np.isfinite(new_energy) and new_energy < energy + ARMIJO * alpha * slope:
+                return alpha, trial, new_energy
+        return None
 
 
 def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None = None, *,

@@ -70,6 +70,23 @@ def release_between_tasks(next_task_waiting: Any) -> None:
         release_memory()
 
 
+_later: list[Any] = []
+
+
+def free_later(obj: Any) -> None:
+    """Keep ``obj`` (a parsed body) alive until :func:`free_deferred`, at most one at a time.
+
+    Freeing the ~200 000 objects of a parsed 2 MB JSON body takes ~3 ms; a worker frees them
+    after it has sent its answer instead of before. Any earlier object is freed here, so a
+    process that never calls :func:`free_deferred` holds at most one."""
+    _later[:] = [obj]
+
+
+def free_deferred() -> None:
+    """Free what :func:`free_later` kept (a worker calls this once its answer is sent)."""
+    _later.clear()
+
+
 _gc_lock = threading.Lock()
 _gc_pauses = 0
 _gc_was_enabled = False

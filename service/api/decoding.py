@@ -39,7 +39,7 @@ from service.api.task import (
     RawBody,
     TaskRequest,
 )
-from service.memory import gc_paused
+from service.memory import free_later, gc_paused
 
 MAX_ERRORS = 5
 """Errors reported per array (the first ones in element order)."""
@@ -401,6 +401,8 @@ def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
         arrays, model = decode_binary(spec.arrays, spec.params, raw.body)
     else:
         with gc_paused():
-            arrays, model = decode_json(spec.arrays, spec.params, parse_json(raw.body))
+            doc = parse_json(raw.body)
+            arrays, model = decode_json(spec.arrays, spec.params, doc)
+        free_later(doc)  # freed once the answer is sent
     return replace(request, source=array_source(spec.source, arrays, request.limits),
                    params=model.model_dump())

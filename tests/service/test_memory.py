@@ -12,7 +12,7 @@ import psutil
 from helpers.servers import running_app
 from helpers.service import icosphere, mesh_json
 
-from service.memory import IDLE_RELEASE, gc_paused
+from service.memory import IDLE_RELEASE, free_deferred, free_later, gc_paused
 
 
 def test_gc_paused_nests_across_threads_and_restores_the_collector():
@@ -64,3 +64,21 @@ def test_idle_worker_gives_the_heap_of_a_large_body_back():
     print(f"worker RSS after a {len(body) / 1e6:.1f} MB body: +{grown[0]:.0f} MB, "
           f"idle {IDLE_RELEASE:g} s later: +{grown[1]:.0f} MB")
     assert grown[1] < 25, grown  # kept, it would stay at 'after' (~+40 MB here)
+
+
+def test_free_later_keeps_one_object_until_free_deferred():
+    import weakref
+
+    class Parsed:
+        pass
+
+    first, second = Parsed(), Parsed()
+    refs = [weakref.ref(first), weakref.ref(second)]
+    free_later(first)
+    del first
+    assert refs[0]() is not None  # kept past its last reference
+    free_later(second)
+    del second
+    assert refs[0]() is None and refs[1]() is not None  # at most one is kept
+    free_deferred()
+    assert refs[1]() is None

@@ -17,7 +17,7 @@ import numpy as np
 from service.api.task import SessionSpec, TaskRequest
 from service.backends.admission import estimate_memory
 from service.backends.dask.registry import PROGRESS_TOPIC
-from service.memory import process_memory
+from service.memory import free_deferred, process_memory
 
 _initialized: set[int] = set()
 
@@ -70,6 +70,8 @@ def run_task(request: TaskRequest, job_id: str | None = None,
         if report is not None:
             report.fail(error)
         return {"ok": False, "error": error}
+    finally:
+        free_deferred()  # the parsed body: Dask sends the result after this returns
     return {"ok": True, "result": result}
 
 

@@ -35,7 +35,7 @@ from service.backends.errors import (
 )
 from service.backends.loops import new_future, settle
 from service.backends.processes import Message, WorkerProcess
-from service.memory import release_between_tasks
+from service.memory import free_deferred, release_between_tasks
 
 logger = logging.getLogger("service.executor")
 
@@ -77,6 +77,7 @@ def _worker_main(conn: Connection, threads: int) -> None:
         except OSError:  # the pipe is gone: the service stopped
             break
         request = message = result = None  # drop the task's data before trimming the heap
+        free_deferred()
         try:
             release_between_tasks(conn.poll)
         except (EOFError, OSError):

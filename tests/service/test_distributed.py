@@ -67,7 +67,9 @@ def wait_job(client, location, states=("succeeded", "failed", "cancelled"), time
     raise AssertionError(f"job did not reach {states}: {doc}")
 
 
-def wait_workers(client, count=2, timeout=60.0):
+def wait_workers(client, count=2, timeout=180.0):
+    """Until ``count`` workers are ready (a killed worker's nanny starts a new one: numpy,
+    scipy, MKL and the service's preload; seen to take over 60 s on a loaded 2-core VM)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if client.get("/readyz").json()["workers_ready"] >= count:

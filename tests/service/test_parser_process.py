@@ -1,0 +1,91 @@
+"""Bodies over ``PROCESS_THRESHOLD`` (jobs, sessions) are validated in the parser process:
+the same answers and problem documents as in this process, and a parser that died is
+replaced (its body answered 503 ``unavailable``, the next one validated again)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import numpy as np
+import orjson
+import pytest
+from helpers.servers import running_app
+from helpers.service import problem
+
+from service.http import bodies
+from solver import fundamental_forms
+
+
+def big_grid(k: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """A k x k bumpy vertex grid (about 2 (k-1)^2 faces; k=400: a ~9 MB JSON body)."""
+    i, j = np.meshgrid(np.arange(k - 1), np.arange(k - 1), indexing="ij")
+    a, b = (i * k + j).ravel(), (i * k + j + 1).ravel()
+    c, d = ((i + 1) * k + j).ravel(), ((i + 1) * k + j + 1).ravel()
+    faces = np.concatenate([np.stack([a, d, b], 1), np.stack([a, c, d], 1)])
+    x, y = np.meshgrid(np.linspace(0, 1, k), np.linspace(0, 1, k), indexing="ij")
+    z = 0.05 * np.sin(7 * x) * np.cos(5 * y)
+    return np.stack([x.ravel(), y.ravel(), z.ravel()], 1), faces
+
+
+@pytest.fixture(scope="module")
+def client():
+    with running_app(max_faces=1_000_000) as c:
+        yield c
+
+
+def job_body(vertices: np.ndarray, faces: np.ndarray) -> dict:
+    return {"operation": "forms", "input": {"vertices": vertices.tolist(),
+                                            "faces": faces.tolist()}}
+
+
+def test_a_large_job_is_validated_in_the_parser_and_answers_the_right_forms(client):
+    V, F = big_grid()
+    body = job_body(V, F)
+    assert len(orjson.dumps(body)) > bodies.PROCESS_THRESHOLD
+    response = client.post("/v1/jobs", json=body)
+    assert response.status_code == 202, response.text[:300]
+    location = response.headers["location"]
+    deadline = time.monotonic() + 120
+    doc = client.get(location).json()
+    while doc["status"] not in ("succeeded", "failed") and time.monotonic() < deadline:
+        time.sleep(0.05)
+        doc = client.get(location).json()
+    assert doc["status"] == "succeeded", doc
+    result = client.get(f"{location}/result").json()
+    truth = fundamental_forms(V, F)
+    assert np.array_equal(np.asarray(result["edges"]), truth.edges)
+    assert np.abs(np.asarray(result["lengths"]) - truth.lengths).max() < 1e-12
+    assert np.abs(np.asarray(result["angles"]) - truth.angles).max() < 1e-12
+
+
+def test_a_large_invalid_session_body_is_the_same_problem_document(client, monkeypatch):
+    V, F = big_grid()
+    F = F.copy()
+    F[12345, 1] = len(V) + 7  # out of range
+    body = {"vertices": V.tolist(), "faces": F.tolist(), "handles": [{"vertex": 0}]}
+    remote = client.post("/v1/sessions", json=body)
+    monkeypatch.setattr(bodies, "PROCESS_THRESHOLD", 10**12)  # now in a thread here
+    local = client.post("/v1/sessions", json=body)
+    assert remote.status_code == local.status_code == 422
+    assert remote.json() == local.json()
+    assert str(len(V) + 7) in remote.text
+
+
+def test_a_dead_parser_is_replaced(client):
+    V, F = big_grid()
+    body = job_body(V, F)
+    assert client.post("/v1/jobs", json=body).status_code == 202  # the parser runs
+    pool = bodies._parser
+    assert pool is not None
+    for pid in list(pool._processes):
+        os.kill(pid, signal.SIGKILL)
+    answers = [client.post("/v1/jobs", json=body) for _ in range(2)]
+    codes = [a.status_code for a in answers]
+    # The death is seen at the first body (503 unavailable) or already before it; either
+    # way the next body is validated by a new parser.
+    assert codes[-1] == 202, answers[-1].text[:300]
+    if codes[0] != 202:
+        assert problem(answers[0], 503, "unavailable")["detail"].startswith("the process")
+    assert bodies._parser is not pool

@@ -26,10 +26,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import Request
 
 from service.api.decoding import BINARY_MEDIA_TYPE
-from service.api.problems import ProblemError, from_validation_errors
+from service.api.problems import ProblemError, from_failure, from_validation_errors
 from service.api.task import MeshFile
 from service.memory import release_memory
 from service.settings import Settings
+from service.worker.runtime import describe_error
 
 FILE_TYPES = ("obj", "ply", "off", "stl", "glb", "gltf")
 THREAD_THRESHOLD = 256 * 1024
@@ -203,23 +204,19 @@ async def _in_parser_process(fn: Any, *args: Any) -> Any:
                 _parser = None
         raise ProblemError("unavailable", "the process that validates large bodies died "
                                           "while validating this one; retry") from None
-    if outcome == "problem":
-        raise ProblemError(value.pop("kind"), value.pop("detail"), **value)
-    if outcome == "error":
-        raise RuntimeError(value)
+    if outcome == "failed":
+        raise from_failure(value)
     return value
 
 
 def _parse_remotely(fn: Any, *args: Any) -> tuple[str, Any]:
-    """In the parser process: ``fn(*args)`` as ``("ok", result)``, ``("problem", fields of
-    the ProblemError)`` or ``("error", description)``; then its heap goes back."""
+    """In the parser process: ``fn(*args)`` as ``("ok", result)`` or ``("failed", failure
+    dict)`` (:func:`service.worker.runtime.describe_error`, the workers' own picklable form
+    of an error); then its heap goes back."""
     try:
         return "ok", fn(*args)
-    except ProblemError as exc:
-        return "problem", {"kind": exc.kind, "detail": exc.detail, "status": exc.status,
-                           "errors": exc.errors, "headers": exc.headers, **exc.extensions}
     except Exception as exc:
-        return "error", f"{type(exc).__name__}: {exc}"
+        return "failed", describe_error(exc)
     finally:
         gc.collect()
         release_memory()

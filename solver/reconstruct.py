@@ -556,7 +556,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         del system
         lap("solve")
 
-    first_u, first_energy = u, problem.energies(u)
+    first_energy = problem.energies(u)
+    energy = dict(first_energy)  # of the unknowns returned; redone if they change
     vertices, frames = problem.unknowns_to_geometry(u, user)
     vertices = problem.recenter(vertices, user, ref_v)
     orthonormality = _orthonormality_error(frames)
@@ -579,6 +580,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         u = system2.solve(linear.hard_values, soft_values)
         vertices, frames = problem.unknowns_to_geometry(u, user)
         vertices = problem.recenter(vertices, user, ref_v)
+        energy = problem.energies(u)
         lap("solve")
     notify("solve", 1.0)
     if solve_path == "factorization" and refine is not False and not exact:
@@ -591,7 +593,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         notify("refine", 1.0)
 
     report.update({
-        "energy": dict(first_energy) if u is first_u else problem.energies(u),
+        "energy": energy,
         "first_solve_energy": first_energy,
         "frame_orthonormality_error": orthonormality,
         "orthonormalized": bool(orthonormalize),

@@ -11,9 +11,11 @@ def main() -> None:
 
     settings = Settings()
     # Session WebSockets carry float32 vertex buffers: deflate costs more than it saves.
-    # The protocol adds a deadline for request headers (FFS_HEADER_TIMEOUT).
+    # The protocol adds a deadline for request headers (FFS_HEADER_TIMEOUT). After SIGTERM,
+    # open requests get FFS_SHUTDOWN_TIMEOUT s, then the lifespan ends every child process.
     uvicorn.run("service.app:app", host=settings.host, port=settings.port,
-                log_level=settings.log_level, ws_per_message_deflate=False, http=PROTOCOL)
+                log_level=settings.log_level, ws_per_message_deflate=False, http=PROTOCOL,
+                timeout_graceful_shutdown=settings.shutdown_timeout)
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ a worker is up) and stops with it. Routes get it through typed dependencies
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -20,6 +21,7 @@ from starlette.middleware.cors import CORSMiddleware
 from service.api.task import TaskResult
 from service.backends import make_backend
 from service.http import openapi
+from service.http.bodies import stop_parser
 from service.http.compression import ParallelGZipMiddleware
 from service.http.dependencies import Services
 from service.http.metrics import MetricsMiddleware, ServiceMetrics
@@ -75,6 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             services.started = False
             await services.backend.stop()
+            await asyncio.to_thread(stop_parser)
 
     app = FastAPI(title="Fundamental forms service", version=VERSION, description=DESCRIPTION,
                   lifespan=lifespan, openapi_tags=TAGS, separate_input_output_schemas=False)

@@ -94,6 +94,9 @@ class Settings(BaseSettings):
     body_timeout: float = Field(
         60.0, gt=0, description="Seconds a client may take to send a request body; then 408 "
                                 "and the connection is closed (slow or stalled uploads).")
+    shutdown_timeout: float = Field(
+        5.0, ge=0, description="Seconds `python -m service` waits, after SIGTERM, for open "
+                               "requests to finish before it cancels them and stops.")
     max_vertices: int = Field(
         250_000, ge=3, description="Largest vertex count of a mesh (413 beyond).")
     max_faces: int = Field(

@@ -59,6 +59,9 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
                         "The constraints leave the linear system singular or ill-posed."),
     "not-found": (404, "Not found", "No such resource (or the job expired)."),
     "method-not-allowed": (405, "Method not allowed", "The path does not accept this method."),
+    "job-lost": (410, "Job lost in a restart",
+                 "The job was submitted before the service restarted; jobs live in memory "
+                 "and running ones are cancelled when the service stops. Submit it again."),
     "job-not-finished": (409, "Job not finished", "The job is still queued or running."),
     "job-failed": (409, "Job failed", "The job failed; `error` holds its problem document."),
     "job-cancelled": (409, "Job cancelled", "The job was cancelled; it has no result."),

@@ -47,6 +47,9 @@ class Executor(Protocol):
     async def start(self) -> None:
         """Start the workers (called once from the app's lifespan)."""
 
+    def begin_shutdown(self) -> None:
+        """The service is stopping: replace no worker from now on."""
+
     async def shutdown(self) -> None:
         """Stop the workers; pending tasks fail with ``ExecutorClosedError``."""
 
@@ -192,6 +195,9 @@ class Backend:
         await self.sessions.start()
 
     async def stop(self) -> None:
+        """Stop everything: no worker is replaced from here on (cancelling the running jobs
+        ends their workers), sessions close, jobs are cancelled, the workers end."""
+        self.executor.begin_shutdown()
         await self.sessions.stop()
         await self.jobs.stop()
         await self.executor.shutdown()

@@ -61,6 +61,17 @@ class JobStoreFullError(BackendError):
         self.count, self.limit = count, limit
 
 
+class JobLostError(BackendError):
+    """The job was submitted before the service last started: jobs live in the memory of the
+    process that took them, and a stopping service cancels the ones still running."""
+
+    def __init__(self, job_id: str, started_at: str) -> None:
+        super().__init__(f"job {job_id} was submitted before the service restarted (at "
+                         f"{started_at}); jobs are kept in memory, so its record and result "
+                         "are gone: submit it again")
+        self.job_id, self.started_at = job_id, started_at
+
+
 class SessionNotFoundError(BackendError):
     """No such session (never created, deleted, or gone long ago)."""
 

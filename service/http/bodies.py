@@ -191,6 +191,22 @@ def _parser_pool() -> ProcessPoolExecutor:
         return _parser
 
 
+def stop_parser() -> None:
+    """End the parser process (the app's shutdown; blocking, at most ~2 s): a body being
+    validated is abandoned (its request is being answered 503 by the stopping server)."""
+    global _parser
+    with _parser_lock:
+        pool, _parser = _parser, None
+    if pool is None:
+        return
+    processes = list(getattr(pool, "_processes", {}).values())  # no public handle on them
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.kill()
+    for process in processes:
+        process.join(2.0)
+
+
 async def _in_parser_process(fn: Any, *args: Any) -> Any:
     """``fn(*args)`` in the parser process; its :class:`ProblemError` is raised here."""
     global _parser

@@ -28,7 +28,8 @@ ERROR_DESCRIPTIONS: dict[int, str] = {
     408: "The body did not arrive within FFS_BODY_TIMEOUT seconds.",
     406: "None of the Accept media types can be produced.",
     409: "The job has no result (not finished, failed or cancelled).",
-    410: "The session expired or its worker died.",
+    410: "The session expired or its worker died; or the job was submitted before the "
+         "service restarted (`job-lost`).",
     413: "Body, vertex or face count over the limit.",
     415: "Unsupported Content-Type or mesh file type.",
     429: "Too many open sessions (FFS_MAX_SESSIONS).",

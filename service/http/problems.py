@@ -58,6 +58,8 @@ def problem_for(exc: backend.BackendError) -> ProblemError:
         return ProblemError("session-gone", str(exc), reason=exc.reason)
     if isinstance(exc, backend.SessionNotFoundError):
         return ProblemError("not-found", str(exc))
+    if isinstance(exc, backend.JobLostError):
+        return ProblemError("job-lost", str(exc), restarted_at=exc.started_at)
     if isinstance(exc, backend.JobStoreFullError):
         return ProblemError("too-many-jobs", str(exc), headers=RETRY_SOON)
     if isinstance(exc, backend.WorkerDiedError):

@@ -57,6 +57,9 @@ class DaskExecutor:
         self._started = True
         await self.connection.start()
 
+    def begin_shutdown(self) -> None:
+        """Nothing to stop replacing here: the cluster manages its own workers."""
+
     async def shutdown(self) -> None:
         self._closing = True
         for handle in self._handles.values():

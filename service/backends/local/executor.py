@@ -129,6 +129,7 @@ class ProcessExecutor:
         self._closing = False
         self._durations: collections.deque[float] = collections.deque(maxlen=50)
         self._start_failures: dict[int, int] = {}
+        self._launches: set[asyncio.Task[None]] = set()
         self.restarts = 0
         self.deaths = 0
 
@@ -138,6 +139,11 @@ class ProcessExecutor:
         self._loop = asyncio.get_running_loop()
         self._started = True
         await asyncio.gather(*(self._launch(slot) for slot in range(self._size)))
+
+    def begin_shutdown(self) -> None:
+        """Stop replacing workers: from now on a worker that exits (e.g. killed to cancel a
+        job while the service stops) stays gone. :meth:`shutdown` calls it first."""
+        self._closing = True
 
     async def _launch(self, slot: int) -> None:
         proc = await asyncio.to_thread(WorkerProcess.spawn, _worker_main, self._threads,
@@ -151,7 +157,9 @@ class ProcessExecutor:
                   lambda: self._on_exit(worker), _unreadable, f"ffs-reader-{slot}")
 
     async def shutdown(self) -> None:
-        self._closing = True
+        """Fail the queued and running tasks, then end every worker: asked to stop, killed
+        after 3 s, and a worker still being started is killed as soon as it exists."""
+        self.begin_shutdown()
         while self._pending:
             task = self._pending.popleft()
             self._fail(task, ExecutorClosedError("the service is shutting down"))
@@ -170,6 +178,8 @@ class ProcessExecutor:
 
         await asyncio.to_thread(stop)
         self._workers.clear()
+        if self._launches:  # each kills its process once started (it sees _closing)
+            await asyncio.gather(*self._launches, return_exceptions=True)
 
     # ---------------------------------------------------------------------- state
 
@@ -318,7 +328,9 @@ class ProcessExecutor:
             logger.error("worker slot %s failed to start (%s times, %s); retrying in %.2f s",
                          worker.slot, failures, worker.proc.exit_reason(), delay)
         assert self._loop is not None
-        self._loop.create_task(self._relaunch(worker.slot, delay))
+        launch = self._loop.create_task(self._relaunch(worker.slot, delay))
+        self._launches.add(launch)
+        launch.add_done_callback(self._launches.discard)
 
     async def _relaunch(self, slot: int, delay: float = 0.0) -> None:
         try:

@@ -6,6 +6,11 @@ the state, per-stage progress and timings, the failure, and the result (the enco
 plus the mesh arrays, so that ``GET /v1/jobs/{id}/result`` can return glTF or add
 colours). Finished jobs expire ``FFS_JOB_TTL`` seconds after they finish; a sweeper removes
 them.
+
+Jobs live only in this process: when the service stops, queued and running jobs are
+cancelled (their workers ended) and every record is dropped. A job id begins with the
+millisecond its service started (:func:`new_job_id`), so after a restart an id from before
+it is answered :class:`JobLostError` (410) rather than "not found".
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from service.api.task import TaskRequest, TaskResult
 from service.backends.contracts import Executor, JobPolicy, ResultCallback
 from service.backends.errors import (
     ExecutorClosedError,
+    JobLostError,
     JobStoreFullError,
     TaskCancelledError,
     TaskFailedError,
@@ -77,6 +83,34 @@ class MemoryJobStore:
         return count_states(self._jobs.values())
 
 
+_ID_TIME = 12
+"""Hex digits of a job id that hold its service's start time (milliseconds since 1970)."""
+
+
+def new_job_id(started_ms: int) -> str:
+    """A 32-hex-digit job id: the service's start time, then 80 random bits."""
+    return f"{started_ms:0{_ID_TIME}x}{uuid.uuid4().hex[:32 - _ID_TIME]}"
+
+
+def started_before(job_id: str, started_ms: int) -> bool:
+    """Whether ``job_id`` has this module's shape and comes from a service started before
+    ``started_ms`` (a plausible time: after 2024)."""
+    if len(job_id) != 32:
+        return False
+    try:
+        stamp = int(job_id[:_ID_TIME], 16)
+    except ValueError:
+        return False
+    return _EPOCH_2024_MS <= stamp < started_ms
+
+
+_EPOCH_2024_MS = 1_704_067_200_000
+
+
+def _iso_ms(ms: int) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(ms / 1000)) + f".{ms % 1000:03d}Z"
+
+
 class JobManager:
     """Runs jobs on the executor and keeps their records in a :class:`JobStore`."""
 
@@ -86,6 +120,7 @@ class JobManager:
         self.on_result = on_result
         self._runners: dict[str, asyncio.Task[None]] = {}
         self._sweeper: asyncio.Task[None] | None = None
+        self.started_ms = int(time.time() * 1000)
 
     async def start(self) -> None:
         self._sweeper = asyncio.create_task(
@@ -115,7 +150,7 @@ class JobManager:
         self.expire()
         if len(self.store) >= self.policy.max_jobs:
             raise JobStoreFullError(len(self.store), self.policy.max_jobs)
-        job = Job(id=uuid.uuid4().hex, operation=request.operation, color=color)
+        job = Job(id=new_job_id(self.started_ms), operation=request.operation, color=color)
         handle = await self.executor.submit(request, task_id=job.id,
                                             progress_cb=job.update_progress,
                                             on_start=job.mark_running)
@@ -154,7 +189,12 @@ class JobManager:
             self._runners.pop(job.id, None)
 
     async def get(self, job_id: str) -> Job | None:
-        return self.store.get(job_id)
+        """The job, ``None`` if there is none (expired, deleted, never existed), or
+        :class:`JobLostError` for an id from before this service started."""
+        job = self.store.get(job_id)
+        if job is None and started_before(job_id, self.started_ms):
+            raise JobLostError(job_id, _iso_ms(self.started_ms))
+        return job
 
     async def result(self, job: Job) -> TaskResult:
         assert job.result is not None, "only a succeeded job is asked for its result"

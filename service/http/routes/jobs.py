@@ -95,7 +95,7 @@ async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep) -> 
             operation_id="get_job",
             description="State, progress by stage with fractions, timings and the error "
                         "(a problem document) of a job.",
-            response_class=Response, responses=error_responses(404, 422))
+            response_class=Response, responses=error_responses(404, 410, 422))
 async def get_job(jobs: JobsDep, job_id: JobId) -> Response:
     return _status_response(await _get(jobs, job_id))
 
@@ -106,7 +106,7 @@ async def get_job(jobs: JobsDep, job_id: JobId) -> Response:
                         "finished, or when it failed or was cancelled.",
             response_class=Response,
             responses={200: {"description": "The result.", "content": _RESULT_CONTENT},
-                       **error_responses(404, 406, 409, 422)})
+                       **error_responses(404, 406, 409, 410, 422)})
 async def get_result(request: Request, jobs: JobsDep, job_id: JobId,
                      color: ColorQuery = None) -> Response:
     job = await _get(jobs, job_id)
@@ -151,7 +151,8 @@ def _encode(result: TaskResult, fmt: str, values: Any) -> bytes:
                            "running solve is stopped by replacing its worker). A finished "
                            "job is deleted with its result (204).",
                response_class=Response,
-               responses={204: {"description": "Deleted."}, **error_responses(404, 422)})
+               responses={204: {"description": "Deleted."},
+                          **error_responses(404, 410, 422)})
 async def delete_job(jobs: JobsDep, job_id: JobId) -> Response:
     job = await _get(jobs, job_id)
     if job.done:

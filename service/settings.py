@@ -94,6 +94,10 @@ class Settings(BaseSettings):
     body_timeout: float = Field(
         60.0, gt=0, description="Seconds a client may take to send a request body; then 408 "
                                 "and the connection is closed (slow or stalled uploads).")
+    max_blend_steps: int = Field(
+        64, ge=1, le=100_000,
+        description="Most blend values `t` of one interpolate request (each is a solve of the "
+                    "whole mesh; 422 beyond).")
     shutdown_timeout: float = Field(
         5.0, ge=0, description="Seconds `python -m service` waits, after SIGTERM, for open "
                                "requests to finish before it cancels them and stops.")

@@ -19,6 +19,7 @@ memory never see the parsed body); jobs and sessions run it in a thread of the m
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from itertools import chain
@@ -282,6 +283,37 @@ def _padded(n: int) -> int:
     return -(-n // 8) * 8
 
 
+MAX_RANK = 3
+"""Most dimensions an array of a binary body may declare (the arrays are 1-D or 2-D)."""
+
+
+def _array_layout(name: str, meta: Any, offset: int, body_size: int
+                  ) -> tuple[np.dtype, list[int], int]:
+    """(dtype, shape, byte count) of one array's header entry, checked before any arithmetic
+    on it: the dtype one of :data:`BINARY_DTYPES` (a string), the shape a list of at most
+    :data:`MAX_RANK` non-negative integers, and the byte count (Python integers: no
+    wrap-around) within what is left of the body."""
+    allowed = ", ".join(BINARY_DTYPES)
+    if not isinstance(meta, dict):
+        raise _binary_error(f"{name}: expected an object with a dtype and a shape")
+    dtype = meta.get("dtype")
+    if not isinstance(dtype, str) or dtype not in BINARY_DTYPES:
+        raise _binary_error(f"{name}: the dtype must be one of {allowed}")
+    shape = meta.get("shape")
+    if not isinstance(shape, list) or not all(type(d) is int and d >= 0 for d in shape):
+        raise _binary_error(f"{name}: the shape must be a list of non-negative integers")
+    if len(shape) > MAX_RANK:
+        raise _binary_error(f"{name}: the shape has {len(shape)} dimensions; at most "
+                            f"{MAX_RANK} are allowed")
+    item = np.dtype(BINARY_DTYPES[dtype])
+    size = math.prod(shape) * item.itemsize
+    if offset + size > body_size:
+        raise _binary_error(f"{name}: a {'x'.join(map(str, shape)) or 'scalar'} {dtype} "
+                            f"array needs {size} bytes; the body has {max(0, body_size - offset)}"
+                            " left")
+    return item, shape, size
+
+
 def parse_binary(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """(header without ``arrays``, {name: array view into ``body``}) of a binary body; a 400
     ``malformed-request`` problem when the framing is wrong."""
@@ -292,26 +324,16 @@ def parse_binary(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         raise _binary_error(f"the header length {size} runs past the end of the body")
     try:
         header = orjson.loads(body[8:8 + size])
-    except orjson.JSONDecodeError as exc:
-        raise _binary_error(f"the header is not JSON: {exc}") from None
+    except orjson.JSONDecodeError:
+        raise _binary_error("the header is not valid JSON") from None
     if not isinstance(header, dict) or not isinstance(header.get("arrays"), dict):
         raise _binary_error('the header must be a JSON object with "arrays"')
     offset, arrays = _padded(8 + size), {}
     for name, meta in header.pop("arrays").items():
-        dtype = BINARY_DTYPES.get(meta.get("dtype")) if isinstance(meta, dict) else None
-        shape = meta.get("shape") if isinstance(meta, dict) else None
-        if dtype is None or not isinstance(shape, list) or not all(
-                type(d) is int and d >= 0 for d in shape):
-            raise _binary_error(f"{name}: needs a dtype ({', '.join(BINARY_DTYPES)}) and a "
-                                "shape (a list of sizes)")
-        count = int(np.prod(shape, dtype=np.int64))
-        end = offset + count * np.dtype(dtype).itemsize
-        if end > len(body):
-            raise _binary_error(f"{name}: {shape} {meta['dtype']} runs past the end of the "
-                                "body")
-        arrays[name] = np.frombuffer(body, dtype=dtype, count=count,
+        dtype, shape, nbytes = _array_layout(name, meta, offset, len(body))
+        arrays[name] = np.frombuffer(body, dtype=dtype, count=nbytes // dtype.itemsize,
                                      offset=offset).reshape(shape)
-        offset = _padded(end)
+        offset = _padded(offset + nbytes)
     return header, arrays
 
 
@@ -369,6 +391,22 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
         raise ProblemError("mesh-too-large", errors[0]["reason"], errors=errors)
 
 
+def check_work(params: Mapping[str, Any], limits: Limits, prefix: tuple[Any, ...] = ()
+               ) -> None:
+    """Bound the work a small body can ask for: at most ``FFS_MAX_BLEND_STEPS`` blend values
+    in ``t`` (each one is a solve of the whole mesh); a 422 ``validation-error`` beyond."""
+    t = params.get("t")
+    if isinstance(t, list) and len(t) > limits.max_blend_steps:
+        field = ".".join(map(str, (*prefix, "t")))
+        raise ProblemError(
+            "validation-error", f"{field}: {len(t)} blend values; at most "
+            f"{limits.max_blend_steps} are allowed (FFS_MAX_BLEND_STEPS): send the others in "
+            "further requests",
+            errors=[{"field": field, "index": None, "type": "too_long",
+                     "pointer": "/" + "/".join(map(str, (*prefix, "t"))),
+                     "reason": f"at most {limits.max_blend_steps} values"}])
+
+
 def array_source(kind: str, arrays: Mapping[str, np.ndarray], limits: Limits
                  ) -> MeshArrays | FormsArrays | MeshPair:
     """The task source of decoded arrays (``kind``: ``mesh``, ``forms`` or ``pair``), after
@@ -390,7 +428,9 @@ def decode_document(spec: BodySpec, doc: Any, limits: Limits, prefix: tuple[Any,
     """(source, dumped params) of a parsed JSON body (a synchronous body or a job's
     ``input``, whose errors point below ``prefix = ("input",)``)."""
     arrays, params = decode_json(spec.arrays, spec.params, doc, prefix)
-    return array_source(spec.source, arrays, limits), params.model_dump()
+    dumped = params.model_dump()
+    check_work(dumped, limits, prefix)
+    return array_source(spec.source, arrays, limits), dumped
 
 
 def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
@@ -404,5 +444,7 @@ def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
             doc = parse_json(raw.body)
             arrays, model = decode_json(spec.arrays, spec.params, doc)
         free_later(doc)  # freed once the answer is sent
+    params = model.model_dump()
+    check_work(params, request.limits)
     return replace(request, source=array_source(spec.source, arrays, request.limits),
-                   params=model.model_dump())
+                   params=params)

@@ -164,7 +164,8 @@ def pointer_from_loc(loc: Iterable[Any]) -> dict[str, Any]:
             "pointer": "/" + "/".join(str(p) for p in parts) if parts else ""}
 
 
-_UNION_TAGS = {"float", "int", "str", "bool", "function-after", "function-before"}
+_UNION_TAGS = {"float", "int", "str", "bool", "function-after", "function-before",
+               "constrained-float", "constrained-int", "constrained-str"}
 
 
 def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence[Any] = (),

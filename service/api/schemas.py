@@ -285,8 +285,9 @@ class InterpolateParams(ApiModel):
 
     model_config = _example({"t": [0.0, 0.5, 1.0]})
 
-    t: Real | Annotated[list[Real], Field(fail_fast=True)] = Field(
-        description="Blend value(s); 0 gives A, 1 gives B.")
+    t: Real | Annotated[list[Real], Field(min_length=1, fail_fast=True)] = Field(
+        description="Blend value(s); 0 gives A, 1 gives B. A list holds at least one and at "
+                    "most FFS_MAX_BLEND_STEPS (default 64) values.")
     options: InterpolateOptions = Field(default_factory=InterpolateOptions)
 
 

@@ -73,10 +73,12 @@ ARRAY_SOURCES: dict[str, type] = {"mesh": MeshArrays, "forms": FormsArrays, "pai
 
 @dataclass(frozen=True)
 class Limits:
-    """Size limits of one request (``FFS_MAX_VERTICES``, ``FFS_MAX_FACES``)."""
+    """Size limits of one request (``FFS_MAX_VERTICES``, ``FFS_MAX_FACES``,
+    ``FFS_MAX_BLEND_STEPS``)."""
 
     max_vertices: int
     max_faces: int
+    max_blend_steps: int = 64
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from service.api.decoding import (
     BINARY_MEDIA_TYPE,
     MESH_ARRAYS,
     check_limits,
+    check_work,
     decode_document,
     decode_json,
     parse_json,
@@ -52,7 +53,7 @@ from service.settings import Settings
 
 
 def limits(settings: Settings) -> Limits:
-    return Limits(settings.max_vertices, settings.max_faces)
+    return Limits(settings.max_vertices, settings.max_faces, settings.max_blend_steps)
 
 
 async def operation_request(request: Request, spec: OperationSpec, settings: Settings,
@@ -84,6 +85,7 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
         raise ProblemError("validation-error", errors[0]["field"] + ": " + errors[0]["reason"],
                            errors=errors)
     params = validate_object(spec.params, fields)
+    check_work(params.model_dump(), limits(settings))
     uploads = [await upload(files[n], n) for n in spec.files]
     source = (uploads[0], uploads[1]) if len(uploads) == 2 else uploads[0]
     return TaskRequest(spec.name, source, params.model_dump(), limits(settings),

@@ -1,0 +1,110 @@
+"""Issue 24 ("Hardening, second round") against a real uvicorn on loopback: each test is one
+finding of the campaign, sent over the wire as the campaign sent it (raw sockets where the
+behaviour lives below HTTP clients), and checks the answer, the server's metrics and logs.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+
+import httpx
+import numpy as np
+import orjson
+import pytest
+from helpers.servers import uvicorn_server
+from helpers.service import bumpy_grid, metric_value, problem
+
+from service.api.decoding import BINARY_MAGIC, BINARY_MEDIA_TYPE, binary_body
+from solver.io import save_mesh
+
+
+@pytest.fixture(scope="module")
+def base() -> Iterator[str]:
+    with uvicorn_server() as url:
+        yield url
+
+
+@pytest.fixture(scope="module")
+def http(base: str) -> Iterator[httpx.Client]:
+    with httpx.Client(base_url=base, timeout=60) as client:
+        yield client
+
+
+def _no_server_errors(http: httpx.Client) -> None:
+    metrics = http.get("/metrics").text
+    assert metric_value(metrics, "ffs_http_requests_total", status="500") == 0, metrics
+
+
+GRID = bumpy_grid(4, 3)
+PAIR = {"vertices_a": GRID[0].tolist(), "vertices_b": (GRID[0] * [1, 1, -1]).tolist(),
+        "faces": GRID[1].tolist()}
+
+
+# ------------------------------------------------ 1: binary headers, empty t (were 500s)
+
+
+def _binary(arrays: dict[str, object], tail: bytes = b"\0" * 64) -> bytes:
+    header = orjson.dumps({"arrays": arrays})
+    head = BINARY_MAGIC + len(header).to_bytes(4, "little") + header
+    return head + b"\0" * (-len(head) % 8) + tail
+
+
+@pytest.mark.parametrize("meta", [
+    {"dtype": "<f8", "shape": [2**62, 2**62]},       # np.prod wrapped around
+    {"dtype": "<f8", "shape": [2**31, 2**31, 2**31]},
+    {"dtype": ["<f8"], "shape": [1, 3]},              # unhashable dtypes
+    {"dtype": {}, "shape": [1, 3]},
+    {"dtype": "<f8", "shape": [1] * 100},             # numpy allows 64 dimensions
+    {"dtype": "<f8", "shape": [1] * 4},
+    {"dtype": "<f8", "shape": [True, 3]},
+    {"dtype": "|O", "shape": [1, 3]},
+], ids=["wrap", "wrap3", "list-dtype", "dict-dtype", "rank100", "rank4", "bool-dim", "object"])
+def test_binary_headers_are_checked_before_any_arithmetic(http, meta):
+    body = _binary({"vertices": meta, "faces": {"dtype": "<i4", "shape": [1, 3]}})
+    response = http.post("/v1/forms", content=body, headers={"content-type": BINARY_MEDIA_TYPE})
+    doc = problem(response, 400, "malformed-request")
+    assert doc["detail"].startswith(f"cannot read the {BINARY_MEDIA_TYPE} body: vertices: ")
+    _no_server_errors(http)
+
+
+def test_a_valid_binary_body_still_works(http):
+    V, F = GRID
+    body = binary_body({}, {"vertices": V, "faces": F})
+    response = http.post("/v1/forms", content=body, headers={"content-type": BINARY_MEDIA_TYPE})
+    assert response.status_code == 200, response.text
+    assert len(response.json()["lengths"]) > 0
+
+
+def _interpolate_three_ways(http: httpx.Client, t: object) -> list[httpx.Response]:
+    """The same interpolate request as JSON, as an upload, and as a job."""
+    V, F = GRID
+    files = {"file_a": ("a.off", save_mesh(V, F, "off")),
+             "file_b": ("b.off", save_mesh(V * [1, 1, -1], F, "off"))}
+    return [http.post("/v1/interpolate", json={**PAIR, "t": t}),
+            http.post("/v1/interpolate", files=files, data={"t": json.dumps(t)}),
+            http.post("/v1/jobs", json={"operation": "interpolate", "input": {**PAIR, "t": t}})]
+
+
+def test_an_empty_t_is_a_422_everywhere(http):
+    for response in _interpolate_three_ways(http, []):
+        doc = problem(response, 422, "validation-error")
+        assert {e["field"] for e in doc["errors"]} <= {"t", "input.t"}, doc
+        assert any("at least 1 item" in e["reason"] for e in doc["errors"]), doc
+    _no_server_errors(http)
+
+
+# ------------------------------------------------------- 2: t bounded (FFS_MAX_BLEND_STEPS)
+
+
+def test_t_is_bounded_by_ffs_max_blend_steps(http):
+    started = time.monotonic()
+    for response in _interpolate_three_ways(http, np.linspace(0, 1, 20_000).tolist()):
+        doc = problem(response, 422, "validation-error")
+        assert "FFS_MAX_BLEND_STEPS" in doc["detail"], doc
+        assert doc["errors"][0]["field"] in ("t", "input.t"), doc
+    assert time.monotonic() - started < 30  # was 44 s of worker time for one of them
+    response = http.post("/v1/interpolate", json={**PAIR, "t": np.linspace(0, 1, 64).tolist()})
+    assert response.status_code == 200, response.text
+    assert len(response.json()["vertices"]) == 64

@@ -25,6 +25,7 @@ from service.http.bodies import stop_parser
 from service.http.compression import ParallelGZipMiddleware
 from service.http.dependencies import Services
 from service.http.metrics import MetricsMiddleware, ServiceMetrics
+from service.http.origins import OriginMiddleware
 from service.http.problems import install_handlers
 from service.http.routes import health, jobs, operations, sessions, web
 from service.settings import Settings
@@ -88,6 +89,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(router)
     app.mount("/static", web.static_files(), name="static")
 
+    app.add_middleware(OriginMiddleware, allowed=settings.cors_origins)  # inside the metrics
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(ParallelGZipMiddleware, minimum_size=settings.gzip_minimum_size,
                        compresslevel=settings.gzip_level)

@@ -66,7 +66,11 @@ class Settings(BaseSettings):
     job_ttl: float = Field(
         3600.0, gt=0, description="Seconds a finished job and its result are kept.")
     max_jobs: int = Field(
-        256, ge=1, description="Jobs kept at once (all states); beyond it: 503.")
+        256, ge=1, description="Jobs kept at once; when full, the oldest finished ones give "
+                               "way, and only a store full of unfinished jobs answers 503.")
+    max_client_jobs: int = Field(
+        16, ge=1, description="Unfinished (queued or running) jobs one client address may "
+                              "have at once; beyond it: 429.")
 
     session_ttl: float = Field(
         600.0, gt=0, description="Seconds a deformation session may stay idle before it is "

@@ -57,6 +57,9 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
                        "`errors` names the worst vertices."),
     "singular-system": (422, "Singular linear system",
                         "The constraints leave the linear system singular or ill-posed."),
+    "forbidden-origin": (403, "Origin not allowed",
+                         "The request came from a web page of another origin; the service "
+                         "accepts its own origin and those in FFS_CORS_ORIGINS."),
     "not-found": (404, "Not found", "No such resource (or the job expired)."),
     "method-not-allowed": (405, "Method not allowed", "The path does not accept this method."),
     "job-lost": (410, "Job lost in a restart",
@@ -68,7 +71,12 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
     "color-not-computed": (409, "Colour not computed",
                            "Submit the job with that `color` to fetch its result coloured."),
     "queue-full": (503, "Server busy", "The work queue is full; retry after Retry-After seconds."),
-    "too-many-jobs": (503, "Too many jobs", "The job store is full; retry later."),
+    "too-many-jobs": (503, "Too many jobs",
+                      "FFS_MAX_JOBS jobs are queued or running (finished ones give way to new "
+                      "ones); retry later."),
+    "too-many-client-jobs": (429, "Too many jobs from this client",
+                             "This client has FFS_MAX_CLIENT_JOBS jobs queued or running; "
+                             "wait for one to finish."),
     "unavailable": (503, "Service unavailable", "The worker pool is not running."),
     "too-many-sessions": (429, "Too many sessions",
                           "FFS_MAX_SESSIONS deformation sessions are open; delete one or retry "

@@ -19,7 +19,8 @@ from service.settings import Settings
 
 
 def job_policy(settings: Settings) -> JobPolicy:
-    return JobPolicy(settings.job_ttl, settings.job_timeout, settings.max_jobs)
+    return JobPolicy(settings.job_ttl, settings.job_timeout, settings.max_jobs,
+                     settings.max_client_jobs)
 
 
 def session_policy(settings: Settings, threads: int) -> SessionPolicy:

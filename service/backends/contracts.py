@@ -87,9 +87,11 @@ class JobService(Protocol):
 
     async def stop(self) -> None: ...
 
-    async def submit(self, request: TaskRequest, *, color: str | None = None) -> Job:
-        """Create and queue a job; ``JobStoreFullError``, ``QueueFullError`` or
-        ``ExecutorClosedError`` when it cannot."""
+    async def submit(self, request: TaskRequest, *, color: str | None = None,
+                     owner: str | None = None) -> Job:
+        """Create and queue a job for ``owner`` (the client), evicting the oldest finished
+        jobs when the store is full; ``JobStoreFullError``, ``ClientJobsError``,
+        ``QueueFullError`` or ``ExecutorClosedError`` when it cannot."""
 
     async def get(self, job_id: str) -> Job | None:
         """The job, or None when it is unknown or expired."""
@@ -110,11 +112,12 @@ class JobService(Protocol):
 @dataclass
 class JobPolicy:
     """How long jobs may run and stay (``FFS_JOB_TIMEOUT``, ``FFS_JOB_TTL``), how many may
-    be stored (``FFS_MAX_JOBS``)."""
+    be stored (``FFS_MAX_JOBS``) and be unfinished per client (``FFS_MAX_CLIENT_JOBS``)."""
 
     ttl: float
     timeout: float
     max_jobs: int
+    max_per_client: int = 16
 
 
 @dataclass

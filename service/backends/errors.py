@@ -53,12 +53,21 @@ class DeadlineError(BackendError):
 
 
 class JobStoreFullError(BackendError):
-    """``FFS_MAX_JOBS`` jobs are stored."""
+    """``FFS_MAX_JOBS`` jobs are queued or running (finished ones give way to new ones)."""
 
     def __init__(self, count: int, limit: int) -> None:
-        super().__init__(f"{count} jobs are stored (limit {limit}); fetch or delete finished "
-                         "jobs, or retry later")
+        super().__init__(f"{count} jobs are queued or running (limit {limit}, FFS_MAX_JOBS); "
+                         "retry later")
         self.count, self.limit = count, limit
+
+
+class ClientJobsError(BackendError):
+    """This client already has ``FFS_MAX_CLIENT_JOBS`` jobs queued or running."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(f"this client already has {limit} jobs queued or running (the limit "
+                         "per client, FFS_MAX_CLIENT_JOBS); wait for one to finish")
+        self.limit = limit
 
 
 class JobLostError(BackendError):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,6 +28,8 @@ class Job:
     id: str
     operation: str
     color: str | None = None
+    owner: str | None = None
+    """Who submitted it (the client's address), for the per-client limit."""
     status: str = "queued"
     created_at: float = field(default_factory=time.time)
     started_at: float | None = None
@@ -101,6 +104,25 @@ class Job:
         if self.status == "succeeded":
             return 1.0
         return sum(self.stages.values()) / max(1, len(self.stages))
+
+
+def admit(jobs: Iterable[Job], max_jobs: int, owner: str | None, max_per_owner: int
+          ) -> tuple[list[str], str | None]:
+    """Whether one more job fits: ``(ids to evict first, refusal)``. Finished jobs give way,
+    oldest first, before a new one is refused (``refusal == "full"``: every stored job is
+    queued or running); ``"owner"`` when ``owner`` already has ``max_per_owner`` unfinished
+    jobs (one client cannot take the whole store or queue)."""
+    jobs = list(jobs)
+    if owner is not None and sum(1 for j in jobs if j.owner == owner and not j.done
+                                 ) >= max_per_owner:
+        return [], "owner"
+    excess = len(jobs) + 1 - max_jobs
+    if excess <= 0:
+        return [], None
+    finished = sorted((j for j in jobs if j.done), key=lambda j: j.finished_at or 0.0)
+    if len(finished) < excess:
+        return [], "full"
+    return [j.id for j in finished[:excess]], None
 
 
 FIELDS = tuple(f.name for f in dataclasses.fields(Job) if f.name != "result")

@@ -32,7 +32,8 @@ ERROR_DESCRIPTIONS: dict[int, str] = {
          "service restarted (`job-lost`).",
     413: "Body, vertex or face count over the limit.",
     415: "Unsupported Content-Type or mesh file type.",
-    429: "Too many open sessions (FFS_MAX_SESSIONS).",
+    429: "Too many open sessions (FFS_MAX_SESSIONS), or this client's unfinished jobs "
+         "(FFS_MAX_CLIENT_JOBS).",
     422: "Schema violation, or a solver input error (one problem kind per error class).",
     500: "A worker process died.",
     503: "Queue full (Retry-After), the pool is not running, or session memory is "

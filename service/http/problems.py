@@ -58,6 +58,9 @@ def problem_for(exc: backend.BackendError) -> ProblemError:
         return ProblemError("session-gone", str(exc), reason=exc.reason)
     if isinstance(exc, backend.SessionNotFoundError):
         return ProblemError("not-found", str(exc))
+    if isinstance(exc, backend.ClientJobsError):
+        return ProblemError("too-many-client-jobs", str(exc), headers=RETRY_SOON,
+                            limit=exc.limit)
     if isinstance(exc, backend.JobLostError):
         return ProblemError("job-lost", str(exc), restarted_at=exc.started_at)
     if isinstance(exc, backend.JobStoreFullError):

@@ -108,3 +108,90 @@ def test_t_is_bounded_by_ffs_max_blend_steps(http):
     response = http.post("/v1/interpolate", json={**PAIR, "t": np.linspace(0, 1, 64).tolist()})
     assert response.status_code == 200, response.text
     assert len(response.json()["vertices"]) == 64
+
+
+# ----------------------------------------- 4: finished jobs give way; per-client fairness
+
+
+def _job_body() -> dict[str, object]:
+    return {"operation": "forms", "input": {"vertices": GRID[0].tolist(),
+                                            "faces": GRID[1].tolist()}}
+
+
+def test_finished_jobs_give_way_and_one_client_cannot_take_the_store():
+    from helpers.servers import running_app
+    from helpers.service import debug_task
+
+    with running_app(workers=1, max_jobs=4, max_client_jobs=2) as c:
+        done = []
+        for _ in range(4):  # fill the store with finished jobs
+            location = c.post("/v1/jobs", json=_job_body()).headers["location"]
+            while c.get(location).json()["status"] != "succeeded":
+                time.sleep(0.02)
+            done.append(location)
+        fresh = c.post("/v1/jobs", json=_job_body())  # was 503 too-many-jobs for an hour
+        assert fresh.status_code == 202, fresh.text
+        problem(c.get(done[0]), 404, "not-found")  # the oldest finished job made room
+        assert all(c.get(at).status_code == 200 for at in done[1:])
+        # Unfinished jobs of one client: the limit per client, then 429.
+        manager = c.app.state.services.backend.jobs
+        for _ in range(2):
+            c.portal.call(lambda: manager.submit(debug_task("debug.sleep", seconds=30),
+                                                 owner="testclient"))
+        refused = c.post("/v1/jobs", json=_job_body())
+        doc = problem(refused, 429, "too-many-client-jobs")
+        assert refused.headers["retry-after"] and "FFS_MAX_CLIENT_JOBS" in doc["detail"]
+        # Another client still gets in (evicting finished jobs), until the store is all
+        # unfinished jobs: then 503.
+        other = [c.portal.call(lambda i=i: manager.submit(
+            debug_task("debug.sleep", seconds=30), owner=f"client-{i}")) for i in range(2)]
+        assert len(other) == 2
+        full = c.portal.call(lambda: _refusal(manager))
+        assert full == "JobStoreFullError", full
+
+
+async def _refusal(manager) -> str:
+    from helpers.service import debug_task
+
+    try:
+        await manager.submit(debug_task("debug.sleep", seconds=30), owner="client-9")
+    except Exception as exc:
+        return type(exc).__name__
+    return "admitted"
+
+
+def _upload_job(http: httpx.Client, **headers: str) -> httpx.Response:
+    V, F = GRID
+    return http.post("/v1/jobs", data={"operation": "forms"},
+                     files={"file": ("grid.off", save_mesh(V, F, "off"))}, headers=headers)
+
+
+def test_requests_from_another_origin_are_refused(http, base):
+    before = metric_value(http.get("/metrics").text, "ffs_jobs")
+    refused = _upload_job(http, Origin="https://evil.example")  # no preflight needed
+    doc = problem(refused, 403, "forbidden-origin")
+    assert "evil.example" in doc["detail"] and "FFS_CORS_ORIGINS" in doc["detail"]
+    for origin in ("null", "http://127.0.0.1.evil.example", f"https://{base[7:]}.evil"):
+        problem(_upload_job(http, Origin=origin), 403, "forbidden-origin")
+    assert metric_value(http.get("/metrics").text, "ffs_jobs") == before  # nothing stored
+    assert _upload_job(http, Origin=base).status_code == 202  # the page's own origin
+    assert _upload_job(http).status_code == 202  # no Origin: curl, scripts
+
+    import websockets.sync.client as ws_client
+    from websockets.exceptions import InvalidStatus
+
+    with pytest.raises(InvalidStatus) as rejected:
+        ws_client.connect(f"ws://{base[7:]}/v1/sessions/x/ws", origin="https://evil.example",
+                          open_timeout=10)
+    assert rejected.value.response.status_code == 403
+
+
+def test_ffs_cors_origins_are_allowed():
+    from helpers.servers import running_app
+
+    with running_app(cors_origins=["https://good.example"]) as c:
+        ok = c.post("/v1/forms", json={"vertices": GRID[0].tolist(), "faces": GRID[1].tolist()},
+                    headers={"Origin": "https://good.example"})
+        assert ok.status_code == 200 and ok.headers["access-control-allow-origin"]
+        problem(c.post("/v1/forms", json={}, headers={"Origin": "https://evil.example"}), 403,
+                "forbidden-origin")

@@ -19,7 +19,12 @@ from service.api.task import TaskRequest, TaskResult
 from service.backends.contracts import JobPolicy, ResultCallback
 from service.backends.dask.executor import DaskExecutor
 from service.backends.dask.registry import JOB_PREFIX
-from service.backends.errors import ExecutorClosedError, JobStoreFullError, TaskFailedError
+from service.backends.errors import (
+    ClientJobsError,
+    ExecutorClosedError,
+    JobStoreFullError,
+    TaskFailedError,
+)
 from service.backends.jobs import FIELDS, STATES, Job, job_fields
 from service.backends.loops import sweep_forever
 
@@ -66,14 +71,18 @@ class DaskJobManager:
             with contextlib.suppress(KeyError, Exception):
                 await client.unpublish_dataset(JOB_PREFIX + job_id)
 
-    async def submit(self, request: TaskRequest, *, color: str | None = None) -> Job:
+    async def submit(self, request: TaskRequest, *, color: str | None = None,
+                     owner: str | None = None) -> Job:
         client = await self.connection.wait_connected(5.0)
-        job = Job(id=uuid.uuid4().hex, operation=request.operation, color=color)
+        job = Job(id=uuid.uuid4().hex, operation=request.operation, color=color, owner=owner)
         meta = {"key": JOB_PREFIX + job.id, "ttl": self.policy.ttl, "timeout": self.policy.timeout}
-        full = await self.connection.call("job_add", job_fields(job), meta, self.policy.max_jobs,
-                                          time.time())
-        if full is not None:
-            raise JobStoreFullError(full, self.policy.max_jobs)
+        refusal = await self.connection.call("job_add", job_fields(job), meta,
+                                             self.policy.max_jobs, time.time(),
+                                             self.policy.max_per_client)
+        if refusal == "owner":
+            raise ClientJobsError(self.policy.max_per_client)
+        if refusal is not None:
+            raise JobStoreFullError(int(refusal), self.policy.max_jobs)
         try:
             handle = await self.executor.submit(request, task_id=job.id, job=True)
             if not await self.connection.call_async("wait_for_key", meta["key"], 30.0):

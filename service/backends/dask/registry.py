@@ -20,7 +20,7 @@ import time
 from typing import Any
 
 from service.api.problems import failure
-from service.backends.jobs import Job, count_states, job_fields
+from service.backends.jobs import Job, admit, count_states, job_fields
 
 REGISTRY_NAME = "ffs-registry"
 PROGRESS_TOPIC = "ffs-job"
@@ -58,11 +58,19 @@ class Registry(SchedulerPlugin):  # type: ignore[misc,valid-type]
     # ---------------------------------------------------------------------- jobs
 
     def job_add(self, record: dict[str, Any], meta: dict[str, Any], max_jobs: int,
-                now: float) -> int | None:
-        """Store a new job unless ``max_jobs`` are stored (then return that count)."""
+                now: float, max_per_owner: int = 16) -> int | str | None:
+        """Store a new job (the oldest finished ones give way, :func:`admit`); else the
+        number of unfinished jobs (the store is full of them) or ``"owner"`` (its client
+        has ``max_per_owner`` unfinished jobs)."""
         self._drop_expired_jobs(now)
-        if len(self.jobs) >= max_jobs:
+        evict, refusal = admit(self.jobs.values(), max_jobs, record.get("owner"),
+                               max_per_owner)
+        if refusal == "owner":
+            return refusal
+        if refusal is not None:
             return len(self.jobs)
+        for job_id in evict:
+            self.job_remove(job_id)
         job = Job(**record)
         self.jobs[job.id] = job
         self.job_meta[job.id] = meta

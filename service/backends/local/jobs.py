@@ -26,6 +26,7 @@ from service.api.problems import failure
 from service.api.task import TaskRequest, TaskResult
 from service.backends.contracts import Executor, JobPolicy, ResultCallback
 from service.backends.errors import (
+    ClientJobsError,
     ExecutorClosedError,
     JobLostError,
     JobStoreFullError,
@@ -33,7 +34,7 @@ from service.backends.errors import (
     TaskFailedError,
     WorkerDiedError,
 )
-from service.backends.jobs import Job, count_states
+from service.backends.jobs import Job, admit, count_states
 from service.backends.loops import sweep_forever
 
 logger = logging.getLogger("service.jobs")
@@ -47,6 +48,9 @@ class JobStore(Protocol):
     def get(self, job_id: str) -> Job | None: ...
 
     def remove(self, job_id: str) -> None: ...
+
+    def jobs(self) -> list[Job]:
+        """Every stored job."""
 
     def expired(self, now: float) -> list[str]:
         """Ids of finished jobs whose TTL has passed."""
@@ -71,6 +75,9 @@ class MemoryJobStore:
 
     def remove(self, job_id: str) -> None:
         self._jobs.pop(job_id, None)
+
+    def jobs(self) -> list[Job]:
+        return list(self._jobs.values())
 
     def expired(self, now: float) -> list[str]:
         return [j.id for j in self._jobs.values()
@@ -144,16 +151,25 @@ class JobManager:
     async def _expire_async(self) -> None:
         self.expire()
 
-    async def submit(self, request: TaskRequest, *, color: str | None = None) -> Job:
-        """Create a job and queue it (``JobStoreFullError``, ``QueueFullError``,
+    async def submit(self, request: TaskRequest, *, color: str | None = None,
+                     owner: str | None = None) -> Job:
+        """Create a job and queue it; the oldest finished jobs give way when the store is
+        full (``JobStoreFullError``, ``ClientJobsError``, ``QueueFullError``,
         ``ExecutorClosedError``)."""
         self.expire()
-        if len(self.store) >= self.policy.max_jobs:
+        evict, refusal = admit(self.store.jobs(), self.policy.max_jobs, owner,
+                               self.policy.max_per_client)
+        if refusal == "owner":
+            raise ClientJobsError(self.policy.max_per_client)
+        if refusal == "full":
             raise JobStoreFullError(len(self.store), self.policy.max_jobs)
-        job = Job(id=new_job_id(self.started_ms), operation=request.operation, color=color)
+        job = Job(id=new_job_id(self.started_ms), operation=request.operation, color=color,
+                  owner=owner)
         handle = await self.executor.submit(request, task_id=job.id,
                                             progress_cb=job.update_progress,
                                             on_start=job.mark_running)
+        for job_id in evict:
+            self.store.remove(job_id)
         self.store.add(job)
         self._runners[job.id] = asyncio.create_task(self._run(job, handle.future))
         return job

@@ -83,11 +83,12 @@ async def _get(jobs: JobsDep, job_id: str) -> Job:
              responses={202: created("Accepted; poll the Location.", "/v1/jobs/{id}", "job_id",
                                      {"GetJob": "get_job", "GetJobResult": "get_job_result",
                                       "DeleteJob": "delete_job"}),
-                        **error_responses(400, 408, 413, 415, 422, 503)})
+                        **error_responses(400, 408, 413, 415, 422, 429, 503)})
 async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep) -> Response:
     color, task = await job_request(request, settings)
     check_color(OPERATIONS[task.operation], color)
-    job = await jobs.submit(task, color=color)
+    job = await jobs.submit(task, color=color,
+                            owner=request.client.host if request.client else None)
     return _status_response(job, 202, {"Location": f"/v1/jobs/{job.id}"})
 
 

@@ -31,9 +31,9 @@ from .integrability import (
     integrate_along_forests,
     integration_forests,
 )
+from .layout_fit import LayoutFit
 from .linalg import resolve_backend
-from .refine import ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles, reproduces
-from .refine import refine as refine_forms
+from .refine import ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner, reproduces
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
 from .system import (
@@ -395,11 +395,33 @@ class ImmersionProblem:
             frame_faces=constraints.frame_faces, frame_edges=edges,
             frame_weights=np.where(frame_hard, HARD_FRAME_WEIGHT, constraints.frame_weights))
 
-    def frames_of(self, vertices: np.ndarray) -> np.ndarray:
+    def layout_fit(self, constraints: Constraints, backend: str = "auto") -> LayoutFit:
+        """The refinement's start (:class:`solver.layout_fit.LayoutFit`) for validated user
+        constraints: hard positions fixed, soft ones pulled with their weights."""
+        hard = np.isinf(constraints.position_weights)
+        return LayoutFit(self.topology, self.terms.layouts * self.length_scale,
+                         fixed=constraints.position_vertices[hard],
+                         soft=constraints.position_vertices[~hard],
+                         soft_weights=constraints.position_weights[~hard], backend=backend)
+
+    def refinement_start(self, fit: LayoutFit, frames: np.ndarray, constraints: Constraints,
+                         vertices: np.ndarray) -> np.ndarray:
+        """Positions (n, 3) that best fit the layouts rotated by the rotations nearest to
+        ``frames`` (m, 3, 3) (constrained faces by their constraint frames), with the
+        constraints' positions and the pinned vertices where ``vertices`` (n, 3), the
+        linear answer, has them: the start of the refinement."""
+        rotations = nearest_rotation(frames)
+        rotations[constraints.frame_faces] = constraints.frames
+        hard = np.isinf(constraints.position_weights)
+        return fit.solve(rotations, constraints.positions[hard], constraints.positions[~hard],
+                         vertices[fit.pinned])
+
+    def frames_of(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> np.ndarray:
         """(m, 3, 3) rotations nearest to the frames that map each face's layout onto
-        ``vertices`` (n, 3) (input units)."""
-        frames = layout_frames(vertices / self.length_scale, self.topology.faces,
-                               self.terms.layouts)
+        ``vertices`` (n, 3) (input units); only of ``faces`` (k,) when given."""
+        chosen = slice(None) if faces is None else faces
+        frames = layout_frames(vertices / self.length_scale, self.topology.faces[chosen],
+                               self.terms.layouts[chosen])
         return nearest_rotation(frames)
 
     def place_anchored(self, vertices: np.ndarray, anchored: list[dict[str, int]],
@@ -412,7 +434,7 @@ class ImmersionProblem:
         comps = np.array([a["component"] for a in anchored], dtype=np.int64)
         faces = np.array([a["face"] for a in anchored], dtype=np.int64)
         origin = vertices[[a["vertex"] for a in anchored]]                # (c, 3)
-        frames = self.frames_of(vertices)[faces]                           # (c, 3, 3)
+        frames = self.frames_of(vertices, faces)                           # (c, 3, 3)
         slot = np.full(self.topology.n_components, -1, dtype=np.int64)
         slot[comps] = np.arange(len(comps))
         which = slot[self.topology.vertex_component]
@@ -434,7 +456,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                 layout_angles: np.ndarray | None = None, n_vertices: int | None = None,
                 check_integrability: bool = True, integrability_tol: float = 1e-8,
                 exact_shortcut: bool = True, refine: bool | None = None,
-                angle_weight: float = ANGLE_WEIGHT,
+                angle_weight: float = ANGLE_WEIGHT, max_seconds: float | None = None,
                 progress: Progress | None = None) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
 
@@ -469,21 +491,26 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             is not tried), the system is factorized.
         refine: the nearest surface (:mod:`solver.refine`). ``None`` (default): when the
             linear answer does not reproduce the forms (they do not integrate, or the
-            constraints conflict with them), refine it with Levenberg-Marquardt on the
-            lengths and angles, started from the orthonormalized linear answer (Sec. 4);
-            integrable forms keep the exact answer (and the tree-integration path).
-            ``False``: the linear answer of Eq. 5. ``True``: refine whenever the linear
-            answer is not exact. ``report["refinement"]`` says whether and how it refined.
+            constraints conflict with them), refine it with Gauss-Newton on the lengths and
+            angles, started from the positions that best fit the linear answer's frames
+            projected to rotations (:mod:`solver.layout_fit`); integrable forms keep the
+            exact answer (and the tree-integration path). ``False``: the linear answer of
+            Eq. 5. ``True``: refine whenever the linear answer is not exact.
+            ``report["refinement"]`` says whether and how it refined.
         angle_weight: weight of a radian of dihedral angle against a relative length change
             of 1 in the refinement (see :mod:`solver.refine` and docs/refinement.md).
+        max_seconds: optional wall-clock budget of the whole call. The refinement stops
+            when it runs out and returns its best iterate with ``converged: false`` and
+            ``stop_reason: "time_limit"`` (the linear solve itself is never cut short).
         progress: optional callback ``progress(stage, fraction)`` for stages
-            validate, assemble, factorize, solve (and refine when refining).
+            validate, assemble, factorize, solve (and refine when refining); see
+            :func:`solver.refine.refine` for the per-iteration ``progress.iteration``.
     Returns:
         :class:`Reconstruction` with vertices (n, 3), frames (m, 3, 3) and a report.
     """
     notify = progress or (lambda stage, fraction: None)
     timings: dict[str, float] = {}
-    clock = time.perf_counter()
+    clock = started = time.perf_counter()
 
     def lap(stage: str) -> None:
         nonlocal clock
@@ -564,10 +591,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     refinement: dict[str, Any] = {"refined": False, "reason": "exact: tree integration"}
     if solve_path == "factorization":
         exact = refine is not False and reproduces(vertices, topology, L, A)
-        want = refine is not False and not exact
         refinement = {"refined": False, "reason": "disabled (refine=false)" if refine is False
                       else "exact: the linear answer reproduces the forms"}
-        orthonormalize = orthonormalize or want  # the refinement starts from rotations
     if orthonormalize and solve_path == "factorization":  # integrated frames are rotations
         notify("factorize", 0.5)
         rotations = nearest_rotation(frames)
@@ -585,8 +610,12 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     notify("solve", 1.0)
     if solve_path == "factorization" and refine is not False and not exact:
         notify("refine", 0.0)
-        fit = refine_forms(vertices, FormTargets(topology, L, A, angle_weight=angle_weight),
-                           problem.refinement_handles(user), backend=backend)
+        start = problem.refinement_start(problem.layout_fit(user, backend), frames, user,
+                                         vertices)
+        refiner = Refiner(FormTargets(topology, L, A, angle_weight=angle_weight),
+                          problem.refinement_handles(user), backend=backend)
+        budget = None if max_seconds is None else max_seconds - (time.perf_counter() - started)
+        fit = refiner.run(start, time_limit=budget, progress=progress)
         vertices, refinement = problem.place_anchored(fit.vertices, anchored), fit.report
         frames = problem.frames_of(vertices)
         lap("refine")

@@ -523,7 +523,7 @@ class Refiner:
     def run(self, start: np.ndarray, *, soft_positions: np.ndarray | None = None,
             frame_edges: np.ndarray | None = None, max_iterations: int = MAX_ITERATIONS,
             tolerance: float = TOLERANCE, time_limit: float | None = None,
-            keep_factor: bool = False) -> Refinement:
+            keep_factor: bool = False, progress: Any = None) -> Refinement:
         """Refine from ``start`` (n, dim); fixed vertices keep their ``start`` positions.
 
         ``soft_positions`` (p, dim) and ``frame_edges`` (q, 2, dim) replace the handle
@@ -533,6 +533,7 @@ class Refiner:
         that kept factor, without a fresh factorization to confirm it. See :func:`refine`
         for the rest.
         """
+        notify = _iteration_notifier(progress, time_limit)
         clock = time.perf_counter()
         objective = self.objective
         self.set_handle_targets(soft_positions, frame_edges)
@@ -597,6 +598,7 @@ class Refiner:
                 decrease, X, energy = energy - new_energy, trial, new_energy
                 trace.append(energy)
                 steps.append(moved)
+                notify(iterations, factorizations, energy, time.perf_counter() - clock)
                 # ... unless E still falls fast (Gauss-Newton's quadratic convergence where the
                 # forms are met): then a few more steps are cheap and reach round-off.
                 slowing = decrease <= 0.5 * (energy + decrease)
@@ -671,9 +673,32 @@ class Refiner:
         return None
 
 
+def _iteration_notifier(progress: Any, time_limit: float | None) -> Any:
+    """``notify(iteration, factorizations, energy, seconds)`` for :meth:`Refiner.run`:
+    calls ``progress("refine", fraction)`` and, when ``progress`` has one,
+    ``progress.iteration(detail)``; does nothing without ``progress``."""
+    if progress is None:
+        return lambda *args: None
+    detail_hook = getattr(progress, "iteration", None)
+
+    def notify(iteration: int, factorizations: int, energy: float, seconds: float) -> None:
+        # A refinement's length is unknown: most end after 2-5 iterations, so the fraction
+        # climbs towards 1 as iterations pass (or as the time budget is spent).
+        fraction = iteration / (iteration + 3.0)
+        if time_limit:
+            fraction = max(fraction, seconds / time_limit)
+        progress("refine", min(fraction, 0.99))
+        if detail_hook is not None:
+            detail_hook({"iteration": iteration, "factorizations": factorizations,
+                         "energy": energy, "seconds": seconds})
+
+    return notify
+
+
 def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None = None, *,
            max_iterations: int = MAX_ITERATIONS, tolerance: float = TOLERANCE,
-           time_limit: float | None = None, backend: str = "auto") -> Refinement:
+           time_limit: float | None = None, backend: str = "auto",
+           progress: Any = None) -> Refinement:
     """Vertex positions whose fundamental forms are nearest to ``targets`` (Levenberg-Marquardt).
 
     Args:
@@ -685,8 +710,14 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
             rejected step).
         tolerance: stop after a full Gauss-Newton step that moved no vertex by more than
             ``tolerance`` times the mean target edge length.
-        time_limit: optional wall-clock budget in seconds (checked between iterations).
+        time_limit: optional wall-clock budget in seconds (checked between iterations):
+            when it runs out the best iterate is returned, ``converged`` False and
+            ``stop_reason`` ``"time_limit"``.
         backend: sparse factorization backend (:func:`solver.linalg.factorize`).
+        progress: optional ``progress(stage, fraction)`` callback, called as
+            ``progress("refine", fraction)`` after every accepted step; if it also has a
+            method ``iteration(detail)``, that gets ``{"iteration", "factorizations",
+            "energy", "seconds"}`` of each step (the service's job progress shows them).
     Returns:
         :class:`Refinement`. Its energy is never above the start's: a step is accepted
         only when it lowers E. ``report["converged"]`` is False when the iteration or time
@@ -706,4 +737,5 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
     """
     dim = np.shape(vertices)[1]
     return Refiner(targets, handles, dim, backend).run(
-        vertices, max_iterations=max_iterations, tolerance=tolerance, time_limit=time_limit)
+        vertices, max_iterations=max_iterations, tolerance=tolerance, time_limit=time_limit,
+        progress=progress)

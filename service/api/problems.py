@@ -37,11 +37,15 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
     "unreadable-file": (400, "Unreadable mesh file",
                         "The uploaded mesh file could not be parsed."),
     "unsupported-media-type": (415, "Unsupported media type",
-                               "Send application/json or multipart/form-data."),
+                               "Send application/json (UTF-8), multipart/form-data or "
+                               "application/vnd.ffs.arrays, as the endpoint documents."),
     "unsupported-file-type": (415, "Unsupported mesh file type",
                               "Upload an OBJ, PLY, OFF, STL or GLB file."),
     "payload-too-large": (413, "Request body too large",
                           "The body exceeds FFS_MAX_BODY_BYTES."),
+    "header-timeout": (408, "Request head too slow",
+                       "The request headers did not arrive within FFS_HEADER_TIMEOUT seconds; "
+                       "the connection is closed."),
     "body-timeout": (408, "Request body too slow",
                      "The body did not arrive within FFS_BODY_TIMEOUT seconds; the connection "
                      "is closed."),

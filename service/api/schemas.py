@@ -66,9 +66,10 @@ REFINE_DESCRIPTION = (
 
 
 class ApiModel(BaseModel):
-    """Base of the request models: finite floats only, unknown fields rejected."""
+    """Base of the request models: finite floats only, unknown fields rejected, and strict
+    types as the schema says (``"no"`` or ``0`` is not a boolean, ``"1.5"`` not a number)."""
 
-    model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid", strict=True)
 
 
 def _example(example: dict[str, Any], model: type[BaseModel] = ApiModel) -> ConfigDict:

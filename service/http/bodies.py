@@ -42,13 +42,30 @@ answering anything for ~0.5 s."""
 
 
 def media_type(request: Request) -> str:
-    """The request's media type without parameters (``application/json`` if absent)."""
+    """The request's media type without parameters; a 415 problem when there is none, or
+    when a ``charset`` other than UTF-8 is declared (bodies are read as UTF-8 JSON)."""
     value = request.headers.get("content-type", "")
-    return value.split(";", 1)[0].strip().lower() or "application/json"
+    mtype, _, params = value.partition(";")
+    mtype = mtype.strip().lower()
+    if not mtype:
+        raise ProblemError("unsupported-media-type", "the request has no Content-Type; send "
+                           "application/json, multipart/form-data or " + BINARY_MEDIA_TYPE,
+                           errors=[{"field": "Content-Type", "index": None,
+                                    "reason": "missing"}])
+    for param in params.split(";"):
+        key, _, charset = param.partition("=")
+        charset = charset.strip().strip('"').lower()
+        if key.strip().lower() == "charset" and charset not in ("utf-8", "utf8"):
+            raise ProblemError("unsupported-media-type", f"charset={charset} is not supported; "
+                               "send UTF-8", errors=[{"field": "Content-Type", "index": None,
+                                                      "reason": f"charset {charset}"}])
+    return mtype
 
 
 def is_json(mtype: str) -> bool:
-    return mtype == "application/json" or mtype.endswith("+json")
+    """Whether the media type is plain JSON (``application/json-patch+json`` and other
+    ``+json`` types mean something else: 415)."""
+    return mtype == "application/json"
 
 
 async def read_body(request: Request, settings: Settings) -> bytes:
@@ -107,6 +124,7 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
         sent = True
         return {"type": "http.request", "body": body, "more_body": False}
 
+    _check_closed(request, body)
     replay = Request(request.scope, receive)
     try:
         form = await replay.form(max_files=4, max_fields=64,
@@ -114,12 +132,15 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
     except StarletteHTTPException as exc:
         raise ProblemError("malformed-request", f"cannot read the multipart body: {exc.detail}"
                            ) from None
-    except Exception as exc:  # python-multipart parse errors
-        raise ProblemError("malformed-request", f"cannot read the multipart body: {exc}"
-                           ) from None
+    except Exception:  # python-multipart parse errors (their text names internals)
+        raise ProblemError("malformed-request", "cannot read the multipart body: it is not "
+                           "well-formed multipart/form-data") from None
     fields: dict[str, Any] = {}
     files: dict[str, UploadFile] = {}
     for key, value in form.multi_items():
+        if key in files or (key in fields and not isinstance(value, UploadFile)):
+            raise ProblemError("malformed-request", f"form field {key!r} is given twice",
+                               errors=[{"field": key, "index": None, "reason": "repeated"}])
         if isinstance(value, UploadFile):
             files[key] = value
         elif key in fields:
@@ -128,6 +149,25 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
         else:
             fields[key] = _decode_field(value)
     return fields, files
+
+
+def _check_closed(request: Request, body: bytes) -> None:
+    """A 400 problem unless the multipart body ends with its closing boundary (a cut upload
+    would otherwise read as a form without its file)."""
+    boundary = ""
+    for param in request.headers.get("content-type", "").split(";")[1:]:
+        key, _, value = param.partition("=")
+        if key.strip().lower() == "boundary":
+            boundary = value.strip().strip('"')
+    if not boundary:
+        raise ProblemError("malformed-request", "the multipart Content-Type has no boundary",
+                           errors=[{"field": "Content-Type", "index": None,
+                                    "reason": "no boundary"}])
+    if not body.rstrip(b"\r\n").endswith(b"--" + boundary.encode("latin-1") + b"--"):
+        raise ProblemError("malformed-request", "the multipart body ends before its closing "
+                           "boundary (the upload was cut off)",
+                           errors=[{"field": "body", "index": None,
+                                    "reason": "no closing boundary"}])
 
 
 def _decode_field(value: str) -> Any:

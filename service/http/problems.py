@@ -20,6 +20,7 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 from starlette.responses import Response
+from starlette.routing import Match
 
 from service.api.problems import (
     ProblemError,
@@ -88,6 +89,18 @@ def _fallback(value: Any) -> Any:
     return str(value)
 
 
+METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route of the app serves at the request's path (Starlette's 405
+    names only the first matching route's, e.g. ``GET`` where ``DELETE`` is served too)."""
+    routes = request.app.router.routes
+    return [method for method in METHODS
+            if any(route.matches({**request.scope, "method": method})[0] == Match.FULL
+                   for route in routes)]
+
+
 def install_handlers(app: FastAPI) -> None:
     """Register handlers so that every error leaves the app as a problem document."""
 
@@ -115,8 +128,13 @@ def install_handlers(app: FastAPI) -> None:
         assert isinstance(exc, StarletteHTTPException)
         kind = {404: "not-found", 405: "method-not-allowed", 413: "payload-too-large",
                 415: "unsupported-media-type"}.get(exc.status_code, "http-error")
-        problem = ProblemError(kind, str(exc.detail), status=exc.status_code,
-                               headers=exc.headers)
+        headers = dict(exc.headers or {})
+        detail = str(exc.detail)
+        if exc.status_code == 405:
+            allow = allowed_methods(request)
+            headers["Allow"] = ", ".join(allow)
+            detail = f"{request.method} is not allowed here; use {', '.join(allow)}"
+        problem = ProblemError(kind, detail, status=exc.status_code, headers=headers)
         return problem_response(problem, request.url.path)
 
     async def on_disconnect(request: Request, exc: Exception) -> Response:

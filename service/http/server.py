@@ -16,15 +16,28 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+import orjson
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from service.settings import Settings
 
 PROTOCOL = "service.http.server:HeaderTimeoutProtocol"
 """The import string to give uvicorn's ``http`` option."""
-TIMEOUT_RESPONSE = (b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\n"
-                    b"connection: close\r\ncontent-length: 37\r\n\r\n"
-                    b"request headers not complete in time\n")
+
+
+def raw_problem(status: int, reason: str, kind: str, title: str, detail: str) -> bytes:
+    """A complete HTTP/1.1 response carrying a problem document, for answers given below
+    the app (the header deadline, a request uvicorn cannot parse), then ``close``."""
+    body = orjson.dumps({"type": f"/problems/{kind}", "title": title, "status": status,
+                         "detail": detail, "kind": kind, "errors": []})
+    return (f"HTTP/1.1 {status} {reason}\r\ncontent-type: application/problem+json\r\n"
+            f"x-content-type-options: nosniff\r\nconnection: close\r\n"
+            f"content-length: {len(body)}\r\n\r\n").encode() + body
+
+
+TIMEOUT_RESPONSE = raw_problem(408, "Request Timeout", "header-timeout", "Request head too slow",
+                               "the request headers did not arrive in time "
+                               "(FFS_HEADER_TIMEOUT); the connection is closed")
 
 
 class HeaderTimeoutProtocol(HttpToolsProtocol):
@@ -39,6 +52,12 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
         self._arm(answer=False)  # nothing sent yet (a browser's preconnect): close silently
+
+    def send_400_response(self, msg: str) -> None:
+        """uvicorn's answer to bytes that are not HTTP, as a problem document."""
+        self.transport.write(raw_problem(400, "Bad Request", "malformed-request",
+                                         "Malformed request", msg.rstrip(".")))
+        self.transport.close()
 
     def on_message_begin(self) -> None:
         super().on_message_begin()

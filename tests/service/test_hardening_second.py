@@ -22,7 +22,7 @@ from solver.io import save_mesh
 
 @pytest.fixture(scope="module")
 def base() -> Iterator[str]:
-    with uvicorn_server() as url:
+    with uvicorn_server({"FFS_HEADER_TIMEOUT": "2"}) as url:
         yield url
 
 
@@ -195,3 +195,90 @@ def test_ffs_cors_origins_are_allowed():
         assert ok.status_code == 200 and ok.headers["access-control-allow-origin"]
         problem(c.post("/v1/forms", json={}, headers={"Origin": "https://evil.example"}), 403,
                 "forbidden-origin")
+
+
+# ----------------------------------------------------------------- 6: protocol details
+
+
+def test_allow_lists_every_method_of_the_path(http):
+    for path, methods in (("/v1/jobs/x", {"GET", "DELETE"}),
+                          ("/v1/sessions/x", {"GET", "DELETE"})):
+        response = http.options(path)
+        problem(response, 405, "method-not-allowed")
+        assert methods <= {m.strip() for m in response.headers["allow"].split(",")}, \
+            response.headers
+
+
+def _mesh() -> dict[str, object]:
+    return {"vertices": GRID[0].tolist(), "faces": GRID[1].tolist()}
+
+
+def test_booleans_and_numbers_are_strict(http):
+    forms = http.post("/v1/forms", json=_mesh()).json()
+    forms.pop("report", None)
+    body = {k: forms[k] for k in ("faces", "edges", "lengths", "angles")}
+    for options in ({"refine": "no"}, {"refine": 0}, {"orthonormalize": "yes"},
+                    {"frame_weight": "1000"}):
+        response = http.post("/v1/reconstruct", json={**body, "options": options})
+        doc = problem(response, 422, "validation-error")
+        assert doc["errors"][0]["field"].startswith("options."), doc
+    response = http.post("/v1/reconstruct", json={**body, "options": {"refine": False,
+                                                                      "frame_weight": 10}})
+    assert response.status_code == 200, response.text
+
+
+def test_the_header_timeout_is_a_problem_document(base):
+    import socket
+
+    host, port = base[7:].split(":")
+    with socket.create_connection((host, int(port)), timeout=30) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")  # never finishes its head
+        data = b""
+        while chunk := sock.recv(65536):
+            data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 408"), data
+    assert b"content-type: application/problem+json" in head.lower()
+    assert orjson.loads(body)["kind"] == "header-timeout"
+
+
+def test_garbage_instead_of_http_is_a_problem_document(base):
+    import socket
+
+    host, port = base[7:].split(":")
+    with socket.create_connection((host, int(port)), timeout=30) as sock:
+        sock.sendall(b"\x16\x03\x01 not http at all\r\n\r\n")
+        data = b""
+        while chunk := sock.recv(65536):
+            data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 400") and b"application/problem+json" in head, data
+    assert orjson.loads(body)["kind"] == "malformed-request"
+
+
+@pytest.mark.parametrize("content_type", [None, "", "application/json; charset=utf-16",
+                                          "application/json-patch+json", "text/plain"])
+def test_content_types_are_strict(http, content_type):
+    body = orjson.dumps(_mesh())
+    headers = {} if content_type is None else {"content-type": content_type}
+    request = http.build_request("POST", "/v1/forms", content=body, headers=headers)
+    if content_type is None and "content-type" in request.headers:
+        del request.headers["content-type"]
+    problem(http.send(request), 415, "unsupported-media-type")
+    ok = http.post("/v1/forms", content=body,
+                   headers={"content-type": "application/json; charset=UTF-8"})
+    assert ok.status_code == 200, ok.text
+
+
+def test_a_second_file_part_and_a_cut_upload_are_400(http):
+    V, F = GRID
+    data = save_mesh(V, F, "off")
+    twice = http.post("/v1/forms", files=[("file", ("a.off", data)), ("file", ("b.off", data))])
+    assert "given twice" in problem(twice, 400, "malformed-request")["detail"]
+    whole = http.build_request("POST", "/v1/forms", files={"file": ("a.off", data)})
+    body = whole.read()
+    cut = http.post("/v1/forms", content=body[:len(body) // 2],
+                    headers={"content-type": whole.headers["content-type"]})
+    assert "closing boundary" in problem(cut, 400, "malformed-request")["detail"]
+    assert http.post("/v1/forms", content=body,
+                     headers={"content-type": whole.headers["content-type"]}).status_code == 200

@@ -110,7 +110,7 @@ def test_upload_errors(client):
                   422, "index-out-of-range")
     problem(client.post("/v1/forms", content=b"--xyz\r\nbroken",
                         headers={"content-type": "multipart/form-data; boundary=xyz"}),
-            422, "validation-error")
+            400, "malformed-request")  # cut before its closing boundary (issue 24)
     W = V.copy()
     doc = problem(client.post("/v1/interpolate", data={"t": "0.5"}, files={
         "file_a": ("a.off", off), "file_b": ("b.off", save_mesh(W, F[::-1], "off"))}),

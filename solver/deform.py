@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike
 from .errors import ConstraintError
 from .forms import forms_of
 from .frames import layout_frames
+from .layout_fit import LayoutFit
 from .metrics import compact, distortion
 from .reconstruct import Constraints, ImmersionProblem, Progress
 from .refine import DEFORM_ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner
@@ -153,9 +154,11 @@ class Deformer:
         rotation_weight: the same for orientation handles.
         weighting, backend: see :func:`solver.reconstruct`.
         refine: default of :meth:`solve`'s ``refine``: also fit the rest forms nonlinearly
-            (:mod:`solver.refine`), started from the orthonormalized linear answer. Off by
-            default here (each refined drag costs several factorizations; see
-            bench/README.md); :func:`deform` refines by default.
+            (:mod:`solver.refine`), started from the layout fit of the linear answer's
+            rotations (:mod:`solver.layout_fit`) or, for a later drag, from the previous
+            refined shape. Off by default here (a refined drag costs factorizations of its
+            own; see bench/README.md): an interactive client answers the linear shape first
+            and :meth:`refine_last` after it; :func:`deform` refines by default.
         angle_weight: the refinement's dihedral weight (docs/refinement.md).
     """
 
@@ -246,7 +249,10 @@ class Deformer:
         self.rest_forms = forms
         self.last_report: dict[str, Any] = {"refined": False, "reason": "no solve yet"}
         self._refiner: Refiner | None = None
+        self._layout_fit: LayoutFit | None = None
         self._previous: tuple[np.ndarray, np.ndarray] | None = None  # (linear, refined)
+        # The last solve's targets and answers, for refine_last (see there).
+        self._last: dict[str, Any] | None = None
 
         template = self._constraints(np.zeros((len(self.handles), 3)),
                                      np.tile(np.eye(3), (len(groups), 1, 1)))
@@ -263,8 +269,10 @@ class Deformer:
             _REST_CACHE.put(key, rest)  # after the first factorization: K is assembled
         self._linear = linear
         self.system_orthonormal: ConstrainedSystem | None = None
-        if orthonormalize or refine:
+        if orthonormalize:
             self._orthonormal_system()
+        if refine:
+            self._start_fit()
         self.setup_seconds = time.perf_counter() - start
         notify("factorize", 1.0)
 
@@ -275,6 +283,15 @@ class Deformer:
                 self._linear, self.backend_name, self.problem.all_frame_columns(),
                 self.orthonormal_weight)
         return self.system_orthonormal
+
+    def _start_fit(self) -> LayoutFit:
+        """The refinement's start: positions fitted to rotated layouts (built on first use;
+        the same fixed and soft vertices as the refinement)."""
+        if self._layout_fit is None:
+            template = self._constraints(np.zeros((len(self.handles), 3)),
+                                         np.tile(np.eye(3), (self.n_groups, 1, 1)))
+            self._layout_fit = self.problem.layout_fit(template, self.backend_name)
+        return self._layout_fit
 
     def _refinement(self) -> Refiner:
         """The nonlinear fit of the ROI to its rest forms (built on first use)."""
@@ -338,7 +355,7 @@ class Deformer:
 
     def solve(self, handle_positions: ArrayLike | None = None,
               handle_rotations: ArrayLike | None = None, refine: bool | None = None,
-              ) -> np.ndarray:
+              max_seconds: float | None = None) -> np.ndarray:
         """Deformed vertices (n, 3) for new handle targets; only back-substitutes.
 
         Args:
@@ -348,6 +365,7 @@ class Deformer:
                 ``refine`` given at construction); skipped when the linear answer already
                 has the rest forms (e.g. a rigid motion of every handle).
                 :attr:`last_report` says whether and how it refined.
+            max_seconds: optional budget of the refinement (see :meth:`refine_last`).
         """
         refine = self.refine if refine is None else bool(refine)
         P = (self.rest[self.handles] if handle_positions is None
@@ -367,36 +385,66 @@ class Deformer:
         constraints = self._constraints(P, R)
         linear = self.problem.linear_constraints(constraints).extended(self._anchor)
         u = self.system.solve(linear.hard_values, linear.soft_values)
-        if self.orthonormalize or refine:
-            _, frames = self.problem.unknowns_to_geometry(u)
+        _, frames = self.problem.unknowns_to_geometry(u)
+        if self.orthonormalize:
             targets = np.swapaxes(nearest_rotation(frames), 1, 2).reshape(-1, 3)
             u = self._orthonormal_system().solve(
                 linear.hard_values, np.concatenate([linear.soft_values, targets]))
+            _, frames = self.problem.unknowns_to_geometry(u)
         local, _ = self.problem.unknowns_to_geometry(u, constraints)
         local = self.problem.recenter(local, constraints, self.rest[self.sub_vertices])
+        self._last = {"P": P, "R": R, "constraints": constraints, "linear": local,
+                      "frames": frames, "best": None, "report": None}
         self.last_report = {"refined": False, "reason": "disabled (refine=false)"}
         if refine:
-            refiner = self._refinement()
-            if refiner.reproduces(local):
-                self.last_report = {"refined": False,
-                                    "reason": "exact: the linear answer has the rest forms"}
-            else:
-                soft = None if np.isinf(self._handle_weight) else P
-                edges = self._rest_face_edges(R)
-                refiner.set_handle_targets(soft, edges)
-                start = local
-                if self._previous is not None:
-                    # A session's next drag: the previous refined shape, moved by what the
-                    # linear answer moved (exactly the new targets at hard handles). Of the
-                    # two starts the nearer to the rest forms wins.
-                    warm = self._previous[1] + (local - self._previous[0])
-                    start = min((local, warm), key=refiner.energy)
-                linear_local = local
-                fit = refiner.run(start, keep_factor=True)
-                local, self.last_report = fit.vertices, fit.report
-                self.last_report["start"] = "previous drag" if start is not linear_local \
-                    else "linear answer"
-                self._previous = (linear_local, local)
+            return self.refine_last(max_seconds)
+        return self._embed(local)
+
+    def refine_last(self, max_seconds: float | None = None) -> np.ndarray:
+        """The refined shape (n, 3) for the handle targets of the last :meth:`solve`.
+
+        The first call after a solve starts from the better (lower energy) of the layout
+        fit of that solve's rotations and the previous drag's refined shape moved by what
+        the linear answer moved; a call after a refinement that stopped early (its budget
+        ``max_seconds`` ran out: ``last_report["stop_reason"] == "time_limit"``) continues
+        from where it stopped, so an interactive client can answer the linear shape at
+        once and refine in slices while the user pauses. A converged refinement is
+        returned as it is. :attr:`last_report` is the refinement's report.
+        """
+        if self._last is None:
+            raise ConstraintError("nothing to refine: call solve first", field="handles")
+        last = self._last
+        if last["best"] is not None and last["report"].get("converged"):
+            return self._embed(last["best"])
+        refiner = self._refinement()
+        local = last["linear"]
+        if last["best"] is None and refiner.reproduces(local):
+            self.last_report = {"refined": False,
+                                "reason": "exact: the linear answer has the rest forms"}
+            last["best"], last["report"] = local, self.last_report
+            return self._embed(local)
+        soft = None if np.isinf(self._handle_weight) else last["P"]
+        refiner.set_handle_targets(soft, self._rest_face_edges(last["R"]))
+        label = "previous slice"
+        start = last["best"]
+        if start is None:
+            start, label = self.problem.refinement_start(
+                self._start_fit(), last["frames"], last["constraints"], local), "layout fit"
+            if self._previous is not None:
+                # A session's next drag: the previous refined shape, moved by what the
+                # linear answer moved (exactly the new targets at hard handles). Of the two
+                # starts the nearer to the rest forms wins.
+                warm = self._previous[1] + (local - self._previous[0])
+                if refiner.energy(warm) < refiner.energy(start):
+                    start, label = warm, "previous drag"
+        fit = refiner.run(start, keep_factor=True, time_limit=max_seconds)
+        self.last_report = dict(fit.report, start=label)
+        last["best"], last["report"] = fit.vertices, self.last_report
+        self._previous = (local, fit.vertices)
+        return self._embed(fit.vertices)
+
+    def _embed(self, local: np.ndarray) -> np.ndarray:
+        """Whole-mesh vertices (n, 3): the rest, with the ROI's vertices from ``local``."""
         out = self.rest.copy()
         moving = self.in_roi[self.sub_vertices]
         out[self.sub_vertices[moving]] = local[moving]
@@ -410,13 +458,15 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
            orthonormal_weight: float = 1000.0, handle_weight: float = np.inf,
            rotation_weight: float = np.inf, weighting: Weighting = "uniform",
            backend: str = "auto", refine: bool | None = None,
-           angle_weight: float = DEFORM_ANGLE_WEIGHT,
+           angle_weight: float = DEFORM_ANGLE_WEIGHT, max_seconds: float | None = None,
            progress: Progress | None = None) -> Deformation:
     """One-shot deformation: build a :class:`Deformer`, solve once, measure distortion.
 
     ``refine``: ``None`` (default) and ``True`` fit the rest forms nonlinearly from the
     linear answer unless it already has them (:mod:`solver.refine`); ``False`` returns the
-    linear answer. ``report["refinement"]`` says whether and how it refined.
+    linear answer. ``report["refinement"]`` says whether and how it refined. ``max_seconds``:
+    optional wall-clock budget of the whole call; the refinement stops when it runs out
+    (``stop_reason: "time_limit"``, the best shape so far).
 
     Returns :class:`Deformation` whose report holds timings, the backend and the distortion
     (:func:`solver.metrics.distortion`, without per-edge arrays) against the rest mesh.
@@ -431,7 +481,8 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
     t1 = time.perf_counter()
     if progress:
         progress("solve", 0.0)
-    result = deformer.solve(handle_positions, handle_rotations)
+    budget = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
+    result = deformer.solve(handle_positions, handle_rotations, max_seconds=budget)
     t2 = time.perf_counter()
     if progress:
         progress("solve", 1.0)

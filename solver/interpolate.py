@@ -10,6 +10,7 @@ and the vertex blend ``(1 - t) A + t B`` is nearer to them. The result is rigidl
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -20,9 +21,8 @@ from .errors import ShapeMismatchError
 from .forms import fundamental_forms
 from .metrics import wrap_angle
 from .reconstruct import reconstruct
-from .refine import ANGLE_WEIGHT, FormTargets, Refiner
+from .refine import ANGLE_WEIGHT
 from .system import Weighting
-from .topology import build_topology
 from .validation import as_points
 
 
@@ -39,13 +39,17 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
                 t: float | Sequence[float], *, frame_weight: float = 1000.0,
                 weighting: Weighting = "uniform", backend: str = "auto",
                 refine: bool | None = None, angle_weight: float = ANGLE_WEIGHT,
-                return_reports: bool = False,
+                max_seconds: float | None = None, return_reports: bool = False,
                 ) -> np.ndarray | tuple[np.ndarray, list[dict[str, Any]]]:
     """Blend two meshes with the same faces in form space.
 
     Lengths blend linearly; dihedral angles along the shorter way round. For each t the
     blended forms are reconstructed (one solve of Eq. 5), refined unless ``refine=False``
     (see the module docstring) and aligned rigidly to (1 - t) A + t B.
+
+    ``max_seconds``: optional wall-clock budget of the whole call, shared out evenly among
+    the blend values still to compute; a refinement that runs out of its share returns its
+    best shape (``stop_reason: "time_limit"``).
 
     Returns:
         (n, 3) for a scalar t, (k, n, 3) for a sequence of k values; with
@@ -64,28 +68,21 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
     if not np.all(np.isfinite(ts)):
         raise ShapeMismatchError("t must be finite", field="t")
     results, reports = [], []
-    topology = build_topology(forms_a.faces, len(A))
-    for s in ts:  # one solve (and refinement) per requested blend value
+    started = time.perf_counter()
+    for k, s in enumerate(ts):  # one solve (and refinement) per requested blend value
         lengths = (1 - s) * forms_a.lengths + s * forms_b.lengths
         angles = wrap_angle(forms_a.angles + s * wrap_angle(forms_b.angles - forms_a.angles))
+        linear = (1 - s) * A + s * B
+        share = None if max_seconds is None else (
+            (max_seconds - (time.perf_counter() - started)) / (len(ts) - k))
+        # The refinement starts from the better of the layout fit and the vertex blend.
         rec = reconstruct(forms_a.faces, forms_a.edges, lengths, angles, n_vertices=len(A),
                           frame_weight=frame_weight, weighting=weighting, backend=backend,
-                          check_integrability=False, refine=False,
-                          orthonormalize=refine is not False)
-        linear = (1 - s) * A + s * B
-        vertices = rec.vertices
-        report: dict[str, Any] = {"refined": False, "reason": "disabled (refine=false)"}
-        if refine is not False:
-            refiner = Refiner(FormTargets(topology, lengths, angles, angle_weight=angle_weight),
-                              backend=backend)
-            start = min((vertices, linear), key=refiner.energy)
-            if refiner.reproduces(start):
-                report = {"refined": False, "reason": "exact: the forms integrate"}
-                vertices = start
-            else:
-                fit = refiner.run(start)
-                vertices, report = fit.vertices, fit.report
-                report["start"] = "vertex blend" if start is linear else "linear solve"
+                          check_integrability=False, refine=refine, angle_weight=angle_weight,
+                          initial_guess=linear, max_seconds=share)
+        vertices, report = rec.vertices, rec.report["refinement"]
+        if report.get("start") == "initial guess":
+            report["start"] = "vertex blend"
         R, shift = rigid_alignment(vertices, linear)
         results.append(vertices @ R.T + shift)
         reports.append(report)

@@ -147,6 +147,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
                  orthonormal_weight: float = 1000.0, frame_weight: float = 1000.0,
                  weighting: Weighting = "uniform", backend: str = "auto",
                  refine: bool | None = None, area_weight: float = AREA_WEIGHT,
+                 max_seconds: float | None = None,
                  progress: Progress | None = None) -> Parameterization:
     """Flatten a mesh with boundary by reconstructing it with all dihedral angles 0.
 
@@ -158,6 +159,8 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
             and signed areas, so flipped faces are pushed back), unless the linear answer
             already has every length (a developable surface). ``False``: the linear answer.
         area_weight: weight of the relative signed-area residual in the refinement.
+        max_seconds: optional wall-clock budget of the whole call; the refinement stops
+            when it runs out (``stop_reason: "time_limit"``, its best iterate).
     Raises:
         TopologyError for a component without boundary (a closed surface cannot be
         flattened without a cut).
@@ -214,7 +217,8 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
             if tutte is not None:
                 start = local_global_flattening(topology, forms.lengths, tutte, backend=backend)
                 name = "local/global from Tutte"
-            fit = refiner.run(start)
+            budget = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
+            fit = refiner.run(start, time_limit=budget, progress=progress)
             uv, refinement = fit.vertices, fit.report
             refinement["start"] = name
             notify("refine", 1.0)

@@ -457,6 +457,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                 check_integrability: bool = True, integrability_tol: float = 1e-8,
                 exact_shortcut: bool = True, refine: bool | None = None,
                 angle_weight: float = ANGLE_WEIGHT, max_seconds: float | None = None,
+                initial_guess: ArrayLike | None = None,
                 progress: Progress | None = None) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
 
@@ -502,6 +503,9 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         max_seconds: optional wall-clock budget of the whole call. The refinement stops
             when it runs out and returns its best iterate with ``converged: false`` and
             ``stop_reason: "time_limit"`` (the linear solve itself is never cut short).
+        initial_guess: optional (n, 3) positions; the refinement starts from it instead
+            of the layout fit when its energy is lower (``report["refinement"]["start"]``
+            says which), e.g. the vertex blend of :func:`solver.interpolate`.
         progress: optional callback ``progress(stage, fraction)`` for stages
             validate, assemble, factorize, solve (and refine when refining); see
             :func:`solver.refine.refine` for the per-iteration ``progress.iteration``.
@@ -614,9 +618,18 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                                          vertices)
         refiner = Refiner(FormTargets(topology, L, A, angle_weight=angle_weight),
                           problem.refinement_handles(user), backend=backend)
+        label = "layout fit"
+        if initial_guess is not None:
+            guess = as_points(initial_guess, "initial_guess")
+            if guess.shape != start.shape:
+                raise ConstraintError(f"initial_guess must have shape {start.shape}, got "
+                                      f"{guess.shape}", field="initial_guess")
+            if refiner.energy(guess) < refiner.energy(start):
+                start, label = guess, "initial guess"
         budget = None if max_seconds is None else max_seconds - (time.perf_counter() - started)
         fit = refiner.run(start, time_limit=budget, progress=progress)
         vertices, refinement = problem.place_anchored(fit.vertices, anchored), fit.report
+        refinement["start"] = label
         frames = problem.frames_of(vertices)
         lap("refine")
         notify("refine", 1.0)

@@ -28,6 +28,7 @@ from service.http.metrics import MetricsMiddleware, ServiceMetrics
 from service.http.origins import OriginMiddleware
 from service.http.problems import install_handlers
 from service.http.routes import health, jobs, operations, sessions, web
+from service.http.security import SecurityHeadersMiddleware
 from service.settings import Settings
 
 VERSION = "1.0.0"
@@ -90,6 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.mount("/static", web.static_files(), name="static")
 
     app.add_middleware(OriginMiddleware, allowed=settings.cors_origins)  # inside the metrics
+    app.add_middleware(SecurityHeadersMiddleware)  # on every answer, the 403s included
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(ParallelGZipMiddleware, minimum_size=settings.gzip_minimum_size,
                        compresslevel=settings.gzip_level)

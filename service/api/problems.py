@@ -19,6 +19,7 @@ input to 413.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -101,6 +102,37 @@ for _cls in ERROR_KINDS:
 PROBLEM_KINDS[SolverInputError.kind] = (422, "Invalid input", "Invalid input data.")
 
 
+MAX_PROBLEM_ERRORS = 20
+"""Most ``errors`` items a problem document lists; ``errors_omitted`` counts the rest."""
+MAX_TEXT = 400
+"""Longest ``detail`` or ``reason`` text, in characters (then an ellipsis and a count)."""
+_NUMPY_SCALAR = re.compile(r"\bnp\.(?:float|int|uint|bool_?)\d*\(([^()]*)\)")
+_EXCEPTION_NAME = re.compile(r"\b(?:[A-Z][A-Za-z]*(?:Error|Exception)|Traceback[^:]*): ")
+
+
+def in_words(text: str) -> str:
+    """``text`` as a client should read it: numpy scalar reprs as plain numbers
+    (``np.float64(-1.0)`` -> ``-1.0``), no exception class names, at most MAX_TEXT
+    characters."""
+    text = _EXCEPTION_NAME.sub("", _NUMPY_SCALAR.sub(r"\1", text))
+    if len(text) > MAX_TEXT:
+        text = f"{text[:MAX_TEXT]}... ({len(text) - MAX_TEXT} more characters)"
+    return text
+
+
+def _capped(errors: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    items = []
+    for error in errors[:MAX_PROBLEM_ERRORS]:
+        item = dict(error)
+        for key, value in item.items():
+            if isinstance(value, str):
+                item[key] = in_words(value)
+            elif isinstance(value, list | tuple) and len(value) > MAX_PROBLEM_ERRORS:
+                item[key] = list(value[:MAX_PROBLEM_ERRORS])  # e.g. every face of a mesh
+        items.append(item)
+    return items
+
+
 def problem_type(kind: str) -> str:
     """The ``type`` URI of a problem kind."""
     return PROBLEM_BASE + kind
@@ -121,12 +153,16 @@ class ProblemError(Exception):
     def __init__(self, kind: str, detail: str, *, status: int | None = None,
                  errors: Sequence[Mapping[str, Any]] | None = None,
                  headers: Mapping[str, str] | None = None, **extensions: Any) -> None:
+        detail = in_words(detail)
         super().__init__(detail)
         self.kind = kind
         self.status = status or PROBLEM_KINDS.get(kind, (500,))[0]
         self.detail = detail
-        self.errors = [dict(e) for e in (errors or [])]
+        errors = list(errors or [])
+        self.errors = _capped(errors)
         self.headers = dict(headers or {})
+        if len(errors) > MAX_PROBLEM_ERRORS:
+            extensions = {**extensions, "errors_omitted": len(errors) - MAX_PROBLEM_ERRORS}
         self.extensions = extensions
 
     def to_dict(self, instance: str | None = None) -> dict[str, Any]:
@@ -143,7 +179,8 @@ class ProblemError(Exception):
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> ProblemError:
         """Rebuild from a document made by :meth:`to_dict` (e.g. a stored job error)."""
-        known = {"type", "title", "status", "detail", "kind", "instance", "errors"}
+        known = {"type", "title", "status", "detail", "kind", "instance", "errors",
+                 "errors_omitted"}
         return cls(str(doc.get("kind", "internal-error")), str(doc.get("detail", "")),
                    status=int(doc.get("status", 500)), errors=doc.get("errors"),
                    **{k: v for k, v in doc.items() if k not in known})

@@ -282,3 +282,42 @@ def test_a_second_file_part_and_a_cut_upload_are_400(http):
     assert "closing boundary" in problem(cut, 400, "malformed-request")["detail"]
     assert http.post("/v1/forms", content=body,
                      headers={"content-type": whole.headers["content-type"]}).status_code == 200
+
+
+# --------------------------------------- 5 and 7: capped problems, words, security headers
+
+
+def test_problem_documents_are_capped(http):
+    bad = b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + b"f 1 2 999999\n" * 400_000  # 5.2 MB of bad faces
+    response = http.post("/v1/forms", files={"file": ("bad.obj", bad)})
+    assert 400 <= response.status_code < 500, response.text[:500]
+    assert len(response.content) < 20_000, len(response.content)  # was an 8.9 MB 422
+    doc = response.json()
+    assert len(doc["errors"]) <= 20 and len(doc["detail"]) < 1000, doc
+    _no_server_errors(http)
+
+
+def test_error_details_are_words(http):
+    forms = http.post("/v1/forms", json=_mesh()).json()
+    body = {k: forms[k] for k in ("faces", "edges", "lengths", "angles")}
+    body["lengths"][0] = -1.0
+    doc = problem(http.post("/v1/reconstruct", json=body), 422, "non-positive-length")
+    text = json.dumps(doc)
+    assert "np.float64" not in text and "-1.0" in doc["detail"], doc
+    for name in ("cholespy", "pardiso", "superlu"):
+        response = http.post("/v1/reconstruct", json={**body, "options": {"solver": name}})
+        assert "Error:" not in response.text and "ModuleNotFound" not in response.text
+
+
+def test_security_headers(http):
+    for path in ("/healthz", "/v1/jobs/x", "/", "/docs", "/openapi.json"):
+        response = http.get(path)
+        assert response.headers["x-content-type-options"] == "nosniff", path
+        assert response.headers["x-frame-options"] == "DENY", path
+        policy = response.headers["content-security-policy"]
+        assert "frame-ancestors 'none'" in policy, (path, policy)
+        if response.headers["content-type"].startswith("text/html"):
+            assert "script-src 'self'" in policy and "'unsafe-inline'" not in policy.split(
+                "script-src", 1)[1].split(";", 1)[0], policy
+        else:
+            assert policy.startswith("default-src 'none'"), (path, policy)

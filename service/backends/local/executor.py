@@ -308,11 +308,11 @@ class ProcessExecutor:
         task = worker.task
         if task is not None:
             self.deaths += 1
-            reason = (f"the worker process (pid {worker.pid}) running this task died "
+            reason = (f"the worker process running this task died "
                       f"({worker.proc.exit_reason()}); the input may be too large for the "
                       "memory available")
-            logger.error("task %s (%s): %s", task.id, task.request and task.request.task_name,
-                         reason)
+            logger.error("task %s (%s): worker %s: %s", task.id,
+                         task.request and task.request.task_name, worker.pid, reason)
             worker.task, task.worker = None, None
             self._fail(task, WorkerDiedError(reason))
         elif not worker.retiring:

@@ -286,7 +286,7 @@ class LocalSessions:
 
     @staticmethod
     def _death(session: _LocalSession) -> str:
-        return (f"its worker process (pid {session.proc.pid}) died "
+        return (f"its worker process died "
                 f"({session.proc.exit_reason()})")
 
     @staticmethod
@@ -304,7 +304,7 @@ def _wait_ready(proc: WorkerProcess, timeout: float) -> Message | None:
     except (EOFError, OSError):
         proc.process.join(5.0)
         raise errors.WorkerDiedError(
-            f"the session process (pid {proc.pid}) died while it factorized "
+            f"the session process died while it factorized "
             f"({proc.exit_reason()}); the mesh may be too large for the memory available"
         ) from None
 

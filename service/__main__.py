@@ -7,6 +7,7 @@ def main() -> None:
     import uvicorn
 
     from service.http.server import PROTOCOL
+    from service.logs import LOG_CONFIG
     from service.settings import Settings
 
     settings = Settings()
@@ -15,7 +16,7 @@ def main() -> None:
     # open requests get FFS_SHUTDOWN_TIMEOUT s, then the lifespan ends every child process.
     uvicorn.run("service.app:app", host=settings.host, port=settings.port,
                 log_level=settings.log_level, ws_per_message_deflate=False, http=PROTOCOL,
-                timeout_graceful_shutdown=settings.shutdown_timeout)
+                timeout_graceful_shutdown=settings.shutdown_timeout, log_config=LOG_CONFIG)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ a worker is up) and stops with it. Routes get it through typed dependencies
 from __future__ import annotations
 
 import asyncio
-import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -29,6 +28,7 @@ from service.http.origins import OriginMiddleware
 from service.http.problems import install_handlers
 from service.http.routes import health, jobs, operations, sessions, web
 from service.http.security import SecurityHeadersMiddleware
+from service.logs import configure_logging
 from service.settings import Settings
 
 VERSION = "1.0.0"
@@ -61,7 +61,7 @@ TAGS = [
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app (the backend starts with the lifespan, not here)."""
     settings = settings or Settings()
-    logging.getLogger("service").setLevel(settings.log_level.upper())
+    configure_logging(settings.log_level)
     metrics = ServiceMetrics()
 
     def on_job_finished(operation: str, result: TaskResult) -> None:

@@ -321,3 +321,26 @@ def test_security_headers(http):
                 "script-src", 1)[1].split(";", 1)[0], policy
         else:
             assert policy.startswith("default-src 'none'"), (path, policy)
+
+
+# --------------------------------------------------------------------- 7: structured logs
+
+
+def test_the_disconnect_line_has_time_and_level(http, base):
+    import re
+    import socket
+
+    from helpers.servers import REPO
+
+    host, port = base[7:].split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as sock:
+        sock.sendall(b"POST /v1/forms HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                     b"Content-Length: 100000\r\n\r\n{\"vertices\": [[0, 0, 0], ")
+        time.sleep(0.3)
+    log = REPO / "tests" / "artifacts" / f"uvicorn-{port}.log"
+    line = re.compile(r"^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z INFO service: client "
+                      r"disconnected during POST /v1/forms", re.M)
+    deadline = time.monotonic() + 10
+    while not line.search(log.read_text()):
+        assert time.monotonic() < deadline, log.read_text()[-2000:]
+        time.sleep(0.1)

@@ -102,6 +102,10 @@ class Settings(BaseSettings):
         64, ge=1, le=100_000,
         description="Most blend values `t` of one interpolate request (each is a solve of the "
                     "whole mesh; 422 beyond).")
+    send_timeout: float = Field(
+        30.0, gt=0, description="Seconds a client may leave a response unread (the send "
+                                "buffer full) before the connection is aborted and the "
+                                "buffered bytes freed.")
     shutdown_timeout: float = Field(
         5.0, ge=0, description="Seconds `python -m service` waits, after SIGTERM, for open "
                                "requests to finish before it cancels them and stops.")

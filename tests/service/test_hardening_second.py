@@ -5,7 +5,9 @@ behaviour lives below HTTP clients), and checks the answer, the server's metrics
 
 from __future__ import annotations
 
+import contextlib
 import json
+import re
 import time
 from collections.abc import Iterator
 
@@ -344,3 +346,30 @@ def test_the_disconnect_line_has_time_and_level(http, base):
     while not line.search(log.read_text()):
         assert time.monotonic() < deadline, log.read_text()[-2000:]
         time.sleep(0.1)
+
+
+# --------------------------------------------------- 5: slow readers (FFS_SEND_TIMEOUT)
+
+
+def test_a_client_that_never_reads_is_cut_off():
+    import socket
+
+    from helpers.service import icosphere
+
+    V, F = icosphere(6)  # its forms are ~6 MB of JSON: more than the socket buffers hold
+    body = orjson.dumps({"vertices": V.tolist(), "faces": F.tolist()})
+    with uvicorn_server({"FFS_SEND_TIMEOUT": "1"}) as url:
+        host, port = url[7:].split(":")
+        with socket.create_connection((host, int(port)), timeout=60) as sock:
+            sock.sendall(b"POST /v1/forms HTTP/1.1\r\nHost: x\r\nContent-Type: "
+                         b"application/json\r\nContent-Length: " + str(len(body)).encode()
+                         + b"\r\n\r\n" + body)
+            time.sleep(6)  # the solve, then 1 s of a full buffer: aborted
+            received = b""
+            with contextlib.suppress(OSError):
+                while chunk := sock.recv(1 << 20):
+                    received += chunk
+        head, _, rest = received.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 200"), head[:200]
+        length = int(re.search(rb"content-length: (\d+)", head.lower()).group(1))
+        assert len(rest) < length, (len(rest), length)  # cut off, not buffered for ever

@@ -530,9 +530,10 @@ class _PardisoSolver:
     (:func:`_group_ordering`) instead of the whole matrix.
     """
 
-    def __init__(self, matrix: sp.csr_array, groups: np.ndarray | None = None) -> None:
+    def __init__(self, matrix: sp.csr_array, groups: np.ndarray | None = None,
+                 upper: bool = False) -> None:
         mkl = _mkl()
-        upper = _upper_triangle(matrix)
+        upper = matrix if upper else _upper_triangle(matrix)
         self.n = int(upper.shape[0])
         # PARDISO reads these arrays in every phase: keep them alive and unchanged.
         self._ia = np.ascontiguousarray(upper.indptr, dtype=np.int32)
@@ -793,12 +794,16 @@ class Factorization:
     timings: dict[str, float]
 
     def __init__(self, matrix: sp.csr_array, backend: str,
-                 groups: np.ndarray | None = None) -> None:
-        """Factorize ``matrix`` (canonical float64 CSR, symmetric) with ``backend``
-        (a validated, available name) and the ordering hint ``groups`` (validated (N,)
-        int64 or None). Use :func:`factorize` rather than this."""
+                 groups: np.ndarray | None = None, upper: bool = False) -> None:
+        """Factorize ``matrix`` (canonical float64 CSR, symmetric; with ``upper`` only its
+        upper triangle, every diagonal entry stored) with ``backend`` (a validated,
+        available name) and the ordering hint ``groups`` (validated (N,) int64 or None).
+        Use :func:`factorize` rather than this."""
         self.backend = backend
         self.size = int(matrix.shape[0])
+        self._upper = upper and backend == "pardiso"  # PARDISO reads the triangle as is
+        if upper and not self._upper:
+            matrix = _symmetric_from_upper(matrix)
         self._matrix = matrix
         self._groups = groups
         self._lock = threading.Lock()
@@ -807,8 +812,8 @@ class Factorization:
         if self.size == 0:
             self._solver: _NativeSolver = _EmptySolver()
         else:
-            self._solver = (_PardisoSolver(matrix, groups) if backend == "pardiso"
-                            else _SOLVERS[backend](matrix))
+            self._solver = (_PardisoSolver(matrix, groups, self._upper)
+                            if backend == "pardiso" else _SOLVERS[backend](matrix))
         self.analysis = getattr(self._solver, "analysis", "computed")
         self.timings = getattr(self._solver, "timings",
                                {"analysis": 0.0, "factorization": time.perf_counter() - start})
@@ -850,17 +855,24 @@ class Factorization:
             for _ in range(REFINEMENT_STEPS):
                 if residual <= RESIDUAL_TOLERANCE:
                     break
-                x = x + self._solver.solve(b2 - self._matrix @ x)
+                x = x + self._solver.solve(b2 - self._product(x))
                 residual = self._relative_residual(x, b2)
         self._raise_if_inaccurate(x, residual)
         self._verified = True
         return np.ascontiguousarray(x.reshape(b.shape))
 
+    def _product(self, x: np.ndarray) -> np.ndarray:
+        """K @ x (N, k), also where only K's upper triangle U is kept: U x + U^T x - D x."""
+        K = self._matrix
+        if not self._upper:
+            return K @ x
+        return K @ x + K.T @ x - K.diagonal()[:, None] * x
+
     def _relative_residual(self, x: np.ndarray, b: np.ndarray) -> float:
         """max over columns of ||K x - b|| / ||b|| (inf for a nonzero residual of b = 0)."""
         if not np.isfinite(x).all():
             return float("inf")
-        residual = np.linalg.norm(self._matrix @ x - b, axis=0)
+        residual = np.linalg.norm(self._product(x) - b, axis=0)
         norm_b = np.linalg.norm(b, axis=0)
         relative = np.where(norm_b > 0, residual / np.where(norm_b > 0, norm_b, 1.0),
                             np.where(residual > 0, np.inf, 0.0))
@@ -888,18 +900,31 @@ class Factorization:
         K = self._matrix
         return {"backend": self.backend, "shape": K.shape,
                 "indptr": K.indptr, "indices": K.indices, "data": K.data,
-                "groups": self._groups}
+                "groups": self._groups, "upper": self._upper}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         """Unpickle by factorizing the matrix again with the same backend."""
         matrix = sp.csr_array((state["data"], state["indices"], state["indptr"]),
                               shape=state["shape"])
         backend = resolve_backend(state["backend"])
-        self.__init__(matrix, backend, state.get("groups"))  # type: ignore[misc]
+        upper = state.get("upper", False)
+        if upper and backend != "pardiso":
+            matrix, upper = _symmetric_from_upper(matrix), False
+        self.__init__(matrix, backend, state.get("groups"), upper)  # type: ignore[misc]
+
+
+def _symmetric_from_upper(U: sp.csr_array) -> sp.csr_array:
+    """The symmetric matrix (canonical CSR, int32 indices) whose upper triangle is ``U``."""
+    K = sp.csr_array(U + U.T - sp.diags_array(U.diagonal()))
+    K.sum_duplicates()
+    K.indptr = K.indptr.astype(np.int32, copy=False)
+    K.indices = K.indices.astype(np.int32, copy=False)
+    return K
 
 
 def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
-              assume_symmetric: bool = False, groups: Any = None) -> Factorization:
+              assume_symmetric: bool = False, groups: Any = None,
+              triangle: str = "full") -> Factorization:
     """Factorize a sparse symmetric positive definite matrix for repeated solves.
 
     ``matrix``: (N, N) real, any scipy.sparse format (matrix or array); it is copied
@@ -921,10 +946,43 @@ def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
     ``TypeError`` (not a real sparse matrix) and :class:`SingularSystemError` (the
     backend found the matrix singular or not positive definite; others are only detected
     by :meth:`Factorization.solve`).
+
+    ``triangle="upper"``: ``matrix`` holds only the upper triangle of the symmetric matrix,
+    every diagonal entry stored (explicit zeros included), as a canonical CSR array
+    (sorted, no duplicates) -- e.g. a Gauss-Newton matrix assembled straight into that
+    pattern. PARDISO then reads it without a copy; other backends symmetrize it.
     """
     name = resolve_backend(backend)
+    if triangle == "upper":
+        return Factorization(_upper_csr(matrix), name,
+                             _ordering_groups(groups, matrix.shape[0]), upper=True)
+    if triangle != "full":
+        raise ValueError(f"triangle must be 'full' or 'upper', got {triangle!r}")
     K = _canonical_matrix(matrix, assume_symmetric)
     return Factorization(K, name, _ordering_groups(groups, K.shape[0]))
+
+
+def _upper_csr(matrix: Any) -> sp.csr_array:
+    """A validated upper-triangular canonical float64 CSR (int32 indices), uncopied when
+    it already is one; raises like :func:`_canonical_matrix` (and ``ValueError`` for an
+    entry below the diagonal or a missing diagonal entry)."""
+    if not (isinstance(matrix, sp.csr_array) and matrix.dtype == np.float64
+            and matrix.has_canonical_format):
+        matrix = _canonical_matrix(matrix, assume_symmetric=True)
+    n = matrix.shape[0]
+    if matrix.ndim != 2 or matrix.shape[1] != n:
+        raise ValueError(f"matrix must be square, got shape {matrix.shape}")
+    indptr = matrix.indptr.astype(np.int32, copy=False)
+    indices = matrix.indices.astype(np.int32, copy=False)
+    rows = np.repeat(np.arange(n, dtype=np.int32), np.diff(indptr))
+    if (indices < rows).any():
+        raise ValueError("triangle='upper' but the matrix has entries below the diagonal")
+    if np.count_nonzero(indices == rows) != n:
+        raise ValueError("triangle='upper' needs every diagonal entry stored")
+    if not np.isfinite(matrix.data).all():
+        raise SingularSystemError("matrix has non-finite (NaN or infinite) entries: the "
+                                  "input values overflow double precision")
+    return sp.csr_array((matrix.data, indices, indptr), shape=matrix.shape)
 
 
 def _ordering_groups(groups: Any, n: int) -> np.ndarray | None:

@@ -277,10 +277,20 @@ class _Group:
     vertices: np.ndarray          # (rows, q) int64
     evaluate: Any                 # X -> (r (rows,), G (rows, q, dim) or None)
     hinge: bool = False                 # rows are hinges [i, j, a, b]
-    scatter: np.ndarray | None = None   # positions in the block values, or None
     gradient_index: np.ndarray | None = None   # positions in J^T r of the kept entries
     gradient_select: np.ndarray | None = None  # kept gradient entries (None: all)
-    select: np.ndarray | None = None    # entries of the outer products that are kept
+    # J^T J's upper triangle: the products G_k[r] G_l[c] of the slot pairs k <= l (see
+    # _Objective._build_pattern), where each lands in the matrix's values, and which are
+    # gathered first (None: all, in order).
+    diag_r: np.ndarray | None = None     # diagonal blocks: entries (r, c), r <= c
+    diag_c: np.ndarray | None = None
+    diag_scatter: np.ndarray | None = None
+    diag_gather: np.ndarray | None = None
+    pair_k: np.ndarray | None = None     # off-diagonal blocks: slot pairs k < l
+    pair_l: np.ndarray | None = None
+    scatter: np.ndarray | None = None
+    gather: np.ndarray | None = None
+    twice: tuple[np.ndarray, np.ndarray] | None = None  # degenerate hinges only
 
 
 class _Objective:
@@ -391,51 +401,117 @@ class _Objective:
 
         self.groups.append(_Group(np.repeat(pairs, dim, axis=0), evaluate))
 
-    # -- the block pattern of J^T J over the free vertices
+    # -- the pattern of J^T J's upper triangle over the free coordinates
 
     def _build_pattern(self) -> None:
-        """Block pattern (free vertex pairs) and, per group, where each outer-product entry
-        of its residuals' gradients lands in the block values."""
+        """The scalar CSR pattern of the upper triangle of ``J^T J`` over the free
+        coordinates (every diagonal entry stored, for the damping) and, per group, where
+        each product of its residuals' gradients lands.
+
+        ``J^T J = sum_rows sum_(k, l) G_k G_l^T`` over a row's vertex slots; only slot pairs
+        k <= l are multiplied (their product, or its transpose when vertex l comes first,
+        is an upper block; the lower triangle of a diagonal block is dropped), then
+        scattered with one ``bincount`` per group straight into the values of the matrix
+        that the factorization reads (:func:`solver.linalg.factorize` with
+        ``triangle="upper"``): no sparse product, no format conversion.
+        """
+        dim = self.dim
         index = np.full(self.n, -1, dtype=np.int64)
         index[self.free] = np.arange(int(self.free.sum()))
         self.index = index
         n_free = self.n_free = int(self.free.sum())
         # Ordering hint of the factorization: a vertex's dim coordinates couple alike.
-        self.ordering_groups = np.repeat(np.arange(n_free), self.dim)
-        keys = []
-        for g in self.groups:
-            local = index[g.vertices]                                   # (rows, q)
-            q = local.shape[1]
-            a, b = np.repeat(local, q, axis=1), np.tile(local, (1, q))
-            keys.append(np.where((a >= 0) & (b >= 0), a * n_free + b, -1))
-        # Every pair a hinge couples is an edge (in the length group, always present) except
-        # its two tips: the pattern is the union of the groups' pairs without the hinges'
-        # edge pairs, plus every diagonal block (damping), which keeps the sort small.
+        self.ordering_groups = np.repeat(np.arange(n_free), dim)
+        # Block pattern: upper vertex pairs (a <= b) that share a residual, every diagonal.
         parts = [np.arange(n_free, dtype=np.int64) * (n_free + 1)]
-        for g, k in zip(self.groups, keys, strict=True):
-            q = g.vertices.shape[1]
-            parts.append((k[:, [2 * q + 3, 3 * q + 2]] if g.hinge else k).ravel())
-        pattern = np.unique(np.concatenate(parts))
-        self.pattern = pattern[pattern >= 0]
-        rows, cols = np.divmod(self.pattern, max(n_free, 1))
-        self.block_indptr = np.searchsorted(rows, np.arange(n_free + 1)).astype(np.int32)
-        self.block_indices = cols.astype(np.int32)
-        d2 = self.dim * self.dim
-        entry = np.arange(d2)
-        for g, k in zip(self.groups, keys, strict=True):
-            # Where each (row, vertex, coordinate) gradient entry lands in J^T r.
+        for g in self.groups:
             local = index[g.vertices]
-            slots = (local[:, :, None] * self.dim + np.arange(self.dim)).ravel()
+            q = local.shape[1]
+            if g.hinge:  # its other pairs are edges, present in the length group
+                g_k, g_l = np.array([2]), np.array([3])
+            else:
+                g_k, g_l = np.triu_indices(q, 1)
+            a, b = local[:, g_k], local[:, g_l]
+            lo, hi = np.minimum(a, b), np.maximum(a, b)
+            parts.append(np.where(lo >= 0, lo * n_free + hi, -1).ravel())
+        pattern = np.unique(np.concatenate(parts))
+        pattern = pattern[pattern >= 0]
+        block_rows, block_cols = np.divmod(pattern, max(n_free, 1))
+        block_indptr = np.searchsorted(block_rows, np.arange(n_free + 1))
+        # Scalar CSR of the upper triangle: row dim*a + r holds the diagonal block's entries
+        # c >= r, then dim entries for each upper block (a, b > a), in column order.
+        blocks_in_row = np.diff(block_indptr)                       # diagonal included
+        r = np.arange(dim)
+        row_length = (dim - r)[None, :] + dim * (blocks_in_row[:, None] - 1)  # (n_free, dim)
+        indptr = np.zeros(n_free * dim + 1, dtype=np.int64)
+        np.cumsum(row_length.ravel(), out=indptr[1:])
+        self.indptr = indptr.astype(np.int32)
+        # Column of every stored entry, block by block.
+        diag_cols = np.concatenate([np.arange(c, dim) for c in range(dim)])  # per row r
+        rank = np.arange(len(pattern)) - block_indptr[block_rows]     # 0 = diagonal block
+        indices = np.empty(indptr[-1], dtype=np.int64)
+        diag_rows = np.repeat(np.arange(dim), dim - np.arange(dim))
+        start = indptr[:-1].reshape(n_free, dim)
+        # Diagonal blocks.
+        pos = start[:, diag_rows] + (diag_cols - diag_rows)[None, :]
+        indices[pos.ravel()] = (np.arange(n_free)[:, None] * dim + diag_cols[None, :]).ravel()
+        self.diagonal_positions = start.ravel()  # row dim*a + r starts at its entry (r, r)
+        # Off-diagonal blocks.
+        off = rank > 0
+        a, b, k = block_rows[off], block_cols[off], rank[off]
+        rr, cc = np.meshgrid(r, r, indexing="ij")
+        pos = (start[a][:, rr] + (dim - rr) + dim * (k[:, None, None] - 1) + cc)
+        indices[pos.ravel()] = (b[:, None, None] * dim + cc).ravel()
+        self.indices = indices.astype(np.int32)
+        self.nnz = int(indptr[-1])
+
+        upper_r, upper_c = np.triu_indices(dim)                       # diagonal blocks
+        for g in self.groups:
+            local = index[g.vertices]
+            q = local.shape[1]
+            slots = (local[:, :, None] * dim + np.arange(dim)).ravel()
+            # Where each (row, vertex, coordinate) gradient entry lands in J^T r.
             g.gradient_select = None if (local >= 0).all() else np.flatnonzero(slots >= 0)
             g.gradient_index = slots if g.gradient_select is None else slots[g.gradient_select]
-            flat = k.ravel()
-            keep = flat >= 0
-            block = np.searchsorted(self.pattern, flat[keep])
-            scatter = (block[:, None] * d2 + entry[None, :]).ravel()
-            # int32 where it fits: these index arrays are the refinement's largest.
-            g.scatter = scatter.astype(np.int32) if len(self.pattern) * d2 < 2**31 else scatter
-            # Entries of the (rows, q*q, dim, dim) outer products that land in the matrix.
-            g.select = None if keep.all() else np.flatnonzero(np.repeat(keep, d2))
+            # Diagonal blocks: G_k[r] G_k[c] for r <= c, at (dim a + r, dim a + c).
+            g.diag_r, g.diag_c = upper_r, upper_c
+            diag = start[np.maximum(local, 0)][:, :, upper_r] + (upper_c - upper_r)
+            diag_keep = np.repeat(local >= 0, len(upper_r))
+            # Off-diagonal pairs k < l: P[r, c] = G_k[r] G_l[c] lands at block (a, b) entry
+            # (r, c) when a < b, at block (b, a) entry (c, r) when a > b.
+            g.pair_k, g.pair_l = np.triu_indices(q, 1)
+            a, b = local[:, g.pair_k], local[:, g.pair_l]
+            lo, hi = np.minimum(a, b), np.maximum(a, b)
+            valid = lo >= 0
+            block = np.searchsorted(pattern, np.where(valid, lo * n_free + hi, 0))
+            shift = dim * (block - block_indptr[np.maximum(lo, 0)] - 1)  # (rows, pairs)
+            first = start[np.maximum(lo, 0)]                               # (rows, pairs, dim)
+            forward = first[:, :, :, None] + (dim - rr) + cc               # [.., r, c]
+            backward = np.swapaxes(forward, 2, 3)                          # rows of b first
+            off = np.where((a > b)[:, :, None, None], backward, forward) + shift[:, :, None,
+                                                                                 None]
+            off_keep = np.repeat(valid.ravel(), dim * dim)
+            # Two slots of one vertex (only in degenerate hinges): fold the pair's product
+            # and its transpose onto the diagonal block's upper triangle.
+            same = (a == b) & valid
+            if same.any():
+                base = first[same]                                          # (s, dim)
+                lo_rc, hi_rc = np.minimum(rr, cc), np.maximum(rr, cc)
+                off[same] = base[:, lo_rc] + (hi_rc - lo_rc)
+            g.diag_scatter, g.diag_gather = self._scatter(diag.ravel(), diag_keep)
+            g.scatter, g.gather = self._scatter(off.ravel(), off_keep)
+            g.twice = None
+            if same.any():  # the diagonal entries of P + P^T count twice
+                twice = (same[:, :, None, None] & (rr == cc)).ravel()
+                g.twice = (np.flatnonzero(twice), off.ravel()[twice])
+
+    def _scatter(self, dest: np.ndarray, keep: np.ndarray,
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+        """(positions of the kept products in the matrix values, int32 where they fit;
+        indices of the kept products, None when all are kept)."""
+        gather = None if keep.all() else np.flatnonzero(keep)
+        dest = dest if gather is None else dest[gather]
+        return (dest.astype(np.int32) if self.nnz < 2**31 else dest), gather
 
     # -- evaluation
 
@@ -446,10 +522,10 @@ class _Objective:
 
     def normal_equations(self, X: np.ndarray, matrix: bool = True,
                          ) -> tuple[float, sp.csr_array | None, np.ndarray]:
-        """(E, J^T J over the free coordinates (CSR; None unless ``matrix``),
-        J^T r (n_free * dim,))."""
-        dim, d2 = self.dim, self.dim * self.dim
-        values = np.zeros(len(self.pattern) * d2) if matrix else None
+        """(E, the upper triangle of J^T J over the free coordinates (canonical CSR, every
+        diagonal entry stored; None unless ``matrix``), J^T r (n_free * dim,))."""
+        dim = self.dim
+        values = np.zeros(self.nnz) if matrix else None
         gradient = np.zeros(self.n_free * dim)
         energy = 0.0
         for g in self.groups:
@@ -460,14 +536,25 @@ class _Objective:
                 contrib = contrib[g.gradient_select]
             gradient += np.bincount(g.gradient_index, contrib, minlength=len(gradient))
             if values is not None:
-                outer = G[:, :, None, :, None] * G[:, None, :, None, :]  # (rows, q, q, d, d)
-                flat = outer.ravel() if g.select is None else outer.ravel()[g.select]
-                values += np.bincount(g.scatter, flat, minlength=len(values))
+                diag = (G[:, :, g.diag_r] * G[:, :, g.diag_c]).ravel()
+                values += np.bincount(g.diag_scatter, diag if g.diag_gather is None
+                                      else diag[g.diag_gather], minlength=len(values))
+                off = (G[:, g.pair_k, :, None] * G[:, g.pair_l, None, :]).ravel()
+                values += np.bincount(g.scatter, off if g.gather is None else off[g.gather],
+                                      minlength=len(values))
+                if g.twice is not None:
+                    values += np.bincount(g.twice[1], off[g.twice[0]], minlength=len(values))
         if values is None:
             return energy, None, gradient
-        H = sp.bsr_array((values.reshape(-1, dim, dim), self.block_indices, self.block_indptr),
-                         shape=(self.n_free * dim, self.n_free * dim)).tocsr()
+        n = self.n_free * dim
+        H = sp.csr_array((values, self.indices, self.indptr), shape=(n, n))
+        H.has_canonical_format = True
         return energy, H, gradient
+
+
+def _quadratic_form(upper: sp.csr_array, x: np.ndarray) -> float:
+    """x^T H x for the symmetric H whose upper triangle is ``upper``."""
+    return float(2.0 * (x @ (upper @ x)) - x @ (upper.diagonal() * x))
 
 
 # --------------------------------------------------------------------------- the solver
@@ -577,7 +664,7 @@ class Refiner:
                 step = -factor.solve(g)
                 slope = float(g @ step)  # < 0: a descent direction (H + D is SPD)
                 # Gain ratio of the full step: actual decrease over the Gauss-Newton model's.
-                predicted = -slope - 0.5 * float(step @ (model @ step))
+                predicted = -slope - 0.5 * _quadratic_form(model, step)
                 found = self._line_search(X, step, energy, slope)
                 accepted = found is not None
                 if found is None:
@@ -651,10 +738,14 @@ class Refiner:
         """Factorization of ``H + damping diag(H)`` (Levenberg-Marquardt; the diagonal is
         floored at 1e-9 of its mean, which is also added, so that H + D is definite).
         Raises :class:`SingularSystemError` where the backend finds it singular."""
-        diag = H.diagonal()
+        positions = self.objective.diagonal_positions
+        diag = H.data[positions]
         floor = 1e-9 * float(diag.mean())
-        D = sp.diags_array(damping * np.maximum(diag, floor) + floor)
-        return factorize(H + D, self.backend, assume_symmetric=True,
+        values = H.data.copy()
+        values[positions] += damping * np.maximum(diag, floor) + floor
+        damped = sp.csr_array((values, H.indices, H.indptr), shape=H.shape)
+        damped.has_canonical_format = True
+        return factorize(damped, self.backend, triangle="upper",
                          groups=self.objective.ordering_groups)
 
     def _line_search(self, X: np.ndarray, step: np.ndarray, energy: float, slope: float,

@@ -196,6 +196,30 @@ def test_pickle_refactorizes(backend: str) -> None:
     np.testing.assert_allclose(clone.solve(b), fact.solve(b), rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("backend", AVAILABLE)
+def test_upper_triangle_input_matches_the_full_matrix(backend: str) -> None:
+    """factorize(triangle="upper") (the refinement's Gauss-Newton matrices): the same
+    solutions as the full matrix, pickling included; lower entries or a missing diagonal
+    entry are refused."""
+    K = frame_matrix(1)
+    upper = sp.csr_array(sp.triu(K, format="csr"))
+    upper.sum_duplicates()
+    b = np.random.default_rng(3).standard_normal((K.shape[0], 3))
+    full = factorize(K, backend).solve(b)
+    fact = factorize(upper, backend, triangle="upper")
+    np.testing.assert_allclose(fact.solve(b), full, rtol=1e-9, atol=1e-12)
+    clone = pickle.loads(pickle.dumps(fact))
+    np.testing.assert_allclose(clone.solve(b), full, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="below the diagonal"):
+        factorize(K, backend, triangle="upper")
+    no_diagonal = sp.csr_array(sp.triu(K, k=1, format="csr") + sp.eye_array(K.shape[0]) * 0)
+    no_diagonal.eliminate_zeros()
+    with pytest.raises(ValueError, match="diagonal entry"):
+        factorize(no_diagonal, backend, triangle="upper")
+    with pytest.raises(ValueError, match="triangle"):
+        factorize(K, backend, triangle="lower")
+
+
 # ------------------------------------------------------------------ errors and checks
 
 

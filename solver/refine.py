@@ -466,6 +466,8 @@ class _Objective:
         self.nnz = int(indptr[-1])
 
         upper_r, upper_c = np.triu_indices(dim)                       # diagonal blocks
+        if not n_free:  # every vertex fixed: nothing is gathered (keep the indexing valid)
+            start = np.zeros((1, dim), dtype=np.int64)
         for g in self.groups:
             local = index[g.vertices]
             q = local.shape[1]
@@ -703,7 +705,7 @@ class Refiner:
                     frozen_steps = MAX_FROZEN_STEPS
                 if fresh:  # Levenberg-Marquardt's damping update (Nielsen)
                     damping = max(MIN_DAMPING, damping * (
-                        max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3) if alpha == 1.0 else 2.0))
+                        max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3) if alpha == 1.0 else 10.0))
                     growth = 2.0
                 # The next step reuses this factor (one back-substitution) while its model
                 # still predicts well; otherwise it is rebuilt at the new X.

@@ -302,3 +302,12 @@ def test_refined_parameterization_against_arap():
     assert ours.report["length_change_summary"]["mean"] < \
         linear.report["length_change_summary"]["mean"]
 
+
+
+def test_every_vertex_a_handle_leaves_nothing_to_refine():
+    """A deformation whose handles are every vertex (a schemathesis case that once raised
+    IndexError while building the Gauss-Newton pattern): the answer is the handles."""
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    result = deform(V, [[0, 1, 2]], [0, 1, 2], V * 1.1)
+    np.testing.assert_array_equal(result.vertices, V * 1.1)
+    assert result.report["refinement"]["stop_reason"] == "no_free_vertices"

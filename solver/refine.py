@@ -143,6 +143,7 @@ class Refinement:
     Attributes:
         vertices: (n, dim) float64 refined positions (fixed vertices copied bit for bit).
         report: ``refined`` (bool), ``converged``, ``iterations``, ``rejected_steps``,
+            ``factorizations``, ``solves`` (back-substitutions),
             ``seconds``, ``energy_before`` / ``energy_after``, ``before`` / ``after`` residual
             summaries (:func:`form_residuals`), ``stop_reason``.
     """
@@ -554,9 +555,10 @@ class _Objective:
         return energy, H, gradient
 
 
-def _quadratic_form(upper: sp.csr_array, x: np.ndarray) -> float:
-    """x^T H x for the symmetric H whose upper triangle is ``upper``."""
-    return float(2.0 * (x @ (upper @ x)) - x @ (upper.diagonal() * x))
+def _quadratic_form(upper: sp.csr_array, diagonal: np.ndarray, x: np.ndarray) -> float:
+    """x^T H x for the symmetric H whose upper triangle is ``upper`` (its diagonal
+    ``diagonal``)."""
+    return float(2.0 * (x @ (upper @ x)) - x @ (diagonal * x))
 
 
 # --------------------------------------------------------------------------- the solver
@@ -630,7 +632,7 @@ class Refiner:
         before = self.residuals(X)
         energy0 = energy = objective.energy(X)
         damping, growth = INITIAL_DAMPING, 2.0
-        iterations = rejected = factorizations = 0
+        iterations = rejected = factorizations = solves = 0
         stop, converged = "max_iterations", False
         trace, steps = [energy0], []
         # The last factorized damped matrix and its J^T J; with ``keep_factor`` the previous
@@ -664,9 +666,11 @@ class Refiner:
                     factorizations += 1
                     model, fresh, frozen_steps, factor_gain = H, True, 0, 0.0
                 step = -factor.solve(g)
+                solves += 1
                 slope = float(g @ step)  # < 0: a descent direction (H + D is SPD)
                 # Gain ratio of the full step: actual decrease over the Gauss-Newton model's.
-                predicted = -slope - 0.5 * _quadratic_form(model, step)
+                predicted = -slope - 0.5 * _quadratic_form(
+                    model, model.data[objective.diagonal_positions], step)
                 found = self._line_search(X, step, energy, slope)
                 accepted = found is not None
                 if found is None:
@@ -726,6 +730,7 @@ class Refiner:
             "iterations": iterations,
             "rejected_steps": rejected,
             "factorizations": factorizations,
+            "solves": solves,
             "energy_before": energy0,
             "energy_after": energy,
             "energy_trace": trace,

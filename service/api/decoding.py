@@ -29,6 +29,13 @@ import numpy as np
 import orjson
 from pydantic import BaseModel, ValidationError
 
+from ffs.arrays import (  # binary_body: the reference encoder, re-exported
+    BINARY_DTYPES,
+    BINARY_MAGIC,
+    BINARY_MEDIA_TYPE,
+    binary_body,  # noqa: F401
+    padded,
+)
 from service.api.problems import ProblemError, from_validation_errors
 from service.api.schemas import MAX_INDEX, MAX_MAGNITUDE
 from service.api.task import (
@@ -242,45 +249,14 @@ def _decode(specs: ArraySpecs, params_model: type[BaseModel], sent: dict[str, An
 
 # ------------------------------------------------------------------------- binary bodies
 
-BINARY_MEDIA_TYPE = "application/vnd.ffs.arrays"
-"""A request body with the large arrays as raw little-endian bytes (docs/service.md)::
-
-    b"FFSA" | uint32 LE header length H | H bytes of UTF-8 JSON header | zero padding to a
-    multiple of 8 | each array's bytes (C order), each padded to a multiple of 8
-
-The header is the JSON body without its large arrays, plus ``"arrays": {name: {"dtype",
-"shape"}}`` in the order the arrays follow. dtypes: ``<f8`` ``<f4`` (reals), ``<i4`` ``<i8``
-``<u4`` (indices).
-"""
-BINARY_MAGIC = b"FFSA"
-BINARY_DTYPES = {"<f8": np.float64, "<f4": np.float32, "<i4": np.int32, "<i8": np.int64,
-                 "<u4": np.uint32}
-
-
-def binary_body(params: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> bytes:
-    """A :data:`BINARY_MEDIA_TYPE` body (the reference encoder; tests, benchmarks, clients):
-    ``params`` are the JSON body's other fields, ``arrays`` its large arrays (cast to
-    ``<f8`` for reals and ``<i4`` for integer arrays)."""
-    parts, meta = [], {}
-    for name, value in arrays.items():
-        array = np.asarray(value)
-        array = array.astype("<i4" if array.dtype.kind in "iub" else "<f8", copy=False)
-        meta[name] = {"dtype": array.dtype.str, "shape": list(array.shape)}
-        raw = np.ascontiguousarray(array).tobytes()
-        parts.append(raw + b"\0" * (_padded(len(raw)) - len(raw)))
-    header = orjson.dumps({**params, "arrays": meta}, option=orjson.OPT_SERIALIZE_NUMPY)
-    head = BINARY_MAGIC + len(header).to_bytes(4, "little") + header
-    return head + b"\0" * (_padded(len(head)) - len(head)) + b"".join(parts)
+# The media type, framing constants and the encoder are shared with the client (ffs.arrays,
+# numpy and the standard library only); the reader and its checks are the service's.
 
 
 def _binary_error(detail: str) -> ProblemError:
     return ProblemError("malformed-request", f"cannot read the {BINARY_MEDIA_TYPE} body: "
                         f"{detail}", errors=[{"field": "body", "index": None,
                                               "reason": detail}])
-
-
-def _padded(n: int) -> int:
-    return -(-n // 8) * 8
 
 
 MAX_RANK = 3
@@ -328,12 +304,12 @@ def parse_binary(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         raise _binary_error("the header is not valid JSON") from None
     if not isinstance(header, dict) or not isinstance(header.get("arrays"), dict):
         raise _binary_error('the header must be a JSON object with "arrays"')
-    offset, arrays = _padded(8 + size), {}
+    offset, arrays = padded(8 + size), {}
     for name, meta in header.pop("arrays").items():
         dtype, shape, nbytes = _array_layout(name, meta, offset, len(body))
         arrays[name] = np.frombuffer(body, dtype=dtype, count=nbytes // dtype.itemsize,
                                      offset=offset).reshape(shape)
-        offset = _padded(offset + nbytes)
+        offset = padded(offset + nbytes)
     return header, arrays
 
 

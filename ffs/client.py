@@ -1,0 +1,598 @@
+"""A Python client of the fundamental-forms service: numpy arrays in, numpy arrays out.
+
+Needs only ``httpx`` and ``numpy`` (``websockets`` for WebSocket sessions; without it they
+fall back to HTTP): ``pip install ".[client]"``. Nothing here imports FastAPI or the
+service::
+
+    from ffs import Client
+
+    with Client("http://localhost:8000") as client:
+        forms = client.fundamental_forms(vertices, faces)
+        mesh = client.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles)
+
+* One method per operation, named like the library's function (:mod:`solver`), taking the
+  same arrays and returning :mod:`ffs.results` (vertices (n, 3) float64, faces (m, 3)
+  int64, ...). Options are the HTTP options (``refine``, ``frame_weight``,
+  ``orthonormalize``, ``weighting``, ``solver``, ...; docs/service.md) and are sent only
+  when given, so the service's defaults apply.
+* Bodies are ``application/vnd.ffs.arrays`` (:mod:`ffs.arrays`) unless ``binary=False``
+  (JSON); answers are JSON, whose float64 values round-trip exactly.
+* ``progress=callback`` (or :meth:`Client.submit`) runs the operation as a job: the
+  callback gets ``(stage, fraction)`` as the service reports them; jobs have no
+  synchronous request timeout.
+* :meth:`Client.session` keeps one mesh's factorization warm on the service and drags it
+  over a WebSocket (float32 vertices) or, without one, over HTTP (float64).
+* A problem document raises the :mod:`ffs.errors` class of its status; 503 (and 429 with
+  ``Retry-After``) are retried ``retries`` times, waiting ``Retry-After`` seconds (at most
+  ``max_wait``) or an exponential backoff from ``backoff`` seconds.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import random
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from ffs import __version__
+from ffs.arrays import BINARY_MEDIA_TYPE, binary_body
+from ffs.errors import (
+    FFSError,
+    GoneError,
+    JobCancelledError,
+    NotFoundError,
+    ProblemError,
+    RequestTimeoutError,
+    ServiceUnreachableError,
+    problem_error,
+)
+from ffs.results import Blend, Forms, Integrability, Mesh, Parameterization
+
+Progress = Callable[[str, float], None]
+"""``progress(stage, fraction)``: the service's stage names (validate, assemble, factorize,
+solve, refine, encode; ``queued`` while a job waits), fraction of that stage in [0, 1]."""
+
+DEFAULT_URL = "http://127.0.0.1:8000"
+SERVER_ENV = "FFS_SERVER"
+"""Environment variable naming the service when ``Client()`` is given no URL."""
+
+
+@dataclass(frozen=True)
+class Call:
+    """One operation request: its name, large arrays, other fields and result decoder."""
+
+    operation: str
+    arrays: dict[str, np.ndarray]
+    params: dict[str, Any]
+    decode: Callable[[dict[str, Any]], Any]
+
+    def json_body(self) -> dict[str, Any]:
+        """The JSON body of the synchronous endpoint (the ``input`` of a job)."""
+        return {**self.params, **{name: np.asarray(a).tolist() for name, a in self.arrays.items()}}
+
+
+def _options(refine: bool | None, options: Mapping[str, Any]) -> dict[str, Any]:
+    chosen = {name: value for name, value in options.items() if value is not None}
+    if refine is not None:
+        chosen["refine"] = refine
+    return chosen
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
+def _dumps(document: Any) -> bytes:
+    return json.dumps(document, separators=(",", ":"), default=_json_default).encode()
+
+
+def _retry_after(response: httpx.Response) -> float | None:
+    value = response.headers.get("retry-after")
+    try:
+        return max(0.0, float(value)) if value is not None else None
+    except ValueError:
+        return None
+
+
+def _forms_arrays(faces: Any, edges: Any, lengths: Any, angles: Any) -> dict[str, np.ndarray]:
+    if isinstance(faces, Forms) and edges is None:
+        return faces.arrays()
+    if edges is None or lengths is None or angles is None:
+        raise TypeError("pass faces, edges, lengths and angles, or one Forms")
+    return {"faces": np.asarray(faces), "edges": np.asarray(edges),
+            "lengths": np.asarray(lengths), "angles": np.asarray(angles)}
+
+
+class Client:
+    """The service at ``url`` (default: ``$FFS_SERVER``, else http://127.0.0.1:8000).
+
+    Args:
+        url: base URL of the service.
+        timeout: seconds for connecting and for each answer (a synchronous solve must
+            finish within it; jobs are polled, so they are not bound by it).
+        binary: send operation bodies as ``application/vnd.ffs.arrays`` (default) or JSON.
+        retries: how often a 503 (or a 429 with ``Retry-After``) is retried.
+        backoff: first wait without ``Retry-After`` (doubled on each retry, with jitter).
+        max_wait: longest single wait, whatever ``Retry-After`` says.
+        headers: extra headers for every request.
+        transport: an ``httpx`` transport (tests, proxies).
+
+    The client is thread-safe: one instance can run many requests and jobs at once.
+    """
+
+    def __init__(self, url: str | None = None, *, timeout: float = 60.0, binary: bool = True,
+                 retries: int = 4, backoff: float = 0.5, max_wait: float = 30.0,
+                 headers: Mapping[str, str] | None = None,
+                 transport: httpx.BaseTransport | None = None) -> None:
+        self.url = (url or os.environ.get(SERVER_ENV) or DEFAULT_URL).rstrip("/")
+        self.timeout = timeout
+        self.binary = binary
+        self.retries = retries
+        self.backoff = backoff
+        self.max_wait = max_wait
+        self._http = httpx.Client(base_url=self.url, timeout=timeout, transport=transport,
+                                  headers={"User-Agent": f"ffs-client/{__version__}",
+                                           **(headers or {})})
+
+    # ------------------------------------------------------------------ plumbing
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        """One HTTP request with the retries; a problem document raises its typed error."""
+        for attempt in range(self.retries + 1):
+            try:
+                response = self._http.request(method, path, **kwargs)
+            except httpx.TimeoutException:
+                raise RequestTimeoutError(f"{method} {self.url}{path}: no answer within "
+                                     f"{self.timeout:g} s") from None
+            except httpx.TransportError as exc:
+                raise ServiceUnreachableError(f"cannot reach {self.url}: {exc}") from None
+            wait = self._retry_wait(response, attempt)
+            if wait is None:
+                break
+            response.close()
+            time.sleep(wait)
+        if response.status_code >= 400:
+            raise self._problem(response)
+        return response
+
+    def _retry_wait(self, response: httpx.Response, attempt: int) -> float | None:
+        """Seconds to wait before retrying ``response``, or None to take it as it is."""
+        status, after = response.status_code, _retry_after(response)
+        if attempt >= self.retries or status not in (429, 503) or (status == 429
+                                                                   and after is None):
+            return None
+        if after is None:
+            after = self.backoff * 2 ** attempt * (0.5 + random.random())
+        return min(after, self.max_wait)
+
+    def _problem(self, response: httpx.Response) -> ProblemError:
+        try:
+            document = response.json()
+        except ValueError:
+            document = None
+        if not isinstance(document, dict):
+            text = response.text.strip()[:200]
+            document = {"title": response.reason_phrase or "Error", "status":
+                        response.status_code, "detail": text or response.reason_phrase}
+        return problem_error(document, response.status_code, _retry_after(response))
+
+    def _post_json(self, path: str, document: Any, **kwargs: Any) -> httpx.Response:
+        return self.request("POST", path, content=_dumps(document),
+                            headers={"Content-Type": "application/json",
+                                     **kwargs.pop("headers", {})}, **kwargs)
+
+    def run(self, call: Call, progress: Progress | None = None) -> Any:
+        """Run one :class:`Call`: synchronously, or as a job when ``progress`` is given."""
+        if progress is not None:
+            job = self.submit_call(call)
+            try:
+                return job.result(on_progress=progress)
+            finally:
+                job.discard()
+        if self.binary:
+            response = self.request("POST", f"/v1/{call.operation}",
+                                    content=binary_body(call.params, call.arrays),
+                                    headers={"Content-Type": BINARY_MEDIA_TYPE,
+                                             "Accept": "application/json"})
+        else:
+            response = self._post_json(f"/v1/{call.operation}", call.json_body(),
+                                       headers={"Accept": "application/json"})
+        return call.decode(response.json())
+
+    # ---------------------------------------------------------------- operations
+
+    def health(self) -> dict[str, Any]:
+        """``GET /readyz``: the pool's readiness (status, workers, busy, queue depth)."""
+        try:
+            return dict(self.request("GET", "/readyz").json())
+        except ProblemError as exc:  # 503 while starting: the document says why
+            return exc.document
+
+    def fundamental_forms_call(self, vertices: Any, faces: Any) -> Call:
+        return Call("forms", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
+                    {}, Forms.from_dict)
+
+    def fundamental_forms(self, vertices: Any, faces: Any, *,
+                          progress: Progress | None = None) -> Forms:
+        """Edge lengths and signed dihedral angles of a mesh (``POST /v1/forms``)."""
+        return self.run(self.fundamental_forms_call(vertices, faces), progress)
+
+    def check_integrability_call(self, faces: Any, edges: Any = None, lengths: Any = None,
+                                 angles: Any = None, *, tol: float | None = None) -> Call:
+        params = {} if tol is None else {"tolerance": tol}
+        return Call("integrability", _forms_arrays(faces, edges, lengths, angles), params,
+                    Integrability.from_dict)
+
+    def check_integrability(self, faces: Any, edges: Any = None, lengths: Any = None,
+                            angles: Any = None, *, tol: float | None = None,
+                            progress: Progress | None = None) -> Integrability:
+        """The integrability report of forms (``POST /v1/integrability``); ``faces`` may be
+        a :class:`~ffs.results.Forms` alone."""
+        return self.run(self.check_integrability_call(faces, edges, lengths, angles, tol=tol),
+                        progress)
+
+    def reconstruct_call(self, faces: Any, edges: Any = None, lengths: Any = None,
+                         angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
+                         refine: bool | None = None, **options: Any) -> Call:
+        params: dict[str, Any] = {"options": _options(refine, options)}
+        if constraints:
+            params["constraints"] = dict(constraints)
+        return Call("reconstruct", _forms_arrays(faces, edges, lengths, angles), params,
+                    Mesh.from_dict)
+
+    def reconstruct(self, faces: Any, edges: Any = None, lengths: Any = None,
+                    angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
+                    refine: bool | None = None, progress: Progress | None = None,
+                    **options: Any) -> Mesh:
+        """Vertex positions from forms (``POST /v1/reconstruct``). ``constraints`` is the
+        API's ``{"positions": [{"vertex", "position", "weight"?}], "frames": [...]}``;
+        ``options``: frame_weight, orthonormalize, orthonormal_weight, weighting, solver,
+        tolerance, require_integrable, exact_shortcut."""
+        return self.run(self.reconstruct_call(faces, edges, lengths, angles,
+                                              constraints=constraints, refine=refine,
+                                              **options), progress)
+
+    def deform_call(self, vertices: Any, faces: Any, handles: Sequence[int] | np.ndarray,
+                    handle_positions: Any, *, rotation_handles: Sequence[Any] | None = None,
+                    handle_rotations: Any = None, roi: Any = None, refine: bool | None = None,
+                    **options: Any) -> Call:
+        targets = np.asarray(handle_positions, dtype=np.float64).reshape(-1, 3)
+        params: dict[str, Any] = {
+            "handles": [{"vertex": int(v), "position": p}
+                        for v, p in zip(np.asarray(handles).ravel().tolist(), targets.tolist(),
+                                        strict=True)],
+            "options": _options(refine, options)}
+        if rotation_handles:
+            rotations = np.asarray(handle_rotations, dtype=np.float64).reshape(-1, 3, 3)
+            params["rotations"] = [{"faces": np.asarray(group).ravel().tolist(), "rotation": r}
+                                   for group, r in zip(rotation_handles, rotations.tolist(),
+                                                       strict=True)]
+        if roi is not None:
+            params["roi"] = np.asarray(roi).ravel().tolist()
+        return Call("deform", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
+                    params, Mesh.from_dict)
+
+    def deform(self, vertices: Any, faces: Any, handles: Sequence[int] | np.ndarray,
+               handle_positions: Any, *, rotation_handles: Sequence[Any] | None = None,
+               handle_rotations: Any = None, roi: Any = None, refine: bool | None = None,
+               progress: Progress | None = None, **options: Any) -> Mesh:
+        """Move ``handles`` (h,) to ``handle_positions`` (h, 3) (``POST /v1/deform``), with
+        optional rotation groups (face lists) and their (g, 3, 3) rotations, and a region
+        of interest; ``options``: frame_weight, orthonormalize, weighting, solver."""
+        return self.run(self.deform_call(vertices, faces, handles, handle_positions,
+                                         rotation_handles=rotation_handles,
+                                         handle_rotations=handle_rotations, roi=roi,
+                                         refine=refine, **options), progress)
+
+    def parameterize_call(self, vertices: Any, faces: Any, *, refine: bool | None = None,
+                          **options: Any) -> Call:
+        return Call("parameterize", {"vertices": np.asarray(vertices),
+                                     "faces": np.asarray(faces)},
+                    {"options": _options(refine, options)}, Parameterization.from_dict)
+
+    def parameterize(self, vertices: Any, faces: Any, *, refine: bool | None = None,
+                     progress: Progress | None = None, **options: Any) -> Parameterization:
+        """Flatten a mesh with boundary (``POST /v1/parameterize``)."""
+        return self.run(self.parameterize_call(vertices, faces, refine=refine, **options),
+                        progress)
+
+    def interpolate_call(self, vertices_a: Any, vertices_b: Any, faces: Any,
+                         t: float | Sequence[float], *, refine: bool | None = None,
+                         **options: Any) -> Call:
+        t_value = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
+        return Call("interpolate", {"vertices_a": np.asarray(vertices_a),
+                                    "vertices_b": np.asarray(vertices_b),
+                                    "faces": np.asarray(faces)},
+                    {"t": t_value, "options": _options(refine, options)}, Blend.from_dict)
+
+    def interpolate(self, vertices_a: Any, vertices_b: Any, faces: Any,
+                    t: float | Sequence[float], *, refine: bool | None = None,
+                    progress: Progress | None = None, **options: Any) -> Blend:
+        """Blend two embeddings of ``faces`` in form space (``POST /v1/interpolate``)."""
+        return self.run(self.interpolate_call(vertices_a, vertices_b, faces, t, refine=refine,
+                                              **options), progress)
+
+    def mesh_call(self, vertices: Any, faces: Any) -> Call:
+        return Call("mesh", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
+                    {}, Mesh.from_dict)
+
+    def mesh(self, vertices: Any, faces: Any, *, progress: Progress | None = None) -> Mesh:
+        """A mesh checked like every operation checks it (``POST /v1/mesh``), its report."""
+        return self.run(self.mesh_call(vertices, faces), progress)
+
+    def load_mesh(self, path: str | os.PathLike[str]) -> Mesh:
+        """A mesh file (OBJ, PLY, OFF, STL, GLB) uploaded and read by the service."""
+        path = Path(path)
+        response = self.request("POST", "/v1/mesh", headers={"Accept": "application/json"},
+                                files={"file": (path.name, path.read_bytes())})
+        return Mesh.from_dict(response.json())
+
+    # ---------------------------------------------------------------------- jobs
+
+    CALLS = ("forms", "integrability", "reconstruct", "deform", "parameterize",
+             "interpolate", "mesh")
+    """Operations :meth:`submit` takes (the job API's names)."""
+
+    def submit(self, operation: str, *args: Any, **kwargs: Any) -> Job:
+        """Queue ``operation`` (a name of :data:`CALLS`, with the arguments of its method:
+        ``submit("reconstruct", forms, refine=True)``) as a job."""
+        builders = {"forms": self.fundamental_forms_call,
+                    "integrability": self.check_integrability_call,
+                    "reconstruct": self.reconstruct_call, "deform": self.deform_call,
+                    "parameterize": self.parameterize_call,
+                    "interpolate": self.interpolate_call, "mesh": self.mesh_call}
+        if operation not in builders:
+            raise ValueError(f"unknown operation {operation!r}; one of {', '.join(builders)}")
+        return self.submit_call(builders[operation](*args, **kwargs))
+
+    def submit_call(self, call: Call) -> Job:
+        """Queue a :class:`Call` as a job (``POST /v1/jobs``, JSON)."""
+        response = self._post_json("/v1/jobs", {"operation": call.operation,
+                                                "input": call.json_body()})
+        document = response.json()
+        return Job(self, document["id"], call.operation, call.decode, document)
+
+    def job(self, job_id: str, decode: Callable[[dict[str, Any]], Any] | None = None) -> Job:
+        """A handle on an existing job (its result decoded as a dict unless ``decode``)."""
+        return Job(self, job_id, "", decode or dict, None)
+
+    # ------------------------------------------------------------------ sessions
+
+    def session(self, vertices: Any, faces: Any, handles: Sequence[int] | np.ndarray, *,
+                rotation_handles: Sequence[Any] | None = None, roi: Any = None,
+                transport: str = "auto", **options: Any) -> Session:
+        """Open a deformation session (``POST /v1/sessions``): the mesh and handle set are
+        factorized once; every :meth:`Session.drag` then only back-substitutes.
+
+        ``transport``: ``"auto"`` (a WebSocket when ``websockets`` is installed and the
+        socket opens, else HTTP), ``"ws"`` or ``"http"``. ``options``: frame_weight,
+        orthonormalize, weighting, solver, refine (a session refines only with True)."""
+        if transport not in ("auto", "ws", "http"):
+            raise ValueError("transport must be 'auto', 'ws' or 'http'")
+        body: dict[str, Any] = {
+            "vertices": np.asarray(vertices, dtype=np.float64).tolist(),
+            "faces": np.asarray(faces).tolist(),
+            "handles": [{"vertex": int(v)} for v in np.asarray(handles).ravel().tolist()],
+            "options": _options(None, options)}
+        if rotation_handles:
+            body["rotations"] = [{"faces": np.asarray(g).ravel().tolist()}
+                                 for g in rotation_handles]
+        if roi is not None:
+            body["roi"] = np.asarray(roi).ravel().tolist()
+        info = self._post_json("/v1/sessions", body).json()
+        session = Session(self, info)
+        if transport != "http":
+            try:
+                session.connect()
+            except (ImportError, OSError, FFSError):
+                if transport == "ws":
+                    session.close()
+                    raise
+        return session
+
+
+@dataclass(frozen=True)
+class JobProgress:
+    """A job's state: ``status`` (queued, running, succeeded, failed, cancelled), the
+    current ``stage``, the overall ``fraction`` and each stage's fraction."""
+
+    status: str
+    stage: str | None
+    fraction: float
+    stages: dict[str, float]
+
+    @property
+    def done(self) -> bool:
+        return self.status in ("succeeded", "failed", "cancelled")
+
+
+class Job:
+    """A job on the service (:meth:`Client.submit`)."""
+
+    POLL_FIRST = 0.02
+    POLL_MAX = 0.5
+
+    def __init__(self, client: Client, job_id: str, operation: str,
+                 decode: Callable[[dict[str, Any]], Any], document: dict[str, Any] | None
+                 ) -> None:
+        self.client = client
+        self.id = job_id
+        self.operation = operation
+        self._decode = decode
+        self.document = document or {}
+        self.path = f"/v1/jobs/{job_id}"
+
+    def __repr__(self) -> str:
+        return f"Job({self.id!r}, {self.operation!r})"
+
+    def status(self) -> dict[str, Any]:
+        """The job document (``GET /v1/jobs/{id}``)."""
+        self.document = dict(self.client.request("GET", self.path).json())
+        return self.document
+
+    def progress(self) -> JobProgress:
+        """The job's status and progress now."""
+        doc = self.status()
+        progress = doc.get("progress") or {}
+        return JobProgress(str(doc["status"]), progress.get("stage"),
+                           float(progress.get("fraction") or 0.0),
+                           dict(progress.get("stages") or {}))
+
+    def wait(self, timeout: float | None = None, on_progress: Progress | None = None
+             ) -> JobProgress:
+        """Poll until the job finished (at most ``timeout`` seconds: then
+        :class:`~ffs.errors.RequestTimeoutError`), calling ``on_progress(stage, fraction)``."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        interval = self.POLL_FIRST
+        while True:
+            state = self.progress()
+            if on_progress is not None:
+                stage = state.stage or state.status
+                on_progress("queued" if state.status == "queued" else stage,
+                            state.stages.get(stage, 0.0))
+            if state.done:
+                return state
+            if deadline is not None and time.monotonic() > deadline:
+                raise RequestTimeoutError(f"job {self.id} still {state.status} after {timeout:g} s")
+            time.sleep(interval)
+            interval = min(self.POLL_MAX, interval * 1.5)
+
+    def result(self, timeout: float | None = None, on_progress: Progress | None = None) -> Any:
+        """Wait, then the result (the operation's result type). A failed job raises the
+        typed error of its problem document; a cancelled one :class:`JobCancelledError`."""
+        state = self.wait(timeout, on_progress)
+        if state.status == "cancelled":
+            raise JobCancelledError(f"job {self.id} was cancelled")
+        if state.status == "failed":
+            error = self.document.get("error") or {"title": "Job failed", "status": 500}
+            raise problem_error(error, int(error.get("status") or 500))
+        response = self.client.request("GET", f"{self.path}/result",
+                                       headers={"Accept": "application/json"})
+        return self._decode(response.json())
+
+    def cancel(self) -> None:
+        """Cancel a queued or running job (a finished one is deleted with its result)."""
+        self.client.request("DELETE", self.path)
+
+    def discard(self) -> None:
+        """Delete the job and its result on the service (or cancel it); a job already gone
+        is fine."""
+        with contextlib.suppress(NotFoundError, GoneError, ServiceUnreachableError):
+            self.cancel()
+
+
+class Session:
+    """A deformation session (:meth:`Client.session`); a context manager that closes it.
+
+    Attributes: ``id``, ``info`` (the session document), ``handles`` (the handle vertices
+    in the order :meth:`drag` takes their targets), ``transport`` (``"ws"`` or ``"http"``).
+    """
+
+    def __init__(self, client: Client, info: dict[str, Any]) -> None:
+        self.client = client
+        self.info = info
+        self.id = str(info["id"])
+        self.handles = list(info.get("handles", []))
+        self.n_vertices = int(info.get("n_vertices", 0))
+        self.links = dict(info.get("links") or {})
+        self.transport = "http"
+        self._socket: Any = None
+        self._seq = 0
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def connect(self) -> None:
+        """Open the session's WebSocket (``links.ws``)."""
+        from websockets.sync.client import connect
+
+        base = self.client.url.replace("https://", "wss://", 1).replace("http://", "ws://", 1)
+        path = self.links.get("ws") or f"/v1/sessions/{self.id}/ws"
+        try:
+            self._socket = connect(base + path, open_timeout=self.client.timeout,
+                                   max_size=None, compression=None)
+        except Exception as exc:  # handshake refused, proxy without WebSockets...
+            raise ServiceUnreachableError(f"cannot open the session's WebSocket: {exc}") from None
+        self.transport = "ws"
+
+    def drag(self, handle_positions: Any, handle_rotations: Any = None) -> np.ndarray:
+        """The deformed vertices (n, 3) float64 for handle targets (h, 3) and optional
+        rotations (g, 3, 3). Over the WebSocket the values are float32 rounded; over HTTP
+        they are the solver's float64."""
+        positions = np.asarray(handle_positions, dtype=np.float64).reshape(-1, 3)
+        rotations = (None if handle_rotations is None else
+                     np.asarray(handle_rotations, dtype=np.float64).reshape(-1, 3, 3))
+        if self._socket is not None:
+            return self._drag_ws(positions, rotations)
+        body: dict[str, Any] = {"handle_positions": positions.tolist()}
+        if rotations is not None:
+            body["handle_rotations"] = rotations.tolist()
+        path = self.links.get("solve") or f"/v1/sessions/{self.id}/solve"
+        response = self.client._post_json(path, body, headers={"Accept": "application/json"})
+        return np.asarray(response.json()["vertices"], dtype=np.float64).reshape(-1, 3)
+
+    def _drag_ws(self, positions: np.ndarray, rotations: np.ndarray | None) -> np.ndarray:
+        from websockets.exceptions import ConnectionClosed
+
+        values = [positions.ravel()] + ([] if rotations is None else [rotations.ravel()])
+        self._seq += 1
+        try:
+            self._socket.send(np.concatenate(values).astype("<f4").tobytes())
+            while True:
+                message = self._socket.recv(timeout=self.client.timeout)
+                if isinstance(message, str):
+                    doc = json.loads(message)
+                    if doc.get("seq") in (None, self._seq):
+                        raise problem_error(doc, int(doc.get("status") or 500))
+                    continue
+                seq, n = np.frombuffer(message, "<u4", count=2).tolist()
+                if seq == self._seq:
+                    return np.frombuffer(message, "<f4", offset=8, count=3 * n).reshape(
+                        n, 3).astype(np.float64)
+        except TimeoutError:
+            raise RequestTimeoutError(f"no answer to drag {self._seq} within "
+                                 f"{self.client.timeout:g} s") from None
+        except ConnectionClosed as exc:
+            self._socket = None
+            status = 404 if exc.rcvd and exc.rcvd.code == 4404 else 410
+            raise problem_error({"title": "Session gone", "status": status, "detail":
+                                 f"the session's WebSocket closed ({exc})",
+                                 "kind": "not-found" if status == 404 else "session-gone"},
+                                status) from None
+
+    def state(self) -> dict[str, Any]:
+        """The session document now (``expires_in``, ``solves``, ``memory_bytes``...)."""
+        self.info = dict(self.client.request("GET", f"/v1/sessions/{self.id}").json())
+        return self.info
+
+    def close(self) -> None:
+        """Close the WebSocket and delete the session (an expired one is fine)."""
+        if self._socket is not None:
+            self._socket.close()
+            self._socket = None
+        with contextlib.suppress(NotFoundError, GoneError, ServiceUnreachableError):
+            self.client.request("DELETE", f"/v1/sessions/{self.id}")

@@ -1,0 +1,241 @@
+"""Files of the command line: meshes, forms, handles and results, by extension.
+
+* Meshes: OBJ, PLY, OFF, STL, GLB/glTF through :mod:`solver.io` (file vertex order kept;
+  OBJ/OFF/PLY are written with full float64 precision, STL and GLB in float32), or ``.json``
+  / ``.npz`` holding ``vertices`` and ``faces`` (the API's mesh document).
+* Forms: ``.json`` with the fields of the API's forms response (``faces``, ``edges``,
+  ``lengths``, ``angles``) or ``.npz`` with the same names.
+* Handles (``ffs deform --handles``): JSON, either the API's ``handles`` list
+  ``[{"vertex": i, "position": [x, y, z]}, ...]`` or an object with ``handles`` and the
+  optional ``rotations`` (``[{"faces": [...], "rotation": 3x3 rows}]``) and ``roi``.
+
+Every problem with a file raises :class:`InputFileError` naming the file, the field and the
+index, so the command line can print one line.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ffs.results import Forms
+
+MESH_FORMATS = ("obj", "off", "ply", "stl", "glb", "gltf")
+"""Mesh file formats read (written: all but gltf)."""
+DATA_FORMATS = ("json", "npz")
+"""Formats of arrays by name: forms, meshes as documents, reports."""
+
+
+class InputFileError(Exception):
+    """A file the command cannot use: ``path``, and where in it (``field``, ``index``)."""
+
+    def __init__(self, path: str | os.PathLike[str], reason: str, *, field: str | None = None,
+                 index: int | None = None) -> None:
+        self.path, self.reason, self.field, self.index = str(path), reason, field, index
+        where = "" if field is None else (f"{field}[{index}]: " if index is not None
+                                          else f"{field}: ")
+        super().__init__(f"{self.path}: {where}{reason}")
+
+
+def file_format(path: str | os.PathLike[str], override: str | None = None) -> str:
+    """The lower-case format of ``path``: ``override`` or its extension."""
+    fmt = (override or Path(path).suffix.lstrip(".")).lower()
+    if fmt not in MESH_FORMATS + DATA_FORMATS:
+        raise InputFileError(path, f"unknown file format {fmt or '(no extension)'!r}; use "
+                             f"one of {', '.join(MESH_FORMATS + DATA_FORMATS)}")
+    return fmt
+
+
+def _read_fields(path: Path, fmt: str) -> dict[str, Any]:
+    """The named fields of a .json or .npz file."""
+    try:
+        if fmt == "npz":
+            with np.load(path, allow_pickle=False) as data:
+                return {name: data[name] for name in data.files}
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputFileError(path, "no such file") from None
+    except (OSError, ValueError) as exc:
+        raise InputFileError(path, f"cannot read it as {fmt.upper()}: {exc}") from None
+    if not isinstance(doc, dict):
+        raise InputFileError(path, f"expected a JSON object, got {type(doc).__name__}")
+    return doc
+
+
+def _array(path: Path, doc: dict[str, Any], name: str, dtype: type, cols: int | None
+           ) -> np.ndarray:
+    if name not in doc:
+        raise InputFileError(path, "missing", field=name)
+    try:
+        array = np.asarray(doc[name], dtype=dtype)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise InputFileError(path, f"not an array of numbers ({exc})", field=name) from None
+    if dtype is np.int64 and np.issubdtype(np.asarray(doc[name]).dtype, np.floating):
+        fractional = np.flatnonzero(np.asarray(doc[name]) % 1 != 0)
+        if len(fractional):
+            raise InputFileError(path, "indices must be integers", field=name,
+                                 index=int(fractional[0]) // (cols or 1))
+    if (cols and (array.ndim != 2 or array.shape[1] != cols)) or (not cols and array.ndim != 1):
+        shape = f"(n, {cols})" if cols else "(n,)"
+        raise InputFileError(path, f"expected shape {shape}, got {list(array.shape)}",
+                             field=name)
+    return array
+
+
+def read_mesh(path: str | os.PathLike[str], fmt: str | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (n, 3) float64, faces (m, 3) int64) of a mesh file or mesh document."""
+    path = Path(path)
+    fmt = file_format(path, fmt)
+    if fmt in DATA_FORMATS:
+        doc = _read_fields(path, fmt)
+        return (_array(path, doc, "vertices", np.float64, 3),
+                _array(path, doc, "faces", np.int64, 3))
+    from solver.io import MeshFileError, load_mesh
+
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputFileError(path, "no such file") from None
+    except OSError as exc:
+        raise InputFileError(path, exc.strerror or str(exc)) from None
+    try:
+        return load_mesh(data, path.name if fmt == path.suffix.lstrip(".").lower()
+                         else fmt)
+    except MeshFileError as exc:
+        raise InputFileError(path, exc.reason) from None
+
+
+def is_forms_file(path: str | os.PathLike[str], fmt: str | None = None) -> bool:
+    """Whether ``path`` holds forms (a .json/.npz with ``edges``) rather than a mesh."""
+    fmt = file_format(path, fmt)
+    return fmt in DATA_FORMATS and "edges" in _read_fields(Path(path), fmt)
+
+
+def read_forms(path: str | os.PathLike[str], fmt: str | None = None) -> Forms:
+    """The forms of a .json/.npz file (``faces``, ``edges``, ``lengths``, ``angles``)."""
+    path = Path(path)
+    fmt = file_format(path, fmt)
+    if fmt not in DATA_FORMATS:
+        raise InputFileError(path, "forms are read from .json or .npz files")
+    doc = _read_fields(path, fmt)
+    return Forms(_array(path, doc, "faces", np.int64, 3), _array(path, doc, "edges", np.int64, 2),
+                 _array(path, doc, "lengths", np.float64, None),
+                 _array(path, doc, "angles", np.float64, None))
+
+
+@dataclass(frozen=True)
+class Handles:
+    """Deformation handles: vertices (h,), targets (h, 3), rotation groups with (g, 3, 3)
+    rotations, region of interest."""
+
+    vertices: np.ndarray
+    positions: np.ndarray
+    rotation_faces: list[np.ndarray]
+    rotations: np.ndarray | None
+    roi: np.ndarray | None
+
+
+def read_handles(path: str | os.PathLike[str]) -> Handles:
+    """Handles of a JSON file (the API's ``handles`` list, or an object with ``handles``,
+    ``rotations`` and ``roi``)."""
+    doc = read_json(path)
+    if isinstance(doc, list):
+        doc = {"handles": doc}
+    if not isinstance(doc, dict) or not isinstance(doc.get("handles"), list) or not doc[
+            "handles"]:
+        raise InputFileError(path, 'expected a non-empty list [{"vertex": i, "position": '
+                             '[x, y, z]}, ...] or an object with "handles"', field="handles")
+    vertices, positions = [], []
+    for i, handle in enumerate(doc["handles"]):
+        try:
+            vertex, position = handle["vertex"], [float(x) for x in handle["position"]]
+            if type(vertex) is not int or len(position) != 3:
+                raise ValueError
+        except (KeyError, TypeError, ValueError):
+            raise InputFileError(path, 'expected {"vertex": integer, "position": [x, y, z]}',
+                                 field="handles", index=i) from None
+        vertices.append(vertex)
+        positions.append(position)
+    groups, rotations = [], []
+    for i, group in enumerate(doc.get("rotations") or []):
+        try:
+            groups.append(np.asarray(group["faces"], dtype=np.int64).ravel())
+            rotations.append(np.asarray(group["rotation"], dtype=np.float64).reshape(3, 3))
+        except (KeyError, TypeError, ValueError):
+            raise InputFileError(path, 'expected {"faces": [...], "rotation": 3x3 rows}',
+                                 field="rotations", index=i) from None
+    roi = doc.get("roi")
+    return Handles(np.asarray(vertices, dtype=np.int64), np.asarray(positions), groups,
+                   np.asarray(rotations) if rotations else None,
+                   None if roi is None else np.asarray(roi, dtype=np.int64))
+
+
+def read_json(path: str | os.PathLike[str]) -> Any:
+    """A JSON document (e.g. reconstruct constraints)."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputFileError(path, "no such file") from None
+    except (OSError, ValueError) as exc:
+        raise InputFileError(path, f"cannot read it as JSON: {exc}") from None
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if hasattr(value, "to_dict"):
+        return value.to_dict()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
+def json_text(document: Any) -> str:
+    """JSON of results and reports (numpy values as lists and numbers; float64 exact)."""
+    return json.dumps(document, default=_json_default)
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    """Write through a temporary file in the same folder, so that a failed or interrupted
+    run never leaves a truncated output behind."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    partial.write_bytes(data)
+    partial.replace(path)
+
+
+def write_arrays(path: Path, fmt: str, arrays: dict[str, Any], extra: dict[str, Any]
+                 ) -> None:
+    """``arrays`` (+ ``extra`` fields in JSON) as a .json document or an .npz archive."""
+    if fmt == "npz":
+        import io
+
+        buffer = io.BytesIO()
+        np.savez(buffer, **{k: np.asarray(v) for k, v in arrays.items()})
+        _atomic_write(path, buffer.getvalue())
+    else:
+        _atomic_write(path, json_text({**arrays, **extra}).encode())
+
+
+def write_mesh(path: Path, fmt: str, vertices: np.ndarray, faces: np.ndarray,
+               report: dict[str, Any] | None = None) -> None:
+    """A mesh file (OBJ, OFF, PLY, STL, GLB) or a .json / .npz document of it."""
+    if fmt in DATA_FORMATS:
+        write_arrays(path, fmt, {"vertices": vertices, "faces": faces},
+                     {"report": report or {}})
+        return
+    if fmt == "gltf":
+        raise InputFileError(path, "glTF is read, not written; write .glb")
+    from solver.io import save_mesh
+
+    _atomic_write(path, save_mesh(vertices, faces, fmt))

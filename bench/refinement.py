@@ -19,6 +19,12 @@ Sections (``--sections``, default all):
 * ``drag``: a session's refined drag at ~20K faces against the linear drag and libigl ARAP
   with 10 iterations.
 * ``weights``: the measurements behind the default angle weights and the uniform weighting.
+* ``time``: the default (refined) answer against the linear answer of the same call
+  (``refine=False``), both warm (second call on the mesh: analyses cached), medians of
+  alternating runs, on noisy and x0.8 forms from 5K faces up (100K with ``--large``) and on
+  a very irregular genus-1 mesh (rocker-arm with 30 edges split to 1e-4 of their length);
+  iterations, factorizations and back-substitutions of the refinement; the scaling
+  exponents of both answers (least-squares slope of log time against log faces).
 
     pip install -e ".[bench]"
     python bench/refinement.py [--sections scale noise ...] [--large]
@@ -137,8 +143,9 @@ def deform_section(cases: list[str]) -> None:
         case = load_case(SHARED, name)
         runs = []
         try:
-            out, seconds = timed(arap_deformation, case)
-            runs.append(("libigl ARAP (200 it.)", out, "", seconds))
+            for iterations in (10, 200):
+                out, seconds = timed(arap_deformation, case, iterations)
+                runs.append((f"libigl ARAP ({iterations} it.)", out, str(iterations), seconds))
         except ImportError:
             print(f"| {name} | | libigl ARAP | not installed (pip install libigl) | | | | | |")
         for label, kw in (("linear", {"refine": False}),
@@ -146,8 +153,10 @@ def deform_section(cases: list[str]) -> None:
                           ("refined (default)", {})):
             res, seconds = timed(solver.deform, case.vertices, case.faces, case.handles,
                                  case.handle_targets(), **case_kwargs(case), **kw)
-            runs.append((label, res.vertices, res.report["refinement"].get("iterations", ""),
-                         seconds))
+            rep = res.report["refinement"]
+            counts = (f"{rep['iterations']} ({rep['factorizations']} f., {rep['solves']} s.)"
+                      if "iterations" in rep else "")
+            runs.append((label, res.vertices, counts, seconds))
         for label, X, it, seconds in runs:
             d = distortion(case.vertices, X, case.faces)
             length, angle = d["length_summary"]["mean"], d["angle_summary"]["mean"]
@@ -235,6 +244,75 @@ def drag_section() -> None:
         print("| libigl ARAP | not installed | | |")
 
 
+TIME_MESHES = ["bunny.off", "cactus.off", "rocker-arm.obj", "beetle.off"]
+TIME_LARGE = ["stanford-bunny.obj", "armadillo.obj", "nefertiti.obj"]
+
+
+def noisy(forms, seed: int = 1, sigma: float = 1e-3):
+    """A copy of ``forms`` with N(0, sigma) rad added to the interior dihedral angles."""
+    inner = build_topology(forms.faces).interior_edges
+    angles = forms.angles.copy()
+    angles[inner] += np.random.default_rng(seed).normal(0, sigma, len(inner))
+    return solver.Forms(forms.faces, forms.edges, forms.lengths, angles)
+
+
+def warm_pair(forms, repeats: int = 3) -> tuple[float, float, object]:
+    """Median seconds of the linear and of the default answer (``solver.reconstruct`` with
+    its defaults), alternating after one untimed call of each; and the default result."""
+    def call(**kw):
+        return solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles, **kw)
+
+    call(refine=False)
+    call()
+    linear, default = [], []
+    for _ in range(repeats):
+        linear.append(timed(call, refine=False)[1])
+        result, seconds = timed(call)
+        default.append(seconds)
+    return float(np.median(linear)), float(np.median(default)), result
+
+
+def time_section(meshes: list[str]) -> None:
+    from meshes import with_tiny_edges
+
+    print("\n### Time: the default (refined) answer against the linear one, warm\n")
+    print("| case | faces | linear s | default s | ratio | iterations | factorizations "
+          "| solves | converged | quality |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    sizes, linear_times, default_times = [], [], []
+    cases = [(name, kind) for name in meshes for kind in ("noise", "x0.8")]
+    cases.append(("rocker-arm.obj", "irregular"))
+    for name, kind in cases:
+        V, F = load(name)
+        if kind == "irregular":
+            V, F = with_tiny_edges(V, F, 30)
+        forms = solver.fundamental_forms(V, F)
+        if kind == "x0.8":
+            forms.angles *= 0.8
+        else:
+            forms = noisy(forms)
+        linear, default, result = warm_pair(forms)
+        rep = result.report["refinement"]
+        if kind == "x0.8":
+            quality = f"mean abs(l/L - 1) {np.abs(ratios(result.vertices, forms) - 1).mean():.4f}"
+        else:
+            quality = f"distance {rigid_alignment_error(result.vertices, V):.1e}"
+        if kind == "noise":
+            sizes.append(len(F))
+            linear_times.append(linear)
+            default_times.append(default)
+        print(f"| {name} {kind} | {len(F)} | {linear:.3f} | {default:.3f} | "
+              f"{default / linear:.2f} | {rep.get('iterations', '')} | "
+              f"{rep.get('factorizations', '')} | {rep.get('solves', '')} | "
+              f"{rep.get('converged', '')} | {quality} |")
+        sys.stdout.flush()
+    if len(sizes) > 1:
+        x = np.log(sizes)
+        print(f"\nScaling exponents (noise rows): linear "
+              f"{np.polyfit(x, np.log(linear_times), 1)[0]:.2f}, default (refined) "
+              f"{np.polyfit(x, np.log(default_times), 1)[0]:.2f}")
+
+
 def weights_section() -> None:
     """The measurements behind the default weights (docs/refinement.md, "Weights")."""
     from solver.refine import FormTargets, Refiner
@@ -271,7 +349,8 @@ def weights_section() -> None:
               f"{d['length_summary']['max']:.3f} |")
 
 
-SECTIONS = ("scale", "noise", "interpolate", "deform", "parameterize", "drag", "weights")
+SECTIONS = ("scale", "noise", "interpolate", "deform", "parameterize", "drag", "weights",
+            "time")
 
 
 def main() -> None:
@@ -288,7 +367,8 @@ def main() -> None:
            "interpolate": lambda: interpolate_section(["bar", "cylinder"]),
            "deform": lambda: deform_section(deform_cases),
            "parameterize": lambda: parameterize_section(param), "drag": drag_section,
-           "weights": weights_section}
+           "weights": weights_section,
+           "time": lambda: time_section(TIME_MESHES + (TIME_LARGE if args.large else []))}
     for section in args.sections:
         run[section]()
         sys.stdout.flush()

@@ -311,3 +311,20 @@ def test_every_vertex_a_handle_leaves_nothing_to_refine():
     result = deform(V, [[0, 1, 2]], [0, 1, 2], V * 1.1)
     np.testing.assert_array_equal(result.vertices, V * 1.1)
     assert result.report["refinement"]["stop_reason"] == "no_free_vertices"
+
+
+def test_gauss_newton_patterns_are_kept_per_mesh_and_handle_set():
+    """A second refinement on the same mesh and free vertices reuses the pattern (counted),
+    with the same answer to the bit; another handle set builds its own."""
+    from solver.refine import Handles, Refiner, clear_pattern_cache, pattern_cache_info
+
+    V, F = load("decimated-knight.off")
+    forms = fundamental_forms(V, F)
+    targets = FormTargets(build_topology(F), forms.lengths, forms.angles * 0.9)
+    clear_pattern_cache()
+    first = Refiner(targets).run(V)
+    second = Refiner(targets).run(V)
+    assert pattern_cache_info()["computed"] == 1 and pattern_cache_info()["cached"] == 1
+    np.testing.assert_array_equal(first.vertices, second.vertices)
+    Refiner(targets, Handles(fixed=np.array([0, 1, 2])))
+    assert pattern_cache_info()["computed"] == 2

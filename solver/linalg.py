@@ -57,13 +57,18 @@ in the worker.
 Analysis cache (PARDISO): the analysis -- fill-reducing ordering (METIS nested dissection,
 PARDISO's default) and symbolic factorization, about two thirds of a cold factorization of
 the reconstruction system -- depends only on the sparsity pattern. Each process keeps it
-per pattern (a 128-bit digest of the upper triangle's CSR index arrays), LRU, within
-:data:`ANALYSIS_CACHE_BYTES`: the ordering, and the handles of dead factorizations with
-their numerical factor freed. A factorization of a known pattern takes such a handle and
+per pattern (a 128-bit digest of the upper triangle's CSR index arrays and whether an
+ordering hint was given), LRU, within :data:`ANALYSIS_CACHE_BYTES`: the handles of dead
+factorizations, with their analysis and, memory allowing, their factor's memory, and for a
+hinted pattern the ordering. A factorization of a known pattern takes such a handle and
 runs only the numerical factorization (PARDISO phase 22), or, if every handle of the
-pattern belongs to a live factorization, a new handle with the kept ordering (the symbolic
-factorization is redone). No handle is ever shared by two live factorizations, so this is
-thread safe. ``Factorization.analysis`` says ``"cached"`` or ``"computed"``;
+pattern belongs to a live factorization, a new handle: with the kept ordering for a hinted
+pattern (the symbolic factorization is redone), else a whole new analysis. Unhinted
+patterns keep no ordering because PARDISO returns it only as a user permutation
+(``iparm[4] = 2``), and any user permutation turns its two-level factorization into the
+classic one, whose solves cost 1.3-1.5x more (``bench/drag_regression.py``). No handle is
+ever shared by two live factorizations, so this is thread safe. ``Factorization.analysis``
+says ``"cached"`` or ``"computed"``;
 :func:`analysis_cache_info` and :func:`clear_analysis_cache` inspect and empty the cache.
 Repeated factorizations of one pattern with new values (refinement iterations, successive
 reconstructs of one mesh, new handle sets) therefore skip the analysis without any change
@@ -232,9 +237,16 @@ class _PardisoHandle:
     """One PARDISO handle (``pt``, ``iparm`` and the ordering ``perm``) and the MKL memory
     it holds. Exactly one owner uses a handle at a time (a live solver, or the analysis
     cache while it is idle), so no lock is needed around its calls.
+
+    ``perm`` given: PARDISO uses that ordering (``iparm[4] = 1``). Else it orders the matrix
+    itself, and returns its ordering in ``perm`` only if ``return_ordering``
+    (``iparm[4] = 2``). Either user-permutation mode silently turns the two-level
+    factorization (``iparm[23] = 1``) into the classic one, whose solves cost 1.3-1.5x more
+    (bench/drag_regression.py): only a handle with neither keeps the two-level factor.
     """
 
-    def __init__(self, mkl: _Mkl, n: int, perm: np.ndarray | None) -> None:
+    def __init__(self, mkl: _Mkl, n: int, perm: np.ndarray | None,
+                 return_ordering: bool = False) -> None:
         self.mkl = mkl
         self.n = n
         self.pt = np.zeros(64, dtype=np.int64)  # opaque handle: must never be touched
@@ -243,9 +255,13 @@ class _PardisoHandle:
         mkl.pardisoinit(self.pt.ctypes.data, ctypes.byref(mtype), self.iparm.ctypes.data)
         for index, value in _PARDISO_IPARM.items():
             self.iparm[index] = value
-        # iparm[4] = 1: use the ordering in perm; 2: compute it and return it in perm.
-        self.perm = np.zeros(n, dtype=np.int32) if perm is None else perm.copy()
-        self.iparm[4] = 2 if perm is None else 1
+        # iparm[4] = 0: PARDISO's own ordering, not returned; 1: use the ordering in perm;
+        # 2: compute it and return it in perm.
+        self.perm: np.ndarray | None = None
+        if perm is not None:
+            self.perm, self.iparm[4] = perm.copy(), 1
+        elif return_ordering:
+            self.perm, self.iparm[4] = np.zeros(n, dtype=np.int32), 2
         self.factored = False  # holds a numerical factor (phase 22 done, no phase 0 since)
 
     def call(self, phase: int, a: np.ndarray, ia: np.ndarray, ja: np.ndarray,
@@ -257,7 +273,8 @@ class _PardisoHandle:
             self.pt.ctypes.data, ctypes.byref(one), ctypes.byref(one),
             ctypes.byref(ctypes.c_int32(_PARDISO_MTYPE_SPD)), ctypes.byref(ctypes.c_int32(phase)),
             ctypes.byref(ctypes.c_int32(self.n)), a.ctypes.data, ia.ctypes.data, ja.ctypes.data,
-            self.perm.ctypes.data, ctypes.byref(ctypes.c_int32(nrhs)), self.iparm.ctypes.data,
+            None if self.perm is None else self.perm.ctypes.data,
+            ctypes.byref(ctypes.c_int32(nrhs)), self.iparm.ctypes.data,
             ctypes.byref(ctypes.c_int32(0)), None if b is None else b.ctypes.data,
             None if x is None else x.ctypes.data, ctypes.byref(err))
         return err.value
@@ -278,7 +295,7 @@ class _PardisoHandle:
     @property
     def analysis_bytes(self) -> int:
         """Memory the analysis keeps after :meth:`drop_factor` (iparm[15], in KB), plus perm."""
-        return int(self.iparm[15]) * 1024 + self.perm.nbytes
+        return int(self.iparm[15]) * 1024 + (0 if self.perm is None else self.perm.nbytes)
 
     @property
     def factor_bytes(self) -> int:
@@ -298,12 +315,15 @@ class _PardisoHandle:
 class _CacheEntry:
     """What the cache keeps for one sparsity pattern."""
 
-    perm: np.ndarray  # the fill-reducing ordering PARDISO computed (int32, zero-based)
+    # The fill-reducing ordering (int32, zero-based) of a pattern factorized with an ordering
+    # hint; None for PARDISO's own (two-level) ordering, which it does not return.
+    perm: np.ndarray | None
     idle: list[_PardisoHandle] = field(default_factory=list)  # analysed, no owner
 
     @property
     def nbytes(self) -> int:
-        return self.perm.nbytes + sum(h.held_bytes for h in self.idle)
+        own = 0 if self.perm is None else self.perm.nbytes
+        return own + sum(h.held_bytes for h in self.idle)
 
 
 class _AnalysisCache:
@@ -344,15 +364,16 @@ class _AnalysisCache:
                 self._bytes -= handle.held_bytes
                 self._counts["cached_handle"] += 1
                 return handle, entry.perm
-            self._counts["cached_ordering"] += 1
+            self._counts["computed" if entry.perm is None else "cached_ordering"] += 1
             return None, entry.perm
 
-    def remember(self, key: bytes, perm: np.ndarray) -> None:
-        """Keep the ordering computed for pattern ``key``."""
+    def remember(self, key: bytes, perm: np.ndarray | None) -> None:
+        """Keep pattern ``key`` (and its ordering, if PARDISO returned one), so that idle
+        handles of it are kept."""
         with self._lock:
             self._drain()
             if key not in self._entries:
-                entry = _CacheEntry(perm.copy())
+                entry = _CacheEntry(None if perm is None else perm.copy())
                 self._entries[key] = entry
                 self._bytes += entry.nbytes
             self._entries.move_to_end(key)
@@ -458,10 +479,11 @@ def analysis_cache_info() -> dict[str, int]:
     return _CACHE.info()
 
 
-def _pattern_key(n: int, ia: np.ndarray, ja: np.ndarray) -> bytes:
-    """128-bit digest of an upper-triangle CSR pattern and the PARDISO settings."""
+def _pattern_key(n: int, ia: np.ndarray, ja: np.ndarray, hinted: bool) -> bytes:
+    """128-bit digest of an upper-triangle CSR pattern and the PARDISO settings; ``hinted``:
+    ordered from a ``groups`` hint (classic factor) rather than by PARDISO (two-level)."""
     digest = hashlib.blake2b(digest_size=16)
-    digest.update(repr((n, len(ja), sorted(_PARDISO_IPARM.items()))).encode())
+    digest.update(repr((n, len(ja), hinted, sorted(_PARDISO_IPARM.items()))).encode())
     digest.update(memoryview(ia))
     digest.update(memoryview(ja))
     return digest.digest()
@@ -507,7 +529,7 @@ def _group_ordering(mkl: _Mkl, ia: np.ndarray, ja: np.ndarray,
     so its nested dissection costs a fraction of the full one's."""
     n_groups = int(groups.max()) + 1
     a, cia, cja = _compressed_pattern(ia, ja, groups, n_groups)
-    handle = _PardisoHandle(mkl, n_groups, None)
+    handle = _PardisoHandle(mkl, n_groups, None, return_ordering=True)
     try:
         error = handle.call(11, a, cia, cja)
         if error:
@@ -539,11 +561,11 @@ class _PardisoSolver:
         self._ia = np.ascontiguousarray(upper.indptr, dtype=np.int32)
         self._ja = np.ascontiguousarray(upper.indices, dtype=np.int32)
         self._a = np.ascontiguousarray(upper.data, dtype=np.float64)
-        key = _pattern_key(self.n, self._ia, self._ja)
+        key = _pattern_key(self.n, self._ia, self._ja, groups is not None)
         handle, perm = _CACHE.acquire(key) if ANALYSIS_CACHE_BYTES > 0 else (None, None)
-        self.analysis = "computed" if perm is None else "cached"
-        start = time.perf_counter()
         reused = handle is not None
+        self.analysis = "cached" if reused or perm is not None else "computed"
+        start = time.perf_counter()
         if handle is None:
             if perm is None and groups is not None:
                 perm = _group_ordering(mkl, self._ia, self._ja, groups)
@@ -937,7 +959,10 @@ def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
     or a face frame's coordinates): PARDISO then computes its fill-reducing ordering on
     the compressed graph (one node per group; about half the analysis time on the
     reconstruction system, and no more fill) instead of the whole pattern. Only the
-    ordering depends on it, never the solution; other backends ignore it.
+    ordering depends on it, never the solution; other backends ignore it. The price: PARDISO
+    given an ordering makes a classic factor instead of its two-level one, whose solves are
+    1.3-1.5x faster (``bench/drag_regression.py``); so give ``groups`` for a factorization
+    solved once or a few times, not for one solved per frame (the ``Deformer``).
 
     Raises ``ValueError`` (unknown backend name; non-square or non-symmetric matrix;
     ``groups`` not N integers in [0, N)),

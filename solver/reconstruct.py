@@ -366,17 +366,21 @@ class ImmersionProblem:
 
     def system(self, constraints: LinearConstraints, backend: str = "auto",
                extra_penalty_columns: np.ndarray | None = None,
-               extra_penalty_weight: float = 0.0) -> ConstrainedSystem:
+               extra_penalty_weight: float = 0.0,
+               ordering_hint: bool = True) -> ConstrainedSystem:
         """Factorize K with ``constraints`` (and optional extra soft columns, e.g. every
-        frame for the orthonormalization solve)."""
+        frame for the orthonormalization solve). ``ordering_hint``: pass the unknowns'
+        groups to :func:`solver.linalg.factorize` (a cheaper analysis, slower solves); False
+        for a system solved per drag."""
         soft_cols, soft_w = constraints.soft_columns, constraints.soft_weights
         if extra_penalty_columns is not None:
             soft_cols = np.concatenate([soft_cols, extra_penalty_columns])
             soft_w = np.concatenate([soft_w, np.full(len(extra_penalty_columns),
                                                      extra_penalty_weight)])
         topo = self.topology
+        groups = unknown_groups(topo.n_vertices, topo.n_faces) if ordering_hint else None
         return ConstrainedSystem(self.K, constraints.hard_columns, soft_cols, soft_w, backend,
-                                 unknown_groups(topo.n_vertices, topo.n_faces))
+                                 groups)
 
     def refinement_handles(self, constraints: Constraints) -> Handles:
         """The user's constraints as :class:`solver.refine.Handles`: hard positions fixed,

@@ -71,14 +71,25 @@ def relative(x: np.ndarray, y: np.ndarray) -> float:
     return float(np.abs(x - y).max() / np.abs(y).max())
 
 
+def hinted(K: sp.csr_array, scale: float = 1.0, **options: object) -> linalg.Factorization:
+    """``factorize(scale * K)`` with an ordering hint (one group per unknown): PARDISO is
+    then given the ordering, which the cache keeps for a second live factorization."""
+    return factorize(scale * K, "pardiso", groups=np.arange(K.shape[0]), **options)
+
+
+def user_permutation(factor: linalg.Factorization) -> int:
+    """The iparm[4] (user permutation mode) of a PARDISO factorization's handle."""
+    return int(factor._solver._handle.iparm[4])
+
+
 def test_miss_then_hit_with_same_pattern_and_new_values() -> None:
     K, b = noisy_system(*grid_mesh(12, False))
-    first = factorize(K, "pardiso")
+    first = hinted(K)
     assert first.analysis == "computed"
     info = analysis_cache_info()
     assert (info["patterns"], info["computed"], info["cached_ordering"]) == (1, 1, 0)
     # Same pattern, other values: the kept ordering (first is alive, its handle busy).
-    second = factorize(2.0 * K, "pardiso")
+    second = hinted(K, 2.0)
     assert second.analysis == "cached"
     assert analysis_cache_info()["cached_ordering"] == 1
     x = first.solve(b)
@@ -108,14 +119,16 @@ def test_results_with_and_without_cache_agree() -> None:
     del uncached
     assert analysis_cache_info()["patterns"] == 0  # nothing kept with the cache off
     linalg.ANALYSIS_CACHE_BYTES = 64 * 2**20
-    computed = factorize(K, "pardiso")
-    by_ordering = factorize(K, "pardiso")
+    computed = hinted(K)
+    by_ordering = hinted(K)
     x_computed, x_ordering = computed.solve(b), by_ordering.solve(b)
     del computed
-    by_handle = factorize(K, "pardiso")
+    by_handle = hinted(K)
     assert (by_ordering.analysis, by_handle.analysis) == ("cached", "cached")
     assert analysis_cache_info()["cached_handle"] == 1
-    for x in (x_computed, x_ordering, by_handle.solve(b)):
+    unhinted = factorize(K, "pardiso")  # PARDISO's own ordering: its own cache entry
+    assert unhinted.analysis == "computed" and analysis_cache_info()["patterns"] == 2
+    for x in (x_computed, x_ordering, by_handle.solve(b), unhinted.solve(b)):
         assert relative(x, x_plain) < 1e-12
 
 
@@ -193,26 +206,51 @@ def test_clear_frees_everything_and_live_factors_keep_working() -> None:
 
 def test_failed_factorization_is_not_parked() -> None:
     K, _ = noisy_system(*grid_mesh(10, False))
-    factorize(K, "pardiso")  # parks one analysed handle
+    hinted(K)  # parks one analysed handle
     indefinite = sp.csr_array(K, copy=True)
     indefinite.setdiag(-indefinite.diagonal())  # same pattern, not positive definite
     with pytest.raises(SingularSystemError):
-        factorize(indefinite, "pardiso", assume_symmetric=True).solve(np.ones(K.shape[0]))
+        hinted(indefinite, assume_symmetric=True).solve(np.ones(K.shape[0]))
     assert analysis_cache_info()["idle_handles"] == 0  # the failed handle was freed
-    assert factorize(K, "pardiso").analysis == "cached"  # the ordering is still good
+    assert hinted(K).analysis == "cached"  # the ordering is still good
 
 
-def test_concurrent_factorizations_of_one_pattern() -> None:
+@pytest.mark.parametrize("hint", [True, False])
+def test_concurrent_factorizations_of_one_pattern(hint: bool) -> None:
     K, b = noisy_system(*grid_mesh(12, False))
     reference = spsolve(sp.csc_array(K), b)
-    factorize(K, "pardiso")  # one idle handle; the other threads take the ordering
+    groups = np.arange(K.shape[0]) if hint else None
+    # One idle handle; the other threads take the ordering (hint) or order anew (no hint).
+    factorize(K, "pardiso", groups=groups)
 
     def work(scale: float) -> float:
-        return relative(scale * factorize(scale * K, "pardiso").solve(b), reference)
+        factor = factorize(scale * K, "pardiso", groups=groups)
+        return relative(scale * factor.solve(b), reference)
 
     with ThreadPoolExecutor(4) as pool:
         errors = list(pool.map(work, [1.0, 2.0, 0.5, 4.0, 8.0, 0.25, 3.0, 5.0]))
     assert max(errors) < 1e-10
+
+
+def test_unhinted_factorizations_never_give_pardiso_an_ordering() -> None:
+    """Without an ordering hint PARDISO orders the matrix itself and returns nothing
+    (iparm[4] = 0), computed, from an idle handle or beside a live one: a user permutation
+    (iparm[4] = 1 or 2) turns its two-level factorization into the classic one, whose
+    solves are slower (bench/drag_regression.py). With a hint it is given the ordering."""
+    K, b = noisy_system(*grid_mesh(12, False))
+    reference = spsolve(sp.csc_array(K), b)
+    computed = factorize(K, "pardiso")
+    beside = factorize(2.0 * K, "pardiso")  # first alive: a new analysis, no ordering kept
+    assert (computed.analysis, beside.analysis) == ("computed", "computed")
+    del computed
+    from_idle = factorize(3.0 * K, "pardiso")
+    assert from_idle.analysis == "cached" and from_idle.timings["analysis"] == 0.0
+    info = analysis_cache_info()
+    assert (info["computed"], info["cached_handle"], info["cached_ordering"]) == (2, 1, 0)
+    for factor, scale in ((beside, 2.0), (from_idle, 3.0)):
+        assert user_permutation(factor) == 0
+        assert relative(scale * factor.solve(b), reference) < 1e-10
+    assert user_permutation(hinted(K)) == 1
 
 
 def test_reports_say_whether_the_analysis_was_cached() -> None:

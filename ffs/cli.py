@@ -26,6 +26,7 @@ import concurrent.futures as futures
 import multiprocessing
 import os
 import queue
+import re
 import sys
 import threading
 import time
@@ -323,6 +324,9 @@ def _write_mesh_result(item: Item, args: argparse.Namespace, row: Row, vertices:
     _refinement_columns(row, report)
 
 
+_NUMPY_SCALAR = re.compile(r"\bnp\.(?:float|int|uint|bool_?)\d*\(([^()]*)\)")
+
+
 def describe_error(exc: BaseException) -> str:
     """One line for a failed file: the problem's detail and where it points."""
     from ffs.files import InputFileError
@@ -334,8 +338,8 @@ def describe_error(exc: BaseException) -> str:
         from solver.io import MeshFileError
     except ImportError:  # pragma: no cover - the client without the library
         SolverInputError = MeshFileError = ()  # type: ignore[assignment,misc]
-    if isinstance(exc, SolverInputError):
-        return f"{exc} ({exc.kind})"
+    if isinstance(exc, SolverInputError):  # numpy scalar reprs as numbers, as the service
+        return _NUMPY_SCALAR.sub(r"\1", f"{exc} ({exc.kind})")
     if isinstance(exc, MeshFileError):
         return exc.reason
     from ffs.errors import FFSError, ProblemError

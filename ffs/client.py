@@ -518,6 +518,7 @@ class Session:
         self.links = dict(info.get("links") or {})
         self.transport = "http"
         self._socket: Any = None
+        self._closing = contextlib.ExitStack()  # the socket's context (websockets >= 17.1)
         self._seq = 0
 
     def __enter__(self) -> Session:
@@ -533,8 +534,9 @@ class Session:
         base = self.client.url.replace("https://", "wss://", 1).replace("http://", "ws://", 1)
         path = self.links.get("ws") or f"/v1/sessions/{self.id}/ws"
         try:
-            self._socket = connect(base + path, open_timeout=self.client.timeout,
-                                   max_size=None, compression=None)
+            self._socket = self._closing.enter_context(connect(
+                base + path, open_timeout=self.client.timeout, max_size=None,
+                compression=None))
         except Exception as exc:  # handshake refused, proxy without WebSockets...
             raise ServiceUnreachableError(f"cannot open the session's WebSocket: {exc}") from None
         self.transport = "ws"
@@ -578,6 +580,7 @@ class Session:
                                  f"{self.client.timeout:g} s") from None
         except ConnectionClosed as exc:
             self._socket = None
+            self._closing.close()
             status = 404 if exc.rcvd and exc.rcvd.code == 4404 else 410
             raise problem_error({"title": "Session gone", "status": status, "detail":
                                  f"the session's WebSocket closed ({exc})",
@@ -591,8 +594,7 @@ class Session:
 
     def close(self) -> None:
         """Close the WebSocket and delete the session (an expired one is fine)."""
-        if self._socket is not None:
-            self._socket.close()
-            self._socket = None
+        self._socket = None
+        self._closing.close()
         with contextlib.suppress(NotFoundError, GoneError, ServiceUnreachableError):
             self.client.request("DELETE", f"/v1/sessions/{self.id}")

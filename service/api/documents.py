@@ -239,17 +239,35 @@ class Problem(BaseModel):
     errors: list[ProblemItem] = Field(default_factory=list)
 
 
-class JobProgress(BaseModel):
-    """Progress of a job: the current stage, the fraction done of each stage and overall."""
+class RefinementProgress(BaseModel):
+    """The refinement's last accepted step (a job's ``progress.refinement``)."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
-        {"stage": "factorize", "fraction": 0.5,
-         "stages": {"validate": 1.0, "assemble": 1.0, "factorize": 0.0, "solve": 0.0,
-                    "refine": 0.0, "encode": 0.0}}]})
+        {"iteration": 2, "factorizations": 2, "energy": 3.1e-4, "seconds": 0.8}]})
+
+    iteration: int = Field(description="Steps taken so far (1, 2, ...).")
+    factorizations: int = Field(description="Sparse factorizations so far.")
+    energy: float = Field(description="Energy after this step (it only decreases).")
+    seconds: float = Field(description="Seconds since the refinement started.")
+
+
+class JobProgress(BaseModel):
+    """Progress of a job: the current stage, the fraction done of each stage and overall;
+    during and after a refinement its last step."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"stage": "refine", "fraction": 0.7,
+         "stages": {"validate": 1.0, "assemble": 1.0, "factorize": 1.0, "solve": 1.0,
+                    "refine": 0.4, "encode": 0.0},
+         "refinement": {"iteration": 2, "factorizations": 2, "energy": 3.1e-4,
+                        "seconds": 0.8}}]})
 
     stage: str | None
     fraction: float
     stages: dict[str, float]
+    refinement: RefinementProgress | None = Field(
+        None, description="The refinement's last step, once it took one (null before, and "
+                          "for operations that do not refine).")
 
 
 class JobStatus(BaseModel):

@@ -63,6 +63,12 @@ REFINE_DESCRIPTION = (
     "not reproduce the forms; `false` returns the linear answer of Eq. 5 (fast; it shrinks "
     "non-integrable forms); `true` refines whenever the answer is not exact. "
     "`report.refinement` says whether and how it refined.")
+MAX_SECONDS_DESCRIPTION = (
+    "Wall-clock budget of the solve in seconds (> 0). When the refinement runs out of it the "
+    "answer is its best shape so far, reported as `converged: false, stop_reason: "
+    "\"time_limit\"` (a 200, not a 504). The service also stops the refinement in time for "
+    "FFS_REQUEST_TIMEOUT (synchronous requests) or FFS_JOB_TIMEOUT (jobs), less a margin for "
+    "encoding; the smaller budget applies.")
 
 
 class ApiModel(BaseModel):
@@ -189,6 +195,7 @@ class ReconstructOptions(ApiModel):
         "first and skip the factorization when that immersion already has zero energy "
         "(integrable forms; report.solve_path = tree-integration).")
     refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
+    max_seconds: float | None = Field(None, gt=0, le=1e9, description=MAX_SECONDS_DESCRIPTION)
 
 
 class ReconstructParams(ApiModel):
@@ -234,6 +241,7 @@ class DeformOptions(ApiModel):
     refine: bool | None = Field(
         None, description=REFINE_DESCRIPTION + " In a session (`POST /v1/sessions`) `null` "
         "means off: each refined drag costs several factorizations.")
+    max_seconds: float | None = Field(None, gt=0, le=1e9, description=MAX_SECONDS_DESCRIPTION)
 
 
 class DeformParams(ApiModel):
@@ -260,6 +268,7 @@ class ParameterizeOptions(ApiModel):
     weighting: Weighting = "uniform"
     solver: SolverName | None = None
     refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
+    max_seconds: float | None = Field(None, gt=0, le=1e9, description=MAX_SECONDS_DESCRIPTION)
 
 
 class ParameterizeParams(ApiModel):
@@ -279,6 +288,7 @@ class InterpolateOptions(ApiModel):
     weighting: Weighting = "uniform"
     solver: SolverName | None = None
     refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
+    max_seconds: float | None = Field(None, gt=0, le=1e9, description=MAX_SECONDS_DESCRIPTION)
 
 
 class InterpolateParams(ApiModel):

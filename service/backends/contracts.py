@@ -24,7 +24,10 @@ import numpy as np
 from service.api.task import SessionSpec, TaskRequest, TaskResult
 from service.backends.jobs import Job
 
-ProgressCallback = Callable[[str, float], None]
+ProgressCallback = Callable[..., None]
+"""``progress(stage, fraction, detail=None)``: ``detail`` is the refinement's last iteration
+``{"iteration", "factorizations", "energy", "seconds"}`` (see :class:`StageClock
+<service.worker.runtime.StageClock>`), or None."""
 StartCallback = Callable[[], None]
 ResultCallback = Callable[[str, TaskResult], None]
 """``on_result(operation, result)``: a job finished (the app counts it in its metrics)."""

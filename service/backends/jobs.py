@@ -40,6 +40,9 @@ class Job:
     stage_started: float | None = None
     timings: dict[str, float] = field(default_factory=dict)
     error: dict[str, Any] | None = None
+    refinement: dict[str, Any] | None = None
+    """The refinement's last iteration ``{"iteration", "factorizations", "energy",
+    "seconds"}`` (:data:`service.worker.runtime.ITERATION_FIELDS`), once one was taken."""
     result: TaskResult | None = None
 
     def __post_init__(self) -> None:
@@ -59,12 +62,16 @@ class Job:
             self.started_at = time.time()
             self.timings["queued"] = self.started_at - self.created_at
 
-    def update_progress(self, stage: str, fraction: float) -> None:
-        """Record ``progress(stage, fraction)``: earlier stages are complete, later ones are
-        not (a solver may go back, e.g. from a failed shortcut to the factorization)."""
+    def update_progress(self, stage: str, fraction: float,
+                        detail: dict[str, Any] | None = None) -> None:
+        """Record ``progress(stage, fraction, detail)``: earlier stages are complete, later
+        ones are not (a solver may go back, e.g. from a failed shortcut to the
+        factorization); ``detail`` is a refinement iteration (:attr:`refinement`)."""
         if self.done:
             return
         self.mark_running()
+        if detail is not None:
+            self.refinement = dict(detail)
         now = time.time()
         previous = self.stage
         if stage != self.stage:

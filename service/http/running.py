@@ -20,10 +20,13 @@ async def run_task(request: Request, task: TaskRequest, executor: Executor,
                    metrics: ServiceMetrics, timeout: float) -> TaskResult:
     """Submit ``task`` and wait up to ``timeout`` s (FFS_REQUEST_TIMEOUT) for its result.
 
+    The task carries the deadline (:meth:`TaskRequest.with_deadline`): its refinement stops
+    in time to answer its best shape so far rather than a 504.
     Raises problems: 503 (queue full / pool down), 504 (timeout: the task is cancelled and
     its worker replaced), 500 (worker died), or the task's own problem (422, 413, ...). A
     client that hangs up cancels the task (:class:`ClientDisconnect`)."""
     operation = task.operation
+    task = task.with_deadline(timeout)
     try:
         handle = await executor.submit(task)
     except backend.QueueFullError as exc:

@@ -21,7 +21,9 @@ from typing import Any
 
 from service.api.problems import ProblemError
 
-Progress = Callable[[str, float], None]
+Progress = Callable[..., None]
+ITERATION_FIELDS: tuple[str, ...] = ("iteration", "factorizations", "energy", "seconds")
+"""What a job reports of each refinement step (``progress.refinement``)."""
 logger = logging.getLogger("service.worker")
 
 
@@ -54,17 +56,28 @@ def initialize_worker(threads: int) -> None:
 
 
 class StageClock:
-    """Wraps ``progress(stage, fraction)`` and measures the wall time of each stage."""
+    """Wraps ``progress(stage, fraction)`` and measures the wall time of each stage.
+
+    The solver's refinement also calls :meth:`iteration` after every accepted step; the
+    detail travels as ``progress(stage, fraction, detail)`` (a job's status document shows
+    it as ``progress.refinement``)."""
 
     def __init__(self, progress: Progress) -> None:
         self._progress = progress
         self.stage: str | None = None
+        self._fraction = 0.0
         self._since = time.perf_counter()
         self.timings: dict[str, float] = {}
 
     def __call__(self, stage: str, fraction: float) -> None:
         self._lap(stage)
+        self._fraction = fraction
         self._progress(stage, fraction)
+
+    def iteration(self, detail: dict[str, Any]) -> None:
+        """A refinement step: ``{"iteration", "factorizations", "energy", "seconds"}``."""
+        self._progress(self.stage or "refine", self._fraction,
+                       {key: detail[key] for key in ITERATION_FIELDS})
 
     def _lap(self, stage: str | None) -> None:
         now = time.perf_counter()

@@ -201,7 +201,7 @@ def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
         backend=request.solver_backend, n_vertices=n_vertices,
         check_integrability=full_report is None, integrability_tol=options["tolerance"],
         exact_shortcut=options["exact_shortcut"], refine=options["refine"],
-        progress=progress)
+        max_seconds=request.solver_budget(), progress=progress)
     report = dict(result.report)
     if full_report is not None:
         report = {"integrability": full_report.summary(), **report}
@@ -229,7 +229,8 @@ def deform_task(request: TaskRequest, progress: Progress) -> TaskResult:
         roi=None if roi is None else np.asarray(roi, dtype=np.int64),
         frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
         orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
-        backend=request.solver_backend, refine=options["refine"], progress=progress)
+        backend=request.solver_backend, refine=options["refine"],
+        max_seconds=request.solver_budget(), progress=progress)
     distortion = (result.report.get("distortion") or {}).get("vertex")
     colors = {} if distortion is None else {"distortion": np.asarray(distortion)}
     document = {"vertices": result.vertices, "faces": faces, "report": result.report}
@@ -245,7 +246,7 @@ def parameterize_task(request: TaskRequest, progress: Progress) -> TaskResult:
         vertices, faces, orthonormalize=options["orthonormalize"],
         orthonormal_weight=options["orthonormal_weight"], frame_weight=options["frame_weight"],
         weighting=options["weighting"], backend=request.solver_backend,
-        refine=options["refine"], progress=progress)
+        refine=options["refine"], max_seconds=request.solver_budget(), progress=progress)
     document = {"uv": result.uv, "flipped_faces": result.flipped_faces, "report": result.report}
     flat = np.column_stack([result.uv, np.zeros(len(result.uv))])
     return _finish(request, progress, document, (flat, np.asarray(faces)))
@@ -275,7 +276,7 @@ def interpolate_task(request: TaskRequest, progress: Progress) -> TaskResult:
     vertices, reports = solver.interpolate(
         vertices_a, vertices_b, faces, t, frame_weight=options["frame_weight"],
         weighting=options["weighting"], backend=request.solver_backend,
-        refine=options["refine"], return_reports=True)
+        refine=options["refine"], max_seconds=request.solver_budget(), return_reports=True)
     faces = np.asarray(faces)
     document = {"t": t, "vertices": vertices, "faces": faces,
                 "refinement": reports[0] if np.ndim(t) == 0 else reports}

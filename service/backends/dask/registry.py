@@ -170,7 +170,8 @@ class Registry(SchedulerPlugin):  # type: ignore[misc,valid-type]
         if "error" in msg:
             self.failures[job.id] = msg["error"]
         elif "stage" in msg:
-            job.update_progress(str(msg["stage"]), float(msg.get("fraction", 0.0)))
+            job.update_progress(str(msg["stage"]), float(msg.get("fraction", 0.0)),
+                                msg.get("detail"))
 
     def remove_worker(self, scheduler: Any = None, worker: str | None = None,
                       **kwargs: Any) -> None:

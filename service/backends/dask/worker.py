@@ -33,7 +33,8 @@ def _init_worker(threads: int) -> None:
 
 
 class _EventProgress:
-    """``progress(stage, fraction)`` -> scheduler events (stage changes, <= 5 per second)."""
+    """``progress(stage, fraction, detail=None)`` -> scheduler events (stage changes, <= 5
+    per second; every refinement iteration's ``detail``)."""
 
     def __init__(self, job_id: str) -> None:
         from distributed import get_worker
@@ -43,13 +44,16 @@ class _EventProgress:
         self.stage: str | None = None
         self.last = 0.0
 
-    def __call__(self, stage: str, fraction: float) -> None:
+    def __call__(self, stage: str, fraction: float,
+                 detail: dict[str, Any] | None = None) -> None:
         now = time.monotonic()
-        if stage == self.stage and now - self.last < 0.2:
+        if detail is None and stage == self.stage and now - self.last < 0.2:
             return
         self.stage, self.last = stage, now
-        self.worker.log_event(PROGRESS_TOPIC, {"id": self.job_id, "stage": stage,
-                                               "fraction": float(fraction)})
+        event: dict[str, Any] = {"id": self.job_id, "stage": stage, "fraction": float(fraction)}
+        if detail is not None:
+            event["detail"] = detail
+        self.worker.log_event(PROGRESS_TOPIC, event)
 
     def fail(self, error: dict[str, Any]) -> None:
         self.worker.log_event(PROGRESS_TOPIC, {"id": self.job_id, "error": error})
@@ -64,7 +68,7 @@ def run_task(request: TaskRequest, job_id: str | None = None,
     _init_worker(threads)
     report = _EventProgress(job_id) if job_id else None
     try:
-        result = operations.run(request, report or (lambda stage, fraction: None))
+        result = operations.run(request, report or (lambda stage, fraction, detail=None: None))
     except Exception as exc:
         error = runtime.describe_error(exc)
         if report is not None:

@@ -63,8 +63,9 @@ def _worker_main(conn: Connection, threads: int) -> None:
             break
         task_id, request = message
 
-        def progress(stage: str, fraction: float, _id: str = task_id) -> None:
-            conn.send(("progress", _id, str(stage), float(fraction)))
+        def progress(stage: str, fraction: float, detail: dict[str, Any] | None = None,
+                     _id: str = task_id) -> None:
+            conn.send(("progress", _id, str(stage), float(fraction), detail))
 
         try:
             try:
@@ -289,7 +290,9 @@ class ProcessExecutor:
             return  # a late message of a cancelled task
         if kind == "progress":
             if task.progress_cb is not None:
-                _safe_call(task.progress_cb, message[2], message[3])
+                detail = message[4] if len(message) > 4 else None
+                _safe_call(task.progress_cb, message[2], message[3],
+                           *(() if detail is None else (detail,)))
             return
         worker.task, task.worker = None, None
         if task.started is not None:

@@ -52,7 +52,7 @@ def job_document(job: Job) -> dict[str, Any]:
     return {
         "id": job.id, "operation": job.operation, "status": job.status,
         "progress": {"stage": job.stage, "fraction": round(job.fraction, 4),
-                     "stages": dict(job.stages)},
+                     "stages": dict(job.stages), "refinement": job.refinement},
         "timings": dict(job.timings),
         "created_at": _iso(job.created_at), "started_at": _iso(job.started_at),
         "finished_at": _iso(job.finished_at), "expires_at": _iso(job.expires_at),
@@ -87,6 +87,7 @@ async def _get(jobs: JobsDep, job_id: str) -> Job:
 async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep) -> Response:
     color, task = await job_request(request, settings)
     check_color(OPERATIONS[task.operation], color)
+    task = task.with_deadline(settings.job_timeout)  # refinement stops in time (a result)
     job = await jobs.submit(task, color=color,
                             owner=request.client.host if request.client else None)
     return _status_response(job, 202, {"Location": f"/v1/jobs/{job.id}"})

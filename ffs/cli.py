@@ -530,9 +530,12 @@ def run_batch(command: str, args: argparse.Namespace, items: list[Item]) -> list
                                            error="not run (--fail-fast)")
         _drain(events, display)
     except KeyboardInterrupt:
-        stop.set()
+        stop.set()  # jobs on a server notice it at their next poll and are cancelled
         display.close()
         pool.shutdown(wait=False, cancel_futures=True)
+        for process in list((getattr(pool, "_processes", None) or {}).values()):
+            process.terminate()  # local workers: their solves are of no use any more
+        futures.wait(pending, timeout=5)
         raise
     finally:
         display.close()
@@ -765,6 +768,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                            args.t if args.command == "blend" else None)
     except UsageError as exc:
         print(f"ffs {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.command == "blend" and args.orthonormalize is not None:
+        print("ffs blend: error: blend takes no --orthonormalize (a blend is reconstructed "
+              "from blended forms)", file=sys.stderr)
         return EXIT_USAGE
     args.jobs = min(args.jobs, len(items))
     _set_threads(args)

@@ -11,10 +11,18 @@ at t = 0 is mesh A.
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
+from helpers.servers import REPO, free_port
 from helpers.service import rigid_error
 
 import solver
@@ -166,3 +174,30 @@ def test_version_and_help(ffs):
                     "serve"):
         helped = ffs(command, "--help")
         assert helped.returncode == 0 and "usage: ffs " + command in helped.stdout
+
+
+def test_serve_runs_the_service_until_sigterm(workdir):
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    script = shutil.which("ffs")
+    command = [script] if script else [sys.executable, "-m", "ffs"]
+    proc = subprocess.Popen([*command, "serve", "--port", str(port), "--workers", "1"],
+                            cwd=workdir, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        deadline, ready = time.monotonic() + 60, None
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                ready = httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2)
+                if ready.status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        assert ready is not None and ready.json()["workers"] == 1
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()

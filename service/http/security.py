@@ -19,6 +19,9 @@ from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 API_POLICY = "default-src 'none'; frame-ancestors 'none'"
+WORKER_POLICY = "default-src 'self'; connect-src 'self'; frame-ancestors 'none'"
+"""Scripts' policy: it governs a worker started from the script (the page's js/worker.js
+fetches from this origin and imports its modules), and nothing else."""
 DOCS_SOURCES = "https://cdn.jsdelivr.net"
 """Where FastAPI's /docs and /redoc pages load their scripts and styles from (until they are
 served locally)."""
@@ -58,8 +61,10 @@ class SecurityHeadersMiddleware:
                 headers = MutableHeaders(scope=message)
                 headers["X-Content-Type-Options"] = "nosniff"
                 headers["X-Frame-Options"] = "DENY"
-                if not headers.get("content-type", "").startswith("text/html"):
-                    headers["Content-Security-Policy"] = API_POLICY
+                media = headers.get("content-type", "")
+                if not media.startswith("text/html"):
+                    headers["Content-Security-Policy"] = (
+                        WORKER_POLICY if "javascript" in media else API_POLICY)
                     await send(message)
                 else:
                     start = message  # the policy needs the page's inline scripts

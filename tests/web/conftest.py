@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import re
 import time
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -60,6 +61,7 @@ class WebPage:
     page: Any
     base: str
     errors: list[str] = field(default_factory=list)
+    console: deque[str] = field(default_factory=lambda: deque(maxlen=20))
     allowed: list[re.Pattern[str]] = field(default_factory=list)
 
     def allow(self, pattern: str) -> None:
@@ -68,37 +70,83 @@ class WebPage:
     def unexpected(self) -> list[str]:
         return [e for e in self.errors if not any(p.search(e) for p in self.allowed)]
 
-    def open(self, query: str = "") -> Any:
+    def open(self, query: str = "", timeout: float = 90.0) -> Any:
         """Load the page and wait until its start-up work (the default sample) is done."""
-        self.page.goto(f"{self.base}/{query}")
-        self.page.wait_for_function("window.app !== undefined")
-        self.page.evaluate("window.app.ready")
+        self.page.goto(f"{self.base}/{query}", timeout=timeout * 1000)
+        self.wait_for("window.app !== undefined", timeout=timeout,
+                      what="the page's script to define window.app")
+        self.evaluate("window.app.ready", timeout=timeout, what="window.app.ready")
         self.idle()
         return self.page
 
     def idle(self, timeout: float = 120.0) -> None:
         """Wait until the page has no tracked work left; fail (not hang) after ``timeout``."""
-        done = self.page.evaluate(
-            "(ms) => Promise.race([window.app.idle().then(() => true),"
-            " new Promise((r) => setTimeout(() => r(false), ms))])", int(timeout * 1000))
-        if not done:
-            state = self.page.evaluate(
-                "({name: window.app.state.name, errors: window.app.state.errors,"
-                " progress: document.querySelector('#progress')?.textContent})")
-            raise AssertionError(f"the page was still busy after {timeout:g} s: {state}")
+        self.evaluate("window.app.idle()", timeout=timeout, what="window.app.idle()")
 
-    def app(self, expression: str, arg: Any = None) -> Any:
+    def evaluate(self, expression: str, arg: Any = None, *, timeout: float = 60.0,
+                 what: str = "") -> Any:
+        """``page.evaluate(expression, arg)``, its promise awaited for at most ``timeout``
+        seconds: then an AssertionError with the page's state (never a hang).
+
+        ``expression`` is an expression or a function of ``arg``; it is placed in the
+        evaluated function's text (no ``eval`` in the page, which its CSP forbids).
+        """
+        outcome = self.page.evaluate(
+            f"async ([arg, ms]) => {{ const value = ({expression});"
+            " const result = typeof value === 'function' ? value(arg) : value;"
+            " let timer; const late = new Promise((r) => {"
+            " timer = setTimeout(() => r({ late: true }), ms); });"
+            " try { return await Promise.race("
+            "[Promise.resolve(result).then((v) => ({ value: v })), late]); }"
+            " finally { clearTimeout(timer); } }", [arg, int(timeout * 1000)])
+        if outcome.get("late"):
+            raise AssertionError(f"waited {timeout:g} s for {what or expression[:200]}: "
+                                 f"{self.diagnostics()}")
+        return outcome.get("value")
+
+    def wait_for(self, expression: str, arg: Any = None, *, timeout: float = 30.0,
+                 what: str = "") -> None:
+        """Wait until ``expression`` (or the function of ``arg`` it evaluates to) is truthy,
+        polled every 50 ms in the page; fail with the page's state after ``timeout``.
+
+        Not ``page.wait_for_function``: its polls ``eval`` the expression in the page, which
+        the page's CSP (no 'unsafe-eval') refuses.
+        """
+        self.evaluate(
+            f"(arg) => new Promise((resolve, reject) => {{ const poll = () => {{ try {{"
+            f" let value = ({expression}); if (typeof value === 'function') value = value(arg);"
+            " if (value) resolve(true); else setTimeout(poll, 50); }"
+            " catch (err) { reject(err); } }; poll(); })",
+            arg, timeout=timeout, what=what or expression[:200])
+
+    def diagnostics(self) -> str:
+        """The page's state (window.app.diagnostics(): start-up, tracked work, worker calls
+        in flight, progress, errors shown), its console errors and last console lines;
+        bounded itself (5 s) in case the page does not answer."""
+        try:
+            state = self.page.wait_for_function(
+                "() => ({ url: location.href, app: !window.app ? 'window.app is not defined'"
+                " : window.app.diagnostics ? window.app.diagnostics()"
+                " : { mesh: window.app.state.name, errors: window.app.state.errors } })",
+                timeout=5000, polling=100).json_value()
+        except Exception as exc:  # a page that does not answer is a diagnosis too
+            state = f"the page did not answer ({type(exc).__name__}: {exc})"
+        return (f"page state: {state}; console errors: {self.errors}; "
+                f"last console lines: {list(self.console)}")
+
+    def app(self, expression: str, arg: Any = None, timeout: float = 120.0) -> Any:
         """Evaluate ``expression`` (a function of ``app`` and ``arg``) and await it."""
-        return self.page.evaluate(f"async ([arg]) => {{ const app = window.app; "
-                                  f"return await ({expression}); }}", [arg])
+        return self.evaluate(f"async (arg) => {{ const app = window.app; "
+                             f"return await ({expression}); }}", arg, timeout=timeout,
+                             what=expression[:200])
 
     def shown_errors(self) -> list[dict[str, Any]]:
         return self.page.evaluate("window.app.state.errors")
 
     def frame(self) -> None:
         """Wait until the page has rendered a frame after a change."""
-        self.page.evaluate(
-            "new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+        self.evaluate("new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))",
+                      timeout=30, what="two animation frames")
 
     def screenshot(self, name: str) -> bytes:
         """Save ``name``-1400x900.png and ``name``-1280x720.png; returns the large one."""
@@ -111,6 +159,23 @@ class WebPage:
         self.page.set_viewport_size(VIEWPORT)
         self.frame()
         return png
+
+
+def _on_console(wrapper: WebPage, message: Any) -> None:
+    wrapper.console.append(f"{message.type}: {message.text}")
+    if message.type == "error":
+        wrapper.errors.append(f"console.error: {message.text} "
+                              f"({message.location.get('url', '')})")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[None]:
+    """A browser test that failed (a Playwright timeout included) reports the page's state."""
+    outcome = yield
+    report = outcome.get_result()
+    web = getattr(item, "funcargs", {}).get("web")
+    if report.when == "call" and report.failed and isinstance(web, WebPage):
+        report.sections.append(("page state", web.diagnostics()))
 
 
 def _session_count(base: str) -> int | None:
@@ -127,8 +192,7 @@ def web(browser: Any, web_server: str) -> Iterator[WebPage]:
     page = context.new_page()
     page.set_default_timeout(30_000)
     wrapper = WebPage(page, web_server)
-    page.on("console", lambda m: m.type == "error" and wrapper.errors.append(
-        f"console.error: {m.text} ({m.location.get('url', '')})"))
+    page.on("console", lambda m: _on_console(wrapper, m))
     page.on("pageerror", lambda e: wrapper.errors.append(f"page error: {e}"))
     try:
         yield wrapper

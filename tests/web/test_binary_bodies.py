@@ -200,7 +200,7 @@ def test_rebuild_check_is_binary_its_job_json_and_the_glb_download_binary(web, t
     page.fill("#angle-scale", "0.9")
     page.click("#bend-forms")
     # A job with refinement: on a loaded machine it can take longer than the default 30 s.
-    page.wait_for_function("window.app.state.source === 'reconstruction'", timeout=180_000)
+    web.wait_for("window.app.state.source === 'reconstruction'", timeout=180)
     web.idle()
 
     (check_request,) = _only(sent, "POST", "/v1/integrability")
@@ -255,7 +255,7 @@ def test_forms_file_with_a_bad_row_goes_as_json(web, tmp_path):
     bad.write_text(json.dumps({"faces": [[0, 1, 2], [0, 2]], "edges": [[0, 1], [0, 2], [1, 2]],
                                "lengths": [1, 1, 1], "angles": [0, 0, 0]}))
     page.set_input_files("#forms-file", str(bad))
-    page.wait_for_function("window.app.state.errors.length >= 1")
+    web.wait_for("window.app.state.errors.length >= 1")
     web.idle()
     (check_request,) = _only(sent, "POST", "/v1/integrability")
     assert check_request.content_type == "application/json"

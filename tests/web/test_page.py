@@ -64,7 +64,7 @@ def test_upload_mesh_and_defect_map(web):
     page = web.open()
     assert web.app("app.state.name") == "face.off"  # the default sample
     page.set_input_files("#mesh-file", str(REPO_DATA / "decimated-knight.off"))
-    page.wait_for_function("window.app.state.name === 'decimated-knight.off'")
+    web.wait_for("window.app.state.name === 'decimated-knight.off'")
     web.idle()
     assert web.app("app.state.colorMode") == "plain"  # exact forms: nothing to colour
     assert page.locator("#integrability-summary").inner_text().startswith("Forms are exact")
@@ -264,7 +264,7 @@ def test_flatten_with_progress_and_download_glb(web, tmp_path):
             document.getElementById('progress-label').textContent))
           .observe(document.getElementById('progress-label'), {childList: true}); }""")
     page.click("#flatten")
-    page.wait_for_function("window.app.state.flat !== null")
+    web.wait_for("window.app.state.flat !== null")
     web.idle()
     labels = page.evaluate("window.__progress")
     assert any(label.startswith("Flatten:") and "%" in label for label in labels), labels
@@ -328,7 +328,7 @@ def test_reconstruct_from_forms_file(web, tmp_path):
     path.write_text(json.dumps(forms))
     page = web.open()
     page.set_input_files("#forms-file", str(path))
-    page.wait_for_function("window.app.state.source === 'reconstruction'")
+    web.wait_for("window.app.state.source === 'reconstruction'")
     web.idle()
     assert web.app("app.state.name") == "torus-bent-forms.json (reconstructed)"
     np.testing.assert_allclose(_vertices(web), np.asarray(want["vertices"]), atol=1e-6)
@@ -364,11 +364,11 @@ def test_api_errors_are_shown(web, tmp_path):
     # A closed mesh cannot be flattened: the button is off, and the service's answer to the
     # request anyway (programmatic) is shown.
     page.select_option("#sample-select", "decimated-knight.off")
-    page.wait_for_function("window.app.state.name === 'decimated-knight.off'")
+    web.wait_for("window.app.state.name === 'decimated-knight.off'")
     web.idle()
     assert page.locator("#flatten").is_disabled()
     web.app("app.flatten()")
-    page.wait_for_function("window.app.state.errors.length >= 2")
+    web.wait_for("window.app.state.errors.length >= 2")
     web.idle()
     text = page.locator(".toast").first.inner_text()
     assert "422 Unsupported topology" in text and "no boundary" in text, text
@@ -377,16 +377,16 @@ def test_api_errors_are_shown(web, tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     page.set_input_files("#forms-file", str(bad))
-    page.wait_for_function("window.app.state.errors.length >= 3")
+    web.wait_for("window.app.state.errors.length >= 3")
     assert "Invalid JSON" in page.locator(".toast").first.inner_text()
     bad.write_text(json.dumps({"faces": [[0, 1, 2]]}))
     page.set_input_files("#forms-file", str(bad))
-    page.wait_for_function("window.app.state.errors.length >= 4")
+    web.wait_for("window.app.state.errors.length >= 4")
     assert "missing edges, lengths, angles" in page.locator(".toast").first.inner_text()
     bad.write_text(json.dumps({"faces": [[0, 1, 2]], "edges": [[0, 1], [0, 2], [2, 1]],
                                "lengths": [1, 1, 1], "angles": [0, 0, 0]}))
     page.set_input_files("#forms-file", str(bad))
-    page.wait_for_function("window.app.state.errors.length >= 5")
+    web.wait_for("window.app.state.errors.length >= 5")
     web.idle()
     text = page.locator(".toast").first.inner_text()
     assert "422" in text and "edges[2]" in text, text

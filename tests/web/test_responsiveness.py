@@ -88,8 +88,8 @@ def test_large_mesh_load_main_thread(web):
         page.evaluate("window.__longTasks = []")
         started = page.evaluate("performance.now()")
         page.set_input_files("#mesh-file", str(path))
-        page.wait_for_function("window.app.state.name === 'armadillo.obj'"
-                               " && window.app.state.vertices.length > 100000", timeout=120_000)
+        web.wait_for("window.app.state.name === 'armadillo.obj'"
+                     " && window.app.state.vertices.length > 100000", timeout=120)
         shown = page.evaluate("performance.now()") - started
         web.idle()
         reported = page.evaluate("performance.now()") - started
@@ -101,7 +101,7 @@ def test_large_mesh_load_main_thread(web):
             "long_tasks_ms": tasks, "longest_ms": max(tasks, default=0)}
         page.click("#tab-mesh")
         page.select_option("#sample-select", "face.off")
-        page.wait_for_function("window.app.state.name === 'face.off'")
+        web.wait_for("window.app.state.name === 'face.off'")
         web.idle()
     _record("armadillo_load", measured)
     web.app("(app.view.paused = false, 0)")
@@ -114,7 +114,7 @@ def test_drag_client_cost_20k_faces(web):
     path = _shared("rocker-arm.obj")
     page = web.open()
     page.set_input_files("#mesh-file", str(path))
-    page.wait_for_function("window.app.state.name === 'rocker-arm.obj'", timeout=120_000)
+    web.wait_for("window.app.state.name === 'rocker-arm.obj'", timeout=120)
     web.idle()
     web.app("app.makeHandle(app.visibleVertices().slice(0, 30))")
     web.app("app.makeHandle(app.visibleVertices().slice(-30))")

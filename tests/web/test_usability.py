@@ -14,40 +14,31 @@ import re
 import httpx
 import numpy as np
 import pytest
-from web_helpers import ARTIFACTS, SMALL_VIEWPORT, VIEWPORT, assert_not_blank
+from web_helpers import ARTIFACTS, SMALL_VIEWPORT, VIEWPORT, assert_not_blank, worker_wrapper
 
 REPO_DATA = ARTIFACTS.parents[1] / "data"
 
 # Delays the page's requests to URLs containing a pattern, from the page and from its worker
 # (a slow server, as the browser sees it; the page's code is untouched): the worker is started
-# through a wrapper module that patches its fetch() first. window.__setSlow(pattern, ms).
-SLOW_FETCH = """
-(() => {
-  const slowFetch = `
-    const slow = { pattern: null, ms: 0 };
-    new BroadcastChannel("slow").onmessage = (e) => Object.assign(slow, e.data);
-    const realFetch = self.fetch.bind(self);
-    self.fetch = async (input, init) => {
-      // (a worker started from a blob: URL resolves "/v1/..." against the page's origin)
-      if (typeof input === "string" && input.startsWith("/")) input = self.origin + input;
-      const url = typeof input === "string" ? input : input.url;
-      if (slow.pattern && url.includes(slow.pattern)) {
-        await new Promise((r) => setTimeout(r, slow.ms));
-      }
-      return realFetch(input, init);
-    };`;
-  eval(slowFetch.replaceAll("self.", "window."));
+# through a wrapper module that patches its fetch() (web_helpers.worker_wrapper, the page's
+# worker module statically imported: no message can arrive before it listens).
+# window.__setSlow(pattern, ms).
+SLOW_PATCH = """
+  const slow = { pattern: null, ms: 0 };
+  new BroadcastChannel("slow").onmessage = (e) => Object.assign(slow, e.data);
+  const fastFetch = self.fetch.bind(self);
+  self.fetch = async (input, init) => {
+    const url = typeof input === "string" ? input : input.url;
+    if (slow.pattern && url.includes(slow.pattern)) {
+      await new Promise((r) => setTimeout(r, slow.ms));
+    }
+    return fastFetch(input, init);
+  };"""
+SLOW_FETCH = worker_wrapper(SLOW_PATCH) + "(() => {" + SLOW_PATCH.replace("self.", "window.") + """
   const channel = new BroadcastChannel("slow");
   window.__setSlow = (pattern, ms) => {
     channel.postMessage({ pattern, ms });
     return new Promise((r) => setTimeout(r, 50));  // delivered to the worker too
-  };
-  const RealWorker = window.Worker;
-  window.Worker = function (url, options) {
-    const absolute = new URL(url, location.href).href;
-    const source = `${slowFetch}\nawait import(${JSON.stringify(absolute)});`;
-    const blob = new Blob([source], { type: "text/javascript" });
-    return new RealWorker(URL.createObjectURL(blob), { ...options, type: "module" });
   };
 })();
 """
@@ -104,7 +95,7 @@ def test_up_axis_guessed_for_z_up_files_and_chosen_by_the_user(web, tmp_path):
     path = tmp_path / "knight-z-up.off"
     path.write_bytes(_rotated_off(REPO_DATA / "decimated-knight.off", turn))
     page.set_input_files("#mesh-file", str(path))
-    page.wait_for_function("window.app.state.name === 'knight-z-up.off'")
+    web.wait_for("window.app.state.name === 'knight-z-up.off'")
     web.idle()
     assert web.app("app.state.up") == "+z"
     up = web.app("app.screenUp()")
@@ -287,9 +278,9 @@ def test_no_stale_report_during_a_slow_load(web):
     page = web.open()
     page.click("#integrability-details summary")
     face_stats = page.locator("#integrability-stats").inner_text()
-    page.evaluate("window.__setSlow('/v1/integrability', 2500)")
+    web.evaluate("window.__setSlow('/v1/integrability', 2500)")
     page.select_option("#sample-select", "decimated-knight.off")
-    page.wait_for_function("window.app.state.name === 'decimated-knight.off'")
+    web.wait_for("window.app.state.name === 'decimated-knight.off'")
     assert web.app("app.state.integrability") is None  # still on its way
     assert page.locator("#integrability-summary").inner_text().startswith("Computing")
     assert page.locator("#integrability-stats").inner_text() != face_stats
@@ -310,7 +301,7 @@ def test_progress_bar_does_not_move_the_layout(web):
         return [page.locator(s).bounding_box() for s in selectors]
 
     before = boxes()
-    page.evaluate("window.__setSlow('/v1/forms', 2000)")
+    web.evaluate("window.__setSlow('/v1/forms', 2000)")
     page.select_option("#sample-select", "torus.off")
     page.locator("#progress").wait_for(state="visible")
     during = boxes()
@@ -358,7 +349,7 @@ def test_toasts_close_and_do_not_repeat(web):
     text = toasts.first.inner_text()
     assert "\u00d72" in text and text.count("empty") == 1, text  # "the file is empty", once
     assert len(web.shown_errors()) == 2
-    page.wait_for_function("document.querySelectorAll('.toast').length === 0", timeout=5000)
+    web.wait_for("document.querySelectorAll('.toast').length === 0", timeout=5)
 
 
 def test_numbers_never_break_across_lines(web):
@@ -395,7 +386,7 @@ def test_flatten_disabled_on_closed_meshes(web):
     assert page.locator("#flatten").is_enabled()  # the face is a disk
     page.click("#tab-mesh")
     page.select_option("#sample-select", "decimated-knight.off")
-    page.wait_for_function("window.app.state.name === 'decimated-knight.off'")
+    web.wait_for("window.app.state.name === 'decimated-knight.off'")
     web.idle()
     page.click("#tab-flatten")
     assert page.locator("#flatten").is_disabled()
@@ -420,7 +411,7 @@ def test_no_jargon_shown(web):
     assert "Live:" in page.locator("#transport").inner_text()
     page.click("#tab-forms")
     page.click("#bend-forms")
-    page.wait_for_function("window.app.state.source === 'reconstruction'")
+    web.wait_for("window.app.state.source === 'reconstruction'")
     web.idle()
     shown = page.evaluate("document.body.innerText")
     assert not JARGON.search(shown), JARGON.search(shown)
@@ -441,7 +432,7 @@ def test_rebuild_shows_refined_answer_and_compares_linear(web):
     page.click("#tab-forms")
     page.fill("#angle-scale", "0.8")
     page.click("#bend-forms")
-    page.wait_for_function("window.app.state.source === 'reconstruction'")
+    web.wait_for("window.app.state.source === 'reconstruction'")
     web.idle()
     forms = web.app("app.state.reconstruction.input")
     with httpx.Client(base_url=web.base, timeout=120) as http:

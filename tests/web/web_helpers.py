@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import os
 import shutil
 from pathlib import Path
@@ -45,3 +46,44 @@ def assert_not_blank(png: bytes, *, min_colors: int = 64, min_colored: float = 0
     assert distinct >= min_colors, f"only {distinct} colours: the image looks blank"
     saturated = float(((pixels.max(axis=1) - pixels.min(axis=1)) > 40).mean())
     assert saturated >= min_colored, f"only {saturated:.1%} coloured pixels"
+
+
+def worker_wrapper(prelude: str, *, page_setup: str = "", late: bool = False,
+                   url_suffix: str = "''") -> str:
+    """An init script that starts the page's workers through a wrapper module that runs
+    ``prelude`` (module code) beside the page's own worker module.
+
+    The wrapper resolves the worker's root-relative fetches against the page's origin (a
+    worker started from a ``blob:`` URL has no base for "/v1/..."). By default the page's
+    module is a static import of the wrapper: it is evaluated (its message handler
+    installed) and ``prelude`` runs before the first message is delivered, as with the real
+    worker (the page's module only looks ``fetch`` up when it handles a call, so it sees the
+    patched one). ``late=True`` runs ``prelude`` first (it may ``await``) and imports the
+    page's module afterwards: messages that arrive meanwhile find no handler, which is the
+    window a late-starting worker opens. ``page_setup`` runs in the page with ``worker`` (the
+    new Worker) in scope; ``url_suffix`` is a JavaScript expression appended to the wrapper's
+    URL when a worker starts (a ``#fragment`` that ``prelude`` can read from
+    ``import.meta.url``).
+    """
+    origin_fix = """
+      const realFetch = self.fetch.bind(self);
+      self.fetch = (input, init) => realFetch(
+        typeof input === "string" && input.startsWith("/") ? self.origin + input : input, init);
+    """
+    return f"""
+(() => {{
+  const prelude = {json.dumps(origin_fix + prelude)};
+  const late = {json.dumps(late)};
+  const RealWorker = window.Worker;
+  window.Worker = function (url, options) {{
+    const target = JSON.stringify(new URL(url, location.href).href);
+    const source = late ? `${{prelude}}\nawait import(${{target}});`
+      : `import ${{target}};\n${{prelude}}`;
+    const blob = new Blob([source], {{ type: "text/javascript" }});
+    const worker = new RealWorker(URL.createObjectURL(blob) + ({url_suffix}),
+      {{ ...options, type: "module" }});
+    {page_setup}
+    return worker;
+  }};
+}})();
+"""

@@ -30,10 +30,14 @@ async function problemFrom(response, context) {
   return new ApiError(problem, context);
 }
 
+/** Milliseconds a request may take, answer included, before the page gives up on it (the
+ * service's own bounds are shorter: FFS_REQUEST_TIMEOUT, FFS_BODY_TIMEOUT). */
+export const REQUEST_TIMEOUT_MS = 300_000;
+
 /** fetch() with problem-document errors. `json` or `form` is the body, or `body` with its
  * `contentType` (e.g. from arraysBody). */
 export async function request(path, { method = "POST", json, form, body, contentType,
-  accept = "application/json", signal, keepalive = false } = {}) {
+  accept = "application/json", signal, keepalive = false, timeoutMs = REQUEST_TIMEOUT_MS } = {}) {
   const headers = { Accept: accept };
   if (json !== undefined) {
     headers["Content-Type"] = "application/json";
@@ -44,10 +48,16 @@ export async function request(path, { method = "POST", json, form, body, content
     headers["Content-Type"] = contentType;
   }
   const context = `${method} ${path}`;
+  const bound = AbortSignal.timeout(timeoutMs);
   let response;
   try {
-    response = await fetch(path, { method, headers, body, signal, keepalive });
+    response = await fetch(path, { method, headers, body, keepalive,
+      signal: signal ? AbortSignal.any([signal, bound]) : bound });
   } catch (err) {
+    if (err.name === "TimeoutError") {
+      throw new ApiError({ title: "No answer", status: 0,
+        detail: `${context}: the service did not answer within ${timeoutMs / 1000} s.` }, context);
+    }
     if (err.name === "AbortError") throw err;
     throw new ApiError({ title: "Network error", status: 0,
       detail: `${context} failed: ${err.message}. Is the service running?` }, context);

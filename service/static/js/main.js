@@ -11,6 +11,7 @@ import {
   bounds, distortion, facesAround, flatten3, forms as meshForms, histogram, prepareMesh, rows3,
 } from "./mesh.js";
 import { FlatView, MeshView, axisVector } from "./viewer.js";
+import { WorkerClient } from "./worker-client.js";
 
 const $ = (id) => document.getElementById(id);
 const HANDLE_COLORS = [0xe4572e, 0x2e86ab, 0x9c27b0, 0xff9f1c, 0x43aa8b, 0xd81159];
@@ -65,31 +66,11 @@ let view, flatView, caps = { sessions: false, refine: false };
 let samples = [];
 
 // ------------------------------------------------------------------------------ worker
-// Reading meshes and the big JSON of forms and reports happen in js/worker.js.
+// Reading meshes and the big JSON of forms and reports happen in js/worker.js; every call
+// settles (js/worker-client.js bounds the waits and says in words what did not answer).
 
-const worker = new Worker("/static/js/worker.js", { type: "module" });
-const workerCalls = new Map();
-let workerCallId = 0;
-worker.onmessage = ({ data: { id, result, error } }) => {
-  const call = workerCalls.get(id);
-  workerCalls.delete(id);
-  if (!error) call.resolve(result);
-  else if (error.problem) call.reject(new api.ApiError(error.problem, error.context));
-  else call.reject(Object.assign(new Error(error.message), { name: error.name }));
-};
-worker.onerror = (event) => {
-  const err = new Error(`the page's worker failed: ${event.message || "could not start"}`);
-  for (const call of workerCalls.values()) call.reject(err);
-  workerCalls.clear();
-};
-
-function inWorker(kind, args) {
-  return new Promise((resolve, reject) => {
-    const id = ++workerCallId;
-    workerCalls.set(id, { resolve, reject });
-    worker.postMessage({ id, kind, args });
-  });
-}
+const worker = new WorkerClient("/static/js/worker.js");
+const inWorker = (kind, args, label) => worker.call(kind, args, label);
 const TRANSPORT = new URLSearchParams(location.search).get("transport");
 let handleCounter = 0;
 
@@ -443,7 +424,8 @@ async function analyze({ forms, integrability } = {}) {
   const faces = state.faces;
   try {
     const result = await withProgress("Integrability report…", async () => (forms && integrability
-      ? { forms, integrability } : inWorker("analyze", { vertices: state.vertices, faces })));
+      ? { forms, integrability } : inWorker("analyze", { vertices: state.vertices, faces },
+        "computing the integrability report")));
     if (state.faces !== faces) return;  // another mesh was opened meanwhile
     state.forms = result.forms;
     state.integrability = result.integrability;
@@ -535,7 +517,7 @@ async function fetchBlob(path) {
 async function loadSample(file) {
   const mesh = await withProgress(`Loading ${file}…`, async () => {
     const blob = await fetchBlob(`/static/samples/${encodeURIComponent(file)}`);
-    return inWorker("readMesh", { file: blob, name: file });
+    return inWorker("readMesh", { file: blob, name: file }, `reading ${file}`);
   });
   $("sample-select").value = file;
   await openMesh(mesh, file, "sample", { sampleUp: samples.find((s) => s.file === file)?.up });
@@ -543,7 +525,7 @@ async function loadSample(file) {
 
 async function openUpload(file) {
   const mesh = await withProgress(`Reading ${file.name}…`, () => inWorker("readMesh", { file,
-    name: file.name }));
+    name: file.name }, `reading ${file.name}`));
   $("sample-select").value = "";
   await openMesh(mesh, file.name, "upload");
 }
@@ -1388,12 +1370,19 @@ async function start() {
   else status("Ready: pick a sample or upload a mesh.");
 }
 
-const ready = track(start()).catch(showError);
+let startup = "starting";
+const ready = track(start()).then(() => { startup = "ready"; },
+  (err) => { startup = "failed"; showError(err); });
 window.addEventListener("pagehide", () => closeTransport({ unloading: true }));
 
 window.app = {
   state, ready, idle,
   toastMs: 8000,
+  workerLimits: worker.limits,
+  /** What the page is doing, for a test that waited too long. */
+  diagnostics: () => ({ startup, busy, mesh: state.name, workerCalls: worker.pending(),
+    progress: $("progress").hidden ? null : $("progress-label").textContent,
+    errors: state.errors.map((e) => `${e.title}: ${e.detail}`) }),
   get view() { return view; },
   get capabilities() { return caps; },
   loadSample: (file) => action(loadSample)(file),

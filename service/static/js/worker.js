@@ -4,7 +4,10 @@
 // application/vnd.ffs.arrays). Typed arrays go back to the page transferred, not copied, so
 // opening a 100K-face mesh never blocks the page for long.
 //
-// Messages: {id, kind, args} -> {id, result} or {id, error: {problem, context} | {name, message}}.
+// Messages: {id, kind, args} -> {id, accepted: true} at once, then {id, result} or
+// {id, error: {problem, context} | {name, message}}; {ready: true} once this module listens,
+// {alive: true} every PULSE_MS while a call is in progress (js/worker-client.js waits for the
+// first and bounds the silences).
 
 import { ApiError, arraysBody, readMeshFile, request } from "./api.js";
 import { prepareMesh, preparedBuffers } from "./mesh.js";
@@ -48,7 +51,12 @@ const handlers = {
   },
 };
 
+const PULSE_MS = 5000;
+let working = 0, pulse = null;
+
 self.onmessage = async ({ data: { id, kind, args } }) => {
+  self.postMessage({ id, accepted: true });
+  if (!working++) pulse = setInterval(() => self.postMessage({ alive: true }), PULSE_MS);
   try {
     const [result, transfer] = await handlers[kind](args);
     self.postMessage({ id, result }, transfer);
@@ -56,5 +64,8 @@ self.onmessage = async ({ data: { id, kind, args } }) => {
     const error = err instanceof ApiError ? { problem: err.problem, context: err.context }
       : { name: err?.name ?? "Error", message: err?.message ?? String(err) };
     self.postMessage({ id, error });
+  } finally {
+    if (!--working) clearInterval(pulse);
   }
 };
+self.postMessage({ ready: true });

@@ -87,7 +87,13 @@ class Settings(BaseSettings):
                     "of cores: a drag is latency-bound, and sessions rarely drag at once).")
     session_solve_timeout: float = Field(
         30.0, gt=0, description="Seconds one session solve may take; then 504 and the "
-                                "session is closed (410 afterwards).")
+                                "session is closed (410 afterwards). Also the most a "
+                                "progressive session refines one drag (`options.max_seconds` "
+                                "overrides it).")
+    session_refine_slice: float = Field(
+        0.05, gt=0, le=60, description="Seconds of one slice of a progressive session's "
+                                       "refinement (at least one iteration); a new drag waits "
+                                       "at most one slice.")
 
     max_body_bytes: int = Field(
         64 * 1024 * 1024, ge=1024, description="Largest request body (413 beyond).")

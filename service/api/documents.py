@@ -27,7 +27,7 @@ class SessionInfo(BaseModel):
         {"id": "9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d", "n_vertices": 5, "n_faces": 4,
          "handles": [0, 1, 2, 3, 4], "n_rotation_groups": 0, "expires_in": 600.0,
          "setup_seconds": 0.004, "backend": "pardiso", "executor": "local",
-         "memory_bytes": 92274688, "solves": 0,
+         "memory_bytes": 92274688, "solves": 0, "refine": False,
          "links": {"self": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d",
                    "solve": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d/solve",
                    "ws": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d/ws"}}]})
@@ -46,6 +46,9 @@ class SessionInfo(BaseModel):
     memory_bytes: int = Field(description="Memory the session holds (counts towards "
                                           "FFS_MAX_SESSION_MEMORY).")
     solves: int
+    refine: bool = Field(False, description="Progressive drags (`options.refine: true`): "
+                                            "each answers its linear shape at once and its "
+                                            "refined shape when ready.")
     links: dict[str, str]
 
 
@@ -56,6 +59,45 @@ class SessionVertices(BaseModel):
         {"vertices": EXAMPLE_MESH["vertices"]}]})
 
     vertices: list[Vec3]
+    shape: Literal["linear", "refined"] | None = Field(
+        None, description="A progressive session's answers only: which shape this is.")
+    drag: int | None = Field(None, description="A progressive session's answers only: the "
+                                               "drag's number in the session (1, 2, ...).")
+    refinement: SessionRefinement | None = Field(
+        None, description="The refined shape only: how it refined.")
+
+
+class SessionRefinement(BaseModel):
+    """How a progressive session refined a drag (summed over its slices)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"converged": True, "stop_reason": "converged", "iterations": 4, "factorizations": 2,
+         "slices": 3, "seconds": 0.21, "elapsed": 0.23, "energy": 1.2e-5,
+         "start": "previous drag"}]})
+
+    converged: bool
+    stop_reason: str = Field(description="converged, exact, stationary, time_limit (the "
+                                         "drag's budget: options.max_seconds or "
+                                         "FFS_SESSION_SOLVE_TIMEOUT), max_iterations, ...")
+    iterations: int
+    factorizations: int
+    slices: int = Field(description="Slices it ran in (FFS_SESSION_REFINE_SLICE each).")
+    seconds: float = Field(description="Seconds spent refining.")
+    elapsed: float = Field(description="Seconds from the linear answer to the refined one.")
+    energy: float | None = Field(None, description="Energy of the refined shape.")
+    start: str | None = Field(None, description="What the refinement started from.")
+
+
+class RefiningStatus(BaseModel):
+    """A drag whose refined shape is not ready yet (202)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"drag": 3, "status": "refining",
+         "links": {"self": "/v1/sessions/9b2f4c1d8e7a4f6b8c0d1e2f3a4b5c6d/drags/3/refined"}}]})
+
+    drag: int
+    status: Literal["refining"]
+    links: dict[str, str]
 
 
 # --------------------------------------------------------------------------- responses

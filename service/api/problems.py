@@ -88,6 +88,9 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
                           "after Retry-After seconds."),
     "session-memory": (503, "Session memory exhausted",
                        "The open sessions and this one would exceed FFS_MAX_SESSION_MEMORY."),
+    "drag-superseded": (409, "Drag superseded",
+                        "A newer drag of the session replaced this one: only the newest "
+                        "drag is refined. `latest` is its number; fetch its refined shape."),
     "session-gone": (410, "Session gone",
                      "The session expired (FFS_SESSION_TTL) or the worker holding it died; "
                      "`reason` says which. Create a new session."),

@@ -239,8 +239,9 @@ class DeformOptions(ApiModel):
     weighting: Weighting = "uniform"
     solver: SolverName | None = None
     refine: bool | None = Field(
-        None, description=REFINE_DESCRIPTION + " In a session (`POST /v1/sessions`) `null` "
-        "means off: each refined drag costs several factorizations.")
+        None, description=REFINE_DESCRIPTION + " In a session (`POST /v1/sessions`) `true` "
+        "makes drags progressive (the linear shape at once, the refined one when ready: "
+        "docs/service.md); `null` and `false` answer linear shapes only.")
     max_seconds: float | None = Field(None, gt=0, le=1e9, description=MAX_SECONDS_DESCRIPTION)
 
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from service.api.task import SessionSpec, TaskRequest, TaskResult
 from service.backends.jobs import Job
+from service.worker.session import Refined
 
 ProgressCallback = Callable[..., None]
 """``progress(stage, fraction, detail=None)``: ``detail`` is the refinement's last iteration
@@ -127,8 +128,9 @@ class JobPolicy:
 class SessionPolicy:
     """The session settings: idle ``ttl`` (``FFS_SESSION_TTL``), admission
     (``FFS_MAX_SESSIONS``, ``FFS_MAX_SESSION_MEMORY`` bytes), ``threads`` per session, the
-    deadlines of one solve (``FFS_SESSION_SOLVE_TIMEOUT``) and of the set-up
-    (``FFS_REQUEST_TIMEOUT``)."""
+    deadlines of one solve (``FFS_SESSION_SOLVE_TIMEOUT``, also a progressive drag's
+    refinement budget) and of the set-up (``FFS_REQUEST_TIMEOUT``), the refinement's slice
+    (``FFS_SESSION_REFINE_SLICE``)."""
 
     ttl: float
     max_sessions: int
@@ -136,6 +138,7 @@ class SessionPolicy:
     threads: int
     solve_timeout: float
     setup_timeout: float
+    refine_slice: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -151,6 +154,18 @@ class SessionRecord:
     memory: int
     solves: int
     executor: str
+
+
+@dataclass(frozen=True)
+class DragAnswer:
+    """A drag's immediate answer: the linear shape (``body``, encoded), stage ``timings``,
+    the drag's number in its session (1, 2, ...), and whether its refined shape follows
+    (``refining``: a progressive session, see :meth:`SessionBackend.refined`)."""
+
+    body: bytes
+    timings: dict[str, float]
+    drag: int
+    refining: bool
 
 
 class SessionBackend(Protocol):
@@ -174,8 +189,17 @@ class SessionBackend(Protocol):
         """(handles, rotation groups) of a session."""
 
     async def solve(self, session_id: str, positions: np.ndarray,
-                    rotations: np.ndarray | None, fmt: str) -> tuple[bytes, dict[str, float]]:
-        """One drag: (encoded vertices, timings); ``DeadlineError`` closes the session."""
+                    rotations: np.ndarray | None, fmt: str) -> DragAnswer:
+        """One drag: its linear shape at once (:class:`DragAnswer`); ``DeadlineError``
+        closes the session. In a progressive session the drag's refinement starts, and
+        supersedes the previous drag's."""
+
+    async def refined(self, session_id: str, drag: int, wait: float) -> Refined | None:
+        """The refined shape of drag ``drag`` once ready (encoded like its linear answer),
+        waiting up to ``wait`` seconds; None while it still refines. Only the newest drag's
+        is kept: ``DragSupersededError`` for an older one (a newer drag stopped its
+        refinement), ``DragNotFoundError`` for a drag that never was or is not refined
+        (the session is not progressive), ``TaskFailedError`` when its refinement failed."""
 
     async def delete(self, session_id: str) -> None:
         """Close a session (a gone one is forgotten)."""

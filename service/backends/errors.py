@@ -98,6 +98,24 @@ class SessionGoneError(BackendError):
         self.session_id, self.reason = session_id, reason
 
 
+class DragNotFoundError(BackendError):
+    """A session has no refined shape for that drag (no such drag, or it does not refine)."""
+
+    def __init__(self, session_id: str, drag: int, reason: str) -> None:
+        super().__init__(f"session {session_id} has no refined shape of drag {drag}: {reason}")
+        self.session_id, self.drag = session_id, drag
+
+
+class DragSupersededError(BackendError):
+    """A newer drag replaced this one before (or after) its refinement finished: only the
+    newest drag's refined shape is computed and kept."""
+
+    def __init__(self, session_id: str, drag: int, latest: int) -> None:
+        super().__init__(f"drag {drag} of session {session_id} was superseded by drag "
+                         f"{latest}: only the newest drag is refined")
+        self.session_id, self.drag, self.latest = session_id, drag, latest
+
+
 class TooManySessionsError(BackendError):
     """``FFS_MAX_SESSIONS`` sessions are open."""
 

@@ -6,7 +6,9 @@
   followed by ``9 g`` values (g row-major rotations, re-orthonormalized on arrival);
 * the vertices in binary (``application/octet-stream``): little-endian float32, ``3 n``
   values; WebSocket replies put an 8-byte header in front: uint32 ``seq``, uint32 ``n``
-  (both little-endian).
+  (both little-endian); a progressive session's replies end with a UTF-8 JSON trailer
+  after the ``12 n`` bytes of vertices: ``{"shape": "linear", "drag"}`` at once, then
+  ``{"shape": "refined", "drag", "converged", "stop_reason", "iterations", ...}``.
 
 docs/service.md describes them for clients.
 """
@@ -17,6 +19,7 @@ import struct
 from typing import Any
 
 import numpy as np
+import orjson
 
 from service.api.problems import ProblemError
 from service.api.schemas import MAX_MAGNITUDE, SessionDrag
@@ -87,6 +90,10 @@ def parse_drag_json(doc: Any, n_handles: int,
     return positions, rotations, model.seq
 
 
-def ws_reply(seq: int, body: bytes) -> bytes:
-    """A WebSocket reply: header (uint32 seq, uint32 n) + float32 vertices."""
-    return WS_HEADER.pack(seq & 0xFFFFFFFF, len(body) // 12) + body
+def ws_reply(seq: int, body: bytes, trailer: dict[str, Any] | None = None) -> bytes:
+    """A WebSocket reply: header (uint32 seq, uint32 n) + float32 vertices (+ the JSON
+    ``trailer`` of a progressive session's reply)."""
+    reply = WS_HEADER.pack(seq & 0xFFFFFFFF, len(body) // 12) + body
+    if trailer is None:
+        return reply
+    return reply + orjson.dumps(trailer, option=orjson.OPT_SERIALIZE_NUMPY)

@@ -57,8 +57,10 @@ def problem_for(exc: backend.BackendError) -> ProblemError:
                             memory_limit=exc.limit)
     if isinstance(exc, backend.SessionGoneError):
         return ProblemError("session-gone", str(exc), reason=exc.reason)
-    if isinstance(exc, backend.SessionNotFoundError):
+    if isinstance(exc, backend.SessionNotFoundError | backend.DragNotFoundError):
         return ProblemError("not-found", str(exc))
+    if isinstance(exc, backend.DragSupersededError):
+        return ProblemError("drag-superseded", str(exc), drag=exc.drag, latest=exc.latest)
     if isinstance(exc, backend.ClientJobsError):
         return ProblemError("too-many-client-jobs", str(exc), headers=RETRY_SOON,
                             limit=exc.limit)

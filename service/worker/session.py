@@ -2,11 +2,18 @@
 
 A backend keeps one :class:`SessionState` alive with exactly one worker (a dedicated
 process locally, a Dask actor on a cluster); every drag only back-substitutes and encodes.
+
+A session opened with ``options.refine: true`` is *progressive*: :meth:`SessionState.solve`
+answers the linear shape at once and leaves the drag's refinement pending; the worker then
+calls :meth:`SessionState.refine_slice` while no newer drag is waiting (a new drag is never
+delayed by more than one slice), and the last slice yields the refined shape
+(:class:`Refined`). A newer drag supersedes a pending refinement.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -18,27 +25,57 @@ SESSION_FORMATS: tuple[str, ...] = ("json", "glb", "gltf", "f32")
 """Response formats of a session solve, in server preference order."""
 
 
-def encode_vertices(vertices: np.ndarray, faces: np.ndarray, fmt: str) -> bytes:
+def encode_vertices(vertices: np.ndarray, faces: np.ndarray, fmt: str,
+                    fields: dict[str, Any] | None = None) -> bytes:
     """The body of a solve in format ``fmt`` (see :data:`SESSION_FORMATS`): ``f32`` is
-    little-endian float32 (n, 3), ready for a vertex buffer."""
+    little-endian float32 (n, 3), ready for a vertex buffer; JSON also carries ``fields``
+    (a progressive session's ``shape``, ``drag``, ``refinement``)."""
     if fmt == "f32":
         return np.ascontiguousarray(vertices, dtype="<f4").tobytes()
     if fmt == "json":
-        return output.json_bytes({"vertices": vertices})
+        return output.json_bytes({"vertices": vertices, **(fields or {})})
     if fmt == "f64":  # not offered over HTTP; exact float64 for tests
         return np.ascontiguousarray(vertices, dtype="<f8").tobytes()
     return output.mesh_bytes(fmt, vertices, faces)
 
 
+@dataclass(frozen=True)
+class Refined:
+    """The refined shape of drag ``drag``, encoded like its linear answer, and how it refined
+    (:meth:`SessionState.refine_slice`)."""
+
+    drag: int
+    body: bytes
+    report: dict[str, Any]
+    fmt: str = "json"
+
+
+@dataclass
+class _Pending:
+    """A drag whose refinement is not finished: its answer format and the totals so far."""
+
+    drag: int
+    fmt: str
+    iterations: int = 0
+    factorizations: int = 0
+    slices: int = 0
+    seconds: float = 0.0
+    start: str | None = None
+    started: float = field(default_factory=time.perf_counter)
+
+
 class SessionState:
     """A :class:`solver.Deformer` factorized at init, and a first solve at rest that checks
-    the factorization (and warms the backend up)."""
+    the factorization (and warms the backend up). ``refine_seconds``: the most one drag's
+    refinement may take in all (``options.max_seconds``, else the backend's solve timeout)."""
 
-    def __init__(self, spec: SessionSpec) -> None:
+    def __init__(self, spec: SessionSpec, refine_seconds: float = 30.0) -> None:
         import solver
 
         options = spec.options
         start = time.perf_counter()
+        self.progressive = options.get("refine") is True  # null: off (linear drags only)
+        self.refine_seconds = float(options.get("max_seconds") or refine_seconds)
         self.deformer = solver.Deformer(
             spec.vertices, spec.faces, spec.handles, rotation_handles=list(spec.rotations) or None,
             roi=spec.roi, frame_weight=options.get("frame_weight", 1000.0),
@@ -46,25 +83,70 @@ class SessionState:
             orthonormal_weight=options.get("orthonormal_weight", 1000.0),
             weighting=options.get("weighting", "uniform"),
             backend=options.get("solver") or spec.backend,
-            refine=bool(options.get("refine")))  # null: off (a refined drag costs more)
-        self.deformer.solve()
+            refine=self.progressive)  # (builds the refinement's start-up fit now)
+        self.deformer.solve(refine=False)
         self.setup_seconds = time.perf_counter() - start
         self.faces = self.deformer.faces
         self.solves = 0
+        self.drags = 0
+        """Drags answered so far; drag k (1, 2, ...) is the k-th."""
+        self.pending: _Pending | None = None
 
     def info(self) -> dict[str, Any]:
-        """Sizes, handles, set-up time and linear-solver backend."""
+        """Sizes, handles, set-up time, linear-solver backend and whether drags refine."""
         d = self.deformer
         return {"n_vertices": len(d.rest), "n_faces": len(d.faces),
                 "handles": [int(h) for h in d.handles], "n_rotation_groups": d.n_groups,
-                "setup_seconds": self.setup_seconds, "backend": d.backend}
+                "setup_seconds": self.setup_seconds, "backend": d.backend,
+                "refine": self.progressive}
 
     def solve(self, positions: np.ndarray, rotations: np.ndarray | None,
-              fmt: str) -> tuple[bytes, dict[str, float]]:
-        """Deformed vertices for new handle targets, encoded; and stage timings."""
+              fmt: str) -> tuple[bytes, dict[str, float], int]:
+        """The linear shape for new handle targets, encoded; stage timings; the drag's
+        number. A progressive session's drag is left to refine (:attr:`pending`),
+        superseding the previous one's refinement."""
         t0 = time.perf_counter()
-        vertices = self.deformer.solve(positions, rotations)
+        vertices = self.deformer.solve(positions, rotations, refine=False)
         t1 = time.perf_counter()
-        body = encode_vertices(vertices, self.faces, fmt)
         self.solves += 1
-        return body, {"solve": t1 - t0, "encode": time.perf_counter() - t1}
+        self.drags += 1
+        body = encode_vertices(vertices, self.faces, fmt, {"shape": "linear", "drag": self.drags}
+                               if self.progressive else None)
+        self.pending = _Pending(self.drags, fmt) if self.progressive else None
+        return body, {"solve": t1 - t0, "encode": time.perf_counter() - t1}, self.drags
+
+    def refine_slice(self, seconds: float) -> Refined | None:
+        """Refine the pending drag for about ``seconds`` (the refinement checks its clock
+        between iterations: a slice is at least one iteration); the refined shape once it
+        converged, stopped otherwise, or spent :attr:`refine_seconds` or the refinement's
+        iteration limit in all; None while it goes on (call again)."""
+        from solver.refine import MAX_ITERATIONS
+
+        pending = self.pending
+        if pending is None:
+            return None
+        left = self.refine_seconds - pending.seconds
+        t0 = time.perf_counter()
+        vertices = self.deformer.refine_last(max(0.0, min(seconds, left)))
+        report = self.deformer.last_report
+        pending.slices += 1
+        pending.iterations += int(report.get("iterations", 0))
+        pending.factorizations += int(report.get("factorizations", 0))
+        pending.seconds += time.perf_counter() - t0
+        pending.start = pending.start or report.get("start")
+        stop = report.get("stop_reason") if report.get("refined") else "exact"
+        converged = bool(report.get("converged")) or stop == "exact"
+        if stop == "time_limit" and pending.seconds < self.refine_seconds \
+                and pending.iterations < MAX_ITERATIONS:
+            return None
+        if stop == "time_limit" and pending.iterations >= MAX_ITERATIONS:
+            stop = "max_iterations"
+        self.pending = None
+        summary = {"converged": converged, "stop_reason": stop,
+                   "iterations": pending.iterations, "factorizations": pending.factorizations,
+                   "slices": pending.slices, "seconds": pending.seconds,
+                   "elapsed": time.perf_counter() - pending.started,
+                   "energy": report.get("energy_after"), "start": pending.start}
+        body = encode_vertices(vertices, self.faces, pending.fmt, {
+            "shape": "refined", "drag": pending.drag, "refinement": summary})
+        return Refined(pending.drag, body, summary, pending.fmt)

@@ -20,7 +20,7 @@ import numpy as np
 from service.api.task import SessionSpec
 from service.backends import errors
 from service.backends.admission import estimate_memory, too_many
-from service.backends.contracts import SessionPolicy, SessionRecord
+from service.backends.contracts import DragAnswer, SessionPolicy, SessionRecord
 from service.backends.dask.connection import DaskConnection
 from service.backends.dask.registry import SESSION_PREFIX
 from service.backends.dask.worker import SessionActor
@@ -121,7 +121,9 @@ class DaskSessions:
             raise errors.SessionMemoryError(refusal["used"], estimate, self.policy.max_memory)
         future = None
         try:
-            future = client.submit(SessionActor, spec, self.policy.threads, actors=True, pure=False,
+            future = client.submit(SessionActor, spec, self.policy.threads,
+                                   spec.options.get("max_seconds") or policy.solve_timeout,
+                                   policy.refine_slice, actors=True, pure=False,
                                    key=SESSION_PREFIX + session_id)
             try:
                 with client.as_current():  # the actor proxy binds to this app's client
@@ -213,10 +215,10 @@ class DaskSessions:
         return (record or {}).get("reason") or reason
 
     async def solve(self, session_id: str, positions: np.ndarray,
-                    rotations: np.ndarray | None, fmt: str) -> tuple[bytes, dict[str, float]]:
+                    rotations: np.ndarray | None, fmt: str) -> DragAnswer:
         actor = await self._actor(session_id)
         try:
-            status, body, timings = await asyncio.wait_for(
+            status, body, timings, *drag = await asyncio.wait_for(
                 actor.solve(positions, rotations, fmt), self.policy.solve_timeout)
         except TimeoutError:
             await self._bury(session_id, f"a solve took longer than "
@@ -237,7 +239,32 @@ class DaskSessions:
         if status != "ok":
             raise errors.TaskFailedError(body)
         self._touch(session_id)
-        return body, timings
+        return DragAnswer(body, timings, drag[0], drag[1])
+
+    async def refined(self, session_id: str, drag: int, wait: float) -> Any:
+        """Polls the actor (every 10 ms) until the drag's refinement is settled or ``wait``
+        seconds passed."""
+        actor = await self._actor(session_id)
+        deadline = time.monotonic() + wait
+        while True:
+            try:
+                status, value = await asyncio.wait_for(actor.refined(drag), 10.0)
+            except TimeoutError:  # the worker's actor thread is busy: still refining
+                status, value = "refining", None
+            except Exception as exc:
+                reason = await self._bury(session_id, _actor_failure(exc))
+                raise errors.SessionGoneError(session_id, reason) from None
+            if status == "refined":
+                return value
+            if status == "failed":
+                raise errors.TaskFailedError(value)
+            if status == "superseded":
+                raise errors.DragSupersededError(session_id, drag, int(value))
+            if status == "none":
+                raise errors.DragNotFoundError(session_id, drag, str(value))
+            if time.monotonic() >= deadline:
+                return None
+            await asyncio.sleep(min(0.01, max(0.0, deadline - time.monotonic())))
 
     async def delete(self, session_id: str) -> None:
         record = await self.connection.call("session_remove", session_id)

@@ -9,7 +9,9 @@ the job's record.
 from __future__ import annotations
 
 import os
+import threading
 import time
+import weakref
 from typing import Any
 
 import numpy as np
@@ -79,10 +81,62 @@ def run_task(request: TaskRequest, job_id: str | None = None,
     return {"ok": True, "result": result}
 
 
-class SessionActor:
-    """A session on a Dask worker (an actor: its state stays on that worker)."""
+class _Refinery:
+    """A progressive session's refinement on a Dask worker: a thread refines the newest
+    drag slice by slice (:meth:`SessionState.refine_slice
+    <service.worker.session.SessionState.refine_slice>`) between the actor's calls, which
+    take :attr:`lock` (a drag waits at most one slice). The thread holds the refinery only
+    weakly: when the actor is released it ends."""
 
-    def __init__(self, spec: SessionSpec, threads: int = 1) -> None:
+    def __init__(self, state: Any, slice_seconds: float) -> None:
+        self.state = state
+        self.slice = slice_seconds
+        self.lock = threading.Lock()
+        self.work = threading.Event()
+        self.waiting = 0  # callers waiting for the lock: the thread lets them in first
+        self.refined: tuple[int, Any] | None = None  # (drag, Refined or failure dict)
+        threading.Thread(target=_refine_forever, args=(weakref.ref(self),), daemon=True,
+                         name="ffs-session-refine").start()
+
+    def step(self) -> bool:
+        """One slice of the pending drag's refinement; False when there is none."""
+        from service.worker import runtime
+
+        while self.waiting:  # a drag or a poll is waiting: let it in
+            time.sleep(0.0005)
+        with self.lock:
+            pending = self.state.pending
+            if pending is None:
+                self.work.clear()
+                return False
+            try:
+                refined = self.state.refine_slice(self.slice)
+            except Exception as exc:
+                self.state.pending = None
+                self.refined = (pending.drag, runtime.describe_error(exc))
+            else:
+                if refined is not None:
+                    self.refined = (refined.drag, refined)
+            return True
+
+
+def _refine_forever(ref: weakref.ref[_Refinery]) -> None:
+    while True:
+        refinery = ref()
+        if refinery is None:
+            return
+        work = refinery.work
+        if not refinery.step():
+            del refinery  # (only the actor keeps it alive while the thread waits)
+            work.wait(1.0)
+
+
+class SessionActor:
+    """A session on a Dask worker (an actor: its state stays on that worker). A progressive
+    session refines in a thread of its own (:class:`_Refinery`)."""
+
+    def __init__(self, spec: SessionSpec, threads: int = 1, refine_seconds: float = 30.0,
+                 refine_slice: float = 0.05) -> None:
         from distributed import get_worker
 
         from service.worker import runtime
@@ -94,10 +148,14 @@ class SessionActor:
         self.state: SessionState | None = None
         estimate = estimate_memory(len(spec.vertices), len(spec.faces))
         before = process_memory()
+        self.refinery: _Refinery | None = None
         try:
-            self.state = SessionState(spec)
+            self.state = SessionState(spec, refine_seconds)
         except Exception as exc:
             self.error = runtime.describe_error(exc)
+        else:
+            if self.state.progressive:
+                self.refinery = _Refinery(self.state, refine_slice)
         grown = process_memory() - before
         # Memory growth of the shared worker process is a rough measure (other tasks run
         # there too); it never counts for less than half the estimate.
@@ -113,8 +171,40 @@ class SessionActor:
         from service.worker import runtime
 
         assert self.state is not None
+        refinery = self.refinery
+        if refinery is None:
+            try:
+                body, timings, drag = self.state.solve(positions, rotations, fmt)
+            except Exception as exc:
+                return ("error", runtime.describe_error(exc), None)
+            return ("ok", body, timings, drag, False)
+        refinery.waiting += 1
         try:
-            body, timings = self.state.solve(positions, rotations, fmt)
-        except Exception as exc:
-            return ("error", runtime.describe_error(exc), None)
-        return ("ok", body, timings)
+            with refinery.lock:
+                refinery.waiting -= 1
+                try:
+                    body, timings, drag = self.state.solve(positions, rotations, fmt)
+                except Exception as exc:
+                    return ("error", runtime.describe_error(exc), None)
+                refinery.refined = None
+                refining = self.state.pending is not None
+        finally:
+            refinery.work.set()
+        return ("ok", body, timings, drag, refining)
+
+    def refined(self, drag: int) -> tuple[str, Any]:
+        """The state of drag ``drag``'s refinement: ``("refined", Refined)``,
+        ``("failed", failure)``, ``("refining", None)``, ``("superseded", newest drag)`` or
+        ``("none", reason)``."""
+        assert self.state is not None
+        latest, refinery = self.state.drags, self.refinery
+        if drag < 1 or drag > latest:
+            return ("none", f"the session has answered {latest} drags")
+        if drag < latest:
+            return ("superseded", latest)
+        if refinery is None:
+            return ("none", "the session does not refine (open it with options.refine true)")
+        refined = refinery.refined
+        if refined is not None and refined[0] == drag:
+            return ("failed" if isinstance(refined[1], dict) else "refined", refined[1])
+        return ("refining", None)

@@ -4,7 +4,10 @@
 task pool, which builds a :class:`~service.worker.session.SessionState` (the factorization)
 and then serves solves over its own pipe. A crash, an OOM kill or a solve beyond
 ``FFS_SESSION_SOLVE_TIMEOUT`` ends only that session, which then answers
-:class:`SessionGoneError`. Idle sessions close after ``FFS_SESSION_TTL`` seconds; a session
+:class:`SessionGoneError`. A progressive session's process refines its newest drag in
+slices between drags (:meth:`SessionState.refine_slice
+<service.worker.session.SessionState.refine_slice>`) and sends the refined shape unasked.
+Idle sessions close after ``FFS_SESSION_TTL`` seconds; a session
 that expired or whose process died stays "gone" for another TTL, then it is unknown.
 Admission: :mod:`service.backends.sessions`.
 """
@@ -13,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import time
 import uuid
@@ -23,7 +27,7 @@ from typing import Any
 from service.api.task import SessionSpec
 from service.backends import errors
 from service.backends.admission import estimate_memory, too_many
-from service.backends.contracts import SessionPolicy, SessionRecord
+from service.backends.contracts import DragAnswer, SessionPolicy, SessionRecord
 from service.backends.loops import new_future, settle, sweep_forever
 from service.backends.processes import Message, WorkerProcess
 from service.memory import process_memory
@@ -31,8 +35,10 @@ from service.memory import process_memory
 logger = logging.getLogger("service.sessions")
 
 
-def _session_main(conn: Connection, threads: int) -> None:
-    """Entry point of a local session process: build the session, then serve solves."""
+def _session_main(conn: Connection, threads: int, refine_seconds: float = 30.0,
+                  refine_slice: float = 0.05) -> None:
+    """Entry point of a local session process: build the session, then serve solves;
+    between them (no drag waiting on the pipe) refine the newest drag slice by slice."""
     from service.worker import runtime
 
     runtime.start_worker_process(threads)
@@ -41,23 +47,34 @@ def _session_main(conn: Connection, threads: int) -> None:
     try:
         spec = conn.recv()
         try:
-            state = SessionState(spec)
+            state = SessionState(spec, refine_seconds)
         except Exception as exc:
             conn.send(("error", runtime.describe_error(exc)))
             return
         del spec
         conn.send(("ready", state.info(), process_memory()))
         while True:
+            if state.pending is not None and not conn.poll(0):
+                drag = state.pending.drag
+                try:
+                    refined = state.refine_slice(refine_slice)
+                except Exception as exc:
+                    state.pending = None
+                    conn.send(("refine-error", drag, runtime.describe_error(exc)))
+                else:
+                    if refined is not None:
+                        conn.send(("refined", refined))
+                continue
             message = conn.recv()
             if message is None:
                 return
             positions, rotations, fmt = message
             try:
-                body, timings = state.solve(positions, rotations, fmt)
+                body, timings, drag = state.solve(positions, rotations, fmt)
             except Exception as exc:
                 conn.send(("error", runtime.describe_error(exc)))
             else:
-                conn.send(("ok", body, timings))
+                conn.send(("ok", body, timings, drag, state.pending is not None))
     except (EOFError, OSError):  # the service went away
         return
 
@@ -75,6 +92,14 @@ class _LocalSession:
     closing: bool = False
     reason: str | None = None
     solves: int = 0
+    drag: int = 0
+    """The newest drag answered (its number in the session process)."""
+    refining: bool = False
+    """Whether the newest drag's refined shape is still to come."""
+    refined: tuple[int, Any] | None = None
+    """(drag, :class:`Refined` or failure dict) of the newest drag, once refined."""
+    changed: asyncio.Event = field(default_factory=asyncio.Event)
+    """Set (and replaced) whenever a drag or refined shape arrives."""
 
 
 class LocalSessions:
@@ -151,6 +176,7 @@ class LocalSessions:
         self._gone[session.id] = (session.reason, time.monotonic() + self.policy.ttl)
         if session.pending is not None:
             settle(session.pending, exc=errors.SessionGoneError(session.id, session.reason))
+        self._changed(session)
 
     def _record(self, session: _LocalSession) -> SessionRecord:
         expires = self.policy.ttl - (time.monotonic() - session.last_used)
@@ -160,8 +186,11 @@ class LocalSessions:
     # --------------------------------------------------------------------- create
 
     def _spawn(self, session_id: str, spec: SessionSpec) -> WorkerProcess:
-        proc = WorkerProcess.spawn(_session_main, self.policy.threads,
-                                   f"ffs-session-{session_id[:8]}", self.start_method)
+        main = functools.partial(
+            _session_main, refine_seconds=spec.options.get("max_seconds")
+            or self.policy.solve_timeout, refine_slice=self.policy.refine_slice)
+        proc = WorkerProcess.spawn(main, self.policy.threads, f"ffs-session-{session_id[:8]}",
+                                   self.start_method)
         try:
             proc.conn.send(spec)
         except BaseException:
@@ -225,7 +254,7 @@ class LocalSessions:
         return len(info["handles"]), int(info["n_rotation_groups"])
 
     async def solve(self, session_id: str, positions: Any, rotations: Any,
-                    fmt: str) -> tuple[bytes, dict[str, float]]:
+                    fmt: str) -> DragAnswer:
         session = self._get(session_id)
         async with session.lock:
             if not session.alive:
@@ -251,9 +280,41 @@ class LocalSessions:
                 session.pending = None
             session.last_used = time.monotonic()
         if message[0] == "ok":
+            _, body, timings, drag, refining = message
             session.solves += 1
-            return message[1], message[2]
+            return DragAnswer(body, timings, drag, refining)
         raise errors.TaskFailedError(message[1])
+
+    async def refined(self, session_id: str, drag: int, wait: float) -> Any:
+        session = self._get(session_id)
+        deadline = time.monotonic() + wait
+        while True:
+            if drag < 1 or drag > session.drag:
+                raise errors.DragNotFoundError(session_id, drag, f"the session has answered "
+                                                                 f"{session.drag} drags")
+            if drag < session.drag:
+                raise errors.DragSupersededError(session_id, drag, session.drag)
+            if session.refined is not None and session.refined[0] == drag:
+                result = session.refined[1]
+                if isinstance(result, dict):
+                    raise errors.TaskFailedError(result)
+                return result
+            if not session.refining:
+                raise errors.DragNotFoundError(session_id, drag, "the session does not refine "
+                                                                 "(open it with options.refine "
+                                                                 "true)")
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(session.changed.wait(), left)
+            if not session.alive:
+                raise errors.SessionGoneError(session_id, session.reason or "closed")
+
+    @staticmethod
+    def _changed(session: _LocalSession) -> None:
+        session.changed.set()
+        session.changed = asyncio.Event()
 
     async def delete(self, session_id: str) -> None:
         if self._gone.pop(session_id, None) is not None:
@@ -267,12 +328,23 @@ class LocalSessions:
         session.reason = "deleted"
         if session.pending is not None:
             settle(session.pending, exc=errors.SessionNotFoundError(session_id))
+        self._changed(session)
         await asyncio.to_thread(self._close, session)
 
     # ------------------------------------------------------------ process plumbing
 
-    @staticmethod
-    def _on_message(session: _LocalSession, message: Message) -> None:
+    def _on_message(self, session: _LocalSession, message: Message) -> None:
+        if message[0] in ("refined", "refine-error"):  # unasked: a drag's refined shape
+            drag = message[1].drag if message[0] == "refined" else message[1]
+            if drag == session.drag:  # (else a newer drag's answer is on its way)
+                session.refined = (drag, message[1] if message[0] == "refined"
+                                   else message[2])
+                session.refining = False
+                self._changed(session)
+            return
+        if message[0] == "ok":  # (here, before a refined shape of this drag can arrive)
+            session.drag, session.refining, session.refined = message[3], message[4], None
+            self._changed(session)
         if session.pending is not None:
             settle(session.pending, result=message)
 

@@ -13,15 +13,15 @@ from typing import Annotated, Any
 
 import numpy as np
 import orjson
-from fastapi import APIRouter, Path, Request, WebSocket
+from fastapi import APIRouter, Path, Query, Request, WebSocket
 from starlette.responses import Response
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from service.api.documents import SessionInfo, SessionVertices
+from service.api.documents import RefiningStatus, SessionInfo, SessionVertices
 from service.api.problems import ProblemError
 from service.api.schemas import SessionDrag, SessionRequest
-from service.backends.contracts import SessionRecord
-from service.backends.errors import BackendError
+from service.backends.contracts import DragAnswer, SessionRecord
+from service.backends.errors import BackendError, DragSupersededError
 from service.http.bodies import is_json, media_type, read_body
 from service.http.dependencies import MetricsDep, SessionsDep, SettingsDep
 from service.http.drags import parse_drag_binary, parse_drag_json, ws_reply
@@ -38,6 +38,22 @@ router = APIRouter(tags=["sessions"])
 
 SessionId = Annotated[str, Path(description="Session id (from the Location header).")]
 OCTET = "application/octet-stream"
+MAX_REFINED_WAIT = 60.0
+"""Longest ``?wait=`` of ``GET .../drags/{drag}/refined`` (seconds)."""
+
+
+def refined_path(session_id: str, drag: int) -> str:
+    """Where a progressive session's drag ``drag`` has its refined shape."""
+    return f"/v1/sessions/{session_id}/drags/{drag}/refined"
+
+
+def drag_headers(session_id: str, answer: DragAnswer) -> dict[str, str]:
+    """Server-Timing, and for a drag whose refined shape follows ``Link: <...>;
+    rel="refined"``."""
+    headers = server_timing(answer.timings)
+    if answer.refining:
+        headers["Link"] = f'<{refined_path(session_id, answer.drag)}>; rel="refined"'
+    return headers
 
 
 def session_document(record: SessionRecord) -> dict[str, Any]:
@@ -49,7 +65,7 @@ def session_document(record: SessionRecord) -> dict[str, Any]:
             "expires_in": round(max(0.0, record.expires_in), 3),
             "setup_seconds": round(info["setup_seconds"], 6), "backend": info["backend"],
             "executor": record.executor, "memory_bytes": int(record.memory),
-            "solves": int(record.solves),
+            "solves": int(record.solves), "refine": bool(info.get("refine", False)),
             "links": {"self": base, "solve": f"{base}/solve", "ws": f"{base}/ws"}}
 
 
@@ -116,7 +132,11 @@ _SOLVE_CONTENT = {
                          "`application/octet-stream` (little-endian float32: 3 h positions, "
                          "optionally followed by 9 g rotation entries). Result by `Accept`: "
                          "JSON (default), `application/octet-stream` (little-endian float32 "
-                         "n x 3, ready for a vertex buffer), GLB or glTF.",
+                         "n x 3, ready for a vertex buffer), GLB or glTF. In a session opened "
+                         "with `options.refine: true` the answer is the linear shape at once "
+                         "(JSON: `shape: \"linear\"`, `drag`) and `Link: <...>; "
+                         "rel=\"refined\"` names where its refined shape will be "
+                         "(`GET /v1/sessions/{id}/drags/{drag}/refined`).",
              response_class=Response,
              openapi_extra={"requestBody": {"required": True, "content": {
                  "application/json": {"schema": {"$ref": "#/components/schemas/SessionDrag"},
@@ -149,9 +169,43 @@ async def solve_session(request: Request, session_id: SessionId, settings: Setti
                            "or application/octet-stream",
                            errors=[{"field": "Content-Type", "index": None, "reason": mtype}])
     start = time.perf_counter()
-    result, timings = await sessions.solve(session_id, positions, rotations, fmt)
+    answer = await sessions.solve(session_id, positions, rotations, fmt)
     metrics.session_solve("http", time.perf_counter() - start)
-    return Response(result, media_type=MEDIA_TYPES[fmt], headers=server_timing(timings))
+    return Response(answer.body, media_type=MEDIA_TYPES[fmt],
+                    headers=drag_headers(session_id, answer))
+
+
+@router.get("/v1/sessions/{session_id}/drags/{drag}/refined", response_model=SessionVertices,
+            operation_id="get_refined_drag", summary="The refined shape of a drag",
+            description="A progressive session's (`options.refine: true`) refined shape of "
+                        "drag `drag` (the `Link` of its solve's answer), in the format of "
+                        "that answer; JSON adds `refinement` (converged, stop_reason, "
+                        "iterations, factorizations, slices, seconds, energy), other formats "
+                        "carry it in the `X-Refinement` header (JSON). While it refines: 202 "
+                        "with `Retry-After`; `?wait=s` (at most 60) waits up to s seconds "
+                        "for it first. Only the newest drag is refined: an older one is 409 "
+                        "`drag-superseded` naming the newest (`latest`).",
+            response_class=Response,
+            responses={200: {"description": "The refined vertices.",
+                             "content": _SOLVE_CONTENT},
+                       202: {"description": "Still refining; poll again.",
+                             "model": RefiningStatus},
+                       **error_responses(404, 409, 410, 422)})
+async def get_refined_drag(
+        sessions: SessionsDep, session_id: SessionId,
+        drag: Annotated[int, Path(ge=1, le=2**32 - 1, description="The drag's number (in "
+                                                                  "its Link).")],
+        wait: Annotated[float, Query(ge=0, le=MAX_REFINED_WAIT,
+                                     description="Seconds to wait for the refined shape "
+                                                 "before answering 202.")] = 0.0) -> Response:
+    refined = await sessions.refined(session_id, drag, wait)
+    if refined is None:
+        doc = {"drag": drag, "status": "refining",
+               "links": {"self": refined_path(session_id, drag)}}
+        return Response(json_bytes(doc), status_code=202, media_type="application/json",
+                        headers={"Retry-After": "1"})
+    return Response(refined.body, media_type=MEDIA_TYPES[refined.fmt], headers={
+        "X-Refinement": orjson.dumps(refined.report).decode()})
 
 
 def _problem_text(problem: ProblemError, instance: str, seq: int | None) -> str:
@@ -164,7 +218,9 @@ def _problem_text(problem: ProblemError, instance: str, seq: int | None) -> str:
 @router.websocket("/v1/sessions/{session_id}/ws")
 async def session_ws(websocket: WebSocket, session_id: str, sessions: SessionsDep,
                      metrics: MetricsDep) -> None:
-    """Drags in, vertices out; the newest drag wins (see docs/service.md)."""
+    """Drags in, vertices out; the newest drag wins (see docs/service.md). In a progressive
+    session each drag answers twice, the linear shape at once and the refined one when it
+    is ready (unless a newer drag came first), each reply with a JSON trailer saying which."""
     instance = f"/v1/sessions/{session_id}/ws"
     await websocket.accept()
     send_lock = asyncio.Lock()
@@ -222,20 +278,53 @@ async def session_ws(websocket: WebSocket, session_id: str, sessions: SessionsDe
             closed = True
             wake.set()
 
+    async def follow(drag: int) -> Any:
+        """The refined shape of ``drag`` (None: superseded by a newer drag)."""
+        while True:
+            try:
+                refined = await sessions.refined(session_id, drag, MAX_REFINED_WAIT)
+            except DragSupersededError:
+                return None
+            if refined is not None:
+                return refined
+
+    # The newest drag's refined shape to come: (seq, task).
+    following: tuple[int, asyncio.Task[Any]] | None = None
     receiver = asyncio.create_task(receive())
     try:
         while True:
-            await wake.wait()
+            woken = asyncio.ensure_future(wake.wait())
+            waiting: set[asyncio.Future[Any]] = {woken}
+            if following is not None:
+                waiting.add(following[1])
+            done, _ = await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
+            if following is not None and following[1] in done:
+                (seq, task), following = following, None
+                try:
+                    refined = task.result()
+                except BackendError as exc:
+                    await send_problem(problem_for(exc), seq)
+                else:
+                    if refined is not None:
+                        async with send_lock:
+                            await websocket.send_bytes(ws_reply(seq, refined.body, {
+                                "shape": "refined", "drag": refined.drag, **refined.report}))
+            if woken not in done:
+                woken.cancel()
+                continue
             wake.clear()
             if closed:
                 break
             item, latest[0] = latest[0], None
             if item is None:
                 continue
+            if following is not None:  # this drag supersedes it
+                following[1].cancel()
+                following = None
             seq, positions, rotations = item
             start = time.perf_counter()
             try:
-                body, _ = await sessions.solve(session_id, positions, rotations, "f32")
+                answer = await sessions.solve(session_id, positions, rotations, "f32")
             except BackendError as exc:
                 problem = problem_for(exc)
                 await send_problem(problem, seq)
@@ -244,11 +333,16 @@ async def session_ws(websocket: WebSocket, session_id: str, sessions: SessionsDe
                     break
                 continue
             metrics.session_solve("ws", time.perf_counter() - start)
+            trailer = ({"shape": "linear", "drag": answer.drag} if answer.refining else None)
             async with send_lock:
-                await websocket.send_bytes(ws_reply(seq, body))
+                await websocket.send_bytes(ws_reply(seq, answer.body, trailer))
+            if answer.refining:
+                following = (seq, asyncio.create_task(follow(answer.drag)))
     except (WebSocketDisconnect, RuntimeError, OSError):
         pass
     finally:
+        if following is not None:
+            following[1].cancel()
         receiver.cancel()
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await receiver

@@ -196,7 +196,8 @@ def test_serve_runs_the_service_until_sigterm(workdir):
             time.sleep(0.2)
         assert ready is not None and ready.json()["workers"] == 1
         proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=30) == 0
+        # uvicorn shuts down, then re-raises the signal: ended by SIGTERM, not by a crash
+        assert proc.wait(timeout=30) in (0, -signal.SIGTERM)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

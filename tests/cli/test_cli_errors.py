@@ -79,3 +79,11 @@ def test_usage_errors_exit_2(ffs):
         assert result.returncode == 2, (args, result.stderr)
         assert "Traceback" not in result.stderr
         assert "error" in result.stderr
+
+
+def test_ffs_server_environment_variable_and_local(ffs):
+    env = {"FFS_SERVER": "http://127.0.0.1:9"}
+    remote = ffs("convert", "torus.off", "-o", "x.ply", env=env)
+    assert remote.returncode == 1 and "cannot reach http://127.0.0.1:9" in one_line(remote)
+    local = ffs("convert", "torus.off", "-o", "x.ply", "--local", env=env)
+    assert local.returncode == 0, local.stderr

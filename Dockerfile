@@ -69,8 +69,10 @@ COPY --from=deps /opt/ffs /opt/ffs
 WORKDIR /app
 COPY solver/ solver/
 COPY service/ service/
+# ffs/: the command line and client; the service imports its binary body encoder (ffs/arrays.py).
+COPY ffs/ ffs/
 COPY --from=web /src/service/static/vendor/ service/static/vendor/
-RUN python -m compileall -q solver service
+RUN python -m compileall -q solver service ffs
 
 USER 10001:10001
 # 8000: the API; 8786/8787: the Dask scheduler and its dashboard (docker-compose.yml).

@@ -485,7 +485,7 @@ def _backend(args: argparse.Namespace) -> Any:
     if args.server:
         from ffs.client import Client
 
-        return Client(args.server, timeout=args.timeout, binary=not args.json_bodies)
+        return Client(args.server, timeout=args.timeout)
     from ffs.local import Local
 
     return Local()
@@ -664,8 +664,6 @@ def build_parser() -> argparse.ArgumentParser:
                      help="run on this service (default $FFS_SERVER; none: in-process)")
     run.add_argument("--local", dest="server", action="store_const", const=None,
                      help="run in-process even if FFS_SERVER is set")
-    run.add_argument("--json-bodies", action="store_true", help="send JSON instead of binary "
-                     "array bodies to the server")
     run.add_argument("--timeout", type=_positive_float, default=60.0,
                      help="seconds for each answer of the server (default 60)")
     run.add_argument("--fail-fast", action="store_true", help="stop at the first failure")

@@ -70,7 +70,10 @@ from .system import ConstrainedSystem, LinearConstraints
 
 POLISH_TOLERANCE = 1e-9
 """Newton polishing stops after a step below this fraction of the mean edge length."""
-POLISH_ITERATIONS = 8
+POLISH_ITERATIONS = 30
+REUSE_TOLERANCE = 1e-6
+"""A polishing step below this fraction of the mean edge length is taken without
+refactorizing the Hessian at its end point (the factorized one is O(step) away)."""
 
 
 @dataclass
@@ -316,28 +319,47 @@ class _RefinedAdjoint:
                                        "polish_moved": 0.0}
         scale = self.energy.scale
         start = X.copy()
+        damping = 0.0   # Levenberg-Marquardt damping of a polishing step, relative
         for _ in range(POLISH_ITERATIONS + 1):
-            self._factor_at(X)
+            self._factor_at(X, damping)
             gradient = self.energy.gradient(X).ravel()[self.free_dofs]
             step = -self._solve(self._project(gradient[None]))[0]
             size = float(np.abs(step).max(initial=0.0)) / scale
-            if not polish or size <= POLISH_TOLERANCE or \
+            if not polish or (damping == 0.0 and size <= POLISH_TOLERANCE) or \
                     self.report["polish_steps"] == POLISH_ITERATIONS:
                 break
-            X = self._line_search(X, step)
+            moved = self._line_search(X, step) if gradient @ step < 0 else None
+            if moved is None:   # far from the optimum, H indefinite: damp
+                damping = max(1e-8, 10.0 * damping)
+                continue
+            X = moved
             self.report["polish_steps"] += 1
+            if damping == 0.0 and size <= REUSE_TOLERANCE:
+                # Newton from this close: the next step would be ~size^2, and the Hessian
+                # here differs from the factorized one by O(size) relative, below the
+                # derivative's own accuracy target: keep the factorization.
+                self.X = X
+                size = 0.0
+                break
+            damping = 0.1 * damping if damping > 1e-8 else 0.0
+        if damping:      # the derivative needs the undamped Hessian
+            self._factor_at(X)
         self.report["polish_converged"] = bool(size <= POLISH_TOLERANCE)
         self.report["last_step"] = size
         self.report["polish_moved"] = float(np.abs(X - start).max(initial=0.0)) / scale
-        self.report["gradient_norm"] = float(np.linalg.norm(gradient))
+        gradient = self._project(self.energy.gradient(X).ravel()[self.free_dofs][None])
+        self.report["gradient_norm"] = float(np.abs(gradient).max(initial=0.0))
         self.vertices = X
 
     # -- the exact Hessian on the free coordinates, gauge pinned
 
-    def _factor_at(self, X: np.ndarray) -> None:
+    def _factor_at(self, X: np.ndarray, damping: float = 0.0) -> None:
         self.X = X
         H = self.energy.hessian(X)
         H_ff = H[self.free_dofs][:, self.free_dofs]
+        if damping:
+            diagonal = H_ff.diagonal()
+            H_ff = H_ff + sp.diags(damping * np.maximum(diagonal, 1e-9 * diagonal.mean()))
         self.H_fixed_free = H[self.fixed_dofs][:, self.free_dofs]
         self.null, pinned = self._rigid_null_space(X)
         keep = np.ones(len(self.free_dofs))
@@ -354,6 +376,7 @@ class _RefinedAdjoint:
             # matrices): LU solves a nonsingular indefinite matrix correctly.
             self.factor = factorize(matrix, "superlu", assume_symmetric=True)
         self.report["factorizations"] += 1
+        self.report["analysis"] = self.factor.analysis
 
     def _solve(self, rhs: np.ndarray) -> np.ndarray:
         """(B, n_free_dofs) -> H^-1 rhs on the pinned complement (rhs already projected)."""
@@ -415,14 +438,14 @@ class _RefinedAdjoint:
         null = np.concatenate(columns, axis=1) if columns else np.zeros((n_dofs, 0))
         return null, (np.concatenate(pinned) if pinned else np.zeros(0, np.int64))
 
-    def _line_search(self, X: np.ndarray, step: np.ndarray) -> np.ndarray:
+    def _line_search(self, X: np.ndarray, step: np.ndarray) -> np.ndarray | None:
         energy = self.energy.energy(X)
         for alpha in (1.0, 0.5, 0.25, 0.1, 0.01):
             trial = X.copy()
             trial[self.free] += alpha * step.reshape(-1, 3)
             if self.energy.energy(trial) <= energy + 1e-13 * max(energy, 1e-300):
                 return self.problem.place_anchored(trial, self.anchored)
-        return X
+        return None
 
     # -- the VJP
 
@@ -525,3 +548,22 @@ def _polar_vjp(F: np.ndarray, R: np.ndarray, R_bar: np.ndarray) -> np.ndarray:
     Ct = np.einsum("ji,bjk,kl->bil", Q, C, Q)
     Y = np.einsum("ij,bjk,lk->bil", Q, Ct / (sigma[:, None] + sigma[None, :]), Q)
     return np.einsum("ij,bjk->bik", R, Y)
+
+
+def aligned_distance(vertices: ArrayLike, target: ArrayLike) -> tuple[float, np.ndarray]:
+    """A loss invariant to rigid motions of ``vertices``, and its gradient.
+
+    ``loss = min_{R, t} sum_v |R x_v + t - y_v|^2 / (n s^2)`` over rotations R and
+    translations t (Kabsch), ``s`` the target's RMS distance from its centroid; by the
+    envelope theorem its gradient (n, 3) is ``2 (R x + t - y) R / (n s^2)`` at the optimal
+    (R, t). Args: vertices (n, 3), target (n, 3). Returns (loss, gradient (n, 3)).
+    """
+    X = np.asarray(vertices, dtype=np.float64)
+    Y = np.asarray(target, dtype=np.float64)
+    x0, y0 = X.mean(axis=0), Y.mean(axis=0)
+    U, _, Vt = np.linalg.svd((X - x0).T @ (Y - y0))
+    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T                     # R (x - x0) ~ y - y0
+    residual = (X - x0) @ R.T + y0 - Y
+    norm = len(X) * float(np.mean(np.sum((Y - y0) ** 2, axis=1)))
+    return float(np.sum(residual**2)) / norm, 2.0 * residual @ R / norm

@@ -12,6 +12,7 @@ outside; ``edges`` (E, 2) unique pairs i < j sorted lexicographically; ``lengths
 
 from . import metrics
 from .deform import Deformation, Deformer, deform
+from .differentiable import ReconstructionVJP, reconstruct_vjp
 from .errors import SolverInputError
 from .forms import Forms, fundamental_forms
 from .integrability import IntegrabilityReport, check_integrability
@@ -27,6 +28,7 @@ __all__ = [
     "IntegrabilityReport",
     "Parameterization",
     "Reconstruction",
+    "ReconstructionVJP",
     "SolverInputError",
     "check_integrability",
     "deform",
@@ -35,4 +37,5 @@ __all__ = [
     "metrics",
     "parameterize",
     "reconstruct",
+    "reconstruct_vjp",
 ]

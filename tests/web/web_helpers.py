@@ -87,3 +87,17 @@ def worker_wrapper(prelude: str, *, page_setup: str = "", late: bool = False,
   }};
 }})();
 """
+
+
+def rigid_align(moving, target):
+    """``moving`` (n, 3) moved by the rotation and translation that best fit it onto
+    ``target`` (n, 3) in the least-squares sense (Kabsch, no reflection): the independent
+    check of the page's alignment of a rebuilt mesh."""
+    import numpy as np
+
+    moving, target = np.asarray(moving, float), np.asarray(target, float)
+    a, b = moving - moving.mean(axis=0), target - target.mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(u @ vt))
+    rotation = u @ np.diag([1.0, 1.0, d]) @ vt  # row vectors: x @ rotation
+    return a @ rotation + target.mean(axis=0)

@@ -251,9 +251,11 @@ export function describe(err) {
         : "";
       return pointer ? `${pointer}: ${e.reason}` : e.reason;
     }).filter((item, k) => {
-      // No echo of the detail: the same text, or another wording about the same field.
+      // No echo of the detail: the same text, its reason, or another wording about the
+      // same field.
       const detail = p.detail || "", pointer = item.split(":")[0];
-      return !detail.includes(item) && !(errors[k].field && detail.startsWith(`${pointer}:`));
+      return !detail.includes(item) && !(errors[k].reason && detail.includes(errors[k].reason))
+        && !(errors[k].field && detail.startsWith(`${pointer}:`));
     });
     if (errors.length > 4) items.push(`… and ${errors.length - 4} more`);
     return { title: `${status}${p.title || "Error"}`, detail: p.detail || "", items,

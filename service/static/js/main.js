@@ -8,7 +8,8 @@ import * as api from "./api.js";
 import { CSS_GRADIENT, scaleFor, uniformColors, vertexColors } from "./colormap.js";
 import { DeformTransport, SessionTransport, deformBody } from "./deform.js";
 import {
-  bounds, distortion, facesAround, flatten3, forms as meshForms, histogram, prepareMesh, rows3,
+  bounds, distortion, facesAround, flatten3, forms as meshForms, histogram, prepareMesh, rigidAlign,
+  rows3,
 } from "./mesh.js";
 import { FlatView, MeshView, axisVector } from "./viewer.js";
 import { WorkerClient } from "./worker-client.js";
@@ -339,6 +340,8 @@ function showTab(name) {
     $(`tab-${tab}`).setAttribute("aria-selected", String(tab === name));
     $(`panel-${tab}`).hidden = tab !== name;
   }
+  // The handles' gizmo is a Deform tool: drawn (and grabbable) only there.
+  if (view) view.attachGizmo(name === "deform" && state.active ? state.active.pivot : null);
 }
 
 /** The up axis of a mesh: the sample's known orientation, else a guess from the bounding
@@ -389,7 +392,7 @@ async function openMesh(mesh, name, source, extra = {}) {
     analysisError: null, reconstruction: extra.reconstruction ?? null,
   });
   state.closed = state.boundaryEdges === 0;
-  const { up, source: upSource } = extra.up ? { up: extra.up, source: "user" }
+  const { up, source: upSource } = extra.up ? { up: extra.up, source: extra.upSource ?? "user" }
     : guessUp(state.vertices, extra.sampleUp);
   state.up = up;
   state.upSource = upSource;
@@ -399,7 +402,7 @@ async function openMesh(mesh, name, source, extra = {}) {
   await nextTask();  // a big mesh: let the page breathe between building and panels
   $("empty-state").hidden = true;
   $("mesh-title").textContent = `${name}${source === "sample" ? " (sample)" : ""}`;
-  if (source !== "sample") $("sample-select").value = "";
+  showSampleChoice();
   hideFlat();
   renderMeshStats();
   renderHandles();
@@ -420,17 +423,21 @@ async function openMesh(mesh, name, source, extra = {}) {
   await analyze(extra);
 }
 
+let analysisRun = 0;
+
+/** The integrability report of the shown mesh (or of the given forms, when they are what
+ * was loaded), into the Mesh panel. */
 async function analyze({ forms, integrability } = {}) {
-  const faces = state.faces;
+  const run = ++analysisRun;
   try {
     const result = await withProgress("Integrability report…", async () => (forms && integrability
-      ? { forms, integrability } : inWorker("analyze", { vertices: state.vertices, faces },
-        "computing the integrability report")));
-    if (state.faces !== faces) return;  // another mesh was opened meanwhile
+      ? { forms, integrability } : inWorker("analyze", { vertices: state.vertices,
+        faces: state.faces }, "computing the integrability report")));
+    if (run !== analysisRun) return;  // another mesh (or answer) was shown meanwhile
     state.forms = result.forms;
     state.integrability = result.integrability;
   } catch (err) {
-    if (state.faces !== faces) throw err;
+    if (run !== analysisRun) throw err;
     state.forms = state.integrability = null;
     state.analysisError = err?.name === "AbortError" ? null : api.describe(err);
     renderIntegrability();
@@ -443,21 +450,46 @@ async function analyze({ forms, integrability } = {}) {
   setColorMode(state.integrability.integrable ? "plain" : "defect");
 }
 
+const maxOf = (values) => values.reduce((a, b) => Math.max(a, Math.abs(b)), 0);
+
+/** The global loops of a report in words: how many pass, and the worst of each kind with
+ * its unit (a rotation in radians, a translation in mean edge lengths: report.max_defect
+ * mixes the two with the vertex defects, so the page never shows it bare). */
+function loopsText(r) {
+  const { rotation, translation } = r.global_holonomy;
+  const loops = [...rotation, ...translation];
+  if (!loops.length) return "none";
+  const worst = (list) => list.reduce((a, l) => Math.max(a, l.magnitude), 0);
+  const failing = [];
+  if (worst(rotation) > r.tolerance) failing.push(`rotation ${fmt(worst(rotation), 3)} rad`);
+  if (worst(translation) > r.tolerance) {
+    failing.push(`translation ${fmt(worst(translation), 3)} mean edge lengths`);
+  }
+  return `${loops.filter((l) => l.passes).length} / ${loops.length} pass`
+    + (failing.length ? ` (worst: ${failing.join(", ")})` : "");
+}
+
 function integrabilityVerdict(r) {
   const loops = [...r.global_holonomy.rotation, ...r.global_holonomy.translation];
   const failingLoops = loops.filter((l) => !l.passes).length;
+  const vertexMax = maxOf(r.vertex_defect);
   if (r.integrable && r.max_defect < ROUND_OFF) {
     return [true, `Forms are exact (defect ${fmt(r.max_defect, 2)}, round-off).`];
   }
   if (r.integrable) {
-    return [true, `Forms are integrable (max defect ${fmt(r.max_defect, 2)}, below the `
-      + `tolerance ${fmt(r.tolerance, 1)}).`];
+    return [true, `Forms are integrable (vertex defects up to ${fmt(vertexMax, 2)} rad, below `
+      + `the tolerance ${fmt(r.tolerance, 1)}).`];
   }
   const parts = [];
-  if (r.failing_vertices.length) parts.push(`${r.failing_vertices.length} vertices`);
-  if (failingLoops) parts.push(`${failingLoops} global loop${failingLoops > 1 ? "s" : ""}`);
-  return [false, `Not integrable: max defect ${fmt(r.max_defect, 2)}`
-    + (parts.length ? ` (${parts.join(" and ")} above the tolerance).` : ".")];
+  if (r.failing_vertices.length) {
+    parts.push(`vertex defects up to ${fmt(vertexMax, 2)} rad (${r.failing_vertices.length} `
+      + "vertices above the tolerance)");
+  }
+  if (failingLoops) parts.push(`${failingLoops} global loop${failingLoops > 1 ? "s" : ""} fail`);
+  if (r.triangle_violations.length) {
+    parts.push(`${r.triangle_violations.length} faces break the triangle inequality`);
+  }
+  return [false, `Not integrable: ${parts.join("; ") || "see the details"}.`];
 }
 
 function renderIntegrability() {
@@ -477,29 +509,24 @@ function renderIntegrability() {
   const [ok, text] = integrabilityVerdict(r);
   verdict.className = `verdict ${ok ? "ok" : "bad"}`;
   verdict.textContent = text;
-  const maxOf = (values) => values.reduce((a, b) => Math.max(a, Math.abs(b)), 0);
   const topo = r.topology;
-  const loops = [...r.global_holonomy.rotation, ...r.global_holonomy.translation];
   const worst = document.createDocumentFragment();
   r.worst_vertices.slice(0, 3).forEach((v, k) => {
     if (k) worst.append(" ");
     worst.append(num(`v${v}: ${fmt(r[state.defectPart][v], 2)}`));
   });
   const parts = Object.entries(DEFECT_LABELS).map(([key, label]) => [
-    `${label} vertex defect (max)`, num(fmt(maxOf(r[key]), 3)),
+    `${label} vertex defect (max)`, num(`${fmt(maxOf(r[key]), 3)} rad`),
     key === state.defectPart ? "selected" : ""]);
-  const worstLoop = loops.reduce((a, l) => Math.max(a, l.magnitude), 0);
   setStats("integrability-stats", [
     ["Integrable", badge(r.integrable)],
-    ["Max defect", num(fmt(r.max_defect, 3))],
     ...parts,
     ["Tolerance", num(fmt(r.tolerance))],
     ["Failing vertices", num(String(r.failing_vertices.length))],
     ["Triangle violations", num(String(r.triangle_violations.length))],
     ["Components · genus", num(`${topo.n_components} · ${topo.genus}`)],
     ["Boundary loops", num(String(topo.boundary_loops.length))],
-    ["Global loops", num(loops.length ? `${loops.filter((l) => l.passes).length} / ${loops.length} pass`
-      + (worstLoop > r.tolerance ? ` (max ${fmt(worstLoop, 3)})` : "") : "none")],
+    ["Global loops", loopsText(r), "wrap"],
     ["Worst", r.worst_vertices.length ? worst : "–", "wrap"],
   ]);
   $("integrability-note").textContent = r.integrable
@@ -514,20 +541,32 @@ async function fetchBlob(path) {
   return response.blob();
 }
 
+/** The sample menu names the mesh on screen ("Choose a sample…" for any other mesh), also
+ * after a load that failed. */
+function showSampleChoice() {
+  $("sample-select").value = state.source === "sample" ? state.name : "";
+}
+
 async function loadSample(file) {
-  const mesh = await withProgress(`Loading ${file}…`, async () => {
-    const blob = await fetchBlob(`/static/samples/${encodeURIComponent(file)}`);
-    return inWorker("readMesh", { file: blob, name: file }, `reading ${file}`);
-  });
-  $("sample-select").value = file;
-  await openMesh(mesh, file, "sample", { sampleUp: samples.find((s) => s.file === file)?.up });
+  try {
+    const mesh = await withProgress(`Loading ${file}…`, async () => {
+      const blob = await fetchBlob(`/static/samples/${encodeURIComponent(file)}`);
+      return inWorker("readMesh", { file: blob, name: file }, `reading ${file}`);
+    });
+    await openMesh(mesh, file, "sample", { sampleUp: samples.find((s) => s.file === file)?.up });
+  } finally {
+    showSampleChoice();
+  }
 }
 
 async function openUpload(file) {
-  const mesh = await withProgress(`Reading ${file.name}…`, () => inWorker("readMesh", { file,
-    name: file.name }, `reading ${file.name}`));
-  $("sample-select").value = "";
-  await openMesh(mesh, file.name, "upload");
+  try {
+    const mesh = await withProgress(`Reading ${file.name}…`, () => inWorker("readMesh", { file,
+      name: file.name }, `reading ${file.name}`));
+    await openMesh(mesh, file.name, "upload");
+  } finally {
+    showSampleChoice();
+  }
 }
 
 // ------------------------------------------------------------------ forms -> reconstruct
@@ -540,7 +579,12 @@ function reconstructInput(input, refine) {
   return refine === undefined || !caps.refine ? input : { ...input, options: { refine } };
 }
 
-async function reconstructForms(doc, name, source = name) {
+/**
+ * Rebuild a surface from a forms document and show it. `from` is the mesh the forms came
+ * from, when there is one ({vertices, up, upSource}): the answer is moved rigidly onto it
+ * and keeps its up axis (the service's answer has an arbitrary placement).
+ */
+async function reconstructForms(doc, name, source = name, from = null) {
   if (!doc || typeof doc !== "object" || Array.isArray(doc)) {
     throw new api.ApiError({ title: "Not a forms document",
       detail: `${source}: expected a JSON object with ${FORM_KEYS.join(", ")} (the output of POST /v1/forms)` });
@@ -561,10 +605,21 @@ async function reconstructForms(doc, name, source = name) {
   }, { cancellable: true });
   const refinement = result.report?.refinement ?? null;
   const reconstruction = { input, report: result.report, refinement, integrability,
-    refined: refinement?.refined ? result.vertices : null,
-    linear: refinement?.refined ? null : result.vertices, showing: refinement?.refined ? "refined" : "linear" };
-  await openMesh(result, name, "reconstruction", { forms: input, integrability, reconstruction });
+    alignTo: from?.vertices ?? null, refined: null, linear: null,
+    showing: refinement?.refined ? "refined" : "linear" };
+  const vertices = placedAnswer(reconstruction, result.vertices);
+  reconstruction[reconstruction.showing] = vertices;
+  // The Mesh panel reports the shown mesh; the Rebuild panel the forms it came from.
+  await openMesh({ vertices, faces: result.faces }, name, "reconstruction", { reconstruction,
+    up: from?.up, upSource: from?.upSource });
   showTab("forms");
+}
+
+/** An answer's vertices (rows) as shown: flat, and on the mesh the forms came from. */
+function placedAnswer(rec, rows) {
+  const vertices = flatten3(rows);
+  return rec.alignTo && rec.alignTo.length === vertices.length
+    ? rigidAlign(vertices, rec.alignTo) : vertices;
 }
 
 /** Show the refined or the linear reconstruction (fetched the first time it is asked for). */
@@ -575,10 +630,10 @@ async function showAnswer(which) {
     const result = await withProgress("Linear answer…", (signal) => api.runJob("reconstruct",
       reconstructInput(rec.input, false), { signal, onProgress: jobProgress("Linear") }),
     { cancellable: true });
-    rec.linear = result.vertices;
+    rec.linear = placedAnswer(rec, result.vertices);
   }
   rec.showing = which;
-  const vertices = flatten3(rec[which]);
+  const vertices = rec[which];
   closeTransport();
   for (const h of state.handles) view.scene.remove(h.pivot);
   view.attachGizmo(null);
@@ -590,8 +645,12 @@ async function showAnswer(which) {
   renderHandles();
   renderDistortion();
   renderReconstruction();
+  state.forms = state.integrability = null;
+  renderIntegrability();
+  enableColorOptions();
   refreshColors();
   updateStatus();
+  await analyze();
 }
 
 /** The residual table: length and angle errors of the linear and the refined answer. */
@@ -638,8 +697,9 @@ function renderReconstruction() {
   const seconds = r.timings ? Object.values(r.timings).reduce((a, b) => a + b, 0) : null;
   const rows = [
     ["Rebuilt", num(`${(state.vertices.length / 3).toLocaleString("en")} vertices`)],
-    ["Integrable", badge(rec.integrability.integrable)],
-    ["Max defect", num(fmt(rec.integrability.max_defect))],
+    ["Forms integrable", badge(rec.integrability.integrable)],
+    ["Forms' vertex defect (max)", num(`${fmt(maxOf(rec.integrability.vertex_defect))} rad`)],
+    ["Forms' global loops", loopsText(rec.integrability), "wrap"],
     ["Method", r.solve_path === "tree-integration" ? "exact integration" : "least squares"],
   ];
   if (f?.refined) {
@@ -685,7 +745,8 @@ async function bendForms() {
     detail: "enter a number, e.g. 0.8" });
   if (!state.forms) return;
   const stem = state.name.replace(/ \(.*\)$/, "");
-  await reconstructForms(formsInput(state.forms, scale), `${stem} (angles × ${scale})`);
+  await reconstructForms(formsInput(state.forms, scale), `${stem} (angles × ${scale})`, undefined,
+    { vertices: state.vertices, up: state.up, upSource: state.upSource });
 }
 
 // ---------------------------------------------------------------------------- flatten
@@ -779,7 +840,7 @@ function refreshMarkers() {
 
 function setActive(handle) {
   state.active = handle;
-  view.attachGizmo(handle ? handle.pivot : null);
+  view.attachGizmo(handle && state.tab === "deform" ? handle.pivot : null);
   renderHandles();
 }
 
@@ -948,6 +1009,7 @@ async function solveLoop() {
       state.lastSolveMs = performance.now() - t0;
       state.solves++;
       applyShape(vertices);
+      if (!state.solveWanted) refitIfOutgrown();
     }
   } catch (err) {
     showError(err);
@@ -1049,8 +1111,27 @@ function snapshot() {
   };
 }
 
+/** Whether the whole shape is on screen, below the view's toolbar (`toolbar`) or anywhere
+ * on the canvas. */
+function shapeInView({ toolbar = true } = {}) {
+  const canvas = view.canvas.getBoundingClientRect();
+  const bar = $("view-toolbar").getBoundingClientRect();
+  return view.fits(state.vertices, { top: toolbar ? Math.max(0, bar.bottom - canvas.top) : 0 });
+}
+
+/** After a step (once the gizmo is let go): a shape that was on screen and grew out of it,
+ * or under the toolbar, is fitted again from the same direction. */
+function refitIfOutgrown() {
+  if (!state.vertices || view.gizmo.dragging || !state.inViewBefore) return;
+  if (!shapeInView()) {
+    view.frame({ keep: true });
+    state.inViewBefore = shapeInView({ toolbar: false });
+  }
+}
+
 function remember() {
   if (!state.vertices) return;
+  state.inViewBefore = shapeInView({ toolbar: false });
   state.undo.push(snapshot());
   if (state.undo.length > HISTORY_LIMIT) state.undo.shift();
   state.redo = [];
@@ -1205,6 +1286,7 @@ function installPointer() {
     }
   });
   view.gizmo.addEventListener("mouseDown", () => remember());
+  view.gizmo.addEventListener("dragging-changed", (event) => event.value || refitIfOutgrown());
   view.gizmo.addEventListener("objectChange", onHandleMoved);
   window.addEventListener("keydown", onKey);
 }

@@ -260,3 +260,80 @@ export function preparedBuffers(p) {
   return [p.vertices.buffer, p.faces.buffer, p.topo.edges.buffer, p.topo.left.buffer,
     p.topo.right.buffer, p.reference.lengths.buffer, p.reference.angles.buffer];
 }
+
+/** Eigenvector of the largest eigenvalue of a symmetric 4x4 matrix (cyclic Jacobi). */
+function largestEigenvector4(matrix) {
+  const a = matrix.map((row) => row.slice());
+  const v = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]];
+  const scale = a.reduce((s, row) => s + row.reduce((t, x) => t + x * x, 0), 0);
+  for (let sweep = 0; sweep < 50; sweep++) {
+    let off = 0;
+    for (let p = 0; p < 4; p++) for (let q = p + 1; q < 4; q++) off += a[p][q] ** 2;
+    if (off <= 1e-30 * scale) break;
+    for (let p = 0; p < 4; p++) {
+      for (let q = p + 1; q < 4; q++) {
+        if (a[p][q] === 0) continue;
+        const theta = (a[q][q] - a[p][p]) / (2 * a[p][q]);
+        const t = (theta >= 0 ? 1 : -1) / (Math.abs(theta) + Math.sqrt(theta * theta + 1));
+        const c = 1 / Math.sqrt(t * t + 1), s = t * c;
+        for (const m of [a, v]) {  // columns p, q of A and of V: times the rotation
+          for (let k = 0; k < 4; k++) {
+            const kp = m[k][p], kq = m[k][q];
+            m[k][p] = c * kp - s * kq;
+            m[k][q] = s * kp + c * kq;
+          }
+        }
+        for (let k = 0; k < 4; k++) {  // rows p, q of A
+          const pk = a[p][k], qk = a[q][k];
+          a[p][k] = c * pk - s * qk;
+          a[q][k] = s * pk + c * qk;
+        }
+      }
+    }
+  }
+  let best = 0;
+  for (let k = 1; k < 4; k++) if (a[k][k] > a[best][best]) best = k;
+  return v.map((row) => row[best]);
+}
+
+/**
+ * `vertices` (Float64Array(3n)) moved by the rotation and translation that best fit them
+ * onto `target` (Float64Array(3n), the same vertices in the same order), in the
+ * least-squares sense (Horn's unit-quaternion method: no reflection, no scaling). Returns a
+ * new Float64Array(3n).
+ */
+export function rigidAlign(vertices, target) {
+  const n = vertices.length / 3;
+  const ca = [0, 0, 0], cb = [0, 0, 0];
+  for (let i = 0; i < n; i++) {
+    for (let k = 0; k < 3; k++) {
+      ca[k] += vertices[3 * i + k] / n;
+      cb[k] += target[3 * i + k] / n;
+    }
+  }
+  const S = [[0, 0, 0], [0, 0, 0], [0, 0, 0]];  // S[a][b] = sum of x_a y_b, centred
+  for (let i = 0; i < n; i++) {
+    for (let a = 0; a < 3; a++) {
+      const x = vertices[3 * i + a] - ca[a];
+      for (let b = 0; b < 3; b++) S[a][b] += x * (target[3 * i + b] - cb[b]);
+    }
+  }
+  const [[xx, xy, xz], [yx, yy, yz], [zx, zy, zz]] = S;
+  const [w, x, y, z] = largestEigenvector4([
+    [xx + yy + zz, yz - zy, zx - xz, xy - yx],
+    [yz - zy, xx - yy - zz, xy + yx, zx + xz],
+    [zx - xz, xy + yx, -xx + yy - zz, yz + zy],
+    [xy - yx, zx + xz, yz + zy, -xx - yy + zz]]);
+  const R = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]];
+  const out = new Float64Array(vertices.length);
+  for (let i = 0; i < n; i++) {
+    const px = vertices[3 * i] - ca[0], py = vertices[3 * i + 1] - ca[1];
+    const pz = vertices[3 * i + 2] - ca[2];
+    for (let k = 0; k < 3; k++) {
+      out[3 * i + k] = R[k][0] * px + R[k][1] * py + R[k][2] * pz + cb[k];
+    }
+  }
+  return out;
+}

@@ -435,6 +435,25 @@ export class MeshView extends RenderView {
     return best;
   }
 
+  /** Whether every vertex (Float64Array(3n)) is in front of the camera and inside the
+   * canvas, `top` pixels (an overlay such as the toolbar) excluded. */
+  fits(vertices, { top = 0 } = {}) {
+    const rect = this.canvas.getBoundingClientRect();
+    this.camera.updateMatrixWorld();
+    const m = new THREE.Matrix4().multiplyMatrices(this.camera.projectionMatrix,
+      this.camera.matrixWorldInverse).elements;
+    const yMax = 1 - (2 * top) / rect.height;
+    for (let i = 0; i < vertices.length; i += 3) {
+      const x = vertices[i], y = vertices[i + 1], z = vertices[i + 2];
+      const w = m[3] * x + m[7] * y + m[11] * z + m[15];
+      if (w <= 0) return false;
+      const px = (m[0] * x + m[4] * y + m[8] * z + m[12]) / w;
+      const py = (m[1] * x + m[5] * y + m[9] * z + m[13]) / w;
+      if (px < -1 || px > 1 || py < -1 || py > yMax) return false;
+    }
+    return true;
+  }
+
   /** Screen position (client pixels) of a point, and whether it faces the camera. */
   project(x, y, z) {
     const rect = this.canvas.getBoundingClientRect();

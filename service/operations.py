@@ -1,4 +1,4 @@
-"""The operation registry: every fact about each of the seven operations, in one place.
+"""The operation registry: every fact about each of the eight operations, in one place.
 
 An :class:`OperationSpec` says what an operation takes (its JSON request model, the params
 model of its non-array fields, its large arrays and what they form, its upload fields),
@@ -88,6 +88,16 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "`report.integrability`; with `options.require_integrable` a failed check is a 422 "
         "naming the worst vertices. A mesh file upload is reconstructed from its own forms.",
         colors=("defect",)),
+    OperationSpec(
+        "reconstruct/vjp", schemas.ReconstructVjpRequest, schemas.ReconstructVjpParams,
+        schemas.ReconstructVjpResponse, FORMS_ARRAYS, "forms", STAGES_SOLVE, False,
+        tasks.reconstruct_vjp_task, "Gradients of a reconstruction (vector-Jacobian product)",
+        "Reconstructs like /v1/reconstruct and pulls the `cotangent` of the vertices (the "
+        "gradient of a loss with respect to them) back to the lengths, angles and "
+        "constraint targets: the service as a remote differentiable layer. With "
+        "`options.refine: false` the linear answer is differentiated (adjoint method), "
+        "otherwise the refined one (implicit differentiation at its optimum, exact "
+        "Hessian); the gauge is the anchor of the answer (docs/differentiable.md)."),
     OperationSpec(
         "deform", schemas.DeformRequest, schemas.DeformParams, documents.MeshResponse,
         MESH_ARRAYS, "mesh", STAGES_SOLVE, True, tasks.deform_task,

@@ -33,7 +33,7 @@ EXAMPLE_FORMS: dict[str, Any] = {"faces": _F, "edges": _E, "lengths": _L, "angle
 _IDENTITY = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 
 Operation = Literal["reconstruct", "deform", "parameterize", "integrability", "forms",
-                    "interpolate", "mesh"]
+                    "interpolate", "mesh", "reconstruct/vjp"]
 ColorField = Literal["defect", "distortion"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
@@ -329,6 +329,44 @@ class ReconstructRequest(FormsPart, ReconstructParams):
                     "require_integrable": True}})
 
 
+class ReconstructVjpParams(ReconstructParams):
+    """Parameters of ``POST /v1/reconstruct/vjp``: those of ``/v1/reconstruct`` and the
+    cotangent of the reconstructed vertices."""
+
+    model_config = _example({"cotangent": [[0.0, 0.0, 1.0]] * 5,
+                             "options": {"refine": False}})
+
+    cotangent: list[Vec3] | list[list[Vec3]] = Field(
+        description="(n, 3) cotangent of the reconstructed vertices (the gradient of a loss "
+                    "with respect to them), or (k, n, 3): k cotangents on one factorization.")
+
+
+class ReconstructVjpRequest(FormsPart, ReconstructVjpParams):
+    """Body of ``POST /v1/reconstruct/vjp``: the forms, constraints, options and cotangent."""
+
+    model_config = _example({**EXAMPLE_FORMS, "cotangent": [[0.0, 0.0, 1.0]] * 5,
+                             "options": {"refine": False}})
+
+
+class ReconstructVjpResponse(BaseModel):
+    """The reconstruction and the cotangents of its inputs (batch axis k first when the
+    cotangent had one): lengths and angles (E,), constraint positions (p, 3) and frames
+    (q, 3, 3) in the order they were sent. ``report.vjp`` says which answer was
+    differentiated (``linear`` or ``refined``) and what it cost."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {**EXAMPLE_MESH, "grad_lengths": [0.0] * 8, "grad_angles": [0.0] * 8,
+         "grad_positions": [], "grad_frames": [], "report": {"vjp": {"mode": "linear"}}}]})
+
+    vertices: list[Vec3]
+    faces: list[Tri]
+    grad_lengths: list[float] | list[list[float]]
+    grad_angles: list[float] | list[list[float]]
+    grad_positions: list[Any]
+    grad_frames: list[Any]
+    report: dict[str, Any]
+
+
 class DeformRequest(MeshPart, DeformParams):
     """Body of ``POST /v1/deform``."""
 
@@ -371,7 +409,7 @@ PARAMS_MODELS: dict[str, type[ApiModel]] = {
     "forms": FormsParams, "integrability": IntegrabilityParams,
     "reconstruct": ReconstructParams, "deform": DeformParams,
     "parameterize": ParameterizeParams, "interpolate": InterpolateParams,
-    "mesh": MeshParams,
+    "mesh": MeshParams, "reconstruct/vjp": ReconstructVjpParams,
 }
 """The non-mesh fields of each operation: the other form fields of a multipart upload."""
 

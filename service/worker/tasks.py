@@ -211,6 +211,35 @@ def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
     return _finish(request, progress, document, (result.vertices, faces), colors)
 
 
+def reconstruct_vjp_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """A reconstruction and the cotangents of its inputs for the request's ``cotangent``
+    (:func:`solver.reconstruct_vjp`)."""
+    params = request.params
+    options = params["options"]
+    progress("validate", 0.0)
+    forms, n_vertices = _forms(request)
+    if options["require_integrable"]:
+        report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
+                                            forms.angles, tol=options["tolerance"],
+                                            n_vertices=n_vertices)
+        if not report.integrable:
+            raise _not_integrable(report)
+    result, vjp = solver.reconstruct_vjp(
+        forms.faces, forms.edges, forms.lengths, forms.angles,
+        constraints=_constraints(params.get("constraints")),
+        frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
+        orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
+        backend=request.solver_backend, n_vertices=n_vertices,
+        integrability_tol=options["tolerance"], exact_shortcut=options["exact_shortcut"],
+        refine=options["refine"], max_seconds=request.solver_budget(), progress=progress)
+    cotangents = vjp.cotangents(np.asarray(params["cotangent"], dtype=np.float64))
+    document = {"vertices": result.vertices, "faces": np.asarray(forms.faces),
+                "grad_lengths": cotangents.lengths, "grad_angles": cotangents.angles,
+                "grad_positions": cotangents.positions, "grad_frames": cotangents.frames,
+                "report": result.report}
+    return _finish(request, progress, document)
+
+
 def deform_task(request: TaskRequest, progress: Progress) -> TaskResult:
     """Deform a mesh with position handles (and optional rotation handles / ROI)."""
     params = request.params

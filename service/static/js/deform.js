@@ -10,6 +10,10 @@
 // vertices come back as little-endian float32 (n, 3); a WebSocket reply puts an 8-byte header
 // in front (uint32 seq, uint32 n) and a text frame is a problem document (with "seq").
 // The page keeps one drag in flight, so the server's "newest drag wins" never drops one.
+// Progressive sessions (setup.refine: options.refine true): solve() resolves with the linear
+// shape at once; the refined shape of the newest drag comes later through onRefined(vertices,
+// report): over the socket a second reply whose JSON trailer (after the 12 n bytes) says
+// {"shape": "refined", ...}, over HTTP the drag's Link rel="refined", long-polled.
 
 import { ApiError, postArrays, request } from "./api.js";
 import { flatten3, rows3 } from "./mesh.js";
@@ -35,11 +39,14 @@ export function deformBody(setup, positions, rotations) {
     ...deformParams(setup, positions, rotations) };
 }
 
-/** Little-endian float32 (n, 3) from byte `offset` -> Float64Array(3n). */
-export function decodeVertices(buffer, n, offset = 0) {
-  const view = new DataView(buffer, offset);
-  if (n !== undefined && view.byteLength !== 12 * n) {
-    throw new Error(`expected ${12 * n} bytes of vertices, got ${view.byteLength}`);
+/** Little-endian float32 (n, 3) from byte `offset` -> Float64Array(3n). With `trailer`, the
+ * 12 n bytes may be followed by more (a progressive session's JSON trailer). */
+export function decodeVertices(buffer, n, offset = 0, { trailer = false } = {}) {
+  const view = new DataView(buffer, offset, n === undefined ? undefined
+    : Math.min(12 * n, buffer.byteLength - offset));
+  const size = buffer.byteLength - offset;
+  if (n !== undefined && (trailer ? size < 12 * n : size !== 12 * n)) {
+    throw new Error(`expected ${12 * n} bytes of vertices, got ${size}`);
   }
   const out = new Float64Array(view.byteLength / 4);
   for (let i = 0; i < out.length; i++) out[i] = view.getFloat32(4 * i, true);
@@ -47,6 +54,13 @@ export function decodeVertices(buffer, n, offset = 0) {
 }
 
 const WS_HEADER_BYTES = 8;
+
+/** The JSON trailer of a WebSocket reply with n vertices (null when there is none). */
+function replyTrailer(buffer, n) {
+  const start = WS_HEADER_BYTES + 12 * n;
+  if (buffer.byteLength <= start) return null;
+  return JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, start)));
+}
 
 export class DeformTransport {
   constructor(setup) {
@@ -69,9 +83,13 @@ export class DeformTransport {
 }
 
 export class SessionTransport {
-  constructor(setup, { websocket = true } = {}) {
+  /** `onRefined(vertices, report)`: a progressive session's refined shape of the newest drag. */
+  constructor(setup, { websocket = true, onRefined = null } = {}) {
     this.setup = setup;
     this.kind = "session";
+    this.onRefined = onRefined;
+    this.drags = 0;  // drags sent (the newest one's refined shape is the one that counts)
+    this.refinedShapes = 0;
     this.useWebSocket = websocket;
     this.socket = null;
     this.id = null;
@@ -149,8 +167,15 @@ export class SessionTransport {
     } else {
       const header = new DataView(event.data, 0, WS_HEADER_BYTES);
       seq = header.getUint32(0, true);
+      const n = header.getUint32(4, true);
       try {
-        result = decodeVertices(event.data, header.getUint32(4, true), WS_HEADER_BYTES);
+        result = decodeVertices(event.data, n, WS_HEADER_BYTES, { trailer: true });
+        const trailer = replyTrailer(event.data, n);
+        if (trailer?.shape === "refined") {
+          // The refined shape follows the drag's linear one: only the newest drag's counts.
+          if (seq === this.seq) this.refined(result, trailer);
+          return;
+        }
       } catch (err) {
         error = err;
       }
@@ -177,8 +202,41 @@ export class SessionTransport {
     return pending;
   }
 
+  refined(vertices, report) {
+    this.refinedShapes++;
+    this.lastRefinement = report;
+    this.onRefined?.(vertices, report);
+  }
+
+  /** Long-poll a drag's refined shape (HTTP; `link` from its Link header) until it is ready,
+   * superseded (409: a newer drag) or no longer wanted (a newer drag was sent). */
+  async followRefined(link, drag) {
+    while (this.id && drag === this.drags) {
+      let response;
+      try {
+        response = await request(`${link}?wait=20`, { method: "GET",
+          accept: "application/octet-stream", timeoutMs: 30000 });
+      } catch (err) {
+        if (err instanceof ApiError && err.status !== 409 && err.status !== 0) {
+          console.warn("[ffs] refined shape unavailable", err);
+        }
+        return;
+      }
+      if (response.status === 202) continue;
+      const vertices = decodeVertices(await response.arrayBuffer(), this.n);
+      if (drag !== this.drags) return;  // a newer drag was sent meanwhile
+      let report = null;
+      try {
+        report = JSON.parse(response.headers.get("X-Refinement") ?? "null");
+      } catch { /* the shape is what matters */ }
+      this.refined(vertices, report);
+      return;
+    }
+  }
+
   async solveOnce(positions, rotations) {
     const body = this.solveBody(positions, rotations);
+    const drag = ++this.drags;
     if (this.socket && this.socket.readyState === WebSocket.OPEN) {
       this.seq = (this.seq + 1) % 2 ** 32;
       this.pendingSeq = this.seq;
@@ -190,7 +248,10 @@ export class SessionTransport {
     }
     const response = await request(`/v1/sessions/${this.id}/solve`, { json: body,
       accept: "application/octet-stream" });
-    return decodeVertices(await response.arrayBuffer(), this.n);
+    const vertices = decodeVertices(await response.arrayBuffer(), this.n);
+    const link = /<([^>]+)>;\s*rel="refined"/.exec(response.headers.get("Link") ?? "");
+    if (link) this.followRefined(link[1], drag);
+    return vertices;
   }
 
   /** Close the socket and delete the session once the solve in flight (if any) is done;

@@ -45,7 +45,7 @@ const state = {
   handles: [],
   active: null,
   orthonormalize: false,
-  refineDrags: false,
+  refineDrags: true,  // progressive drags: the linear shape at once, settling to the refined
   transport: null,
   deformed: false,
   solving: null,
@@ -926,7 +926,8 @@ async function rebuildTransport({ solve = true } = {}) {
   const setup = setupFor();
   // ?transport=http (session, no WebSocket) or ?transport=deform (no session) pin a path.
   let transport = caps.sessions && TRANSPORT !== "deform"
-    ? new SessionTransport(setup, { websocket: TRANSPORT !== "http" })
+    ? new SessionTransport(setup, { websocket: TRANSPORT !== "http",
+      onRefined: (vertices) => { if (transport === state.transport) applyShape(vertices); } })
     : new DeformTransport(setup);
   let note = "";
   await withProgress("Preparing the deformation (factorization)…", async () => {
@@ -1446,6 +1447,7 @@ async function start() {
   const [, capabilities] = await Promise.all([loadSampleList(), api.capabilities()]);
   caps = capabilities;
   $("deform-refine-label").hidden = !caps.deformRefine;
+  $("deform-refine").checked = state.refineDrags;
   const wanted = new URLSearchParams(location.search).get("sample");
   const first = wanted ?? samples[0]?.file;
   if (first) await loadSample(first);

@@ -76,7 +76,16 @@ class Settings(BaseSettings):
         600.0, gt=0, description="Seconds a deformation session may stay idle before it is "
                                  "closed (its memory freed).")
     max_sessions: int = Field(
-        8, ge=0, le=10_000, description="Live deformation sessions at once; beyond it: 429.")
+        8, ge=0, le=10_000, description="Live deformation sessions at once; when full, "
+                                        "sessions idle for FFS_SESSION_GIVE_WAY seconds give "
+                                        "way (the longest idle first), else 429.")
+    max_client_sessions: int = Field(
+        4, ge=1, le=10_000, description="Sessions one client address may have open at once; "
+                                        "beyond it: 429.")
+    session_give_way: float = Field(
+        60.0, ge=0, description="Seconds without a drag after which a session is closed to "
+                                "make room for a new one when FFS_MAX_SESSIONS (or "
+                                "FFS_MAX_SESSION_MEMORY) is reached (410 afterwards).")
     max_session_memory: int = Field(
         4 * 1024**3, ge=0,
         description="Bytes all live sessions may hold together (measured per session after "

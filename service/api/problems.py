@@ -84,8 +84,12 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
                              "wait for one to finish."),
     "unavailable": (503, "Service unavailable", "The worker pool is not running."),
     "too-many-sessions": (429, "Too many sessions",
-                          "FFS_MAX_SESSIONS deformation sessions are open; delete one or retry "
-                          "after Retry-After seconds."),
+                          "FFS_MAX_SESSIONS deformation sessions are open and none has "
+                          "been idle for FFS_SESSION_GIVE_WAY seconds; retry after "
+                          "Retry-After seconds."),
+    "too-many-client-sessions": (429, "Too many sessions from this client",
+                                 "This client has FFS_MAX_CLIENT_SESSIONS sessions open; "
+                                 "delete one or let one expire."),
     "session-memory": (503, "Session memory exhausted",
                        "The open sessions and this one would exceed FFS_MAX_SESSION_MEMORY."),
     "drag-superseded": (409, "Drag superseded",

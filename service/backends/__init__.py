@@ -26,7 +26,8 @@ def job_policy(settings: Settings) -> JobPolicy:
 def session_policy(settings: Settings, threads: int) -> SessionPolicy:
     return SessionPolicy(settings.session_ttl, settings.max_sessions,
                          settings.max_session_memory, threads, settings.session_solve_timeout,
-                         settings.request_timeout, settings.session_refine_slice)
+                         settings.request_timeout, settings.session_refine_slice,
+                         settings.max_client_sessions, settings.session_give_way)
 
 
 def _local(settings: Settings, on_result: ResultCallback | None) -> Backend:

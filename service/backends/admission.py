@@ -1,18 +1,22 @@
 """Admission shared by the local and the Dask backends: how long to wait for a task slot,
 how much a session may take.
 
-Session admission is bounded by ``FFS_MAX_SESSIONS`` (:class:`TooManySessionsError` beyond) and
-``FFS_MAX_SESSION_MEMORY`` (:class:`SessionMemoryError` beyond): before a session is built
-its memory is estimated from the face count (:func:`estimate_memory`); once built it is
-measured and that number counts from then on.
+Session admission (:func:`admit_session`) is bounded by ``FFS_MAX_SESSIONS``
+(:class:`TooManySessionsError` beyond), ``FFS_MAX_SESSION_MEMORY`` (:class:`SessionMemoryError`
+beyond) and ``FFS_MAX_CLIENT_SESSIONS`` per client address (:class:`ClientSessionsError`):
+before a session is built its memory is estimated from the face count
+(:func:`estimate_memory`); once built it is measured and that number counts from then on.
+When the table (or the memory) is full, sessions idle for ``FFS_SESSION_GIVE_WAY`` seconds or
+more give way, the longest idle first, before a new one is refused.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Collection
+from collections.abc import Collection, Iterable
+from dataclasses import dataclass
 
-from service.backends.errors import TooManySessionsError
+from service.backends.errors import ClientSessionsError, SessionMemoryError, TooManySessionsError
 
 BYTES_PER_FACE_ESTIMATE = 6_000
 """Admission estimate of a session's memory per face before it is measured (a 20K-face
@@ -26,9 +30,61 @@ def estimate_memory(n_vertices: int, n_faces: int) -> int:
     return int(BASE_MEMORY_ESTIMATE + BYTES_PER_FACE_ESTIMATE * max(n_faces, 1))
 
 
-def too_many(count: int, limit: int, ttl: float) -> TooManySessionsError:
-    """The refusal at ``limit`` open sessions; retry when an idle one may have expired."""
-    return TooManySessionsError(count, limit, max(1, min(120, math.ceil(ttl / 4))))
+@dataclass(frozen=True)
+class SessionSlot:
+    """What admission needs of an open (or reserved) session: its client ``owner``, the
+    ``memory`` it counts for, and ``idle`` seconds since its last drag (``None`` while it is
+    being built or is answering a drag: it never gives way then)."""
+
+    id: str
+    owner: str | None
+    memory: int
+    idle: float | None
+
+
+@dataclass(frozen=True)
+class SessionAdmission:
+    """Limits of :func:`admit_session` (from :class:`~service.backends.contracts.SessionPolicy`)."""
+
+    max_sessions: int
+    max_memory: int
+    max_per_owner: int
+    give_way_after: float
+    ttl: float
+
+
+def admit_session(slots: Iterable[SessionSlot], owner: str | None, estimate: int,
+                  limits: SessionAdmission) -> list[str]:
+    """The ids of the sessions to close so that a new one of ``owner`` (about ``estimate``
+    bytes) fits: none when it fits as it is; else sessions idle for at least
+    ``limits.give_way_after`` seconds, the longest idle first, as many as needed. Raises
+    :class:`ClientSessionsError` when ``owner`` already has ``max_per_owner`` sessions (its
+    own idle ones do not give way: it may delete them), :class:`TooManySessionsError` or
+    :class:`SessionMemoryError` when not enough sessions may give way (none is closed then)."""
+    slots = list(slots)
+    if owner is not None and sum(s.owner == owner for s in slots) >= limits.max_per_owner:
+        raise ClientSessionsError(limits.max_per_owner)
+    idle = sorted((s for s in slots if s.idle is not None and s.idle >= limits.give_way_after),
+                  key=lambda s: -(s.idle or 0.0))
+    count, used, evict = len(slots), sum(s.memory for s in slots), []
+    while count >= limits.max_sessions or used + estimate > limits.max_memory:
+        if not idle:
+            if count >= limits.max_sessions:
+                raise TooManySessionsError(len(slots), limits.max_sessions,
+                                           _session_retry_after(slots, limits))
+            raise SessionMemoryError(sum(s.memory for s in slots), estimate, limits.max_memory)
+        victim = idle.pop(0)
+        evict.append(victim.id)
+        count, used = count - 1, used - victim.memory
+    return evict
+
+
+def _session_retry_after(slots: list[SessionSlot], limits: SessionAdmission) -> int:
+    """Seconds until the longest idle session may give way (or, with none idle, until an
+    idle one may have expired), 1 to 120."""
+    idle = [s.idle for s in slots if s.idle is not None]
+    wait = limits.give_way_after - max(idle) if idle else limits.ttl / 4
+    return max(1, min(120, math.ceil(min(wait, limits.ttl / 4))))
 
 
 def retry_after(durations: Collection[float], waiting: int, size: int) -> int:

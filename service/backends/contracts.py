@@ -22,6 +22,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from service.api.task import SessionSpec, TaskRequest, TaskResult
+from service.backends.admission import SessionAdmission
 from service.backends.jobs import Job
 from service.worker.session import Refined
 
@@ -130,7 +131,9 @@ class SessionPolicy:
     (``FFS_MAX_SESSIONS``, ``FFS_MAX_SESSION_MEMORY`` bytes), ``threads`` per session, the
     deadlines of one solve (``FFS_SESSION_SOLVE_TIMEOUT``, also a progressive drag's
     refinement budget) and of the set-up (``FFS_REQUEST_TIMEOUT``), the refinement's slice
-    (``FFS_SESSION_REFINE_SLICE``)."""
+    (``FFS_SESSION_REFINE_SLICE``), sessions per client (``FFS_MAX_CLIENT_SESSIONS``) and the
+    idle seconds after which a session gives way to a new one in a full table
+    (``FFS_SESSION_GIVE_WAY``)."""
 
     ttl: float
     max_sessions: int
@@ -139,6 +142,13 @@ class SessionPolicy:
     solve_timeout: float
     setup_timeout: float
     refine_slice: float = 0.05
+    max_per_client: int = 4
+    give_way_after: float = 60.0
+
+    def admission(self) -> SessionAdmission:
+        """The limits :func:`~service.backends.admission.admit_session` checks."""
+        return SessionAdmission(self.max_sessions, self.max_memory, self.max_per_client,
+                                self.give_way_after, self.ttl)
 
 
 @dataclass(frozen=True)
@@ -179,9 +189,12 @@ class SessionBackend(Protocol):
 
     async def stop(self) -> None: ...
 
-    async def create(self, spec: SessionSpec) -> SessionRecord:
-        """Build a session (``TooManySessionsError``, ``SessionMemoryError``,
-        ``TaskFailedError`` for a bad mesh, ``DeadlineError``, ``WorkerDiedError``)."""
+    async def create(self, spec: SessionSpec, owner: str | None = None) -> SessionRecord:
+        """Build a session for client ``owner`` (admission:
+        :func:`~service.backends.admission.admit_session`, which may close idle sessions to
+        make room: they answer ``SessionGoneError`` afterwards; ``ClientSessionsError``,
+        ``TooManySessionsError``, ``SessionMemoryError``, ``TaskFailedError`` for a bad mesh,
+        ``DeadlineError``, ``WorkerDiedError``)."""
 
     async def describe(self, session_id: str) -> SessionRecord: ...
 

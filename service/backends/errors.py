@@ -125,6 +125,15 @@ class TooManySessionsError(BackendError):
         self.count, self.limit, self.retry_after = count, limit, retry_after
 
 
+class ClientSessionsError(BackendError):
+    """This client already has ``FFS_MAX_CLIENT_SESSIONS`` sessions open."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(f"this client already has {limit} sessions open (the limit per "
+                         "client, FFS_MAX_CLIENT_SESSIONS); delete one or let one expire")
+        self.limit = limit
+
+
 class SessionMemoryError(BackendError):
     """The open sessions and a new one would exceed ``FFS_MAX_SESSION_MEMORY``."""
 

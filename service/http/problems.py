@@ -64,6 +64,9 @@ def problem_for(exc: backend.BackendError) -> ProblemError:
     if isinstance(exc, backend.ClientJobsError):
         return ProblemError("too-many-client-jobs", str(exc), headers=RETRY_SOON,
                             limit=exc.limit)
+    if isinstance(exc, backend.ClientSessionsError):
+        return ProblemError("too-many-client-sessions", str(exc), headers=RETRY_SOON,
+                            limit=exc.limit)
     if isinstance(exc, backend.JobLostError):
         return ProblemError("job-lost", str(exc), restarted_at=exc.started_at)
     if isinstance(exc, backend.JobStoreFullError):

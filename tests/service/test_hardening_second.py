@@ -199,6 +199,93 @@ def test_ffs_cors_origins_are_allowed():
                 "forbidden-origin")
 
 
+def _client_at(base: str, address: str) -> httpx.Client:
+    """A client whose connections come from ``address`` (any of 127.0.0.0/8 on loopback):
+    another client address as far as the service can tell."""
+    return httpx.Client(base_url=base, timeout=60,
+                        transport=httpx.HTTPTransport(local_address=address))
+
+
+def _open_session(client: httpx.Client) -> httpx.Response:
+    V, F = GRID
+    return client.post("/v1/sessions", json={"vertices": V.tolist(), "faces": F.tolist(),
+                                              "handles": [{"vertex": 0}, {"vertex": 11}]})
+
+
+def _drag(client: httpx.Client, location: str) -> None:
+    V = GRID[0]
+    response = client.post(f"{location}/solve", json={"handle_positions": [
+        V[0].tolist(), (V[11] + [0, 0, 0.1]).tolist()]})
+    assert response.status_code == 200, response.text
+
+
+def test_sessions_per_client_and_idle_ones_give_way():
+    # Was: 8 sessions of one client gave everyone 429 for FFS_SESSION_TTL (600 s).
+    env = {"FFS_MAX_SESSIONS": "3", "FFS_MAX_CLIENT_SESSIONS": "2",
+           "FFS_SESSION_GIVE_WAY": "2", "FFS_SESSION_TTL": "600"}
+    with uvicorn_server(env) as url, _client_at(url, "127.0.0.1") as a, \
+            _client_at(url, "127.0.0.2") as b, _client_at(url, "127.0.0.3") as c:
+        a1, a2 = (_open_session(a).headers["location"] for _ in range(2))
+        doc = problem(_open_session(a), 429, "too-many-client-sessions")
+        assert "FFS_MAX_CLIENT_SESSIONS" in doc["detail"] and doc["limit"] == 2, doc
+        b1 = _open_session(b)
+        assert b1.status_code == 201, b1.text  # another client still gets in
+        b1 = b1.headers["location"]
+        # The table is full and no session has been idle for FFS_SESSION_GIVE_WAY: 429,
+        # with a Retry-After of about when the longest idle one may give way.
+        refused = _open_session(c)
+        doc = problem(refused, 429, "too-many-sessions")
+        assert 1 <= int(refused.headers["retry-after"]) <= 2, refused.headers
+        time.sleep(2.5)
+        # A client's own idle sessions never give way to it: at its cap it must delete one.
+        problem(_open_session(a), 429, "too-many-client-sessions")
+        _drag(a, a2)
+        _drag(b, b1)
+        opened = _open_session(c)  # a1, idle longest, gives way; nobody else does
+        assert opened.status_code == 201, opened.text
+        doc = problem(a.get(a1), 410, "session-gone")
+        assert "gave way" in doc["reason"] and "FFS_SESSION_GIVE_WAY" in doc["reason"], doc
+        for client, location in ((a, a2), (b, b1), (c, opened.headers["location"])):
+            assert client.get(location).status_code == 200
+            _drag(client, location)
+        assert metric_value(a.get("/metrics").text, "ffs_sessions") == 3
+        assert a.delete(a2).status_code == 204
+        assert _open_session(a).status_code == 201  # room again, nobody had to give way
+        assert b.get(b1).status_code == 200
+        assert metric_value(a.get("/metrics").text, "ffs_http_requests_total",
+                            status="500") == 0
+
+
+def test_the_dask_registry_admits_sessions_the_same_way():
+    from service.backends.dask.registry import Registry
+
+    registry = Registry()
+
+    def admit(sid: str, owner: str, now: float, estimate: int = 100):
+        return registry.session_admit(sid, estimate, 3, 1000, now, 60.0, 600.0, owner, 2, 2.0)
+
+    def ready(sid: str, now: float) -> None:
+        assert registry.session_ready(sid, {}, 100, "w", now, 1000) is None
+
+    for sid, owner in (("a1", "A"), ("a2", "A"), ("b1", "B")):
+        assert admit(sid, owner, 0.0) is None
+        ready(sid, 0.0)
+    assert admit("a3", "A", 0.5) == {"kind": "client", "limit": 2}
+    refusal = admit("c1", "C", 0.5)
+    assert refusal["kind"] == "too-many" and refusal["retry_after"] == 2, refusal
+    registry.session_touch("a2", 2.5, 1)
+    registry.session_touch("b1", 2.6, 1)
+    assert admit("c1", "C", 3.0) == {"kind": "admitted", "evict": ["a1"]}
+    assert registry.session_get("a1")["state"] == "gone"
+    assert "gave way" in registry.session_get("a1")["reason"]
+    # Memory: the idle sessions give way as well (the longest idle first), else 503's kind.
+    registry.session_remove("c1")
+    assert admit("d1", "D", 3.5, estimate=900) == {"kind": "memory", "used": 200}
+    answer = admit("d1", "D", 10.0, estimate=850)  # a2 (touched at 2.5) is enough
+    assert answer == {"kind": "admitted", "evict": ["a2"]}, answer
+    assert registry.session_get("b1")["state"] == "ready"
+
+
 # ----------------------------------------------------------------- 6: protocol details
 
 

@@ -37,7 +37,7 @@ def web_server() -> Iterator[str]:
     if not VENDOR_MANIFEST.is_file():
         pytest.fail("the page's three.js modules are not built: run `npm ci --prefix web` "
                     "(scripts/test.sh does)")
-    with uvicorn_server({"FFS_MAX_SESSIONS": "16"}) as base:
+    with uvicorn_server({"FFS_MAX_SESSIONS": "16", "FFS_MAX_CLIENT_SESSIONS": "16"}) as base:
         yield base
 
 

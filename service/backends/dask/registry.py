@@ -4,7 +4,8 @@ A scheduler plugin keeps the job records and follows their tasks' transitions (q
 running -> succeeded / failed / cancelled) itself, so a job does not depend on the replica
 that submitted it. Workers send progress as scheduler events (``Worker.log_event``,
 batched, non-blocking); the plugin folds them into the record. It also admits sessions
-against FFS_MAX_SESSIONS and FFS_MAX_SESSION_MEMORY atomically, tracks their last use,
+against FFS_MAX_SESSIONS, FFS_MAX_SESSION_MEMORY and FFS_MAX_CLIENT_SESSIONS atomically
+(idle ones giving way), tracks their last use,
 expires idle ones and buries the sessions of a worker that leaves the cluster.
 
 Replicas reach it with ``Client.run_on_scheduler`` (:func:`registry_call`); the first call
@@ -20,6 +21,12 @@ import time
 from typing import Any
 
 from service.api.problems import failure
+from service.backends.admission import SessionAdmission, SessionSlot, admit_session
+from service.backends.errors import (
+    ClientSessionsError,
+    SessionMemoryError,
+    TooManySessionsError,
+)
 from service.backends.jobs import Job, admit, count_states, job_fields
 
 REGISTRY_NAME = "ffs-registry"
@@ -185,22 +192,39 @@ class Registry(SchedulerPlugin):  # type: ignore[misc,valid-type]
 
     def session_admit(self, session_id: str, estimate: int, max_sessions: int,
                       max_memory: int, now: float, stale_after: float,
-                      ttl: float) -> dict[str, Any] | None:
-        """Reserve room for a new session, or say why not (``too-many`` / ``memory``)."""
+                      ttl: float, owner: str | None = None, max_per_owner: int = 10_000,
+                      give_way_after: float = float("inf")) -> dict[str, Any] | None:
+        """Reserve room for a new session of client ``owner`` (:func:`admit_session`), or say
+        why not (``kind``: ``too-many`` with ``retry_after``, ``memory``, ``client``). Idle
+        sessions that give way are buried here: ``{"kind": "admitted", "evict": ids}`` (the
+        caller releases their actors); None when nothing had to give way."""
         for sid, record in list(self.sessions.items()):
             if record["state"] == "creating" and now - record["created"] > stale_after:
                 del self.sessions[sid]  # its replica never finished creating it
-        live = [r for r in self.sessions.values() if r["state"] in ("creating", "ready")]
-        if len(live) >= max_sessions:
-            return {"kind": "too-many", "count": len(live)}
-        used = sum(r["memory"] for r in live)
-        if used + estimate > max_memory:
-            return {"kind": "memory", "used": used}
+        slots = [SessionSlot(sid, r.get("owner"), r["memory"],
+                             now - r["last_used"] if r["state"] == "ready" else None)
+                 for sid, r in self.sessions.items() if r["state"] in ("creating", "ready")]
+        limits = SessionAdmission(max_sessions, max_memory, max_per_owner, give_way_after, ttl)
+        try:
+            evict = admit_session(slots, owner, estimate, limits)
+        except TooManySessionsError as exc:
+            return {"kind": "too-many", "count": exc.count, "retry_after": exc.retry_after}
+        except SessionMemoryError as exc:
+            return {"kind": "memory", "used": exc.used}
+        except ClientSessionsError:
+            return {"kind": "client", "limit": max_per_owner}
+        for sid in evict:
+            record = self.sessions[sid]
+            self._bury(record, f"it gave way to a new session after "
+                               f"{now - record['last_used']:.0f} s without a drag (the open "
+                               "sessions were at FFS_MAX_SESSIONS or FFS_MAX_SESSION_MEMORY; "
+                               "FFS_SESSION_GIVE_WAY)", now)
+            record["released"] = True  # (by the caller)
         self.sessions[session_id] = {"id": session_id, "state": "creating", "memory": estimate,
                                      "created": now, "last_used": now, "info": None,
                                      "worker": None, "reason": None, "until": None,
-                                     "solves": 0, "ttl": ttl}
-        return None
+                                     "solves": 0, "ttl": ttl, "owner": owner}
+        return {"kind": "admitted", "evict": evict} if evict else None
 
     def session_ready(self, session_id: str, info: dict[str, Any], memory: int, worker: str,
                       now: float, max_memory: int) -> dict[str, Any] | None:

@@ -3,7 +3,8 @@
 Each session is a Dask actor (:class:`~service.backends.dask.worker.SessionActor`, one
 :class:`~service.worker.session.SessionState` each) pinned to the worker that built it and
 held by a published dataset ``ffs-session-{id}``. The registry admits sessions against
-FFS_MAX_SESSIONS and FFS_MAX_SESSION_MEMORY atomically, tracks their last use, expires idle
+FFS_MAX_SESSIONS, FFS_MAX_SESSION_MEMORY and FFS_MAX_CLIENT_SESSIONS atomically (idle ones
+giving way, their actors released by the admitting replica), tracks their last use, expires idle
 ones and buries the sessions of a worker that leaves the cluster (gone afterwards).
 """
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from service.api.task import SessionSpec
 from service.backends import errors
-from service.backends.admission import estimate_memory, too_many
+from service.backends.admission import estimate_memory
 from service.backends.contracts import DragAnswer, SessionPolicy, SessionRecord
 from service.backends.dask.connection import DaskConnection
 from service.backends.dask.registry import SESSION_PREFIX
@@ -107,18 +108,27 @@ class DaskSessions:
 
     # --------------------------------------------------------------------- create
 
-    async def create(self, spec: SessionSpec) -> SessionRecord:
+    async def create(self, spec: SessionSpec, owner: str | None = None) -> SessionRecord:
         client = await self.connection.wait_connected(5.0)
         session_id = uuid.uuid4().hex
         estimate = estimate_memory(len(spec.vertices), len(spec.faces))
         policy = self.policy
-        refusal = await self.connection.call("session_admit", session_id, estimate,
-                                             policy.max_sessions, policy.max_memory,
-                                             time.time(), policy.setup_timeout + 30, policy.ttl)
-        if refusal is not None:
-            if refusal["kind"] == "too-many":
-                raise too_many(refusal["count"], self.policy.max_sessions, self.policy.ttl)
-            raise errors.SessionMemoryError(refusal["used"], estimate, self.policy.max_memory)
+        answer = await self.connection.call("session_admit", session_id, estimate,
+                                            policy.max_sessions, policy.max_memory,
+                                            time.time(), policy.setup_timeout + 30, policy.ttl,
+                                            owner, policy.max_per_client,
+                                            policy.give_way_after)
+        kind = None if answer is None else answer["kind"]
+        if kind == "too-many":
+            raise errors.TooManySessionsError(answer["count"], policy.max_sessions,
+                                              answer["retry_after"])
+        if kind == "memory":
+            raise errors.SessionMemoryError(answer["used"], estimate, policy.max_memory)
+        if kind == "client":
+            raise errors.ClientSessionsError(policy.max_per_client)
+        for evicted in (answer or {}).get("evict", ()):
+            await self._release(evicted)
+            self._count = max(0, self._count - 1)
         future = None
         try:
             future = client.submit(SessionActor, spec, self.policy.threads,

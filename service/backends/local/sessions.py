@@ -26,7 +26,7 @@ from typing import Any
 
 from service.api.task import SessionSpec
 from service.backends import errors
-from service.backends.admission import estimate_memory, too_many
+from service.backends.admission import SessionSlot, admit_session, estimate_memory
 from service.backends.contracts import DragAnswer, SessionPolicy, SessionRecord
 from service.backends.loops import new_future, settle, sweep_forever
 from service.backends.processes import Message, WorkerProcess
@@ -85,6 +85,7 @@ class _LocalSession:
     proc: WorkerProcess
     info: dict[str, Any]
     memory: int
+    owner: str | None = None
     last_used: float = field(default_factory=time.monotonic)
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     pending: asyncio.Future[Any] | None = None
@@ -112,7 +113,8 @@ class LocalSessions:
         self.start_method = start_method
         self._sessions: dict[str, _LocalSession] = {}
         self._gone: dict[str, tuple[str, float]] = {}
-        self._reserved: dict[str, int] = {}
+        self._reserved: dict[str, SessionSlot] = {}
+        """Sessions being built: admission counts them (never idle)."""
         self._loop: asyncio.AbstractEventLoop | None = None
         self._sweeper: asyncio.Task[None] | None = None
         self.deaths = 0
@@ -198,22 +200,32 @@ class LocalSessions:
             raise
         return proc
 
-    def _admit(self, estimate: int) -> None:
-        open_now = self.count() + len(self._reserved)
-        if open_now >= self.policy.max_sessions:
-            raise too_many(open_now, self.policy.max_sessions, self.policy.ttl)
-        used = self.memory() + sum(self._reserved.values())
-        if used + estimate > self.policy.max_memory:
-            raise errors.SessionMemoryError(used, estimate, self.policy.max_memory)
+    def _admit(self, session_id: str, owner: str | None, estimate: int
+               ) -> list[_LocalSession]:
+        """Reserve room for session ``session_id`` of ``owner`` (:func:`admit_session`);
+        the idle sessions that give way are buried here and returned, to be closed."""
+        now = time.monotonic()
+        slots = [SessionSlot(s.id, s.owner, s.memory,
+                             None if s.lock.locked() else now - s.last_used)
+                 for s in self._sessions.values() if s.alive]
+        evicted = [self._sessions[sid] for sid in admit_session(
+            [*slots, *self._reserved.values()], owner, estimate, self.policy.admission())]
+        for session in evicted:
+            self._bury(session, f"it gave way to a new session after "
+                                f"{now - session.last_used:.0f} s without a drag (the open "
+                                "sessions were at FFS_MAX_SESSIONS or FFS_MAX_SESSION_MEMORY; "
+                                "FFS_SESSION_GIVE_WAY)")
+        self._reserved[session_id] = SessionSlot(session_id, owner, estimate, None)
+        return evicted
 
-    async def create(self, spec: SessionSpec) -> SessionRecord:
+    async def create(self, spec: SessionSpec, owner: str | None = None) -> SessionRecord:
         await self.expire()
         estimate = estimate_memory(len(spec.vertices), len(spec.faces))
-        self._admit(estimate)
         session_id = uuid.uuid4().hex
-        self._reserved[session_id] = estimate
+        evicted = self._admit(session_id, owner, estimate)
         proc: WorkerProcess | None = None
         try:
+            await asyncio.gather(*(asyncio.to_thread(self._close, s) for s in evicted))
             try:
                 proc = await asyncio.to_thread(self._spawn, session_id, spec)
             except OSError as exc:  # it died before it read the mesh
@@ -227,7 +239,7 @@ class LocalSessions:
                 raise errors.TaskFailedError(message[1])
             _, info, memory = message
             session = _LocalSession(id=session_id, proc=proc, info=info,
-                                    memory=int(memory) or estimate)
+                                    memory=int(memory) or estimate, owner=owner)
         except BaseException:
             self._reserved.pop(session_id, None)
             if proc is not None:

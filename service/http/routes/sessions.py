@@ -90,7 +90,8 @@ def session_document(record: SessionRecord) -> dict[str, Any]:
 async def create_session(request: Request, settings: SettingsDep, sessions: SessionsDep,
                          metrics: MetricsDep) -> Response:
     spec = await session_spec(request, settings)
-    doc = session_document(await sessions.create(spec))
+    owner = request.client.host if request.client else None  # FFS_MAX_CLIENT_SESSIONS
+    doc = session_document(await sessions.create(spec, owner))
     metrics.session_created()
     return Response(json_bytes(doc), status_code=201, media_type="application/json",
                     headers={"Location": doc["links"]["self"]})

@@ -53,9 +53,11 @@ def _shared(name: str):
 def test_updates_compile_no_shader(web):
     """Selections, new handles, drags and colour refreshes reuse their materials: once the
     first drag has been drawn, nothing compiles a shader any more (the marker spheres used to
-    be rebuilt with new materials on every update)."""
+    be rebuilt with new materials on every update). In the Deform tab, where the handles'
+    gizmo is drawn."""
     web.page.add_init_script(PROBES)
     page = web.open()
+    page.click("#tab-deform")
     web.app("app.makeHandle([0, 1, 2])")
     web.app("app.makeHandle(app.visibleVertices().slice(600, 620))")
     web.app("app.dragHandle(0, 0, 5)")

@@ -102,6 +102,9 @@ class _BlockPattern:
         self.keys = np.unique(np.concatenate(keys))
         self.values = np.zeros(len(self.keys) * 9)
 
+    def clear(self) -> None:
+        self.values = np.zeros(len(self.keys) * 9)
+
     def add(self, a: np.ndarray, b: np.ndarray, blocks: np.ndarray) -> None:
         """Add blocks (r, 3, 3) at vertex pairs (a, b) (both (r,))."""
         where = np.searchsorted(self.keys, a * self.n + b)
@@ -146,6 +149,7 @@ class RefinedEnergy:
         self.frame_pairs = np.stack([F[:, [0, 1]], F[:, [0, 2]]], axis=1)   # (q, 2, 2)
         self.frame_edges = np.asarray(handles.frame_edges, dtype=np.float64).reshape(-1, 2, 3)
         self.frame_weights = np.asarray(handles.frame_weights, dtype=np.float64)
+        self._pattern: _BlockPattern | None = None
 
     # -- residual pieces
 
@@ -198,15 +202,20 @@ class RefinedEnergy:
         for k in range(out.shape[1]):
             out[:, k] += np.bincount(index, values[:, k], minlength=len(out))
 
-    def hessian(self, X: np.ndarray) -> sp.csr_array:
+    def hessian(self, X: np.ndarray, exact: bool = True) -> sp.csr_array:
         """The exact Hessian of E (3n, 3n), symmetric CSR, row ``3 v + k`` = coordinate k of
         vertex v: ``J^T J`` plus the residual-weighted second derivatives of every residual
-        (lengths: ``r (I - u u^T) / (l L)``; dihedral angles: ``beta r Hess(theta)``)."""
+        (lengths: ``r (I - u u^T) / (l L)``; dihedral angles: ``beta r Hess(theta)``).
+        ``exact=False``: the Gauss-Newton matrix ``J^T J`` alone (for comparisons)."""
         edges, hinge = self.topology.edges, self.hinge
-        pairs = [edges, hinge[:, 2:4]]
-        pattern = _BlockPattern(self.n, pairs)
+        if self._pattern is None:   # vertex pairs sharing an edge or a hinge's two tips
+            self._pattern = _BlockPattern(self.n, [edges, hinge[:, 2:4]])
+        pattern = self._pattern
+        pattern.clear()
         eye = np.eye(3)
         length, unit, r_len = self._lengths(X)
+        if not exact:
+            r_len = np.zeros_like(r_len)
         L = self.lengths
         outer = unit[:, :, None] * unit[:, None, :]
         block = (outer / L[:, None, None] ** 2
@@ -218,7 +227,7 @@ class RefinedEnergy:
         pattern.add(j, i, -block)
         if len(hinge):
             theta, G = hinge_angles(X, hinge, self.floor)
-            r_ang = wrap_angle(theta - self.angles[self.inner])
+            r_ang = wrap_angle(theta - self.angles[self.inner]) * float(exact)
             k = len(hinge)
             columns = np.empty((k, 4, 3, 4, 3))   # [hinge, slot_row, coord_row, slot, coord]
             for slot in range(4):

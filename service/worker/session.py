@@ -7,7 +7,9 @@ A session opened with ``options.refine: true`` is *progressive*: :meth:`SessionS
 answers the linear shape at once and leaves the drag's refinement pending; the worker then
 calls :meth:`SessionState.refine_slice` while no newer drag is waiting (a new drag is never
 delayed by more than one slice), and the last slice yields the refined shape
-(:class:`Refined`). A newer drag supersedes a pending refinement.
+(:class:`Refined`). A newer drag supersedes a pending refinement. The first slice waits
+until the drags pause (:meth:`SessionState.refine_due`): while the user drags on, each
+drag's linear shape comes without waiting for a refinement slice.
 """
 
 from __future__ import annotations
@@ -21,6 +23,9 @@ import numpy as np
 from service.api.task import SessionSpec
 from service.worker import output
 
+DRAG_PAUSE = 0.03
+"""Seconds without a newer drag after which a progressive session starts refining (an
+interactive client sends its next drag within milliseconds of a linear answer)."""
 SESSION_FORMATS: tuple[str, ...] = ("json", "glb", "gltf", "f32")
 """Response formats of a session solve, in server preference order."""
 
@@ -114,6 +119,15 @@ class SessionState:
                                if self.progressive else None)
         self.pending = _Pending(self.drags, fmt) if self.progressive else None
         return body, {"solve": t1 - t0, "encode": time.perf_counter() - t1}, self.drags
+
+    def refine_due(self) -> float:
+        """Seconds until the pending drag's refinement should start: a drag refines once no
+        newer one came for :data:`DRAG_PAUSE` seconds after its linear answer (0: now, or it
+        has started already)."""
+        pending = self.pending
+        if pending is None or pending.slices:
+            return 0.0
+        return max(0.0, pending.started + DRAG_PAUSE - time.perf_counter())
 
     def refine_slice(self, seconds: float) -> Refined | None:
         """Refine the pending drag for about ``seconds`` (the refinement checks its clock

@@ -60,9 +60,12 @@ def _ws_message(message: bytes) -> tuple[int, np.ndarray, dict | None]:
     return seq, vertices, json.loads(rest) if rest else None
 
 
-def _check_refined_report(report: dict) -> None:
-    assert report["converged"] is True, report
-    assert report["stop_reason"] in ("converged", "stationary"), report
+def _check_refined_report(report: dict, converged: bool = True) -> None:
+    """A finished refinement's report; ``converged``: it must have converged (else it may
+    also have stopped at the iteration limit: the solver's business, not the protocol's)."""
+    stops = ("converged", "stationary") + (() if converged else ("max_iterations",))
+    assert report["stop_reason"] in stops, report
+    assert report["converged"] is (report["stop_reason"] != "max_iterations"), report
     assert report["iterations"] >= 1 and report["factorizations"] >= 0, report
     assert report["slices"] >= 1 and report["seconds"] > 0
 
@@ -149,7 +152,7 @@ def test_a_new_drag_supersedes_the_refinement_in_progress(sphere):
         assert doc["drag"] == 1 and doc["latest"] == 2
         refined = client.get(_refined_link(second), params={"wait": 60})
         assert refined.status_code == 200
-        _check_refined_report(refined.json()["refinement"])
+        _check_refined_report(refined.json()["refinement"], converged=False)
         problem(client.get(f"{location}/drags/3/refined"), 404, "not-found")
 
         # WebSocket: drag 3, and as soon as its linear shape is back, drag 4.
@@ -163,7 +166,7 @@ def test_a_new_drag_supersedes_the_refinement_in_progress(sphere):
                 replies.append(_ws_message(ws.receive_bytes()))
         kinds = [(seq, trailer["shape"], trailer["drag"]) for seq, _, trailer in replies]
         assert kinds == [(2, "linear", 4), (2, "refined", 4)], kinds
-        _check_refined_report(replies[-1][2])
+        _check_refined_report(replies[-1][2], converged=False)
         # The newest drag's refined shape over HTTP is the one the socket sent.
         got = client.get(f"{location}/drags/4/refined")
         assert got.status_code == 200 and got.headers["content-type"] == OCTET
@@ -223,5 +226,5 @@ def test_progressive_drags_on_a_dask_actor(dask_app, sphere):
     assert doc["latest"] == 4
     got = dask_app.get(_refined_link(fourth), params={"wait": 60})
     assert got.status_code == 200, got.text
-    _check_refined_report(got.json()["refinement"])
+    _check_refined_report(got.json()["refinement"], converged=False)
     assert dask_app.delete(location).status_code == 204

@@ -104,6 +104,10 @@ class _Refinery:
 
         while self.waiting:  # a drag or a poll is waiting: let it in
             time.sleep(0.0005)
+        due = self.state.refine_due()  # the drags have not paused yet
+        if due > 0:
+            time.sleep(min(due, 0.005))
+            return self.state.pending is not None
         with self.lock:
             pending = self.state.pending
             if pending is None:

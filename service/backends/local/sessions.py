@@ -38,7 +38,8 @@ logger = logging.getLogger("service.sessions")
 def _session_main(conn: Connection, threads: int, refine_seconds: float = 30.0,
                   refine_slice: float = 0.05) -> None:
     """Entry point of a local session process: build the session, then serve solves;
-    between them (no drag waiting on the pipe) refine the newest drag slice by slice."""
+    between them (no drag waiting on the pipe, none for DRAG_PAUSE after the last one)
+    refine the newest drag slice by slice."""
     from service.worker import runtime
 
     runtime.start_worker_process(threads)
@@ -54,7 +55,7 @@ def _session_main(conn: Connection, threads: int, refine_seconds: float = 30.0,
         del spec
         conn.send(("ready", state.info(), process_memory()))
         while True:
-            if state.pending is not None and not conn.poll(0):
+            if state.pending is not None and not conn.poll(state.refine_due()):
                 drag = state.pending.drag
                 try:
                     refined = state.refine_slice(refine_slice)

@@ -94,6 +94,7 @@ stretching diagonal: each step then closed only a small fraction of their gap, a
 refinement crawled through a long tail of iterations (rocker-arm, noisy angles: 16
 iterations and 4 factorizations against 2 and 1 to a lower energy; docs/refinement.md)."""
 MIN_DAMPING = 1e-12  # the Nielsen update never lowers lambda below this
+REFUSED_DAMPING = 1e-4  # at least this lambda after a fresh step that no backtracking saved
 MAX_DAMPING = 1e12  # relative damping at which a step is declared impossible
 DEGENERATE = 1e-12  # floor of |N|^2 / s^4 for the dihedral gradient of collapsed faces
 
@@ -783,7 +784,7 @@ class Refiner:
                 if found is None:
                     rejected += 1
                     if fresh:
-                        damping *= growth
+                        damping = max(damping * growth, REFUSED_DAMPING)
                         growth *= 2.0
                     elif H is None:  # a frozen factor failed: rebuild it here
                         energy, H, g = objective.normal_equations(X)

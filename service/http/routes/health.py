@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from fastapi import APIRouter
-from starlette.responses import Response
+from starlette.responses import PlainTextResponse, Response
 
 from service.api.documents import Health, ProblemKind, Readiness
 from service.api.problems import PROBLEM_KINDS, ProblemError, problem_type
@@ -40,6 +40,7 @@ async def readyz(services: ServicesDep) -> Response:
 @router.get("/metrics", summary="Prometheus metrics",
             description="Request counts and latencies per route, solver stage timings, queue "
                         "depth, pool size (Prometheus text format).",
+            response_class=PlainTextResponse,
             responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
                              "description": "Prometheus exposition format."}})
 async def metrics(registry: MetricsDep) -> Response:

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 
 import anyio
 from fastapi import APIRouter, Path, Query, Request
-from starlette.responses import Response
+from starlette.responses import JSONResponse, Response
 
 from service.api.documents import JobStatus
 from service.api.problems import ProblemError, from_failure
@@ -79,7 +79,7 @@ async def _get(jobs: JobsDep, job_id: str) -> Job:
                          "body the synchronous endpoint takes. Multipart: form fields "
                          "`operation`, optional `color`, the mesh in `file` (`file_a`/`file_b` "
                          "for interpolate) and the operation's other fields JSON-encoded.",
-             response_class=Response, openapi_extra=jobs_body(), operation_id="submit_job",
+             response_class=JSONResponse, openapi_extra=jobs_body(), operation_id="submit_job",
              responses={202: created("Accepted; poll the Location.", "/v1/jobs/{id}", "job_id",
                                      {"GetJob": "get_job", "GetJobResult": "get_job_result",
                                       "DeleteJob": "delete_job"}),
@@ -97,7 +97,7 @@ async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep) -> 
             operation_id="get_job",
             description="State, progress by stage with fractions, timings and the error "
                         "(a problem document) of a job.",
-            response_class=Response, responses=error_responses(404, 410, 422))
+            response_class=JSONResponse, responses=error_responses(404, 410, 422))
 async def get_job(jobs: JobsDep, job_id: JobId) -> Response:
     return _status_response(await _get(jobs, job_id))
 
@@ -152,7 +152,7 @@ def _encode(result: TaskResult, fmt: str, values: Any) -> bytes:
                description="Cancels a queued or running job (200, status `cancelled`; a "
                            "running solve is stopped by replacing its worker). A finished "
                            "job is deleted with its result (204).",
-               response_class=Response,
+               response_class=JSONResponse,
                responses={204: {"description": "Deleted."},
                           **error_responses(404, 410, 422)})
 async def delete_job(jobs: JobsDep, job_id: JobId) -> Response:

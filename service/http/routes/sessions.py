@@ -14,7 +14,7 @@ from typing import Annotated, Any
 import numpy as np
 import orjson
 from fastapi import APIRouter, Path, Query, Request, WebSocket
-from starlette.responses import Response
+from starlette.responses import JSONResponse, Response
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from service.api.documents import RefiningStatus, SessionInfo, SessionVertices
@@ -76,7 +76,7 @@ def session_document(record: SessionRecord) -> dict[str, Any]:
                          "drag then only back-substitutes: `POST /v1/sessions/{id}/solve` or "
                          "the WebSocket `/v1/sessions/{id}/ws`. Answers 201 with Location. "
                          "Idle sessions expire after FFS_SESSION_TTL seconds.",
-             response_class=Response,
+             response_class=JSONResponse,
              openapi_extra={"requestBody": {"required": True, "content": {
                  "application/json": {"schema": {"$ref": "#/components/schemas/"
                                                          "SessionRequest"},
@@ -99,7 +99,7 @@ async def create_session(request: Request, settings: SettingsDep, sessions: Sess
 
 @router.get("/v1/sessions/{session_id}", response_model=SessionInfo, summary="Session state",
             operation_id="get_session",
-            response_class=Response, responses=error_responses(404, 410))
+            response_class=JSONResponse, responses=error_responses(404, 410))
 async def get_session(sessions: SessionsDep, session_id: SessionId) -> Response:
     doc = session_document(await sessions.describe(session_id))
     return Response(json_bytes(doc), media_type="application/json")

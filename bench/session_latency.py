@@ -24,6 +24,14 @@ cluster: the session is a Dask actor). Targets: HTTP p50 <= 40 ms, WebSocket p50
 ``python bench/session_latency.py [--drags 200] [--dask] [--out bench/SESSIONS.md]``
 prints a markdown table (and writes it with ``--out``, replacing that file's latency
 section).
+
+``--progressive N`` measures progressive drags instead (a session opened with
+``options.refine: true`` on the local executor, its WebSocket): for each of N drags of the
+same smooth drag, the time from sending it to its linear reply and to its refined reply
+(the client waits for both before the next drag: the user pauses after each one), side by
+side with libigl's ARAP, 10 iterations per drag warm-started from the previous drag, in
+this process, on the same drags; and the quality of the last shape of each (RMS relative
+edge-length change and RMS dihedral change against the rest shape).
 """
 
 from __future__ import annotations
@@ -202,15 +210,180 @@ def report(name: str, V: np.ndarray, F: np.ndarray, n_drags: int, rounds: int, o
     return "\n".join(lines)
 
 
+def progressive_session(base: str, V: np.ndarray, F: np.ndarray, handles: np.ndarray,
+                        drags: np.ndarray) -> tuple[dict, list[dict], np.ndarray]:
+    """Per drag: seconds to the linear and to the refined WebSocket reply of a progressive
+    session; the refined replies' trailers; the last refined shape (float32)."""
+    from websockets.sync.client import connect
+
+    with httpx.Client(base_url=base, timeout=300) as http:
+        body = orjson.dumps({"vertices": V, "faces": F, "options": {"refine": True},
+                             "handles": [{"vertex": int(h)} for h in handles]},
+                            option=orjson.OPT_SERIALIZE_NUMPY)
+        created = http.post("/v1/sessions", content=body,
+                            headers={"content-type": "application/json"})
+        created.raise_for_status()
+        location = created.headers["location"]
+        times: dict[str, list[float]] = {"linear": [], "refined": [], "continuous": []}
+        reports: list[dict] = []
+        last = V
+        with connect(base.replace("http://", "ws://") + location + "/ws",
+                     max_size=None) as ws:
+            # A continuous drag first (back and forth along the same path): each drag sent
+            # as soon as the previous linear frame is back, the refined frames only for the
+            # last one; then the paused drags, each waited for until refined.
+            for target in list(drags[::-1]) + list(drags[:1]):
+                t0 = time.perf_counter()
+                ws.send(target.astype("<f4").tobytes())
+                while True:
+                    message = ws.recv(timeout=300)
+                    n = int(np.frombuffer(message, "<u4", count=2)[1])
+                    if orjson.loads(message[8 + 12 * n:])["shape"] == "linear":
+                        break
+                times["continuous"].append(time.perf_counter() - t0)
+            while orjson.loads(message[8 + 12 * n:])["shape"] != "refined":
+                message = ws.recv(timeout=300)
+                n = int(np.frombuffer(message, "<u4", count=2)[1])
+            reports.append(orjson.loads(message[8 + 12 * n:]))
+            for target in drags[1:]:
+                t0 = time.perf_counter()
+                ws.send(target.astype("<f4").tobytes())
+                while True:
+                    message = ws.recv(timeout=300)
+                    n = int(np.frombuffer(message, "<u4", count=2)[1])
+                    trailer = orjson.loads(message[8 + 12 * n:])
+                    times[trailer["shape"]].append(time.perf_counter() - t0)
+                    if trailer["shape"] == "refined":
+                        reports.append(trailer)
+                        last = np.frombuffer(message, "<f4", count=3 * n, offset=8).reshape(n, 3)
+                        break
+        http.delete(location).raise_for_status()
+    return times, reports, last.astype(np.float64)
+
+
+def arap_drags(V: np.ndarray, F: np.ndarray, handles: np.ndarray, drags: np.ndarray,
+               iterations: int = 10) -> tuple[list[float], np.ndarray]:
+    """libigl ARAP: seconds per drag (``iterations`` local/global steps from the previous
+    drag's shape) and the last shape."""
+    import igl
+
+    data = igl.ARAPData()
+    data.max_iter = iterations
+    igl.arap_precomputation(V, F, 3, handles.astype(np.int64), data)
+    U, times = V.copy(), []
+    for target in drags:
+        t0 = time.perf_counter()
+        U = igl.arap_solve(target, data, U)
+        times.append(time.perf_counter() - t0)
+    return times, U
+
+
+def direct_progressive(V: np.ndarray, F: np.ndarray, handles: np.ndarray, drags: np.ndarray,
+                       slice_seconds: float = 0.05) -> dict[str, list[float]]:
+    """The same drags in this process, as a progressive session computes them:
+    ``Deformer.solve(refine=False)`` (the linear frame), then ``refine_last`` in slices of
+    ``slice_seconds`` (the default FFS_SESSION_REFINE_SLICE) until it stops."""
+    import solver
+
+    deformer = solver.Deformer(V, F, handles, refine=True)
+    deformer.solve(refine=False)
+    times: dict[str, list[float]] = {"linear": [], "refined": []}
+    for target in drags:
+        t0 = time.perf_counter()
+        deformer.solve(target, refine=False)
+        times["linear"].append(time.perf_counter() - t0)
+        while True:
+            deformer.refine_last(slice_seconds)
+            if deformer.last_report.get("stop_reason") != "time_limit":
+                break
+        times["refined"].append(time.perf_counter() - t0)
+    return times
+
+
+def form_change(rest: np.ndarray, X: np.ndarray, F: np.ndarray) -> tuple[float, float]:
+    """(RMS relative edge-length change, RMS dihedral change in radians) of X against rest."""
+    import solver
+
+    before = solver.fundamental_forms(rest, F)
+    after = solver.fundamental_forms(X, before.faces)
+    return (float(np.sqrt(np.mean((after.lengths / before.lengths - 1.0) ** 2))),
+            float(np.sqrt(np.mean((after.angles - before.angles) ** 2))))
+
+
+def progressive_report(name: str, V: np.ndarray, F: np.ndarray, handles: np.ndarray,
+                       count: int) -> str:
+    """Progressive drags against libigl ARAP-10 per drag, measured in one run."""
+    drags = targets(V, handles, count + 1)[1:]
+    loads = [load()]
+    with uvicorn({"FFS_WORKERS": "1", "FFS_LOG_LEVEL": "warning"}) as base:
+        times, reports, ours = progressive_session(base, V, F, handles, drags)
+    arap, theirs = arap_drags(V, F, handles, drags)
+    direct = direct_progressive(V, F, handles, drags)
+    loads.append(load())
+    # The first drag starts from the layout fit; the others from the previous refined shape.
+    lin, ref, igl10 = stats(times["linear"]), stats(times["refined"]), stats(arap[1:])
+    cont = stats(times["continuous"][1:])
+    d_lin, d_ref = stats(direct["linear"][1:]), stats(direct["refined"][1:])
+    converged = sum(bool(r["converged"]) for r in reports)
+    iterations = np.median([r["iterations"] for r in reports])
+    factorizations = np.median([r["factorizations"] for r in reports])
+    q_ours, q_arap = form_change(V, ours, F), form_change(V, theirs, F)
+    first = reports[0]["elapsed"] * 1000
+    return "\n".join([
+        "## Progressive drags",
+        "",
+        f"`python bench/session_latency.py --progressive {count}` on {platform.machine()} with "
+        f"{os.cpu_count()} cores; {name}: {len(F)} faces, 10 position handles, one smooth "
+        f"drag of the first handle in {count} steps, the client waiting for both replies "
+        "before the next drag. Local session process (MKL threads: one per core), its "
+        "WebSocket; libigl ARAP in this process on the same drags, 10 iterations per drag "
+        "from the previous drag's shape. First a continuous drag along the path and back "
+        "(each drag sent when the previous linear frame is back; its first refined shape, "
+        f"from the layout fit, took {first:.0f} ms), then the paused drags (drags 2 "
+        "onwards, each waited for until refined). Milliseconds per drag. Load average "
+        f"before and after: {loads[0]} / {loads[-1]}.",
+        "",
+        "| | p50 (ms) | p90 (ms) | mean (ms) | p50 x ARAP-10 |",
+        "|---|---|---|---|---|",
+        f"| linear frame of a continuous drag (no pause) | {cont['p50']:.1f} | "
+        f"{cont['p90']:.1f} | {cont['mean']:.1f} | {cont['p50'] / igl10['p50']:.2f} |",
+        f"| linear frame (first reply) | {lin['p50']:.1f} | {lin['p90']:.1f} | "
+        f"{lin['mean']:.1f} | {lin['p50'] / igl10['p50']:.2f} |",
+        f"| refined frame (second reply) | {ref['p50']:.1f} | {ref['p90']:.1f} | "
+        f"{ref['mean']:.1f} | {ref['p50'] / igl10['p50']:.2f} |",
+        f"| libigl ARAP-10 per drag | {igl10['p50']:.1f} | {igl10['p90']:.1f} | "
+        f"{igl10['mean']:.1f} | 1.00 |",
+        f"| in this process: `Deformer.solve(refine=False)` | {d_lin['p50']:.1f} | "
+        f"{d_lin['p90']:.1f} | {d_lin['mean']:.1f} | {d_lin['p50'] / igl10['p50']:.2f} |",
+        f"| in this process: then `refine_last(0.05)` until it stops | {d_ref['p50']:.1f} | "
+        f"{d_ref['p90']:.1f} | {d_ref['mean']:.1f} | {d_ref['p50'] / igl10['p50']:.2f} |",
+        "",
+        f"Refined drags: {converged} of {len(reports)} converged; median {iterations:.0f} "
+        f"iterations and {factorizations:.0f} factorizations per drag. Last shape against the "
+        f"rest shape, RMS relative length change / RMS dihedral change: refined "
+        f"{q_ours[0]:.2e} / {q_ours[1]:.2e} rad, ARAP-10 {q_arap[0]:.2e} / {q_arap[1]:.2e} "
+        "rad.",
+        "",
+    ])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--drags", type=int, default=200)
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--dask", action="store_true", help="also measure a Dask actor")
     parser.add_argument("--out", type=Path, help="write the section into this markdown file")
+    parser.add_argument("--progressive", type=int, metavar="N",
+                        help="measure N progressive drags against libigl ARAP-10 instead")
     args = parser.parse_args()
     name, V, F = mesh()
     handles = np.linspace(0, len(V) - 1, 10).astype(np.int64)
+    if args.progressive:
+        text = progressive_report(name, V, F, handles, args.progressive)
+        print(text)
+        if args.out:
+            _write_section(args.out, "## Progressive drags", text)
+        return
     drags = targets(V, handles, args.drags + args.rounds)
     env = {"FFS_WORKERS": "1", "FFS_LOG_LEVEL": "warning"}
     loads = [load()]

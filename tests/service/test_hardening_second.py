@@ -152,6 +152,34 @@ def test_finished_jobs_give_way_and_one_client_cannot_take_the_store():
         assert full == "JobStoreFullError", full
 
 
+def test_job_fairness_on_the_wire():
+    from helpers.service import forms_json, icosphere
+
+    slow = {"operation": "reconstruct",  # ~1 s each on one worker: unfinished for a while
+            "input": {**forms_json(*icosphere(5)), "options": {"exact_shortcut": False}}}
+    env = {"FFS_WORKERS": "1", "FFS_MAX_JOBS": "4", "FFS_MAX_CLIENT_JOBS": "2"}
+    with uvicorn_server(env) as url, _client_at(url, "127.0.0.1") as a, \
+            _client_at(url, "127.0.0.2") as b:
+        done = []
+        for _ in range(4):  # a store full of finished jobs
+            location = a.post("/v1/jobs", json=_job_body()).headers["location"]
+            while a.get(location).json()["status"] != "succeeded":
+                time.sleep(0.02)
+            done.append(location)
+        mine = [a.post("/v1/jobs", json=slow) for _ in range(2)]
+        assert [r.status_code for r in mine] == [202, 202], [r.text for r in mine]
+        refused = a.post("/v1/jobs", json=_job_body())  # a third unfinished one: 429
+        doc = problem(refused, 429, "too-many-client-jobs")
+        assert "FFS_MAX_CLIENT_JOBS" in doc["detail"] and refused.headers["retry-after"]
+        theirs = b.post("/v1/jobs", json=_job_body())  # another client still gets in
+        assert theirs.status_code == 202, theirs.text
+        assert [a.get(at).status_code for at in done] == [404, 404, 404, 200]  # oldest first
+        for response in mine:
+            a.delete(response.headers["location"])
+        assert metric_value(a.get("/metrics").text, "ffs_http_requests_total",
+                            status="503", route="/v1/jobs") == 0  # was: full for an hour
+
+
 async def _refusal(manager) -> str:
     from helpers.service import debug_task
 
@@ -396,6 +424,42 @@ def test_error_details_are_words(http):
     for name in ("cholespy", "pardiso", "superlu"):
         response = http.post("/v1/reconstruct", json={**body, "options": {"solver": name}})
         assert "Error:" not in response.text and "ModuleNotFound" not in response.text
+
+
+def _busiest_child(pid: int, seconds: float = 0.3) -> int:
+    """The descendant of ``pid`` that used the most CPU over ``seconds`` (the worker that
+    runs the one request in flight)."""
+    import psutil
+
+    children = psutil.Process(pid).children(recursive=True)
+    before = {c.pid: sum(c.cpu_times()[:2]) for c in children}
+    time.sleep(seconds)
+    used = {c.pid: sum(c.cpu_times()[:2]) - before[c.pid] for c in children if c.is_running()}
+    return max(used, key=used.__getitem__)
+
+
+def test_a_dead_worker_is_told_without_its_pid():
+    import os
+    import signal
+    import threading
+
+    from helpers.servers import uvicorn_process
+    from helpers.service import forms_json, icosphere
+
+    body = {**forms_json(*icosphere(5)), "options": {"exact_shortcut": False}}  # ~1 s
+    with uvicorn_process() as (url, proc), httpx.Client(base_url=url, timeout=60) as client:
+        answer: dict[str, httpx.Response] = {}
+        thread = threading.Thread(target=lambda: answer.setdefault(
+            "response", client.post("/v1/reconstruct", json=body)))
+        thread.start()
+        time.sleep(0.4)  # the body is parsed and the worker solving
+        victim = _busiest_child(proc.pid)
+        os.kill(victim, signal.SIGKILL)
+        thread.join(60)
+        doc = problem(answer["response"], 500, "worker-died")
+        text = json.dumps(doc)
+        assert "SIGKILL" in doc["detail"], doc  # why, in words
+        assert "pid" not in text.lower() and str(victim) not in text, doc  # was "(pid 1234)"
 
 
 def test_security_headers(http):

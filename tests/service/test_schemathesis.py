@@ -44,6 +44,7 @@ from service.operations import OPERATIONS
 
 ARRAYS = {f"/v1/{name}": spec.arrays for name, spec in OPERATIONS.items()}
 """Path -> the large arrays of its body (those a binary body sends as bytes)."""
+STEPS: Counter[str] = Counter()
 SENT: Counter[str] = Counter()
 """Binary bodies sent, by how they went out (``arrays``: at least one array as bytes)."""
 
@@ -171,11 +172,13 @@ def test_stateful_links(api_schema, fuzz_server):
 
     class Checked(machine):  # type: ignore[misc, valid-type]
         def validate_response(self, response, case, **kwargs):
+            STEPS[f"{case.method} {case.operation.path} {response.status_code}"] += 1
             case.validate_response(response, checks=[*CHECKS, use_after_free])
 
-    Checked.run(settings=settings(max_examples=15, stateful_step_count=6, deadline=None,
+    Checked.run(settings=settings(max_examples=25, stateful_step_count=8, deadline=None,
                                   derandomize=True,
                                   suppress_health_check=list(HealthCheck), database=None))
+    print("steps:", dict(STEPS))
     # The links were followed: sessions were created, solved and deleted through them.
     metrics = httpx.get(f"{fuzz_server}/metrics").text
     assert metric_value(metrics, "ffs_sessions_created_total") >= 1
@@ -185,3 +188,9 @@ def test_stateful_links(api_schema, fuzz_server):
     assert sum(solved.values()) >= 1, solved
     assert metric_value(metrics, "ffs_http_requests_total", status="204",
                         route="/v1/sessions/{session_id}") >= 1
+    # ... and jobs were submitted and followed to their status.
+    followed = {status: metric_value(metrics, "ffs_http_requests_total", status=status,
+                                     route="/v1/jobs/{job_id}")
+                for status in ("200", "204", "404", "409")}
+    print("job links:", followed)
+    assert followed["200"] >= 1, followed

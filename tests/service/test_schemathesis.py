@@ -116,6 +116,8 @@ CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
           response_headers_conformance, response_schema_conformance]
 EXAMPLES = int(os.environ.get("FFS_FUZZ_EXAMPLES", "20"))
 """Examples per operation (a deeper run: FFS_FUZZ_EXAMPLES=500)."""
+STATEFUL_EXAMPLES = int(os.environ.get("FFS_FUZZ_STATEFUL", "25"))
+"""Stateful runs of 8 steps each (fewer, 15 x 6, reached no session solve in some runs)."""
 SETTINGS = settings(max_examples=EXAMPLES, deadline=None, derandomize=True,
                     suppress_health_check=list(HealthCheck), database=None)
 SKIP = ("/metrics",)  # text/plain Prometheus exposition: no schema to check
@@ -175,22 +177,16 @@ def test_stateful_links(api_schema, fuzz_server):
             STEPS[f"{case.method} {case.operation.path} {response.status_code}"] += 1
             case.validate_response(response, checks=[*CHECKS, use_after_free])
 
-    Checked.run(settings=settings(max_examples=25, stateful_step_count=8, deadline=None,
-                                  derandomize=True,
+    Checked.run(settings=settings(max_examples=STATEFUL_EXAMPLES, stateful_step_count=8,
+                                  deadline=None, derandomize=True,
                                   suppress_health_check=list(HealthCheck), database=None))
-    print("steps:", dict(STEPS))
-    # The links were followed: sessions were created, solved and deleted through them.
-    metrics = httpx.get(f"{fuzz_server}/metrics").text
-    assert metric_value(metrics, "ffs_sessions_created_total") >= 1
-    solved = {status: metric_value(metrics, "ffs_http_requests_total", status=status,
-                                   route="/v1/sessions/{session_id}/solve")
-              for status in ("200", "400", "404", "422")}
-    assert sum(solved.values()) >= 1, solved
-    assert metric_value(metrics, "ffs_http_requests_total", status="204",
-                        route="/v1/sessions/{session_id}") >= 1
-    # ... and jobs were submitted and followed to their status.
-    followed = {status: metric_value(metrics, "ffs_http_requests_total", status=status,
-                                     route="/v1/jobs/{job_id}")
-                for status in ("200", "204", "404", "409")}
-    print("job links:", followed)
-    assert followed["200"] >= 1, followed
+    # The links were followed (by the state machine itself, counted in STEPS): sessions
+    # were created, solved and deleted through them, jobs submitted and followed.
+    def steps(prefix: str) -> int:
+        return sum(n for step, n in STEPS.items() if step.startswith(prefix))
+
+    assert steps("POST /v1/sessions 201") >= 1, STEPS
+    assert steps("POST /v1/sessions/{session_id}/solve ") >= 1, STEPS
+    assert steps("DELETE /v1/sessions/{session_id} 204") >= 1, STEPS
+    assert steps("POST /v1/jobs 202") >= 1, STEPS
+    assert steps("GET /v1/jobs/{job_id} 200") + steps("GET /v1/jobs/{job_id}/result 200") >= 1

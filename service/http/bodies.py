@@ -14,6 +14,8 @@ import asyncio
 import gc
 import multiprocessing
 import threading
+import types
+import typing
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
@@ -137,18 +139,42 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
                            "well-formed multipart/form-data") from None
     fields: dict[str, Any] = {}
     files: dict[str, UploadFile] = {}
+    repeated: set[str] = set()
     for key, value in form.multi_items():
-        if key in files or (key in fields and not isinstance(value, UploadFile)):
+        if key in files:
             raise ProblemError("malformed-request", f"form field {key!r} is given twice",
                                errors=[{"field": key, "index": None, "reason": "repeated"}])
         if isinstance(value, UploadFile):
             files[key] = value
-        elif key in fields:
-            raise ProblemError("malformed-request", f"form field {key!r} is given twice",
-                               errors=[{"field": key, "index": None, "reason": "repeated"}])
+        elif key in fields:  # one part per item: how generated clients send an array
+            if key not in repeated:
+                fields[key] = [fields[key]]
+                repeated.add(key)
+            fields[key].append(_decode_field(value))
         else:
             fields[key] = _decode_field(value)
     return fields, files
+
+
+def as_arrays(model: type[BaseModel], fields: dict[str, Any]) -> dict[str, Any]:
+    """``fields`` with a single value of an array field of ``model`` as a one-item array: an
+    array comes as one JSON part (``[...]``) or as one part per item (:func:`read_form`)."""
+    arrays = array_fields(model)
+    return {name: [value] if name in arrays and not isinstance(value, list) else value
+            for name, value in fields.items()}
+
+
+def array_fields(model: type[BaseModel]) -> frozenset[str]:
+    """The fields of ``model`` that are arrays (``list[...]``, optionally ``| None``)."""
+    names = set()
+    for name, info in model.model_fields.items():
+        members = [a for a in typing.get_args(info.annotation) or (info.annotation,)
+                   if a is not type(None)]
+        if typing.get_origin(info.annotation) is list or (
+                typing.get_origin(info.annotation) in (typing.Union, types.UnionType)
+                and all(typing.get_origin(a) is list for a in members)):
+            names.add(name)
+    return frozenset(names)
 
 
 def _check_closed(request: Request, body: bytes) -> None:

@@ -72,28 +72,66 @@ def _example(model: type[BaseModel]) -> Any:
     return copy.deepcopy(examples[0]) if examples else None
 
 
+FILE_DESCRIPTION = ("Mesh file: OBJ, PLY, OFF, STL or GLB (vertex order and faces are kept as "
+                    "in the file).")
+SCALAR_TYPES = frozenset({"number", "integer", "boolean", "string"})
+
+
+def form_field(schema: dict[str, Any], description: str | None) -> dict[str, Any]:
+    """A parameter field as a multipart property: ``null`` left out (omit the field instead)
+    and how to send it (arrays: one part per item, or the whole array as one JSON part)."""
+    schema = dict(schema)
+    members = [m for m in schema.pop("anyOf", []) if m.get("type") != "null"]
+    if len(members) == 1:
+        schema.update(members[0])
+    elif members:
+        schema["anyOf"] = members
+    if schema.get("default", 0) is None:
+        del schema["default"]
+    shapes = [schema, *members]
+    if any(m.get("type") == "array" and m.get("items", {}).get("type") == "array"
+           for m in shapes):  # no multipart form of nested arrays: the whole array as JSON
+        return {"type": "string", "contentMediaType": "application/json",
+                "contentSchema": {k: v for k, v in schema.items() if k != "title"},
+                "description": "The whole array as one JSON part such as `[[1, 2, 3]]`"
+                               + (f". {description}" if description else ".")}
+    if any(m.get("type") == "array" for m in shapes):
+        how = ("One part per item (each a JSON value), or the whole array as one JSON part "
+               "such as `[1, 2]`")
+    elif _is_scalar(schema):
+        how = "A form value such as `0.5` or `true`"
+    else:
+        how = "A JSON part such as `{\"a\": 1}`"
+    schema["description"] = how + (f". {description}" if description else ".")
+    return schema
+
+
+def _is_scalar(schema: dict[str, Any]) -> bool:
+    return schema.get("type") in SCALAR_TYPES or any(
+        m.get("type") in SCALAR_TYPES for m in schema.get("anyOf", []))
+
+
+def form_properties(spec: OperationSpec) -> dict[str, Any]:
+    """The multipart properties of ``spec``'s parameter fields (parsed as JSON where they
+    are JSON; see :func:`form_encoding`)."""
+    field_schemas = params_schema(spec.params)["properties"]
+    return {name: form_field(field_schemas[name], info.description)
+            for name, info in spec.params.model_fields.items()}
+
+
 def multipart_schema(spec: OperationSpec) -> dict[str, Any]:
     """Schema of the multipart form: the mesh file(s) plus the parameter fields, each
-    documented with its real schema (they are parsed as JSON; see :func:`form_encoding`)."""
+    documented with its real schema."""
     params = spec.params
-    properties: dict[str, Any] = {}
-    for name in spec.files:
-        properties[name] = {"type": "string", "format": "binary",
-                            "description": "Mesh file: OBJ, PLY, OFF, STL or GLB (vertex order "
-                                           "and faces are kept as in the file)."}
-    field_schemas = params_schema(params)["properties"]
-    for name, info in params.model_fields.items():
-        properties[name] = {**field_schemas[name],
-                            "description": f"`{name}` as JSON (a form value such as "
-                                           f"`{{\"a\": 1}}`, `[1, 2]` or `0.5`)"
-                                           + (f": {info.description}" if info.description
-                                              else "") + "."}
+    properties: dict[str, Any] = {name: {"type": "string", "format": "binary",
+                                         "description": FILE_DESCRIPTION}
+                                  for name in spec.files}
+    properties.update(form_properties(spec))
     required = [*spec.files, *(n for n, f in params.model_fields.items() if f.is_required())]
     example = {name: f"<{name}.off>" for name in spec.files}
-    sample = _example(params) or {}
-    example.update(sample)  # JSON parts (form_encoding): the values themselves
+    example.update(_example(params) or {})  # the values themselves
     return {"type": "object", "properties": properties, "required": required,
-            "examples": [example]}
+            "additionalProperties": False, "examples": [example]}
 
 
 def params_schema(model: type[BaseModel]) -> dict[str, Any]:
@@ -102,9 +140,12 @@ def params_schema(model: type[BaseModel]) -> dict[str, Any]:
     return defs["$defs"][model.__name__]
 
 
-def form_encoding(spec: OperationSpec) -> dict[str, Any]:
-    """The multipart ``encoding``: every parameter field is an ``application/json`` part."""
-    return {name: {"contentType": "application/json"} for name in spec.params.model_fields}
+def form_encoding(properties: dict[str, Any]) -> dict[str, Any]:
+    """The multipart ``encoding``: every field that is not a scalar is sent as JSON (for an
+    array: each of its parts)."""
+    return {name: {"contentType": "application/json"} for name, schema in properties.items()
+            if schema.get("format") != "binary" and (not _is_scalar(schema)
+                                                     or "contentSchema" in schema)}
 
 
 def operation_body(spec: OperationSpec) -> dict[str, Any]:
@@ -113,8 +154,8 @@ def operation_body(spec: OperationSpec) -> dict[str, Any]:
     return {"requestBody": {"required": True, "content": {
         "application/json": {"schema": {"$ref": REF.format(model=model.__name__)},
                              "example": _example(model)},
-        "multipart/form-data": {"schema": multipart_schema(spec),
-                                "encoding": form_encoding(spec)},
+        "multipart/form-data": {"schema": (form := multipart_schema(spec)),
+                                "encoding": form_encoding(form["properties"])},
         BINARY_MEDIA_TYPE: {"schema": {
             "type": "string", "format": "binary",
             "description": binary_description(spec),
@@ -134,26 +175,50 @@ def binary_description(spec: OperationSpec) -> str:
             f"dtypes: {', '.join(f'`{d}`' for d in BINARY_DTYPES)}. Arrays: {names}.")
 
 
+def job_form_properties() -> dict[str, Any]:
+    """The parameter fields of every operation, for a job upload: a field that two
+    operations type differently (``options``) is either type."""
+    merged: dict[str, list[dict[str, Any]]] = {}
+    for spec in OPERATIONS.values():
+        for name, schema in form_properties(spec).items():
+            schema.pop("default", None)  # the operation's default, not the job's
+            variants = merged.setdefault(name, [])
+            if schema not in variants:
+                variants.append(schema)
+    properties = {}
+    for name, variants in merged.items():
+        if len(variants) == 1:
+            properties[name] = variants[0]
+        else:
+            properties[name] = {"anyOf": [{k: v for k, v in variant.items()
+                                           if k not in ("description", "title")}
+                                          for variant in variants],
+                                "description": variants[0]["description"].split(". ")[0]
+                                + ", of the type the job's `operation` takes."}
+    return properties
+
+
 def jobs_body() -> dict[str, Any]:
     """``openapi_extra`` of ``POST /v1/jobs``."""
-    upload = {"type": "object", "required": ["operation", "file"],
-              "properties": {
-                  "operation": {"type": "string", "enum": list(OPERATIONS)},
-                  "color": {"type": "string", "enum": ["defect", "distortion"]},
-                  "file": {"type": "string", "format": "binary",
-                           "description": "Mesh file (file_a and file_b for interpolate)."},
-                  "file_a": {"type": "string", "format": "binary"},
-                  "file_b": {"type": "string", "format": "binary"},
-              },
-              "additionalProperties": {"description": "The operation's other parameters "
-                                                      "(options, handles, t, ...), each a "
-                                                      "JSON form value."},
+    properties: dict[str, Any] = {
+        "operation": {"type": "string", "enum": list(OPERATIONS)},
+        "color": {"type": "string", "enum": ["defect", "distortion"]},
+        "file": {"type": "string", "format": "binary",
+                 "description": FILE_DESCRIPTION + " `file_a` and `file_b` for interpolate."},
+        "file_a": {"type": "string", "format": "binary"},
+        "file_b": {"type": "string", "format": "binary"},
+        **job_form_properties(),
+    }
+    upload = {"type": "object", "required": ["operation"], "properties": properties,
+              "additionalProperties": False,
+              "description": "The mesh file(s) and the operation's other fields, as in its "
+                             "synchronous upload.",
               "examples": [{"operation": "reconstruct", "file": "<face.off>",
                             "options": {"orthonormalize": True}}]}
     return {"requestBody": {"required": True, "content": {
         "application/json": {"schema": {"$ref": REF.format(model=JobRequest.__name__)},
                              "example": _example(JobRequest)},
-        "multipart/form-data": {"schema": upload},
+        "multipart/form-data": {"schema": upload, "encoding": form_encoding(properties)},
     }}}
 
 

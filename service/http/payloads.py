@@ -38,6 +38,7 @@ from service.api.task import (
     TaskRequest,
 )
 from service.http.bodies import (
+    as_arrays,
     is_json,
     media_type,
     off_loop,
@@ -84,7 +85,7 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
                    for n in unexpected]
         raise ProblemError("validation-error", errors[0]["field"] + ": " + errors[0]["reason"],
                            errors=errors)
-    params = validate_object(spec.params, fields)
+    params = validate_object(spec.params, as_arrays(spec.params, fields))
     check_work(params.model_dump(), limits(settings))
     uploads = [await upload(files[n], n) for n in spec.files]
     source = (uploads[0], uploads[1]) if len(uploads) == 2 else uploads[0]

@@ -104,15 +104,77 @@ def test_color_is_documented_only_where_it_works():
         assert options == set(OPERATIONS[operation].colors), (operation, options)
 
 
-def test_multipart_parameter_fields_are_documented_as_json():
+def test_multipart_parameter_fields_are_documented_as_sent():
+    """Every parameter field is a property of the upload form; arrays are arrays (one part
+    per item) except nested ones (one JSON part), objects are JSON parts, and nothing is
+    nullable (a field is left out instead)."""
+    from service.http.bodies import array_fields
     from service.operations import OPERATIONS
 
     doc = _document()
     for operation, spec in OPERATIONS.items():
-        model = spec.params
         form = doc["paths"][f"/v1/{operation}"]["post"]["requestBody"]["content"][
             "multipart/form-data"]
-        assert set(form["encoding"]) == set(model.model_fields), operation
-        for name in model.model_fields:
-            assert form["encoding"][name]["contentType"] == "application/json"
-            assert form["schema"]["properties"][name].get("type") != "string", (operation, name)
+        properties = form["schema"]["properties"]
+        assert set(properties) == {*spec.files, *spec.params.model_fields}, operation
+        assert form["schema"]["additionalProperties"] is False
+        for name in spec.params.model_fields:
+            schema = properties[name]
+            assert "null" not in json.dumps(schema), (operation, name)
+            if name in array_fields(spec.params):
+                nested = schema.get("contentMediaType") == "application/json"
+                assert schema.get("type") == ("string" if nested else "array"), (operation,
+                                                                                name)
+            if "$ref" in schema or schema.get("type") in ("array", "string"):
+                assert form["encoding"][name] == {"contentType": "application/json"}, (
+                    operation, name)
+
+
+def test_job_upload_fields_are_typed():
+    from service.operations import OPERATIONS
+
+    form = _document()["paths"]["/v1/jobs"]["post"]["requestBody"]["content"][
+        "multipart/form-data"]
+    properties = form["schema"]["properties"]
+    every = {name for spec in OPERATIONS.values() for name in (*spec.files,
+                                                               *spec.params.model_fields)}
+    assert set(properties) == every | {"operation", "color"}
+    assert form["schema"]["additionalProperties"] is False
+    options = {ref["$ref"].rsplit("/", 1)[1] for ref in properties["options"]["anyOf"]}
+    assert options == {spec.params.model_fields["options"].annotation.__name__
+                       for spec in OPERATIONS.values() if "options" in spec.params.model_fields}
+    assert all("default" not in schema for schema in properties.values())
+
+
+def test_bodies_are_declared_for_every_success():
+    """Every 2xx but 204 declares its media types and schema (jobs and sessions included)."""
+    doc = _document()
+    for path, item in doc["paths"].items():
+        for method, operation in item.items():
+            for code, response in operation["responses"].items():
+                if code.startswith("2") and code != "204":
+                    content = response.get("content")
+                    assert content, (method, path, code)
+                    assert all(media.get("schema") for media in content.values()), (path, code)
+    jobs = doc["paths"]["/v1/jobs"]["post"]["responses"]["202"]["content"]
+    assert jobs == {"application/json": {"schema": {"$ref": "#/components/schemas/JobStatus"}}}
+    session = doc["paths"]["/v1/sessions/{session_id}"]["get"]["responses"]["200"]["content"]
+    assert session["application/json"]["schema"]["$ref"].endswith("/SessionInfo")
+    assert list(doc["paths"]["/metrics"]["get"]["responses"]["200"]["content"]) == [
+        "text/plain"]
+
+
+def test_format_is_declared_beside_accept_for_mesh_results():
+    from service.operations import OPERATIONS
+
+    doc = _document()
+    for operation, spec in OPERATIONS.items():
+        post = doc["paths"][f"/v1/{operation}"]["post"]
+        params = {p["name"]: p for p in post.get("parameters", [])}
+        if not spec.mesh_result:
+            assert "format" not in params
+            continue
+        (values,) = [s["enum"] for s in params["format"]["schema"]["anyOf"] if "enum" in s]
+        assert values == ["json", "glb", "gltf"]
+        assert {"model/gltf-binary", "model/gltf+json"} <= set(post["responses"]["200"][
+            "content"])

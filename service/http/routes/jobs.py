@@ -15,10 +15,10 @@ from service.api.schemas import ColorField
 from service.api.task import TaskResult
 from service.backends.jobs import Job
 from service.http.dependencies import JobsDep, SettingsDep
-from service.http.negotiation import negotiate
+from service.http.negotiation import MESH_FORMATS
 from service.http.openapi import created, error_responses, jobs_body
 from service.http.payloads import job_request
-from service.http.routes.operations import check_color, formats
+from service.http.routes.operations import check_color, format_query, formats, result_format
 from service.operations import OPERATIONS
 from service.worker.output import MEDIA_TYPES, colors_for, json_bytes, mesh_bytes, with_colors
 
@@ -29,6 +29,7 @@ ColorQuery = Annotated[ColorField | None, Query(
     description="Add a per-vertex colour ramp of this field (a job precomputed with `color`): "
                 "`defect` (reconstruct: the integrability defect) or `distortion` (deform). "
                 "glTF gets COLOR_0, JSON a `colors` array.")]
+FormatQuery = format_query(MESH_FORMATS)
 
 _RESULT_CONTENT = {
     "application/json": {"schema": {"type": "object", "description": "The body the "
@@ -110,10 +111,10 @@ async def get_job(jobs: JobsDep, job_id: JobId) -> Response:
             responses={200: {"description": "The result.", "content": _RESULT_CONTENT},
                        **error_responses(404, 406, 409, 410, 422)})
 async def get_result(request: Request, jobs: JobsDep, job_id: JobId,
-                     color: ColorQuery = None) -> Response:
+                     color: ColorQuery = None, fmt: FormatQuery = None) -> Response:
     job = await _get(jobs, job_id)
     spec = OPERATIONS[job.operation]
-    fmt = negotiate(request.headers.get("accept"), formats(spec))
+    fmt = result_format(request, formats(spec), fmt)
     check_color(spec, color)
     if job.status in ("queued", "running"):
         raise ProblemError("job-not-finished", f"job {job.id} is {job.status}",
@@ -143,7 +144,7 @@ def _encode(result: TaskResult, fmt: str, values: Any) -> bytes:
         return result.body if values is None else with_colors(result.body, colors_for(values))
     if result.mesh is None:
         raise ProblemError("not-acceptable", "this result is not a single mesh; use "
-                           "Accept: application/json")
+                           "format=json or Accept: application/json")
     return mesh_bytes(fmt, result.mesh[0], result.mesh[1], values)
 
 

@@ -6,6 +6,7 @@ answers in the negotiated format (JSON, GLB or glTF for mesh results).
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Awaitable, Callable
 from typing import Annotated, Any, Literal
 
@@ -20,6 +21,7 @@ from service.http.openapi import GLTF_CONTENT, error_responses, operation_body
 from service.http.payloads import operation_request
 from service.http.running import result_response, run_task
 from service.operations import OPERATIONS, OperationSpec
+from service.worker.output import MEDIA_TYPES
 
 router = APIRouter(tags=["operations"])
 
@@ -52,29 +54,57 @@ def color_query(colors: tuple[str, ...]) -> Any:
                     "`colors` array.")]
 
 
-def _endpoint(spec: OperationSpec) -> Callable[..., Awaitable[Response]]:
-    """The route function; ``?color=`` is a documented parameter only where it works (an
-    undocumented ``color`` elsewhere is still refused with 422 unsupported-color)."""
+FORMAT_MEANING = {"json": "`application/json`", "glb": "`model/gltf-binary`",
+                  "gltf": "`model/gltf+json`",
+                  "f32": "`application/octet-stream`, little-endian float32 (n, 3)"}
 
-    async def run(request: Request, services: ServicesDep, color: str | None) -> Response:
-        fmt = negotiate(request.headers.get("accept"), formats(spec))
+
+def format_query(offered: tuple[str, ...]) -> Any:
+    """The ``?format=`` parameter: one of ``offered``, instead of ``Accept``."""
+    meaning = ", ".join(f"`{f}`: {FORMAT_MEANING[f]}" for f in offered)
+    return Annotated[Literal[offered] | None, Query(  # type: ignore[valid-type]
+        alias="format", description=f"The result format ({meaning}); overrides `Accept` "
+                                    "(for clients that cannot set it).")]
+
+
+def result_format(request: Request, offered: tuple[str, ...], requested: str | None) -> str:
+    """``?format=`` when given (406 unless offered), else the format ``Accept`` negotiates."""
+    if requested is None:
+        return negotiate(request.headers.get("accept"), offered)
+    if requested not in offered:
+        raise ProblemError("not-acceptable", f"format={requested!r} is not available here; "
+                           f"use one of {', '.join(offered)}",
+                           available=[MEDIA_TYPES[f] for f in offered])
+    return requested
+
+
+def _endpoint(spec: OperationSpec) -> Callable[..., Awaitable[Response]]:
+    """The route function; ``?color=`` and ``?format=`` are documented parameters only where
+    they do something (elsewhere a ``color`` is refused with 422 unsupported-color, a
+    ``format`` other than ``json`` with 406)."""
+
+    async def endpoint(request: Request, services: ServicesDep, **query: Any) -> Response:
+        fmt = result_format(request, formats(spec),
+                            query.get("fmt", request.query_params.get("format")))
+        color = query.get("color", request.query_params.get("color"))
         check_color(spec, color)
         settings = services.settings
         task = await operation_request(request, spec, settings, Output(fmt, color))
         return result_response(await run_task(request, task, services.backend.executor,
                                               services.metrics, settings.request_timeout))
 
+    parameters = [inspect.Parameter("request", inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                    annotation=Request),
+                  inspect.Parameter("services", inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                    annotation=ServicesDep)]
+    if spec.mesh_result:
+        parameters.append(inspect.Parameter("fmt", inspect.Parameter.KEYWORD_ONLY,
+                                            default=None, annotation=format_query(formats(spec))))
     if spec.colors:
-        async def endpoint(request: Request, services: ServicesDep,
-                           color: Any = None) -> Response:
-            return await run(request, services, color)
-
-        endpoint.__annotations__["color"] = color_query(spec.colors)
-    else:
-        async def endpoint(request: Request, services: ServicesDep) -> Response:
-            return await run(request, services, request.query_params.get("color"))
-
-    endpoint.__name__ = f"{spec.name}_endpoint"
+        parameters.append(inspect.Parameter("color", inspect.Parameter.KEYWORD_ONLY,
+                                            default=None, annotation=color_query(spec.colors)))
+    endpoint.__signature__ = inspect.Signature(parameters)  # type: ignore[attr-defined]
+    endpoint.__name__ = f"{spec.name.replace('/', '_')}_endpoint"
     return endpoint
 
 

@@ -25,10 +25,10 @@ from service.backends.errors import BackendError, DragSupersededError
 from service.http.bodies import is_json, media_type, read_body
 from service.http.dependencies import MetricsDep, SessionsDep, SettingsDep
 from service.http.drags import parse_drag_binary, parse_drag_json, ws_reply
-from service.http.negotiation import negotiate
 from service.http.openapi import created, error_responses
 from service.http.payloads import session_spec
 from service.http.problems import problem_for
+from service.http.routes.operations import format_query, result_format
 from service.http.running import server_timing
 from service.worker.output import MEDIA_TYPES, json_bytes
 from service.worker.session import SESSION_FORMATS
@@ -115,6 +115,7 @@ async def delete_session(sessions: SessionsDep, session_id: SessionId) -> Respon
     return Response(status_code=204)
 
 
+SolveFormat = format_query(SESSION_FORMATS)
 _SOLVE_CONTENT = {
     "application/json": {"schema": {"$ref": "#/components/schemas/SessionVertices"}},
     "application/octet-stream": {"schema": {"type": "string", "format": "binary",
@@ -131,8 +132,9 @@ _SOLVE_CONTENT = {
                          "groups) -> the deformed vertices, by back-substitution only. Body: "
                          "JSON `{\"handle_positions\", \"handle_rotations\"?}` or "
                          "`application/octet-stream` (little-endian float32: 3 h positions, "
-                         "optionally followed by 9 g rotation entries). Result by `Accept`: "
-                         "JSON (default), `application/octet-stream` (little-endian float32 "
+                         "optionally followed by 9 g rotation entries). Result by `Accept` "
+                         "or `?format=`: JSON (default), `application/octet-stream` "
+                         "(little-endian float32 "
                          "n x 3, ready for a vertex buffer), GLB or glTF. In a session opened "
                          "with `options.refine: true` the answer is the linear shape at once "
                          "(JSON: `shape: \"linear\"`, `drag`) and `Link: <...>; "
@@ -149,8 +151,9 @@ _SOLVE_CONTENT = {
                               "content": _SOLVE_CONTENT},
                         **error_responses(400, 404, 406, 408, 410, 413, 415, 422, 503, 504)})
 async def solve_session(request: Request, session_id: SessionId, settings: SettingsDep,
-                        sessions: SessionsDep, metrics: MetricsDep) -> Response:
-    fmt = negotiate(request.headers.get("accept"), SESSION_FORMATS)
+                        sessions: SessionsDep, metrics: MetricsDep,
+                        fmt: SolveFormat = None) -> Response:
+    fmt = result_format(request, SESSION_FORMATS, fmt)
     n_handles, n_groups = await sessions.shape(session_id)
     mtype = media_type(request)
     body = await read_body(request, settings)

@@ -17,12 +17,12 @@ from service.api.task import encode_margin
 
 
 @pytest.fixture(scope="module")
-def cylinder_x08() -> dict:
-    """The Botsch-Sorkine cylinder's forms with angles x 0.8 (9600 faces): the linear answer
-    shrinks and the refinement takes several iterations (5 here)."""
+def cylinder_bent() -> dict:
+    """The Botsch-Sorkine cylinder's forms with angles x 0.5 (9600 faces): the linear answer
+    shrinks and the refinement takes several iterations (8 here, 6x the linear time)."""
     V, F = load("cylinder.off")
     forms = forms_json(V, F)
-    forms["angles"] = (np.asarray(forms["angles"]) * 0.8).tolist()
+    forms["angles"] = (np.asarray(forms["angles"]) * 0.5).tolist()
     return forms
 
 
@@ -56,24 +56,27 @@ def _assert_time_limited(doc: dict, forms: dict, unlimited: dict) -> None:
     assert V.shape[0] == int(np.max(forms["faces"])) + 1
 
 
-def test_refinement_past_the_request_deadline_answers_200(cylinder_x08):
+def test_refinement_past_the_request_deadline_answers_200(cylinder_bent):
     """FFS_REQUEST_TIMEOUT set so that the linear answer fits and the refinement does not:
     the answer is the best iterate, reported, where it used to be a 504."""
-    linear_s, unlimited = _timed_library_call(cylinder_x08)
+    linear_s, unlimited = _timed_library_call(cylinder_bent)
     assert unlimited["converged"] and unlimited["iterations"] >= 3, unlimited
-    # The solver's budget: the linear answer plus a quarter of the refinement it needs.
-    timeout = _timeout_for_budget(linear_s + unlimited["seconds"] / 4)
+    # The solver's budget: twice the linear answer plus an eighth of the refinement it needs
+    # (the server would have to be several times faster than this process to converge).
+    timeout = _timeout_for_budget(2 * linear_s + unlimited["seconds"] / 8)
     with uvicorn_server({"FFS_REQUEST_TIMEOUT": f"{timeout:.3f}"}) as base, \
             httpx.Client(base_url=base, timeout=timeout + 30) as http:
+        # Warm the worker (its first reconstruct loads what a cold process lacks).
+        http.post("/v1/reconstruct", json={**cylinder_bent, "options": {"refine": False}})
         start = time.perf_counter()
-        response = http.post("/v1/reconstruct", json=cylinder_x08)
+        response = http.post("/v1/reconstruct", json=cylinder_bent)
         elapsed = time.perf_counter() - start
         assert response.status_code == 200, response.text
-        _assert_time_limited(response.json(), cylinder_x08, unlimited)
+        _assert_time_limited(response.json(), cylinder_bent, unlimited)
         assert elapsed < timeout + 1.0
 
         # An explicit, smaller options.max_seconds wins over the request's deadline.
-        body = {**cylinder_x08, "options": {"max_seconds": 0.001}}
+        body = {**cylinder_bent, "options": {"max_seconds": 0.001}}
         response = http.post("/v1/reconstruct", json=body)
         assert response.status_code == 200, response.text
         report = response.json()["report"]["refinement"]
@@ -81,7 +84,7 @@ def test_refinement_past_the_request_deadline_answers_200(cylinder_x08):
 
         # A job's budget is options.max_seconds too (and FFS_JOB_TIMEOUT less the margin).
         response = http.post("/v1/jobs", json={"operation": "reconstruct",
-                                               "input": {**cylinder_x08,
+                                               "input": {**cylinder_bent,
                                                          "options": {"max_seconds": 0.001}}})
         assert response.status_code == 202, response.text
         location = response.headers["location"]
@@ -122,12 +125,12 @@ def test_deform_and_parameterize_honour_max_seconds(client):
     assert report["stop_reason"] == "time_limit" and not report["converged"], report
 
 
-def test_job_status_reports_refinement_iterations(client, cylinder_x08):
+def test_job_status_reports_refinement_iterations(client, cylinder_bent):
     """A job's status document shows the refinement's last step while it refines (energy
     decreasing, iterations counting up) and keeps the last one, which matches the result's
     report."""
     response = client.post("/v1/jobs", json={"operation": "reconstruct",
-                                             "input": cylinder_x08})
+                                             "input": cylinder_bent})
     assert response.status_code == 202, response.text
     assert response.json()["progress"]["refinement"] is None
     location = response.headers["location"]
@@ -153,4 +156,4 @@ def test_job_status_reports_refinement_iterations(client, cylinder_x08):
     energies = [p["refinement"]["energy"] for p in seen]
     assert iterations == sorted(iterations) and energies == sorted(energies, reverse=True)
     assert len(set(iterations)) >= 2, iterations  # the bar moved during the refinement
-    assert all(0 < p["stages"]["refine"] < 1 for p in seen)
+    assert all(0 < p["stages"]["refine"] <= 1 for p in seen)

@@ -127,7 +127,6 @@ def test_deform_with_mouse_and_gizmo(web):
     rotation and orthonormalization too; distortion map and histogram are drawn."""
     page = web.open()
     web.app("app.setRefine(false)")  # compared with linear answers (Refine is on by default)
-    web.app("app.setRefine(false)")  # compared with linear answers (Refine is on by default)
     rest = _vertices(web)
     assert web.app("app.capabilities.sessions") is True
 
@@ -228,7 +227,6 @@ def test_deform_fallbacks(web, transport):
     /v1/deform per update) the page deforms the same way."""
     page = web.open(f"?transport={transport}")
     web.app("app.setRefine(false)")  # compared with linear answers (Refine is on by default)
-    web.app("app.setRefine(false)")  # compared with linear answers (Refine is on by default)
     web.app("app.makeHandle([0, 1, 2])")
     web.app("app.makeHandle(app.visibleVertices().slice(600, 606))")
     web.app("app.dragHandle(5, -4, 12, {axis: [1, 0, 0], angle: 0.2})")
@@ -243,7 +241,6 @@ def test_session_gone_is_replaced(web):
     """A session that expired (or whose worker died) is replaced on the next drag: the page
     opens a new one for the same handles and the drag lands, with no error to show."""
     web.open()
-    web.app("app.setRefine(false)")  # compared with linear answers (Refine is on by default)
     web.app("app.setRefine(false)")  # compared with linear answers (Refine is on by default)
     web.app("app.makeHandle([0, 1])")
     web.app("app.makeHandle([600])")

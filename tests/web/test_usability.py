@@ -202,7 +202,6 @@ def test_undo_redo_deformation_steps(web):
     a new handle removes it, and deforming after an undo works as usual."""
     page = web.open()
     web.app("app.setRefine(false)")  # compared with linear answers (Refine is on by default)
-    web.app("app.setRefine(false)")  # compared with linear answers (Refine is on by default)
     rest = _vertices(web)
     web.app("app.makeHandle([0, 1, 2])")
     web.app("app.makeHandle(app.visibleVertices().slice(600, 620))")

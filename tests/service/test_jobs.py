@@ -256,9 +256,9 @@ def test_progress_is_honest_when_the_solver_goes_back_to_factorize():
         job.update_progress(stage, fraction)
         seen.append((stage, dict(job.stages)))
 
-    # Not integrable: the tree integration ("solve") fails and the solver factorizes.
+    # The orthonormalization (Sec. 4) factorizes again after the first solve.
     result = solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles * 0.8,
-                                progress=progress)
+                                orthonormalize=True, refine=False, progress=progress)
     assert result.report["solve_path"] == "factorization"
     order = [stage for stage, _ in seen]
     assert "factorize" in order[order.index("solve"):], order  # it did go back

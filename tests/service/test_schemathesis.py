@@ -30,6 +30,7 @@ import schemathesis
 from helpers.servers import uvicorn_server
 from helpers.service import metric_value
 from hypothesis import HealthCheck, settings
+from hypothesis.errors import FlakyStrategyDefinition
 from schemathesis.checks import (
     content_type_conformance,
     not_a_server_error,
@@ -175,11 +176,23 @@ def test_stateful_links(api_schema, fuzz_server):
     class Checked(machine):  # type: ignore[misc, valid-type]
         def validate_response(self, response, case, **kwargs):
             STEPS[f"{case.method} {case.operation.path} {response.status_code}"] += 1
-            case.validate_response(response, checks=[*CHECKS, use_after_free])
+            try:
+                case.validate_response(response, checks=[*CHECKS, use_after_free])
+            except BaseException as exc:
+                failures.append(f"{case.method} {case.formatted_path}: {exc}")
+                raise
 
-    Checked.run(settings=settings(max_examples=STATEFUL_EXAMPLES, stateful_step_count=8,
-                                  deadline=None, derandomize=True,
-                                  suppress_health_check=list(HealthCheck), database=None))
+    failures: list[str] = []
+    try:
+        Checked.run(settings=settings(max_examples=STATEFUL_EXAMPLES, stateful_step_count=8,
+                                      deadline=None, derandomize=True,
+                                      suppress_health_check=list(HealthCheck), database=None))
+    except FlakyStrategyDefinition:
+        # Hypothesis replays a step sequence and finds other rules available: the links
+        # it may follow depend on the live server's answers (a 201 one time, a 429 the
+        # next). Not a failure of the service, as long as no check failed.
+        assert not failures, failures
+    print(f"stateful: {sum(STEPS.values())} requests", dict(STEPS))
     # The links were followed (by the state machine itself, counted in STEPS): sessions
     # were created, solved and deleted through them, jobs submitted and followed.
     def steps(prefix: str) -> int:

@@ -26,7 +26,7 @@ from service.http.dependencies import Services
 from service.http.metrics import MetricsMiddleware, ServiceMetrics
 from service.http.origins import OriginMiddleware
 from service.http.problems import install_handlers
-from service.http.routes import health, jobs, operations, sessions, web
+from service.http.routes import docs, health, jobs, operations, sessions, web
 from service.http.security import SecurityHeadersMiddleware
 from service.logs import configure_logging
 from service.settings import Settings
@@ -82,11 +82,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await asyncio.to_thread(stop_parser)
 
     app = FastAPI(title="Fundamental forms service", version=VERSION, description=DESCRIPTION,
-                  lifespan=lifespan, openapi_tags=TAGS, separate_input_output_schemas=False)
+                  lifespan=lifespan, openapi_tags=TAGS, separate_input_output_schemas=False,
+                  docs_url=None, redoc_url=None)  # served by routes.docs, without a CDN
     app.state.services = services
     install_handlers(app)
     for router in (operations.router, jobs.router, sessions.router, health.router,
-                   web.router):
+                   web.router, docs.router):
         app.include_router(router)
     app.mount("/static", web.static_files(), name="static")
 

@@ -1,30 +1,49 @@
-// Copies the three.js ES modules the page loads from node_modules into
-// service/static/vendor/three/ (git-ignored; the service serves it at /static/vendor/three/).
+// Copies the files the pages load from node_modules into service/static/vendor/<name>/
+// (git-ignored; the service serves them at /static/vendor/): the three.js ES modules of the
+// web page (its import map in service/static/index.html maps "three" and "three/addons/"
+// there), and Swagger UI and ReDoc for the API documentation at /docs and /redoc
+// (service/http/routes/docs.py), so that nothing is loaded from a CDN.
 // Run by `npm ci --prefix web` (postinstall) and by `npm run build --prefix web`.
-// The page's import map (service/static/index.html) maps "three" and "three/addons/" there.
 import { copyFileSync, mkdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { dirname, join } from "node:path";
 import { fileURLToPath } from "node:url";
 
 const here = dirname(fileURLToPath(import.meta.url));
-const three = join(here, "node_modules", "three");
-const out = join(here, "..", "service", "static", "vendor", "three");
+const vendor = join(here, "..", "service", "static", "vendor");
 
-const FILES = {
-  "build/three.module.js": "three.module.js",
-  "build/three.core.js": "three.core.js",
-  "examples/jsm/controls/OrbitControls.js": "addons/controls/OrbitControls.js",
-  "examples/jsm/controls/TransformControls.js": "addons/controls/TransformControls.js",
-  "LICENSE": "LICENSE",
+// vendor directory -> [npm package, {file in the package: file in the directory}]
+const PACKAGES = {
+  three: ["three", {
+    "build/three.module.js": "three.module.js",
+    "build/three.core.js": "three.core.js",
+    "examples/jsm/controls/OrbitControls.js": "addons/controls/OrbitControls.js",
+    "examples/jsm/controls/TransformControls.js": "addons/controls/TransformControls.js",
+    "LICENSE": "LICENSE",
+  }],
+  "swagger-ui": ["swagger-ui-dist", {
+    "swagger-ui-bundle.js": "swagger-ui-bundle.js",
+    "swagger-ui.css": "swagger-ui.css",
+    "LICENSE": "LICENSE",
+    "NOTICE": "NOTICE",
+  }],
+  redoc: ["redoc", {
+    "bundles/redoc.standalone.js": "redoc.standalone.js",
+    "bundles/redoc.standalone.js.LICENSE.txt": "redoc.standalone.js.LICENSE.txt",
+    "LICENSE": "LICENSE",
+  }],
 };
 
-const { version } = JSON.parse(readFileSync(join(three, "package.json"), "utf8"));
-rmSync(out, { recursive: true, force: true });
-for (const [from, to] of Object.entries(FILES)) {
-  mkdirSync(dirname(join(out, to)), { recursive: true });
-  copyFileSync(join(three, from), join(out, to));
+for (const [name, [pkg, files]] of Object.entries(PACKAGES)) {
+  const source = join(here, "node_modules", pkg);
+  const out = join(vendor, name);
+  const { version } = JSON.parse(readFileSync(join(source, "package.json"), "utf8"));
+  rmSync(out, { recursive: true, force: true });
+  for (const [from, to] of Object.entries(files)) {
+    mkdirSync(dirname(join(out, to)), { recursive: true });
+    copyFileSync(join(source, from), join(out, to));
+  }
+  // Written last: the service checks for it to know the vendor files are complete.
+  writeFileSync(join(out, "manifest.json"),
+    JSON.stringify({ package: pkg, version, files: Object.values(files) }, null, 2) + "\n");
+  console.log(`web: ${pkg} ${version} -> ${out}`);
 }
-// Written last: the service checks for it to know the vendor files are complete.
-writeFileSync(join(out, "manifest.json"),
-  JSON.stringify({ package: "three", version, files: Object.values(FILES) }, null, 2) + "\n");
-console.log(`web: three ${version} -> ${out}`);

@@ -19,13 +19,13 @@ def _json(document: object, status_code: int = 200) -> Response:
                     media_type="application/json")
 
 
-@router.get("/healthz", response_model=Health, summary="Liveness",
+@router.get("/healthz", operation_id="healthz", response_model=Health, summary="Liveness",
             description="200 while the process serves HTTP.")
 async def healthz() -> Response:
     return _json({"status": "ok"})
 
 
-@router.get("/readyz", response_model=Readiness, summary="Readiness",
+@router.get("/readyz", operation_id="readyz", response_model=Readiness, summary="Readiness",
             description="200 when the worker pool can take work, else 503 (same body).",
             responses={503: {"model": Readiness, "description": "The pool is not ready."}})
 async def readyz(services: ServicesDep) -> Response:
@@ -37,7 +37,7 @@ async def readyz(services: ServicesDep) -> Response:
     return _json(doc, 200 if ready else 503)
 
 
-@router.get("/metrics", summary="Prometheus metrics",
+@router.get("/metrics", operation_id="metrics", summary="Prometheus metrics",
             description="Request counts and latencies per route, solver stage timings, queue "
                         "depth, pool size (Prometheus text format).",
             response_class=PlainTextResponse,
@@ -53,13 +53,15 @@ def _kind(kind: str) -> dict[str, object]:
             "description": description}
 
 
-@router.get("/problems", response_model=list[ProblemKind], summary="Problem types",
+@router.get("/problems", operation_id="list_problems", response_model=list[ProblemKind],
+            summary="Problem types",
             description="Every problem `type` this service returns.")
 async def problems() -> Response:
     return _json([_kind(kind) for kind in sorted(PROBLEM_KINDS)])
 
 
-@router.get("/problems/{kind}", response_model=ProblemKind, summary="One problem type",
+@router.get("/problems/{kind}", operation_id="get_problem", response_model=ProblemKind,
+            summary="One problem type",
             responses={404: {"description": "Unknown problem type."}})
 async def problem(kind: str) -> Response:
     if kind not in PROBLEM_KINDS:

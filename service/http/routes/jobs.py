@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import anyio
 from fastapi import APIRouter, Path, Query, Request
@@ -13,6 +13,7 @@ from service.api.documents import JobStatus
 from service.api.problems import ProblemError, from_failure
 from service.api.schemas import ColorField
 from service.api.task import TaskResult
+from service.backends.contracts import JobService
 from service.backends.jobs import Job
 from service.http.dependencies import JobsDep, SettingsDep
 from service.http.negotiation import MESH_FORMATS
@@ -30,6 +31,11 @@ ColorQuery = Annotated[ColorField | None, Query(
                 "`defect` (reconstruct: the integrability defect) or `distortion` (deform). "
                 "glTF gets COLOR_0, JSON a `colors` array.")]
 FormatQuery = format_query(MESH_FORMATS)
+MeshFormatQuery = Annotated[Literal["glb", "gltf"], Query(
+    alias="format", description="`glb`: `model/gltf-binary` (default), `gltf`: "
+                                "`model/gltf+json` (the buffer as a data URI).")]
+GLTF_FILES = {"model/gltf-binary": {"schema": {"type": "string", "format": "binary"}},
+              "model/gltf+json": {"schema": {"type": "string", "format": "binary"}}}
 
 _RESULT_CONTENT = {
     "application/json": {"schema": {"type": "object", "description": "The body the "
@@ -113,8 +119,31 @@ async def get_job(jobs: JobsDep, job_id: JobId) -> Response:
 async def get_result(request: Request, jobs: JobsDep, job_id: JobId,
                      color: ColorQuery = None, fmt: FormatQuery = None) -> Response:
     job = await _get(jobs, job_id)
+    return await _result(job, result_format(request, formats(OPERATIONS[job.operation]), fmt),
+                         color, jobs)
+
+
+@router.get("/v1/jobs/{job_id}/mesh", summary="Job result as a glTF file",
+            operation_id="get_job_mesh",
+            description="The mesh of a finished job as GLB (default) or glTF: the bytes of "
+                        "`GET /v1/jobs/{id}/result?format=glb|gltf`, declared as a file "
+                        "download alone (generated clients read one media type per "
+                        "response). 406 when the result is not a single mesh.",
+            response_class=Response,
+            responses={200: {"description": "The mesh file.", "content": GLTF_FILES},
+                       **error_responses(404, 406, 409, 410, 422)})
+async def get_mesh(jobs: JobsDep, job_id: JobId, color: ColorQuery = None,
+                   fmt: MeshFormatQuery = "glb") -> Response:
+    job = await _get(jobs, job_id)
+    if not OPERATIONS[job.operation].mesh_result:
+        raise ProblemError("not-acceptable", f"a {job.operation} job has no mesh result; use "
+                           f"GET /v1/jobs/{job.id}/result", available=["application/json"])
+    return await _result(job, fmt, color, jobs)
+
+
+async def _result(job: Job, fmt: str, color: str | None, jobs: JobService) -> Response:
+    """The result of ``job`` in format ``fmt``, or the problem saying why there is none."""
     spec = OPERATIONS[job.operation]
-    fmt = result_format(request, formats(spec), fmt)
     check_color(spec, color)
     if job.status in ("queued", "running"):
         raise ProblemError("job-not-finished", f"job {job.id} is {job.status}",

@@ -111,7 +111,8 @@ def _endpoint(spec: OperationSpec) -> Callable[..., Awaitable[Response]]:
 for _spec in OPERATIONS.values():
     router.add_api_route(
         f"/v1/{_spec.name}", _endpoint(_spec), methods=["POST"], summary=_spec.summary,
-        description=_spec.description, operation_id=_spec.name, response_class=Response,
+        description=_spec.description, operation_id=_spec.name.replace("/", "_"),
+        response_class=Response,
         responses={200: {"model": _spec.response, "description": "The result.",
                          "content": dict(GLTF_CONTENT) if _spec.mesh_result else {}},
                    **error_responses(400, 406, 408, 413, 415, 422, 500, 503, 504)},

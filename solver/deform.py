@@ -358,7 +358,8 @@ class Deformer:
 
     def solve(self, handle_positions: ArrayLike | None = None,
               handle_rotations: ArrayLike | None = None, refine: bool | None = None,
-              max_seconds: float | None = None) -> np.ndarray:
+              max_seconds: float | None = None, progress: Progress | None = None,
+              ) -> np.ndarray:
         """Deformed vertices (n, 3) for new handle targets; only back-substitutes.
 
         Args:
@@ -369,6 +370,7 @@ class Deformer:
                 has the rest forms (e.g. a rigid motion of every handle).
                 :attr:`last_report` says whether and how it refined.
             max_seconds: optional budget of the refinement (see :meth:`refine_last`).
+            progress: optional callback for the refinement's steps (see there).
         """
         refine = self.refine if refine is None else bool(refine)
         P = (self.rest[self.handles] if handle_positions is None
@@ -400,10 +402,11 @@ class Deformer:
                       "frames": frames, "best": None, "report": None}
         self.last_report = {"refined": False, "reason": "disabled (refine=false)"}
         if refine:
-            return self.refine_last(max_seconds)
+            return self.refine_last(max_seconds, progress)
         return self._embed(local)
 
-    def refine_last(self, max_seconds: float | None = None) -> np.ndarray:
+    def refine_last(self, max_seconds: float | None = None,
+                    progress: Progress | None = None) -> np.ndarray:
         """The refined shape (n, 3) for the handle targets of the last :meth:`solve`.
 
         The first call after a solve starts from the better (lower energy) of the layout
@@ -412,7 +415,9 @@ class Deformer:
         ``max_seconds`` ran out: ``last_report["stop_reason"] == "time_limit"``) continues
         from where it stopped, so an interactive client can answer the linear shape at
         once and refine in slices while the user pauses. A converged refinement is
-        returned as it is. :attr:`last_report` is the refinement's report.
+        returned as it is. :attr:`last_report` is the refinement's report. ``progress``:
+        ``progress("refine", fraction)`` after each step, and ``progress.iteration(detail)``
+        where it has that method (:meth:`solver.refine.Refiner.run`).
         """
         if self._last is None:
             raise ConstraintError("nothing to refine: call solve first", field="handles")
@@ -440,7 +445,7 @@ class Deformer:
                 warm = self._previous[1] + (local - self._previous[0])
                 if refiner.energy(warm) < refiner.energy(start):
                     start, label = warm, "previous drag"
-        fit = refiner.run(start, keep_factor=True, time_limit=max_seconds)
+        fit = refiner.run(start, keep_factor=True, time_limit=max_seconds, progress=progress)
         self.last_report = dict(fit.report, start=label)
         last["best"], last["report"] = fit.vertices, self.last_report
         self._previous = (local, fit.vertices)
@@ -485,10 +490,11 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
     if progress:
         progress("solve", 0.0)
     budget = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
-    result = deformer.solve(handle_positions, handle_rotations, max_seconds=budget)
+    result = deformer.solve(handle_positions, handle_rotations, max_seconds=budget,
+                            progress=progress)
     t2 = time.perf_counter()
-    if progress:
-        progress("solve", 1.0)
+    if progress:  # the last stage that ran is complete
+        progress("refine" if deformer.last_report.get("refined") else "solve", 1.0)
     report = {
         "timings": {"setup": t1 - t0, "solve": t2 - t1},
         "backend": deformer.backend,

@@ -192,6 +192,9 @@ def web(browser: Any, web_server: str) -> Iterator[WebPage]:
     page = context.new_page()
     page.set_default_timeout(30_000)
     wrapper = WebPage(page, web_server)
+    # A progressive drag's refined shape is long-polled; a newer drag supersedes it (409) or
+    # the session closes under it (404): the browser logs those answers, the page expects them.
+    wrapper.allow(r"status of (404|409) .*/drags/\d+/refined\?wait=\d+\)$")
     page.on("console", lambda m: _on_console(wrapper, m))
     page.on("pageerror", lambda e: wrapper.errors.append(f"page error: {e}"))
     try:

@@ -82,6 +82,10 @@ export class DeformTransport {
   close() {}
 }
 
+/** How long the page waits for a drag's refined shape before it stops counting it as work
+ * in progress (the shape is still applied if it comes later). */
+const REFINED_WAIT_MS = 120000;
+
 export class SessionTransport {
   /** `onRefined(vertices, report)`: a progressive session's refined shape of the newest drag. */
   constructor(setup, { websocket = true, onRefined = null } = {}) {
@@ -90,6 +94,7 @@ export class SessionTransport {
     this.onRefined = onRefined;
     this.drags = 0;  // drags sent (the newest one's refined shape is the one that counts)
     this.refinedShapes = 0;
+    this.waiting = null;  // { drag, resolve }: the newest drag's refined shape, not yet here
     this.useWebSocket = websocket;
     this.socket = null;
     this.id = null;
@@ -141,6 +146,7 @@ export class SessionTransport {
       socket.onclose = (event) => {
         if (this.socket === socket) {
           this.socket = null;
+          this.settle();
           this.label = `HTTP: POST /v1/sessions/${this.id?.slice(0, 8)}…/solve (socket closed)`;
           const reject = this.reject;
           this.resolve = this.reject = null;
@@ -206,6 +212,31 @@ export class SessionTransport {
     this.refinedShapes++;
     this.lastRefinement = report;
     this.onRefined?.(vertices, report);
+    this.refinedDrag = this.drags;
+    this.settle();
+  }
+
+  /** A promise that settles once the newest drag's refined shape has been applied, a newer
+   * drag superseded it, the session closed, or REFINED_WAIT_MS passed (then the page keeps
+   * the linear shape); at once for a session that does not refine. The page counts it as
+   * work in progress, so that what it shows next (a download, a test) is the settled shape. */
+  settled() {
+    if (!this.setup.refine || !this.id || this.refinedDrag === this.drags
+        || this.unrefinedDrag === this.drags) return Promise.resolve();
+    if (!this.waiting || this.waiting.drag !== this.drags) {
+      this.settle();
+      let resolve;
+      const promise = new Promise((r) => { resolve = r; });
+      const timer = setTimeout(() => this.settle(), REFINED_WAIT_MS);
+      this.waiting = { drag: this.drags, promise, resolve: () => { clearTimeout(timer); resolve(); } };
+    }
+    return this.waiting.promise;
+  }
+
+  settle() {
+    const waiting = this.waiting;
+    this.waiting = null;
+    waiting?.resolve();
   }
 
   /** Long-poll a drag's refined shape (HTTP; `link` from its Link header) until it is ready,
@@ -220,6 +251,7 @@ export class SessionTransport {
         if (err instanceof ApiError && err.status !== 409 && err.status !== 0) {
           console.warn("[ffs] refined shape unavailable", err);
         }
+        if (drag === this.drags) this.settle();
         return;
       }
       if (response.status === 202) continue;
@@ -251,6 +283,7 @@ export class SessionTransport {
     const vertices = decodeVertices(await response.arrayBuffer(), this.n);
     const link = /<([^>]+)>;\s*rel="refined"/.exec(response.headers.get("Link") ?? "");
     if (link) this.followRefined(link[1], drag);
+    else this.unrefinedDrag = drag;  // nothing more will come for it
     return vertices;
   }
 
@@ -259,6 +292,7 @@ export class SessionTransport {
   close({ unloading = false } = {}) {
     const socket = this.socket, id = this.id;
     this.id = null;
+    this.settle();
     const finish = () => {
       if (socket) {
         if (this.socket === socket) this.socket = null;

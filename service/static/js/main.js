@@ -991,6 +991,7 @@ async function solveLoop() {
       let vertices;
       try {
         vertices = await transport.solve(positions, rotations);
+        if (transport.settled) track(transport.settled());  // the refined shape to come
       } catch (err) {
         if (transport !== state.transport) continue; // replaced meanwhile: stale
         if (transport.kind === "session" && (err.status === 410 || err.status === 404)

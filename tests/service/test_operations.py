@@ -288,8 +288,9 @@ def test_refine_option_reaches_deform_parameterize_interpolate_and_sessions(clie
     assert blend[None]["refinement"]["after"]["length_error"]["mean"] < \
         blend[None]["refinement"]["before"]["length_error"]["mean"]
     assert blend[False]["refinement"]["refined"] is False
-    # A session drags linearly by default (latency); refine=true gives /v1/deform's answer.
-    for refine, want in ((None, deform[False]), (True, deform[None])):
+    # A session drags linearly by default (latency); with refine=true a drag answers the
+    # linear shape at once and links the refined one, which is /v1/deform's answer.
+    for refine in (None, True):
         options = {} if refine is None else {"refine": refine}
         created = client.post("/v1/sessions", json={
             **mesh_json(V, F), "handles": [{"vertex": h["vertex"]} for h in handles],
@@ -299,5 +300,14 @@ def test_refine_option_reaches_deform_parameterize_interpolate_and_sessions(clie
         solved = client.post(f"{location}/solve", json={
             "handle_positions": [h["position"] for h in handles]})
         assert solved.status_code == 200, solved.text
-        np.testing.assert_allclose(solved.json()["vertices"], want["vertices"], atol=1e-6)
+        np.testing.assert_allclose(solved.json()["vertices"], deform[False]["vertices"],
+                                   atol=1e-6)
+        if refine:
+            link = solved.headers["link"]
+            refined = client.get(link[1:link.index(">")], params={"wait": 60})
+            assert refined.status_code == 200, refined.text
+            np.testing.assert_allclose(refined.json()["vertices"], deform[None]["vertices"],
+                                       atol=1e-6)
+        else:
+            assert "link" not in solved.headers
         assert client.delete(location).status_code == 204

@@ -34,7 +34,8 @@ def padded(n: int) -> int:
     return -(-n // 8) * 8
 
 
-def _json_default(value: Any) -> Any:
+def json_default(value: Any) -> Any:
+    """``json.dumps``' ``default``: numpy arrays as lists, numpy scalars as numbers."""
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):
@@ -61,10 +62,10 @@ def _header_json(header: Mapping[str, Any]) -> bytes:
     """Compact UTF-8 JSON of a header (numpy values allowed; non-finite floats as null)."""
     try:
         text = json.dumps(header, separators=(",", ":"), ensure_ascii=False,
-                          allow_nan=False, default=_json_default)
+                          allow_nan=False, default=json_default)
     except ValueError:
         text = json.dumps(_finite_or_none(header), separators=(",", ":"), ensure_ascii=False,
-                          default=_json_default)
+                          default=json_default)
     return text.encode()
 
 

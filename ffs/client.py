@@ -43,7 +43,7 @@ import httpx
 import numpy as np
 
 from ffs import __version__
-from ffs.arrays import BINARY_MEDIA_TYPE, binary_body
+from ffs.arrays import BINARY_MEDIA_TYPE, binary_body, json_default
 from ffs.errors import (
     FFSError,
     GoneError,
@@ -86,16 +86,8 @@ def _options(refine: bool | None, options: Mapping[str, Any]) -> dict[str, Any]:
     return chosen
 
 
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
-
-
 def _dumps(document: Any) -> bytes:
-    return json.dumps(document, separators=(",", ":"), default=_json_default).encode()
+    return json.dumps(document, separators=(",", ":"), default=json_default).encode()
 
 
 def _retry_after(response: httpx.Response) -> float | None:

@@ -1,0 +1,109 @@
+"""``ffs``: the command line. ``ffs <command> <inputs...> -o <output> [options]``.
+
+Commands: ``forms`` (edge lengths and dihedral angles), ``check`` (integrability),
+``reconstruct`` (a mesh from forms), ``deform`` (handles), ``flatten`` (parameterize),
+``blend`` (interpolate two meshes), ``convert`` (read, check, write), ``serve`` (the
+service, ``python -m service``).
+
+* In-process through :mod:`solver` by default; ``--server URL`` (or ``FFS_SERVER``) runs the
+  same work on a service through :class:`ffs.client.Client` (as jobs: stage progress, no
+  request timeout).
+* Many inputs at once: ``-o`` is a template (``{stem}``, ``{name}``, ``{parent}``,
+  ``{index}``, ``{t}`` for blends) or a folder; ``-j N`` runs N at a time (local worker
+  processes with ``cores / N`` BLAS threads each unless ``--threads``, or N concurrent jobs
+  on the server); a failing file is reported and the rest carry on (``--fail-fast`` stops).
+* A progress bar per running file with its stage (on a terminal; quiet otherwise or with
+  ``-q``), then a summary table on stdout; ``--report FILE`` writes every file's full report.
+* Exit codes: 0 all done, 1 a file failed (its message names the file, field and index),
+  2 usage; 130 interrupted. Bad input never prints a traceback (``-v`` shows the traceback
+  of an unexpected error).
+
+Modules, in the order a run goes through them: :mod:`~ffs.cli.arguments` (the parser),
+:mod:`~ffs.cli.items` (inputs and outputs of each unit of work), :mod:`~ffs.cli.batch`
+(workers, ``-j``, ``--fail-fast``) running :mod:`~ffs.cli.commands` (one runner per
+command) with :mod:`~ffs.cli.progress` (bars) and :mod:`~ffs.cli.failures` (one line per
+failed file), then :mod:`~ffs.cli.summary` (table and ``--report``). None of them imports
+numpy at import time: the BLAS thread variables are set first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Sequence
+
+from ffs.cli.arguments import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, build_parser
+from ffs.cli.batch import run_batch
+from ffs.cli.items import UsageError, plan_items
+from ffs.cli.summary import print_summary, write_report
+
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+"""The BLAS/OpenMP thread variables ``--threads`` (or ``cores / jobs``) sets."""
+
+
+def _set_threads(args: argparse.Namespace) -> None:
+    """BLAS/MKL threads per worker, set before numpy or MKL load (they read these once)."""
+    threads = args.threads
+    if threads is None and not args.server and args.jobs > 1:
+        threads = max(1, (os.cpu_count() or 1) // args.jobs)
+    if threads is not None:
+        for name in THREAD_VARIABLES:
+            os.environ[name] = str(threads)
+
+
+def serve(args: argparse.Namespace) -> int:
+    """``ffs serve``: run the service (``python -m service``) with ``--host``/``--port``/
+    ``--workers`` as its environment variables."""
+    for name, value in (("FFS_HOST", args.host), ("FFS_PORT", args.port),
+                        ("FFS_WORKERS", args.workers)):
+        if value is not None:
+            os.environ[name] = str(value)
+    from service.__main__ import main as serve_main
+
+    serve_main()
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line.
+
+    Args:
+        argv: The arguments after ``ffs`` (default: ``sys.argv[1:]``).
+
+    Returns:
+        The exit code: 0 all done, 1 a file failed, 2 usage (Ctrl-C exits 130 at once).
+    """
+    args = build_parser().parse_args(argv)
+    if args.command == "serve":
+        return serve(args)
+    try:
+        items = plan_items(args.command, args.inputs, args.output,
+                           args.t if args.command == "blend" else None)
+    except UsageError as exc:
+        print(f"ffs {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.command == "blend" and args.orthonormalize is not None:
+        print("ffs blend: error: blend takes no --orthonormalize (a blend is reconstructed "
+              "from blended forms)", file=sys.stderr)
+        return EXIT_USAGE
+    args.jobs = min(args.jobs, len(items))
+    _set_threads(args)
+    started = time.perf_counter()
+    try:
+        rows = run_batch(args.command, args, items)
+    except KeyboardInterrupt:
+        print(f"ffs {args.command}: interrupted", file=sys.stderr)
+        sys.stderr.flush()
+        os._exit(EXIT_INTERRUPTED)
+    elapsed = time.perf_counter() - started
+    print_summary(args.command, rows, elapsed, args.quiet)
+    if args.report:
+        write_report(args.report, args.command, args, rows, elapsed)
+    return EXIT_OK if all(r.status == "ok" for r in rows) else EXIT_FAILED
+
+
+def console_main() -> None:
+    """The ``ffs`` console script."""
+    sys.exit(main())

@@ -1,0 +1,134 @@
+"""The command line's arguments: the subcommands and their options, and argparse's usage
+errors as exit code 2."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Any
+
+from ffs import __version__
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+"""Exit codes: all done, a file failed, usage, interrupted (Ctrl-C)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that says ``ffs <command>: error: ...`` and exits 2 (usage)."""
+
+    def error(self, message: str) -> Any:  # type: ignore[override]
+        """Print the usage and ``message``; exit :data:`EXIT_USAGE`."""
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
+
+
+def _positive_int(text: str) -> int:
+    """argparse type: an integer of at least 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    """argparse type: a number greater than 0."""
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``ffs`` parser: one subcommand per operation, plus ``serve``.
+
+    Returns:
+        The parser; ``parse_args`` exits 2 with ``ffs <command>: error: ...`` on bad usage.
+    """
+    common = _Parser(add_help=False)
+    io = common.add_argument_group("files")
+    io.add_argument("-o", "--output", help="output file, template ({stem}, {name}, {parent}, "
+                    "{index}, {t}) or folder")
+    io.add_argument("--format", help="output format instead of the extension: obj, off, ply, "
+                    "stl, glb, json, npz")
+    io.add_argument("--input-format", help="input mesh format instead of the extension")
+    io.add_argument("--report", metavar="FILE", help="write every file's full report (JSON)")
+    run = common.add_argument_group("running")
+    run.add_argument("-j", "--jobs", type=_positive_int, default=1,
+                     help="files at once: local worker processes, or concurrent jobs on "
+                     "the server (default 1)")
+    run.add_argument("--threads", type=_positive_int, help="BLAS/MKL threads per local worker "
+                     "(default: cores / jobs)")
+    run.add_argument("--server", default=os.environ.get("FFS_SERVER") or None, metavar="URL",
+                     help="run on this service (default $FFS_SERVER; none: in-process)")
+    run.add_argument("--local", dest="server", action="store_const", const=None,
+                     help="run in-process even if FFS_SERVER is set")
+    run.add_argument("--timeout", type=_positive_float, default=60.0,
+                     help="seconds for each answer of the server (default 60)")
+    run.add_argument("--fail-fast", action="store_true", help="stop at the first failure")
+    run.add_argument("-q", "--quiet", action="store_true", help="no progress, no summary; "
+                     "only errors")
+    run.add_argument("-v", "--verbose", action="store_true",
+                     help="tracebacks of unexpected errors")
+
+    solve = _Parser(add_help=False)
+    group = solve.add_argument_group("solver options (named like the HTTP options)")
+    group.add_argument("--refine", dest="refine", action="store_true", default=None,
+                       help="always refine to the nearest surface when not exact")
+    group.add_argument("--no-refine", dest="refine", action="store_false",
+                       help="the linear answer (Eq. 5) only")
+    group.add_argument("--max-seconds", type=_positive_float,
+                       help="wall-clock budget of the refinement")
+    group.add_argument("--orthonormalize", dest="orthonormalize", action="store_true",
+                       default=None, help="second solve with orthonormalized frames")
+    group.add_argument("--no-orthonormalize", dest="orthonormalize", action="store_false")
+    group.add_argument("--frame-weight", type=_positive_float)
+    group.add_argument("--weighting", choices=("uniform", "cotan", "cotan_clamped"))
+    group.add_argument("--solver", choices=("auto", "pardiso", "cholespy", "superlu"),
+                       help="sparse factorization backend")
+
+    tolerance = _Parser(add_help=False)
+    tolerance.add_argument("--tolerance", type=_positive_float,
+                           help="integrability tolerance (default 1e-8)")
+    tolerance.add_argument("--require-integrable", action="store_true",
+                           help="fail (exit 1) when the forms are not integrable")
+
+    parser = _Parser(prog="ffs", description="Fundamental forms of triangle meshes: forms, "
+                     "integrability, reconstruction, deformation, flattening, blending; "
+                     "in-process or on a service (--server).",
+                     epilog="Exit codes: 0 done, 1 a file failed, 2 usage. "
+                     "Example: ffs reconstruct forms/*.npz -o out/{stem}.glb -j 2")
+    parser.add_argument("--version", action="version", version=f"ffs {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="command", required=True,
+                                     parser_class=_Parser)
+    meshes = {"nargs": "+", "metavar": "MESH"}
+    commands.add_parser("forms", parents=[common], help="edge lengths and dihedral angles "
+                        "(.json or .npz)").add_argument("inputs", **meshes)
+    check = commands.add_parser("check", parents=[common, tolerance],
+                                help="integrability of forms or meshes")
+    check.add_argument("inputs", nargs="+", metavar="FORMS_OR_MESH")
+    rebuild = commands.add_parser("reconstruct", parents=[common, solve, tolerance],
+                                  help="a mesh from forms (or from a mesh's own forms)")
+    rebuild.add_argument("inputs", nargs="+", metavar="FORMS_OR_MESH")
+    rebuild.add_argument("--constraints", metavar="FILE", help="JSON constraints as the API "
+                         "takes them: {\"positions\": [...], \"frames\": [...]}")
+    deform = commands.add_parser("deform", parents=[common, solve], help="move handles")
+    deform.add_argument("inputs", **meshes)
+    deform.add_argument("--handles", required=True, metavar="FILE", help="JSON: "
+                        "[{\"vertex\": i, \"position\": [x, y, z]}, ...] or {\"handles\", "
+                        "\"rotations\", \"roi\"}")
+    commands.add_parser("flatten", parents=[common, solve], help="flatten meshes with "
+                        "boundary (uv as z = 0 meshes, or .json/.npz)").add_argument(
+                            "inputs", **meshes)
+    blend = commands.add_parser("blend", parents=[common, solve],
+                                help="blend two meshes with the same faces in form space")
+    blend.add_argument("inputs", nargs="+", metavar="MESH", help="A and B")
+    blend.add_argument("-t", "--t", type=float, nargs="+", default=[0.5],
+                       help="blend value(s): 0 gives A, 1 gives B (default 0.5)")
+    commands.add_parser("convert", parents=[common], help="read, check and write meshes "
+                        "(formats from the extensions)").add_argument("inputs", **meshes)
+    serve = commands.add_parser("serve", help="run the service (python -m service)")
+    serve.add_argument("--host", help="bind address (FFS_HOST, default 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="port (FFS_PORT, default 8000)")
+    serve.add_argument("--workers", type=_positive_int, help="worker processes (FFS_WORKERS)")
+    return parser

@@ -1,0 +1,216 @@
+"""What each command does with one item: read its inputs, call the backend (the library
+in-process, :class:`ffs.local.Local`, or a service, :class:`ffs.client.Client`), write its
+outputs and fill its :class:`~ffs.cli.items.Row`.
+
+Every runner has the signature ``run_<command>(backend, item, args, progress, row)``: the
+parsed command line ``args``, ``progress(stage, fraction)`` for the bar, and ``row`` to fill.
+numpy and the library are imported inside the runners, after the command line has set the
+BLAS thread variables.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from ffs.cli.failures import RunFailedError
+from ffs.cli.items import Item, Row
+
+Progress = Callable[[str, float], None]
+"""``progress(stage, fraction)``: a stage's name and how far the item is, 0 to 1."""
+
+
+def _refinement_columns(row: Row, report: dict[str, Any] | None) -> None:
+    """The ``refined`` and residual columns of ``row`` from a report's ``refinement``."""
+    refinement = (report or {}).get("refinement")
+    if isinstance(refinement, list):  # a blend of several t: the worst
+        refinement = max(refinement, key=lambda r: ((r or {}).get("after") or {}).get(
+            "length_error", {}).get("max", 0.0), default=None)
+    if not isinstance(refinement, dict):
+        return
+    row.refined = bool(refinement.get("refined"))
+    after = refinement.get("after") or {}
+    row.length_error = (after.get("length_error") or {}).get("max")
+    row.angle_error = (after.get("angle_error") or {}).get("max")
+
+
+def _mesh_options(args: argparse.Namespace, *, orthonormalize_default: bool = False
+                  ) -> dict[str, Any]:
+    """The solver options given on the command line, by their library names (``None``s
+    and an ``--orthonormalize`` equal to the operation's default left out)."""
+    options = {"frame_weight": args.frame_weight, "weighting": args.weighting,
+               "solver": args.solver, "max_seconds": args.max_seconds, "refine": args.refine}
+    if args.orthonormalize is not None and args.orthonormalize != orthonormalize_default:
+        options["orthonormalize"] = args.orthonormalize
+    return {k: v for k, v in options.items() if v is not None}
+
+
+def _output_format(path: Path, args: argparse.Namespace,
+                   allowed: Sequence[str] | None = None) -> str:
+    """The format ``path`` is written in: ``--format`` or its extension.
+
+    Raises:
+        ffs.files.InputFileError: The format is not one of ``allowed`` (default: every
+            format written).
+    """
+    from ffs import files
+
+    fmt = (args.format or path.suffix.lstrip(".")).lower()
+    writable = allowed or ("obj", "off", "ply", "stl", "glb", "json", "npz")
+    if fmt not in writable:
+        raise files.InputFileError(path, f"cannot write {fmt or '(no extension)'!r} here; "
+                                   f"use one of {', '.join(writable)} (or --format)")
+    return fmt
+
+
+def _write_mesh_result(item: Item, args: argparse.Namespace, row: Row, vertices: Any,
+                       faces: Any, report: dict[str, Any]) -> None:
+    """Write a mesh result to the item's output and fill the row from its report."""
+    from ffs import files
+
+    out = Path(item.outputs[0])
+    files.write_mesh(out, _output_format(out, args), vertices, faces, report)
+    row.faces, row.report = len(faces), report
+    _refinement_columns(row, report)
+
+
+def _forms_of(backend: Any, path: str, args: argparse.Namespace, progress: Progress) -> Any:
+    """The forms in a forms file, or those of a mesh file."""
+    from ffs import files
+
+    if files.is_forms_file(path):
+        return files.read_forms(path)
+    vertices, faces = files.read_mesh(path, args.input_format)
+    return backend.fundamental_forms(vertices, faces, progress=progress)
+
+
+def run_forms(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+              row: Row) -> None:
+    """``ffs forms``: a mesh's edge lengths and dihedral angles as .json or .npz."""
+    from ffs import files
+
+    vertices, faces = files.read_mesh(item.inputs[0], args.input_format)
+    forms = backend.fundamental_forms(vertices, faces, progress=progress)
+    out = Path(item.outputs[0])
+    fmt = _output_format(out, args, ("json", "npz"))
+    files.write_arrays(out, fmt, forms.arrays(), {})
+    row.faces = len(forms.faces)
+    row.note = f"{len(forms.edges)} edges"
+
+
+def run_check(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+              row: Row) -> None:
+    """``ffs check``: integrability of forms (or of a mesh's forms).
+
+    Raises:
+        RunFailedError: ``--require-integrable`` and the forms are not integrable.
+    """
+    from ffs import files
+
+    forms = _forms_of(backend, item.inputs[0], args, progress)
+    report = backend.check_integrability(forms, tol=args.tolerance, progress=progress)
+    row.faces, row.report = len(forms.faces), report.report
+    row.extra = {"integrable": report.integrable, "max_defect": report.max_defect}
+    row.note = ("integrable" if report.integrable else "NOT integrable") + \
+        f", max defect {report.max_defect:.3g}"
+    if item.outputs:
+        out = Path(item.outputs[0])
+        files.write_arrays(out, _output_format(out, args, ("json",)), {}, report.report)
+    if args.require_integrable and not report.integrable:
+        worst = (report.report.get("worst_vertices") or [None])[0]
+        raise RunFailedError(f"the forms are not integrable: max defect {report.max_defect:.3g} "
+                             f"(tolerance {args.tolerance or 1e-8:g}); worst vertex {worst}")
+
+
+def run_reconstruct(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+                    row: Row) -> None:
+    """``ffs reconstruct``: a mesh from forms (``--constraints`` pins positions/frames)."""
+    from ffs import files
+
+    forms = _forms_of(backend, item.inputs[0], args, progress)
+    options = _mesh_options(args)
+    options.update({k: v for k, v in {"tolerance": args.tolerance,
+                                      "require_integrable": args.require_integrable or None
+                                      }.items() if v is not None})
+    constraints = files.read_json(args.constraints) if args.constraints else None
+    result = backend.reconstruct(forms, constraints=constraints, progress=progress, **options)
+    _write_mesh_result(item, args, row, result.vertices, result.faces, result.report)
+
+
+def run_deform(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+               row: Row) -> None:
+    """``ffs deform``: the mesh with its ``--handles`` moved."""
+    from ffs import files
+
+    handles = files.read_handles(args.handles)
+    vertices, faces = files.read_mesh(item.inputs[0], args.input_format)
+    result = backend.deform(vertices, faces, handles.vertices, handles.positions,
+                            rotation_handles=handles.rotation_faces or None,
+                            handle_rotations=handles.rotations, roi=handles.roi,
+                            progress=progress, **_mesh_options(args))
+    _write_mesh_result(item, args, row, result.vertices, result.faces, result.report)
+
+
+def run_flatten(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+                row: Row) -> None:
+    """``ffs flatten``: uv of a mesh with boundary, as a z = 0 mesh or a .json/.npz."""
+    import numpy as np
+
+    from ffs import files
+
+    vertices, faces = files.read_mesh(item.inputs[0], args.input_format)
+    result = backend.parameterize(vertices, faces, progress=progress,
+                                  **_mesh_options(args, orthonormalize_default=True))
+    out = Path(item.outputs[0])
+    fmt = _output_format(out, args)
+    if fmt in files.DATA_FORMATS:
+        files.write_arrays(out, fmt, {"uv": result.uv, "flipped_faces": result.flipped_faces,
+                                      "faces": np.asarray(faces)}, {"report": result.report})
+    else:
+        flat = np.column_stack([result.uv, np.zeros(len(result.uv))])
+        files.write_mesh(out, fmt, flat, np.asarray(faces))
+    row.faces, row.report = len(faces), result.report
+    row.note = f"{len(result.flipped_faces)} flipped faces"
+    _refinement_columns(row, result.report)
+
+
+def run_blend(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+              row: Row) -> None:
+    """``ffs blend``: meshes between A and B (same faces) at each ``-t``, in form space."""
+    from ffs import files
+
+    vertices_a, faces = files.read_mesh(item.inputs[0], args.input_format)
+    vertices_b, _ = files.read_mesh(item.inputs[1], args.input_format)
+    options = _mesh_options(args)
+    options.pop("orthonormalize", None)
+    t = args.t[0] if len(args.t) == 1 else list(args.t)
+    result = backend.interpolate(vertices_a, vertices_b, faces, t, progress=progress,
+                                 **options)
+    shapes = [result.vertices] if len(args.t) == 1 else list(result.vertices)
+    for out, vertices in zip(item.outputs, shapes, strict=True):
+        files.write_mesh(Path(out), _output_format(Path(out), args), vertices, result.faces,
+                         {"t": result.t, "refinement": result.refinement})
+    row.faces, row.report = len(result.faces), {"refinement": result.refinement}
+    row.note = "t = " + ", ".join(f"{x:g}" for x in args.t)
+    _refinement_columns(row, row.report)
+
+
+def run_convert(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+                row: Row) -> None:
+    """``ffs convert``: read, check and write a mesh (formats from the extensions)."""
+    from ffs import files
+
+    vertices, faces = files.read_mesh(item.inputs[0], args.input_format)
+    mesh = backend.mesh(vertices, faces, progress=progress)
+    out = Path(item.outputs[0])
+    files.write_mesh(out, _output_format(out, args), mesh.vertices, mesh.faces, mesh.report)
+    row.faces, row.report = len(mesh.faces), mesh.report
+    row.note = f"{len(mesh.vertices)} vertices"
+
+
+RUNNERS: dict[str, Callable[[Any, Item, argparse.Namespace, Progress, Row], None]] = {
+    "forms": run_forms, "check": run_check, "reconstruct": run_reconstruct,
+    "deform": run_deform, "flatten": run_flatten, "blend": run_blend, "convert": run_convert}
+"""Command name -> its runner."""

@@ -1,0 +1,158 @@
+"""The items of a command line: which inputs make one unit of work, where it is written
+(``-o`` as a file, a template or a folder), and the row that records what it did."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+DEFAULT_EXTENSIONS = {"forms": ".json", "check": ".json", "reconstruct": ".obj"}
+"""Output extension when ``-o`` is a folder (others: the input's, if writable, else .obj)."""
+
+
+class UsageError(Exception):
+    """A command line that cannot run (exit 2)."""
+
+
+@dataclass
+class Item:
+    """One unit of work.
+
+    Attributes:
+        index: Position among the command line's items (the ``{index}`` template field).
+        inputs: Its input files: one, or two (A and B) for a blend.
+        outputs: Its output paths: one, one per ``-t`` value of a blend, none for a
+            ``check`` without ``-o``.
+    """
+
+    index: int
+    inputs: list[str]
+    outputs: list[str]
+
+    @property
+    def name(self) -> str:
+        """The input files' names, joined with `` + ``."""
+        return " + ".join(Path(p).name for p in self.inputs)
+
+
+@dataclass
+class Row:
+    """What one item did: the summary table's row and the report's entry.
+
+    Attributes:
+        file: The item's name.
+        outputs: The item's output paths.
+        status: ``ok``, ``failed``, ``stopped`` (interrupted while running) or ``skipped``
+            (not run: ``--fail-fast``).
+        path: The input paths, joined with `` + `` (prefix of the error line).
+        faces: Faces of the result, when there is one.
+        seconds: Wall time of the run.
+        refined: Whether the refinement ran (None: the operation has none).
+        length_error: Max edge-length error after refinement.
+        angle_error: Max dihedral-angle error after refinement.
+        note: The summary table's ``result`` cell.
+        error: One line naming what failed (field and index where known).
+        pid: The process that ran it.
+        started: Wall-clock start (``time.time()``).
+        finished: Wall-clock end.
+        report: The operation's full report.
+        extra: More fields of the report's entry (e.g. ``integrable``, ``traceback``).
+    """
+
+    file: str
+    outputs: list[str]
+    status: str = "ok"
+    path: str = ""
+    faces: int | None = None
+    seconds: float = 0.0
+    refined: bool | None = None
+    length_error: float | None = None
+    angle_error: float | None = None
+    note: str = ""
+    error: str | None = None
+    pid: int = 0
+    started: float = 0.0
+    finished: float = 0.0
+    report: Any = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def skipped_row(item: Item) -> Row:
+    """The row of an item that ``--fail-fast`` kept from running."""
+    return Row(item.name, item.outputs, status="skipped", error="not run (--fail-fast)")
+
+
+def _template_fields(path: Path, index: int) -> dict[str, Any]:
+    return {"stem": path.stem, "name": path.name, "parent": str(path.parent),
+            "index": index, "ext": path.suffix.lstrip(".")}
+
+
+def _default_extension(command: str, first_input: str) -> str:
+    if command in DEFAULT_EXTENSIONS:
+        return DEFAULT_EXTENSIONS[command]
+    suffix = Path(first_input).suffix.lower()
+    return suffix if suffix in (".obj", ".off", ".ply", ".stl", ".glb") else ".obj"
+
+
+def plan_items(command: str, inputs: Sequence[str], output: str | None,
+               t_values: Sequence[float] | None = None) -> list[Item]:
+    """The items of a command line: inputs grouped and outputs named.
+
+    Args:
+        command: The subcommand (``blend`` takes its two inputs as one item).
+        inputs: The input paths, in command-line order.
+        output: ``-o``: a file, a template (``{stem}``, ``{name}``, ``{parent}``,
+            ``{index}``, ``{ext}``, ``{t}``) or a folder; None only for ``check``.
+        t_values: A blend's ``-t`` values (several need ``{t}`` or ``{index}``).
+
+    Returns:
+        One :class:`Item` per input (per pair for a blend), in input order.
+
+    Raises:
+        UsageError: ``-o`` missing, not a template for several inputs, a bad template, or
+            two items that would write the same file.
+
+    Example:
+        >>> [item.outputs for item in plan_items("convert", ["a.off", "b.off"], "{stem}.ply")]
+        [['a.ply'], ['b.ply']]
+    """
+    groups = [list(inputs)] if command == "blend" else [[p] for p in inputs]
+    if command == "blend" and len(inputs) != 2:
+        raise UsageError("blend takes exactly two meshes with the same faces: A B")
+    if output is None:
+        if command != "check":
+            raise UsageError(f"{command} needs -o OUTPUT (a file, a template with {{stem}}, "
+                             "or a folder)")
+        return [Item(i, g, []) for i, g in enumerate(groups)]
+    templated = "{" in output
+    folder = output.endswith(("/", os.sep)) or Path(output).is_dir()
+    many_t = t_values is not None and len(t_values) > 1
+    if folder and not templated:
+        output = str(Path(output) / ("{stem}" + ("-{t}" if many_t else "")
+                                     + _default_extension(command, groups[0][0])))
+    elif not templated and len(groups) > 1:
+        raise UsageError(f"{len(groups)} inputs cannot all be written to {output}: use a "
+                         "template such as -o 'out/{stem}.glb' or a folder")
+    elif not templated and many_t:
+        raise UsageError("several -t values need a template with {t} or {index} in -o")
+    items, seen = [], {}
+    for i, group in enumerate(groups):
+        fields = _template_fields(Path(group[0]), i)
+        try:
+            if many_t:
+                outs = [output.format(**fields, t=f"{t:g}") for t in t_values or []]
+            else:
+                t0 = f"{t_values[0]:g}" if t_values else ""
+                outs = [output.format(**fields, t=t0)]
+        except (KeyError, IndexError, ValueError) as exc:
+            raise UsageError(f"bad output template {output!r}: {exc}; fields: stem, name, "
+                             "parent, index, ext, t") from None
+        for out in outs:
+            if out in seen:
+                raise UsageError(f"{group[0]} and {seen[out]} would both be written to {out}")
+            seen[out] = group[0]
+        items.append(Item(i, group, outs))
+    return items

@@ -10,6 +10,9 @@ The header is the JSON body without its large arrays, plus ``"arrays": {name: {"
 "shape"}}`` in the order the arrays follow. dtypes: ``<f8`` ``<f4`` (reals), ``<i4`` ``<i8``
 ``<u4`` (indices). The service's reader with its checks is
 :func:`service.api.decoding.parse_binary`.
+
+:func:`json_default` (numpy values in JSON) serves the JSON header here and every other JSON
+the client, the command line and the service write.
 """
 
 from __future__ import annotations
@@ -35,11 +38,31 @@ def padded(n: int) -> int:
 
 
 def json_default(value: Any) -> Any:
-    """``json.dumps``' ``default``: numpy arrays as lists, numpy scalars as numbers."""
+    """The ``default`` of ``json.dumps`` and ``orjson.dumps`` for every JSON this project
+    writes (request bodies, the command line's files and reports, the service's responses).
+
+    Args:
+        value: What the encoder cannot encode itself.
+
+    Returns:
+        numpy arrays as lists, numpy scalars as Python numbers, an object with
+        ``to_dict()`` as that dict, sets and tuples as lists.
+
+    Raises:
+        TypeError: Anything else (what ``default`` must raise).
+
+    Example:
+        >>> json.dumps({"lengths": np.array([1.5, 2.0]), "n": np.int64(3)}, default=json_default)
+        '{"lengths": [1.5, 2.0], "n": 3}'
+    """
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):
         return value.item()
+    if hasattr(value, "to_dict"):
+        return value.to_dict()
+    if isinstance(value, set | frozenset | tuple):
+        return list(value)
     raise TypeError(f"{type(value).__name__} is not JSON serializable")
 
 

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from ffs.arrays import json_default
 from ffs.results import Forms
 
 MESH_FORMATS = ("obj", "off", "ply", "stl", "glb", "gltf")
@@ -32,7 +33,14 @@ DATA_FORMATS = ("json", "npz")
 
 
 class InputFileError(Exception):
-    """A file the command cannot use: ``path``, and where in it (``field``, ``index``)."""
+    """A file the command cannot use; its message is ``path: field[index]: reason``.
+
+    Args:
+        path: The file.
+        reason: What is wrong with it.
+        field: The field of the document, where the problem is in one.
+        index: The element of ``field``, where the problem is in one.
+    """
 
     def __init__(self, path: str | os.PathLike[str], reason: str, *, field: str | None = None,
                  index: int | None = None) -> None:
@@ -43,7 +51,11 @@ class InputFileError(Exception):
 
 
 def file_format(path: str | os.PathLike[str], override: str | None = None) -> str:
-    """The lower-case format of ``path``: ``override`` or its extension."""
+    """The lower-case format of ``path``: ``override`` or its extension.
+
+    Raises:
+        InputFileError: Neither a mesh format nor a data format (.json, .npz).
+    """
     fmt = (override or Path(path).suffix.lstrip(".")).lower()
     if fmt not in MESH_FORMATS + DATA_FORMATS:
         raise InputFileError(path, f"unknown file format {fmt or '(no extension)'!r}; use "
@@ -89,7 +101,19 @@ def _array(path: Path, doc: dict[str, Any], name: str, dtype: type, cols: int | 
 
 def read_mesh(path: str | os.PathLike[str], fmt: str | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (n, 3) float64, faces (m, 3) int64) of a mesh file or mesh document."""
+    """Read a mesh file or mesh document.
+
+    Args:
+        path: An OBJ, OFF, PLY, STL, GLB/glTF file, or a .json/.npz with ``vertices`` and
+            ``faces``.
+        fmt: The format instead of the extension (``--input-format``).
+
+    Returns:
+        ``(vertices (n, 3) float64, faces (m, 3) int64)``, in the file's vertex order.
+
+    Raises:
+        InputFileError: Missing, unreadable, or not a mesh (naming the field and index).
+    """
     path = Path(path)
     fmt = file_format(path, fmt)
     if fmt in DATA_FORMATS:
@@ -118,7 +142,19 @@ def is_forms_file(path: str | os.PathLike[str], fmt: str | None = None) -> bool:
 
 
 def read_forms(path: str | os.PathLike[str], fmt: str | None = None) -> Forms:
-    """The forms of a .json/.npz file (``faces``, ``edges``, ``lengths``, ``angles``)."""
+    """Read forms.
+
+    Args:
+        path: A .json or .npz with ``faces`` (m, 3), ``edges`` (k, 2), ``lengths`` (k,) and
+            ``angles`` (k,).
+        fmt: The format instead of the extension.
+
+    Returns:
+        The forms (faces and edges int64, lengths and angles float64).
+
+    Raises:
+        InputFileError: Not a .json/.npz, a field missing, or of the wrong shape or dtype.
+    """
     path = Path(path)
     fmt = file_format(path, fmt)
     if fmt not in DATA_FORMATS:
@@ -142,8 +178,18 @@ class Handles:
 
 
 def read_handles(path: str | os.PathLike[str]) -> Handles:
-    """Handles of a JSON file (the API's ``handles`` list, or an object with ``handles``,
-    ``rotations`` and ``roi``)."""
+    """Read deformation handles (``ffs deform --handles``).
+
+    Args:
+        path: JSON: the API's ``handles`` list, or an object with ``handles`` and the
+            optional ``rotations`` and ``roi``.
+
+    Returns:
+        The handles.
+
+    Raises:
+        InputFileError: Not such a document (naming the field and index).
+    """
     doc = read_json(path)
     if isinstance(doc, list):
         doc = {"handles": doc}
@@ -177,7 +223,11 @@ def read_handles(path: str | os.PathLike[str]) -> Handles:
 
 
 def read_json(path: str | os.PathLike[str]) -> Any:
-    """A JSON document (e.g. reconstruct constraints)."""
+    """A JSON document (e.g. reconstruct constraints).
+
+    Raises:
+        InputFileError: Missing, or not JSON.
+    """
     path = Path(path)
     try:
         return json.loads(path.read_text(encoding="utf-8"))
@@ -190,19 +240,9 @@ def read_json(path: str | os.PathLike[str]) -> Any:
 # ----------------------------------------------------------------------------- writing
 
 
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if hasattr(value, "to_dict"):
-        return value.to_dict()
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
-
-
 def json_text(document: Any) -> str:
     """JSON of results and reports (numpy values as lists and numbers; float64 exact)."""
-    return json.dumps(document, default=_json_default)
+    return json.dumps(document, default=json_default)
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -216,7 +256,14 @@ def _atomic_write(path: Path, data: bytes) -> None:
 
 def write_arrays(path: Path, fmt: str, arrays: dict[str, Any], extra: dict[str, Any]
                  ) -> None:
-    """``arrays`` (+ ``extra`` fields in JSON) as a .json document or an .npz archive."""
+    """Write arrays by name, atomically.
+
+    Args:
+        path: The output file.
+        fmt: ``json`` or ``npz``.
+        arrays: Name -> array.
+        extra: More fields of a .json document (not written to an .npz).
+    """
     if fmt == "npz":
         import io
 
@@ -229,7 +276,19 @@ def write_arrays(path: Path, fmt: str, arrays: dict[str, Any], extra: dict[str, 
 
 def write_mesh(path: Path, fmt: str, vertices: np.ndarray, faces: np.ndarray,
                report: dict[str, Any] | None = None) -> None:
-    """A mesh file (OBJ, OFF, PLY, STL, GLB) or a .json / .npz document of it."""
+    """Write a mesh, atomically.
+
+    Args:
+        path: The output file.
+        fmt: ``obj``, ``off``, ``ply``, ``stl``, ``glb``, or ``json``/``npz`` (a document
+            with ``vertices``, ``faces`` and ``report``).
+        vertices: (n, 3) float64 (written in float32 to STL and GLB).
+        faces: (m, 3) int.
+        report: The ``report`` field of a document.
+
+    Raises:
+        InputFileError: ``gltf`` (read, not written).
+    """
     if fmt in DATA_FORMATS:
         write_arrays(path, fmt, {"vertices": vertices, "faces": faces},
                      {"report": report or {}})

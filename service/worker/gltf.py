@@ -126,23 +126,27 @@ def color_ramp(values: ArrayLike, vmin: float | None = None, vmax: float | None 
                *, linear: bool = True) -> NDArray[np.float32]:
     """Map scalars to RGBA colours with a perceptually uniform (viridis) ramp.
 
-    Parameters
-    ----------
-    values : (n,) float
-        Scalar per vertex. NaN maps to opaque grey ``(0.5, 0.5, 0.5, 1)``; +-inf clamp to the
-        ends of the ramp.
-    vmin, vmax : float, optional
-        Range mapped onto the ramp; values outside are clamped. Default: the min/max of the
-        finite values. A zero-width range maps every finite value to the ramp's midpoint.
-    linear : bool
-        Return linear-light RGB (default), which is what glTF ``COLOR_0`` expects; the ramp
-        table is defined in sRGB, so viewers then display the intended viridis colours. Pass
-        ``False`` for sRGB values (e.g. for a PNG or CSS).
+    Args:
+        values: (n,) float, a scalar per vertex. NaN maps to opaque grey
+            ``(0.5, 0.5, 0.5, 1)``; +-inf clamp to the ends of the ramp.
+        vmin: Low end of the range mapped onto the ramp (values outside are clamped).
+            Default: the min of the finite values.
+        vmax: High end of that range. Default: the max of the finite values. A zero-width
+            range maps every finite value to the ramp's midpoint.
+        linear: Return linear-light RGB (default), which is what glTF ``COLOR_0`` expects;
+            the ramp table is defined in sRGB, so viewers then display the intended viridis
+            colours. ``False`` for sRGB values (e.g. for a PNG or CSS).
 
-    Returns
-    -------
-    (n, 4) float32
-        RGBA in [0, 1], alpha 1.
+    Returns:
+        (n, 4) float32 RGBA in [0, 1], alpha 1.
+
+    Raises:
+        solver.errors.ShapeMismatchError: ``values`` is not one-dimensional.
+
+    Example:
+        >>> rgba = color_ramp([0.0, 1.0, float("nan")], linear=False)
+        >>> rgba[:, :3].astype(float).round(3).tolist()
+        [[0.267, 0.005, 0.329], [0.993, 0.906, 0.144], [0.5, 0.5, 0.5]]
     """
     v = np.asarray(values, dtype=np.float64)
     if v.ndim != 1:
@@ -175,14 +179,12 @@ def vertex_normals(vertices: ArrayLike, faces: ArrayLike) -> NDArray[np.float32]
     only degenerate faces, or cancelling contributions) get ``(0, 0, 1)`` so every normal is a
     valid unit vector, as glTF requires.
 
-    Parameters
-    ----------
-    vertices : (n, 3) float
-    faces : (m, 3) int, indices in ``[0, n)``
+    Args:
+        vertices: (n, 3) float.
+        faces: (m, 3) int, indices in ``[0, n)``.
 
-    Returns
-    -------
-    (n, 3) float32, unit length.
+    Returns:
+        (n, 3) float32, unit length.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
@@ -287,6 +289,7 @@ class _BufferBuilder:
         return len(self.accessors) - 1
 
     def tobytes(self) -> bytes:
+        """The buffer: every bufferView so far, in order."""
         return b"".join(self.parts)
 
 
@@ -338,6 +341,7 @@ def _build(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None, norm
 
 
 def _json_bytes(doc: dict[str, Any]) -> bytes:
+    """Compact UTF-8 JSON of a glTF document (no NaN: the inputs were checked finite)."""
     return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
@@ -345,27 +349,24 @@ def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike 
                        normals: bool = True) -> bytes:
     """Encode a triangle mesh as a GLB 2.0 file (media type ``model/gltf-binary``).
 
-    Parameters
-    ----------
-    vertices : (n, 3) float, n >= 1, finite
-        Written as float32 ``POSITION``, in this order.
-    faces : (m, 3) int, indices in ``[0, n)``; m may be 0 (then a POINTS primitive).
-    colors : (n, 4) or (n, 3) float, optional
-        Linear RGBA (RGB gets alpha 1) in [0, 1], clipped; written as float32 ``COLOR_0``.
-        :func:`color_ramp` produces suitable values.
-    normals : bool
-        Write area-weighted unit vertex normals as ``NORMAL``.
+    Args:
+        vertices: (n, 3) float, n >= 1, finite; written as float32 ``POSITION``, in this
+            order.
+        faces: (m, 3) int, indices in ``[0, n)``; m may be 0 (then a POINTS primitive).
+        colors: (n, 4) or (n, 3) float, or None: linear RGBA (RGB gets alpha 1) in [0, 1],
+            clipped; written as float32 ``COLOR_0``. :func:`color_ramp` produces suitable
+            values.
+        normals: Write area-weighted unit vertex normals as ``NORMAL``.
 
-    Returns
-    -------
-    bytes
+    Returns:
         12-byte header, a JSON chunk padded with spaces and a BIN chunk padded with zeros,
         every chunk length a multiple of 4.
 
-    Raises
-    ------
-    solver.errors.ShapeMismatchError, IndexOutOfRangeError, NonFiniteValueError
-        On malformed input arrays.
+    Raises:
+        solver.errors.ShapeMismatchError: An array of the wrong shape or dtype.
+        solver.errors.IndexOutOfRangeError: A face index outside ``[0, n)``.
+        solver.errors.NonFiniteValueError: A non-finite coordinate or colour, or a
+            coordinate that overflows float32.
     """
     doc, binary = _build(vertices, faces, colors, normals)
     js = _json_bytes(doc)
@@ -384,12 +385,19 @@ def encode_gltf_json(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | 
     """Encode a triangle mesh as a self-contained ``.gltf`` (media type ``model/gltf+json``).
 
     Same document as :func:`encode_gltf_binary`; the buffer is embedded as a
-    ``data:application/octet-stream;base64,...`` URI. Parameters as there.
+    ``data:application/octet-stream;base64,...`` URI.
 
-    Returns
-    -------
-    bytes
+    Args:
+        vertices: As :func:`encode_gltf_binary`'s.
+        faces: As there.
+        colors: As there.
+        normals: As there.
+
+    Returns:
         UTF-8 JSON.
+
+    Raises:
+        solver.errors.SolverInputError: As :func:`encode_gltf_binary`.
     """
     doc, binary = _build(vertices, faces, colors, normals)
     doc["buffers"][0]["uri"] = ("data:application/octet-stream;base64,"
@@ -399,7 +407,12 @@ def encode_gltf_json(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | 
 
 def encode_gltf(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
                 normals: bool = True, *, kind: Literal["glb", "gltf"] = "glb") -> bytes:
-    """Dispatch to :func:`encode_gltf_binary` (``"glb"``) or :func:`encode_gltf_json`."""
+    """Encode with :func:`encode_gltf_binary` (``kind="glb"``) or :func:`encode_gltf_json`
+    (``kind="gltf"``); the other arguments are theirs.
+
+    Raises:
+        ValueError: Another ``kind``.
+    """
     if kind == "glb":
         return encode_gltf_binary(vertices, faces, colors, normals)
     if kind == "gltf":

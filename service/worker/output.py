@@ -11,43 +11,53 @@ from typing import Any, Final
 import numpy as np
 import orjson
 
-from service.worker.gltf import color_ramp, encode_gltf_binary, encode_gltf_json
+from ffs.arrays import json_default
+from service.worker import gltf
 
-MEDIA_TYPES: Final[dict[str, str]] = {
-    "json": "application/json",
-    "glb": "model/gltf-binary",
-    "gltf": "model/gltf+json",
-    "f32": "application/octet-stream",
-}
+MEDIA_TYPES: Final[dict[str, str]] = {**gltf.MEDIA_TYPES, "f32": "application/octet-stream"}
 """Response format -> media type (``f32``: little-endian float32 vertices, sessions only)."""
 
 _OPTIONS = orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS
 
 
-def _default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if hasattr(value, "to_dict"):
-        return value.to_dict()
-    if isinstance(value, set | frozenset | tuple):
-        return list(value)
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
-
-
 def json_bytes(document: Any) -> bytes:
-    """orjson with numpy support; non-contiguous or exotic arrays fall back to lists."""
-    return orjson.dumps(document, option=_OPTIONS, default=_default)
+    """A JSON response body.
+
+    Args:
+        document: JSON-able values, numpy arrays and scalars, objects with ``to_dict()``.
+
+    Returns:
+        UTF-8 JSON by orjson (numpy arrays natively; non-contiguous or exotic ones, and
+        what orjson cannot encode, through :func:`ffs.arrays.json_default`).
+    """
+    return orjson.dumps(document, option=_OPTIONS, default=json_default)
 
 
 def colors_for(values: np.ndarray | None) -> np.ndarray | None:
-    """(n, 4) float32 linear RGBA colour ramp of per-vertex scalars (None passes through)."""
-    return None if values is None else color_ramp(np.asarray(values, dtype=np.float64))
+    """The colour ramp of per-vertex scalars.
+
+    Args:
+        values: (n,) float per-vertex scalars, or None.
+
+    Returns:
+        (n, 4) float32 linear RGBA (:func:`service.worker.gltf.color_ramp`); None for None.
+    """
+    return None if values is None else gltf.color_ramp(np.asarray(values, dtype=np.float64))
 
 
 def with_colors(body: bytes, colors: np.ndarray) -> bytes:
-    """Add ``"colors": [[r, g, b, a], ...]`` to an encoded JSON object without re-encoding it."""
+    """Add ``"colors": [[r, g, b, a], ...]`` to an encoded JSON object without re-encoding it.
+
+    Args:
+        body: An encoded JSON object (``{...}``).
+        colors: (n, 4) float32 RGBA.
+
+    Returns:
+        ``body`` with a last ``"colors"`` member.
+
+    Raises:
+        ValueError: ``body`` is not a JSON object.
+    """
     if not body.endswith(b"}"):
         raise ValueError("not a JSON object")
     separator = b"," if body != b"{}" else b""
@@ -56,10 +66,18 @@ def with_colors(body: bytes, colors: np.ndarray) -> bytes:
 
 def mesh_bytes(fmt: str, vertices: np.ndarray, faces: np.ndarray,
                values: np.ndarray | None = None) -> bytes:
-    """Encode a mesh as ``glb`` or ``gltf`` with an optional colour ramp of ``values``."""
-    colors = colors_for(values)
-    if fmt == "glb":
-        return encode_gltf_binary(vertices, faces, colors)
-    if fmt == "gltf":
-        return encode_gltf_json(vertices, faces, colors)
-    raise ValueError(f"unknown mesh format {fmt!r}")
+    """A mesh response body.
+
+    Args:
+        fmt: ``glb`` or ``gltf``.
+        vertices: (n, 3) float64.
+        faces: (m, 3) int.
+        values: (n,) float per-vertex scalars drawn as a colour ramp, or None.
+
+    Returns:
+        The glTF 2.0 asset (:func:`service.worker.gltf.encode_gltf`).
+
+    Raises:
+        ValueError: ``fmt`` is neither ``glb`` nor ``gltf``.
+    """
+    return gltf.encode_gltf(vertices, faces, colors_for(values), kind=fmt)  # type: ignore[arg-type]

@@ -13,11 +13,11 @@
 #      off with 408 after FFS_HEADER_TIMEOUT, a slow-body client cut off with the 408
 #      body-timeout problem after FFS_BODY_TIMEOUT (5 s here), reconstructions (JSON,
 #      PARDISO on noisy forms), a GLB the Khronos validator accepts, the web page and its
-#      vendored three.js modules (scripts/docker_smoke.py single);
+#      vendored three.js modules (scripts/docker_smoke_single.py);
 #   5. the docker-compose.yml topology from the same image: scheduler, two workers, two API
 #      replicas; a job submitted through one replica is polled and fetched through the other,
 #      a deformation session created through one is dragged through the other
-#      (scripts/docker_smoke.py compose).
+#      (scripts/docker_smoke.py).
 # Every container and image it made is removed on exit (trap), with the whole work folder
 # (FFS_SMOKE_KEEP=1 keeps them for debugging: export the CONTAINERS_* variables it prints).
 # Exit status: 0 = all checks passed, or skipped where no container can run here at all (not
@@ -231,7 +231,7 @@ log "image built: $IMAGE, $((size / 1000000)) MB = base $((base / 1000000)) MB +
 $(((size - base) / 1000000)) MB of the Dockerfile's layers"
 
 # -- 4./5. the containers ------------------------------------------------------------------------
-python3 "$ROOT/scripts/docker_smoke.py" single --image "$IMAGE" --root "$ROOT" \
+python3 "$ROOT/scripts/docker_smoke_single.py" --image "$IMAGE" --root "$ROOT" \
   || fail "single container checks"
-python3 "$ROOT/scripts/docker_smoke.py" compose --image "$IMAGE" --root "$ROOT" \
+python3 "$ROOT/scripts/docker_smoke.py" --image "$IMAGE" --root "$ROOT" \
   || fail "compose topology checks"

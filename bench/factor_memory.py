@@ -33,15 +33,16 @@ def measure(mesh: str, mode: str, repeats: int) -> dict:
     import trimesh
 
     from solver import fundamental_forms, linalg, reconstruct
+    from solver.linalg import analysis_cache
 
     if mode == "dropped":  # the old parking: free the factor, keep the analysis
-        park = linalg._AnalysisCache.park
+        park = analysis_cache.AnalysisCache.park
 
         def park_dropping(self, key, handle):  # type: ignore[no-untyped-def]
             handle.drop_factor()
             park(self, key, handle)
 
-        linalg._AnalysisCache.park = park_dropping
+        analysis_cache.AnalysisCache.park = park_dropping
     m = trimesh.load(SHARED / mesh, process=False)
     V, F = np.asarray(m.vertices), np.asarray(m.faces)
     forms = fundamental_forms(V, F)

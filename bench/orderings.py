@@ -39,7 +39,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from reconstruct import load  # noqa: E402
 
-from solver import fundamental_forms, linalg  # noqa: E402
+from solver import fundamental_forms  # noqa: E402
+from solver.linalg import pardiso  # noqa: E402
 from solver.reconstruct import ImmersionProblem  # noqa: E402
 from solver.topology import build_topology  # noqa: E402
 
@@ -85,9 +86,9 @@ class Run:
 
     def __init__(self, matrix: sp.csr_array, perm: np.ndarray | None,
                  iparm: dict[int, int]) -> None:
-        upper = linalg._upper_triangle(matrix)
+        upper = pardiso.upper_triangle(matrix)
         self.arrays = (np.ascontiguousarray(upper.data), upper.indptr, upper.indices)
-        self.handle = linalg._PardisoHandle(linalg._mkl(), matrix.shape[0], perm)
+        self.handle = pardiso.PardisoHandle(pardiso.load_mkl(), matrix.shape[0], perm)
         for key, value in iparm.items():
             self.handle.iparm[key] = value
         self.matrix = matrix
@@ -131,8 +132,8 @@ def one_round(matrix: sp.csr_array, n: int, m: int) -> dict[str, dict[str, Any]]
     kept.handle.release()
     start = time.perf_counter()
     groups = np.concatenate([np.arange(n), n + np.repeat(np.arange(m), 3)])
-    upper = linalg._upper_triangle(matrix)
-    perm = linalg._group_ordering(linalg._mkl(), upper.indptr, upper.indices, groups)
+    upper = pardiso.upper_triangle(matrix)
+    perm = pardiso.group_ordering(pardiso.load_mkl(), upper.indptr, upper.indices, groups)
     ordering = time.perf_counter() - start
     run = Run(matrix, perm, {})
     symbolic = run.phase(11)

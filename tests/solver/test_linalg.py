@@ -92,7 +92,7 @@ def test_unknown_backend_raises_value_error_listing_names() -> None:
 def test_uninstalled_backend_names_pip_package(monkeypatch: pytest.MonkeyPatch) -> None:
     reasons = {"pardiso": None, "cholespy": "ImportError: No module named 'cholespy'",
                "superlu": None}
-    monkeypatch.setattr(linalg, "_unavailable_reason", reasons.get)
+    monkeypatch.setattr(linalg.backends, "_unavailable_reason", reasons.get)
     assert "cholespy" not in available_backends()
     with pytest.raises(BackendUnavailableError, match="pip install cholespy") as info:
         factorize(laplacian_plus_identity(4), "cholespy")
@@ -101,7 +101,7 @@ def test_uninstalled_backend_names_pip_package(monkeypatch: pytest.MonkeyPatch) 
 
 
 def test_auto_falls_back_to_superlu(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(linalg, "_unavailable_reason",
+    monkeypatch.setattr(linalg.backends, "_unavailable_reason",
                         lambda name: None if name == "superlu" else "not installed")
     assert available_backends() == ["superlu"]
     assert factorize(laplacian_plus_identity(4)).backend == "superlu"

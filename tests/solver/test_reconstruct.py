@@ -299,7 +299,7 @@ def test_unavailable_or_unknown_backend_is_refused_on_every_path(monkeypatch, co
     kw = {}
     if constrained:
         kw["constraints"] = Constraints(position_vertices=[0], positions=[[0.0, 0.0, 0.0]])
-    monkeypatch.setattr(linalg, "_unavailable_reason",
+    monkeypatch.setattr(linalg.backends, "_unavailable_reason",
                         lambda name: "ImportError: not here" if name == "cholespy" else None)
     with pytest.raises(linalg.BackendUnavailableError, match="pip install cholespy"):
         solve(forms, backend="cholespy", **kw)

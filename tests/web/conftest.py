@@ -71,7 +71,9 @@ class WebPage:
         return [e for e in self.errors if not any(p.search(e) for p in self.allowed)]
 
     def open(self, query: str = "", timeout: float = 90.0) -> Any:
-        """Load the page and wait until its start-up work (the default sample) is done."""
+        """Load the page for tests (``test`` in its query installs ``window.app``) and wait
+        until its start-up work (the default sample) is done."""
+        query = f"?test&{query.removeprefix('?')}" if query else "?test"
         self.page.goto(f"{self.base}/{query}", timeout=timeout * 1000)
         self.wait_for("window.app !== undefined", timeout=timeout,
                       what="the page's script to define window.app")

@@ -188,20 +188,6 @@ export async function postArrays(path, params, arrays, options = {}) {
   return (await request(path, { ...arraysBody(params, arrays), ...options })).json();
 }
 
-/** Which optional parts of the API this server has (from its OpenAPI document). */
-export async function capabilities() {
-  const doc = await getJson("/openapi.json");
-  const paths = doc.paths || {};
-  const reconstructOptions = doc.components?.schemas?.ReconstructOptions?.properties || {};
-  return {
-    sessions: "/v1/sessions" in paths,
-    refine: "refine" in reconstructOptions,
-    deformRefine: "refine" in (doc.components?.schemas?.DeformOptions?.properties || {}),
-    sessionSolve: Object.keys(paths).some((p) => /^\/v1\/sessions\/\{[^}]+\}\/solve$/.test(p)),
-    version: doc.info?.version,
-  };
-}
-
 const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
 
 /**

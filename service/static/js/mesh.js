@@ -221,12 +221,6 @@ export function facesAround(vertexIds, faces, taken) {
   return out;
 }
 
-export function maxAbsDifference(a, b) {
-  let worst = 0;
-  for (let i = 0; i < a.length; i++) worst = Math.max(worst, Math.abs(a[i] - b[i]));
-  return worst;
-}
-
 export function meanEdgeLength(vertices, edges) {
   let sum = 0;
   const E = edges.length / 2;

@@ -1,13 +1,12 @@
-// three.js views: the 3D mesh (lit, orbit controls, up axis, grid and axes, wireframe, vertex
-// colours, selection and handle markers, transform gizmo, picking) and the flattened 2D layout
-// (checkerboard, flips). Rendering is on demand (after a change), which keeps a
-// software-rendered browser idle; `paused` skips rendering altogether (tests measure the
-// page's own main-thread cost that way). Materials are made once: an update never recompiles
-// a shader.
+// The 3D view of the mesh (three.js): lit, orbit controls, up axis, grid and axes,
+// wireframe, vertex colours, selection and handle markers, transform gizmo, picking.
+// Rendering is on demand (render-view.js), which keeps a software-rendered browser idle.
+// Materials are made once: an update never recompiles a shader.
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { TransformControls } from "three/addons/controls/TransformControls.js";
+import { RenderView, checkerTexture, discTexture, edgeIndex, vertexNormals } from "./render-view.js";
 
 const BASE_COLOR = [200, 206, 214];
 const SELECTION_COLOR = 0xffb000;
@@ -17,103 +16,6 @@ const MARKER_PIXELS = 9;
 export function axisVector(name) {
   const sign = name[0] === "-" ? -1 : 1;
   return new THREE.Vector3().setComponent("xyz".indexOf(name[1]), sign);
-}
-
-function discTexture() {
-  const size = 64, canvas = document.createElement("canvas");
-  canvas.width = canvas.height = size;
-  const ctx = canvas.getContext("2d");
-  ctx.fillStyle = "#fff";
-  ctx.beginPath();
-  ctx.arc(size / 2, size / 2, size / 2 - 2, 0, 2 * Math.PI);
-  ctx.fill();
-  ctx.strokeStyle = "rgba(0, 0, 0, 0.55)";
-  ctx.lineWidth = 6;
-  ctx.stroke();
-  const texture = new THREE.CanvasTexture(canvas);
-  texture.colorSpace = THREE.SRGBColorSpace;
-  return texture;
-}
-const CHECKER_REPEAT = 3;
-
-function checkerTexture() {
-  const size = 256, cells = 8, canvas = document.createElement("canvas");
-  canvas.width = canvas.height = size;
-  const ctx = canvas.getContext("2d");
-  for (let i = 0; i < cells; i++) {
-    for (let j = 0; j < cells; j++) {
-      ctx.fillStyle = (i + j) % 2 ? "#2c728e" : "#f3f5f8";
-      ctx.fillRect((i * size) / cells, (j * size) / cells, size / cells, size / cells);
-    }
-  }
-  const texture = new THREE.CanvasTexture(canvas);
-  texture.wrapS = texture.wrapT = THREE.RepeatWrapping;
-  texture.colorSpace = THREE.SRGBColorSpace;
-  texture.anisotropy = 4;
-  return texture;
-}
-
-/** Area-weighted vertex normals (Float32Array(3n)) of flat positions and faces: the same
- * as BufferGeometry.computeVertexNormals, on the arrays directly (no per-vertex calls). */
-function vertexNormals(p, index, out) {
-  out.fill(0);
-  for (let t = 0; t < index.length; t += 3) {
-    const a = 3 * index[t], b = 3 * index[t + 1], c = 3 * index[t + 2];
-    const ux = p[b] - p[a], uy = p[b + 1] - p[a + 1], uz = p[b + 2] - p[a + 2];
-    const vx = p[c] - p[a], vy = p[c + 1] - p[a + 1], vz = p[c + 2] - p[a + 2];
-    const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
-    out[a] += nx; out[a + 1] += ny; out[a + 2] += nz;
-    out[b] += nx; out[b + 1] += ny; out[b + 2] += nz;
-    out[c] += nx; out[c + 1] += ny; out[c + 2] += nz;
-  }
-  for (let i = 0; i < out.length; i += 3) {
-    const len = Math.hypot(out[i], out[i + 1], out[i + 2]) || 1;
-    out[i] /= len;
-    out[i + 1] /= len;
-    out[i + 2] /= len;
-  }
-  return out;
-}
-
-function edgeIndex(edges) {
-  return new THREE.BufferAttribute(edges instanceof Uint32Array ? edges : Uint32Array.from(edges), 1);
-}
-
-class RenderView {
-  constructor(container, { rotate = true } = {}) {
-    this.container = container;
-    this.renderer = new THREE.WebGLRenderer({ antialias: true, alpha: true,
-      preserveDrawingBuffer: true });
-    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
-    this.renderer.outputColorSpace = THREE.SRGBColorSpace;
-    container.appendChild(this.renderer.domElement);
-    this.scene = new THREE.Scene();
-    this.pending = false;
-    this.observer = new ResizeObserver(() => this.resize());
-    this.observer.observe(container);
-    this.rotate = rotate;
-  }
-
-  get canvas() {
-    return this.renderer.domElement;
-  }
-
-  resize() {
-    const { clientWidth: w, clientHeight: h } = this.container;
-    if (!w || !h) return;
-    this.renderer.setSize(w, h, true);
-    this.updateCamera(w, h);
-    this.request();
-  }
-
-  request() {
-    if (this.pending || this.paused) return;
-    this.pending = true;
-    requestAnimationFrame(() => {
-      this.pending = false;
-      if (!this.paused) this.renderer.render(this.scene, this.camera);
-    });
-  }
 }
 
 export class MeshView extends RenderView {
@@ -486,84 +388,3 @@ export class MeshView extends RenderView {
   }
 }
 
-export class FlatView extends RenderView {
-  constructor(container) {
-    super(container, { rotate: false });
-    this.camera = new THREE.OrthographicCamera(-1, 1, 1, -1, -10, 10);
-    this.controls = new OrbitControls(this.camera, this.canvas);
-    this.controls.enableRotate = false;
-    this.controls.screenSpacePanning = true;
-    this.controls.mouseButtons = { LEFT: THREE.MOUSE.PAN, MIDDLE: THREE.MOUSE.DOLLY,
-      RIGHT: THREE.MOUSE.PAN };
-    this.controls.addEventListener("change", () => this.request());
-    this.checker = checkerTexture();
-    this.extent = 1;
-    this.resize();
-  }
-
-  updateCamera(w, h) {
-    const aspect = w / h, e = this.extent * 0.55;
-    Object.assign(this.camera, aspect >= 1
-      ? { left: -e * aspect, right: e * aspect, top: e, bottom: -e }
-      : { left: -e, right: e, top: e / aspect, bottom: -e / aspect });
-    this.camera.updateProjectionMatrix();
-  }
-
-  /** Show the layout: uv Float64Array(2n), faces, edges, flipped face ids; returns the
-   * texture coordinates used (Float32Array(2n), 8 x CHECKER_REPEAT cells across). */
-  show(uv, faces, edges, flipped) {
-    for (const child of [...this.scene.children]) {
-      this.scene.remove(child);
-      child.geometry?.dispose();
-    }
-    const n = uv.length / 2;
-    let minU = Infinity, minV = Infinity, maxU = -Infinity, maxV = -Infinity;
-    for (let i = 0; i < n; i++) {
-      minU = Math.min(minU, uv[2 * i]);
-      maxU = Math.max(maxU, uv[2 * i]);
-      minV = Math.min(minV, uv[2 * i + 1]);
-      maxV = Math.max(maxV, uv[2 * i + 1]);
-    }
-    const size = Math.max(maxU - minU, maxV - minV) || 1;
-    const cu = (minU + maxU) / 2, cv = (minV + maxV) / 2;
-    const positions = new Float32Array(3 * n), texcoords = new Float32Array(2 * n);
-    for (let i = 0; i < n; i++) {
-      positions[3 * i] = (uv[2 * i] - cu) / size;
-      positions[3 * i + 1] = (uv[2 * i + 1] - cv) / size;
-      texcoords[2 * i] = ((uv[2 * i] - minU) / size) * CHECKER_REPEAT;
-      texcoords[2 * i + 1] = ((uv[2 * i + 1] - minV) / size) * CHECKER_REPEAT;
-    }
-    const geometry = new THREE.BufferGeometry();
-    const position = new THREE.BufferAttribute(positions, 3);
-    geometry.setAttribute("position", position);
-    geometry.setAttribute("uv", new THREE.BufferAttribute(texcoords, 2));
-    geometry.setIndex(new THREE.BufferAttribute(new Uint32Array(faces), 1));
-    const sheet = new THREE.Mesh(geometry, new THREE.MeshBasicMaterial({ map: this.checker,
-      side: THREE.DoubleSide }));
-    const wire = new THREE.BufferGeometry();
-    wire.setAttribute("position", position);
-    wire.setIndex(edgeIndex(edges));
-    const lines = new THREE.LineSegments(wire, new THREE.LineBasicMaterial({ color: 0x1f2933,
-      transparent: true, opacity: 0.18 }));
-    lines.position.z = 0.001;
-    this.scene.add(sheet, lines);
-    if (flipped.length) {
-      const index = new Uint32Array(3 * flipped.length);
-      flipped.forEach((t, k) => index.set(faces.subarray(3 * t, 3 * t + 3), 3 * k));
-      const bad = new THREE.BufferGeometry();
-      bad.setAttribute("position", position);
-      bad.setIndex(new THREE.BufferAttribute(index, 1));
-      const flips = new THREE.Mesh(bad, new THREE.MeshBasicMaterial({ color: 0xe02424,
-        side: THREE.DoubleSide, transparent: true, opacity: 0.85 }));
-      flips.position.z = 0.002;
-      this.scene.add(flips);
-    }
-    this.extent = 1;
-    this.controls.target.set(0, 0, 0);
-    this.camera.position.set(0, 0, 5);
-    this.camera.zoom = 1;
-    this.controls.update();
-    this.resize();
-    return texcoords;
-  }
-}

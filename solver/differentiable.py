@@ -461,7 +461,7 @@ class _RefinedAdjoint:
         mixed = energy.mixed_vjp(X, lam)
         lengths_bar = -mixed.lengths - mixed.scale[:, None] / len(self.L)
         angles_bar = -mixed.angles
-        user, h = self.user, self.handles
+        user = self.user
         hard = np.isinf(user.position_weights)
         positions = np.zeros((B, len(user.position_vertices), 3))
         coupling = np.stack([self.H_fixed_free @ lam_free[b] for b in range(B)])
@@ -478,7 +478,6 @@ class _RefinedAdjoint:
             planar_bar = np.einsum("bqek,qkc->bqec", edges_bar, user.frames[:, :, :2])
             layouts_bar[:, user.frame_faces, 1:] += planar_bar
             layouts_bar[:, user.frame_faces, 0] -= planar_bar.sum(axis=2)
-        del h
         lengths_bar = lengths_bar + self._layouts_to_lengths(layouts_bar)
         return FormCotangents(lengths_bar, angles_bar, positions, frames)
 

@@ -22,7 +22,6 @@ from .errors import (
     EdgeMismatchError,
     NonFiniteValueError,
     NonPositiveLengthError,
-    ShapeMismatchError,
 )
 from .serialization import JsonDataclass
 from .topology import MeshTopology, build_topology
@@ -156,9 +155,3 @@ def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angle
                               field="angles", index=e)
     A = np.where(-np.pi >= A, np.pi, np.minimum(A, np.pi))
     return topology, L, A
-
-
-def check_same_connectivity(faces_a: np.ndarray, faces_b: np.ndarray) -> None:
-    """Raise ShapeMismatchError unless two face arrays are identical."""
-    if faces_a.shape != faces_b.shape or not np.array_equal(faces_a, faces_b):
-        raise ShapeMismatchError("the two meshes must have the same faces", field="faces")

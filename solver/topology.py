@@ -197,11 +197,6 @@ def previous_halfedge(h: np.ndarray) -> np.ndarray:
     return h - h % 3 + (h + 2) % 3
 
 
-def next_halfedge(h: np.ndarray) -> np.ndarray:
-    """Half-edge after ``h`` in its face (the one starting at ``h``'s destination)."""
-    return h - h % 3 + (h + 1) % 3
-
-
 def corner_successor(twin: np.ndarray) -> np.ndarray:
     """Next corner counter-clockwise around the corner's vertex (seen from outside).
 

@@ -11,24 +11,37 @@ outside; ``edges`` (E, 2) unique pairs i < j sorted lexicographically; ``lengths
 """
 
 from . import metrics
+from .constraints import Constraints
 from .deform import Deformation, Deformer, deform
 from .differentiable import ReconstructionVJP, reconstruct_vjp
 from .errors import SolverInputError
 from .forms import Forms, fundamental_forms
 from .integrability import IntegrabilityReport, check_integrability
 from .interpolate import interpolate
+from .options import (
+    DeformOptions,
+    InterpolateOptions,
+    ParameterizeOptions,
+    ReconstructOptions,
+    SolveOptions,
+)
 from .parameterize import Parameterization, parameterize
-from .reconstruct import Constraints, Reconstruction, reconstruct
+from .reconstruct import Reconstruction, reconstruct
 
 __all__ = [
     "Constraints",
+    "DeformOptions",
     "Deformation",
     "Deformer",
     "Forms",
     "IntegrabilityReport",
+    "InterpolateOptions",
     "Parameterization",
+    "ParameterizeOptions",
+    "ReconstructOptions",
     "Reconstruction",
     "ReconstructionVJP",
+    "SolveOptions",
     "SolverInputError",
     "check_integrability",
     "deform",

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import threading
-import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -25,11 +24,13 @@ from .forms import forms_of
 from .frames import layout_frames
 from .layout_fit import LayoutFit
 from .metrics import compact, distortion
+from .options import DeformOptions
 from .reconstruct import Constraints, ImmersionProblem, Progress
-from .refine import DEFORM_ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner
+from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner
+from .reports import Stages
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
-from .system import ConstrainedSystem, Weighting
+from .system import ConstrainedSystem
 from .topology import MeshTopology, build_topology
 from .validation import as_indices, as_points, require_unique
 
@@ -104,11 +105,12 @@ def rest_cache_info() -> dict[str, int]:
         return {"entries": len(_REST_CACHE._entries), **_REST_CACHE.counts}
 
 
-def _rest_key(rest: np.ndarray, faces: np.ndarray, in_roi: np.ndarray, frame_weight: float,
-              weighting: str) -> bytes:
+def _rest_key(rest: np.ndarray, faces: np.ndarray, in_roi: np.ndarray,
+              options: DeformOptions) -> bytes:
     """128-bit digest of everything a :class:`_RestState` depends on."""
     digest = hashlib.blake2b(digest_size=16)
-    digest.update(repr((rest.shape, faces.shape, float(frame_weight), weighting)).encode())
+    digest.update(repr((rest.shape, faces.shape, float(options.frame_weight),
+                        options.weighting)).encode())
     for array in (rest, faces, in_roi):
         digest.update(memoryview(np.ascontiguousarray(array)).cast("B"))
     return digest.digest()
@@ -146,41 +148,39 @@ class Deformer:
             in group i are rotated by ``handle_rotations[i]`` at each solve.
         roi: optional vertex indices that may move; every other vertex stays at rest.
             Default: all vertices.
-        frame_weight: relative weight w of the frame term (paper: 1000).
-        orthonormalize: after each solve, project frames to rotations and solve again with
-            them as soft constraints of weight ``orthonormal_weight`` (Sec. 4).
-        handle_weight: ``inf`` (default) eliminates handle positions exactly; a finite value
-            makes them soft.
-        rotation_weight: the same for orientation handles.
-        weighting, backend: see :func:`solver.reconstruct`.
-        refine: default of :meth:`solve`'s ``refine``: also fit the rest forms nonlinearly
-            (:mod:`solver.refine`), started from the layout fit of the linear answer's
-            rotations (:mod:`solver.layout_fit`) or, for a later drag, from the previous
-            refined shape. Off by default here (a refined drag costs factorizations of its
-            own; see bench/README.md): an interactive client answers the linear shape first
-            and :meth:`refine_last` after it; :func:`deform` refines by default.
-        angle_weight: the refinement's dihedral weight (docs/refinement.md).
+        options: :class:`solver.options.DeformOptions` (each field documents itself);
+            ``refine`` is the default of :meth:`solve`'s and None reads as off here: a
+            refined drag costs factorizations of its own (bench/README.md), so an
+            interactive client answers the linear shape first and :meth:`refine_last`
+            after it; :func:`deform` refines by default.
+        progress: optional ``progress(stage, fraction)`` (validate, assemble, factorize).
+        **overrides: fields of ``options`` given as keywords (``orthonormalize=True``).
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import Deformer
+        >>> V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.5]])
+        >>> F = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        >>> deformer = Deformer(V, F, handles=[0, 1, 2, 3])  # factorized once
+        >>> lifted = deformer.solve(V[:4] + [0.0, 0.0, 1.0])  # a back-substitution
+        >>> np.round(lifted - V, 6)[:, 2].tolist()  # a translation keeps the forms
+        [1.0, 1.0, 1.0, 1.0, 1.0]
     """
 
     def __init__(self, vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike, *,
                  rotation_handles: Sequence[ArrayLike] | None = None,
-                 roi: ArrayLike | None = None, frame_weight: float = 1000.0,
-                 orthonormalize: bool = False, orthonormal_weight: float = 1000.0,
-                 handle_weight: float = np.inf, rotation_weight: float = np.inf,
-                 weighting: Weighting = "uniform", backend: str = "auto",
-                 refine: bool = False, angle_weight: float = DEFORM_ANGLE_WEIGHT,
-                 progress: Progress | None = None) -> None:
-        notify = progress or (lambda stage, fraction: None)
-        start = time.perf_counter()
-        notify("validate", 0.0)
+                 roi: ArrayLike | None = None, options: DeformOptions | None = None,
+                 progress: Progress | None = None, **overrides: Any) -> None:
+        self.options = opts = DeformOptions.given(options, overrides)
+        stages = Stages(progress)
+        stages("validate")
         self.rest = as_points(vertices, "vertices")
         n = len(self.rest)
         # The rest-state cache is keyed by the faces as given (when they are an (m, 3)
         # integer array): a hit also skips validating the same connectivity again.
         given = _face_array(faces)
         in_roi = _roi_mask(roi, n)
-        key = None if given is None else _rest_key(self.rest, given, in_roi, frame_weight,
-                                                   weighting)
+        key = None if given is None else _rest_key(self.rest, given, in_roi, opts)
         rest = None if key is None else _REST_CACHE.get(key)
         full = rest.topology if rest is not None else build_topology(faces, n_vertices=n)
         self.faces = full.faces
@@ -220,7 +220,8 @@ class Deformer:
         face_local[self.sub_faces] = np.arange(len(self.sub_faces))
 
         sub_rest = self.rest[self.sub_vertices]
-        notify("assemble", 0.0)
+        stages.lap("validate")
+        stages("assemble")
         self.rest_state = "computed" if rest is None else "cached"
         if rest is None:
             # The mesh's topology is built once: the whole mesh's serves when the system
@@ -230,7 +231,8 @@ class Deformer:
                                                          n_vertices=len(sub_rest))
             forms = forms_of(sub_rest, topology)
             problem = ImmersionProblem(topology, forms.lengths, forms.angles,
-                                       frame_weight=frame_weight, weighting=weighting)
+                                       frame_weight=opts.frame_weight,
+                                       weighting=opts.weighting)
             frames = layout_frames(sub_rest / problem.length_scale, forms.faces,
                                    problem.terms.layouts)
             rest = _RestState(full, forms, problem, frames)
@@ -239,13 +241,10 @@ class Deformer:
         self._handle_local = local_index[self.handles]
         self._fixed_local = fixed_local
         self._group_faces = [face_local[g] for g in groups]
-        self._handle_weight = float(handle_weight)
-        self._rotation_weight = float(rotation_weight)
-        self.orthonormalize = orthonormalize
-        self.refine = bool(refine)
-        self.angle_weight = float(angle_weight)
-        self.backend_name = backend
-        self.orthonormal_weight = orthonormal_weight
+        self._handle_weight = float(opts.handle_weight)
+        self._rotation_weight = float(opts.rotation_weight)
+        self.refine = opts.refine is True
+        self.backend_name = opts.backend or "auto"
         self.rest_forms = forms
         self.last_report: dict[str, Any] = {"refined": False, "reason": "no solve yet"}
         self._refiner: Refiner | None = None
@@ -263,28 +262,32 @@ class Deformer:
         self._anchor = anchor.extended(self.problem.gauge_constraints(
             template, sub_rest, self.rest_frames)[0])
         linear = linear.extended(self._anchor)
-        notify("factorize", 0.0)
+        stages.lap("assemble")
+        stages("factorize")
         # PARDISO's own ordering: its two-level factor solves each drag 1.3-1.5x faster
         # than a factor of the hinted ordering (bench/drag_regression.py).
-        self.system: ConstrainedSystem = self.problem.system(linear, backend,
+        self.system: ConstrainedSystem = self.problem.system(linear, self.backend_name,
                                                              ordering_hint=False)
         if key is not None:
             _REST_CACHE.put(key, rest)  # after the first factorization: K is assembled
         self._linear = linear
         self.system_orthonormal: ConstrainedSystem | None = None
-        if orthonormalize:
+        if opts.orthonormalize:
             self._orthonormal_system()
-        if refine:
+        if self.refine:
             self._start_fit()
-        self.setup_seconds = time.perf_counter() - start
-        notify("factorize", 1.0)
+        stages.lap("factorize")
+        self.setup_timings = stages.timings
+        """Seconds of the stages validate, assemble and factorize of the set-up."""
+        self.setup_seconds = sum(self.setup_timings.values())
+        stages("factorize", 1.0)
 
     def _orthonormal_system(self) -> ConstrainedSystem:
         """The system of the second solve of Sec. 4 (factorized on first use)."""
         if self.system_orthonormal is None:
             self.system_orthonormal = self.problem.system(
                 self._linear, self.backend_name, self.problem.all_frame_columns(),
-                self.orthonormal_weight, ordering_hint=False)
+                self.options.orthonormal_weight, ordering_hint=False)
         return self.system_orthonormal
 
     def _start_fit(self) -> LayoutFit:
@@ -315,7 +318,7 @@ class Deformer:
                 frame_faces=local_faces, frame_edges=np.zeros((len(local_faces), 2, 3)),
                 frame_weights=np.full(len(local_faces), weight))
             targets = FormTargets(topology, self.rest_forms.lengths, self.rest_forms.angles,
-                                  angle_weight=self.angle_weight)
+                                  angle_weight=self.options.angle_weight)
             self._refiner = Refiner(targets, handles, backend=self.backend_name)
         return self._refiner
 
@@ -391,7 +394,7 @@ class Deformer:
         linear = self.problem.linear_constraints(constraints).extended(self._anchor)
         u = self.system.solve(linear.hard_values, linear.soft_values)
         _, frames = self.problem.unknowns_to_geometry(u)
-        if self.orthonormalize:
+        if self.options.orthonormalize:
             targets = np.swapaxes(nearest_rotation(frames), 1, 2).reshape(-1, 3)
             u = self._orthonormal_system().solve(
                 linear.hard_values, np.concatenate([linear.soft_values, targets]))
@@ -462,46 +465,59 @@ class Deformer:
 def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
            handle_positions: ArrayLike, *, rotation_handles: Sequence[ArrayLike] | None = None,
            handle_rotations: ArrayLike | None = None, roi: ArrayLike | None = None,
-           frame_weight: float = 1000.0, orthonormalize: bool = False,
-           orthonormal_weight: float = 1000.0, handle_weight: float = np.inf,
-           rotation_weight: float = np.inf, weighting: Weighting = "uniform",
-           backend: str = "auto", refine: bool | None = None,
-           angle_weight: float = DEFORM_ANGLE_WEIGHT, max_seconds: float | None = None,
-           progress: Progress | None = None) -> Deformation:
+           options: DeformOptions | None = None, progress: Progress | None = None,
+           **overrides: Any) -> Deformation:
     """One-shot deformation: build a :class:`Deformer`, solve once, measure distortion.
 
-    ``refine``: ``None`` (default) and ``True`` fit the rest forms nonlinearly from the
-    linear answer unless it already has them (:mod:`solver.refine`); ``False`` returns the
-    linear answer. ``report["refinement"]`` says whether and how it refined. ``max_seconds``:
-    optional wall-clock budget of the whole call; the refinement stops when it runs out
-    (``stop_reason: "time_limit"``, the best shape so far).
+    Args:
+        vertices, faces, handles, rotation_handles, roi: as for :class:`Deformer`.
+        handle_positions: (h, 3) targets of ``handles``.
+        handle_rotations: optional (g, 3, 3) rotations of the orientation handles.
+        options: :class:`solver.options.DeformOptions`; ``refine`` None (the default) and
+            True fit the rest forms nonlinearly from the linear answer unless it already has
+            them (:mod:`solver.refine`), False returns the linear answer; ``max_seconds``
+            budgets the whole call (the refinement stops when it runs out).
+        progress: optional ``progress(stage, fraction)`` (validate ... refine).
+        **overrides: fields of ``options`` given as keywords.
 
-    Returns :class:`Deformation` whose report holds timings, the backend and the distortion
-    (:func:`solver.metrics.distortion`, without per-edge arrays) against the rest mesh.
+    Returns:
+        :class:`Deformation` whose report holds ``timings`` per stage, the backend, whether
+        and how it refined (``refinement``) and the distortion against the rest mesh
+        (:func:`solver.metrics.distortion`, without per-edge arrays).
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import deform
+        >>> V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.5]])
+        >>> F = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        >>> moved = deform(V, F, [0, 1, 2, 3], V[:4] * 2.0, refine=False)
+        >>> moved.vertices[:4].tolist() == (V[:4] * 2.0).tolist()  # hard handles
+        True
+        >>> sorted(moved.report["timings"])
+        ['assemble', 'factorize', 'solve', 'validate']
     """
-    t0 = time.perf_counter()
+    opts = DeformOptions.given(options, overrides)
     deformer = Deformer(vertices, faces, handles, rotation_handles=rotation_handles, roi=roi,
-                        frame_weight=frame_weight, orthonormalize=orthonormalize,
-                        orthonormal_weight=orthonormal_weight, handle_weight=handle_weight,
-                        rotation_weight=rotation_weight, weighting=weighting, backend=backend,
-                        refine=refine is not False, angle_weight=angle_weight,
+                        options=opts.replace(refine=opts.refine is not False),
                         progress=progress)
-    t1 = time.perf_counter()
-    if progress:
-        progress("solve", 0.0)
-    budget = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
-    result = deformer.solve(handle_positions, handle_rotations, max_seconds=budget,
-                            progress=progress)
-    t2 = time.perf_counter()
-    if progress:  # the last stage that ran is complete
-        progress("refine" if deformer.last_report.get("refined") else "solve", 1.0)
+    stages = Stages(progress)
+    stages.started -= deformer.setup_seconds  # the budget counts the set-up
+    stages("solve")
+    result = deformer.solve(handle_positions, handle_rotations, refine=False)
+    stages.lap("solve")
+    if deformer.refine:
+        stages("refine")
+        result = deformer.refine_last(stages.left(opts.max_seconds), progress)
+        stages.lap("refine")
+    # The last stage that ran is complete.
+    stages("refine" if deformer.last_report.get("refined") else "solve", 1.0)
     report = {
-        "timings": {"setup": t1 - t0, "solve": t2 - t1},
+        "timings": {**deformer.setup_timings, **stages.timings},
         "backend": deformer.backend,
         "analysis": deformer.system.analysis,
         "n_unknowns": deformer.problem.n_unknowns,
         "roi_faces": len(deformer.sub_faces),
-        "orthonormalized": bool(orthonormalize),
+        "orthonormalized": bool(opts.orthonormalize),
         "refinement": deformer.last_report,
         "distortion": compact(distortion(deformer.rest, result, deformer.faces)),
     }

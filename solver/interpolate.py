@@ -10,7 +10,6 @@ and the vertex blend ``(1 - t) A + t B`` is nearer to them. The result is rigidl
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -20,9 +19,9 @@ from numpy.typing import ArrayLike
 from .errors import ShapeMismatchError
 from .forms import fundamental_forms
 from .metrics import wrap_angle
+from .options import InterpolateOptions, ReconstructOptions
 from .reconstruct import reconstruct
-from .refine import ANGLE_WEIGHT
-from .system import Weighting
+from .reports import Stages
 from .validation import as_points
 
 
@@ -36,10 +35,8 @@ def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray,
 
 
 def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
-                t: float | Sequence[float], *, frame_weight: float = 1000.0,
-                weighting: Weighting = "uniform", backend: str = "auto",
-                refine: bool | None = None, angle_weight: float = ANGLE_WEIGHT,
-                max_seconds: float | None = None, return_reports: bool = False,
+                t: float | Sequence[float], *, options: InterpolateOptions | None = None,
+                return_reports: bool = False, **overrides: Any,
                 ) -> np.ndarray | tuple[np.ndarray, list[dict[str, Any]]]:
     """Blend two meshes with the same faces in form space.
 
@@ -47,15 +44,33 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
     blended forms are reconstructed (one solve of Eq. 5), refined unless ``refine=False``
     (see the module docstring) and aligned rigidly to (1 - t) A + t B.
 
-    ``max_seconds``: optional wall-clock budget of the whole call, shared out evenly among
-    the blend values still to compute; a refinement that runs out of its share returns its
-    best shape (``stop_reason: "time_limit"``).
+    Args:
+        vertices_a, vertices_b: (n, 3) the two embeddings (t = 0 and t = 1).
+        faces: (m, 3) int, their faces.
+        t: a blend value or a sequence of k of them.
+        options: :class:`solver.options.InterpolateOptions`; ``max_seconds`` budgets the
+            whole call, shared out evenly among the blend values still to compute (a
+            refinement that runs out of its share returns its best shape,
+            ``stop_reason: "time_limit"``).
+        return_reports: also return the refinement reports.
+        **overrides: fields of ``options`` given as keywords.
 
     Returns:
         (n, 3) for a scalar t, (k, n, 3) for a sequence of k values; with
         ``return_reports`` also a list (one per t) of the refinement reports
         (``{"refined": False, ...}`` where nothing was refined).
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import interpolate
+        >>> V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.5]])
+        >>> F = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        >>> W = V * [1.0, 1.0, 2.0]  # a taller pyramid
+        >>> ends = interpolate(V, W, F, [0.0, 1.0])
+        >>> bool(np.allclose(ends[0], V, atol=1e-6)), bool(np.allclose(ends[1], W, atol=1e-6))
+        (True, True)
     """
+    opts = InterpolateOptions.given(options, overrides)
     A = as_points(vertices_a, "vertices_a")
     B = as_points(vertices_b, "vertices_b")
     if A.shape != B.shape:
@@ -68,18 +83,17 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
     if not np.all(np.isfinite(ts)):
         raise ShapeMismatchError("t must be finite", field="t")
     results, reports = [], []
-    started = time.perf_counter()
+    stages = Stages()
+    per_blend = ReconstructOptions.given(opts, {"check_integrability": False})
     for k, s in enumerate(ts):  # one solve (and refinement) per requested blend value
         lengths = (1 - s) * forms_a.lengths + s * forms_b.lengths
         angles = wrap_angle(forms_a.angles + s * wrap_angle(forms_b.angles - forms_a.angles))
         linear = (1 - s) * A + s * B
-        share = None if max_seconds is None else (
-            (max_seconds - (time.perf_counter() - started)) / (len(ts) - k))
+        left = stages.left(opts.max_seconds)
+        share = None if left is None else left / (len(ts) - k)
         # The refinement starts from the better of the layout fit and the vertex blend.
         rec = reconstruct(forms_a.faces, forms_a.edges, lengths, angles, n_vertices=len(A),
-                          frame_weight=frame_weight, weighting=weighting, backend=backend,
-                          check_integrability=False, refine=refine, angle_weight=angle_weight,
-                          initial_guess=linear, max_seconds=share)
+                          options=per_blend.replace(max_seconds=share), initial_guess=linear)
         vertices, report = rec.vertices, rec.report["refinement"]
         if report.get("start") == "initial guess":
             report["start"] = "vertex blend"

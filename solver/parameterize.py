@@ -9,7 +9,6 @@ the result planar. Flipped faces (negative signed area in uv) are reported, neve
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -22,10 +21,12 @@ from .forms import fundamental_forms
 from .frames import face_edge_lengths, triangle_areas, triangle_layouts
 from .linalg import factorize
 from .metrics import corner_angles, histogram, summary
+from .options import ParameterizeOptions
 from .reconstruct import ImmersionProblem, Progress
-from .refine import AREA_WEIGHT, FormTargets, Refiner
+from .refine import FormTargets, Refiner
+from .reports import Stages
 from .serialization import JsonDataclass
-from .system import Weighting, half_cotangents
+from .system import half_cotangents
 from .topology import MeshTopology, build_topology
 from .validation import as_points
 
@@ -143,31 +144,45 @@ def local_global_flattening(topology: MeshTopology, lengths: np.ndarray, uv: np.
     return uv
 
 
-def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool = True,
-                 orthonormal_weight: float = 1000.0, frame_weight: float = 1000.0,
-                 weighting: Weighting = "uniform", backend: str = "auto",
-                 refine: bool | None = None, area_weight: float = AREA_WEIGHT,
-                 max_seconds: float | None = None,
-                 progress: Progress | None = None) -> Parameterization:
+def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
+                 options: ParameterizeOptions | None = None,
+                 progress: Progress | None = None, **overrides: Any) -> Parameterization:
     """Flatten a mesh with boundary by reconstructing it with all dihedral angles 0.
 
     Args:
-        vertices: (n, 3) float; faces: (m, 3) int, counter-clockwise.
-        orthonormalize: run the second solve with planar-rotation frame targets.
-        refine: ``None`` (default) or ``True``: fit the edge lengths in the plane
+        vertices: (n, 3) float.
+        faces: (m, 3) int, counter-clockwise.
+        options: :class:`solver.options.ParameterizeOptions` (``orthonormalize`` defaults
+            to True here: the second solve with planar-rotation frame targets).
+            ``refine`` None (default) or True fits the edge lengths in the plane
             nonlinearly from the linear answer (:mod:`solver.refine` with ``dim=2``: lengths
             and signed areas, so flipped faces are pushed back), unless the linear answer
-            already has every length (a developable surface). ``False``: the linear answer.
-        area_weight: weight of the relative signed-area residual in the refinement.
-        max_seconds: optional wall-clock budget of the whole call; the refinement stops
-            when it runs out (``stop_reason: "time_limit"``, its best iterate).
+            already has every length (a developable surface); False: the linear answer.
+            ``max_seconds`` budgets the whole call.
+        progress: optional ``progress(stage, fraction)`` (validate ... refine).
+        **overrides: fields of ``options`` given as keywords.
+
+    Returns:
+        :class:`Parameterization`: uv (n, 2), flipped faces, per-face distortion and a
+        report (summaries, histograms, ``timings`` per stage, backend).
+
     Raises:
-        TopologyError for a component without boundary (a closed surface cannot be
-        flattened without a cut).
+        TopologyError: a component without boundary (a closed surface cannot be flattened
+            without a cut).
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import parameterize
+        >>> V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.5]])
+        >>> F = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        >>> flat = parameterize(V, F)
+        >>> flat.uv.shape, len(flat.flipped_faces)
+        ((5, 2), 0)
     """
-    notify = progress or (lambda stage, fraction: None)
-    t0 = time.perf_counter()
-    notify("validate", 0.0)
+    opts = ParameterizeOptions.given(options, overrides)
+    backend = opts.backend or "auto"
+    stages = Stages(progress)
+    stages("validate")
     V = as_points(vertices, "vertices")
     topology = build_topology(faces, n_vertices=len(V))
     closed = [c["component"] for c in topology.component_summary() if c["closed"]]
@@ -177,37 +192,44 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
             "flattened; cut it open along a seam (duplicate the seam vertices) first",
             field="faces", details={"closed_components": closed})
     forms = fundamental_forms(V, topology.faces)
-    notify("assemble", 0.0)
+    stages.lap("validate")
+    stages("assemble")
     problem = ImmersionProblem(topology, forms.lengths, np.zeros_like(forms.angles),
-                               frame_weight=frame_weight, weighting=weighting)
+                               frame_weight=opts.frame_weight, weighting=opts.weighting)
     anchor, anchored = problem.anchors(np.ones(topology.n_components, dtype=bool))
-    notify("factorize", 0.0)
+    stages.lap("assemble")
+    stages("factorize")
     system = problem.system(anchor, backend)
-    notify("solve", 0.0)
+    stages.lap("factorize")
+    stages("solve")
     u = system.solve(anchor.hard_values, np.zeros((0, 3)))
-    if orthonormalize:
+    stages.lap("solve")
+    if opts.orthonormalize:
         _, frames = problem.unknowns_to_geometry(u)
         targets = np.swapaxes(nearest_planar_rotation(frames), 1, 2).reshape(-1, 3)
-        notify("factorize", 0.5)
+        stages("factorize", 0.5)
         # Dropping the first factorization first hands its analysis (same pattern) to this
         # one: only the numerical factorization is redone (solver.linalg's cache).
         del system
-        system = problem.system(anchor, backend, problem.all_frame_columns(), orthonormal_weight)
-        notify("solve", 0.5)
+        system = problem.system(anchor, backend, problem.all_frame_columns(),
+                                opts.orthonormal_weight)
+        stages.lap("factorize")
+        stages("solve", 0.5)
         u = system.solve(anchor.hard_values, targets)
+        stages.lap("solve")
     flat, _ = problem.unknowns_to_geometry(u)
-    notify("solve", 1.0)
+    stages("solve", 1.0)
     uv = flat[:, :2]
     # Used vertices lie in z = 0 exactly (see module docstring); report any deviation.
     planarity = float(np.abs(flat[topology.is_referenced, 2]).max())
     refinement: dict[str, Any] = {"refined": False, "reason": "disabled (refine=false)"}
-    if refine is not False:
+    if opts.refine is not False:
         refiner = Refiner(FormTargets(topology, forms.lengths, np.zeros_like(forms.angles),
-                                      area_weight=area_weight), dim=2, backend=backend)
+                                      area_weight=opts.area_weight), dim=2, backend=backend)
         if refiner.reproduces(uv):
             refinement = {"refined": False, "reason": "exact: the surface is developable"}
         else:
-            notify("refine", 0.0)
+            stages("refine")
             # Start from local/global steps begun at a Tutte embedding (robust under large
             # distortion: bumpy-plane 0 flips against 4-146 from the folded linear answer,
             # docs/refinement.md), or from the linear answer where there is no Tutte
@@ -217,11 +239,11 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
             if tutte is not None:
                 start = local_global_flattening(topology, forms.lengths, tutte, backend=backend)
                 name = "local/global from Tutte"
-            budget = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
-            fit = refiner.run(start, time_limit=budget, progress=progress)
-            uv, refinement = fit.vertices, fit.report
-            refinement["start"] = name
-            notify("refine", 1.0)
+            fit = refiner.run(start, time_limit=stages.left(opts.max_seconds),
+                              progress=progress)
+            uv, refinement = fit.vertices, dict(fit.report, start=name)
+            stages.lap("refine")
+            stages("refine", 1.0)
     F = topology.faces
     e1, e2 = uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]]
     signed_area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
@@ -241,12 +263,12 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *, orthonormalize: bool 
         "angle_distortion_histogram": histogram(angle_change),
         "length_change_histogram": histogram(length_change),
         "planarity_error": planarity,
-        "orthonormalized": bool(orthonormalize),
+        "orthonormalized": bool(opts.orthonormalize),
         "refinement": refinement,
         "anchored_components": anchored,
         "backend": system.backend,
         "analysis": system.analysis,
-        "timings": {"total": time.perf_counter() - t0},
+        "timings": stages.timings,
     }
     return Parameterization(uv=uv, flipped_faces=flipped, area_ratio=ratio,
                             angle_distortion=angle_change, report=report)

@@ -9,15 +9,14 @@ with them as soft constraints (Sec. 4). :class:`solver.deform.Deformer` reuses t
 from __future__ import annotations
 
 import functools
-import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
+from .constraints import Constraints
 from .errors import ConstraintError, TriangleInequalityError
 from .forms import validate_forms
 from .frames import (
@@ -33,8 +32,10 @@ from .integrability import (
 )
 from .layout_fit import LayoutFit
 from .linalg import resolve_backend
-from .refine import ANGLE_WEIGHT, HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner, reproduces
-from .rotations import is_rotation, nearest_rotation
+from .options import COTAN_FLOOR, FRAME_WEIGHT, ReconstructOptions
+from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner, reproduces
+from .reports import Progress, Stages
+from .rotations import nearest_rotation
 from .serialization import JsonDataclass
 from .system import (
     WEIGHTINGS,
@@ -50,77 +51,10 @@ from .system import (
     unknown_groups,
 )
 from .topology import MeshTopology
-from .validation import as_indices, as_points, require_finite, require_unique
+from .validation import as_points
 
-Progress = Callable[[str, float], None]
 REGULARIZATION = 1e-6
 EXACT_TOLERANCE = 1e-10  # residual rows (normalized lengths) accepted without a solve
-
-
-@dataclass
-class Constraints(JsonDataclass):
-    """Position and frame constraints. A weight of ``inf`` (the default) makes it hard.
-
-    Attributes:
-        position_vertices: (p,) int64 constrained vertices (no repeats).
-        positions: (p, 3) float64 their target positions.
-        position_weights: (p,) float64 > 0, ``inf`` = hard (eliminated).
-        frame_faces: (q,) int64 constrained faces (no repeats).
-        frames: (q, 3, 3) float64 target frames, rotations whose columns are (unit vector
-            along the face's edge faces[t][0] -> faces[t][1], in-plane perpendicular, normal).
-        frame_weights: (q,) float64 > 0, ``inf`` = hard.
-    """
-
-    position_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    position_weights: np.ndarray | None = None
-    frame_faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    frames: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
-    frame_weights: np.ndarray | None = None
-
-    _array_fields: ClassVar[dict[str, Any]] = {
-        "position_vertices": np.int64, "positions": np.float64, "position_weights": np.float64,
-        "frame_faces": np.int64, "frames": np.float64, "frame_weights": np.float64,
-    }
-
-    def validated(self, n_vertices: int, n_faces: int, rotation_tol: float = 1e-6,
-                  ) -> Constraints:
-        """Checked copy with arrays of the documented shapes; raises ConstraintError etc."""
-        pv = as_indices(self.position_vertices, "constraints.positions.vertex", n_vertices)
-        pos = as_points(self.positions, "constraints.positions.position")
-        pw = _weights(self.position_weights, len(pv), "constraints.positions.weight")
-        ff = as_indices(self.frame_faces, "constraints.frames.face", n_faces)
-        fr = np.asarray(self.frames, dtype=np.float64).reshape(-1, 3, 3) if np.size(
-            self.frames) else np.zeros((0, 3, 3))
-        require_finite(fr, "constraints.frames.frame")
-        fw = _weights(self.frame_weights, len(ff), "constraints.frames.weight")
-        if len(pos) != len(pv):
-            raise ConstraintError(f"{len(pv)} constrained vertices but {len(pos)} positions",
-                                  field="constraints.positions")
-        if len(fr) != len(ff):
-            raise ConstraintError(f"{len(ff)} constrained faces but {len(fr)} frames",
-                                  field="constraints.frames")
-        require_unique(pv, "constraints.positions.vertex", "vertex")
-        require_unique(ff, "constraints.frames.face", "face")
-        bad = np.flatnonzero(~is_rotation(fr, rotation_tol))
-        if len(bad):
-            raise ConstraintError(
-                f"frame of face {int(ff[bad[0]])} is not a rotation matrix (orthonormal, det +1)",
-                field="constraints.frames.frame", index=int(bad[0]))
-        return Constraints(pv, pos, pw, ff, fr, fw)
-
-
-def _weights(values: ArrayLike | None, size: int, name: str) -> np.ndarray:
-    if values is None:
-        return np.full(size, np.inf)
-    w = np.asarray(values, dtype=np.float64).reshape(-1)
-    if len(w) != size:
-        raise ConstraintError(f"expected {size} weights, got {len(w)}", field=name)
-    bad = np.flatnonzero(~(w > 0))
-    if len(bad):
-        raise ConstraintError(f"weight {w[bad[0]]!r} must be positive (inf = hard)",
-                              field=name, index=int(bad[0]))
-    return w
 
 
 @dataclass
@@ -151,8 +85,8 @@ class ImmersionProblem:
     """
 
     def __init__(self, topology: MeshTopology, lengths: np.ndarray, angles: np.ndarray, *,
-                 frame_weight: float = 1000.0, weighting: Weighting = "uniform",
-                 cotan_floor: float = 1e-11, length_scale: float | None = None,
+                 frame_weight: float = FRAME_WEIGHT, weighting: Weighting = "uniform",
+                 cotan_floor: float = COTAN_FLOOR, length_scale: float | None = None,
                  layout_angles: np.ndarray | None = None) -> None:
         if weighting not in WEIGHTINGS:
             raise ConstraintError(f"unknown weighting {weighting!r}; use one of {WEIGHTINGS}",
@@ -161,6 +95,7 @@ class ImmersionProblem:
             raise ConstraintError(f"frame_weight must be positive and finite, got {frame_weight}",
                                   field="options.frame_weight")
         self.topology = topology
+        self.lengths, self.angles = lengths, angles  # (E,) as given (input units)
         self.length_scale = float(lengths.mean()) if length_scale is None else float(length_scale)
         self.frame_weight = float(frame_weight)
         self.weighting = weighting
@@ -200,19 +135,13 @@ class ImmersionProblem:
             vertices[constraints.position_vertices[hard]] = constraints.positions[hard]
         return vertices, frames
 
-    def geometry_to_unknowns(self, vertices: np.ndarray, frames: np.ndarray) -> np.ndarray:
-        """Inverse of :meth:`unknowns_to_geometry`."""
-        return np.concatenate([vertices / self.length_scale,
-                               np.swapaxes(frames, 1, 2).reshape(-1, 3)])
-
     def energies(self, u: np.ndarray) -> dict[str, float]:
         """Residual energy per term (in normalized units) of unknowns u (N, 3)."""
         return energies(self.A, self.row_weights, self.row_kind, u)
 
     def linear_constraints(self, constraints: Constraints) -> LinearConstraints:
         """Map validated user constraints to unknown columns (positions scaled)."""
-        n, m = self.topology.n_vertices, self.topology.n_faces
-        del m
+        n = self.topology.n_vertices
         pos_hard = np.isinf(constraints.position_weights)
         frm_hard = np.isinf(constraints.frame_weights)
         f_cols = frame_columns(n, constraints.frame_faces)             # (q, 3) cols f_t[k, c]
@@ -453,93 +382,72 @@ class ImmersionProblem:
 
 
 def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: ArrayLike, *,
-                constraints: Constraints | None = None, frame_weight: float = 1000.0,
-                orthonormalize: bool = False, orthonormal_weight: float = 1000.0,
-                weighting: Weighting = "uniform", cotan_floor: float = 1e-11,
-                backend: str = "auto", length_scale: float | None = None,
-                layout_angles: np.ndarray | None = None, n_vertices: int | None = None,
-                check_integrability: bool = True, integrability_tol: float = 1e-8,
-                exact_shortcut: bool = True, refine: bool | None = None,
-                angle_weight: float = ANGLE_WEIGHT, max_seconds: float | None = None,
-                initial_guess: ArrayLike | None = None,
-                progress: Progress | None = None) -> Reconstruction:
+                constraints: Constraints | None = None,
+                options: ReconstructOptions | None = None, n_vertices: int | None = None,
+                layout_angles: np.ndarray | None = None,
+                initial_guess: ArrayLike | None = None, progress: Progress | None = None,
+                **overrides: Any) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
+
+    Without constraints each component is anchored (one vertex at the origin, one frame at
+    the identity). Integrable forms without constraints are integrated along spanning trees
+    (Sec. 2.3; ``report["solve_path"]`` = "tree-integration", no factorization) when
+    ``options.exact_shortcut``; otherwise K is factorized. ``options.orthonormalize``
+    projects the frames to rotations and solves again with them as soft targets (Sec. 4);
+    ``options.refine`` fits the nearest surface when the linear answer does not reproduce
+    the forms (:mod:`solver.refine`, started from :mod:`solver.layout_fit`).
 
     Args:
         faces: (m, 3) int, counter-clockwise.
         edges: (E, 2) int, the faces' edges (i < j, sorted lexicographically).
         lengths: (E,) positive edge lengths (first fundamental form).
         angles: (E,) signed dihedral angles in (-pi, pi] (second fundamental form).
-        constraints: optional :class:`Constraints`. Components without any are anchored
-            (one vertex at the origin, one frame at the identity).
-        frame_weight: relative weight w of the frame term E_f (paper: 1000).
-        orthonormalize: project the frames of the first solve to rotations and solve again
-            with them as soft constraints of weight ``orthonormal_weight`` (Sec. 4).
-        weighting: "uniform" (default), "cotan" (the paper literally) or "cotan_clamped";
-            see :func:`solver.system.energy_weights` and docs/weights.md.
-        cotan_floor: lower threshold of cotangent weights ("cotan"; paper: 1e-11).
-        backend: sparse factorization backend (:func:`solver.linalg.available_backends`).
-        length_scale: lengths are divided by it before assembly so that frame_weight means
-            the same at every mesh scale; default the mean edge length. 1.0 reproduces the
-            paper's raw-unit weighting.
+        constraints: optional :class:`Constraints` (positions and frames).
+        options: :class:`solver.options.ReconstructOptions` (each field documents itself).
+        n_vertices: vertex count (default ``faces.max() + 1``).
         layout_angles: optional (m,) rotation of each face's 2D frame; the vertices do not
             depend on it (Sec. 3), only the returned frames do.
-        n_vertices: vertex count (default ``faces.max() + 1``).
-        check_integrability: include the integrability summary in the report.
-        exact_shortcut: without constraints, first integrate frames and positions along
-            spanning trees (Sec. 2.3); if every residual row of Eq. 5 vanishes (to 1e-10,
-            lengths normalized), that immersion is the minimizer and no factorization is
-            needed (report ``solve_path`` = "tree-integration", ``backend`` = "none",
-            ``timings["factorize"]`` = 0).
-            Otherwise, and always with constraints or when ``check_integrability`` found
-            the forms not integrable (then no such immersion exists: the tree integration
-            is not tried), the system is factorized.
-        refine: the nearest surface (:mod:`solver.refine`). ``None`` (default): when the
-            linear answer does not reproduce the forms (they do not integrate, or the
-            constraints conflict with them), refine it with Gauss-Newton on the lengths and
-            angles, started from the positions that best fit the linear answer's frames
-            projected to rotations (:mod:`solver.layout_fit`); integrable forms keep the
-            exact answer (and the tree-integration path). ``False``: the linear answer of
-            Eq. 5. ``True``: refine whenever the linear answer is not exact.
-            ``report["refinement"]`` says whether and how it refined.
-        angle_weight: weight of a radian of dihedral angle against a relative length change
-            of 1 in the refinement (see :mod:`solver.refine` and docs/refinement.md).
-        max_seconds: optional wall-clock budget of the whole call. The refinement stops
-            when it runs out and returns its best iterate with ``converged: false`` and
-            ``stop_reason: "time_limit"`` (the linear solve itself is never cut short).
         initial_guess: optional (n, 3) positions; the refinement starts from it instead
             of the layout fit when its energy is lower (``report["refinement"]["start"]``
             says which), e.g. the vertex blend of :func:`solver.interpolate`.
-        progress: optional callback ``progress(stage, fraction)`` for stages
-            validate, assemble, factorize, solve (and refine when refining); see
-            :func:`solver.refine.refine` for the per-iteration ``progress.iteration``.
+        progress: optional ``progress(stage, fraction)`` for the stages validate,
+            assemble, factorize, solve (and refine); see :meth:`solver.refine.Refiner.run`
+            for the per-iteration ``progress.iteration``.
+        **overrides: fields of ``options`` given as keywords (``refine=False``).
+
     Returns:
-        :class:`Reconstruction` with vertices (n, 3), frames (m, 3, 3) and a report.
+        :class:`Reconstruction` with vertices (n, 3), frames (m, 3, 3) and a report
+        (energies, ``timings`` per stage in seconds, backend, anchors, integrability).
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import fundamental_forms, reconstruct
+        >>> V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float)
+        >>> F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        >>> forms = fundamental_forms(V, F)
+        >>> result = reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles)
+        >>> result.report["solve_path"]
+        'tree-integration'
+        >>> rebuilt = fundamental_forms(result.vertices, F)
+        >>> bool(np.allclose(rebuilt.lengths, forms.lengths))
+        True
     """
-    notify = progress or (lambda stage, fraction: None)
-    timings: dict[str, float] = {}
-    clock = started = time.perf_counter()
-
-    def lap(stage: str) -> None:
-        nonlocal clock
-        now = time.perf_counter()
-        timings[stage] = timings.get(stage, 0.0) + now - clock
-        clock = now
-
-    notify("validate", 0.0)
-    backend = resolve_backend(backend)  # refused here even when no factorization follows
+    opts = ReconstructOptions.given(options, overrides)
+    stages = Stages(progress)
+    stages("validate")
+    backend = resolve_backend(opts.backend or "auto")  # refused even when nothing factorizes
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     user = (constraints or Constraints()).validated(topology.n_vertices, topology.n_faces)
-    lap("validate")
-    notify("assemble", 0.0)
-    problem = ImmersionProblem(topology, L, A, frame_weight=frame_weight, weighting=weighting,
-                               cotan_floor=cotan_floor, length_scale=length_scale,
-                               layout_angles=layout_angles)
+    stages.lap("validate")
+    stages("assemble")
+    problem = ImmersionProblem(topology, L, A, frame_weight=opts.frame_weight,
+                               weighting=opts.weighting, cotan_floor=opts.cotan_floor,
+                               length_scale=opts.length_scale, layout_angles=layout_angles)
     report: dict[str, Any] = {}
     known_not_integrable = False
-    if check_integrability:
+    if opts.check_integrability:
         checked = integrability_from_terms(
-            problem.terms, integrability_tol, mean_length=float(L.mean()) /
+            problem.terms, opts.integrability_tol, mean_length=float(L.mean()) /
             problem.length_scale, length_unit=problem.length_scale)
         report["integrability"] = checked.summary()
         # Forms that fail the check cannot have a zero-energy immersion: the tree
@@ -550,46 +458,46 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     touched = problem.constrained_components(user)
     anchor, anchored = problem.anchors(~touched)
     linear = linear.extended(anchor)
-    lap("assemble")
+    stages.lap("assemble")
 
     regularized: list[int] = []
     ref_v = np.zeros((topology.n_vertices, 3))
     pos_only, frame_only = problem.underdetermined_components(user)
     if len(pos_only) or len(frame_only):
         # The gauge left free by the constraints is pinned to an anchored reconstruction.
-        notify("factorize", 0.0)
+        stages("factorize")
         ref_anchor, _ = problem.anchors(np.ones_like(touched))
         ref_u = problem.system(ref_anchor, backend).solve(ref_anchor.hard_values,
                                                           np.zeros((0, 3)))
         ref_v, ref_f = problem.unknowns_to_geometry(ref_u)
         gauge, regularized = problem.gauge_constraints(user, ref_v, ref_f)
         linear = linear.extended(gauge)
-        lap("factorize")
+        stages.lap("factorize")
 
     u = None
-    if exact_shortcut and not touched.any() and not known_not_integrable:
+    if opts.exact_shortcut and not touched.any() and not known_not_integrable:
         # Integrable forms: the immersion integrated along spanning trees already has zero
         # energy, so it is the minimizer of Eq. 5 with these anchors (checked row by row).
-        notify("solve", 0.0)
+        stages("solve")
         u = problem.integrated_solution([a["face"] for a in anchored],
                                         [a["vertex"] for a in anchored])
-        lap("solve")
+        stages.lap("solve")
         if u is not None:  # the factorization stage is skipped: report it as 0 s
-            timings["factorize"] = 0.0
-            notify("factorize", 1.0)
+            stages.timings["factorize"] = 0.0
+            stages("factorize", 1.0)
     solve_path = "tree-integration" if u is not None else "factorization"
     factorized = {"backend": "none", "analysis": "none"}
     if u is None:
-        notify("factorize", 0.0)
+        stages("factorize")
         system = problem.system(linear, backend)
-        lap("factorize")
-        notify("solve", 0.0)
+        stages.lap("factorize")
+        stages("solve")
         u = system.solve(linear.hard_values, linear.soft_values)
         factorized = {"backend": system.backend, "analysis": system.analysis}
         # Dropped now, its analysis (the pattern of K) serves the orthonormalization's
         # factorization below: only the numerical phase is redone (solver.linalg's cache).
         del system
-        lap("solve")
+        stages.lap("solve")
 
     first_energy = problem.energies(u)
     energy = dict(first_energy)  # of the unknowns returned; redone if they change
@@ -597,54 +505,41 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     vertices = problem.recenter(vertices, user, ref_v)
     orthonormality = _orthonormality_error(frames)
     refinement: dict[str, Any] = {"refined": False, "reason": "exact: tree integration"}
+    refine = opts.refine
     if solve_path == "factorization":
         exact = refine is not False and reproduces(vertices, topology, L, A)
         refinement = {"refined": False, "reason": "disabled (refine=false)" if refine is False
                       else "exact: the linear answer reproduces the forms"}
-    if orthonormalize and solve_path == "factorization":  # integrated frames are rotations
-        notify("factorize", 0.5)
+    if opts.orthonormalize and solve_path == "factorization":  # integrated: rotations
+        stages("factorize", 0.5)
         rotations = nearest_rotation(frames)
         cols = problem.all_frame_columns()
-        system2 = problem.system(linear, backend, cols, orthonormal_weight)
-        lap("factorize")
-        notify("solve", 0.5)
+        system2 = problem.system(linear, backend, cols, opts.orthonormal_weight)
+        stages.lap("factorize")
+        stages("solve", 0.5)
         targets = np.swapaxes(rotations, 1, 2).reshape(-1, 3)
         soft_values = np.concatenate([linear.soft_values, targets])
         u = system2.solve(linear.hard_values, soft_values)
         vertices, frames = problem.unknowns_to_geometry(u, user)
         vertices = problem.recenter(vertices, user, ref_v)
         energy = problem.energies(u)
-        lap("solve")
-    notify("solve", 1.0)
+        stages.lap("solve")
+    stages("solve", 1.0)
     if solve_path == "factorization" and refine is not False and not exact:
-        notify("refine", 0.0)
-        start = problem.refinement_start(problem.layout_fit(user, backend), frames, user,
-                                         vertices)
-        refiner = Refiner(FormTargets(topology, L, A, angle_weight=angle_weight),
-                          problem.refinement_handles(user), backend=backend)
-        label = "layout fit"
-        if initial_guess is not None:
-            guess = as_points(initial_guess, "initial_guess")
-            if guess.shape != start.shape:
-                raise ConstraintError(f"initial_guess must have shape {start.shape}, got "
-                                      f"{guess.shape}", field="initial_guess")
-            if refiner.energy(guess) < refiner.energy(start):
-                start, label = guess, "initial guess"
-        budget = None if max_seconds is None else max_seconds - (time.perf_counter() - started)
-        fit = refiner.run(start, time_limit=budget, progress=progress)
-        vertices, refinement = problem.place_anchored(fit.vertices, anchored), fit.report
-        refinement["start"] = label
+        stages("refine")
+        vertices, refinement = _refined(problem, user, vertices, frames, anchored,
+                                        initial_guess, opts, backend, stages, progress)
         frames = problem.frames_of(vertices)
-        lap("refine")
-        notify("refine", 1.0)
+        stages.lap("refine")
+        stages("refine", 1.0)
 
     report.update({
         "energy": energy,
         "first_solve_energy": first_energy,
         "frame_orthonormality_error": orthonormality,
-        "orthonormalized": bool(orthonormalize),
+        "orthonormalized": bool(opts.orthonormalize),
         "refinement": refinement,
-        "timings": timings,
+        "timings": stages.timings,
         **factorized,
         "solve_path": solve_path,
         "n_unknowns": problem.n_unknowns,
@@ -656,6 +551,32 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         "isolated_vertices": topology.isolated_vertices.tolist(),
     })
     return Reconstruction(vertices=vertices, frames=frames, report=report)
+
+
+def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
+             frames: np.ndarray, anchored: list[dict[str, int]],
+             initial_guess: ArrayLike | None, opts: ReconstructOptions, backend: str,
+             stages: Stages, progress: Progress | None) -> tuple[np.ndarray, dict[str, Any]]:
+    """The refinement of :func:`reconstruct`: vertices (n, 3) nearest to the forms, started
+    from the better of the layout fit of the linear answer and ``initial_guess``, moved back
+    to the anchors; and its report."""
+    topology = problem.topology
+    start = problem.refinement_start(problem.layout_fit(user, backend), frames, user,
+                                     vertices)
+    targets = FormTargets(topology, problem.lengths, problem.angles,
+                          angle_weight=opts.angle_weight)
+    refiner = Refiner(targets, problem.refinement_handles(user), backend=backend)
+    label = "layout fit"
+    if initial_guess is not None:
+        guess = as_points(initial_guess, "initial_guess")
+        if guess.shape != start.shape:
+            raise ConstraintError(f"initial_guess must have shape {start.shape}, got "
+                                  f"{guess.shape}", field="initial_guess")
+        if refiner.energy(guess) < refiner.energy(start):
+            start, label = guess, "initial guess"
+    fit = refiner.run(start, time_limit=stages.left(opts.max_seconds), progress=progress)
+    refinement = dict(fit.report, start=label)
+    return problem.place_anchored(fit.vertices, anchored), refinement
 
 
 def _orthonormality_error(frames: np.ndarray) -> float:

@@ -27,9 +27,10 @@ Saving (:func:`save_mesh`): OBJ, OFF and PLY are written here with full float64 
 (``%.17g`` text, binary little-endian ``double`` PLY) so a save/load round trip is exact; STL
 (float32, unshared vertices) and GLB (float32) go through trimesh.
 
-All parse failures raise :class:`MeshFileError` (a ``ValueError``) with a ``reason``; unknown
-formats raise its subclass :class:`UnsupportedFormatError`. The HTTP service maps them to
-400 and 415 respectively.
+All parse failures raise :class:`~solver.errors.MeshFileError` (a
+:class:`~solver.errors.SolverInputError`) with a ``reason``; unknown formats raise its subclass
+:class:`~solver.errors.UnsupportedFormatError`. The HTTP service answers them 400
+``unreadable-file`` and 415 ``unsupported-file-type``.
 """
 
 from __future__ import annotations
@@ -44,7 +45,13 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
+from .errors import (
+    IndexOutOfRangeError,
+    MeshFileError,
+    NonFiniteValueError,
+    ShapeMismatchError,
+    UnsupportedFormatError,
+)
 
 __all__ = [
     "LOAD_FORMATS",
@@ -79,47 +86,22 @@ _OBJ_REF_TAIL: Final = re.compile(r"/\S*")
 """The ``/vt/vn`` tail of an OBJ face entry."""
 
 
-class MeshFileError(ValueError):
-    """Mesh file data that cannot be read as a triangle mesh.
-
-    Attributes
-    ----------
-    reason : str
-        Human-readable cause.
-    file_type : str or None
-        The resolved format (``"obj"``, ...), when known.
-    details : dict
-        Extra JSON-ready context.
-    """
-
-    kind: str = "invalid-mesh-file"
-
-    def __init__(self, reason: str, *, file_type: str | None = None,
-                 details: dict[str, Any] | None = None) -> None:
-        self.reason = reason
-        self.file_type = file_type
-        self.details = dict(details or {})
-        super().__init__(f"{file_type}: {reason}" if file_type else reason)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready description: ``{"kind", "file_type", "reason", **details}``."""
-        return {"kind": self.kind, "file_type": self.file_type, "reason": self.reason,
-                **self.details}
-
-
-class UnsupportedFormatError(MeshFileError):
-    """The file name / type names no format this module reads (or writes)."""
-
-    kind = "unsupported-mesh-format"
-
-
 def resolve_format(filename_or_type: str, supported: tuple[str, ...] = LOAD_FORMATS) -> str:
     """Normalise a file name, extension (``"obj"``, ``".OBJ"``) or media type to a format name.
 
-    Raises
-    ------
-    UnsupportedFormatError
-        If the result is not in ``supported``.
+    Args:
+        filename_or_type: A file name, a bare extension or a media type.
+        supported: The format names to accept.
+
+    Returns:
+        The lower-case format name, one of ``supported``.
+
+    Raises:
+        UnsupportedFormatError: If the result is not in ``supported``.
+
+    Example:
+        >>> resolve_format("Bunny.OBJ"), resolve_format("model/gltf-binary")
+        ('obj', 'glb')
     """
     s = str(filename_or_type).strip().lower()
     fmt = _ALIASES.get(s)
@@ -140,25 +122,24 @@ def resolve_format(filename_or_type: str, supported: tuple[str, ...] = LOAD_FORM
 def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Read a triangle mesh from file bytes, keeping the file's vertex order and count.
 
-    Parameters
-    ----------
-    data : bytes
-        The whole file.
-    filename_or_type : str
-        File name (its extension decides), bare extension (``"off"``, ``".ply"``) or media
-        type (``"model/gltf-binary"``). One of :data:`LOAD_FORMATS`.
+    Args:
+        data: The whole file.
+        filename_or_type: File name (its extension decides), bare extension (``"off"``,
+            ``".ply"``) or media type (``"model/gltf-binary"``); one of :data:`LOAD_FORMATS`.
 
-    Returns
-    -------
-    vertices : (n, 3) float64, finite, C-contiguous
-    faces : (m, 3) int64, m >= 1, indices in ``[0, n)``; polygons triangulated
+    Returns:
+        ``(vertices, faces)``: (n, 3) float64, finite, C-contiguous, and (m, 3) int64 with
+        m >= 1 and indices in ``[0, n)`` (polygons triangulated).
 
-    Raises
-    ------
-    UnsupportedFormatError
-        Unknown format.
-    MeshFileError
-        The data cannot be parsed, has no faces, non-finite coordinates or out-of-range indices.
+    Raises:
+        UnsupportedFormatError: Unknown format.
+        MeshFileError: The data cannot be parsed, has no faces, non-finite coordinates or
+            out-of-range indices.
+
+    Example:
+        >>> vertices, faces = load_mesh(b"v 0 0 0\\nv 1 0 0\\nv 0 1 0\\nf 1 2 3\\n", "obj")
+        >>> vertices.shape, faces.tolist()
+        ((3, 3), [[0, 1, 2]])
     """
     fmt = resolve_format(filename_or_type)
     if isinstance(data, memoryview | bytearray):
@@ -173,9 +154,7 @@ def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], 
         else:
             vertices, faces = _load_trimesh(_text_as_utf8(data, fmt), fmt)
     except MeshFileError as exc:
-        if exc.file_type is None:
-            exc.file_type = fmt
-            exc.args = (f"{fmt}: {exc.reason}",)
+        exc.located(file_type=fmt)
         raise
     except (ImportError, MemoryError):  # the environment, not the file: not a client error
         raise
@@ -188,7 +167,14 @@ def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], 
 
 
 def load_mesh_file(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """:func:`load_mesh` on a file on disk; the format comes from the file extension."""
+    """:func:`load_mesh` on a file on disk; the format comes from the file extension.
+
+    Args:
+        path: The file.
+
+    Returns:
+        ``(vertices, faces)`` as :func:`load_mesh` returns them.
+    """
     p = Path(path)
     return load_mesh(p.read_bytes(), p.name)
 
@@ -207,13 +193,12 @@ def _finish(vertices: np.ndarray, faces: np.ndarray, fmt: str
     bad = ~np.isfinite(v).all(axis=1)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise MeshFileError(f"vertex {i} has a non-finite coordinate", file_type=fmt,
-                            details={"index": i})
+        raise MeshFileError(f"vertex {i} has a non-finite coordinate", file_type=fmt, index=i)
     bad = ((f < 0) | (f >= v.shape[0])).any(axis=1)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise MeshFileError(f"face {i} has a vertex index outside [0, {v.shape[0]})",
-                            file_type=fmt, details={"index": i})
+                            file_type=fmt, index=i)
     return v, f
 
 
@@ -252,8 +237,12 @@ def _is_binary_stl(data: bytes) -> bool:
 def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     """Positions from every ``v`` line, triangles from the ``v`` index of every ``f`` entry.
 
-    Returns (n, 3) float64 vertices in ``v``-line order and (m, 3) int64 faces (0-based; each
-    k-gon fan-triangulated into k - 2 triangles ``(i0, ij, ij+1)``, in file order).
+    Args:
+        data: The OBJ file.
+
+    Returns:
+        (n, 3) float64 vertices in ``v``-line order and (m, 3) int64 faces (0-based; each
+        k-gon fan-triangulated into k - 2 triangles ``(i0, ij, ij+1)``, in file order).
     """
     text = data.decode("utf-8", errors="replace")
     text = text.replace("\r\n", "\n").replace("\r", "\n").replace("\\\n", " ")
@@ -313,8 +302,15 @@ def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _huge_index(tokens: list[str], token_rows: np.ndarray) -> MeshFileError:
-    """The error for a face index beyond int64, naming its line (``token_rows``: the line
-    index of each token)."""
+    """The error for a face index beyond int64, naming its line and quoting the index.
+
+    Args:
+        tokens: The face entries' vertex indices, as written.
+        token_rows: The line index of each token.
+
+    Returns:
+        The error to raise.
+    """
     long = np.flatnonzero(np.fromiter(map(len, tokens), np.intp, len(tokens)) >= 19)
     limit = np.iinfo(np.int64)
     k = next(int(k) for k in long if not limit.min <= int(tokens[k]) <= limit.max)
@@ -367,14 +363,12 @@ def _merge_identical(vertices: np.ndarray, faces: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Merge bit-identical positions; new vertices numbered by first occurrence.
 
-    Parameters
-    ----------
-    vertices : (k, 3) float
-    faces : (m, 3) int into ``vertices``
+    Args:
+        vertices: (k, 3) float positions.
+        faces: (m, 3) int indices into ``vertices``.
 
-    Returns
-    -------
-    (n, 3) float64 unique positions, (m, 3) int64 faces into them.
+    Returns:
+        (n, 3) float64 unique positions and (m, 3) int64 faces into them.
     """
     v = np.asarray(vertices, dtype=np.float64) + 0.0  # + 0.0 turns -0.0 into 0.0
     if v.shape[0] == 0:
@@ -395,27 +389,29 @@ def _merge_identical(vertices: np.ndarray, faces: np.ndarray
 def save_mesh(vertices: ArrayLike, faces: ArrayLike, file_type: str) -> bytes:
     """Write a triangle mesh as file bytes.
 
-    Parameters
-    ----------
-    vertices : (n, 3) float, finite
-    faces : (m, 3) int, indices in ``[0, n)``
-    file_type : str
-        One of :data:`SAVE_FORMATS` (or a file name / media type naming one).
+    Args:
+        vertices: (n, 3) float, finite.
+        faces: (m, 3) int, indices in ``[0, n)``.
+        file_type: One of :data:`SAVE_FORMATS` (or a file name / media type naming one).
 
-    Returns
-    -------
-    bytes
+    Returns:
         OBJ/OFF: ASCII with ``%.17g`` coordinates (exact float64 round trip). PLY: binary
         little-endian, ``double`` coordinates, ``int`` indices. STL: binary, float32, three
         unshared corners per face (unreferenced vertices are lost). GLB: float32 positions,
         via trimesh. Every vertex, referenced or not, is written in order (except STL).
 
-    Raises
-    ------
-    UnsupportedFormatError
-        Unknown format.
-    solver.errors.ShapeMismatchError, IndexOutOfRangeError, NonFiniteValueError
-        Malformed arrays.
+    Raises:
+        UnsupportedFormatError: Unknown format.
+        ShapeMismatchError: The arrays are not (n, 3) and (m, 3).
+        NonFiniteValueError: A coordinate is NaN or infinite.
+        IndexOutOfRangeError: A face names a vertex outside ``[0, n)``.
+
+    Example:
+        >>> import numpy as np
+        >>> data = save_mesh(np.eye(3), [[0, 1, 2]], "obj")
+        >>> vertices, faces = load_mesh(data, "obj")
+        >>> bool((vertices == np.eye(3)).all()), faces.tolist()
+        (True, [[0, 1, 2]])
     """
     fmt = resolve_format(file_type, SAVE_FORMATS)
     v = np.asarray(vertices, dtype=np.float64)

@@ -2,19 +2,33 @@
 
 from __future__ import annotations
 
+from ..errors import SolverInputError
 
-class BackendUnavailableError(ValueError, ImportError):
+
+class BackendUnavailableError(SolverInputError, ImportError):
     """A known backend whose library cannot be loaded in this environment.
 
-    It is both a :class:`ValueError` (a bad ``backend`` argument) and an
-    :class:`ImportError` (a missing optional dependency); the message names the pip
-    package to install.
+    It is both a :class:`~solver.errors.SolverInputError` (a bad ``backend`` argument, the
+    ``solver`` option) and an :class:`ImportError` (a missing optional dependency); the
+    message names the pip package to install.
     """
 
+    kind = "invalid-option"
 
-class SingularSystemError(RuntimeError):
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason, field="options.solver", message=reason)
+
+
+class SingularSystemError(SolverInputError, RuntimeError):
     """The matrix is singular or not positive definite.
 
     Raised when the factorization fails, or when a solve produces a non-finite or
-    inaccurate result.
+    inaccurate result. A :class:`~solver.errors.SolverInputError` naming ``constraints``:
+    the constraints given (or their absence) leave the system singular.
     """
+
+    kind = "singular-system"
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason, field="constraints",
+                         message=f"the linear system is singular: {reason}")

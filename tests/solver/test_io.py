@@ -10,7 +10,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from solver.errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
+from solver.errors import (
+    IndexOutOfRangeError,
+    NonFiniteValueError,
+    ShapeMismatchError,
+    SolverInputError,
+)
 from solver.io import (
     LOAD_FORMATS,
     SAVE_FORMATS,
@@ -287,17 +292,35 @@ def test_glb_node_transform_applied() -> None:
 def test_garbage_raises_mesh_file_error(fmt: str, data: bytes) -> None:
     with pytest.raises(MeshFileError) as info:
         load_mesh(data, fmt)
-    assert isinstance(info.value, ValueError)
+    assert isinstance(info.value, SolverInputError) and isinstance(info.value, ValueError)
     assert not isinstance(info.value, UnsupportedFormatError)
     assert info.value.reason
-    assert info.value.to_dict()["kind"] == "invalid-mesh-file"
+    assert info.value.to_dict()["kind"] == "unreadable-file"
+    assert info.value.file_type == fmt and str(info.value).startswith(f"{fmt}: ")
+
+
+def test_a_file_error_names_the_file_as_the_caller_knows_it() -> None:
+    with pytest.raises(MeshFileError) as info:
+        load_mesh(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "obj")
+    error = info.value.located(field="file_a", file_name="tri.obj")
+    assert str(error) == "tri.obj: obj: line 4: face references a vertex not defined before it"
+    assert error.element() == {"field": "file_a", "index": None, "line": 4,
+                               "reason": "line 4: face references a vertex not defined "
+                                         "before it"}
+
+
+def test_a_vertex_record_at_fault_is_the_index() -> None:
+    with pytest.raises(MeshFileError) as info:
+        load_mesh(b"v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n", "obj")
+    assert info.value.index == 1 and "vertex 1" in info.value.reason
 
 
 @pytest.mark.parametrize("name", ["mesh.dae", "fbx", "", "noext", "model/vnd.collada+xml"])
 def test_unsupported_format(name: str) -> None:
     with pytest.raises(UnsupportedFormatError) as info:
         load_mesh(b"v 0 0 0\n", name)
-    assert info.value.to_dict()["kind"] == "unsupported-mesh-format"
+    assert info.value.to_dict()["kind"] == "unsupported-file-type"
+    assert info.value.details["supported"] == list(LOAD_FORMATS)
     with pytest.raises(UnsupportedFormatError):
         save_mesh(np.zeros((3, 3)), [[0, 1, 2]], name)
     with pytest.raises(UnsupportedFormatError):

@@ -21,6 +21,7 @@ class UTCFormatter(logging.Formatter):
     converter = time.gmtime
 
     def formatTime(self, record: logging.LogRecord, datefmt: str | None = None) -> str:  # noqa: N802
+        """``2026-01-02T12:00:00.123Z`` (``datefmt`` is ignored)."""
         stamp = time.strftime("%Y-%m-%dT%H:%M:%S", self.converter(record.created))
         return f"{stamp}.{int(record.msecs):03d}Z"
 
@@ -38,7 +39,11 @@ LOG_CONFIG: dict[str, Any] = {
 
 
 def configure_logging(level: str) -> None:
-    """The ``service`` logger at ``level`` with a timed, levelled handler (once)."""
+    """Give the ``service`` logger a timed, levelled handler on stderr (once).
+
+    Args:
+        level: a logging level name (``FFS_LOG_LEVEL``), any case.
+    """
     logger = logging.getLogger("service")
     logger.setLevel(level.upper())
     if not logger.handlers:

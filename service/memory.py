@@ -34,6 +34,7 @@ def release_memory() -> None:
 
 
 def _malloc_trim() -> Any:
+    """glibc's ``malloc_trim`` (loaded once), or None where there is none."""
     global _TRIM
     if _TRIM is None:
         import ctypes
@@ -60,9 +61,16 @@ def resident_memory() -> int:
 
 
 def release_between_tasks(next_task_waiting: Any) -> None:
-    """A worker's heap policy after a task: give the freed heap back at once when the
-    process holds more than :data:`RELEASE_ABOVE`, else only when
-    ``next_task_waiting(IDLE_RELEASE)`` (e.g. ``Connection.poll``) says no task came."""
+    """A worker's heap policy after a task.
+
+    The freed heap (and the factor memory of idle PARDISO handles) goes back at once when
+    the process holds more than :data:`RELEASE_ABOVE`, else only when no task came within
+    :data:`IDLE_RELEASE` seconds.
+
+    Args:
+        next_task_waiting: called with :data:`IDLE_RELEASE`, says whether a task came
+            meanwhile (e.g. ``Connection.poll``).
+    """
     if resident_memory() > RELEASE_ABOVE or not next_task_waiting(IDLE_RELEASE):
         from solver.linalg import release_cached_factors
 
@@ -74,11 +82,15 @@ _later: list[Any] = []
 
 
 def free_later(obj: Any) -> None:
-    """Keep ``obj`` (a parsed body) alive until :func:`free_deferred`, at most one at a time.
+    """Keep an object alive until :func:`free_deferred`, at most one at a time.
 
     Freeing the ~200 000 objects of a parsed 2 MB JSON body takes ~3 ms; a worker frees them
     after it has sent its answer instead of before. Any earlier object is freed here, so a
-    process that never calls :func:`free_deferred` holds at most one."""
+    process that never calls :func:`free_deferred` holds at most one.
+
+    Args:
+        obj: a parsed body.
+    """
     _later[:] = [obj]
 
 

@@ -71,6 +71,7 @@ from .system import ConstrainedSystem, LinearConstraints
 POLISH_TOLERANCE = 1e-9
 """Newton polishing stops after a step below this fraction of the mean edge length."""
 POLISH_ITERATIONS = 30
+"""Most Newton steps polishing takes."""
 REUSE_TOLERANCE = 1e-6
 """A polishing step below this fraction of the mean edge length is taken without
 refactorizing the Hessian at its end point (the factorized one is O(step) away)."""
@@ -82,9 +83,11 @@ class FormCotangents:
     cotangent had one).
 
     Attributes:
-        lengths: (E,) float64. angles: (E,) float64.
-        positions: (p, 3) of ``constraints.positions`` (hard and soft), in their order.
-        frames: (q, 3, 3) of ``constraints.frames``.
+        lengths: (E,) float64.
+        angles: (E,) float64.
+        positions: (p, 3) float64 of ``constraints.positions`` (hard and soft), in their
+            order.
+        frames: (q, 3, 3) float64 of ``constraints.frames``.
     """
 
     lengths: np.ndarray
@@ -94,8 +97,15 @@ class FormCotangents:
 
 
 class ReconstructionVJP:
-    """Vector-Jacobian product of one reconstruction; call it with a cotangent ``g`` of
-    ``result.vertices`` ((n, 3) or (k, n, 3)) to get ``(grad_lengths, grad_angles)``.
+    """Vector-Jacobian product of one reconstruction.
+
+    Call it with a cotangent ``g`` of ``result.vertices`` ((n, 3) or (k, n, 3)) to get
+    ``(grad_lengths, grad_angles)``. Made by :func:`reconstruct_vjp`.
+
+    Args:
+        adjoint: the linear or refined adjoint that computes the cotangents.
+        n_vertices: n.
+        report: what preparing it cost.
 
     Attributes:
         mode: ``"linear"`` or ``"refined"`` (see the module docstring).
@@ -112,7 +122,17 @@ class ReconstructionVJP:
         self.report = report
 
     def cotangents(self, g: ArrayLike) -> FormCotangents:
-        """All cotangents (:class:`FormCotangents`) for ``g`` (n, 3) or (k, n, 3)."""
+        """All cotangents of the reconstruction's inputs.
+
+        Args:
+            g: (n, 3) or (k, n, 3) float cotangent of ``result.vertices``.
+
+        Returns:
+            :class:`FormCotangents` (with a leading axis k when ``g`` had one).
+
+        Raises:
+            ConstraintError: ``g`` of the wrong shape or not finite.
+        """
         g = np.asarray(g, dtype=np.float64)
         single = g.ndim == 2
         batch = g[None] if single else g
@@ -128,6 +148,8 @@ class ReconstructionVJP:
         return out
 
     def __call__(self, g: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """``(grad_lengths, grad_angles)``, (E,) or (k, E) float64, for ``g`` (n, 3) or
+        (k, n, 3) (:meth:`cotangents`)."""
         out = self.cotangents(g)
         return out.lengths, out.angles
 
@@ -141,9 +163,16 @@ def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angl
         faces, edges, lengths, angles: as for :func:`solver.reconstruct`.
         polish: refined answers only: Newton steps to the optimum before differentiating.
         **keywords: the keywords of :func:`solver.reconstruct`.
+
     Returns:
         ``(result, vjp)``: the :class:`Reconstruction` (``report["vjp"]`` added) and a
         :class:`ReconstructionVJP`.
+
+    Raises:
+        ConstraintError: an option or constraint set it does not differentiate (cotangent
+            weightings, ``layout_angles``, orthonormalized linear answers, a regularized
+            gauge).
+        SolverInputError: any error :func:`solver.reconstruct` raises.
     """
     _check_supported(keywords)
     result = reconstruct(faces, edges, lengths, angles, **keywords)
@@ -177,6 +206,7 @@ def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angl
 
 
 def _check_supported(keywords: dict[str, Any]) -> None:
+    """Raise :class:`ConstraintError` for options :func:`reconstruct_vjp` cannot differentiate."""
     if keywords.get("weighting", "uniform") != "uniform":
         raise ConstraintError("reconstruct_vjp differentiates the uniform weighting only",
                               field="options.weighting")
@@ -555,7 +585,28 @@ def aligned_distance(vertices: ArrayLike, target: ArrayLike) -> tuple[float, np.
     ``loss = min_{R, t} sum_v |R x_v + t - y_v|^2 / (n s^2)`` over rotations R and
     translations t (Kabsch), ``s`` the target's RMS distance from its centroid; by the
     envelope theorem its gradient (n, 3) is ``2 (R x + t - y) R / (n s^2)`` at the optimal
-    (R, t). Args: vertices (n, 3), target (n, 3). Returns (loss, gradient (n, 3)).
+    (R, t).
+
+    Args:
+        vertices: (n, 3) float.
+        target: (n, 3) float.
+
+    Returns:
+        ``(loss, gradient)``: a float and (n, 3) float64.
+
+    Example:
+        A rotated and shifted copy is at distance 0; a scaled one is not:
+
+        >>> import numpy as np
+        >>> from solver.differentiable import aligned_distance
+        >>> from solver.rotations import rotation_z
+        >>> target = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> moved = target @ rotation_z(np.array([0.7]))[0].T + 3.0
+        >>> loss, gradient = aligned_distance(moved, target)
+        >>> bool(loss < 1e-20), gradient.shape
+        (True, (4, 3))
+        >>> round(aligned_distance(2.0 * target, target)[0], 12)
+        1.0
     """
     X = np.asarray(vertices, dtype=np.float64)
     Y = np.asarray(target, dtype=np.float64)

@@ -31,7 +31,12 @@ KEPT = 4
 
 
 class _KeptVJPs:
-    """``reconstruct_vjp`` memoized on the bytes of (lengths, angles), last KEPT kept."""
+    """``reconstruct_vjp`` memoized on the bytes of (lengths, angles), last KEPT kept.
+
+    Args:
+        faces, edges: the connectivity every call reconstructs.
+        keywords: the keywords of :func:`solver.reconstruct`.
+    """
 
     def __init__(self, faces: ArrayLike, edges: ArrayLike, keywords: dict[str, Any]) -> None:
         self.faces, self.edges, self.keywords = faces, edges, keywords
@@ -39,6 +44,7 @@ class _KeptVJPs:
 
     def __call__(self, lengths: np.ndarray, angles: np.ndarray,
                  ) -> tuple[np.ndarray, ReconstructionVJP]:
+        """The vertices (n, 3) and VJP of ``(lengths, angles)``, each (E,) float64."""
         L = np.ascontiguousarray(lengths, dtype=np.float64)
         A = np.ascontiguousarray(angles, dtype=np.float64)
         key = L.tobytes() + A.tobytes()
@@ -52,13 +58,27 @@ class _KeptVJPs:
 
 
 def _n_vertices(faces: ArrayLike, keywords: dict[str, Any]) -> int:
+    """n: ``keywords["n_vertices"]`` or ``faces.max() + 1``."""
     n = keywords.get("n_vertices")
     return int(n) if n is not None else int(np.max(faces)) + 1
 
 
 def jax_reconstruction(faces: ArrayLike, edges: ArrayLike,
                        **keywords: Any) -> Callable[[Any, Any], Any]:
-    """``f(lengths (E,), angles (E,)) -> vertices (n, 3)`` with a JAX custom VJP."""
+    """The reconstruction as a JAX function with a custom VJP.
+
+    Args:
+        faces: (m, 3) int, counter-clockwise.
+        edges: (E, 2) int, the faces' edges.
+        **keywords: the keywords of :func:`solver.reconstruct` (constraints fixed).
+
+    Returns:
+        ``f(lengths (E,), angles (E,)) -> vertices (n, 3)``, float64 JAX arrays.
+
+    Raises:
+        ImportError: jax is not installed.
+        RuntimeError: ``jax_enable_x64`` is off.
+    """
     import jax
     import jax.numpy as jnp
 
@@ -94,8 +114,20 @@ def jax_reconstruction(faces: ArrayLike, edges: ArrayLike,
 
 def torch_reconstruction(faces: ArrayLike, edges: ArrayLike,
                          **keywords: Any) -> Callable[[Any, Any], Any]:
-    """``f(lengths (E,), angles (E,)) -> vertices (n, 3)`` as a ``torch.autograd.Function``
-    (CPU float64 tensors; others are converted)."""
+    """The reconstruction as a ``torch.autograd.Function``.
+
+    Args:
+        faces: (m, 3) int, counter-clockwise.
+        edges: (E, 2) int, the faces' edges.
+        **keywords: the keywords of :func:`solver.reconstruct` (constraints fixed).
+
+    Returns:
+        ``f(lengths (E,), angles (E,)) -> vertices (n, 3)`` on tensors (computed on CPU in
+        float64; the result has the dtype and device of ``lengths``).
+
+    Raises:
+        ImportError: torch is not installed.
+    """
     import torch
 
     kept = _KeptVJPs(faces, edges, keywords)

@@ -22,12 +22,32 @@ _GX = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # d Rx / d
 
 def layouts_vjp(face_lengths: np.ndarray, layouts: np.ndarray,
                 layouts_bar: np.ndarray) -> np.ndarray:
-    """Cotangent (B, m, 3) of the face lengths from that of the layouts (B, m, 3, 2).
+    """Pull the cotangent of the layouts back to the face lengths.
 
     The layout of :func:`solver.frames.triangle_layouts` (no layout angles): corner 0 at the
     origin, corner 1 at ``(l01, 0)``, corner 2 at ``(x2, y2)`` with
     ``x2 = (l01^2 + l20^2 - l12^2) / (2 l01)`` and ``y2 = sqrt(l20^2 - x2^2)``.
     Faces of zero area (y2 = 0) get an infinite derivative there; they are refused earlier.
+
+    Args:
+        face_lengths: (m, 3) float64 forward lengths.
+        layouts: (m, 3, 2) float64 forward layouts.
+        layouts_bar: (B, m, 3, 2) float64 cotangent of the layouts.
+
+    Returns:
+        (B, m, 3) float64 cotangent of the face lengths.
+
+    Example:
+        Moving corner 1 of the 3-4-5 layout along x is changing the first length:
+
+        >>> import numpy as np
+        >>> from solver.form_derivatives import layouts_vjp
+        >>> from solver.frames import triangle_layouts
+        >>> lengths = np.array([[3.0, 4.0, 5.0]])
+        >>> bar = np.zeros((1, 1, 3, 2))
+        >>> bar[0, 0, 1, 0] = 1.0
+        >>> (layouts_vjp(lengths, triangle_layouts(lengths), bar) + 0.0).tolist()
+        [[[1.0, 0.0, 0.0]]]
     """
     l01, l12, l20 = face_lengths.T
     x2, y2 = layouts[:, 2, 0], layouts[:, 2, 1]
@@ -40,15 +60,30 @@ def layouts_vjp(face_lengths: np.ndarray, layouts: np.ndarray,
 
 
 def coefficients_vjp(coefficients_bar: np.ndarray) -> np.ndarray:
-    """Cotangent (B, m, 3, 2) of the layouts from that of ``a = layouts[:, [1, 2, 0]] -
-    layouts`` (:func:`solver.frames.edge_coefficients`)."""
+    """Pull the cotangent of the edge coefficients back to the layouts.
+
+    Args:
+        coefficients_bar: (B, m, 3, 2) float64 cotangent of
+            ``a = layouts[:, [1, 2, 0]] - layouts`` (:func:`solver.frames.edge_coefficients`).
+
+    Returns:
+        (B, m, 3, 2) float64 cotangent of the layouts.
+    """
     layouts_bar = -coefficients_bar.copy()
     layouts_bar[..., [1, 2, 0], :] += coefficients_bar
     return layouts_bar
 
 
 def direction_angle_vjp(vectors: np.ndarray, angle_bar: np.ndarray) -> np.ndarray:
-    """Cotangent (B, k, 2) of 2D vectors (k, 2) from that of ``atan2(v_y, v_x)`` (B, k)."""
+    """Pull the cotangent of the direction angles ``atan2(v_y, v_x)`` back to the vectors.
+
+    Args:
+        vectors: (k, 2) float64 nonzero 2D vectors.
+        angle_bar: (B, k) float64 cotangent of their angles.
+
+    Returns:
+        (B, k, 2) float64 cotangent of the vectors.
+    """
     norm2 = np.einsum("ij,ij->i", vectors, vectors)
     perp = np.stack([-vectors[:, 1], vectors[:, 0]], axis=1) / norm2[:, None]
     return angle_bar[..., None] * perp
@@ -56,10 +91,20 @@ def direction_angle_vjp(vectors: np.ndarray, angle_bar: np.ndarray) -> np.ndarra
 
 def rotations_vjp(transition: np.ndarray, rotations: np.ndarray,
                   rotations_bar: np.ndarray) -> np.ndarray:
-    """Cotangent (B, k, 3) of ``(theta_L, phi, theta_R)`` from that of the rotations
-    ``R = Rz(theta_L) Rx(phi) Rz(-theta_R)`` (B, k, 3, 3):
-    ``dR/dtheta_L = Gz R``, ``dR/dphi = Rz(theta_L) Gx Rx(phi) Rz(-theta_R)``,
-    ``dR/dtheta_R = -R Gz`` with the generators ``Gz``, ``Gx`` of the axis rotations."""
+    """Pull the cotangent of the transition rotations back to their angles.
+
+    ``R = Rz(theta_L) Rx(phi) Rz(-theta_R)``: ``dR/dtheta_L = Gz R``,
+    ``dR/dphi = Rz(theta_L) Gx Rx(phi) Rz(-theta_R)``, ``dR/dtheta_R = -R Gz`` with the
+    generators ``Gz``, ``Gx`` of the axis rotations.
+
+    Args:
+        transition: (k, 3) float64 forward angles ``(theta_L, phi, theta_R)``.
+        rotations: (k, 3, 3) float64 forward rotations.
+        rotations_bar: (B, k, 3, 3) float64 cotangent of the rotations.
+
+    Returns:
+        (B, k, 3) float64 cotangent of the angles.
+    """
     theta_left, phi, theta_right = transition.T
     d_left = _GZ @ rotations
     d_phi = rotation_z(theta_left) @ _GX @ rotation_x(phi) @ rotation_z(-theta_right)
@@ -70,11 +115,18 @@ def rotations_vjp(transition: np.ndarray, rotations: np.ndarray,
 
 def transition_vjp(topology: MeshTopology, coefficients: np.ndarray,
                    transition_bar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pull back the cotangent (B, k, 3) of :func:`solver.frames.transition_angles`.
+    """Pull back the cotangent of :func:`solver.frames.transition_angles`.
 
-    Returns ``(coefficients_bar (B, m, 3, 2), angles_bar (B, E))``: the layout angles
-    ``theta_L``, ``theta_R`` are directions of half-edge coefficients, ``phi`` is the
-    dihedral angle of the interior edge.
+    The layout angles ``theta_L``, ``theta_R`` are directions of half-edge coefficients,
+    ``phi`` is the dihedral angle of the interior edge.
+
+    Args:
+        topology: the mesh's connectivity.
+        coefficients: (m, 3, 2) float64 forward edge coefficients.
+        transition_bar: (B, k, 3) float64 cotangent of the transition angles.
+
+    Returns:
+        ``(coefficients_bar, angles_bar)``: (B, m, 3, 2) and (B, E) float64.
     """
     inner = topology.interior_edges
     h_left, h_right = topology.edge_halfedges[inner, 0], topology.edge_halfedges[inner, 1]
@@ -89,8 +141,15 @@ def transition_vjp(topology: MeshTopology, coefficients: np.ndarray,
 
 
 def face_lengths_vjp(topology: MeshTopology, face_lengths_bar: np.ndarray) -> np.ndarray:
-    """Cotangent (B, E) of the edge lengths from that of
-    :func:`solver.frames.face_edge_lengths` (B, m, 3): a sum over each edge's half-edges."""
+    """Pull the cotangent of :func:`solver.frames.face_edge_lengths` back to the lengths.
+
+    Args:
+        topology: the mesh's connectivity.
+        face_lengths_bar: (B, m, 3) float64.
+
+    Returns:
+        (B, E) float64: a sum over each edge's half-edges.
+    """
     flat = face_lengths_bar.reshape(-1, face_lengths_bar.shape[-2] * 3)
     out = np.stack([np.bincount(topology.halfedge_edge, weights=row,
                                 minlength=topology.n_edges) for row in flat])
@@ -101,9 +160,19 @@ def layout_terms_vjp(topology: MeshTopology, face_lengths: np.ndarray, layouts: 
                      coefficients: np.ndarray, transition: np.ndarray, rotations: np.ndarray,
                      coefficients_bar: np.ndarray, rotations_bar: np.ndarray,
                      layouts_bar: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Cotangents (B, E) of the lengths and angles from those of the edge coefficients
-    (B, m, 3, 2), the transition rotations (B, k, 3, 3) and optionally the layouts
-    (B, m, 3, 2) (the forward values as in :class:`solver.system.EnergyTerms`)."""
+    """Pull the cotangents of every per-face quantity back to the lengths and angles.
+
+    Args:
+        topology: the mesh's connectivity.
+        face_lengths, layouts, coefficients, transition, rotations: forward values, as in
+            :class:`solver.system.EnergyTerms`.
+        coefficients_bar: (B, m, 3, 2) float64 cotangent of the edge coefficients.
+        rotations_bar: (B, k, 3, 3) float64 cotangent of the transition rotations.
+        layouts_bar: optional (B, m, 3, 2) float64 cotangent of the layouts.
+
+    Returns:
+        ``(lengths_bar, angles_bar)``: (B, E) float64 each.
+    """
     a_bar, angles_bar = transition_vjp(
         topology, coefficients, rotations_vjp(transition, rotations, rotations_bar))
     lay_bar = coefficients_vjp(coefficients_bar + a_bar)

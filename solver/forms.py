@@ -28,6 +28,7 @@ from .topology import MeshTopology, build_topology
 from .validation import as_indices, as_points, as_vector
 
 ANGLE_SLACK = 1e-12
+"""Angles this far beyond +-pi (radians) are accepted and clamped (rounding of pi)."""
 
 
 @dataclass
@@ -53,7 +54,16 @@ class Forms(JsonDataclass):
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (m, 3) and areas (m,) of the faces; zero-area faces give a zero normal."""
+    """Unit normals and areas of the faces.
+
+    Args:
+        vertices: (n, 3) float64.
+        faces: (m, 3) int64, counter-clockwise seen from outside.
+
+    Returns:
+        ``(normals, areas)``: (m, 3) float64 unit normals (zero for a zero-area face) and
+        (m,) float64 areas.
+    """
     cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
                      vertices[faces[:, 2]] - vertices[faces[:, 0]])
     norm = np.linalg.norm(cross, axis=1)
@@ -63,7 +73,16 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
 
 def dihedral_angles(vertices: np.ndarray, topology: MeshTopology,
                     normals: np.ndarray) -> np.ndarray:
-    """Signed dihedral angle (E,) of every edge (0 on the boundary), see module docstring."""
+    """Signed dihedral angle of every edge (the module docstring defines its sign).
+
+    Args:
+        vertices: (n, 3) float64.
+        topology: the mesh's connectivity.
+        normals: (m, 3) float64 unit face normals (:func:`face_normals`).
+
+    Returns:
+        (E,) float64 angles in (-pi, pi], 0 on boundary edges.
+    """
     angles = np.zeros(topology.n_edges)
     inner = topology.interior_edges
     left, right = topology.edge_faces[inner, 0], topology.edge_faces[inner, 1]
@@ -84,19 +103,48 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
     Args:
         vertices: (n, 3) float coordinates.
         faces: (m, 3) int, 0-based, counter-clockwise seen from outside.
+
     Returns:
         :class:`Forms` with edges (E, 2), lengths (E,), angles (E,).
+
     Raises:
-        SolverInputError subclasses for malformed meshes, and DegenerateFaceError for a face
-        of zero area (its normal, hence the dihedral angles, is undefined).
+        SolverInputError: a subclass naming the first bad element of a malformed mesh;
+            :class:`~solver.errors.DegenerateFaceError` for a face of zero area (its normal,
+            hence the dihedral angles, is undefined).
+
+    Example:
+        A unit right-angled tetrahedron: six edges, every one convex.
+
+        >>> import numpy as np
+        >>> from solver import fundamental_forms
+        >>> corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> forms = fundamental_forms(corners, [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        >>> forms.edges.tolist()
+        [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]
+        >>> forms.lengths.round(4).tolist()
+        [1.0, 1.0, 1.0, 1.4142, 1.4142, 1.4142]
+        >>> bool((forms.angles > 0).all())
+        True
     """
     V = as_points(vertices, "vertices")
     return forms_of(V, build_topology(faces, n_vertices=len(V)))
 
 
 def forms_of(V: np.ndarray, topology: MeshTopology) -> Forms:
-    """:func:`fundamental_forms` of validated vertices (n, 3) float64 on a topology built
-    already (so callers that have one do not build it again); same errors."""
+    """:func:`fundamental_forms` on a topology built already (callers that have one do not
+    build it again).
+
+    Args:
+        V: (n, 3) float64 validated vertices.
+        topology: their mesh's connectivity.
+
+    Returns:
+        :class:`Forms`.
+
+    Raises:
+        NonFiniteValueError: a face's area overflows double precision.
+        DegenerateFaceError: a face of zero area.
+    """
     with np.errstate(over="ignore", invalid="ignore"):
         normals, areas = face_normals(V, topology.faces)
         lengths = np.linalg.norm(V[topology.edges[:, 1]] - V[topology.edges[:, 0]], axis=1)
@@ -120,12 +168,35 @@ def forms_of(V: np.ndarray, topology: MeshTopology) -> Forms:
 def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: ArrayLike,
                    n_vertices: int | None = None,
                    ) -> tuple[MeshTopology, np.ndarray, np.ndarray]:
-    """Check forms against their connectivity; return (topology, lengths, angles).
+    """Check forms against their connectivity.
 
-    Raises a typed error naming the first bad element: edges that are not the faces' edges
-    (sorted, i < j), lengths that are not finite or not positive, angles outside (-pi, pi],
-    arrays of the wrong length. The triangle inequality is checked by the callers that need
-    it (:func:`solver.frames.triangle_layouts`).
+    The triangle inequality is checked by the callers that need it
+    (:func:`solver.frames.triangle_layouts`).
+
+    Args:
+        faces: (m, 3) int, counter-clockwise.
+        edges: (E, 2) int, the faces' edges ``[i, j]``, i < j, sorted.
+        lengths: (E,) float edge lengths.
+        angles: (E,) float dihedral angles in (-pi, pi] (within :data:`ANGLE_SLACK`).
+        n_vertices: vertex count (default ``faces.max() + 1``).
+
+    Returns:
+        ``(topology, lengths, angles)``: the :class:`~solver.topology.MeshTopology` and
+        (E,) float64 lengths and angles, angles clamped into (-pi, pi].
+
+    Raises:
+        EdgeMismatchError: edges that are not the faces' edges (sorted, i < j).
+        ShapeMismatchError: arrays of the wrong shape or length.
+        NonFiniteValueError: a length or angle that is not finite.
+        NonPositiveLengthError: a length that is not positive.
+        AngleRangeError: an angle outside (-pi, pi].
+
+    Example:
+        >>> from solver.forms import validate_forms
+        >>> validate_forms([[0, 1, 2]], [[0, 1], [0, 2], [1, 2]], [1.0, 1.0, -1.0], [0, 0, 0])
+        Traceback (most recent call last):
+        ...
+        solver.errors.NonPositiveLengthError: ...length -1.0 of edge [1, 2] is not positive
     """
     topology = build_topology(faces, n_vertices)
     E = as_indices(edges, "edges", width=2)
@@ -146,12 +217,14 @@ def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angle
     A = as_vector(angles, "angles", size=len(expected))
     if (L <= 0).any():
         e = int(np.flatnonzero(L <= 0)[0])
-        raise NonPositiveLengthError(f"length {L[e]!r} of edge {E[e].tolist()} is not positive",
-                                     field="lengths", index=e)
+        raise NonPositiveLengthError(
+            f"length {float(L[e])!r} of edge {E[e].tolist()} is not positive",
+            field="lengths", index=e)
     outside = (-np.pi - ANGLE_SLACK >= A) | (np.pi + ANGLE_SLACK < A)
     if outside.any():
         e = int(np.flatnonzero(outside)[0])
-        raise AngleRangeError(f"angle {A[e]!r} of edge {E[e].tolist()} is outside (-pi, pi]",
-                              field="angles", index=e)
+        raise AngleRangeError(
+            f"angle {float(A[e])!r} of edge {E[e].tolist()} is outside (-pi, pi]",
+            field="angles", index=e)
     A = np.where(-np.pi >= A, np.pi, np.minimum(A, np.pi))
     return topology, L, A

@@ -23,15 +23,38 @@ from .rotations import (
 from .topology import MeshTopology
 
 TRIANGLE_SLACK = 1e-12
+"""Relative slack of the triangle inequality (of the longest edge), for rounding."""
 
 
 def face_edge_lengths(topology: MeshTopology, lengths: np.ndarray) -> np.ndarray:
-    """(m, 3) length of half-edge k of each face (from corner k to corner k + 1)."""
+    """Edge lengths arranged per face.
+
+    Args:
+        topology: the mesh's connectivity.
+        lengths: (E,) float64 edge lengths.
+
+    Returns:
+        (m, 3) float64: length of half-edge k of each face (from corner k to corner k + 1).
+    """
     return lengths[topology.halfedge_edge].reshape(-1, 3)
 
 
 def triangle_inequality_violations(face_lengths: np.ndarray) -> np.ndarray:
-    """(k,) int64 faces whose longest edge exceeds the sum of the other two."""
+    """Faces whose lengths cannot form a triangle.
+
+    Args:
+        face_lengths: (m, 3) float64 (:func:`face_edge_lengths`).
+
+    Returns:
+        (k,) int64 faces whose longest edge exceeds the sum of the other two (beyond
+        :data:`TRIANGLE_SLACK`).
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.frames import triangle_inequality_violations
+        >>> triangle_inequality_violations(np.array([[3.0, 4.0, 5.0], [1.0, 1.0, 3.0]])).tolist()
+        [1]
+    """
     ordered = np.sort(face_lengths, axis=1)
     slack = ordered[:, 0] + ordered[:, 1] - ordered[:, 2]
     return np.flatnonzero(slack < -TRIANGLE_SLACK * ordered[:, 2])
@@ -51,6 +74,7 @@ def triangle_inequality_error(topology: MeshTopology, lengths: np.ndarray,
         topology: the mesh's topology.
         lengths: (E,) float64 edge lengths exactly as the caller passed them (not normalized).
         bad: (k,) int64 violating faces, k >= 1, from :func:`triangle_inequality_violations`.
+
     Returns:
         :class:`TriangleInequalityError` naming the first face, its three edges ``[i, j]``
         and their lengths as given; ``details`` lists up to 100 faces, and the first face's
@@ -72,7 +96,20 @@ def triangle_inequality_error(topology: MeshTopology, lengths: np.ndarray,
 
 
 def triangle_areas(face_lengths: np.ndarray) -> np.ndarray:
-    """(m,) areas from edge lengths by Kahan's stable Heron formula (0 if degenerate)."""
+    """Triangle areas from edge lengths by Kahan's stable Heron formula.
+
+    Args:
+        face_lengths: (m, 3) float64.
+
+    Returns:
+        (m,) float64 areas, 0 for degenerate (or impossible) triangles.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.frames import triangle_areas
+        >>> triangle_areas(np.array([[3.0, 4.0, 5.0], [1.0, 1.0, 2.0]])).tolist()
+        [6.0, 0.0]
+    """
     ordered = np.sort(face_lengths, axis=1)
     scale = np.where(ordered[:, 2] > 0, ordered[:, 2], 1.0)  # avoids overflow of the product
     c, b, a = (ordered / scale[:, None]).T  # a >= b >= c
@@ -89,8 +126,19 @@ def triangle_layouts(face_lengths: np.ndarray, layout_angles: np.ndarray | None 
         layout_angles: optional (m,) rotation of each face's 2D frame (radians).
         check: raise on triangle-inequality violations; with False, such faces are laid out
             flat (zero area) and only approximate their lengths.
+
+    Returns:
+        (m, 3, 2) float64: corner 0 at the origin, corner 1 on the positive x axis, corner 2
+        above it (before ``layout_angles``).
+
     Raises:
-        TriangleInequalityError naming the first face whose lengths cannot form a triangle.
+        TriangleInequalityError: naming the first face whose lengths cannot form a triangle.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.frames import triangle_layouts
+        >>> triangle_layouts(np.array([[3.0, 4.0, 5.0]])).round(12).tolist()
+        [[[0.0, 0.0], [3.0, 0.0], [3.0, 4.0]]]
     """
     bad = triangle_inequality_violations(face_lengths) if check else np.zeros(0, np.int64)
     if len(bad):
@@ -114,7 +162,14 @@ def triangle_layouts(face_lengths: np.ndarray, layout_angles: np.ndarray | None 
 
 
 def edge_coefficients(layouts: np.ndarray) -> np.ndarray:
-    """(m, 3, 2) coefficients ``a_{mn,T}``: layout vector of half-edge k of each face."""
+    """Edge coefficients ``a_{mn,T}`` of Eq. (3): the layout vector of each half-edge.
+
+    Args:
+        layouts: (m, 3, 2) float64 (:func:`triangle_layouts`).
+
+    Returns:
+        (m, 3, 2) float64: the vector from corner k to corner k + 1 of each face.
+    """
     return layouts[:, [1, 2, 0], :] - layouts
 
 
@@ -127,8 +182,14 @@ def transition_angles(topology: MeshTopology, coefficients: np.ndarray,
     that turns face T's first frame axis onto the direction ``i -> j`` (Sec. 2.3). With an
     immersion, ``f_R = f_L R_LR``.
 
+    Args:
+        topology: the mesh's connectivity.
+        coefficients: (m, 3, 2) float64 edge coefficients (:func:`edge_coefficients`).
+        angles: (E,) float64 dihedral angles.
+
     Returns:
-        (interior_edges (k,) int64, (k, 3) float64 columns theta_L, phi_e, theta_R).
+        ``(interior_edges, transition)``: (k,) int64 and (k, 3) float64 with columns
+        theta_L, phi_e, theta_R.
     """
     inner = topology.interior_edges
     h_left, h_right = topology.edge_halfedges[inner, 0], topology.edge_halfedges[inner, 1]
@@ -140,13 +201,27 @@ def transition_angles(topology: MeshTopology, coefficients: np.ndarray,
 
 
 def transition_rotations(transition: np.ndarray) -> np.ndarray:
-    """(k, 3, 3) matrices ``Rz(theta_L) Rx(phi) Rz(-theta_R)`` from :func:`transition_angles`."""
+    """Transition rotations ``Rz(theta_L) Rx(phi) Rz(-theta_R)``.
+
+    Args:
+        transition: (k, 3) float64 angles from :func:`transition_angles`.
+
+    Returns:
+        (k, 3, 3) float64 rotation matrices.
+    """
     theta_left, phi, theta_right = transition.T
     return rotation_z(theta_left) @ rotation_x(phi) @ rotation_z(-theta_right)
 
 
 def transition_quaternions(transition: np.ndarray) -> np.ndarray:
-    """(k, 4) unit quaternions of the same rotations (cheaper to compose)."""
+    """The transition rotations as unit quaternions (cheaper to compose).
+
+    Args:
+        transition: (k, 3) float64 angles from :func:`transition_angles`.
+
+    Returns:
+        (k, 4) float64 unit quaternions (w, x, y, z).
+    """
     theta_left, phi, theta_right = transition.T
     return quaternion_multiply(quaternion_multiply(quaternion_z(theta_left), quaternion_x(phi)),
                                quaternion_z(-theta_right))
@@ -157,6 +232,14 @@ def layout_frames(vertices: np.ndarray, faces: np.ndarray, layouts: np.ndarray) 
 
     Columns b1, b2 solve ``[x1 - x0, x2 - x0] = [b1, b2] [p1 - p0, p2 - p0]``; b3 = b1 x b2.
     For a mesh whose lengths produced ``layouts`` these are rotations (the lift's f).
+
+    Args:
+        vertices: (n, 3) float64.
+        faces: (m, 3) int64.
+        layouts: (m, 3, 2) float64 (:func:`triangle_layouts`).
+
+    Returns:
+        (m, 3, 3) float64 frames, columns b1, b2, b3.
     """
     X = np.stack([vertices[faces[:, 1]] - vertices[faces[:, 0]],
                   vertices[faces[:, 2]] - vertices[faces[:, 0]]], axis=2)   # (m, 3, 2)

@@ -39,6 +39,7 @@ from .topology import MeshTopology, corner_successor, cycle_ranks, previous_half
 from .trees import accumulate_products, accumulate_sums, spanning_forest
 
 WORST_COUNT = 10
+"""How many of the largest vertex defects a report lists (``worst_vertices``)."""
 
 
 @dataclass
@@ -125,7 +126,13 @@ class IntegrabilityReport(JsonDataclass):
     }
 
     def summary(self) -> dict[str, Any]:
-        """The short form used in reconstruction reports (no per-vertex arrays)."""
+        """The short form used in reconstruction reports.
+
+        Returns:
+            JSON-ready dict without per-vertex arrays: the verdicts, ``max_defect``,
+            ``tolerance``, the worst vertices with their defects, the count of failing
+            vertices, triangle violations, genus, component count and the global loops.
+        """
         return {
             "integrable": self.integrable, "local_integrable": self.local_integrable,
             "global_integrable": self.global_integrable, "max_defect": self.max_defect,
@@ -153,9 +160,31 @@ def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
         tol: tolerance on defects (radians) and on translation holonomy (relative to the mean
             edge length).
         n_vertices: vertex count (default ``faces.max() + 1``).
+
     Returns:
         :class:`IntegrabilityReport`. Faces violating the triangle inequality are listed in
         ``triangle_violations`` and their vertices are excluded from the rotation check.
+
+    Raises:
+        SolverInputError: a subclass naming the first malformed element
+            (:func:`solver.forms.validate_forms`).
+
+    Example:
+        The forms of an embedded mesh integrate; bending one edge breaks Eq. (4) at its
+        two end vertices:
+
+        >>> import numpy as np
+        >>> from solver import fundamental_forms
+        >>> from solver.integrability import check_integrability
+        >>> corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> forms = fundamental_forms(corners, [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        >>> report = check_integrability(forms.faces, forms.edges, forms.lengths, forms.angles)
+        >>> report.integrable, report.genus, report.max_defect < 1e-12
+        (True, 0, True)
+        >>> bent = forms.angles + np.array([0.1, 0, 0, 0, 0, 0])
+        >>> check_integrability(forms.faces, forms.edges, forms.lengths, bent
+        ...                     ).failing_vertices.tolist()
+        [0, 1]
     """
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     violations = triangle_inequality_violations(face_edge_lengths(topology, L))
@@ -169,10 +198,19 @@ def integrability_from_terms(terms: EnergyTerms, tol: float, mean_length: float,
                              length_unit: float = 1.0) -> IntegrabilityReport:
     """:func:`check_integrability` on precomputed layouts and transition rotations.
 
-    ``mean_length`` is the mean edge length in the units of ``terms``; ``length_unit``
-    converts those units back to the caller's (translations are reported in the caller's
-    units). Vertices of faces listed in ``violations`` (triangle inequality) are excluded
-    from the vertex check (their defect is reported as 0); the report is then not integrable.
+    Args:
+        terms: the forms' layouts and transition rotations
+            (:func:`solver.system.energy_terms`).
+        tol: tolerance on defects (radians) and relative translation holonomy.
+        mean_length: the mean edge length in the units of ``terms``.
+        violations: (k,) int64 faces that violate the triangle inequality: their vertices
+            are excluded from the vertex check (their defect is reported as 0), and the
+            report is then not integrable.
+        length_unit: converts the units of ``terms`` back to the caller's (translations are
+            reported in the caller's units).
+
+    Returns:
+        :class:`IntegrabilityReport`.
     """
     violations = np.zeros(0, np.int64) if violations is None else violations
     topo = terms.topology
@@ -196,12 +234,19 @@ def integrability_from_terms(terms: EnergyTerms, tol: float, mean_length: float,
 
 
 def _interior_vertices(topology: MeshTopology) -> np.ndarray:
+    """(k,) int64 vertices used by faces and not on the boundary."""
     return np.flatnonzero(topology.is_referenced & ~topology.is_boundary_vertex)
 
 
 def halfedge_transitions(terms: EnergyTerms) -> np.ndarray:
-    """(H, 4) unit quaternion of the transition rotation across each half-edge, from its
-    face to the twin's face (identity on boundary half-edges)."""
+    """The transition rotation across each half-edge, from its face to the twin's face.
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.system.energy_terms`).
+
+    Returns:
+        (H, 4) float64 unit quaternions, the identity on boundary half-edges.
+    """
     topo = terms.topology
     q = np.zeros((3 * topo.n_faces, 4))
     q[:, 0] = 1.0
@@ -213,14 +258,33 @@ def halfedge_transitions(terms: EnergyTerms) -> np.ndarray:
 
 
 def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
-    """(k, 4) unit quaternion of the transition rotations multiplied around each interior
-    vertex (Eq. 4), in ``interior`` vertex order.
+    """The transition rotations multiplied around each interior vertex (Eq. 4).
 
     The loop starts at one face of the vertex and goes counter-clockwise; the product is
     expressed in that face's frame (its z axis is the normal). The corners of every
     interior vertex are put in ring order (pointer doubling over the corner successor
     permutation), then multiplied rank by rank for all vertices at once: O(H) quaternion
     products in all, in as many vectorized steps as the largest valence.
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.system.energy_terms`).
+
+    Returns:
+        (k, 4) float64 unit quaternions, one per interior vertex in increasing vertex
+        order; +-(1, 0, 0, 0) where the forms integrate.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import fundamental_forms
+        >>> from solver.integrability import vertex_holonomy
+        >>> from solver.system import energy_terms
+        >>> from solver.topology import build_topology
+        >>> corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> topology = build_topology([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        >>> forms = fundamental_forms(corners, topology.faces)
+        >>> holonomy = vertex_holonomy(energy_terms(topology, forms.lengths, forms.angles))
+        >>> holonomy.shape, bool(np.allclose(np.abs(holonomy[:, 0]), 1.0))
+        ((4, 4), True)
     """
     topo = terms.topology
     interior = _interior_vertices(topo)
@@ -248,7 +312,19 @@ def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
 
 def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
                     length_unit: float = 1.0) -> tuple[list[HolonomyLoop], list[HolonomyLoop]]:
-    """Rotation holonomy of the dual generators and translation holonomy of the primal ones."""
+    """Rotation holonomy of the dual generators and translation holonomy of the primal ones.
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.system.energy_terms`).
+        tol: tolerance of each loop's magnitude.
+        mean_length: mean edge length in the units of ``terms`` (translations are divided
+            by it).
+        length_unit: converts the units of ``terms`` back to the caller's.
+
+    Returns:
+        ``(rotation_loops, translation_loops)``: one :class:`HolonomyLoop` per generator
+        (2 g + b - 1 dual loops; the primal loops of the edges in neither forest).
+    """
     topo = terms.topology
     n, m = topo.n_vertices, topo.n_faces
     inner = terms.interior_edges
@@ -302,9 +378,13 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
 
 @dataclass(frozen=True)
 class IntegrationForests:
-    """A dual spanning forest of the faces (across interior edges) and a primal spanning
-    forest of the edges it does not cross (``rest``): the paths along which frames and
-    then positions are integrated (the constructive proof of Sec. 2.3)."""
+    """The paths along which frames and then positions are integrated (Sec. 2.3's proof).
+
+    Attributes:
+        dual: :class:`solver.trees.SpanningForest` of the faces, across interior edges.
+        rest: (r,) int64 edges the dual forest does not cross.
+        primal: :class:`solver.trees.SpanningForest` of the vertices along ``rest``.
+    """
 
     dual: Any
     rest: np.ndarray
@@ -313,7 +393,16 @@ class IntegrationForests:
 
 def integration_forests(terms: EnergyTerms, root_faces: np.ndarray | None = None,
                         root_vertices: np.ndarray | None = None) -> IntegrationForests:
-    """Spanning forests for :func:`integrate_along_forests`, grown from the given roots."""
+    """Spanning forests for :func:`integrate_along_forests`, grown from the given roots.
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.system.energy_terms`).
+        root_faces: optional (r,) int64 preferred roots of the dual forest.
+        root_vertices: optional (s,) int64 preferred roots of the primal forest.
+
+    Returns:
+        :class:`IntegrationForests`.
+    """
     topo = terms.topology
     inner = terms.interior_edges
     dual = spanning_forest(topo.n_faces, topo.edge_faces[inner], roots=root_faces)
@@ -332,6 +421,13 @@ def integrate_along_forests(terms: EnergyTerms, forests: IntegrationForests,
     each edge vector is ``f_T (a1, a2, 0)`` (Eq. 3) from one face containing it; positions
     add edge vectors along the primal forest from the origin at each primal root. For
     integrable forms this is the immersion itself (up to rounding).
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.system.energy_terms`).
+        forests: the paths (:func:`integration_forests`).
+
+    Returns:
+        ``(frames, edge_vectors, positions)``: (m, 3, 3), (E, 3) and (n, 3) float64.
     """
     topo = terms.topology
     inner = terms.interior_edges
@@ -388,6 +484,7 @@ def _assemble_report(topo: MeshTopology, defect: np.ndarray, gauss: np.ndarray,
                      rotation_loops: list[HolonomyLoop], translation_loops: list[HolonomyLoop],
                      local_ok: bool, global_ok: bool, max_defect: float,
                      ) -> IntegrabilityReport:
+    """The :class:`IntegrabilityReport` of measured defects and loops."""
     components = topo.component_summary()
     worst = np.argsort(-defect, kind="stable")[:WORST_COUNT]
     worst = worst[defect[worst] > 0]

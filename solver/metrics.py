@@ -16,16 +16,38 @@ from .forms import Forms, fundamental_forms
 from .validation import as_points
 
 HISTOGRAM_BINS = 20
+"""Bins of every histogram in a distortion report."""
 
 
 def wrap_angle(angle: np.ndarray) -> np.ndarray:
-    """Map angles to (-pi, pi]."""
+    """Map angles to (-pi, pi].
+
+    Args:
+        angle: array of angles (radians).
+
+    Returns:
+        float64 array of the same shape.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.metrics import wrap_angle
+        >>> wrap_angle(np.array([1.5 * np.pi, -np.pi, 0.25])).round(4).tolist()
+        [-1.5708, 3.1416, 0.25]
+    """
     wrapped = np.mod(angle + np.pi, 2 * np.pi) - np.pi
     return np.where(wrapped <= -np.pi, np.pi, wrapped)
 
 
 def corner_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(m, 3) interior angle at each corner of each face (radians)."""
+    """Interior angle at each corner of each face.
+
+    Args:
+        vertices: (n, 3) float64.
+        faces: (m, 3) int64.
+
+    Returns:
+        (m, 3) float64 angles (radians); corner k of face t is at ``faces[t, k]``.
+    """
     P = vertices[faces]                                # (m, 3, 3)
     u = np.roll(P, -1, axis=1) - P                     # to next corner
     v = np.roll(P, 1, axis=1) - P                      # to previous corner
@@ -34,7 +56,19 @@ def corner_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def summary(values: np.ndarray) -> dict[str, float]:
-    """mean, rms, max and 95th percentile of |values| (zeros for an empty array)."""
+    """Mean, rms, max and 95th percentile of ``|values|``.
+
+    Args:
+        values: array of any shape.
+
+    Returns:
+        ``{"mean", "rms", "max", "p95"}`` floats, zeros for an empty array.
+
+    Example:
+        >>> from solver.metrics import summary
+        >>> summary([3.0, -4.0])
+        {'mean': 3.5, 'rms': 3.5355339059327378, 'max': 4.0, 'p95': 3.95}
+    """
     a = np.abs(np.asarray(values, dtype=np.float64))
     if a.size == 0:
         return {"mean": 0.0, "rms": 0.0, "max": 0.0, "p95": 0.0}
@@ -44,7 +78,17 @@ def summary(values: np.ndarray) -> dict[str, float]:
 
 def histogram(values: np.ndarray, upper: float | None = None,
               bins: int = HISTOGRAM_BINS) -> dict[str, list[float]]:
-    """Counts of |values| over ``bins`` equal bins on [0, upper] (upper: default the max)."""
+    """Counts of ``|values|`` over equal bins.
+
+    Args:
+        values: array of any shape.
+        upper: top of the range [0, upper] (default the largest ``|value|``); larger values
+            count in the last bin.
+        bins: number of bins.
+
+    Returns:
+        ``{"counts": [bins ints], "bin_edges": [bins + 1 floats]}``.
+    """
     a = np.abs(np.asarray(values, dtype=np.float64))
     top = float(upper if upper is not None else (a.max() if a.size else 1.0)) or 1.0
     counts, edges = np.histogram(np.minimum(a, top), bins=bins, range=(0.0, top))
@@ -53,7 +97,16 @@ def histogram(values: np.ndarray, upper: float | None = None,
 
 def edge_values_to_vertices(edges: np.ndarray, values: np.ndarray, n_vertices: int,
                             ) -> np.ndarray:
-    """(n,) max of |values| over the edges at each vertex (for colour maps)."""
+    """The largest ``|value|`` over the edges at each vertex (for colour maps).
+
+    Args:
+        edges: (E, 2) int64.
+        values: (E,) float64.
+        n_vertices: n.
+
+    Returns:
+        (n,) float64, 0 at vertices without edges.
+    """
     out = np.zeros(n_vertices)
     a = np.abs(values)
     np.maximum.at(out, edges[:, 0], a)
@@ -65,9 +118,17 @@ def forms_distortion(forms: Forms, target_lengths: ArrayLike, target_angles: Arr
                      n_vertices: int | None = None) -> dict[str, Any]:
     """Change of edge lengths (relative) and dihedral angles (radians) from target forms.
 
-    Returns a dict with per-edge arrays ``length_change`` (relative, signed) and
-    ``angle_change`` (signed, wrapped), per-vertex ``vertex`` (max |change| of either kind
-    over incident edges, relative length and radians summed), their summaries and histograms.
+    Args:
+        forms: the forms of an embedding.
+        target_lengths: (E,) float target edge lengths.
+        target_angles: (E,) float target dihedral angles.
+        n_vertices: vertex count (default ``faces.max() + 1``).
+
+    Returns:
+        A dict with per-edge (E,) arrays ``length_change`` (relative, signed) and
+        ``angle_change`` (signed, wrapped), per-vertex (n,) ``vertex`` (max |change| of
+        either kind over incident edges, relative length and radians summed), their
+        summaries (``length_summary``, ``angle_summary``) and histograms.
     """
     L0 = np.asarray(target_lengths, dtype=np.float64)
     A0 = np.asarray(target_angles, dtype=np.float64)
@@ -88,9 +149,32 @@ def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike,
                ) -> dict[str, Any]:
     """Distortion of ``vertices`` relative to ``vertices_ref`` (same faces).
 
-    Returns :func:`forms_distortion` entries plus per-face ``face_angle_change`` (max |change|
-    of the three corner angles, radians) and ``area_ratio`` (area / reference area), with
-    their summaries.
+    Args:
+        vertices_ref: (n, 3) float reference embedding.
+        vertices: (n, 3) float embedding to measure.
+        faces: (m, 3) int, counter-clockwise.
+
+    Returns:
+        :func:`forms_distortion`'s entries plus per-face (m,) ``face_angle_change`` (max
+        |change| of the three corner angles, radians) and ``area_ratio`` (area / reference
+        area), with their summaries (``area_ratio_summary`` of ``area_ratio - 1``).
+
+    Raises:
+        SolverInputError: a subclass naming the first malformed element of either mesh.
+
+    Example:
+        Scaling a tetrahedron by 2 doubles every length and quadruples every area, and
+        changes no angle:
+
+        >>> import numpy as np
+        >>> from solver.metrics import distortion
+        >>> corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> faces = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+        >>> report = distortion(corners, 2.0 * corners, faces)
+        >>> report["length_summary"]["max"], report["area_ratio"].round(12).tolist()
+        (1.0, [4.0, 4.0, 4.0, 4.0])
+        >>> bool(report["face_angle_summary"]["max"] < 1e-12)
+        True
     """
     V0 = as_points(vertices_ref, "vertices_ref")
     V1 = as_points(vertices, "vertices")
@@ -112,5 +196,12 @@ def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike,
 
 
 def compact(report: dict[str, Any]) -> dict[str, Any]:
-    """The report without per-element arrays, except the per-vertex values (for colours)."""
+    """A distortion report without per-element arrays.
+
+    Args:
+        report: from :func:`distortion` or :func:`forms_distortion`.
+
+    Returns:
+        The same dict without its arrays, except the per-vertex ``vertex`` (for colours).
+    """
     return {k: v for k, v in report.items() if not isinstance(v, np.ndarray) or k == "vertex"}

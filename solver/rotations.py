@@ -6,7 +6,14 @@ import numpy as np
 
 
 def rotation_z(angle: np.ndarray) -> np.ndarray:
-    """(k, 3, 3) rotations about the z axis by ``angle`` (k,) radians."""
+    """Rotations about the z axis (a face's normal in its own frame).
+
+    Args:
+        angle: (k,) float64 angles (radians), counter-clockwise seen from +z.
+
+    Returns:
+        (k, 3, 3) float64 ``[[c, -s, 0], [s, c, 0], [0, 0, 1]]``.
+    """
     c, s = np.cos(angle), np.sin(angle)
     R = np.zeros((*np.shape(angle), 3, 3))
     R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1] = c, -s, s, c
@@ -15,7 +22,14 @@ def rotation_z(angle: np.ndarray) -> np.ndarray:
 
 
 def rotation_x(angle: np.ndarray) -> np.ndarray:
-    """(k, 3, 3) rotations about the x axis by ``angle`` (k,) radians."""
+    """Rotations about the x axis (the shared edge, in a transition rotation).
+
+    Args:
+        angle: (k,) float64 angles (radians), e.g. dihedral angles.
+
+    Returns:
+        (k, 3, 3) float64 ``[[1, 0, 0], [0, c, -s], [0, s, c]]``.
+    """
     c, s = np.cos(angle), np.sin(angle)
     R = np.zeros((*np.shape(angle), 3, 3))
     R[..., 0, 0] = 1.0
@@ -24,10 +38,22 @@ def rotation_x(angle: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle(R: np.ndarray) -> np.ndarray:
-    """Rotation angle in [0, pi] of each (..., 3, 3) rotation, accurate near 0.
+    """Rotation angle of each rotation, accurate near 0.
 
     Uses atan2(|axis * sin|, cos) from the skew and trace parts instead of arccos of the
     trace, which loses half the digits for small angles.
+
+    Args:
+        R: (..., 3, 3) float64 rotations.
+
+    Returns:
+        (...,) float64 angles in [0, pi].
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.rotations import rotation_angle, rotation_z
+        >>> rotation_angle(rotation_z(np.array([1e-9, -2.0]))).tolist()
+        [1e-09, 2.0]
     """
     skew = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
                      R[..., 1, 0] - R[..., 0, 1]], axis=-1)
@@ -37,7 +63,14 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
 
 
 def quaternion_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product of (..., 4) quaternions (w, x, y, z): R(p q) = R(p) R(q)."""
+    """Hamilton product of quaternions, so that R(p q) = R(p) R(q).
+
+    Args:
+        p, q: (..., 4) float64 quaternions (w, x, y, z), broadcast together.
+
+    Returns:
+        (..., 4) float64.
+    """
     pw, px, py, pz = np.moveaxis(p, -1, 0)
     qw, qx, qy, qz = np.moveaxis(q, -1, 0)
     return np.stack([pw * qw - px * qx - py * qy - pz * qz,
@@ -47,30 +80,65 @@ def quaternion_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def quaternion_z(angle: np.ndarray) -> np.ndarray:
-    """(k, 4) unit quaternions of rotations about z by ``angle`` (k,)."""
+    """Unit quaternions of rotations about z (as :func:`rotation_z`).
+
+    Args:
+        angle: (k,) float angles (radians).
+
+    Returns:
+        (k, 4) float64 ``(cos(angle / 2), 0, 0, sin(angle / 2))``.
+    """
     half = 0.5 * np.asarray(angle, dtype=np.float64)
     zero = np.zeros_like(half)
     return np.stack([np.cos(half), zero, zero, np.sin(half)], axis=-1)
 
 
 def quaternion_x(angle: np.ndarray) -> np.ndarray:
-    """(k, 4) unit quaternions of rotations about x by ``angle`` (k,)."""
+    """Unit quaternions of rotations about x (as :func:`rotation_x`).
+
+    Args:
+        angle: (k,) float angles (radians).
+
+    Returns:
+        (k, 4) float64 ``(cos(angle / 2), sin(angle / 2), 0, 0)``.
+    """
     half = 0.5 * np.asarray(angle, dtype=np.float64)
     zero = np.zeros_like(half)
     return np.stack([np.cos(half), np.sin(half), zero, zero], axis=-1)
 
 
 def quaternion_conjugate(q: np.ndarray) -> np.ndarray:
-    """Inverse of unit quaternions (the transposed rotation)."""
+    """Inverse of unit quaternions (the transposed rotation).
+
+    Args:
+        q: (..., 4) float64 unit quaternions.
+
+    Returns:
+        (..., 4) float64.
+    """
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
 def quaternion_angles(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rotation angle, twist about z and swing of z for (..., 4) unit quaternions.
+    """Rotation angle, twist about z and swing of z of unit quaternions.
 
-    Returns (angle in [0, pi], twist in [-pi, pi] signed about the local z axis, swing in
-    [0, pi]: the tilt of z). All three use atan2 of quaternion parts, so they are accurate
-    near 0 (an arccos of the trace would lose half the digits).
+    All three use atan2 of quaternion parts, so they are accurate near 0 (an arccos of the
+    trace would lose half the digits).
+
+    Args:
+        q: (..., 4) float64 unit quaternions (w, x, y, z).
+
+    Returns:
+        ``(angle, twist, swing)``, (...,) float64 each: angle in [0, pi], twist in [-pi, pi]
+        signed about the local z axis, swing in [0, pi] (the tilt of z).
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.rotations import quaternion_angles, quaternion_x, quaternion_z
+        >>> angle, twist, swing = quaternion_angles(np.concatenate(
+        ...     [quaternion_z(np.array([0.5])), quaternion_x(np.array([0.25]))]))
+        >>> angle.round(12).tolist(), twist.round(12).tolist(), swing.round(12).tolist()
+        ([0.5, 0.25], [0.5, 0.0], [0.0, 0.25])
     """
     q = np.where(q[..., :1] < 0, -q, q)                   # w >= 0: angles in [0, pi]
     w, x, y, z = np.moveaxis(q, -1, 0)
@@ -93,6 +161,24 @@ def nearest_rotation(M: np.ndarray) -> np.ndarray:
     per entry: about 6x faster than a batched SVD on 20K frames. The rest (det <= 0, where
     the nearest rotation also flips the weakest axis, and any that did not converge) take
     the SVD.
+
+    Args:
+        M: (..., 3, 3) float matrices.
+
+    Returns:
+        (..., 3, 3) float64 rotations (orthogonal, det +1).
+
+    Example:
+        A scaled and sheared rotation about z by 0.3 rad projects back onto it:
+
+        >>> import numpy as np
+        >>> from solver.rotations import is_rotation, nearest_rotation, rotation_angle, rotation_z
+        >>> M = 2.0 * rotation_z(np.array([0.3])) @ np.diag([1.0, 1.1, 0.9])
+        >>> R = nearest_rotation(M)
+        >>> R.shape, is_rotation(R).tolist()
+        ((1, 3, 3), [True])
+        >>> float(rotation_angle(R)[0].round(6))
+        0.3
     """
     M = np.asarray(M, dtype=np.float64)
     flat = M.reshape(-1, 3, 3)
@@ -138,7 +224,15 @@ def _polar_newton(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def is_rotation(M: np.ndarray, tol: float = 1e-6) -> np.ndarray:
-    """Boolean (...,): M^T M = I within ``tol`` and det(M) > 0."""
+    """Whether each matrix is a rotation.
+
+    Args:
+        M: (..., 3, 3) float matrices.
+        tol: largest accepted entry of ``|M^T M - I|``.
+
+    Returns:
+        (...,) bool: ``M^T M = I`` within ``tol`` and ``det(M) > 0``.
+    """
     eye = np.eye(3)
     err = np.abs(np.swapaxes(M, -1, -2) @ M - eye).max(axis=(-2, -1))
     return (err <= tol) & (np.linalg.det(M) > 0)

@@ -9,7 +9,20 @@ import numpy as np
 
 
 def to_jsonable(value: Any) -> Any:
-    """Recursively convert numpy arrays/scalars and dataclasses to lists, floats and dicts."""
+    """Recursively convert numpy arrays and scalars and dataclasses to JSON-ready values.
+
+    Args:
+        value: any nesting of dataclasses, dicts, lists, tuples, arrays and scalars.
+
+    Returns:
+        The same nesting of dicts (string keys), lists, floats, ints, bools and strings.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.serialization import to_jsonable
+        >>> to_jsonable({"edges": np.array([[0, 1]]), 2: (np.float64(0.5), True)})
+        {'edges': [[0, 1]], '2': [0.5, True]}
+    """
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, np.ndarray):
@@ -34,10 +47,20 @@ class JsonDataclass:
     _nested_fields: ClassVar[dict[str, Any]] = {}
 
     def to_dict(self) -> dict[str, Any]:
+        """The instance as JSON-ready data (:func:`to_jsonable`)."""
         return to_jsonable(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Self:
+        """Rebuild an instance from :meth:`to_dict`'s data.
+
+        Args:
+            data: field name -> value; unknown keys are ignored.
+
+        Returns:
+            The instance, with ``_array_fields`` as numpy arrays of their dtype and
+            ``_nested_fields`` rebuilt as their classes.
+        """
         names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
         kwargs: dict[str, Any] = {}
         for key, value in data.items():

@@ -35,7 +35,9 @@ from .topology import MeshTopology
 
 Weighting = Literal["uniform", "cotan", "cotan_clamped"]
 WEIGHTINGS: tuple[str, ...] = ("uniform", "cotan", "cotan_clamped")
-CLAMP_RANGE = (0.05, 5.0)  # bounds of the half-cotangent w_{e,T} under "cotan_clamped"
+"""The weightings of Eq. (5) :func:`energy_weights` knows."""
+CLAMP_RANGE = (0.05, 5.0)
+"""Bounds of the half-cotangent ``w_{e,T}`` under ``"cotan_clamped"``."""
 
 
 @dataclass
@@ -64,11 +66,27 @@ class EnergyTerms:
 
     @property
     def n_unknowns(self) -> int:
+        """Unknowns per coordinate: n + 3 m."""
         return self.topology.n_vertices + 3 * self.topology.n_faces
 
 
 def half_cotangents(face_lengths: np.ndarray) -> np.ndarray:
-    """(m, 3) ``cot(angle opposite half-edge k) / 2``: the per-face cotangent weight."""
+    """The per-face cotangent weight of each half-edge.
+
+    Args:
+        face_lengths: (m, 3) float64 (:func:`solver.frames.face_edge_lengths`).
+
+    Returns:
+        (m, 3) float64 ``cot(angle opposite half-edge k) / 2``.
+
+    Example:
+        The 3-4-5 triangle: the right angle faces the hypotenuse (half-edge 2).
+
+        >>> import numpy as np
+        >>> from solver.system import half_cotangents
+        >>> half_cotangents(np.array([[3.0, 4.0, 5.0]])).round(12).tolist()
+        [[0.666666666667, 0.375, 0.0]]
+    """
     l0, l1, l2 = face_lengths.T                     # opposite corners 2, 0, 1
     four_area = 4.0 * triangle_areas(face_lengths)
     four_area = np.where(four_area > 0, four_area, np.finfo(float).tiny)
@@ -80,7 +98,7 @@ def half_cotangents(face_lengths: np.ndarray) -> np.ndarray:
 def energy_weights(topology: MeshTopology, face_lengths: np.ndarray,
                    interior_edges: np.ndarray, weighting: Weighting,
                    cotan_floor: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per-half-edge weights (m, 3) of E_x and per-interior-edge weights (k,) of E_f.
+    """The weights of the two terms of Eq. (5).
 
     * ``"cotan"`` -- the paper literally: ``w_{e,T}`` = half cotangent (floored at
       ``cotan_floor``), E_f weighted by ``1 / w_e`` with ``w_e`` the edge's cotangent weight
@@ -88,6 +106,20 @@ def energy_weights(topology: MeshTopology, face_lengths: np.ndarray,
     * ``"cotan_clamped"`` -- the same Hodge-star weights with ``w_{e,T}`` clamped to
       :data:`CLAMP_RANGE` so that ``1 / w_e`` stays bounded.
     * ``"uniform"`` -- all weights 1 (the default: exact and well-conditioned).
+
+    Args:
+        topology: the mesh's connectivity.
+        face_lengths: (m, 3) float64.
+        interior_edges: (k,) int64.
+        weighting: one of :data:`WEIGHTINGS`.
+        cotan_floor: lower bound of the cotangent weights under ``"cotan"``.
+
+    Returns:
+        ``(edge_weights, frame_weights)``: (m, 3) float64 per half-edge of E_x and (k,)
+        float64 per interior edge of E_f.
+
+    Raises:
+        ValueError: an unknown weighting.
     """
     m = topology.n_faces
     if weighting == "uniform":
@@ -112,8 +144,21 @@ def energy_terms(topology: MeshTopology, lengths: np.ndarray, angles: np.ndarray
                  layout_angles: np.ndarray | None = None, check: bool = True) -> EnergyTerms:
     """Layouts, edge coefficients, transition rotations and weights from the forms.
 
-    ``check=False`` lays faces that violate the triangle inequality out flat instead of
-    raising (used by the integrability report, which lists them).
+    Args:
+        topology: the mesh's connectivity.
+        lengths: (E,) float64 edge lengths.
+        angles: (E,) float64 dihedral angles.
+        weighting: see :func:`energy_weights`.
+        cotan_floor: see :func:`energy_weights`.
+        layout_angles: optional (m,) float64 rotation of each face's 2D frame.
+        check: False lays faces that violate the triangle inequality out flat instead of
+            raising (used by the integrability report, which lists them).
+
+    Returns:
+        The :class:`EnergyTerms`.
+
+    Raises:
+        TriangleInequalityError: with ``check``, naming the first impossible face.
     """
     face_lengths = face_edge_lengths(topology, lengths)
     layouts = triangle_layouts(face_lengths, layout_angles, check=check)
@@ -130,9 +175,17 @@ def energy_terms(topology: MeshTopology, lengths: np.ndarray, angles: np.ndarray
 def least_squares_rows(terms: EnergyTerms, frame_weight: float) -> tuple[sp.csr_matrix,
                                                                           np.ndarray,
                                                                           np.ndarray]:
-    """Residual operator ``A`` (rows x N), row weights (rows,) and row kind (0 edge, 1 frame).
+    """The least-squares rows of Eq. (5), one coordinate's worth.
 
     The energy of one coordinate is ``sum(weights * (A @ u)**2)`` (Eq. 5 without the 1/2).
+
+    Args:
+        terms: the forms' :class:`EnergyTerms`.
+        frame_weight: the weight of E_f relative to E_x.
+
+    Returns:
+        ``(A, weights, kind)``: the (rows, N) CSR residual operator, (rows,) float64 row
+        weights and (rows,) int8 row kind (0 edge, 1 frame).
     """
     topo = terms.topology
     n, m = topo.n_vertices, topo.n_faces
@@ -165,14 +218,35 @@ def least_squares_rows(terms: EnergyTerms, frame_weight: float) -> tuple[sp.csr_
 
 
 def unknown_groups(n_vertices: int, n_faces: int) -> np.ndarray:
-    """(n + 3 m,) int64 ordering hint of :func:`solver.linalg.factorize`: one group per
-    vertex and one per face (its three frame unknowns couple with the same others)."""
+    """The ordering hint of :func:`solver.linalg.factorize` for this system's unknowns.
+
+    Args:
+        n_vertices: n.
+        n_faces: m.
+
+    Returns:
+        (n + 3 m,) int64: one group per vertex and one per face (its three frame unknowns
+        couple with the same others).
+
+    Example:
+        >>> from solver.system import unknown_groups
+        >>> unknown_groups(2, 2).tolist()
+        [0, 1, 2, 2, 2, 3, 3, 3]
+    """
     return np.concatenate([np.arange(n_vertices),
                            n_vertices + np.repeat(np.arange(n_faces), 3)])
 
 
 def frame_columns(n_vertices: int, faces: np.ndarray) -> np.ndarray:
-    """(k, 3) unknown indices of frame rows ``f_t[k, 0..2]`` for faces (k,)."""
+    """Unknown indices of the frame rows of some faces.
+
+    Args:
+        n_vertices: n.
+        faces: (k,) int64 face indices.
+
+    Returns:
+        (k, 3) int64 unknowns ``f_t[k, 0..2]`` of each face.
+    """
     return n_vertices + 3 * np.asarray(faces)[:, None] + np.arange(3)[None, :]
 
 
@@ -215,9 +289,20 @@ class ConstrainedSystem:
     same mesh reuses the analysis of the previous one (:mod:`solver.linalg` caches it per
     pattern; ``analysis`` says whether it did). ``solve(hard_values, soft_values)`` only
     back-substitutes, so handle drags reuse the factorization (the paper's
-    prefactorization, Sec. 5). The
-    constrained unknowns and soft weights are fixed at construction; their target values
-    may change per solve.
+    prefactorization, Sec. 5). The constrained unknowns and soft weights are fixed at
+    construction; their target values may change per solve.
+
+    Args:
+        K: (N, N) sparse ``A^T W A``.
+        hard_columns: (h,) int64 unknowns fixed exactly.
+        soft_columns: (s,) int64 unknowns pulled towards targets.
+        soft_weights: (s,) float64 > 0 their penalty weights.
+        backend: sparse factorization backend (:func:`solver.linalg.factorize`).
+        groups: optional (N,) int64 ordering hint (:func:`unknown_groups`).
+
+    Raises:
+        SingularSystemError: the constrained matrix is singular.
+        BackendUnavailableError: the backend is not installed.
     """
 
     def __init__(self, K: sp.spmatrix, hard_columns: np.ndarray, soft_columns: np.ndarray,
@@ -247,6 +332,7 @@ class ConstrainedSystem:
 
     @property
     def backend(self) -> str:
+        """The backend that factorized the system."""
         return self.factor.backend
 
     @property
@@ -255,7 +341,15 @@ class ConstrainedSystem:
         return self.factor.analysis
 
     def solve(self, hard_values: np.ndarray, soft_values: np.ndarray) -> np.ndarray:
-        """Unknowns (N, 3) for the given constraint targets ((h, 3) and (s, 3))."""
+        """Solve for new constraint targets (back-substitution only).
+
+        Args:
+            hard_values: (h, 3) float64 values of the hard unknowns.
+            soft_values: (s, 3) float64 targets of the soft unknowns.
+
+        Returns:
+            (N, 3) float64 unknowns, one column per coordinate.
+        """
         rhs = np.zeros((self.size, 3))
         np.add.at(rhs, self.soft_columns, self.soft_weights[:, None] * soft_values)
         rhs -= self.K_hard_rows.T @ hard_values
@@ -266,12 +360,30 @@ class ConstrainedSystem:
 
 
 def normal_matrix(A: sp.csr_matrix, weights: np.ndarray) -> sp.csc_matrix:
-    """``K = A^T diag(weights) A`` (symmetric positive semi-definite)."""
+    """The normal matrix of the least-squares rows.
+
+    Args:
+        A: (rows, N) sparse residual operator.
+        weights: (rows,) float64 row weights.
+
+    Returns:
+        (N, N) CSC ``K = A^T diag(weights) A`` (symmetric positive semi-definite).
+    """
     return (A.T @ sp.diags(weights) @ A).tocsc()
 
 
 def energies(A: sp.csr_matrix, weights: np.ndarray, kind: np.ndarray,
              u: np.ndarray) -> dict[str, float]:
-    """Edge (E_x) and weighted frame (w E_f) parts of Eq. (5), summed over coordinates."""
+    """The edge and frame parts of Eq. (5), summed over coordinates.
+
+    Args:
+        A: (rows, N) sparse residual operator.
+        weights: (rows,) float64 row weights.
+        kind: (rows,) int8 row kind (0 edge, 1 frame).
+        u: (N, 3) float64 unknowns.
+
+    Returns:
+        ``{"edge": E_x, "frame": w E_f}`` floats.
+    """
     r2 = weights * ((A @ u) ** 2).sum(axis=1)
     return {"edge": float(r2[kind == 0].sum()), "frame": float(r2[kind == 1].sum())}

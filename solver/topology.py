@@ -70,14 +70,17 @@ class MeshTopology:
 
     @property
     def n_faces(self) -> int:
+        """m, the number of faces."""
         return len(self.faces)
 
     @property
     def n_edges(self) -> int:
+        """E, the number of edges."""
         return len(self.edges)
 
     @property
     def n_components(self) -> int:
+        """Number of connected components (isolated vertices count as components)."""
         return int(self.vertex_component.max()) + 1 if self.n_vertices else 0
 
     @property
@@ -87,11 +90,16 @@ class MeshTopology:
 
     @property
     def isolated_vertices(self) -> np.ndarray:
+        """(k,) int64 vertices that no face uses."""
         return np.flatnonzero(~self.is_referenced)
 
     def component_summary(self) -> list[dict[str, int | bool]]:
-        """Per connected component with faces: vertices, edges, faces, boundary loops,
-        Euler characteristic, genus and whether it is closed."""
+        """Counts and invariants of each connected component with faces.
+
+        Returns:
+            One dict per component: ``component``, ``vertices``, ``edges``, ``faces``,
+            ``boundary_loops``, ``euler_characteristic``, ``genus`` and ``closed``.
+        """
         comps = self.face_component
         n_comp = self.n_components
         v_count = np.bincount(self.vertex_component[self.is_referenced], minlength=n_comp)
@@ -117,9 +125,26 @@ def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> MeshTopo
         faces: (m, 3) integer array, counter-clockwise.
         n_vertices: vertex count; defaults to ``faces.max() + 1``.
 
+    Returns:
+        The :class:`MeshTopology`.
+
     Raises:
-        IndexOutOfRangeError, DegenerateFaceError, NonManifoldEdgeError,
-        InconsistentOrientationError, NonManifoldVertexError.
+        IndexOutOfRangeError: a face index outside [0, n_vertices).
+        DegenerateFaceError: a face that repeats a vertex.
+        NonManifoldEdgeError: an edge shared by more than two faces.
+        InconsistentOrientationError: two faces that traverse a shared edge the same way.
+        NonManifoldVertexError: a vertex joining more than one fan of faces.
+
+    Example:
+        Two triangles sharing an edge make a disk with one boundary loop:
+
+        >>> from solver.topology import build_topology
+        >>> square = build_topology([[0, 1, 2], [0, 2, 3]])
+        >>> square.n_edges, square.interior_edges.tolist(), square.boundary_loops[0].tolist()
+        (5, [1], [0, 1, 2, 3])
+        >>> summary = square.component_summary()[0]
+        >>> summary["euler_characteristic"], summary["genus"], summary["closed"]
+        (1, 0, False)
     """
     F = as_faces(faces, n_vertices)
     n = int(F.max()) + 1 if n_vertices is None else int(n_vertices)
@@ -182,6 +207,7 @@ def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> MeshTopo
 
 def _check_edge_multiplicity(edges: np.ndarray, halfedge_edge: np.ndarray,
                              counts: np.ndarray) -> None:
+    """Raise :class:`NonManifoldEdgeError` for the first edge of more than two faces."""
     if counts.max() <= 2:
         return
     e = int(np.flatnonzero(counts > 2)[0])
@@ -193,21 +219,41 @@ def _check_edge_multiplicity(edges: np.ndarray, halfedge_edge: np.ndarray,
 
 
 def previous_halfedge(h: np.ndarray) -> np.ndarray:
-    """Half-edge before ``h`` in its face (the one ending at ``h``'s origin)."""
+    """Half-edge before ``h`` in its face (the one ending at ``h``'s origin).
+
+    Args:
+        h: (k,) int64 half-edges.
+
+    Returns:
+        (k,) int64 half-edges.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.topology import previous_halfedge
+        >>> previous_halfedge(np.arange(6)).tolist()
+        [2, 0, 1, 5, 3, 4]
+    """
     return h - h % 3 + (h + 2) % 3
 
 
 def corner_successor(twin: np.ndarray) -> np.ndarray:
-    """Next corner counter-clockwise around the corner's vertex (seen from outside).
+    """Next corner counter-clockwise around each corner's vertex (seen from outside).
 
     Corners are identified with the half-edge leaving the vertex (corner ``h`` of face
     ``h // 3`` sits at ``halfedge_origin[h]``). The next face counter-clockwise around that
-    vertex lies across the previous half-edge of the face; returns -1 at the boundary.
+    vertex lies across the previous half-edge of the face.
+
+    Args:
+        twin: (H,) int64 opposite half-edge of each half-edge, -1 on the boundary.
+
+    Returns:
+        (H,) int64 next corner of each corner, -1 at the boundary.
     """
     return twin[previous_halfedge(np.arange(len(twin)))]
 
 
 def _check_vertex_fans(origin: np.ndarray, twin: np.ndarray, n: int) -> None:
+    """Raise :class:`NonManifoldVertexError` for the first vertex with two fans of faces."""
     H = len(origin)
     succ = corner_successor(twin)
     linked = succ >= 0
@@ -233,9 +279,19 @@ def cycle_ranks(successor: np.ndarray, max_length: int | None = None,
         successor: (k,) int64 permutation.
         max_length: an upper bound on the cycle lengths (default k); the cost is
             O(k log max_length) by pointer doubling.
+
     Returns:
-        (leader, rank): the smallest index in each element's cycle, and the number of
-        steps from that leader to the element.
+        ``(leader, rank)``, (k,) int64 each: the smallest index in each element's cycle,
+        and the number of steps from that leader to the element.
+
+    Example:
+        The cycles 0 -> 1 -> 2 -> 0 and 3 -> 4 -> 3:
+
+        >>> import numpy as np
+        >>> from solver.topology import cycle_ranks
+        >>> leader, rank = cycle_ranks(np.array([1, 2, 0, 4, 3]))
+        >>> leader.tolist(), rank.tolist()
+        ([0, 0, 0, 3, 3], [0, 1, 2, 0, 1])
     """
     k = len(successor)
     bound = k if max_length is None else max(int(max_length), 1)
@@ -259,6 +315,17 @@ def cycle_ranks(successor: np.ndarray, max_length: int | None = None,
 
 def _boundary_loops(origin: np.ndarray, dest: np.ndarray, boundary: np.ndarray, n: int,
                     vertex_component: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """Boundary vertex loops in half-edge order and the component of each loop.
+
+    Args:
+        origin, dest: (H,) int64 half-edge endpoints.
+        boundary: (H,) bool, half-edges without a twin.
+        n: vertex count.
+        vertex_component: (n,) int64.
+
+    Returns:
+        ``(loops, loop_component)``: a list of (k,) int64 loops and (b,) int64.
+    """
     b_half = np.flatnonzero(boundary)
     if len(b_half) == 0:
         return [], np.zeros(0, dtype=np.int64)

@@ -27,11 +27,27 @@ class SpanningForest:
 
 def spanning_forest(n_nodes: int, links: np.ndarray, roots: np.ndarray | None = None,
                     ) -> SpanningForest:
-    """Breadth-first spanning forest of the undirected graph ``links`` (L, 2) on n_nodes.
+    """Breadth-first spanning forest of an undirected graph.
 
-    ``roots`` (optional) are preferred roots: a component containing one is grown from it;
-    other components are grown from their smallest node. Parallel links are allowed (only
-    one of them can be a tree link).
+    Parallel links are allowed (only one of them can be a tree link).
+
+    Args:
+        n_nodes: k, the number of nodes.
+        links: (L, 2) int node pairs.
+        roots: optional preferred roots: a component containing one is grown from it;
+            other components are grown from their smallest node.
+
+    Returns:
+        The :class:`SpanningForest`.
+
+    Example:
+        A triangle 0-1-2 with a tail 2-3: the link 1-2 closes the cycle.
+
+        >>> import numpy as np
+        >>> from solver.trees import spanning_forest
+        >>> forest = spanning_forest(4, np.array([[0, 1], [1, 2], [2, 0], [2, 3]]))
+        >>> forest.parent.tolist(), forest.in_tree.tolist()
+        ([0, 0, 0, 2], [True, False, True, True])
     """
     links = np.asarray(links, dtype=np.int64).reshape(-1, 2)
     super_root = n_nodes
@@ -71,8 +87,11 @@ def accumulate_products(parent: np.ndarray, local: np.ndarray) -> np.ndarray:
     """Root-to-node matrix products ``G[v] = G[parent[v]] @ local[v]``, G[root] = local[root].
 
     Args:
-        parent: (k,) forest parents (roots point to themselves).
-        local: (k, d, d) per-node transforms; roots should hold the identity.
+        parent: (k,) int64 forest parents (roots point to themselves).
+        local: (k, d, d) float64 per-node transforms; roots should hold the identity.
+
+    Returns:
+        (k, d, d) float64 products, by pointer doubling (O(k log depth)).
     """
     anc = parent.copy()
     acc = local.copy()
@@ -83,7 +102,21 @@ def accumulate_products(parent: np.ndarray, local: np.ndarray) -> np.ndarray:
 
 
 def accumulate_sums(parent: np.ndarray, local: np.ndarray) -> np.ndarray:
-    """Root-to-node sums ``S[v] = S[parent[v]] + local[v]``; roots should hold zeros."""
+    """Root-to-node sums ``S[v] = S[parent[v]] + local[v]``.
+
+    Args:
+        parent: (k,) int64 forest parents (roots point to themselves).
+        local: (k, ...) float64 per-node steps; roots should hold zeros.
+
+    Returns:
+        (k, ...) float64 sums, by pointer doubling.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.trees import accumulate_sums
+        >>> accumulate_sums(np.array([0, 0, 1, 2]), np.array([0.0, 1.0, 2.0, 4.0])).tolist()
+        [0.0, 1.0, 3.0, 7.0]
+    """
     anc = parent.copy()
     acc = local.copy()
     while not np.array_equal(anc[anc], anc):

@@ -18,6 +18,7 @@ from .errors import (
 
 
 def _as_array(values: ArrayLike, field: str, dtype: type) -> np.ndarray:
+    """``values`` as a contiguous array of ``dtype``; ShapeMismatchError if it cannot be."""
     try:
         return np.ascontiguousarray(np.asarray(values, dtype=dtype))
     except (TypeError, ValueError) as exc:
@@ -26,7 +27,29 @@ def _as_array(values: ArrayLike, field: str, dtype: type) -> np.ndarray:
 
 
 def as_points(values: ArrayLike, field: str = "vertices", dim: int = 3) -> np.ndarray:
-    """Return ``values`` as a finite float64 array of shape (k, dim)."""
+    """Read points.
+
+    Args:
+        values: (k, dim) numbers (an empty sequence gives (0, dim)).
+        field: the name errors give for ``values``.
+        dim: coordinates per point.
+
+    Returns:
+        (k, dim) float64, contiguous.
+
+    Raises:
+        ShapeMismatchError: not numbers, or not of shape (k, dim).
+        NonFiniteValueError: naming the first row with a NaN or infinity.
+
+    Example:
+        >>> from solver.validation import as_points
+        >>> as_points([[0, 0, 1]]).dtype, as_points([]).shape
+        (dtype('float64'), (0, 3))
+        >>> as_points([[0, 0]], field="positions")
+        Traceback (most recent call last):
+        ...
+        solver.errors.ShapeMismatchError: ...expected shape (k, 3), got (1, 2)
+    """
     points = _as_array(values, field, np.float64)
     if points.ndim == 1 and points.size == 0:
         points = points.reshape(0, dim)
@@ -37,7 +60,20 @@ def as_points(values: ArrayLike, field: str = "vertices", dim: int = 3) -> np.nd
 
 
 def as_vector(values: ArrayLike, field: str, size: int | None = None) -> np.ndarray:
-    """Return ``values`` as a finite float64 array of shape (size,)."""
+    """Read a vector.
+
+    Args:
+        values: (size,) numbers.
+        field: the name errors give for ``values``.
+        size: the required length (one per edge), or None for any.
+
+    Returns:
+        (size,) float64, contiguous.
+
+    Raises:
+        ShapeMismatchError: not numbers, not 1-D or not ``size`` long.
+        NonFiniteValueError: naming the first NaN or infinity.
+    """
     vector = _as_array(values, field, np.float64)
     if vector.ndim != 1:
         raise ShapeMismatchError(f"expected a 1-D array, got shape {vector.shape}", field=field)
@@ -50,7 +86,22 @@ def as_vector(values: ArrayLike, field: str, size: int | None = None) -> np.ndar
 
 def as_indices(values: ArrayLike, field: str, upper: int | None = None,
                width: int | None = None) -> np.ndarray:
-    """Return ``values`` as int64 of shape (k,) or (k, width), entries in [0, upper)."""
+    """Read indices.
+
+    Args:
+        values: (k,) or (k, width) integers (floats with integral values are accepted).
+        field: the name errors give for ``values``.
+        upper: exclusive upper bound of the entries, or None for any non-negative one.
+        width: columns per row, or None for a 1-D array.
+
+    Returns:
+        (k,) or (k, width) int64.
+
+    Raises:
+        ShapeMismatchError: not integers or of the wrong shape.
+        NonFiniteValueError: a NaN or infinite index.
+        IndexOutOfRangeError: naming the first row with an entry outside [0, upper).
+    """
     raw = np.asarray(values)
     if raw.size and raw.dtype.kind == "f":
         if not np.all(np.isfinite(raw)):
@@ -86,7 +137,20 @@ def as_indices(values: ArrayLike, field: str, upper: int | None = None,
 
 
 def as_faces(faces: ArrayLike, n_vertices: int | None = None) -> np.ndarray:
-    """Return faces as int64 (m, 3), checking index range and repeated corners."""
+    """Read faces.
+
+    Args:
+        faces: (m, 3) vertex indices, m >= 1.
+        n_vertices: vertex count (exclusive bound of the indices), or None.
+
+    Returns:
+        (m, 3) int64.
+
+    Raises:
+        ShapeMismatchError: not (m, 3) integers, or no faces.
+        IndexOutOfRangeError: an index outside [0, n_vertices).
+        DegenerateFaceError: a face that repeats a vertex.
+    """
     F = as_indices(faces, "faces", upper=n_vertices, width=3)
     if len(F) == 0:
         raise ShapeMismatchError("the mesh has no faces", field="faces")
@@ -99,7 +163,15 @@ def as_faces(faces: ArrayLike, n_vertices: int | None = None) -> np.ndarray:
 
 
 def require_finite(values: np.ndarray, field: str) -> None:
-    """Raise :class:`NonFiniteValueError` naming the first row with a NaN or infinity."""
+    """Refuse NaN and infinite values.
+
+    Args:
+        values: array whose first axis is rows.
+        field: the name the error gives for ``values``.
+
+    Raises:
+        NonFiniteValueError: naming the first row with a NaN or infinity.
+    """
     finite = np.isfinite(values)
     if not finite.all():
         rows = finite.reshape(len(values), -1).all(axis=1) if values.ndim else finite
@@ -108,7 +180,16 @@ def require_finite(values: np.ndarray, field: str) -> None:
 
 
 def require_unique(indices: np.ndarray, field: str, what: str) -> None:
-    """Raise ConstraintError naming the second occurrence of a repeated index."""
+    """Refuse repeated indices.
+
+    Args:
+        indices: (k,) int64.
+        field: the name the error gives for ``indices``.
+        what: what an index stands for in the message (``"vertex"``, ``"face"``).
+
+    Raises:
+        ConstraintError: naming the second occurrence of a repeated index.
+    """
     from .errors import ConstraintError
 
     values, counts = np.unique(indices, return_counts=True)

@@ -19,11 +19,13 @@ from service.settings import Settings
 
 
 def job_policy(settings: Settings) -> JobPolicy:
+    """The job limits and lifetimes of ``settings`` (``FFS_JOB_*``, ``FFS_MAX_*JOBS``)."""
     return JobPolicy(settings.job_ttl, settings.job_timeout, settings.max_jobs,
                      settings.max_client_jobs)
 
 
 def session_policy(settings: Settings, threads: int) -> SessionPolicy:
+    """The session limits of ``settings``, each session process using ``threads`` threads."""
     return SessionPolicy(settings.session_ttl, settings.max_sessions,
                          settings.max_session_memory, threads, settings.session_solve_timeout,
                          settings.request_timeout, settings.session_refine_slice,
@@ -31,6 +33,7 @@ def session_policy(settings: Settings, threads: int) -> SessionPolicy:
 
 
 def _local(settings: Settings, on_result: ResultCallback | None) -> Backend:
+    """The local backend: a process pool, in-memory jobs and session processes."""
     from service.backends.local.executor import ProcessExecutor
     from service.backends.local.jobs import JobManager, MemoryJobStore
     from service.backends.local.sessions import LocalSessions
@@ -45,6 +48,7 @@ def _local(settings: Settings, on_result: ResultCallback | None) -> Backend:
 
 
 def _dask(settings: Settings, on_result: ResultCallback | None) -> Backend:
+    """The Dask backend: tasks, jobs and sessions on the cluster of ``settings``."""
     from service.backends.dask.connection import DaskConnection
     from service.backends.dask.executor import DaskExecutor
     from service.backends.dask.jobs import DaskJobManager
@@ -64,8 +68,19 @@ BACKENDS: dict[str, Callable[[Settings, ResultCallback | None], Backend]] = {
 
 
 def make_backend(settings: Settings, on_result: ResultCallback | None = None) -> Backend:
-    """The backend ``settings.executor`` names; ``on_result(operation, result)`` is called
-    for every job that succeeds (the app's metrics)."""
+    """The backend ``settings.executor`` names.
+
+    Args:
+        settings: the service's settings.
+        on_result: called as ``on_result(operation, result)`` for every job that succeeds
+            (the app's metrics).
+
+    Returns:
+        The :class:`~service.backends.contracts.Backend`, not started yet.
+
+    Raises:
+        ValueError: an unknown ``FFS_EXECUTOR``.
+    """
     try:
         factory = BACKENDS[settings.executor]
     except KeyError:

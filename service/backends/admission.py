@@ -26,7 +26,15 @@ BASE_MEMORY_ESTIMATE = 80 * 1024**2
 
 
 def estimate_memory(n_vertices: int, n_faces: int) -> int:
-    """Bytes a session of this size is expected to hold (used before it is measured)."""
+    """The memory a session is expected to hold before it is measured.
+
+    Args:
+        n_vertices: its mesh's vertex count (unused: faces dominate).
+        n_faces: its mesh's face count.
+
+    Returns:
+        Bytes: :data:`BASE_MEMORY_ESTIMATE` plus :data:`BYTES_PER_FACE_ESTIMATE` per face.
+    """
     return int(BASE_MEMORY_ESTIMATE + BYTES_PER_FACE_ESTIMATE * max(n_faces, 1))
 
 
@@ -55,12 +63,25 @@ class SessionAdmission:
 
 def admit_session(slots: Iterable[SessionSlot], owner: str | None, estimate: int,
                   limits: SessionAdmission) -> list[str]:
-    """The ids of the sessions to close so that a new one of ``owner`` (about ``estimate``
-    bytes) fits: none when it fits as it is; else sessions idle for at least
-    ``limits.give_way_after`` seconds, the longest idle first, as many as needed. Raises
-    :class:`ClientSessionsError` when ``owner`` already has ``max_per_owner`` sessions (its
-    own idle ones do not give way: it may delete them), :class:`TooManySessionsError` or
-    :class:`SessionMemoryError` when not enough sessions may give way (none is closed then)."""
+    """The sessions to close so that a new one fits.
+
+    Args:
+        slots: the open and reserved sessions.
+        owner: the new session's client address, or None.
+        estimate: the new session's expected bytes (:func:`estimate_memory`).
+        limits: the limits.
+
+    Returns:
+        The ids to close: none when it fits as it is; else sessions idle for at least
+        ``limits.give_way_after`` seconds, the longest idle first, as many as needed.
+
+    Raises:
+        ClientSessionsError: ``owner`` already has ``max_per_owner`` sessions (its own idle
+            ones do not give way: it may delete them).
+        TooManySessionsError: not enough sessions may give way to fit the count (none is
+            closed then).
+        SessionMemoryError: not enough sessions may give way to fit the memory.
+    """
     slots = list(slots)
     if owner is not None and sum(s.owner == owner for s in slots) >= limits.max_per_owner:
         raise ClientSessionsError(limits.max_per_owner)
@@ -88,7 +109,15 @@ def _session_retry_after(slots: list[SessionSlot], limits: SessionAdmission) -> 
 
 
 def retry_after(durations: Collection[float], waiting: int, size: int) -> int:
-    """Seconds until a task slot is likely free: mean recent task time x waiting tasks /
-    workers (1 to 120 s)."""
+    """Seconds until a task slot is likely free.
+
+    Args:
+        durations: recent task durations (seconds).
+        waiting: tasks waiting for a slot.
+        size: workers.
+
+    Returns:
+        Mean recent task time x waiting tasks / workers, rounded up, within 1 to 120.
+    """
     mean = (sum(durations) / len(durations)) if durations else 1.0
     return max(1, min(120, math.ceil(mean * waiting / max(1, size))))

@@ -3,8 +3,8 @@
 The local backend keeps :class:`Job` objects in memory; the Dask backend keeps them in the
 scheduler and ships their fields (:func:`job_fields`) to the replicas. ``error`` is the
 failure dict of a failed job (:func:`service.api.problems.failure`, or the worker's
-:func:`service.api.problems.failure_of`); the HTTP edge renders it as a problem document
-(:meth:`service.api.problems.ProblemError.from_dict`).
+:func:`service.worker.runtime.describe_error`); the HTTP edge renders it as a problem
+document.
 """
 
 from __future__ import annotations
@@ -54,9 +54,11 @@ class Job:
 
     @property
     def done(self) -> bool:
+        """Whether the job reached a terminal state."""
         return self.status in TERMINAL
 
     def mark_running(self) -> None:
+        """Move a queued job to ``running`` and record how long it waited."""
         if self.status == "queued":
             self.status = "running"
             self.started_at = time.time()
@@ -64,9 +66,16 @@ class Job:
 
     def update_progress(self, stage: str, fraction: float,
                         detail: dict[str, Any] | None = None) -> None:
-        """Record ``progress(stage, fraction, detail)``: earlier stages are complete, later
-        ones are not (a solver may go back, e.g. from a failed shortcut to the
-        factorization); ``detail`` is a refinement iteration (:attr:`refinement`)."""
+        """Record a solver's ``progress(stage, fraction, detail)``.
+
+        Earlier stages are complete, later ones are not (a solver may go back, e.g. from a
+        failed shortcut to the factorization).
+
+        Args:
+            stage: the stage the solver is in.
+            fraction: how far it is, 0 to 1.
+            detail: a refinement iteration (:attr:`refinement`), or None.
+        """
         if self.done:
             return
         self.mark_running()
@@ -95,6 +104,12 @@ class Job:
         self.stages[stage] = max(self.stages[stage], fraction)
 
     def finish(self, status: str, ttl: float) -> None:
+        """Mark the job finished.
+
+        Args:
+            status: one of :data:`TERMINAL`.
+            ttl: seconds the finished record is kept.
+        """
         now = time.time()
         if self.stage is not None and self.stage_started is not None and status == "succeeded":
             self.timings.setdefault(self.stage, now - self.stage_started)
@@ -115,10 +130,19 @@ class Job:
 
 def admit(jobs: Iterable[Job], max_jobs: int, owner: str | None, max_per_owner: int
           ) -> tuple[list[str], str | None]:
-    """Whether one more job fits: ``(ids to evict first, refusal)``. Finished jobs give way,
-    oldest first, before a new one is refused (``refusal == "full"``: every stored job is
-    queued or running); ``"owner"`` when ``owner`` already has ``max_per_owner`` unfinished
-    jobs (one client cannot take the whole store or queue)."""
+    """Whether one more job fits. Finished jobs give way, oldest first, before one is refused.
+
+    Args:
+        jobs: the stored jobs.
+        max_jobs: how many may be stored.
+        owner: the new job's client address, or None.
+        max_per_owner: how many unfinished jobs one client may have.
+
+    Returns:
+        ``(ids to evict first, refusal)``: refusal None when it fits, ``"full"`` when every
+        stored job is queued or running, ``"owner"`` when ``owner`` already has
+        ``max_per_owner`` unfinished jobs (one client cannot take the whole store or queue).
+    """
     jobs = list(jobs)
     if owner is not None and sum(1 for j in jobs if j.owner == owner and not j.done
                                  ) >= max_per_owner:
@@ -137,12 +161,26 @@ FIELDS = tuple(f.name for f in dataclasses.fields(Job) if f.name != "result")
 
 
 def job_fields(job: Job) -> dict[str, Any]:
-    """The record of ``job`` as a dict (``Job(**job_fields(job))`` rebuilds it)."""
+    """The record of a job as a dict.
+
+    Args:
+        job: the job.
+
+    Returns:
+        Its :data:`FIELDS` (``Job(**job_fields(job))`` rebuilds it, without its result).
+    """
     return {name: getattr(job, name) for name in FIELDS}
 
 
 def count_states(jobs: Any) -> dict[str, int]:
-    """Number of jobs per state among ``jobs`` (an iterable of :class:`Job`)."""
+    """Number of jobs per state.
+
+    Args:
+        jobs: an iterable of :class:`Job`.
+
+    Returns:
+        State -> count, every one of :data:`STATES` present.
+    """
     out = dict.fromkeys(STATES, 0)
     for job in jobs:
         out[job.status] += 1

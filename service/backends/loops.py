@@ -13,7 +13,16 @@ logger = logging.getLogger("service.backends")
 
 def post_threadsafe(loop: asyncio.AbstractEventLoop | None, fn: Callable[..., None],
                     *args: Any) -> bool:
-    """Schedule ``fn(*args)`` on ``loop`` from a reader thread; False once the loop is gone."""
+    """Schedule ``fn(*args)`` on ``loop`` from a reader thread.
+
+    Args:
+        loop: the event loop, or None.
+        fn: the callback.
+        *args: its arguments.
+
+    Returns:
+        Whether it was scheduled (False once the loop is gone or closed).
+    """
     if loop is None or loop.is_closed():
         return False
     try:
@@ -26,8 +35,18 @@ def post_threadsafe(loop: asyncio.AbstractEventLoop | None, fn: Callable[..., No
 async def sweep_forever(ttl: float, sweep: Callable[[], Awaitable[Any]], what: str, *,
                         ceiling: float = 5.0, active: Callable[[], bool] = lambda: True
                         ) -> None:
-    """Await ``sweep()`` every ttl / 4 (between 0.05 s and ``ceiling``) while ``active()``;
-    log a failure, never stop (cancel the task to stop it)."""
+    """Await ``sweep()`` periodically; cancel the task to stop it.
+
+    A failing sweep is logged and the loop goes on.
+
+    Args:
+        ttl: the lifetime the sweep enforces; it runs every ``ttl / 4`` seconds, between
+            0.05 s and ``ceiling``.
+        sweep: the coroutine function to await.
+        what: its name in the log.
+        ceiling: the longest interval (seconds).
+        active: the sweep is skipped while this returns False.
+    """
     interval = max(0.05, min(ceiling, ttl / 4))
     while True:
         await asyncio.sleep(interval)
@@ -49,7 +68,13 @@ def new_future() -> asyncio.Future[Any]:
 
 def settle(future: asyncio.Future[Any], *, result: Any = None,
            exc: BaseException | None = None) -> None:
-    """Resolve ``future`` with ``exc`` or ``result`` unless it is done already."""
+    """Resolve ``future`` unless it is done already.
+
+    Args:
+        future: the future.
+        result: its result, when ``exc`` is None.
+        exc: its exception.
+    """
     if future.done():
         return
     if exc is not None:
@@ -59,5 +84,6 @@ def settle(future: asyncio.Future[Any], *, result: Any = None,
 
 
 def _consume(future: asyncio.Future[Any]) -> None:
+    """Mark a future's exception as retrieved (done callback of :func:`new_future`)."""
     if not future.cancelled():
         future.exception()

@@ -37,7 +37,17 @@ class WorkerProcess:
     def spawn(cls, target: Callable[[Connection, int], None], threads: int, name: str,
               start_method: str = "forkserver") -> WorkerProcess:
         """Start ``target(child_conn, threads)`` in a new process (blocking: run it in a
-        thread)."""
+        thread).
+
+        Args:
+            target: the process's main function.
+            threads: the compute threads it may use.
+            name: the process's name.
+            start_method: ``"forkserver"`` (preloading :data:`PRELOAD`) or ``"spawn"``.
+
+        Returns:
+            The started :class:`WorkerProcess`.
+        """
         ctx = multiprocessing.get_context(start_method)
         if start_method == "forkserver":
             ctx.set_forkserver_preload(PRELOAD)
@@ -49,14 +59,22 @@ class WorkerProcess:
 
     @property
     def pid(self) -> int | None:
+        """The child's process id (None before it started)."""
         return self.process.pid
 
     def read(self, loop: asyncio.AbstractEventLoop | None,
              on_message: Callable[[Message], None], on_exit: Callable[[], None],
              unreadable: Callable[[Exception], Message], name: str) -> None:
-        """Start the reader thread: each message -> ``on_message`` on ``loop``; a message that
-        cannot be unpickled -> ``on_message(unreadable(exc))``; at the end of the pipe (the
-        process exited) -> ``on_exit()``."""
+        """Start the thread that reads the pipe.
+
+        Args:
+            loop: the event loop the callbacks run on.
+            on_message: called with each message.
+            on_exit: called once at the end of the pipe (the process exited).
+            unreadable: turns the exception of a message that cannot be unpickled into the
+                message ``on_message`` gets instead.
+            name: the thread's name.
+        """
 
         def reader() -> None:
             while True:
@@ -90,7 +108,11 @@ class WorkerProcess:
             self.conn.close()
 
     def close(self, grace: float = 2.0) -> None:
-        """Ask the process to stop (``None`` on the pipe), wait ``grace`` s, then kill it."""
+        """Ask the process to stop (``None`` on the pipe), then kill it.
+
+        Args:
+            grace: seconds to wait for it to exit by itself.
+        """
         with contextlib.suppress(Exception):
             self.conn.send(None)
         self.process.join(grace)

@@ -3,8 +3,9 @@
 Each takes a :class:`service.api.task.TaskRequest` whose source is decoded (numpy arrays or
 an uploaded file) and a ``progress(stage, fraction)`` callback, calls :mod:`solver`, and
 returns a :class:`service.api.task.TaskResult` with the response body in the requested
-format. Client-caused failures raise :class:`service.api.problems.ProblemError` (or the
-solver's :class:`solver.errors.SolverInputError`). The registry
+format. Client-caused failures raise :class:`service.api.problems.ProblemError` or the
+solver's :class:`solver.errors.SolverInputError` (a mesh file's names the upload), turned
+into the failure the worker sends by :func:`service.api.problems.failure_of`. The registry
 (:data:`service.operations.OPERATIONS`) names the task of each operation.
 """
 
@@ -18,7 +19,7 @@ import numpy as np
 
 import solver
 from service.api.decoding import check_limits
-from service.api.problems import ProblemError
+from service.api.problems import ProblemError, element_error
 from service.api.task import (
     FormsArrays,
     MeshArrays,
@@ -37,18 +38,14 @@ TaskFn = Callable[[TaskRequest, Progress], TaskResult]
 
 
 def _load_file(upload: MeshFile, request: TaskRequest) -> tuple[np.ndarray, np.ndarray]:
-    from solver.io import MeshFileError, UnsupportedFormatError, load_mesh
+    from solver.io import MeshFileError, load_mesh
 
-    field = upload.field
     try:
         vertices, faces = load_mesh(upload.data, upload.filename)
-    except UnsupportedFormatError as exc:
-        raise ProblemError("unsupported-file-type", str(exc), errors=[
-            {"field": field, "index": None, "reason": exc.reason}]) from exc
-    except MeshFileError as exc:
-        raise ProblemError("unreadable-file", f"{upload.filename}: {exc}", errors=[
-            {"field": field, "index": None, "reason": exc.reason, **exc.details}]) from exc
-    check_limits(len(vertices), len(faces), request.limits, field)
+    except MeshFileError as exc:  # its problem names the upload's field and file name
+        exc.located(field=upload.field, file_name=upload.filename)
+        raise
+    check_limits(len(vertices), len(faces), request.limits, upload.field)
     return vertices, faces
 
 
@@ -292,8 +289,7 @@ def interpolate_task(request: TaskRequest, progress: Progress) -> TaskResult:
         vertices_b, faces_b = _load_file(source[1], request)
         if faces_b.shape != faces.shape or not np.array_equal(faces, faces_b):
             raise ProblemError("shape-mismatch", "file_b must have the same faces as file_a",
-                               status=422, errors=[{"field": "file_b", "index": None,
-                                                    "reason": "faces differ from file_a's"}])
+                               errors=[element_error("file_b", "faces differ from file_a's")])
     else:
         assert isinstance(source, MeshPair)
         vertices_a, vertices_b, faces = source.vertices_a, source.vertices_b, source.faces

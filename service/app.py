@@ -2,14 +2,14 @@
 
 Serve with ``python -m service`` (or ``uvicorn service.app:app``). The backend
 (``FFS_EXECUTOR``: ``local`` processes of this service, or ``dask``, a cluster shared by
-every replica; :mod:`service.backends`) starts in the lifespan (``/readyz`` turns 200 when
-a worker is up) and stops with it. Routes get it through typed dependencies
+every replica; :mod:`service.backends`) and the parser process of large bodies
+(:class:`~service.http.bodies.ParserPool`) start in the lifespan (``/readyz`` turns 200 when
+a worker is up) and stop with it. Routes get it through typed dependencies
 (:mod:`service.http.dependencies`).
 """
 
 from __future__ import annotations
 
-import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -20,7 +20,6 @@ from starlette.middleware.cors import CORSMiddleware
 from service.api.task import TaskResult
 from service.backends import make_backend
 from service.http import openapi
-from service.http.bodies import stop_parser
 from service.http.compression import ParallelGZipMiddleware
 from service.http.dependencies import Services
 from service.http.metrics import MetricsMiddleware, ServiceMetrics
@@ -59,7 +58,15 @@ TAGS = [
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """Build the app (the backend starts with the lifespan, not here)."""
+    """Build the app; its backend and parser process start with the lifespan, not here.
+
+    Args:
+        settings: The settings; by default read from the environment (``FFS_*``).
+
+    Returns:
+        The application, its :class:`~service.http.dependencies.Services` on
+        ``app.state.services``.
+    """
     settings = settings or Settings()
     configure_logging(settings.log_level)
     metrics = ServiceMetrics()
@@ -72,14 +79,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        await services.backend.start()
-        services.started = True
+        await services.start()
         try:
             yield
         finally:
-            services.started = False
-            await services.backend.stop()
-            await asyncio.to_thread(stop_parser)
+            await services.stop()
 
     app = FastAPI(title="Fundamental forms service", version=VERSION, description=DESCRIPTION,
                   lifespan=lifespan, openapi_tags=TAGS, separate_input_output_schemas=False,

@@ -36,7 +36,7 @@ from ffs.arrays import (  # binary_body: the reference encoder, re-exported
     binary_body,  # noqa: F401
     padded,
 )
-from service.api.problems import ProblemError, from_validation_errors
+from service.api.problems import ProblemError, element_error, from_validation_errors
 from service.api.schemas import MAX_INDEX, MAX_MAGNITUDE
 from service.api.task import (
     ARRAY_SOURCES,
@@ -88,11 +88,21 @@ _JSON_TYPES = {dict: "an object", list: "a list", str: "a string", bool: "a bool
 
 
 def parse_json(body: bytes) -> Any:
-    """The parsed body; a 400 ``malformed-json`` problem when it is empty or not JSON.
+    """The parsed JSON body.
 
     ``NaN``, ``Infinity`` and overflowing numbers such as ``1e400`` (which Python's ``json``
     writes and reads) parse, as non-finite floats, so that the schema check names the element
-    (422) instead of calling the whole body malformed."""
+    (422) instead of calling the whole body malformed.
+
+    Args:
+        body: The body, UTF-8.
+
+    Returns:
+        The parsed document.
+
+    Raises:
+        ProblemError: 400 ``malformed-json`` when it is empty or not JSON.
+    """
     if not body.strip():
         raise ProblemError("malformed-json", "the body is empty; send a JSON object")
     try:
@@ -187,8 +197,17 @@ def _checked(array: np.ndarray, spec: ArraySpec, loc: Any
 
 def as_array(name: str, value: Any, spec: ArraySpec
              ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
-    """``value`` (parsed JSON) as an (n, cols) or (n,) array, or at most MAX_ERRORS errors
-    in pydantic's shape (``loc``, ``msg``, ``type``)."""
+    """One large array of a parsed JSON body, checked.
+
+    Args:
+        name: Its field name.
+        value: The parsed JSON value.
+        spec: Its shape, element type and range.
+
+    Returns:
+        ``(array, [])``: an (n, cols) or (n,) array of ``spec``'s dtype, or ``(None,
+        errors)``: at most MAX_ERRORS errors in pydantic's shape (``loc``, ``msg``, ``type``).
+    """
     if not isinstance(value, list):
         return None, [_error((name,), f"Input should be a valid list, got {_json_type(value)}",
                              "list_type")]
@@ -206,11 +225,20 @@ def as_array(name: str, value: Any, spec: ArraySpec
 
 def decode_json(specs: ArraySpecs, params_model: type[BaseModel], doc: Any,
                 prefix: tuple[Any, ...] = ()) -> tuple[dict[str, np.ndarray], BaseModel]:
-    """(arrays, params) of a parsed JSON body with the large arrays ``specs`` and the rest
-    validated by ``params_model``.
+    """The arrays and params of a parsed JSON body.
 
-    Raises one 422 ``validation-error`` listing the first errors of every array and of the
-    params (pointers below ``prefix``, e.g. ``("input",)`` for a job).
+    Args:
+        specs: The large arrays, checked by numpy.
+        params_model: The model that validates the rest.
+        doc: The parsed body.
+        prefix: Where ``doc`` sits in the body (``("input",)`` for a job).
+
+    Returns:
+        ``(arrays, params)``: the arrays by name and the validated params.
+
+    Raises:
+        ProblemError: One 422 ``validation-error`` listing the first errors of every array
+            and of the params (pointers below ``prefix``).
     """
     if not isinstance(doc, Mapping):
         raise from_validation_errors([_error((), f"Input should be a JSON object, got "
@@ -255,8 +283,7 @@ def _decode(specs: ArraySpecs, params_model: type[BaseModel], sent: dict[str, An
 
 def _binary_error(detail: str) -> ProblemError:
     return ProblemError("malformed-request", f"cannot read the {BINARY_MEDIA_TYPE} body: "
-                        f"{detail}", errors=[{"field": "body", "index": None,
-                                              "reason": detail}])
+                        f"{detail}", errors=[element_error("body", detail)])
 
 
 MAX_RANK = 3
@@ -291,8 +318,18 @@ def _array_layout(name: str, meta: Any, offset: int, body_size: int
 
 
 def parse_binary(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """(header without ``arrays``, {name: array view into ``body``}) of a binary body; a 400
-    ``malformed-request`` problem when the framing is wrong."""
+    """The header and arrays of an ``application/vnd.ffs.arrays`` body.
+
+    Args:
+        body: The body.
+
+    Returns:
+        ``(header, arrays)``: the header without ``arrays``, and each array as a view into
+        ``body``.
+
+    Raises:
+        ProblemError: 400 ``malformed-request`` when the framing is wrong.
+    """
     if len(body) < 8 or body[:4] != BINARY_MAGIC:
         raise _binary_error(f"it must start with {BINARY_MAGIC!r} and a uint32 header length")
     size = int.from_bytes(body[4:8], "little")
@@ -332,7 +369,19 @@ def _binary_array(name: str, array: np.ndarray, spec: ArraySpec
 
 def decode_binary(specs: ArraySpecs, params_model: type[BaseModel], body: bytes
                   ) -> tuple[dict[str, np.ndarray], BaseModel]:
-    """(arrays, params) of a binary body; the same 422 errors as :func:`decode_json`."""
+    """The arrays and params of a binary body.
+
+    Args:
+        specs: The large arrays.
+        params_model: The model that validates the header's other members.
+        body: The body.
+
+    Returns:
+        ``(arrays, params)`` as :func:`decode_json` returns them.
+
+    Raises:
+        ProblemError: 400 for a wrong framing; the 422 errors of :func:`decode_json`.
+    """
     header, raw = parse_binary(body)
     return _decode(specs, params_model, raw, header, _binary_array)
 
@@ -354,23 +403,41 @@ class BodySpec(Protocol):
 
 
 def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> None:
-    """Raise a 413 ``mesh-too-large`` problem beyond the vertex or face limit."""
+    """Check a mesh's size against the vertex and face limits.
+
+    Args:
+        n_vertices: Its vertex count.
+        n_faces: Its face count.
+        limits: FFS_MAX_VERTICES and FFS_MAX_FACES.
+        field: The input the mesh came in (named by the problem).
+
+    Raises:
+        ProblemError: 413 ``mesh-too-large`` beyond either limit.
+    """
     errors = []
     if n_vertices > limits.max_vertices:
-        errors.append({"field": field, "index": None,
-                       "reason": f"{n_vertices} vertices exceed the limit of "
-                                 f"{limits.max_vertices}"})
+        errors.append(element_error(field, f"{n_vertices} vertices exceed the limit of "
+                                           f"{limits.max_vertices}"))
     if n_faces > limits.max_faces:
-        errors.append({"field": field, "index": None,
-                       "reason": f"{n_faces} faces exceed the limit of {limits.max_faces}"})
+        errors.append(element_error(field, f"{n_faces} faces exceed the limit of "
+                                           f"{limits.max_faces}"))
     if errors:
         raise ProblemError("mesh-too-large", errors[0]["reason"], errors=errors)
 
 
 def check_work(params: Mapping[str, Any], limits: Limits, prefix: tuple[Any, ...] = ()
                ) -> None:
-    """Bound the work a small body can ask for: at most ``FFS_MAX_BLEND_STEPS`` blend values
-    in ``t`` (each one is a solve of the whole mesh); a 422 ``validation-error`` beyond."""
+    """Bound the work a small body can ask for.
+
+    Args:
+        params: The dumped params.
+        limits: FFS_MAX_BLEND_STEPS.
+        prefix: Where the params sit in the body.
+
+    Raises:
+        ProblemError: 422 ``validation-error`` for more than ``FFS_MAX_BLEND_STEPS`` blend
+            values in ``t`` (each one is a solve of the whole mesh).
+    """
     t = params.get("t")
     if isinstance(t, list) and len(t) > limits.max_blend_steps:
         field = ".".join(map(str, (*prefix, "t")))
@@ -378,15 +445,23 @@ def check_work(params: Mapping[str, Any], limits: Limits, prefix: tuple[Any, ...
             "validation-error", f"{field}: {len(t)} blend values; at most "
             f"{limits.max_blend_steps} are allowed (FFS_MAX_BLEND_STEPS): send the others in "
             "further requests",
-            errors=[{"field": field, "index": None, "type": "too_long",
-                     "pointer": "/" + "/".join(map(str, (*prefix, "t"))),
-                     "reason": f"at most {limits.max_blend_steps} values"}])
+            errors=[element_error(field, f"at most {limits.max_blend_steps} values",
+                                  type="too_long",
+                                  pointer="/" + "/".join(map(str, (*prefix, "t"))))])
 
 
 def array_source(kind: str, arrays: Mapping[str, np.ndarray], limits: Limits
                  ) -> MeshArrays | FormsArrays | MeshPair:
-    """The task source of decoded arrays (``kind``: ``mesh``, ``forms`` or ``pair``), after
-    the vertex and face limits (413)."""
+    """The task source of decoded arrays, after the vertex and face limits.
+
+    Args:
+        kind: ``mesh``, ``forms`` or ``pair``.
+        arrays: The decoded arrays by name.
+        limits: The size limits (:func:`check_limits`, 413).
+
+    Returns:
+        The source of that kind.
+    """
     faces = arrays["faces"]
     if kind == "forms":
         n_vertices, field = (int(faces.max()) + 1 if faces.size else 0), "faces"
@@ -401,8 +476,17 @@ def array_source(kind: str, arrays: Mapping[str, np.ndarray], limits: Limits
 
 def decode_document(spec: BodySpec, doc: Any, limits: Limits, prefix: tuple[Any, ...] = ()
                     ) -> tuple[MeshArrays | FormsArrays | MeshPair, dict[str, Any]]:
-    """(source, dumped params) of a parsed JSON body (a synchronous body or a job's
-    ``input``, whose errors point below ``prefix = ("input",)``)."""
+    """The source and params of a parsed JSON body.
+
+    Args:
+        spec: The operation.
+        doc: A synchronous body, or a job's ``input``.
+        limits: The size and work limits.
+        prefix: Where ``doc`` sits (``("input",)`` for a job's).
+
+    Returns:
+        ``(source, params)``: the task's source and its dumped params.
+    """
     arrays, params = decode_json(spec.arrays, spec.params, doc, prefix)
     dumped = params.model_dump()
     check_work(dumped, limits, prefix)
@@ -410,7 +494,15 @@ def decode_document(spec: BodySpec, doc: Any, limits: Limits, prefix: tuple[Any,
 
 
 def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
-    """``request`` with its :class:`RawBody` source parsed and validated (in the worker)."""
+    """A task with its raw body parsed and validated (in the worker).
+
+    Args:
+        spec: The operation.
+        request: The task, its source a :class:`RawBody`.
+
+    Returns:
+        ``request`` with its decoded source and params.
+    """
     raw = request.source
     assert isinstance(raw, RawBody)
     if raw.kind == "binary":

@@ -1,24 +1,27 @@
 """Problems: the failures a client caused or must know about, with their kinds.
 
 A :class:`ProblemError` carries a problem ``kind`` (a key of :data:`PROBLEM_KINDS`, which
-gives its status and title), a ``detail`` and ``errors`` pointers naming the offending
-elements. Workers raise it, backends' failures are converted to it, and the HTTP edge
-(:mod:`service.http.problems`) renders it as an RFC 9457 document::
+gives its status and title), a ``detail`` and ``errors`` items naming the offending
+elements (:func:`element_error`). Workers raise it, backends' failures are converted to it,
+and the HTTP edge (:mod:`service.http.problems`) renders it as an RFC 9457 document::
 
     {"type": "/problems/index-out-of-range", "title": "Index out of range", "status": 422,
      "detail": "faces[17]: index 9001 out of range [0, 100)", "instance": "/v1/forms",
      "kind": "index-out-of-range",
      "errors": [{"field": "faces", "index": 17, "reason": "index 9001 out of range [0, 100)"}]}
 
-A failure leaves a worker process as a plain dict (:func:`service.worker.runtime.describe_error`,
-"a failure"); :func:`from_failure` turns it back into a :class:`ProblemError`. Each
-:class:`solver.errors.SolverInputError` kind maps to 422, schema violations to 422
-(``validation-error``), malformed bodies to 400, unsupported media types to 415 and oversize
-input to 413.
+Every exception becomes a problem in one place, :func:`problem_of`: a
+:class:`solver.errors.SolverInputError` is the problem of its ``kind`` (422 for the array
+checks, 400 ``unreadable-file``, 415 ``unsupported-file-type``, 422 ``singular-system`` and
+``invalid-option``) naming its element, anything unexpected a 500 that shows nothing of it.
+A failure leaves a worker process as a plain dict, "a failure": the problem document
+without its ``instance`` (:func:`failure_of` for an exception, :func:`failure` for a kind);
+:meth:`ProblemError.from_dict` turns it back into the problem.
 """
 
 from __future__ import annotations
 
+import logging
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
@@ -107,6 +110,9 @@ for _cls in ERROR_KINDS:
     PROBLEM_KINDS[_cls.kind] = (422, _cls.kind.replace("-", " ").capitalize(),
                                 (_cls.__doc__ or "").strip().splitlines()[0])
 PROBLEM_KINDS[SolverInputError.kind] = (422, "Invalid input", "Invalid input data.")
+INTERNAL_DETAIL = "the solver failed unexpectedly; the error has been logged"
+"""The ``detail`` of a task's unexpected failure (its cause is in the worker's log)."""
+logger = logging.getLogger("service.worker")
 
 
 MAX_PROBLEM_ERRORS = 20
@@ -117,17 +123,48 @@ _NUMPY_SCALAR = re.compile(r"\bnp\.(?:float|int|uint|bool_?)\d*\(([^()]*)\)")
 _EXCEPTION_NAME = re.compile(r"\b(?:[A-Z][A-Za-z]*(?:Error|Exception)|Traceback[^:]*): ")
 
 
+_CUT = re.compile(r"\.\.\. \(\d+ more characters\)")
+
+
 def in_words(text: str) -> str:
-    """``text`` as a client should read it: numpy scalar reprs as plain numbers
-    (``np.float64(-1.0)`` -> ``-1.0``), no exception class names, at most MAX_TEXT
-    characters."""
+    """A text as a client should read it.
+
+    Args:
+        text: A detail or reason.
+
+    Returns:
+        ``text`` with numpy scalar reprs as plain numbers (``np.float64(-1.0)`` ->
+        ``-1.0``), no exception class names, and at most MAX_TEXT characters (then an
+        ellipsis and the count of the rest); a text already shortened stays as it is.
+    """
     text = _EXCEPTION_NAME.sub("", _NUMPY_SCALAR.sub(r"\1", text))
-    if len(text) > MAX_TEXT:
+    if len(text) > MAX_TEXT and not _CUT.fullmatch(text, MAX_TEXT):
         text = f"{text[:MAX_TEXT]}... ({len(text) - MAX_TEXT} more characters)"
     return text
 
 
+def element_error(field: str | None, reason: str, index: int | None = None,
+                  **context: Any) -> dict[str, Any]:
+    """One item of a problem's ``errors``: the element at fault and why.
+
+    Args:
+        field: The input at fault (``"faces"``, ``"Content-Type"``, a form field), or None.
+        reason: Why, in words.
+        index: The row of ``field`` at fault, or None when the whole input is.
+        **context: Further JSON-ready members (``value``, ``pointer``, ``type``, ``line``).
+
+    Returns:
+        ``{"field", "index", "reason", **context}``.
+
+    Example:
+        >>> element_error("Content-Type", "missing")
+        {'field': 'Content-Type', 'index': None, 'reason': 'missing'}
+    """
+    return {"field": field, "index": index, "reason": reason, **context}
+
+
 def _capped(errors: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """The first MAX_PROBLEM_ERRORS items, their texts in words and long lists cut."""
     items = []
     for error in errors[:MAX_PROBLEM_ERRORS]:
         item = dict(error)
@@ -141,20 +178,36 @@ def _capped(errors: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
 
 
 def problem_type(kind: str) -> str:
-    """The ``type`` URI of a problem kind."""
+    """The ``type`` URI of a problem kind.
+
+    Args:
+        kind: A key of :data:`PROBLEM_KINDS`.
+
+    Returns:
+        ``/problems/<kind>``.
+    """
     return PROBLEM_BASE + kind
 
 
 class ProblemError(Exception):
     """An error that the app's handler turns into a problem document.
 
+    Args:
+        kind: The problem kind (a key of :data:`PROBLEM_KINDS`).
+        detail: A human-readable explanation of this occurrence (in words: :func:`in_words`).
+        status: The HTTP status; by default the kind's.
+        errors: Items naming the elements at fault (:func:`element_error`); the first
+            MAX_PROBLEM_ERRORS are kept and ``errors_omitted`` counts the rest.
+        headers: Extra response headers (e.g. Retry-After).
+        **extensions: Extra top-level members of the document.
+
     Attributes:
-        kind: the problem kind (a key of :data:`PROBLEM_KINDS`).
-        status: HTTP status (defaults to the kind's).
-        detail: human-readable explanation of this occurrence.
-        errors: machine-readable pointers ``[{"field", "index", "reason", ...}]``.
-        headers: extra response headers (e.g. Retry-After).
-        extensions: extra top-level members.
+        kind: The problem kind.
+        status: The HTTP status.
+        detail: The explanation.
+        errors: The items, capped.
+        headers: The extra response headers.
+        extensions: The extra top-level members.
     """
 
     def __init__(self, kind: str, detail: str, *, status: int | None = None,
@@ -173,7 +226,15 @@ class ProblemError(Exception):
         self.extensions = extensions
 
     def to_dict(self, instance: str | None = None) -> dict[str, Any]:
-        """The problem document."""
+        """The problem document.
+
+        Args:
+            instance: The request path it answers, if any.
+
+        Returns:
+            ``{"type", "title", "status", "detail", "kind", "instance"?, "errors",
+            **extensions}``.
+        """
         title = PROBLEM_KINDS.get(self.kind, (0, "Error"))[1]
         doc: dict[str, Any] = {"type": problem_type(self.kind), "title": title,
                                "status": self.status, "detail": self.detail, "kind": self.kind}
@@ -185,9 +246,16 @@ class ProblemError(Exception):
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> ProblemError:
-        """Rebuild from a document made by :meth:`to_dict` (e.g. a stored job error)."""
-        known = {"type", "title", "status", "detail", "kind", "instance", "errors",
-                 "errors_omitted"}
+        """The problem of a document made by :meth:`to_dict`: a failure a worker sent, a
+        stored job error.
+
+        Args:
+            doc: The document (its ``instance``, ``type`` and ``title`` are ignored).
+
+        Returns:
+            The problem, with the document's status, errors and extensions.
+        """
+        known = {"type", "title", "status", "detail", "kind", "instance", "errors"}
         return cls(str(doc.get("kind", "internal-error")), str(doc.get("detail", "")),
                    status=int(doc.get("status", 500)), errors=doc.get("errors"),
                    **{k: v for k, v in doc.items() if k not in known})
@@ -196,22 +264,71 @@ class ProblemError(Exception):
 # ----------------------------------------------------------------------------- conversions
 
 
-def from_solver_error(error: Mapping[str, Any], message: str | None = None) -> ProblemError:
-    """Problem for a serialized :class:`SolverInputError` (``to_dict()``): always 422."""
-    item = {k: v for k, v in error.items() if k != "kind"}
-    kind = str(error.get("kind") or SolverInputError.kind)
-    if kind not in PROBLEM_KINDS:
-        kind = SolverInputError.kind
-    return ProblemError(kind, message or str(error.get("reason", "invalid input")), status=422,
-                        errors=[item])
+def problem_of(exc: BaseException) -> ProblemError:
+    """The problem an exception answers with: the one conversion of errors to problems.
+
+    Args:
+        exc: What a task, a parser or a route raised.
+
+    Returns:
+        ``exc`` itself for a :class:`ProblemError`; for a
+        :class:`~solver.errors.SolverInputError` the problem of its ``kind`` (its status
+        from :data:`PROBLEM_KINDS`) whose ``detail`` is the error's message and whose one
+        ``errors`` item is :meth:`~solver.errors.SolverInputError.element`; 413
+        ``mesh-too-large`` for a :class:`MemoryError`; otherwise a 500 ``internal-error``
+        that shows nothing of it (``exc`` is logged here, with its traceback).
+    """
+    if isinstance(exc, ProblemError):
+        return exc
+    if isinstance(exc, SolverInputError):
+        kind = exc.kind if exc.kind in PROBLEM_KINDS else SolverInputError.kind
+        return ProblemError(kind, str(exc), errors=[exc.element()])
+    if isinstance(exc, MemoryError):
+        return ProblemError("mesh-too-large", "the input needs more memory than is available")
+    logger.error("task failed: %s: %s", type(exc).__name__, exc, exc_info=exc)
+    return ProblemError("internal-error", INTERNAL_DETAIL, status=500)
+
+
+def failure_of(exc: BaseException) -> dict[str, Any]:
+    """The failure dict a worker sends for an exception (picklable, JSON-ready).
+
+    Args:
+        exc: What the task raised.
+
+    Returns:
+        The document of :func:`problem_of` (``exc``) without an ``instance``; read back
+        with :meth:`ProblemError.from_dict`.
+    """
+    return problem_of(exc).to_dict()
+
+
+def failure(kind: str, detail: str, **extensions: Any) -> dict[str, Any]:
+    """The failure dict of a problem ``kind`` (how backends record e.g. a job's timeout).
+
+    Args:
+        kind: A key of :data:`PROBLEM_KINDS`.
+        detail: What happened, in words.
+        **extensions: Further top-level members of the document.
+
+    Returns:
+        The problem document without an ``instance``, as :func:`failure_of` makes them.
+    """
+    return ProblemError(kind, detail, **extensions).to_dict()
 
 
 def pointer_from_loc(loc: Iterable[Any]) -> dict[str, Any]:
     """Map a pydantic error location to ``{"field", "index", "pointer"}``.
 
-    ``("constraints", "positions", 2, "vertex")`` -> field ``constraints.positions.vertex``,
-    index 2 (the first list index), pointer ``/constraints/positions/2/vertex``. Union tags
-    such as ``list[float]`` are dropped.
+    Args:
+        loc: The location; union tags such as ``list[float]`` are dropped.
+
+    Returns:
+        The field (names joined by dots), the first list index and the JSON pointer.
+
+    Example:
+        >>> where = pointer_from_loc(("constraints", "positions", 2, "vertex"))
+        >>> where["field"], where["index"], where["pointer"]
+        ('constraints.positions.vertex', 2, '/constraints/positions/2/vertex')
     """
     parts = [p for p in loc if not (isinstance(p, str) and ("[" in p or p in _UNION_TAGS))]
     names = [str(p) for p in parts if isinstance(p, str)]
@@ -226,7 +343,17 @@ _UNION_TAGS = {"float", "int", "str", "bool", "function-after", "function-before
 
 def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence[Any] = (),
                            limit: int = 50) -> ProblemError:
-    """422 ``validation-error`` listing pydantic errors as pointers (at most ``limit``)."""
+    """The 422 ``validation-error`` of pydantic errors.
+
+    Args:
+        errors: Pydantic's errors (``exc.errors()``).
+        prefix: Where the validated data sits in the body (``("input",)`` for a job).
+        limit: The most errors listed.
+
+    Returns:
+        The problem, its detail naming the first error, its items each error's pointer,
+        reason and type.
+    """
     items = []
     for err in errors[:limit]:
         loc = (*prefix, *err.get("loc", ()))
@@ -241,22 +368,3 @@ def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence
     more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
     return ProblemError("validation-error", f"{where}: {first['reason']}{more}", status=422,
                         errors=items)
-
-
-def failure(kind: str, detail: str, **extensions: Any) -> dict[str, Any]:
-    """A failure dict of problem ``kind`` (how backends record e.g. a job's timeout)."""
-    return {"category": "problem", "kind": kind, "detail": detail, "extensions": extensions}
-
-
-def from_failure(error: Mapping[str, Any]) -> ProblemError:
-    """The problem of a failure dict (:func:`service.worker.runtime.describe_error`, or
-    :func:`failure`). An internal failure (a bug) becomes a 500 that shows nothing of it."""
-    category = error.get("category")
-    if category == "input":
-        return from_solver_error(error["error"], error.get("message"))
-    if category == "problem":
-        return ProblemError(str(error["kind"]), str(error["detail"]),
-                            status=int(error.get("status") or 0) or None,
-                            errors=error.get("errors"), **dict(error.get("extensions") or {}))
-    return ProblemError("internal-error", "the solver failed unexpectedly; the error has been "
-                        "logged", status=500)

@@ -3,8 +3,8 @@
 The local backend keeps :class:`Job` objects in memory; the Dask backend keeps them in the
 scheduler and ships their fields (:func:`job_fields`) to the replicas. ``error`` is the
 failure dict of a failed job (:func:`service.api.problems.failure`, or the worker's
-:func:`service.worker.runtime.describe_error`); the HTTP edge renders it as a problem
-document.
+:func:`service.api.problems.failure_of`); the HTTP edge renders it as a problem document
+(:meth:`service.api.problems.ProblemError.from_dict`).
 """
 
 from __future__ import annotations

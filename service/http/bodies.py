@@ -28,11 +28,15 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import Request
 
 from service.api.decoding import BINARY_MEDIA_TYPE
-from service.api.problems import ProblemError, from_failure, from_validation_errors
+from service.api.problems import (
+    ProblemError,
+    element_error,
+    failure_of,
+    from_validation_errors,
+)
 from service.api.task import MeshFile
 from service.memory import release_memory
 from service.settings import Settings
-from service.worker.runtime import describe_error
 
 FILE_TYPES = ("obj", "ply", "off", "stl", "glb", "gltf")
 THREAD_THRESHOLD = 256 * 1024
@@ -44,37 +48,64 @@ answering anything for ~0.5 s."""
 
 
 def media_type(request: Request) -> str:
-    """The request's media type without parameters; a 415 problem when there is none, or
-    when a ``charset`` other than UTF-8 is declared (bodies are read as UTF-8 JSON)."""
+    """The request's media type without parameters.
+
+    Args:
+        request: The request.
+
+    Returns:
+        The lower-case media type (``application/json``).
+
+    Raises:
+        ProblemError: 415 when there is none, or when a ``charset`` other than UTF-8 is
+            declared (bodies are read as UTF-8 JSON).
+    """
     value = request.headers.get("content-type", "")
     mtype, _, params = value.partition(";")
     mtype = mtype.strip().lower()
     if not mtype:
         raise ProblemError("unsupported-media-type", "the request has no Content-Type; send "
                            "application/json, multipart/form-data or " + BINARY_MEDIA_TYPE,
-                           errors=[{"field": "Content-Type", "index": None,
-                                    "reason": "missing"}])
+                           errors=[element_error("Content-Type", "missing")])
     for param in params.split(";"):
         key, _, charset = param.partition("=")
         charset = charset.strip().strip('"').lower()
         if key.strip().lower() == "charset" and charset not in ("utf-8", "utf8"):
             raise ProblemError("unsupported-media-type", f"charset={charset} is not supported; "
-                               "send UTF-8", errors=[{"field": "Content-Type", "index": None,
-                                                      "reason": f"charset {charset}"}])
+                               "send UTF-8",
+                               errors=[element_error("Content-Type", f"charset {charset}")])
     return mtype
 
 
 def is_json(mtype: str) -> bool:
-    """Whether the media type is plain JSON (``application/json-patch+json`` and other
-    ``+json`` types mean something else: 415)."""
+    """Whether a media type is plain JSON.
+
+    Args:
+        mtype: A media type from :func:`media_type`.
+
+    Returns:
+        True for ``application/json`` only (``application/json-patch+json`` and other
+        ``+json`` types mean something else: 415).
+    """
     return mtype == "application/json"
 
 
 async def read_body(request: Request, settings: Settings) -> bytes:
-    """The whole body: a 413 problem as soon as it exceeds FFS_MAX_BODY_BYTES, a 408 (and the
-    connection closed) when it takes longer than FFS_BODY_TIMEOUT to arrive. A client that
-    disconnects mid-body raises :class:`starlette.requests.ClientDisconnect` (answered 499 and
-    logged without a traceback by the app's handler)."""
+    """The whole body, read within the body limit and timeout.
+
+    Args:
+        request: The request.
+        settings: FFS_MAX_BODY_BYTES and FFS_BODY_TIMEOUT.
+
+    Returns:
+        The body.
+
+    Raises:
+        ProblemError: 413 as soon as it exceeds FFS_MAX_BODY_BYTES; 408 (and the
+            connection closed) when it takes longer than FFS_BODY_TIMEOUT to arrive.
+        ClientDisconnect: The client went away mid-body (answered 499 and logged without
+            a traceback by the app's handler).
+    """
     limit = settings.max_body_bytes
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
@@ -91,8 +122,8 @@ async def read_body(request: Request, settings: Settings) -> bytes:
         raise ProblemError(
             "body-timeout", f"the body did not arrive within {settings.body_timeout:g} s "
             f"(FFS_BODY_TIMEOUT; {size} bytes received)", headers={"Connection": "close"},
-            errors=[{"field": "body", "index": None,
-                     "reason": f"{size} bytes in {settings.body_timeout:g} s"}]) from None
+            errors=[element_error("body", f"{size} bytes in {settings.body_timeout:g} s")]
+        ) from None
     return b"".join(chunks)
 
 
@@ -100,12 +131,23 @@ def _too_large(size: int, limit: int) -> ProblemError:
     return ProblemError("payload-too-large",
                         f"the body has at least {size} bytes; the limit is {limit} "
                         "(FFS_MAX_BODY_BYTES)",
-                        errors=[{"field": "body", "index": None,
-                                 "reason": f"more than {limit} bytes"}])
+                        errors=[element_error("body", f"more than {limit} bytes")])
 
 
 def validate_object(model: type[BaseModel], data: Any, prefix: tuple[Any, ...] = ()) -> Any:
-    """Validate already-parsed data; errors point below ``prefix``."""
+    """Validate already-parsed data.
+
+    Args:
+        model: The pydantic model.
+        data: The parsed JSON.
+        prefix: Where ``data`` sits in the body; errors point below it.
+
+    Returns:
+        The model instance.
+
+    Raises:
+        ProblemError: 422 ``validation-error`` naming each error.
+    """
     try:
         return model.model_validate(data)
     except ValidationError as exc:
@@ -115,7 +157,20 @@ def validate_object(model: type[BaseModel], data: Any, prefix: tuple[Any, ...] =
 
 async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any],
                                                                    dict[str, UploadFile]]:
-    """Parse a multipart body: (JSON-decoded fields, uploaded files)."""
+    """Parse a multipart body.
+
+    Args:
+        request: The request (``multipart/form-data``).
+        settings: The body limit and timeout.
+
+    Returns:
+        ``(fields, files)``: the JSON-decoded form fields (a field given once per item is
+        a list) and the uploaded files by field name.
+
+    Raises:
+        ProblemError: 400 ``malformed-request`` for a body that is cut, not multipart or
+            repeats a file field; the problems of :func:`read_body`.
+    """
     body = await read_body(request, settings)
     sent = False
 
@@ -143,7 +198,7 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
     for key, value in form.multi_items():
         if key in files:
             raise ProblemError("malformed-request", f"form field {key!r} is given twice",
-                               errors=[{"field": key, "index": None, "reason": "repeated"}])
+                               errors=[element_error(key, "repeated")])
         if isinstance(value, UploadFile):
             files[key] = value
         elif key in fields:  # one part per item: how generated clients send an array
@@ -157,15 +212,31 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
 
 
 def as_arrays(model: type[BaseModel], fields: dict[str, Any]) -> dict[str, Any]:
-    """``fields`` with a single value of an array field of ``model`` as a one-item array: an
-    array comes as one JSON part (``[...]``) or as one part per item (:func:`read_form`)."""
+    """Form fields with a single value of an array field as a one-item array.
+
+    An array comes as one JSON part (``[...]``) or as one part per item (:func:`read_form`).
+
+    Args:
+        model: The params model the fields are for.
+        fields: The form fields.
+
+    Returns:
+        ``fields``, each array field of ``model`` a list.
+    """
     arrays = array_fields(model)
     return {name: [value] if name in arrays and not isinstance(value, list) else value
             for name, value in fields.items()}
 
 
 def array_fields(model: type[BaseModel]) -> frozenset[str]:
-    """The fields of ``model`` that are arrays (``list[...]``, optionally ``| None``)."""
+    """The array fields of a model.
+
+    Args:
+        model: A pydantic model.
+
+    Returns:
+        The names of its ``list[...]`` fields (optionally ``| None``).
+    """
     names = set()
     for name, info in model.model_fields.items():
         members = [a for a in typing.get_args(info.annotation) or (info.annotation,)
@@ -187,13 +258,11 @@ def _check_closed(request: Request, body: bytes) -> None:
             boundary = value.strip().strip('"')
     if not boundary:
         raise ProblemError("malformed-request", "the multipart Content-Type has no boundary",
-                           errors=[{"field": "Content-Type", "index": None,
-                                    "reason": "no boundary"}])
+                           errors=[element_error("Content-Type", "no boundary")])
     if not body.rstrip(b"\r\n").endswith(b"--" + boundary.encode("latin-1") + b"--"):
         raise ProblemError("malformed-request", "the multipart body ends before its closing "
                            "boundary (the upload was cut off)",
-                           errors=[{"field": "body", "index": None,
-                                    "reason": "no closing boundary"}])
+                           errors=[element_error("body", "no closing boundary")])
 
 
 def _decode_field(value: str) -> Any:
@@ -205,7 +274,19 @@ def _decode_field(value: str) -> Any:
 
 
 async def upload(file: UploadFile, field: str) -> MeshFile:
-    """Read one uploaded mesh file; 415 for an unknown type, 400 for an empty file."""
+    """Read one uploaded mesh file.
+
+    Args:
+        file: The upload.
+        field: Its form field.
+
+    Returns:
+        The file for the worker (its bytes, its name or media type, the field).
+
+    Raises:
+        ProblemError: 415 ``unsupported-file-type`` for an unknown type, 400
+            ``unreadable-file`` for an empty file.
+    """
     from solver.io import UnsupportedFormatError, resolve_format
 
     name = file.filename or ""
@@ -216,24 +297,113 @@ async def upload(file: UploadFile, field: str) -> MeshFile:
             "unsupported-file-type",
             f"{field}: {name or file.content_type!r} is not a supported mesh file; upload "
             f"one of {', '.join(FILE_TYPES)}",
-            errors=[{"field": field, "index": None, "reason": exc.reason}]) from None
+            errors=[element_error(field, exc.reason)]) from None
     data = await file.read()
     if not data:
         raise ProblemError("unreadable-file", f"{field}: the file is empty",
-                           errors=[{"field": field, "index": None, "reason": "empty file"}])
+                           errors=[element_error(field, "empty file")])
     return MeshFile(data, name if "." in name else (file.content_type or name), field)
 
 
-async def off_loop(size: int, fn: Any, *args: Any) -> Any:
-    """Run ``fn(*args)`` in a thread when the input is large (> THREAD_THRESHOLD bytes), then
-    give the memory of the parse back to the system before answering; in the parser process
-    when it is larger still (> PROCESS_THRESHOLD: ``fn`` and its arguments and result must
-    pickle)."""
+class ParserPool:
+    """The process that validates the largest bodies, started and stopped with the backend.
+
+    :meth:`start` opens it (the app's lifespan, :meth:`service.http.dependencies.Services.start`);
+    its one process is started on the first body over :data:`PROCESS_THRESHOLD` and replaced
+    when it dies; :meth:`stop` ends it, after which a large body is answered 503.
+    """
+
+    def __init__(self) -> None:
+        self._pool: ProcessPoolExecutor | None = None
+        self._open = False
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        """Accept work (the process itself starts with the first large body)."""
+        with self._lock:
+            self._open = True
+
+    def stop(self) -> None:
+        """End the parser process (blocking, at most ~2 s).
+
+        A body being validated is abandoned: its request is being answered 503 by the
+        stopping server.
+        """
+        with self._lock:
+            pool, self._pool, self._open = self._pool, None, False
+        if pool is None:
+            return
+        processes = list(getattr(pool, "_processes", {}).values())  # no public handle on them
+        pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.kill()
+        for process in processes:
+            process.join(2.0)
+
+    def pids(self) -> list[int]:
+        """The process ids of the parser (none before the first large body, or after stop)."""
+        with self._lock:
+            return list(getattr(self._pool, "_processes", None) or ())
+
+    async def run(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` in the parser process (``fn``, its arguments and result must pickle).
+
+        Args:
+            fn: A module-level function.
+            *args: Its arguments.
+
+        Returns:
+            What ``fn`` returned.
+
+        Raises:
+            ProblemError: What ``fn`` raised, as its problem (:func:`failure_of`), or 503
+                ``unavailable`` when the process died while validating, or is stopped.
+        """
+        pool = self._running()
+        try:
+            future = pool.submit(_parse_remotely, fn, *args)  # raises if it died while idle
+            outcome, value = await asyncio.wrap_future(future)
+        except BrokenProcessPool:  # it died (e.g. killed for memory): the next body gets a new one
+            with self._lock:
+                if self._pool is pool:
+                    self._pool = None
+            raise ProblemError("unavailable", "the process that validates large bodies died "
+                                              "while validating this one; retry") from None
+        if outcome == "failed":
+            raise ProblemError.from_dict(value)
+        return value
+
+    def _running(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if not self._open:
+                raise ProblemError("unavailable", "the service is not running (starting or "
+                                   "stopping); retry", headers={"Retry-After": "5"})
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    1, mp_context=multiprocessing.get_context("forkserver"))
+            return self._pool
+
+
+async def off_loop(parser: ParserPool, size: int, fn: Any, *args: Any) -> Any:
+    """Run ``fn(*args)`` where its input's size allows without stalling the event loop.
+
+    Args:
+        parser: The app's parser process.
+        size: The input's size in bytes.
+        fn: The parse; it and its arguments and result must pickle.
+        *args: Its arguments.
+
+    Returns:
+        What ``fn`` returned: computed here when the input is small, in a thread when it is
+        larger than THREAD_THRESHOLD bytes (then the memory of the parse is given back to
+        the system before answering), in ``parser`` when it is larger than
+        PROCESS_THRESHOLD.
+    """
     if size <= THREAD_THRESHOLD:
         return fn(*args)
     if size > PROCESS_THRESHOLD:
         try:
-            return await _in_parser_process(fn, *args)
+            return await parser.run(fn, *args)
         finally:
             release_memory()  # the pickled copy of the body sent to the parser
     result, error = await anyio.to_thread.run_sync(_capture, fn, *args)
@@ -244,61 +414,17 @@ async def off_loop(size: int, fn: Any, *args: Any) -> Any:
     return result
 
 
-_parser: ProcessPoolExecutor | None = None
-_parser_lock = threading.Lock()
-
-
-def _parser_pool() -> ProcessPoolExecutor:
-    """The parser process (one, started on first use, replaced if it dies)."""
-    global _parser
-    with _parser_lock:
-        if _parser is None:
-            _parser = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("forkserver"))
-        return _parser
-
-
-def stop_parser() -> None:
-    """End the parser process (the app's shutdown; blocking, at most ~2 s): a body being
-    validated is abandoned (its request is being answered 503 by the stopping server)."""
-    global _parser
-    with _parser_lock:
-        pool, _parser = _parser, None
-    if pool is None:
-        return
-    processes = list(getattr(pool, "_processes", {}).values())  # no public handle on them
-    pool.shutdown(wait=False, cancel_futures=True)
-    for process in processes:
-        process.kill()
-    for process in processes:
-        process.join(2.0)
-
-
-async def _in_parser_process(fn: Any, *args: Any) -> Any:
-    """``fn(*args)`` in the parser process; its :class:`ProblemError` is raised here."""
-    global _parser
-    pool = _parser_pool()
-    try:
-        future = pool.submit(_parse_remotely, fn, *args)  # raises if it died while idle
-        outcome, value = await asyncio.wrap_future(future)
-    except BrokenProcessPool:  # it died (e.g. killed for memory): the next body gets a new one
-        with _parser_lock:
-            if _parser is pool:
-                _parser = None
-        raise ProblemError("unavailable", "the process that validates large bodies died "
-                                          "while validating this one; retry") from None
-    if outcome == "failed":
-        raise from_failure(value)
-    return value
-
-
 def _parse_remotely(fn: Any, *args: Any) -> tuple[str, Any]:
-    """In the parser process: ``fn(*args)`` as ``("ok", result)`` or ``("failed", failure
-    dict)`` (:func:`service.worker.runtime.describe_error`, the workers' own picklable form
-    of an error); then its heap goes back."""
+    """``fn(*args)`` in the parser process, then its heap goes back.
+
+    Returns:
+        ``("ok", result)`` or ``("failed", failure dict)`` (:func:`failure_of`, the workers'
+        own picklable form of an error).
+    """
     try:
         return "ok", fn(*args)
     except Exception as exc:
-        return "failed", describe_error(exc)
+        return "failed", failure_of(exc)
     finally:
         gc.collect()
         release_memory()
@@ -315,7 +441,15 @@ def _capture(fn: Any, *args: Any) -> tuple[Any, BaseException | None]:
 
 
 def unsupported_media_type(mtype: str) -> ProblemError:
+    """The 415 problem of a media type an endpoint does not take.
+
+    Args:
+        mtype: The request's media type.
+
+    Returns:
+        The problem, naming the media types it takes.
+    """
     return ProblemError("unsupported-media-type",
                         f"Content-Type {mtype!r} is not supported; send application/json, "
                         f"multipart/form-data with the mesh in `file`, or {BINARY_MEDIA_TYPE}",
-                        errors=[{"field": "Content-Type", "index": None, "reason": mtype}])
+                        errors=[element_error("Content-Type", mtype)])

@@ -8,6 +8,7 @@ them too.
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 from typing import Annotated
 
@@ -15,19 +16,42 @@ from fastapi import Depends
 from starlette.requests import HTTPConnection
 
 from service.backends.contracts import Backend, Executor, JobService, SessionBackend
+from service.http.bodies import ParserPool
 from service.http.metrics import ServiceMetrics
 from service.settings import Settings
 
 
 @dataclass
 class Services:
-    """Everything the routes use: the settings, the backend, the metrics; ``started`` is
-    True between the lifespan's start and stop."""
+    """Everything the routes use, started and stopped together by the app's lifespan.
+
+    Attributes:
+        settings: The service's settings.
+        backend: The compute backend (workers, jobs, sessions).
+        metrics: The Prometheus metrics.
+        parser: The process that validates the largest bodies (:mod:`service.http.bodies`).
+        started: True between :meth:`start` and :meth:`stop`.
+    """
 
     settings: Settings
     backend: Backend
     metrics: ServiceMetrics = field(default_factory=ServiceMetrics)
+    parser: ParserPool = field(default_factory=ParserPool)
     started: bool = False
+
+    async def start(self) -> None:
+        """Start the backend, then open the parser."""
+        await self.backend.start()
+        self.parser.start()
+        self.started = True
+
+    async def stop(self) -> None:
+        """Stop the backend (its workers, jobs and sessions), then end the parser process."""
+        self.started = False
+        try:
+            await self.backend.stop()
+        finally:
+            await asyncio.to_thread(self.parser.stop)
 
 
 def services(connection: HTTPConnection) -> Services:
@@ -55,9 +79,14 @@ def metrics(connection: HTTPConnection) -> ServiceMetrics:
     return services(connection).metrics
 
 
+def parser(connection: HTTPConnection) -> ParserPool:
+    return services(connection).parser
+
+
 ServicesDep = Annotated[Services, Depends(services)]
 SettingsDep = Annotated[Settings, Depends(settings)]
 ExecutorDep = Annotated[Executor, Depends(executor)]
 JobsDep = Annotated[JobService, Depends(jobs)]
 SessionsDep = Annotated[SessionBackend, Depends(sessions)]
 MetricsDep = Annotated[ServiceMetrics, Depends(metrics)]
+ParserDep = Annotated[ParserPool, Depends(parser)]

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import orjson
 
-from service.api.problems import ProblemError
+from service.api.problems import ProblemError, element_error
 from service.api.schemas import MAX_MAGNITUDE, SessionDrag
 from service.http.bodies import validate_object
 
@@ -31,7 +31,7 @@ WS_HEADER = struct.Struct("<II")
 
 def _bad(field: str, reason: str, index: int | None = None) -> ProblemError:
     return ProblemError("validation-error", f"{field}: {reason}",
-                        errors=[{"field": field, "index": index, "reason": reason}])
+                        errors=[element_error(field, reason, index)])
 
 
 def _check_finite(values: np.ndarray, field: str) -> None:

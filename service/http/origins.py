@@ -19,7 +19,7 @@ from urllib.parse import urlsplit
 from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from service.api.problems import ProblemError
+from service.api.problems import ProblemError, element_error
 from service.http.problems import problem_response
 
 DEFAULT_PORTS = {"http": 80, "https": 443, "ws": 80, "wss": 443}
@@ -72,7 +72,7 @@ class OriginMiddleware:
         problem = ProblemError(
             "forbidden-origin", f"requests from the web origin {origin!r} are not allowed; "
             "the service accepts its own origin and those in FFS_CORS_ORIGINS",
-            errors=[{"field": "Origin", "index": None, "reason": "not an allowed origin"}])
+            errors=[element_error("Origin", "not an allowed origin")])
         if scope["type"] == "websocket":
             await send({"type": "websocket.http.response.start", "status": 403,
                         "headers": [(b"content-type", b"application/problem+json")]})

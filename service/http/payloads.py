@@ -7,8 +7,8 @@ job) or a :class:`~service.api.task.SessionSpec` (a session), built once, here.
 * A multipart upload: the form fields are validated here against the operation's params
   model; the files go to the worker, which reads them.
 * A JSON job and a session body are parsed here (the job's ``operation`` and the session's
-  handles are needed before anything runs), in a thread when they are large
-  (:func:`service.http.bodies.off_loop`).
+  handles are needed before anything runs), in a thread when they are large and in the
+  app's parser process when they are larger still (:func:`service.http.bodies.off_loop`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from service.api.decoding import (
     decode_json,
     parse_json,
 )
-from service.api.problems import ProblemError
+from service.api.problems import ProblemError, element_error
 from service.api.schemas import JobRequest, SessionParams
 from service.api.task import (
     Limits,
@@ -38,6 +38,7 @@ from service.api.task import (
     TaskRequest,
 )
 from service.http.bodies import (
+    ParserPool,
     as_arrays,
     is_json,
     media_type,
@@ -54,12 +55,33 @@ from service.settings import Settings
 
 
 def limits(settings: Settings) -> Limits:
+    """The size and work limits a task carries to its worker.
+
+    Args:
+        settings: FFS_MAX_VERTICES, FFS_MAX_FACES and FFS_MAX_BLEND_STEPS.
+
+    Returns:
+        The limits.
+    """
     return Limits(settings.max_vertices, settings.max_faces, settings.max_blend_steps)
 
 
 async def operation_request(request: Request, spec: OperationSpec, settings: Settings,
                             output: Output) -> TaskRequest:
-    """The task of a synchronous operation request (JSON, binary or multipart)."""
+    """The task of a synchronous operation request.
+
+    Args:
+        request: The request (JSON, binary or multipart).
+        spec: The operation.
+        settings: The limits and the solver backend.
+        output: The negotiated result format.
+
+    Returns:
+        The task (a JSON or binary body goes to the worker unparsed).
+
+    Raises:
+        ProblemError: 415 for another media type; the problems of reading the body.
+    """
     mtype = media_type(request)
     if mtype == "multipart/form-data":
         fields, files = await read_form(request, settings)
@@ -75,13 +97,28 @@ async def operation_request(request: Request, spec: OperationSpec, settings: Set
 async def form_request(spec: OperationSpec, fields: dict[str, Any],
                        files: dict[str, UploadFile], settings: Settings,
                        output: Output) -> TaskRequest:
-    """The task of a multipart upload (mesh file(s) + JSON-encoded form fields)."""
+    """The task of a multipart upload.
+
+    Args:
+        spec: The operation.
+        fields: The JSON-decoded form fields, validated here against its params.
+        files: The uploaded mesh file(s), read by the worker.
+        settings: The limits and the solver backend.
+        output: The negotiated result format.
+
+    Returns:
+        The task.
+
+    Raises:
+        ProblemError: 422 for a missing or unexpected file or an invalid field; the
+            problems of :func:`service.http.bodies.upload`.
+    """
     missing = [n for n in spec.files if n not in files]
     unexpected = [n for n in files if n not in spec.files]
     if missing or unexpected:
-        errors = [{"field": n, "index": None, "reason": "a mesh file is required"}
+        errors = [element_error(n, "a mesh file is required")
                   for n in missing]
-        errors += [{"field": n, "index": None, "reason": f"unexpected file (use {spec.files})"}
+        errors += [element_error(n, f"unexpected file (use {spec.files})")
                    for n in unexpected]
         raise ProblemError("validation-error", errors[0]["field"] + ": " + errors[0]["reason"],
                            errors=errors)
@@ -93,10 +130,12 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
                        settings.solver_backend, output)
 
 
-async def job_request(request: Request, settings: Settings) -> tuple[str | None, TaskRequest]:
+async def job_request(request: Request, settings: Settings, parser: ParserPool
+                      ) -> tuple[str | None, TaskRequest]:
     """(colour, task) of ``POST /v1/jobs``: JSON ``{"operation", "input", "color"?}`` (the
-    input validated like the synchronous body) or a multipart upload with ``operation``
-    and ``color`` fields. The task keeps its mesh arrays and the wanted colour for later."""
+    input validated like the synchronous body, in ``parser`` when it is large) or a
+    multipart upload with ``operation`` and ``color`` fields. The task keeps its mesh arrays
+    and the wanted colour for later."""
     mtype = media_type(request)
     if mtype == "multipart/form-data":
         fields, files = await read_form(request, settings)
@@ -106,7 +145,7 @@ async def job_request(request: Request, settings: Settings) -> tuple[str | None,
                                   Output())
     elif is_json(mtype):
         body = await read_body(request, settings)
-        head, task = await off_loop(len(body), _json_job, body, settings)
+        head, task = await off_loop(parser, len(body), _json_job, body, settings)
     else:
         raise unsupported_media_type(mtype)
     return head.color, task.with_output(Output(compute=(head.color,) if head.color else (),
@@ -122,13 +161,15 @@ def _json_job(body: bytes, settings: Settings) -> tuple[JobRequest, TaskRequest]
                              settings.solver_backend)
 
 
-async def session_spec(request: Request, settings: Settings) -> SessionSpec:
-    """The spec of ``POST /v1/sessions`` (JSON only; the mesh is validated as arrays)."""
+async def session_spec(request: Request, settings: Settings, parser: ParserPool
+                       ) -> SessionSpec:
+    """The spec of ``POST /v1/sessions`` (JSON only; the mesh is validated as arrays, in
+    ``parser`` when the body is large)."""
     mtype = media_type(request)
     if not is_json(mtype):
         raise unsupported_media_type(mtype)
     body = await read_body(request, settings)
-    spec: SessionSpec = await off_loop(len(body), _session_spec, body, settings)
+    spec: SessionSpec = await off_loop(parser, len(body), _session_spec, body, settings)
     return spec
 
 

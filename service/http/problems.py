@@ -5,7 +5,8 @@ Every error response is an ``application/problem+json`` document
 (:meth:`service.api.problems.ProblemError.to_dict`); ``GET /problems/{kind}`` describes
 each kind. :func:`problem_for` is where the backends' domain errors
 (:mod:`service.backends.errors`) and task failures become problems, so no backend knows
-about HTTP.
+about HTTP; a solver error raised in this process becomes its problem by
+:func:`service.api.problems.problem_of`, as in a worker.
 """
 
 from __future__ import annotations
@@ -22,12 +23,7 @@ from starlette.requests import ClientDisconnect
 from starlette.responses import Response
 from starlette.routing import Match
 
-from service.api.problems import (
-    ProblemError,
-    from_failure,
-    from_solver_error,
-    from_validation_errors,
-)
+from service.api.problems import ProblemError, from_validation_errors, problem_of
 from service.backends import errors as backend
 from solver.errors import SolverInputError
 
@@ -40,9 +36,17 @@ RETRY_SOON = {"Retry-After": "5"}
 
 
 def problem_for(exc: backend.BackendError) -> ProblemError:
-    """The problem document a backend failure answers with."""
+    """The problem a backend failure answers with.
+
+    Args:
+        exc: The backend's failure; a :class:`~service.backends.errors.TaskFailedError`
+            carries the task's failure dict.
+
+    Returns:
+        The problem (its status, detail, headers such as Retry-After, and extensions).
+    """
     if isinstance(exc, backend.TaskFailedError):
-        return from_failure(exc.error)  # an internal one was logged where it happened
+        return ProblemError.from_dict(exc.error)  # an internal one was logged where it was
     if isinstance(exc, backend.QueueFullError):
         return ProblemError("queue-full", str(exc),
                             headers={"Retry-After": str(exc.retry_after)},
@@ -81,7 +85,15 @@ def problem_for(exc: backend.BackendError) -> ProblemError:
 
 
 def problem_response(problem: ProblemError, instance: str | None = None) -> Response:
-    """An ``application/problem+json`` response for ``problem``."""
+    """The ``application/problem+json`` response of a problem.
+
+    Args:
+        problem: The problem.
+        instance: The request path it answers.
+
+    Returns:
+        The response, with the problem's status and headers.
+    """
     body = orjson.dumps(problem.to_dict(instance), option=orjson.OPT_SERIALIZE_NUMPY,
                         default=_fallback)
     return Response(body, status_code=problem.status, media_type=PROBLEM_MEDIA_TYPE,
@@ -98,8 +110,17 @@ METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
 
 
 def allowed_methods(request: Request) -> list[str]:
-    """Every method some route of the app serves at the request's path (Starlette's 405
-    names only the first matching route's, e.g. ``GET`` where ``DELETE`` is served too)."""
+    """Every method some route of the app serves at the request's path.
+
+    Starlette's 405 names only the first matching route's (``GET`` where ``DELETE`` is
+    served too).
+
+    Args:
+        request: The request answered 405.
+
+    Returns:
+        The methods, in :data:`METHODS` order.
+    """
     routes = request.app.router.routes
     return [method for method in METHODS
             if any(route.matches({**request.scope, "method": method})[0] == Match.FULL
@@ -107,7 +128,11 @@ def allowed_methods(request: Request) -> list[str]:
 
 
 def install_handlers(app: FastAPI) -> None:
-    """Register handlers so that every error leaves the app as a problem document."""
+    """Register handlers so that every error leaves the app as a problem document.
+
+    Args:
+        app: The application.
+    """
 
     async def on_problem(request: Request, exc: Exception) -> Response:
         assert isinstance(exc, ProblemError)
@@ -127,7 +152,7 @@ def install_handlers(app: FastAPI) -> None:
 
     async def on_solver_error(request: Request, exc: Exception) -> Response:
         assert isinstance(exc, SolverInputError)
-        return problem_response(from_solver_error(exc.to_dict(), str(exc)), request.url.path)
+        return problem_response(problem_of(exc), request.url.path)
 
     async def on_http(request: Request, exc: Exception) -> Response:
         assert isinstance(exc, StarletteHTTPException)

@@ -3,9 +3,10 @@
 A process of this service (a local pool worker, a session process) calls
 :func:`start_worker_process` first, a Dask worker :func:`initialize_worker` once; then
 :func:`service.operations.run` per task, which times its stages with :class:`StageClock`.
-A task's failure leaves the process as a plain dict (:func:`describe_error`), never as a
-pickled exception; :func:`service.api.problems.from_failure` turns it back into a problem
-on the HTTP side.
+A task's failure leaves the process as a plain dict
+(:func:`service.api.problems.failure_of`), never as a pickled exception;
+:meth:`service.api.problems.ProblemError.from_dict` turns it back into the problem on the
+HTTP side.
 """
 
 from __future__ import annotations
@@ -15,11 +16,8 @@ import logging
 import os
 import signal
 import time
-import traceback
 from collections.abc import Callable
 from typing import Any
-
-from service.api.problems import ProblemError
 
 Progress = Callable[..., None]
 ITERATION_FIELDS: tuple[str, ...] = ("iteration", "factorizations", "energy", "seconds")
@@ -89,38 +87,3 @@ class StageClock:
     def finish(self) -> dict[str, float]:
         self._lap(None)
         return self.timings
-
-
-# ------------------------------------------------------------------------------ failures
-
-
-def describe_error(exc: BaseException) -> dict[str, Any]:
-    """A picklable description of a task failure ("a failure": category ``input``,
-    ``problem`` or ``internal``; see :func:`service.api.problems.from_failure`)."""
-    from solver.errors import SolverInputError
-
-    if isinstance(exc, SolverInputError):
-        return {"category": "input", "error": exc.to_dict(), "message": str(exc)}
-    problem = exc if isinstance(exc, ProblemError) else _client_caused(exc)
-    if problem is not None:
-        return {"category": "problem", "kind": problem.kind, "status": problem.status,
-                "detail": problem.detail, "errors": problem.errors,
-                "extensions": problem.extensions}
-    logger.error("task failed: %s: %s", type(exc).__name__, exc, exc_info=exc)
-    return {"category": "internal", "exception": type(exc).__name__, "message": str(exc),
-            "traceback": traceback.format_exc()}
-
-
-def _client_caused(exc: BaseException) -> ProblemError | None:
-    """Client-caused solver failures that are not SolverInputErrors."""
-    from solver import linalg
-
-    if isinstance(exc, linalg.BackendUnavailableError):
-        return ProblemError("invalid-option", str(exc), errors=[
-            {"field": "options.solver", "index": None, "reason": str(exc)}])
-    if isinstance(exc, linalg.SingularSystemError):
-        return ProblemError("singular-system", f"the linear system is singular: {exc}",
-                            errors=[{"field": "constraints", "index": None, "reason": str(exc)}])
-    if isinstance(exc, MemoryError):
-        return ProblemError("mesh-too-large", "the input needs more memory than is available")
-    return None

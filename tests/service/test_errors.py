@@ -9,9 +9,8 @@ import pytest
 from helpers.servers import running_app
 from helpers.service import forms_json, icosphere, mesh_json, problem
 
-from service.api.problems import PROBLEM_KINDS, from_failure
+from service.api.problems import PROBLEM_KINDS, ProblemError, failure_of
 from service.api.schemas import EXAMPLE_FORMS, EXAMPLE_MESH
-from service.worker.runtime import describe_error
 from solver.errors import ERROR_KINDS
 
 S2 = 1.4142135623730951
@@ -89,7 +88,7 @@ def test_every_solver_error_kind_maps_to_422():
     for cls in ERROR_KINDS:
         assert PROBLEM_KINDS[cls.kind][0] == 422
         exc = cls("something is wrong", field="faces", index=17, details={"value": 9001})
-        doc = from_failure(describe_error(exc)).to_dict("/v1/forms")
+        doc = ProblemError.from_dict(failure_of(exc)).to_dict("/v1/forms")
         assert doc["status"] == 422 and doc["type"] == f"/problems/{cls.kind}"
         assert doc["errors"] == [{"field": "faces", "index": 17,
                                   "reason": "something is wrong", "value": 9001}]

@@ -4,6 +4,7 @@ replaced (its body answered 503 ``unavailable``, the next one validated again)."
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import time
@@ -74,9 +75,10 @@ def test_a_dead_parser_is_replaced(client):
     V, F = big_grid()
     body = job_body(V, F)
     assert client.post("/v1/jobs", json=body).status_code == 202  # the parser runs
-    pool = bodies._parser
-    assert pool is not None
-    for pid in list(pool._processes):
+    parser = client.app.state.services.parser
+    dead = parser.pids()
+    assert dead
+    for pid in dead:
         os.kill(pid, signal.SIGKILL)
     answers = [client.post("/v1/jobs", json=body) for _ in range(2)]
     codes = [a.status_code for a in answers]
@@ -85,4 +87,22 @@ def test_a_dead_parser_is_replaced(client):
     assert codes[-1] == 202, answers[-1].text[:300]
     if codes[0] != 202:
         assert problem(answers[0], 503, "unavailable")["detail"].startswith("the process")
-    assert bodies._parser is not pool
+    assert parser.pids() and not set(parser.pids()) & set(dead)
+
+
+def test_the_parser_starts_and_stops_with_the_service():
+    from service.api.problems import ProblemError
+
+    body = job_body(*big_grid())
+    with running_app(workers=1, max_faces=1_000_000) as c:
+        parser = c.app.state.services.parser
+        assert parser.pids() == []  # its process starts with the first large body
+        assert c.post("/v1/jobs", json=body).status_code == 202
+        pids = parser.pids()
+        assert len(pids) == 1
+    assert parser.pids() == []  # stopped with the backend, in the lifespan's end
+    with pytest.raises(ProcessLookupError):
+        os.kill(pids[0], 0)
+    with pytest.raises(ProblemError) as info:
+        asyncio.run(parser.run(len, b"x"))
+    assert info.value.kind == "unavailable" and info.value.status == 503

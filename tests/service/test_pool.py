@@ -116,8 +116,9 @@ def test_process_executor_directly():
             failing = await executor.submit(debug_task("debug.raise", message="kaput"))
             with pytest.raises(TaskFailedError) as info:
                 await failing.future
-            assert info.value.error["category"] == "internal"
-            assert info.value.error["exception"] == "RuntimeError"
+            assert info.value.error["kind"] == "internal-error"
+            assert info.value.error["status"] == 500
+            assert "kaput" not in str(info.value.error)  # logged in the worker, not shown
 
             crash = await executor.submit(debug_task("debug.crash", code=7))
             with pytest.raises(WorkerDiedError, match="exit code 7"):

@@ -15,6 +15,7 @@ import time
 import uuid
 from typing import Any
 
+from service.api.problems import failure_of
 from service.api.task import TaskRequest
 from service.backends.admission import retry_after
 from service.backends.contracts import TaskHandle
@@ -130,9 +131,7 @@ class DaskExecutor:
             elif isinstance(exc, OSError):
                 settle(handle, exc=ExecutorClosedError(f"lost the Dask scheduler: {exc}"))
             else:
-                settle(handle, exc=TaskFailedError({
-                    "category": "internal", "exception": type(exc).__name__,
-                    "message": f"the task failed on the cluster: {exc}"}))
+                settle(handle, exc=TaskFailedError(failure_of(exc)))  # logged there
         else:
             self._durations = [*self._durations[-49:], time.monotonic() - start]
             if value.get("ok"):

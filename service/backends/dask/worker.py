@@ -65,14 +65,14 @@ def run_task(request: TaskRequest, job_id: str | None = None,
              threads: int = 1) -> dict[str, Any]:
     """A task on a Dask worker: ``{"ok": True, "result"}`` or ``{"ok": False, "error"}``."""
     from service import operations
-    from service.worker import runtime
+    from service.api.problems import failure_of
 
     _init_worker(threads)
     report = _EventProgress(job_id) if job_id else None
     try:
         result = operations.run(request, report or (lambda stage, fraction, detail=None: None))
     except Exception as exc:
-        error = runtime.describe_error(exc)
+        error = failure_of(exc)
         if report is not None:
             report.fail(error)
         return {"ok": False, "error": error}
@@ -100,7 +100,7 @@ class _Refinery:
 
     def step(self) -> bool:
         """One slice of the pending drag's refinement; False when there is none."""
-        from service.worker import runtime
+        from service.api.problems import failure_of
 
         while self.waiting:  # a drag or a poll is waiting: let it in
             time.sleep(0.0005)
@@ -117,7 +117,7 @@ class _Refinery:
                 refined = self.state.refine_slice(self.slice)
             except Exception as exc:
                 self.state.pending = None
-                self.refined = (pending.drag, runtime.describe_error(exc))
+                self.refined = (pending.drag, failure_of(exc))
             else:
                 if refined is not None:
                     self.refined = (refined.drag, refined)
@@ -143,7 +143,7 @@ class SessionActor:
                  refine_slice: float = 0.05) -> None:
         from distributed import get_worker
 
-        from service.worker import runtime
+        from service.api.problems import failure_of
         from service.worker.session import SessionState
 
         _init_worker(threads)
@@ -156,7 +156,7 @@ class SessionActor:
         try:
             self.state = SessionState(spec, refine_seconds)
         except Exception as exc:
-            self.error = runtime.describe_error(exc)
+            self.error = failure_of(exc)
         else:
             if self.state.progressive:
                 self.refinery = _Refinery(self.state, refine_slice)
@@ -172,7 +172,7 @@ class SessionActor:
 
     def solve(self, positions: np.ndarray, rotations: np.ndarray | None,
               fmt: str) -> tuple[str, Any, Any]:
-        from service.worker import runtime
+        from service.api.problems import failure_of
 
         assert self.state is not None
         refinery = self.refinery
@@ -180,7 +180,7 @@ class SessionActor:
             try:
                 body, timings, drag = self.state.solve(positions, rotations, fmt)
             except Exception as exc:
-                return ("error", runtime.describe_error(exc), None)
+                return ("error", failure_of(exc), None)
             return ("ok", body, timings, drag, False)
         refinery.waiting += 1
         try:
@@ -189,7 +189,7 @@ class SessionActor:
                 try:
                     body, timings, drag = self.state.solve(positions, rotations, fmt)
                 except Exception as exc:
-                    return ("error", runtime.describe_error(exc), None)
+                    return ("error", failure_of(exc), None)
                 refinery.refined = None
                 refining = self.state.pending is not None
         finally:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
+from service.api.problems import failure_of
 from service.api.task import TaskRequest
 from service.backends.admission import retry_after
 from service.backends.contracts import ProgressCallback, StartCallback, TaskHandle
@@ -49,6 +50,7 @@ def _worker_main(conn: Connection, threads: int) -> None:
 
     runtime.start_worker_process(threads)
     from service import operations
+    from service.api.problems import failure_of
 
     try:
         conn.send(("ready", os.getpid()))
@@ -74,7 +76,7 @@ def _worker_main(conn: Connection, threads: int) -> None:
             except OSError:
                 raise
             except Exception as exc:
-                conn.send(("error", task_id, runtime.describe_error(exc)))
+                conn.send(("error", task_id, failure_of(exc)))
         except OSError:  # the pipe is gone: the service stopped
             break
         request = message = result = None  # drop the task's data before trimming the heap
@@ -267,11 +269,9 @@ class ProcessExecutor:
                 self._pending.appendleft(task)
                 continue
             except Exception as exc:  # e.g. an unpicklable request
-                logger.exception("could not send task %s to a worker", task.id)
+                logger.error("could not send task %s to a worker", task.id)
                 worker.task, task.worker = None, None
-                self._fail(task, TaskFailedError({
-                    "category": "internal", "exception": type(exc).__name__,
-                    "message": f"could not send the task to a worker: {exc}"}))
+                self._fail(task, TaskFailedError(failure_of(exc)))  # logs its traceback
                 continue
             task.request = None
             if task.on_start is not None:
@@ -347,8 +347,8 @@ class ProcessExecutor:
 
 
 def _unreadable(exc: Exception) -> Message:
-    return ("error", None, {"category": "internal", "exception": type(exc).__name__,
-                            "message": f"unreadable worker message: {exc}"})
+    logger.error("unreadable worker message")
+    return ("error", None, failure_of(exc))
 
 
 def _safe_call(fn: Callable[..., None], *args: Any) -> None:

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
+from service.api.problems import failure_of
 from service.api.task import SessionSpec
 from service.backends import errors
 from service.backends.admission import SessionSlot, admit_session, estimate_memory
@@ -43,6 +44,7 @@ def _session_main(conn: Connection, threads: int, refine_seconds: float = 30.0,
     from service.worker import runtime
 
     runtime.start_worker_process(threads)
+    from service.api.problems import failure_of
     from service.worker.session import SessionState
 
     try:
@@ -50,7 +52,7 @@ def _session_main(conn: Connection, threads: int, refine_seconds: float = 30.0,
         try:
             state = SessionState(spec, refine_seconds)
         except Exception as exc:
-            conn.send(("error", runtime.describe_error(exc)))
+            conn.send(("error", failure_of(exc)))
             return
         del spec
         conn.send(("ready", state.info(), process_memory()))
@@ -61,7 +63,7 @@ def _session_main(conn: Connection, threads: int, refine_seconds: float = 30.0,
                     refined = state.refine_slice(refine_slice)
                 except Exception as exc:
                     state.pending = None
-                    conn.send(("refine-error", drag, runtime.describe_error(exc)))
+                    conn.send(("refine-error", drag, failure_of(exc)))
                 else:
                     if refined is not None:
                         conn.send(("refined", refined))
@@ -73,7 +75,7 @@ def _session_main(conn: Connection, threads: int, refine_seconds: float = 30.0,
             try:
                 body, timings, drag = state.solve(positions, rotations, fmt)
             except Exception as exc:
-                conn.send(("error", runtime.describe_error(exc)))
+                conn.send(("error", failure_of(exc)))
             else:
                 conn.send(("ok", body, timings, drag, state.pending is not None))
     except (EOFError, OSError):  # the service went away
@@ -395,5 +397,5 @@ def _wait_ready(proc: WorkerProcess, timeout: float) -> Message | None:
 
 
 def _unreadable(exc: Exception) -> Message:
-    return ("error", {"category": "internal", "exception": type(exc).__name__,
-                      "message": f"unreadable session reply: {exc}"})
+    logger.error("unreadable session reply")
+    return ("error", failure_of(exc))

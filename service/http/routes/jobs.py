@@ -10,20 +10,21 @@ from fastapi import APIRouter, Path, Query, Request
 from starlette.responses import JSONResponse, Response
 
 from service.api.documents import JobStatus
-from service.api.problems import ProblemError, from_failure
+from service.api.problems import ProblemError, element_error
 from service.api.schemas import ColorField
 from service.api.task import TaskResult
 from service.backends.contracts import JobService
 from service.backends.jobs import Job
-from service.http.dependencies import JobsDep, SettingsDep
+from service.http.dependencies import JobsDep, ParserDep, SettingsDep
 from service.http.negotiation import MESH_FORMATS
 from service.http.openapi import created, error_responses, jobs_body
 from service.http.payloads import job_request
+from service.http.routes import API_PREFIX, model_response, path_to
 from service.http.routes.operations import check_color, format_query, formats, result_format
 from service.operations import OPERATIONS
-from service.worker.output import MEDIA_TYPES, colors_for, json_bytes, mesh_bytes, with_colors
+from service.worker.output import MEDIA_TYPES, colors_for, mesh_bytes, with_colors
 
-router = APIRouter(tags=["jobs"])
+router = APIRouter(prefix=API_PREFIX, tags=["jobs"])
 
 JobId = Annotated[str, Path(description="Job id (from the Location header).")]
 ColorQuery = Annotated[ColorField | None, Query(
@@ -52,25 +53,37 @@ def _iso(timestamp: float | None) -> str | None:
         "+00:00", "Z")
 
 
-def job_document(job: Job) -> dict[str, Any]:
-    """The ``GET /v1/jobs/{id}`` document (``JobStatus``); a failure as a problem document."""
-    base = f"/v1/jobs/{job.id}"
-    error = None if job.error is None else from_failure(job.error).to_dict(base)
-    return {
-        "id": job.id, "operation": job.operation, "status": job.status,
-        "progress": {"stage": job.stage, "fraction": round(job.fraction, 4),
-                     "stages": dict(job.stages), "refinement": job.refinement},
-        "timings": dict(job.timings),
-        "created_at": _iso(job.created_at), "started_at": _iso(job.started_at),
-        "finished_at": _iso(job.finished_at), "expires_at": _iso(job.expires_at),
-        "error": error, "links": {"self": base, "result": f"{base}/result"},
-    }
+def job_document(job: Job) -> JobStatus:
+    """The document of ``GET /v1/jobs/{id}``.
+
+    Args:
+        job: The job's record.
+
+    Returns:
+        Its state, progress, timings and links; a failure as its problem document.
+    """
+    base = path_to(router, "get_job", job_id=job.id)
+    return JobStatus(
+        id=job.id, operation=job.operation, status=job.status,
+        progress={"stage": job.stage, "fraction": round(job.fraction, 4),
+                  "stages": dict(job.stages), "refinement": job.refinement},
+        timings=dict(job.timings),
+        created_at=_iso(job.created_at), started_at=_iso(job.started_at),
+        finished_at=_iso(job.finished_at), expires_at=_iso(job.expires_at),
+        error=_failure_document(job),
+        links={"self": base, "result": path_to(router, "get_result", job_id=job.id)})
+
+
+def _failure_document(job: Job) -> dict[str, Any] | None:
+    """The problem document of a failed job's failure (its instance the job), or None."""
+    if job.error is None:
+        return None
+    return ProblemError.from_dict(job.error).to_dict(path_to(router, "get_job", job_id=job.id))
 
 
 def _status_response(job: Job, status_code: int = 200,
                      headers: dict[str, str] | None = None) -> Response:
-    return Response(json_bytes(job_document(job)), status_code=status_code,
-                    media_type="application/json", headers=headers)
+    return model_response(job_document(job), status_code, headers)
 
 
 async def _get(jobs: JobsDep, job_id: str) -> Job:
@@ -80,7 +93,7 @@ async def _get(jobs: JobsDep, job_id: str) -> Job:
     return job
 
 
-@router.post("/v1/jobs", status_code=202, response_model=JobStatus, summary="Submit a job",
+@router.post("/jobs", status_code=202, response_model=JobStatus, summary="Submit a job",
              description="Queues an operation and answers 202 with Location: /v1/jobs/{id}. "
                          "JSON: `{\"operation\", \"input\", \"color\"?}` where `input` is the "
                          "body the synchronous endpoint takes. Multipart: form fields "
@@ -91,16 +104,17 @@ async def _get(jobs: JobsDep, job_id: str) -> Job:
                                      {"GetJob": "get_job", "GetJobResult": "get_job_result",
                                       "DeleteJob": "delete_job"}),
                         **error_responses(400, 408, 413, 415, 422, 429, 503)})
-async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep) -> Response:
-    color, task = await job_request(request, settings)
+async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep,
+                     parser: ParserDep) -> Response:
+    color, task = await job_request(request, settings, parser)
     check_color(OPERATIONS[task.operation], color)
     task = task.with_deadline(settings.job_timeout)  # refinement stops in time (a result)
     job = await jobs.submit(task, color=color,
                             owner=request.client.host if request.client else None)
-    return _status_response(job, 202, {"Location": f"/v1/jobs/{job.id}"})
+    return _status_response(job, 202, {"Location": path_to(router, "get_job", job_id=job.id)})
 
 
-@router.get("/v1/jobs/{job_id}", response_model=JobStatus, summary="Job status",
+@router.get("/jobs/{job_id}", response_model=JobStatus, summary="Job status",
             operation_id="get_job",
             description="State, progress by stage with fractions, timings and the error "
                         "(a problem document) of a job.",
@@ -109,7 +123,7 @@ async def get_job(jobs: JobsDep, job_id: JobId) -> Response:
     return _status_response(await _get(jobs, job_id))
 
 
-@router.get("/v1/jobs/{job_id}/result", summary="Job result", operation_id="get_job_result",
+@router.get("/jobs/{job_id}/result", summary="Job result", operation_id="get_job_result",
             description="The result with the same content negotiation as the synchronous "
                         "endpoint (JSON, GLB, glTF; `?color=`). 409 while the job is not "
                         "finished, or when it failed or was cancelled.",
@@ -123,7 +137,7 @@ async def get_result(request: Request, jobs: JobsDep, job_id: JobId,
                          color, jobs)
 
 
-@router.get("/v1/jobs/{job_id}/mesh", summary="Job result as a glTF file",
+@router.get("/jobs/{job_id}/mesh", summary="Job result as a glTF file",
             operation_id="get_job_mesh",
             description="The mesh of a finished job as GLB (default) or glTF: the bytes of "
                         "`GET /v1/jobs/{id}/result?format=glb|gltf`, declared as a file "
@@ -137,7 +151,8 @@ async def get_mesh(jobs: JobsDep, job_id: JobId, color: ColorQuery = None,
     job = await _get(jobs, job_id)
     if not OPERATIONS[job.operation].mesh_result:
         raise ProblemError("not-acceptable", f"a {job.operation} job has no mesh result; use "
-                           f"GET /v1/jobs/{job.id}/result", available=["application/json"])
+                           f"GET {path_to(router, 'get_result', job_id=job.id)}",
+                           available=["application/json"])
     return await _result(job, fmt, color, jobs)
 
 
@@ -151,7 +166,7 @@ async def _result(job: Job, fmt: str, color: str | None, jobs: JobService) -> Re
     if job.status == "cancelled":
         raise ProblemError("job-cancelled", f"job {job.id} was cancelled")
     if job.status == "failed":
-        error = job_document(job)["error"]
+        error = _failure_document(job)
         raise ProblemError("job-failed", f"job {job.id} failed: "
                            f"{(error or {}).get('detail', 'no result')}", error=error)
     result = await jobs.result(job)
@@ -162,8 +177,8 @@ async def _result(job: Job, fmt: str, color: str | None, jobs: JobService) -> Re
             raise ProblemError(
                 "color-not-computed",
                 f"job {job.id} was submitted without \"color\": \"{color}\"; submit it with "
-                "that field to get this colour", errors=[{"field": "color", "index": None,
-                                                          "reason": "not computed"}])
+                "that field to get this colour",
+                errors=[element_error("color", "not computed")])
     body = await anyio.to_thread.run_sync(_encode, result, fmt, values)
     return Response(body, media_type=MEDIA_TYPES[fmt])
 
@@ -177,7 +192,7 @@ def _encode(result: TaskResult, fmt: str, values: Any) -> bytes:
     return mesh_bytes(fmt, result.mesh[0], result.mesh[1], values)
 
 
-@router.delete("/v1/jobs/{job_id}", response_model=JobStatus, summary="Cancel or delete a job",
+@router.delete("/jobs/{job_id}", response_model=JobStatus, summary="Cancel or delete a job",
                operation_id="delete_job",
                description="Cancels a queued or running job (200, status `cancelled`; a "
                            "running solve is stopped by replacing its worker). A finished "

@@ -13,17 +13,18 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Query, Request
 from starlette.responses import Response
 
-from service.api.problems import ProblemError
+from service.api.problems import ProblemError, element_error
 from service.api.task import Output
 from service.http.dependencies import ServicesDep
 from service.http.negotiation import JSON_ONLY, MESH_FORMATS, negotiate
 from service.http.openapi import GLTF_CONTENT, error_responses, operation_body
 from service.http.payloads import operation_request
+from service.http.routes import API_PREFIX
 from service.http.running import result_response, run_task
 from service.operations import OPERATIONS, OperationSpec
 from service.worker.output import MEDIA_TYPES
 
-router = APIRouter(tags=["operations"])
+router = APIRouter(prefix=API_PREFIX, tags=["operations"])
 
 COLOR_MEANING = {"defect": "the integrability defect of each vertex",
                  "distortion": "the distortion of the forms at each vertex"}
@@ -38,7 +39,7 @@ def check_color(spec: OperationSpec, color: str | None) -> None:
             f"{spec.name} cannot colour by {color!r}"
             + (f"; it offers {', '.join(spec.colors)}" if spec.colors
                else "; it offers no colours"),
-            errors=[{"field": "color", "index": None, "reason": f"not offered by {spec.name}"}])
+            errors=[element_error("color", f"not offered by {spec.name}")])
 
 
 def formats(spec: OperationSpec) -> tuple[str, ...]:
@@ -110,7 +111,7 @@ def _endpoint(spec: OperationSpec) -> Callable[..., Awaitable[Response]]:
 
 for _spec in OPERATIONS.values():
     router.add_api_route(
-        f"/v1/{_spec.name}", _endpoint(_spec), methods=["POST"], summary=_spec.summary,
+        f"/{_spec.name}", _endpoint(_spec), methods=["POST"], summary=_spec.summary,
         description=_spec.description, operation_id=_spec.name.replace("/", "_"),
         response_class=Response,
         responses={200: {"model": _spec.response, "description": "The result.",

@@ -18,23 +18,24 @@ from starlette.responses import JSONResponse, Response
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from service.api.documents import RefiningStatus, SessionInfo, SessionVertices
-from service.api.problems import ProblemError
+from service.api.problems import ProblemError, element_error
 from service.api.schemas import SessionDrag, SessionRequest
 from service.backends.contracts import DragAnswer, SessionRecord
 from service.backends.errors import BackendError, DragSupersededError
 from service.http.bodies import is_json, media_type, read_body
-from service.http.dependencies import MetricsDep, SessionsDep, SettingsDep
+from service.http.dependencies import MetricsDep, ParserDep, SessionsDep, SettingsDep
 from service.http.drags import parse_drag_binary, parse_drag_json, ws_reply
 from service.http.openapi import created, error_responses
 from service.http.payloads import session_spec
 from service.http.problems import problem_for
+from service.http.routes import API_PREFIX, model_response, path_to
 from service.http.routes.operations import format_query, result_format
 from service.http.running import server_timing
-from service.worker.output import MEDIA_TYPES, json_bytes
+from service.worker.output import MEDIA_TYPES
 from service.worker.session import SESSION_FORMATS
 
 logger = logging.getLogger("service.sessions")
-router = APIRouter(tags=["sessions"])
+router = APIRouter(prefix=API_PREFIX, tags=["sessions"])
 
 SessionId = Annotated[str, Path(description="Session id (from the Location header).")]
 OCTET = "application/octet-stream"
@@ -44,7 +45,7 @@ MAX_REFINED_WAIT = 60.0
 
 def refined_path(session_id: str, drag: int) -> str:
     """Where a progressive session's drag ``drag`` has its refined shape."""
-    return f"/v1/sessions/{session_id}/drags/{drag}/refined"
+    return path_to(router, "get_refined_drag", session_id=session_id, drag=drag)
 
 
 def drag_headers(session_id: str, answer: DragAnswer) -> dict[str, str]:
@@ -56,20 +57,29 @@ def drag_headers(session_id: str, answer: DragAnswer) -> dict[str, str]:
     return headers
 
 
-def session_document(record: SessionRecord) -> dict[str, Any]:
-    """The 201 body of ``POST /v1/sessions`` and the body of ``GET /v1/sessions/{id}``."""
-    base = f"/v1/sessions/{record.id}"
+def session_document(record: SessionRecord) -> SessionInfo:
+    """The 201 body of ``POST /v1/sessions`` and the body of ``GET /v1/sessions/{id}``.
+
+    Args:
+        record: What the backend knows of the session.
+
+    Returns:
+        Its sizes, expiry, set-up time, backend, memory, solves and links.
+    """
     info = record.info
-    return {"id": record.id, "n_vertices": info["n_vertices"], "n_faces": info["n_faces"],
-            "handles": info["handles"], "n_rotation_groups": info["n_rotation_groups"],
-            "expires_in": round(max(0.0, record.expires_in), 3),
-            "setup_seconds": round(info["setup_seconds"], 6), "backend": info["backend"],
-            "executor": record.executor, "memory_bytes": int(record.memory),
-            "solves": int(record.solves), "refine": bool(info.get("refine", False)),
-            "links": {"self": base, "solve": f"{base}/solve", "ws": f"{base}/ws"}}
+    return SessionInfo(
+        id=record.id, n_vertices=info["n_vertices"], n_faces=info["n_faces"],
+        handles=info["handles"], n_rotation_groups=info["n_rotation_groups"],
+        expires_in=round(max(0.0, record.expires_in), 3),
+        setup_seconds=round(info["setup_seconds"], 6), backend=info["backend"],
+        executor=record.executor, memory_bytes=int(record.memory), solves=int(record.solves),
+        refine=bool(info.get("refine", False)),
+        links={"self": path_to(router, "get_session", session_id=record.id),
+               "solve": path_to(router, "solve_session", session_id=record.id),
+               "ws": path_to(router, "session_ws", session_id=record.id)})
 
 
-@router.post("/v1/sessions", status_code=201, response_model=SessionInfo,
+@router.post("/sessions", status_code=201, response_model=SessionInfo,
              summary="Open a deformation session",
              description="Factorizes the rest mesh's deformation system once and keeps it "
                          "warm with one worker (a dedicated process, or a Dask actor). Each "
@@ -88,24 +98,22 @@ def session_document(record: SessionRecord) -> dict[str, Any]:
                                  "DeleteSession": "delete_session"}),
                         **error_responses(400, 408, 413, 415, 422, 429, 500, 503, 504)})
 async def create_session(request: Request, settings: SettingsDep, sessions: SessionsDep,
-                         metrics: MetricsDep) -> Response:
-    spec = await session_spec(request, settings)
+                         metrics: MetricsDep, parser: ParserDep) -> Response:
+    spec = await session_spec(request, settings, parser)
     owner = request.client.host if request.client else None  # FFS_MAX_CLIENT_SESSIONS
     doc = session_document(await sessions.create(spec, owner))
     metrics.session_created()
-    return Response(json_bytes(doc), status_code=201, media_type="application/json",
-                    headers={"Location": doc["links"]["self"]})
+    return model_response(doc, 201, {"Location": doc.links["self"]})
 
 
-@router.get("/v1/sessions/{session_id}", response_model=SessionInfo, summary="Session state",
+@router.get("/sessions/{session_id}", response_model=SessionInfo, summary="Session state",
             operation_id="get_session",
             response_class=JSONResponse, responses=error_responses(404, 410))
 async def get_session(sessions: SessionsDep, session_id: SessionId) -> Response:
-    doc = session_document(await sessions.describe(session_id))
-    return Response(json_bytes(doc), media_type="application/json")
+    return model_response(session_document(await sessions.describe(session_id)))
 
 
-@router.delete("/v1/sessions/{session_id}", status_code=204, summary="Close a session",
+@router.delete("/sessions/{session_id}", status_code=204, summary="Close a session",
                operation_id="delete_session",
                description="Frees the session's factorization (204). A session that expired "
                            "or whose worker died is forgotten as well.",
@@ -125,7 +133,7 @@ _SOLVE_CONTENT = {
 }
 
 
-@router.post("/v1/sessions/{session_id}/solve", response_model=SessionVertices,
+@router.post("/sessions/{session_id}/solve", response_model=SessionVertices,
              operation_id="solve_session",
              summary="Solve one drag",
              description="New targets for the handles (and rotations for the rotation "
@@ -171,7 +179,7 @@ async def solve_session(request: Request, session_id: SessionId, settings: Setti
         raise ProblemError("unsupported-media-type",
                            f"Content-Type {mtype!r} is not supported; send application/json "
                            "or application/octet-stream",
-                           errors=[{"field": "Content-Type", "index": None, "reason": mtype}])
+                           errors=[element_error("Content-Type", mtype)])
     start = time.perf_counter()
     answer = await sessions.solve(session_id, positions, rotations, fmt)
     metrics.session_solve("http", time.perf_counter() - start)
@@ -179,7 +187,7 @@ async def solve_session(request: Request, session_id: SessionId, settings: Setti
                     headers=drag_headers(session_id, answer))
 
 
-@router.get("/v1/sessions/{session_id}/drags/{drag}/refined", response_model=SessionVertices,
+@router.get("/sessions/{session_id}/drags/{drag}/refined", response_model=SessionVertices,
             operation_id="get_refined_drag", summary="The refined shape of a drag",
             description="A progressive session's (`options.refine: true`) refined shape of "
                         "drag `drag` (the `Link` of its solve's answer), in the format of "
@@ -204,10 +212,9 @@ async def get_refined_drag(
                                                  "before answering 202.")] = 0.0) -> Response:
     refined = await sessions.refined(session_id, drag, wait)
     if refined is None:
-        doc = {"drag": drag, "status": "refining",
-               "links": {"self": refined_path(session_id, drag)}}
-        return Response(json_bytes(doc), status_code=202, media_type="application/json",
-                        headers={"Retry-After": "1"})
+        doc = RefiningStatus(drag=drag, status="refining",
+                             links={"self": refined_path(session_id, drag)})
+        return model_response(doc, 202, {"Retry-After": "1"})
     return Response(refined.body, media_type=MEDIA_TYPES[refined.fmt], headers={
         "X-Refinement": orjson.dumps(refined.report).decode()})
 
@@ -219,13 +226,13 @@ def _problem_text(problem: ProblemError, instance: str, seq: int | None) -> str:
     return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY).decode()
 
 
-@router.websocket("/v1/sessions/{session_id}/ws")
+@router.websocket("/sessions/{session_id}/ws")
 async def session_ws(websocket: WebSocket, session_id: str, sessions: SessionsDep,
                      metrics: MetricsDep) -> None:
     """Drags in, vertices out; the newest drag wins (see docs/service.md). In a progressive
     session each drag answers twice, the linear shape at once and the refined one when it
     is ready (unless a newer drag came first), each reply with a JSON trailer saying which."""
-    instance = f"/v1/sessions/{session_id}/ws"
+    instance = path_to(router, "session_ws", session_id=session_id)
     await websocket.accept()
     send_lock = asyncio.Lock()
 

@@ -2,9 +2,9 @@
 // gizmo; the shape follows live through the drag loop (drag-loop.js), its distortion
 // against the loaded shape drawn as a histogram and on the mesh; undo and redo.
 
+import { ApiError } from "./api.js";
 import { deformBody } from "./deform.js";
 import { DragLoop } from "./drag-loop.js";
-import { ApiError } from "./api.js";
 import { deg, pct, setStats } from "./format.js";
 import { bake, handleTargets, newHandle, setupFor } from "./handles.js";
 import { createHistory } from "./history.js";

@@ -58,16 +58,13 @@ export class DragLoop {
       ? new SessionTransport(setup, { websocket: this.pinned !== "http",
         onRefined: (vertices) => { if (transport === state.transport) this.onShape(vertices); } })
       : new DeformTransport(setup);
-    let note = "";
     await this.preparing(async () => {
       try {
         await transport.open();
       } catch (err) {
         if (!(transport instanceof SessionTransport && err instanceof ApiError
           && SESSION_UNAVAILABLE.includes(err.status))) throw err;
-        const info = describe(err);
-        note = ` (no session: ${info.title}: ${info.detail})`;
-        console.warn("[ffs] sessions unavailable, deforming per request", info);
+        console.warn("[ffs] sessions unavailable, deforming per request", describe(err));
         transport = new DeformTransport(setup);
         transport.label = "HTTP: POST /v1/deform per update";
       }
@@ -76,7 +73,6 @@ export class DragLoop {
       transport.close();
       return;
     }
-    transport.note = note;
     store.set({ transport, transportKey: transportKey() });
     if (solve) this.request();
   }

@@ -42,8 +42,17 @@ def _piece(data: memoryview, level: int, last: bool, primer: bytes) -> bytes:
 
 
 def gzip_parallel(body: bytes, level: int, pieces: int | None = None) -> bytes:
-    """``body`` as one gzip member deflated in ``pieces`` parallel pieces (default: one per
-    core; zlib releases the GIL while it deflates)."""
+    """A body gzipped in parallel.
+
+    Args:
+        body: The bytes.
+        level: The zlib level.
+        pieces: How many pieces deflate in parallel (default: one per core; zlib releases
+            the GIL while it deflates).
+
+    Returns:
+        One gzip member of ``body``.
+    """
     global _pool
     size = len(body)
     pieces = max(1, min(pieces or _threads(), size // WINDOW))

@@ -43,7 +43,19 @@ def _check_finite(values: np.ndarray, field: str) -> None:
 
 def parse_drag_binary(data: bytes, n_handles: int,
                       n_groups: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """Positions (h, 3) and rotations (g, 3, 3) | None from a binary drag."""
+    """The targets of a binary drag.
+
+    Args:
+        data: Little-endian float32: h x 3 handle positions, then optionally g x 9 rotations.
+        n_handles: The session's handle count h.
+        n_groups: The session's rotation group count g.
+
+    Returns:
+        ``(positions, rotations)``: (h, 3) float64, and (g, 3, 3) float64 or None.
+
+    Raises:
+        ProblemError: 422 ``validation-error`` for a wrong size or a non-finite value.
+    """
     if len(data) % 4:
         raise _bad("body", f"{len(data)} bytes is not a whole number of float32 values")
     values = np.frombuffer(data, dtype="<f4").astype(np.float64)
@@ -75,7 +87,20 @@ def parse_drag_binary(data: bytes, n_handles: int,
 
 def parse_drag_json(doc: Any, n_handles: int,
                     n_groups: int) -> tuple[np.ndarray, np.ndarray | None, int | None]:
-    """Positions, rotations and the optional ``seq`` of a JSON drag (already parsed)."""
+    """The targets of a JSON drag.
+
+    Args:
+        doc: The parsed drag (``{"handle_positions", "rotations"?, "seq"?}``).
+        n_handles: The session's handle count.
+        n_groups: The session's rotation group count.
+
+    Returns:
+        ``(positions, rotations, seq)`` as :func:`parse_drag_binary` returns them, and the
+        drag's ``seq`` or None.
+
+    Raises:
+        ProblemError: 422 ``validation-error`` naming the element at fault.
+    """
     model = validate_object(SessionDrag, doc)
     positions = np.asarray(model.handle_positions, dtype=np.float64).reshape(-1, 3)
     if len(positions) != n_handles:
@@ -91,8 +116,16 @@ def parse_drag_json(doc: Any, n_handles: int,
 
 
 def ws_reply(seq: int, body: bytes, trailer: dict[str, Any] | None = None) -> bytes:
-    """A WebSocket reply: header (uint32 seq, uint32 n) + float32 vertices (+ the JSON
-    ``trailer`` of a progressive session's reply)."""
+    """A WebSocket reply.
+
+    Args:
+        seq: The drag's sequence number.
+        body: The float32 vertices.
+        trailer: The JSON trailer of a progressive session's reply, if any.
+
+    Returns:
+        Header (uint32 seq, uint32 n) + float32 vertices (+ the UTF-8 JSON trailer).
+    """
     reply = WS_HEADER.pack(seq & 0xFFFFFFFF, len(body) // 12) + body
     if trailer is None:
         return reply

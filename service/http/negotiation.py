@@ -58,7 +58,18 @@ def _quality(media_type: str, ranges: list[tuple[str, str, float]]) -> float:
 
 
 def negotiate(accept: str | None, formats: Sequence[str] = MESH_FORMATS) -> str:
-    """The format to answer with, or a 406 problem listing what this endpoint can produce."""
+    """The format to answer with.
+
+    Args:
+        accept: The request's Accept header.
+        formats: What the endpoint produces, its default first.
+
+    Returns:
+        The best format ``accept`` allows (the default when it is absent or empty).
+
+    Raises:
+        ProblemError: 406 ``not-acceptable`` listing what the endpoint can produce.
+    """
     if accept is None or not accept.strip():
         return formats[0]
     ranges = _parse(accept)

@@ -51,14 +51,31 @@ GLTF_CONTENT = {
 
 
 def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
-    """``responses=`` entries for problem documents (content filled in by :func:`build`)."""
+    """The ``responses=`` entries of problem documents.
+
+    Args:
+        *codes: The HTTP statuses an operation may answer with a problem.
+
+    Returns:
+        An entry per status, its description (its content is filled in by :func:`build`).
+    """
     return {code: {"description": ERROR_DESCRIPTIONS[code]} for code in codes}
 
 
 def created(description: str, location: str, parameter: str,
             targets: dict[str, str]) -> dict[str, Any]:
-    """A 201/202 response: its ``Location`` header and OpenAPI ``links`` from the created
-    resource's ``id`` to the operations on it (clients and stateful fuzzers follow them)."""
+    """A 201/202 response that creates a resource.
+
+    Args:
+        description: The response's description.
+        location: The ``Location`` header's form (``/v1/jobs/{id}``).
+        parameter: The path parameter the created ``id`` fills (``job_id``).
+        targets: Link names to the operation ids on the resource.
+
+    Returns:
+        The response: its ``Location`` header and OpenAPI ``links`` from the created
+        resource's ``id`` to the operations on it (clients and stateful fuzzers follow them).
+    """
     return {"description": description,
             "headers": {"Location": {"schema": {"type": "string"}, "description": location}},
             "links": {name: {"operationId": operation,
@@ -78,8 +95,16 @@ SCALAR_TYPES = frozenset({"number", "integer", "boolean", "string"})
 
 
 def form_field(schema: dict[str, Any], description: str | None) -> dict[str, Any]:
-    """A parameter field as a multipart property: ``null`` left out (omit the field instead)
-    and how to send it (arrays: one part per item, or the whole array as one JSON part)."""
+    """A parameter field as a multipart property.
+
+    Args:
+        schema: The field's JSON schema.
+        description: Its description, if any.
+
+    Returns:
+        The property: ``null`` left out (omit the field instead), and how to send it
+        (arrays: one part per item, or the whole array as one JSON part).
+    """
     schema = dict(schema)
     members = [m for m in schema.pop("anyOf", []) if m.get("type") != "null"]
     if len(members) == 1:
@@ -112,16 +137,28 @@ def _is_scalar(schema: dict[str, Any]) -> bool:
 
 
 def form_properties(spec: OperationSpec) -> dict[str, Any]:
-    """The multipart properties of ``spec``'s parameter fields (parsed as JSON where they
-    are JSON; see :func:`form_encoding`)."""
+    """The multipart properties of an operation's parameter fields.
+
+    Args:
+        spec: The operation.
+
+    Returns:
+        The properties (parsed as JSON where they are JSON; see :func:`form_encoding`).
+    """
     field_schemas = params_schema(spec.params)["properties"]
     return {name: form_field(field_schemas[name], info.description)
             for name, info in spec.params.model_fields.items()}
 
 
 def multipart_schema(spec: OperationSpec) -> dict[str, Any]:
-    """Schema of the multipart form: the mesh file(s) plus the parameter fields, each
-    documented with its real schema."""
+    """The schema of an operation's multipart form.
+
+    Args:
+        spec: The operation.
+
+    Returns:
+        The mesh file(s) plus the parameter fields, each with its real schema.
+    """
     params = spec.params
     properties: dict[str, Any] = {name: {"type": "string", "format": "binary",
                                          "description": FILE_DESCRIPTION}
@@ -135,21 +172,41 @@ def multipart_schema(spec: OperationSpec) -> dict[str, Any]:
 
 
 def params_schema(model: type[BaseModel]) -> dict[str, Any]:
-    """JSON schema of a params model with references into ``components/schemas``."""
+    """The JSON schema of a params model.
+
+    Args:
+        model: The model.
+
+    Returns:
+        Its schema, with references into ``components/schemas``.
+    """
     _, defs = models_json_schema([(model, "validation")], ref_template=REF)
     return defs["$defs"][model.__name__]
 
 
 def form_encoding(properties: dict[str, Any]) -> dict[str, Any]:
-    """The multipart ``encoding``: every field that is not a scalar is sent as JSON (for an
-    array: each of its parts)."""
+    """The multipart ``encoding`` of form properties.
+
+    Args:
+        properties: The form's properties.
+
+    Returns:
+        An entry per field that is not a scalar: sent as JSON (for an array: each part).
+    """
     return {name: {"contentType": "application/json"} for name, schema in properties.items()
             if schema.get("format") != "binary" and (not _is_scalar(schema)
                                                      or "contentSchema" in schema)}
 
 
 def operation_body(spec: OperationSpec) -> dict[str, Any]:
-    """``openapi_extra`` of a synchronous operation: JSON body or a multipart upload."""
+    """The ``openapi_extra`` of a synchronous operation.
+
+    Args:
+        spec: The operation.
+
+    Returns:
+        Its request body: JSON, a multipart upload, or the binary arrays.
+    """
     model = spec.request
     return {"requestBody": {"required": True, "content": {
         "application/json": {"schema": {"$ref": REF.format(model=model.__name__)},
@@ -164,7 +221,14 @@ def operation_body(spec: OperationSpec) -> dict[str, Any]:
 
 
 def binary_description(spec: OperationSpec) -> str:
-    """What a binary body of ``operation`` holds (the format: docs/service.md)."""
+    """What a binary body of an operation holds (the format: docs/service.md).
+
+    Args:
+        spec: The operation.
+
+    Returns:
+        The description: its arrays with their shapes and dtypes.
+    """
     names = ", ".join(f"`{n}` ({f'(n, {s.cols})' if s.cols else '(n,)'} "
                       f"{'indices' if s.integer else 'reals'})"
                       for n, s in spec.arrays.items())
@@ -199,7 +263,11 @@ def job_form_properties() -> dict[str, Any]:
 
 
 def jobs_body() -> dict[str, Any]:
-    """``openapi_extra`` of ``POST /v1/jobs``."""
+    """The ``openapi_extra`` of ``POST /v1/jobs``.
+
+    Returns:
+        Its request body: JSON (``JobRequest``) or a multipart upload of any operation.
+    """
     properties: dict[str, Any] = {
         "operation": {"type": "string", "enum": list(OPERATIONS)},
         "color": {"type": "string", "enum": ["defect", "distortion"]},
@@ -228,7 +296,14 @@ EXTRA_MODELS: tuple[type[BaseModel], ...] = (*(s.request for s in OPERATIONS.val
 
 
 def build(app: FastAPI) -> dict[str, Any]:
-    """The app's OpenAPI document (cached on the app)."""
+    """The app's OpenAPI document.
+
+    Args:
+        app: The application.
+
+    Returns:
+        The document (cached on the app).
+    """
     if app.openapi_schema:
         return app.openapi_schema
     schema = get_openapi(title=app.title, version=app.version, description=app.description,

@@ -35,8 +35,17 @@ def _host_port(netloc: str, scheme: str) -> tuple[str, int | None]:
 
 
 def is_own_origin(origin: str, host: str | None, scheme: str) -> bool:
-    """Whether ``origin`` (``https://a.example:8443``) names the host the request was sent to
-    (its ``Host`` header; the scheme may differ behind a TLS proxy)."""
+    """Whether an Origin names the host the request was sent to.
+
+    Args:
+        origin: The Origin header (``https://a.example:8443``).
+        host: The Host header.
+        scheme: The request's scheme (an origin's may differ behind a TLS proxy).
+
+    Returns:
+        True when the origin's host and port (its scheme's default port when it names
+        none) are the Host header's.
+    """
     if not host:
         return False
     parts = urlsplit(origin)

@@ -18,13 +18,26 @@ from service.http.problems import problem_for
 
 async def run_task(request: Request, task: TaskRequest, executor: Executor,
                    metrics: ServiceMetrics, timeout: float) -> TaskResult:
-    """Submit ``task`` and wait up to ``timeout`` s (FFS_REQUEST_TIMEOUT) for its result.
+    """Submit a task and wait for its result.
 
     The task carries the deadline (:meth:`TaskRequest.with_deadline`): its refinement stops
-    in time to answer its best shape so far rather than a 504.
-    Raises problems: 503 (queue full / pool down), 504 (timeout: the task is cancelled and
-    its worker replaced), 500 (worker died), or the task's own problem (422, 413, ...). A
-    client that hangs up cancels the task (:class:`ClientDisconnect`)."""
+    in time to answer its best shape so far rather than a 504. A client that hangs up
+    cancels the task (:class:`ClientDisconnect`).
+
+    Args:
+        request: The HTTP request (watched for a disconnect).
+        task: The task.
+        executor: The backend's executor.
+        metrics: Where the task's outcome and stage timings are counted.
+        timeout: The longest wait in seconds (FFS_REQUEST_TIMEOUT).
+
+    Returns:
+        The task's result.
+
+    Raises:
+        ProblemError: 503 (queue full, pool down), 504 (timeout: the task is cancelled and
+            its worker replaced), 500 (worker died), or the task's own problem (422, 413, ...).
+    """
     operation = task.operation
     task = task.with_deadline(timeout)
     try:
@@ -79,7 +92,14 @@ async def _result_or_disconnect(request: Request, future: asyncio.Future[Any],
 
 
 def server_timing(timings: dict[str, float] | None) -> dict[str, str]:
-    """A ``Server-Timing`` header with the worker's stage timings (milliseconds)."""
+    """The ``Server-Timing`` header of a worker's stage timings.
+
+    Args:
+        timings: Seconds per stage, or None.
+
+    Returns:
+        ``{"Server-Timing": "<stage>;dur=<ms>, ..."}``, or no header without timings.
+    """
     if not timings:
         return {}
     return {"Server-Timing": ", ".join(f"{stage};dur={seconds * 1000:.1f}"
@@ -87,6 +107,14 @@ def server_timing(timings: dict[str, float] | None) -> dict[str, str]:
 
 
 def result_response(result: TaskResult, status_code: int = 200) -> Response:
-    """The encoded body produced by the worker."""
+    """The response of a task's result.
+
+    Args:
+        result: The body the worker encoded, its media type and timings.
+        status_code: The HTTP status.
+
+    Returns:
+        The response, with its ``Server-Timing``.
+    """
     return Response(result.body, status_code=status_code, media_type=result.media_type,
                     headers=server_timing(result.timings))

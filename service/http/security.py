@@ -29,8 +29,14 @@ _INLINE_SCRIPT = re.compile(rb"<script(?![^>]*\bsrc=)[^>]*>(.*?)</script>", re.S
 
 
 def page_policy(html: bytes) -> str:
-    """The Content-Security-Policy of an HTML page: this origin, and its inline scripts by
-    hash."""
+    """The Content-Security-Policy of an HTML page.
+
+    Args:
+        html: The page.
+
+    Returns:
+        The policy: this origin, and the page's inline scripts by hash.
+    """
     hashes = " ".join(
         "'sha256-" + base64.b64encode(hashlib.sha256(body).digest()).decode() + "'"
         for body in _INLINE_SCRIPT.findall(html))

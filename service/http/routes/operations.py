@@ -32,7 +32,15 @@ COLOR_MEANING = {"defect": "the integrability defect of each vertex",
 
 
 def check_color(spec: OperationSpec, color: str | None) -> None:
-    """422 unless the operation can produce the colour field ``color``."""
+    """Check that an operation can produce a colour field.
+
+    Args:
+        spec: The operation.
+        color: The ``?color=`` asked for, or None.
+
+    Raises:
+        ProblemError: 422 ``unsupported-color`` when it cannot.
+    """
     if color is not None and color not in spec.colors:
         raise ProblemError(
             "unsupported-color",
@@ -43,12 +51,26 @@ def check_color(spec: OperationSpec, color: str | None) -> None:
 
 
 def formats(spec: OperationSpec) -> tuple[str, ...]:
-    """The result formats an operation can be negotiated to."""
+    """The result formats of an operation.
+
+    Args:
+        spec: The operation.
+
+    Returns:
+        The formats its result can be negotiated to, the default first.
+    """
     return MESH_FORMATS if spec.mesh_result else JSON_ONLY
 
 
 def color_query(colors: tuple[str, ...]) -> Any:
-    """The ``?color=`` parameter offering ``colors``."""
+    """The ``?color=`` parameter of an operation.
+
+    Args:
+        colors: The colour fields it offers.
+
+    Returns:
+        The parameter's annotated type, described for the OpenAPI document.
+    """
     meaning = "; ".join(f"`{c}`: {COLOR_MEANING[c]}" for c in colors)
     return Annotated[Literal[colors] | None, Query(  # type: ignore[valid-type]
         description=f"Add a per-vertex colour ramp ({meaning}). glTF gets COLOR_0, JSON a "
@@ -61,7 +83,14 @@ FORMAT_MEANING = {"json": "`application/json`", "glb": "`model/gltf-binary`",
 
 
 def format_query(offered: tuple[str, ...]) -> Any:
-    """The ``?format=`` parameter: one of ``offered``, instead of ``Accept``."""
+    """The ``?format=`` parameter, which overrides ``Accept``.
+
+    Args:
+        offered: The formats the endpoint produces.
+
+    Returns:
+        The parameter's annotated type, described for the OpenAPI document.
+    """
     meaning = ", ".join(f"`{f}`: {FORMAT_MEANING[f]}" for f in offered)
     return Annotated[Literal[offered] | None, Query(  # type: ignore[valid-type]
         alias="format", description=f"The result format ({meaning}); overrides `Accept` "
@@ -69,7 +98,19 @@ def format_query(offered: tuple[str, ...]) -> Any:
 
 
 def result_format(request: Request, offered: tuple[str, ...], requested: str | None) -> str:
-    """``?format=`` when given (406 unless offered), else the format ``Accept`` negotiates."""
+    """The format to answer a request with.
+
+    Args:
+        request: The request (its Accept header).
+        offered: The formats the endpoint produces.
+        requested: Its ``?format=``, or None.
+
+    Returns:
+        ``requested`` when given, else the format Accept negotiates.
+
+    Raises:
+        ProblemError: 406 ``not-acceptable`` for a format not offered.
+    """
     if requested is None:
         return negotiate(request.headers.get("accept"), offered)
     if requested not in offered:

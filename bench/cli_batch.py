@@ -1,7 +1,7 @@
 """A batch of small meshes through the command line, in-process and on a server, against a
 plain Python loop over ``solver`` in the same run.
 
-    python bench/cli_batch.py [--files 100] [--command flatten] [--repeats 3]
+    python -m bench.cli_batch [--files 100] [--command flatten] [--repeats 3]
 
 The meshes are curved open grids of 160-390 faces (written as OBJ to a temporary folder).
 Each variant handles every file: read, compute, write.
@@ -31,15 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
-
-from meshes import grid  # noqa: E402
-
-import solver  # noqa: E402
-from bench.servers import uvicorn  # noqa: E402
-from solver.io import load_mesh_file, save_mesh  # noqa: E402
+import solver
+from bench.common import REPO
+from bench.servers import uvicorn
+from solver.io import load_mesh_file, save_mesh
+from tests.helpers.meshes import grid
 
 
 def write_meshes(folder: Path, count: int) -> list[Path]:

@@ -7,45 +7,20 @@ iterations per drag (the usual interactive setting). Whole mesh as ROI, the same
 vertices for both, 30 drags of random handle displacements.
 
     pip install libigl      # bench-only extra: pip install -e ".[bench]"
-    python bench/deform_speed.py [mesh]
+    python -m bench.deform_speed [mesh]
 """
 
 from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
-import trimesh
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from bench.common import load_bench_mesh, random_drags, two_handle_regions
+from solver import Deformer
 
-from solver import Deformer  # noqa: E402
-
-SHARED = ROOT.parent / "shared" / "meshes"
 DRAGS = 30
-
-
-def handles_for(V: np.ndarray) -> np.ndarray:
-    """Two handle regions: the 2% of vertices lowest and highest along the longest axis."""
-    axis = int(np.argmax(np.ptp(V, axis=0)))
-    order = np.argsort(V[:, axis])
-    k = max(len(V) // 50, 4)
-    return np.concatenate([order[:k], order[-k:]])
-
-
-def drags(V: np.ndarray, handles: np.ndarray, seed: int = 0) -> list[np.ndarray]:
-    rng = np.random.default_rng(seed)
-    scale = 0.1 * np.linalg.norm(np.ptp(V, axis=0))
-    top = len(handles) // 2
-    out = []
-    for _ in range(DRAGS):
-        P = V[handles].copy()
-        P[top:] += rng.normal(scale=scale, size=3)
-        out.append(P)
-    return out
 
 
 def time_ours(V, F, handles, moves, orthonormalize: bool) -> tuple[float, float, str]:
@@ -80,10 +55,9 @@ def time_arap(V, F, handles, moves) -> tuple[float, float]:
 
 def main() -> None:
     name = sys.argv[1] if len(sys.argv) > 1 else "rocker-arm.obj"
-    mesh = trimesh.load(SHARED / name, process=False)
-    V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
-    handles = handles_for(V)
-    moves = drags(V, handles)
+    V, F = load_bench_mesh(name)
+    handles = two_handle_regions(V)
+    moves = random_drags(V, handles, DRAGS)
     print(f"mesh {name}: {len(V)} vertices, {len(F)} faces, {len(handles)} handle vertices, "
           f"median of {DRAGS} drags")
     print("| method | setup (factorize / precompute) s | per drag ms |")

@@ -7,29 +7,23 @@ also rotate the handle faces' frames, each with and without the orthonormalizati
 (relative) and dihedral-angle change (radians) and writes pseudo-colour renderings to
 bench/out/ (git-ignored).
 
-    python bench/deformation_cases.py [--cases bar cylinder] [--weightings uniform]
+    python -m bench.deformation_cases [--cases bar cylinder] [--weightings uniform]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+from bench.common import REPO, SHARED_MESHES
+from solver import deform
+from solver.metrics import distortion
+from tests.helpers.botsch_sorkine import DeformationCase, load_case
 
-from botsch_sorkine import DeformationCase, load_case  # noqa: E402
-
-from solver import deform  # noqa: E402
-from solver.metrics import distortion  # noqa: E402
-
-SHARED = ROOT.parent / "shared" / "meshes"
-OUT = ROOT / "bench" / "out"
+OUT = REPO / "bench" / "out"
 CASES = ("bumpy-plane", "cylinder", "bar", "cactus")
 
 
@@ -100,7 +94,7 @@ def main() -> None:
           "| dihedral change mean / max (rad) | handle error | seconds |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name in args.cases:
-        case = load_case(SHARED, name)
+        case = load_case(SHARED_MESHES, name)
         for rotations in (False, True):
             for orthonormalize in (False, True):
                 for weighting in args.weightings:

@@ -18,57 +18,24 @@ longer beating the hinted one (its ratio to it back near 1). Set-up seconds (ana
 numerical factorization) of each factor are printed too: the hint's cheaper analysis is
 what the drags give up.
 
-    python bench/drag_regression.py [icosphere | MESH in ../shared/meshes] [--rounds 5]
-    MKL_NUM_THREADS=1 python bench/drag_regression.py     # one MKL thread
+    python -m bench.drag_regression [icosphere | MESH in ../shared/meshes] [--rounds 5]
+    MKL_NUM_THREADS=1 python -m bench.drag_regression     # one MKL thread
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
-import trimesh
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from bench.common import load_bench_mesh, random_drags, two_handle_regions
+from solver import Deformer, linalg
+from solver.system import unknown_groups
 
-from solver import Deformer, linalg  # noqa: E402
-from solver.system import unknown_groups  # noqa: E402
-
-SHARED = ROOT.parent / "shared" / "meshes"
 DRAGS = 15  # per round, as in the issue's bisection
-
-
-def load(name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 3) float64 vertices and (m, 3) int64 faces: the 20480-face icosphere or a file."""
-    mesh = (trimesh.creation.icosphere(subdivisions=5) if name == "icosphere"
-            else trimesh.load(SHARED / name, process=False))
-    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
-
-
-def handles_for(V: np.ndarray) -> np.ndarray:
-    """Two handle regions: the 2% of vertices lowest and highest along the longest axis."""
-    order = np.argsort(V[:, int(np.argmax(np.ptp(V, axis=0)))])
-    k = max(len(V) // 50, 4)
-    return np.concatenate([order[:k], order[-k:]])
-
-
-def drag_targets(V: np.ndarray, handles: np.ndarray, count: int) -> list[np.ndarray]:
-    """Random rigid translations of the upper handle region (the lower one stays)."""
-    rng = np.random.default_rng(0)
-    scale = 0.1 * np.linalg.norm(np.ptp(V, axis=0))
-    top = len(handles) // 2
-    out = []
-    for _ in range(count):
-        P = V[handles].copy()
-        P[top:] += rng.normal(scale=scale, size=3)
-        out.append(P)
-    return out
 
 
 def median_ms(action: Callable[[], object], repeats: int) -> float:
@@ -91,9 +58,9 @@ def main() -> None:
     parser.add_argument("mesh", nargs="?", default="icosphere")
     parser.add_argument("--rounds", type=int, default=5)
     args = parser.parse_args()
-    V, F = load(args.mesh)
-    handles = handles_for(V)
-    moves = drag_targets(V, handles, DRAGS + 1)
+    V, F = load_bench_mesh(args.mesh)
+    handles = two_handle_regions(V)
+    moves = random_drags(V, handles, DRAGS + 1)
 
     linalg.clear_analysis_cache()
     start = time.perf_counter()

@@ -9,7 +9,7 @@ time and wall time (``getrusage``); modes alternate. Also prints the analysis ca
 counters after the first reconstruct (``cached_ordering`` 0: the orthonormalization reused
 the linear solve's analysis instead of redoing the symbolic phase).
 
-    python bench/factor_memory.py [mesh] [--repeats 3] [--rounds 2]
+    python -m bench.factor_memory [mesh] [--repeats 3] [--rounds 2]
 """
 
 from __future__ import annotations
@@ -21,16 +21,12 @@ import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "meshes"
+from bench.common import REPO, load_bench_mesh
 
 
 def measure(mesh: str, mode: str, repeats: int) -> dict:
-    sys.path.insert(0, str(ROOT))
     import numpy as np
-    import trimesh
 
     from solver import fundamental_forms, linalg, reconstruct
     from solver.linalg import analysis_cache
@@ -43,8 +39,7 @@ def measure(mesh: str, mode: str, repeats: int) -> dict:
             park(self, key, handle)
 
         analysis_cache.AnalysisCache.park = park_dropping
-    m = trimesh.load(SHARED / mesh, process=False)
-    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    V, F = load_bench_mesh(mesh)
     forms = fundamental_forms(V, F)
     angles = forms.angles.copy()
     inner = angles != 0
@@ -87,9 +82,9 @@ def main() -> None:
     counters = None
     for r in range(args.rounds):
         for mode in ("dropped", "kept"):
-            out = subprocess.run([sys.executable, __file__, args.mesh, "--mode", mode,
-                                  "--repeats", str(args.repeats)], capture_output=True,
-                                 text=True, check=True)
+            out = subprocess.run([sys.executable, "-m", "bench.factor_memory", args.mesh,
+                                  "--mode", mode, "--repeats", str(args.repeats)],
+                                 capture_output=True, text=True, check=True, cwd=REPO)
             d = json.loads(out.stdout.strip().splitlines()[-1])
             med = {k: sorted(row[k] for row in d["rows"])[len(d["rows"]) // 2]
                    for k in ("faults", "sys", "user", "wall")}

@@ -15,8 +15,8 @@ the armadillo (86K faces).
 
 Usage::
 
-    python bench/linalg_backends.py                  # full run, a few minutes
-    python bench/linalg_backends.py --sizes 4 5 --no-armadillo --out /tmp/x.md   # quick
+    python -m bench.linalg_backends                  # full run, a few minutes
+    python -m bench.linalg_backends --sizes 4 5 --no-armadillo --out /tmp/x.md   # quick
 
 A configuration whose time, extrapolated from the two largest smaller matrices as
 ``max_i t_i * (N / N_i) ** 1.5``, exceeds ``--budget`` seconds is skipped and marked so.
@@ -41,8 +41,9 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-REPO = Path(__file__).resolve().parent.parent
-ARMADILLO = Path("/work/shared/meshes/armadillo.obj")
+from bench.common import REPO, SHARED_MESHES
+
+ARMADILLO = SHARED_MESHES / "armadillo.obj"
 RESULT_PREFIX = "BENCH-RESULT "
 N_RHS = 3
 GROWTH_EXPONENT = 1.5  # nested-dissection Cholesky of a 2-manifold mesh: O(N^1.5) flops
@@ -182,7 +183,6 @@ def _reset_peak_rss() -> bool:
 
 def _worker(npz: str, config: str, repeats: int) -> dict[str, Any]:
     """Measure one configuration on the matrix saved in ``npz``; runs in a subprocess."""
-    sys.path.insert(0, str(REPO))
     from scipy.sparse.linalg import splu
 
     from solver import linalg
@@ -280,12 +280,13 @@ def _run(npz: Path, config: Config, timeout: float) -> dict[str, Any]:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     for var in ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         env[var] = str(config.threads)
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(npz), config.name]
+    cmd = [sys.executable, "-m", "bench.linalg_backends", "--worker", str(npz), config.name]
     tick = os.sysconf("SC_CLK_TCK")
     busy0, wall0 = _cpu_busy_jiffies(), time.perf_counter()
     child0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     try:
-        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout,
+                              cwd=REPO)
     except subprocess.TimeoutExpired:
         return {"error": f"timeout after {timeout:.0f} s"}
     wall = time.perf_counter() - wall0
@@ -330,7 +331,6 @@ def _environment() -> str:
     import scipy
     from threadpoolctl import threadpool_info
 
-    sys.path.insert(0, str(REPO))
     from solver import linalg
 
     cpu = "unknown CPU"
@@ -381,9 +381,8 @@ def main(argv: list[str] | None = None) -> int:
         print(RESULT_PREFIX + json.dumps(result), flush=True)
         return 0
 
-    command = "python " + " ".join(shlex.quote(a) for a in
-                                   [os.path.relpath(__file__, REPO), *(argv or sys.argv[1:])])
-    sys.path.insert(0, str(REPO))
+    command = "python -m bench.linalg_backends " + " ".join(
+        shlex.quote(a) for a in (argv or sys.argv[1:]))
     from solver import linalg
 
     backends = args.backends or linalg.available_backends()
@@ -446,7 +445,6 @@ def _report(command: str, rows: dict[str, list[str]],
             results: list[tuple[BenchMatrix, Config, dict[str, Any]]], elapsed: float,
             load0: float) -> str:
     """The markdown section written to bench/LINALG.md."""
-    sys.path.insert(0, str(REPO))
     from solver import linalg
 
     matrices = {r[0].name: r[0] for r in results}

@@ -2,26 +2,23 @@
 median of 5 calls after one warm-up, in this process. Run it in two trees alternately to
 compare them (bench/README.md, "Noisy forms no longer build the tree integration"):
 
-    python bench/noisy_warm.py rocker-arm.obj
+    python -m bench.noisy_warm rocker-arm.obj
 """
 
 from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import solver  # noqa: E402
-from solver.io import load_mesh_file  # noqa: E402
+import solver
+from bench.common import SHARED_MESHES
+from solver.io import load_mesh_file
 
 
 def main(name: str) -> None:
-    V, F = load_mesh_file(ROOT.parent / "shared" / "meshes" / name)
+    V, F = load_mesh_file(SHARED_MESHES / name)
     forms = solver.fundamental_forms(V, F)
     angles = forms.angles + np.random.default_rng(0).normal(0, 1e-3, len(forms.angles))
 

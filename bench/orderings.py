@@ -18,36 +18,29 @@ alike, it times PARDISO's phases on the same matrix:
 
 Reports nnz(L) (fill) and the 3-RHS solve's relative residual of each variant.
 
-    python bench/orderings.py [mesh ...] [--rounds 3]
+    python -m bench.orderings [mesh ...] [--rounds 3]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from reconstruct import load  # noqa: E402
-
-from solver import fundamental_forms  # noqa: E402
-from solver.linalg import pardiso  # noqa: E402
-from solver.reconstruct import ImmersionProblem  # noqa: E402
-from solver.topology import build_topology  # noqa: E402
+from bench.common import load_bench_mesh
+from solver import fundamental_forms
+from solver.linalg import pardiso
+from solver.reconstruct import ImmersionProblem
+from solver.topology import build_topology
 
 
 def system_matrix(case: str) -> tuple[sp.csr_array, int, int]:
     """The anchored reconstruction matrix of noisy forms, |V| and |F|."""
-    V, F = load(case)
+    V, F = load_bench_mesh(case)
     forms = fundamental_forms(V, F)
     inner = forms.angles != 0
     forms.angles[inner] += np.random.default_rng(0).normal(scale=1e-3, size=int(inner.sum()))

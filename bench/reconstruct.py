@@ -26,7 +26,7 @@ rocker-arm, cold and with a new handle set on the same mesh. Prints markdown tab
 the fitted scaling exponents (time ~ faces^k, least squares on log-log); writes
 ``bench/out/reconstruct.json``.
 
-    python bench/reconstruct.py [--quick] [--cases name ...] [--threads 1]
+    python -m bench.reconstruct [--quick] [--cases name ...] [--threads 1]
 """
 
 from __future__ import annotations
@@ -39,30 +39,19 @@ import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "meshes"
-OUT = ROOT / "bench" / "out"
+from bench.common import REPO, load_bench_mesh
+
+OUT = REPO / "bench" / "out"
 
 CASES = ["icosphere:4", "bunny.off", "rocker-arm.obj", "icosphere:5", "beetle.off",
          "stanford-bunny.obj", "armadillo.obj", "nefertiti.obj", "icosphere:6"]
 QUICK = ["icosphere:4", "rocker-arm.obj", "armadillo.obj", "nefertiti.obj"]
 DEFORM_MESH = "rocker-arm.obj"
 SUPERLU_REFINED_MAX_FACES = 30_000
-
-
-def load(case: str) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
-    if case.startswith("icosphere:"):
-        mesh = trimesh.creation.icosphere(subdivisions=int(case.split(":")[1]))
-    else:
-        mesh = trimesh.load(SHARED / case, process=False)
-    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
 def _peak_reset() -> None:
@@ -102,7 +91,6 @@ def _reconstruct_row(result: Any, timing: dict[str, Any]) -> dict[str, Any]:
 
 def measure_reconstruct(case: str) -> dict[str, Any]:
     """Every measurement of one mesh, in this process."""
-    sys.path.insert(0, str(ROOT))
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
@@ -112,7 +100,7 @@ def measure_reconstruct(case: str) -> dict[str, Any]:
     from solver.topology import build_topology
 
     linalg.clear_analysis_cache()
-    V, F = load(case)
+    V, F = load_bench_mesh(case)
     forms = fundamental_forms(V, F)
     row: dict[str, Any] = {"case": case, "vertices": len(V), "faces": len(F),
                            "load_start": os.getloadavg()[0]}
@@ -179,7 +167,6 @@ def measure_deformer(case: str, warm_backend: bool = False) -> dict[str, Any]:
     then another while the previous one is still alive. ``warm_backend``: load MKL and
     start its threads first with a 2x2 factorization (what a service worker has done
     before its first request), so "cold" is only the new mesh's cost."""
-    sys.path.insert(0, str(ROOT))
     import scipy.sparse as sp
 
     from solver import Deformer, linalg
@@ -187,7 +174,7 @@ def measure_deformer(case: str, warm_backend: bool = False) -> dict[str, Any]:
     if warm_backend:
         linalg.factorize(sp.identity(2, format="csr"), "pardiso").solve(np.ones(2))
     linalg.clear_analysis_cache()
-    V, F = load(case)
+    V, F = load_bench_mesh(case)
     rng = np.random.default_rng(0)
     sets = [rng.choice(len(V), size=400, replace=False) for _ in range(3)]
     out: dict[str, Any] = {"case": case, "faces": len(F), "load_start": os.getloadavg()[0]}
@@ -208,8 +195,8 @@ def _subprocess(*args: str, threads: int | None = None) -> dict[str, Any] | str:
     env = dict(os.environ)
     if threads:
         env.update(MKL_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads))
-    proc = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True,
-                          check=False, env=env)
+    proc = subprocess.run([sys.executable, "-m", "bench.reconstruct", *args],
+                          capture_output=True, text=True, check=False, env=env, cwd=REPO)
     if proc.returncode:
         return (proc.stderr.strip().splitlines() or ["?"])[-1]
     return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -27,7 +27,7 @@ Sections (``--sections``, default all):
   exponents of both answers (least-squares slope of log time against log faces).
 
     pip install -e ".[bench]"
-    python bench/refinement.py [--sections scale noise ...] [--large]
+    python -m bench.refinement [--sections scale noise ...] [--large]
 
 ``--large`` adds the meshes over 50K faces (armadillo, stanford-bunny, bumpy-plane, nefertiti).
 Meshes come from ../shared/meshes. Times are wall-clock seconds on this machine (quote them
@@ -40,35 +40,23 @@ import argparse
 import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
-import trimesh
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+import solver
+from bench.common import SHARED_MESHES, load_bench_mesh
+from solver.metrics import distortion
+from solver.topology import build_topology
+from tests.helpers.botsch_sorkine import load_case
+from tests.helpers.libigl_reference import arap_deformation, arap_parameterization, flipped_faces
+from tests.helpers.meshes import rigid_alignment_error, with_tiny_edges
 
-from botsch_sorkine import load_case  # noqa: E402
-from libigl_reference import arap_deformation, arap_parameterization, flipped_faces  # noqa: E402
-from meshes import rigid_alignment_error  # noqa: E402
-
-import solver  # noqa: E402
-from solver.metrics import distortion  # noqa: E402
-from solver.topology import build_topology  # noqa: E402
-
-SHARED = ROOT.parent / "shared" / "meshes"
 SCALE_MESHES = ["decimated-knight.off", "bunny.off", "face.off", "rocker-arm.obj", "beetle.off"]
 NOISE_MESHES = ["decimated-knight.off", "torus.off", "bunny.off", "face.off",
                 "octopus-low-surface.off", "rocker-arm.obj", "beetle.off", "cactus.off"]
 LARGE = ["armadillo.obj", "stanford-bunny.obj"]
 DEFORM_CASES = ["bar", "cylinder", "cactus", "bumpy-plane"]
 PARAM_MESHES = ["face.off", "beetle.off", "bumpy-plane.off"]
-
-
-def load(name: str) -> tuple[np.ndarray, np.ndarray]:
-    mesh = trimesh.load(SHARED / name, process=False)
-    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
 def timed(fn, *args, **kw):
@@ -81,18 +69,29 @@ def ratios(X: np.ndarray, forms) -> np.ndarray:
     return np.linalg.norm(X[forms.edges[:, 1]] - X[forms.edges[:, 0]], axis=1) / forms.lengths
 
 
+def table_head(title: str, header: str) -> None:
+    """Print a section's ``### title`` and the head of its markdown table."""
+    print(f"\n### {title}\n")
+    print(header)
+    print("|" + "---|" * (header.count("|") - 1))
+
+
+def shared_forms(name: str):
+    """(vertices, faces, forms) of the shared mesh ``name``."""
+    V, F = load_bench_mesh(name)
+    return V, F, solver.fundamental_forms(V, F)
+
+
 def reconstruct(forms, **kw):
     return solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles,
                               check_integrability=False, **kw)
 
 
 def scale_section(meshes: list[str]) -> None:
-    print("\n### Angles x 0.8\n")
-    print("| mesh | faces | answer | mean l/L | mean abs(l/L - 1) | p95 | iterations | s |")
-    print("|---|---|---|---|---|---|---|---|")
+    table_head("Angles x 0.8",
+               "| mesh | faces | answer | mean l/L | mean abs(l/L - 1) | p95 | iterations | s |")
     for name in meshes:
-        V, F = load(name)
-        forms = solver.fundamental_forms(V, F)
+        _, F, forms = shared_forms(name)
         forms.angles *= 0.8
         for label, kw in (("linear", {"refine": False}),
                           ("orthonormalized", {"refine": False, "orthonormalize": True}),
@@ -105,13 +104,11 @@ def scale_section(meshes: list[str]) -> None:
 
 
 def noise_section(meshes: list[str]) -> None:
-    print("\n### Dihedral noise N(0, 1e-3) rad: distance to the original / bbox diagonal\n")
-    print("| mesh | faces | genus | linear | orthonormalized | refined (default) "
-          "| iterations | refine s | total s |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    table_head("Dihedral noise N(0, 1e-3) rad: distance to the original / bbox diagonal",
+               "| mesh | faces | genus | linear | orthonormalized | refined (default) "
+               "| iterations | refine s | total s |")
     for name in meshes:
-        V, F = load(name)
-        forms = solver.fundamental_forms(V, F)
+        V, F, forms = shared_forms(name)
         topo = build_topology(F, len(V))
         rng = np.random.default_rng(1)
         forms.angles[topo.interior_edges] += rng.normal(0, 1e-3, len(topo.interior_edges))
@@ -135,12 +132,11 @@ def case_kwargs(case) -> dict:
 
 
 def deform_section(cases: list[str]) -> None:
-    print("\n### Botsch-Sorkine cases, positions + rotation handles\n")
-    print("| case | faces | method | mean length change | mean dihedral change (rad) "
-          "| sum | max length change | iterations | s |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    table_head("Botsch-Sorkine cases, positions + rotation handles",
+               "| case | faces | method | mean length change | mean dihedral change (rad) "
+               "| sum | max length change | iterations | s |")
     for name in cases:
-        case = load_case(SHARED, name)
+        case = load_case(SHARED_MESHES, name)
         runs = []
         try:
             for iterations in (10, 200):
@@ -166,12 +162,11 @@ def deform_section(cases: list[str]) -> None:
 
 
 def interpolate_section(cases: list[str]) -> None:
-    print("\n### Interpolation at t = 0.5 between a mesh and a near-isometric pose of it\n")
-    print("| case | endpoint mean length change | form space, refined (default) "
-          "| form space, linear | vertex blend | s (refined) |")
-    print("|---|---|---|---|---|---|")
+    table_head("Interpolation at t = 0.5 between a mesh and a near-isometric pose of it",
+               "| case | endpoint mean length change | form space, refined (default) "
+               "| form space, linear | vertex blend | s (refined) |")
     for name in cases:
-        case = load_case(SHARED, name)
+        case = load_case(SHARED_MESHES, name)
         pose = solver.deform(case.vertices, case.faces, case.handles, case.handle_targets(),
                              **case_kwargs(case)).vertices
         rest = solver.fundamental_forms(case.vertices, case.faces)
@@ -186,12 +181,10 @@ def interpolate_section(cases: list[str]) -> None:
 
 
 def parameterize_section(meshes: list[str]) -> None:
-    print("\n### Parameterization (flattening)\n")
-    print("| mesh | faces | method | flipped faces | mean length change | iterations | s |")
-    print("|---|---|---|---|---|---|---|")
+    table_head("Parameterization (flattening)",
+               "| mesh | faces | method | flipped faces | mean length change | iterations | s |")
     for name in meshes:
-        V, F = load(name)
-        forms = solver.fundamental_forms(V, F)
+        V, F, forms = shared_forms(name)
         try:
             uv, seconds = timed(arap_parameterization, V, F)
             flips = flipped_faces(uv, F)
@@ -210,7 +203,7 @@ def parameterize_section(meshes: list[str]) -> None:
 
 def drag_section() -> None:
     print("\n### Interactive drags at ~20K faces (rocker-arm, 3 handle patches)\n")
-    V, F = load("rocker-arm.obj")
+    V, F = load_bench_mesh("rocker-arm.obj")
     rng = np.random.default_rng(0)
     centres = V[rng.choice(len(V), 3, replace=False)]
     near = [np.flatnonzero(np.linalg.norm(V - c, axis=1) < 0.05 * np.ptp(V)) for c in centres]
@@ -273,17 +266,14 @@ def warm_pair(forms, repeats: int = 3) -> tuple[float, float, object]:
 
 
 def time_section(meshes: list[str]) -> None:
-    from meshes import with_tiny_edges
-
-    print("\n### Time: the default (refined) answer against the linear one, warm\n")
-    print("| case | faces | linear s | default s | ratio | iterations | factorizations "
-          "| solves | converged | quality |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    table_head("Time: the default (refined) answer against the linear one, warm",
+               "| case | faces | linear s | default s | ratio | iterations | factorizations "
+               "| solves | converged | quality |")
     sizes, linear_times, default_times = [], [], []
     cases = [(name, kind) for name in meshes for kind in ("noise", "x0.8")]
     cases.append(("rocker-arm.obj", "irregular"))
     for name, kind in cases:
-        V, F = load(name)
+        V, F = load_bench_mesh(name)
         if kind == "irregular":
             V, F = with_tiny_edges(V, F, 30)
         forms = solver.fundamental_forms(V, F)
@@ -317,21 +307,18 @@ def weights_section() -> None:
     """The measurements behind the default weights (docs/refinement.md, "Weights")."""
     from solver.refine import FormTargets, Refiner
 
-    print("\n### Angle weight beta, prescribed forms: noise N(0, 1e-3), distance / diagonal\n")
-    print("| mesh | beta = 0.05 | 0.005 (default) | 0.0005 |")
-    print("|---|---|---|---|")
+    table_head("Angle weight beta, prescribed forms: noise N(0, 1e-3), distance / diagonal",
+               "| mesh | beta = 0.05 | 0.005 (default) | 0.0005 |")
     for name in ("octopus-low-surface.off", "face.off", "torus.off"):
-        V, F = load(name)
-        forms = solver.fundamental_forms(V, F)
+        V, F, forms = shared_forms(name)
         inner = build_topology(F, len(V)).interior_edges
         forms.angles[inner] += np.random.default_rng(5).normal(0, 1e-3, len(inner))
         cells = [f"{rigid_alignment_error(reconstruct(forms, angle_weight=b).vertices, V):.2e}"
                  for b in (0.05, 0.005, 0.0005)]
         print(f"| {name} | " + " | ".join(cells) + " |")
-    print("\n### Angle weight beta and weighting, deformation: bar, positions + rotations\n")
-    print("| beta | weighting | mean length + mean dihedral change | max length change |")
-    print("|---|---|---|---|")
-    case = load_case(SHARED, "bar")
+    table_head("Angle weight beta and weighting, deformation: bar, positions + rotations",
+               "| beta | weighting | mean length + mean dihedral change | max length change |")
+    case = load_case(SHARED_MESHES, "bar")
     start = solver.deform(case.vertices, case.faces, case.handles, case.handle_targets(),
                           orthonormalize=True, refine=False, **case_kwargs(case)).vertices
     topology = build_topology(case.faces, len(case.vertices))

@@ -6,42 +6,21 @@ from __future__ import annotations
 
 import contextlib
 import os
-import signal
-import socket
 import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import httpx
 
-REPO = Path(__file__).resolve().parents[1]
-# bench/distributed.py is named like the `distributed` package: when a script of this folder
-# runs, keep the folder off the import path so that `import distributed` finds Dask.
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "bench"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from bench.common import REPO
+from tests.helpers.servers import free_port, stop_process
 
 
 def _env(extra: dict[str, str] | None = None) -> dict[str, str]:
     env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1",
            "UVICORN_WS_PER_MESSAGE_DEFLATE": "false", **(extra or {})}  # as in the image
     return env
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=5)
 
 
 @contextlib.contextmanager
@@ -66,7 +45,7 @@ def uvicorn(env: dict[str, str], workers_ready: int = 1) -> Iterator[str]:
             raise RuntimeError("the service did not become ready")
         yield base
     finally:
-        _stop(proc)
+        stop_process(proc, timeout=20)
 
 
 @contextlib.contextmanager
@@ -93,10 +72,6 @@ def dask_cluster(n_workers: int) -> Iterator[str]:
             client.wait_for_workers(n_workers, timeout=120)
         yield address
     finally:
-        _stop(workers)
-        _stop(scheduler)
+        stop_process(workers, timeout=20)
+        stop_process(scheduler, timeout=20)
 
-
-def load() -> str:
-    """The 1, 5 and 15 minute load averages (the box is shared with other test runs)."""
-    return ", ".join(f"{x:.2f}" for x in os.getloadavg())

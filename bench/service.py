@@ -10,7 +10,7 @@
    320-face icosphere) with 1 and 2 workers, 8 concurrent clients.
 
 Each server is a real ``uvicorn service.app:app`` on a free loopback port. Run:
-``python bench/service.py [--repeats 7] [--requests 400] [--out bench/SERVICE.md]``.
+``python -m bench.service [--repeats 7] [--requests 400] [--out bench/SERVICE.md]``.
 """
 
 from __future__ import annotations
@@ -20,11 +20,7 @@ import asyncio
 import contextlib
 import os
 import platform
-import signal
-import socket
 import statistics
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -34,62 +30,23 @@ import numpy as np
 import orjson
 import trimesh
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-import solver  # noqa: E402
-from service.api.decoding import BINARY_MEDIA_TYPE, binary_body  # noqa: E402
-from solver.io import load_mesh_file  # noqa: E402
-
-SHARED_MESH = REPO.parent / "shared" / "meshes" / "rocker-arm.obj"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+import solver
+from bench.common import REPO, session_mesh
+from bench.servers import uvicorn
+from service.api.decoding import BINARY_MEDIA_TYPE, binary_body
 
 
 @contextlib.contextmanager
 def server(workers: int) -> Iterator[str]:
     """A real uvicorn with ``workers`` pool workers; yields its base URL."""
-    port = _free_port()
-    env = {**os.environ, "FFS_WORKERS": str(workers), "FFS_QUEUE_SIZE": "256",
-           "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:app", "--host",
-                             "127.0.0.1", "--port", str(port), "--log-level", "warning"],
-                            cwd=REPO, env=env, start_new_session=True)
-    base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            with contextlib.suppress(httpx.TransportError):
-                ready = httpx.get(f"{base}/readyz", timeout=2)
-                if ready.status_code == 200 and ready.json()["workers_ready"] == workers:
-                    break
-            time.sleep(0.1)
-        else:
-            raise RuntimeError("server did not become ready")
+    with uvicorn({"FFS_WORKERS": str(workers), "FFS_QUEUE_SIZE": "256"},
+                 workers_ready=workers) as base:
         yield base
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-
-
-def _mesh() -> tuple[str, np.ndarray, np.ndarray]:
-    if SHARED_MESH.exists():
-        V, F = load_mesh_file(SHARED_MESH)
-        return SHARED_MESH.name, V, F
-    mesh = trimesh.creation.icosphere(subdivisions=5)
-    return "icosphere(5)", np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
 def latency(repeats: int) -> dict:
     """Library and HTTP timings, interleaved round by round so drift hits all alike."""
-    name, V, F = _mesh()
+    name, V, F = session_mesh()
     forms = solver.fundamental_forms(V, F)
     body = orjson.dumps(forms.to_dict())
     binary = binary_body({}, {"faces": forms.faces, "edges": forms.edges,
@@ -166,7 +123,7 @@ def report(lat: dict, tput: dict[int, dict[str, float]], repeats: int, n_request
     lines = [
         "# Service benchmark",
         "",
-        f"`python bench/service.py --repeats {repeats} --requests {n_requests}` on "
+        f"`python -m bench.service --repeats {repeats} --requests {n_requests}` on "
         f"{platform.machine()} with {os.cpu_count()} cores, Python "
         f"{platform.python_version()}; real uvicorn on loopback, medians of {repeats} rounds "
         "after one warm-up round; each round runs the library call and the HTTP variants in "

@@ -21,7 +21,7 @@ The service is a real ``uvicorn service.app:app`` on loopback (``FFS_EXECUTOR=lo
 session is a dedicated process; with ``--dask`` also ``FFS_EXECUTOR=dask`` on a one-worker
 cluster: the session is a Dask actor). Targets: HTTP p50 <= 40 ms, WebSocket p50 <= 30 ms.
 
-``python bench/session_latency.py [--drags 200] [--dask] [--out bench/SESSIONS.md]``
+``python -m bench.session_latency [--drags 200] [--dask] [--out bench/SESSIONS.md]``
 prints a markdown table (and writes it with ``--out``, replacing that file's latency
 section).
 
@@ -41,31 +41,15 @@ import contextlib
 import functools
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
 import httpx
 import numpy as np
 import orjson
-import trimesh
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from bench.servers import dask_cluster, load, uvicorn  # noqa: E402
-
-SHARED_MESH = REPO.parent / "shared" / "meshes" / "rocker-arm.obj"
-
-
-def mesh() -> tuple[str, np.ndarray, np.ndarray]:
-    if SHARED_MESH.exists():
-        from solver.io import load_mesh_file
-
-        V, F = load_mesh_file(SHARED_MESH)
-        return SHARED_MESH.name, V, F
-    m = trimesh.creation.icosphere(subdivisions=5)
-    return "icosphere(5)", np.asarray(m.vertices), np.asarray(m.faces)
+from bench.common import load_averages, session_mesh, write_section
+from bench.servers import dask_cluster, uvicorn
 
 
 def targets(V: np.ndarray, handles: np.ndarray, count: int) -> np.ndarray:
@@ -164,7 +148,7 @@ def report(name: str, V: np.ndarray, F: np.ndarray, n_drags: int, rounds: int, o
     lines = [
         "## Session drag latency",
         "",
-        f"`python bench/session_latency.py --drags {n_drags} --rounds {rounds}"
+        f"`python -m bench.session_latency --drags {n_drags} --rounds {rounds}"
         f"{' --dask' if 'dask' in sessions else ''}` on {platform.machine()} with "
         f"{os.cpu_count()} cores, Python {platform.python_version()}; {name}: {len(F)} faces, "
         f"{len(V)} vertices, 10 position handles; {n_drags} drags per path in {rounds} "
@@ -314,12 +298,12 @@ def progressive_report(name: str, V: np.ndarray, F: np.ndarray, handles: np.ndar
                        count: int) -> str:
     """Progressive drags against libigl ARAP-10 per drag, measured in one run."""
     drags = targets(V, handles, count + 1)[1:]
-    loads = [load()]
+    loads = [load_averages()]
     with uvicorn({"FFS_WORKERS": "1", "FFS_LOG_LEVEL": "warning"}) as base:
         times, reports, ours = progressive_session(base, V, F, handles, drags)
     arap, theirs = arap_drags(V, F, handles, drags)
     direct = direct_progressive(V, F, handles, drags)
-    loads.append(load())
+    loads.append(load_averages())
     # The first drag starts from the layout fit; the others from the previous refined shape.
     lin, ref, igl10 = stats(times["linear"]), stats(times["refined"]), stats(arap[1:])
     cont = stats(times["continuous"][1:])
@@ -332,7 +316,7 @@ def progressive_report(name: str, V: np.ndarray, F: np.ndarray, handles: np.ndar
     return "\n".join([
         "## Progressive drags",
         "",
-        f"`python bench/session_latency.py --progressive {count}` on {platform.machine()} with "
+        f"`python -m bench.session_latency --progressive {count}` on {platform.machine()} with "
         f"{os.cpu_count()} cores; {name}: {len(F)} faces, 10 position handles, one smooth "
         f"drag of the first handle in {count} steps, the client waiting for both replies "
         "before the next drag. Local session process (MKL threads: one per core), its "
@@ -376,17 +360,17 @@ def main() -> None:
     parser.add_argument("--progressive", type=int, metavar="N",
                         help="measure N progressive drags against libigl ARAP-10 instead")
     args = parser.parse_args()
-    name, V, F = mesh()
+    name, V, F = session_mesh()
     handles = np.linspace(0, len(V) - 1, 10).astype(np.int64)
     if args.progressive:
         text = progressive_report(name, V, F, handles, args.progressive)
         print(text)
         if args.out:
-            _write_section(args.out, "## Progressive drags", text)
+            write_section(args.out, "## Progressive drags", text)
         return
     drags = targets(V, handles, args.drags + args.rounds)
     env = {"FFS_WORKERS": "1", "FFS_LOG_LEVEL": "warning"}
-    loads = [load()]
+    loads = [load_averages()]
     with contextlib.ExitStack() as stack:
         servers = {"local": stack.enter_context(uvicorn(env))}
         if args.dask:
@@ -394,25 +378,13 @@ def main() -> None:
             servers["dask"] = stack.enter_context(uvicorn(
                 {**env, "FFS_EXECUTOR": "dask", "FFS_DASK_SCHEDULER_ADDRESS": address}))
         out, sessions = measure(V, F, handles, drags, servers, args.rounds)
-        loads.append(load())
+        loads.append(load_averages())
         text = report(name, V, F, args.drags, args.rounds, out, sessions, loads)
         for session in sessions.values():
             session.close()
     print(text)
     if args.out:
-        _write_section(args.out, "## Session drag latency", text)
-
-
-def _write_section(path: Path, heading: str, text: str) -> None:
-    """Replace the section that starts with ``heading`` (up to the next ``## ``)."""
-    old = path.read_text() if path.exists() else "# Sessions and scale-out benchmarks\n\n"
-    start = old.find(heading)
-    if start < 0:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        end = old.find("\n## ", start + len(heading))
-        new = old[:start] + text + (old[end + 1:] if end >= 0 else "")
-    path.write_text(new.rstrip("\n") + "\n")
+        write_section(args.out, "## Session drag latency", text)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,9 @@
 """Differentiable reconstruction: the cost of a VJP against the reconstruct that produced
 it, and the worked inverse-design example (docs/differentiable.md).
 
-    python bench/vjp.py                       # timings on the shared meshes, then the example
-    python bench/vjp.py --meshes bunny.off --no-example
-    python bench/vjp.py --example-only --plot loss.png
+    python -m bench.vjp                       # timings on the shared meshes, then the example
+    python -m bench.vjp --meshes bunny.off --no-example
+    python -m bench.vjp --example-only --plot loss.png
 
 Per mesh and answer (linear: ``refine=False``; refined: the default), in one run, with
 noisy angles (0.01 rad; the linear answer then needs its factorization and the refined one
@@ -17,25 +17,20 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-import trimesh
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import solver  # noqa: E402
-from solver.differentiable import aligned_distance, reconstruct_vjp  # noqa: E402
+import solver
+from bench.common import load_bench_mesh
+from solver.differentiable import aligned_distance, reconstruct_vjp
+from tests.helpers.meshes import grid
 
 MESHES = ("bunny.off", "cactus.off", "rocker-arm.obj", "bumpy-plane.off", "armadillo.obj")
 
 
-def noisy_forms(path: Path, seed: int = 0) -> solver.Forms:
-    mesh = trimesh.load(path, process=False)
-    forms = solver.fundamental_forms(mesh.vertices, mesh.faces)
+def noisy_forms(name: str, seed: int = 0) -> solver.Forms:
+    forms = solver.fundamental_forms(*load_bench_mesh(name))
     rng = np.random.default_rng(seed)
     angles = np.clip(forms.angles + 0.01 * rng.standard_normal(len(forms.angles)),
                      -np.pi + 1e-9, np.pi)
@@ -49,7 +44,7 @@ def seconds(function) -> tuple[float, object]:
 
 
 def time_mesh(name: str, repeats: int) -> list[dict]:
-    forms = noisy_forms(ROOT.parent / "shared" / "meshes" / name)
+    forms = noisy_forms(name)
     rows = []
     for refine, label in ((False, "linear"), (None, "refined")):
         times: dict[str, list[float]] = {"reconstruct": [], "prepare": [], "vjp1": [],
@@ -82,9 +77,6 @@ def inverse_design(n: int = 16, radius: float = 0.5, iterations: int = 300,
                    plot: str | None = None) -> dict:
     """Find the dihedral angles (lengths kept) whose reconstruction is a flat sheet bent
     around a cylinder: gradient descent with backtracking from all angles 0."""
-    sys.path.insert(0, str(ROOT / "tests"))
-    from meshes import grid
-
     V, F = grid(n, n)
     target = np.stack([radius * np.sin(V[:, 0] / radius), V[:, 1],
                        radius * (1 - np.cos(V[:, 0] / radius))], axis=1)

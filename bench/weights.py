@@ -4,9 +4,9 @@ For each shared mesh and each weighting ("uniform", "cotan_clamped", "cotan" = t
 literally), reconstruct from the mesh's own forms and report the error after rigid
 alignment (relative to the bounding-box diagonal) together with the spread of the row
 weights (max / min), which bounds how much the weighting worsens conditioning.
-Deformation quality per weighting: bench/deformation_cases.py --weightings ...
+Deformation quality per weighting: ``python -m bench.deformation_cases --weightings ...``
 
-    python bench/weights.py [backend]
+    python -m bench.weights [backend]
 
 A solve whose relative residual exceeds 1e-6 is refused by solver.linalg ("refused: r").
 """
@@ -14,21 +14,13 @@ A solve whose relative residual exceeds 1e-6 is refused by solver.linalg ("refus
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-import numpy as np
-import trimesh
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
-
-from meshes import rigid_alignment_error  # noqa: E402
-
-from solver import fundamental_forms, reconstruct  # noqa: E402
-from solver.forms import validate_forms  # noqa: E402
-from solver.linalg import SingularSystemError  # noqa: E402
-from solver.reconstruct import ImmersionProblem  # noqa: E402
+from bench.common import load_bench_mesh
+from solver import fundamental_forms, reconstruct
+from solver.forms import validate_forms
+from solver.linalg import SingularSystemError
+from solver.reconstruct import ImmersionProblem
+from tests.helpers.meshes import rigid_alignment_error
 
 MESHES = ["decimated-knight.off", "octopus-low-surface.off", "torus.off", "face.off",
           "bar.off", "cylinder.off", "cactus.off", "bunny.off"]
@@ -42,8 +34,7 @@ def main() -> None:
         f"{w} error (weight spread)" for w in WEIGHTINGS) + " |")
     print("|---|---|---|" + "---|" * len(WEIGHTINGS))
     for name in MESHES:
-        mesh = trimesh.load(ROOT.parent / "shared" / "meshes" / name, process=False)
-        V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        V, F = load_bench_mesh(name)
         forms = fundamental_forms(V, F)
         topo, L, A = validate_forms(forms.faces, forms.edges, forms.lengths, forms.angles)
         cells = []

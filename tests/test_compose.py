@@ -5,22 +5,21 @@ and the workers together with settings the service really reads."""
 from __future__ import annotations
 
 import importlib
-import importlib.util
 import json
 import re
-from pathlib import Path
 
 import yaml
 
+from scripts import docker_smoke
 from service.settings import Settings
+from tests.helpers import REPO
 
-ROOT = Path(__file__).resolve().parents[1]
-COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+COMPOSE = yaml.safe_load((REPO / "docker-compose.yml").read_text())
 SERVICES = COMPOSE["services"]
 
 
 def _dockerfile_cmd() -> list[str]:
-    text = (ROOT / "Dockerfile").read_text()
+    text = (REPO / "Dockerfile").read_text()
     (cmd,) = re.findall(r"^CMD (\[.*\])$", text, re.MULTILINE)
     return json.loads(cmd)
 
@@ -35,7 +34,7 @@ def test_one_image_for_every_service():
 def test_api_runs_the_image_command_on_the_scheduler():
     api = SERVICES["api"]
     assert api["command"] == _dockerfile_cmd()
-    assert " ".join(api["command"]) in (ROOT / "README.md").read_text()
+    assert " ".join(api["command"]) in (REPO / "README.md").read_text()
     env = {k: str(v) for k, v in api["environment"].items()}
     settings = Settings(**{k.removeprefix("FFS_").lower(): v for k, v in env.items()})
     assert settings.executor == "dask"
@@ -60,12 +59,12 @@ def test_scaled_api_replicas_fit_the_published_ports():
     (published,) = SERVICES["api"]["ports"]
     ports = _host_ports(published)
     assert ports.start == 8000  # the port the README and docs/distributed.md name
-    texts = [(ROOT / name).read_text() for name in
+    texts = [(REPO / name).read_text() for name in
              ("docker-compose.yml", "README.md", "docs/distributed.md", "docs/deployment.md")]
     scales = [int(n) for text in texts for n in re.findall(r"--scale api=(\d+)", text)]
     assert scales, "no --scale api=N example left: say how API replicas scale"
     assert max(scales) <= len(ports), (scales, published)
-    assert f"up to {len(ports)} replicas" in (ROOT / "docs" / "distributed.md").read_text()
+    assert f"up to {len(ports)} replicas" in (REPO / "docs" / "distributed.md").read_text()
 
 
 def test_scheduler_preload_and_retry_policy():
@@ -81,27 +80,17 @@ def test_scheduler_preload_and_retry_policy():
 
 
 def test_documented():
-    doc = (ROOT / "docs" / "distributed.md").read_text()
+    doc = (REPO / "docs" / "distributed.md").read_text()
     assert "docker compose up --build --scale worker=4" in doc
-    assert "docker compose up --build" in (ROOT / "README.md").read_text()
-
-
-def _docker_smoke():
-    """scripts/docker_smoke.py (the container checks of scripts/docker-smoke.sh) as a module."""
-    spec = importlib.util.spec_from_file_location("docker_smoke",
-                                                  ROOT / "scripts" / "docker_smoke.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    assert "docker compose up --build" in (REPO / "README.md").read_text()
 
 
 def test_smoke_script_runs_every_service_as_composed():
     """The smoke test's podman arguments carry each service's command, environment,
     read-only root, tmpfs and healthcheck, with only the port numbers moved."""
-    smoke = _docker_smoke()
     ports = {8786: 41001, 8787: 41002, 8000: 41003}
     for name, service in SERVICES.items():
-        args = smoke.run_args(service, f"x-{name}", ports)
+        args = docker_smoke.run_args(service, f"x-{name}", ports)
         image_at = args.index(service["image"])
         command = args[image_at + 1:]
         expected = [str(a).replace("8786", "41001").replace("8787", "41002")
@@ -118,6 +107,6 @@ def test_smoke_script_runs_every_service_as_composed():
         else:
             test = json.loads(args[args.index("--health-cmd") + 1])
             assert test == [t.replace("8786", "41001") for t in health["test"][1:]]
-    api = smoke.run_args(SERVICES["api"], "x", ports)
+    api = docker_smoke.run_args(SERVICES["api"], "x", ports)
     assert "FFS_DASK_SCHEDULER_ADDRESS=tcp://scheduler:41001" in api
     assert api[api.index("--add-host") + 1] == "scheduler:127.0.0.1"

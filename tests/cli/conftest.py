@@ -7,24 +7,22 @@ import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from helpers.servers import REPO, uvicorn_server
 
-DATA = REPO / "tests" / "data"
+from tests.helpers import DATA, REPO
+from tests.helpers.servers import uvicorn_fixture
+
 FFS = shutil.which("ffs")
 """The installed console script (``pip install -e .``); ``python -m ffs`` without it."""
 
 Run = Callable[..., subprocess.CompletedProcess[str]]
 
 
-@pytest.fixture(scope="session")
-def server() -> Iterator[str]:
-    """Base URL of a real uvicorn (2 workers: 1 BLAS thread each on 2 cores)."""
-    with uvicorn_server() as base:
-        yield base
+server = uvicorn_fixture(
+    doc="Base URL of a real uvicorn (2 workers: 1 BLAS thread each on 2 cores).")
 
 
 @pytest.fixture

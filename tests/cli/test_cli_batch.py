@@ -8,10 +8,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-from meshes import grid
 
 import solver
 from solver.io import load_mesh_file, save_mesh
+from tests.helpers.meshes import grid
 
 N_GOOD = 20
 

@@ -22,11 +22,12 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from helpers.servers import REPO, free_port
-from helpers.service import rigid_error
 
 import solver
 from solver.io import load_mesh_file
+from tests.helpers import REPO
+from tests.helpers.servers import free_port
+from tests.helpers.service import rigid_error
 
 SAME = 1e-12
 

@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from helpers.servers import REPO
+
+from tests.helpers import REPO
 
 FFS = shutil.which("ffs")
 

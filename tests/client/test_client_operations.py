@@ -13,11 +13,12 @@ import time
 import httpx
 import numpy as np
 import pytest
-from helpers.servers import REPO
-from helpers.service import load, metric_value, rigid_error
 
 import ffs
 import solver
+from tests.helpers import REPO
+from tests.helpers.meshes import load
+from tests.helpers.service import metric_value, rigid_error
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,6 @@
-"""Servers for the tests: an in-process app (Starlette's TestClient, lifespan and worker
-pool included) and a real uvicorn on a free loopback port."""
+"""Servers for the tests and the benchmarks: a free loopback port, a process stopped
+cleanly, an in-process app (Starlette's TestClient, lifespan and worker pool included) and a
+real uvicorn on a free loopback port (also as a pytest fixture)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,6 @@ import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import httpx
@@ -21,10 +21,7 @@ with warnings.catch_warnings():  # "install httpx2": the TestClient still uses h
     warnings.simplefilter("ignore")
     from starlette.testclient import TestClient
 
-from service.app import create_app
-from service.settings import Settings
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import REPO
 
 STARTUP_TIMEOUT = 60.0
 
@@ -45,6 +42,9 @@ def wait_ready(get: Callable[[str], Any], workers: int, timeout: float = STARTUP
 @contextlib.contextmanager
 def running_app(**overrides: Any) -> Iterator[TestClient]:
     """An app with ``Settings(**overrides)``, its lifespan running, all workers ready."""
+    from service.app import create_app  # here: the benchmarks import this module too
+    from service.settings import Settings
+
     settings = Settings(**{"workers": 2, **overrides})
     app = create_app(settings)
     with TestClient(app, raise_server_exceptions=False) as client:
@@ -52,11 +52,24 @@ def running_app(**overrides: Any) -> Iterator[TestClient]:
         yield client
 
 
-
 def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (the OS's choice)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def stop_process(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
+    """SIGTERM ``proc`` (started with ``start_new_session=True``) and wait ``timeout``
+    seconds for it; then SIGKILL its whole process group."""
+    if proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=5)
 
 
 @contextlib.contextmanager
@@ -95,9 +108,18 @@ def uvicorn_process(env: dict[str, str] | None = None,
                 wait_ready(get, int(full_env["FFS_WORKERS"]))
             yield base, proc
         finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(timeout=5)
+            stop_process(proc)
+
+
+def uvicorn_fixture(env: dict[str, str] | None = None, *, scope: str = "session",
+                    doc: str = "") -> Any:
+    """A pytest fixture yielding the base URL of :func:`uvicorn_server` with ``env``, for a
+    conftest to assign to the fixture's name (``server = uvicorn_fixture()``)."""
+    import pytest  # here: the benchmarks import this module without pytest installed
+
+    def fixture() -> Iterator[str]:
+        with uvicorn_server(env) as base:
+            yield base
+
+    fixture.__doc__ = doc or f"Base URL of a real uvicorn on loopback (environment {env})."
+    return pytest.fixture(scope=scope)(fixture)  # type: ignore[call-overload]

@@ -1,38 +1,12 @@
-"""Helpers shared by the service tests (meshes, alignment, problem assertions)."""
+"""Helpers shared by the service tests: request bodies, alignment, metrics, problem
+assertions, task requests."""
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
-
-REPO = Path(__file__).resolve().parents[2]
-DATA = REPO / "tests" / "data"
-
-
-def icosphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
-    mesh = trimesh.creation.icosphere(subdivisions=subdivisions)
-    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
-
-
-def load(name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, faces) of tests/data/<name> in file order (solver.io)."""
-    from solver.io import load_mesh_file
-
-    return load_mesh_file(DATA / name)
-
-
-def bumpy_grid(nx: int = 8, ny: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """An open, curved grid (disk topology)."""
-    from meshes import grid
-
-    V, F = grid(nx, ny, width=1.5, height=1.0)
-    V[:, 2] = 0.2 * np.sin(3 * V[:, 0]) * np.cos(4 * V[:, 1])
-    return V, F
 
 
 def mesh_json(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:

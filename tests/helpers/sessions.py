@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import REPO
 
 _REFERENCE = """
 import sys

@@ -1,12 +1,13 @@
 """Fixtures of the service tests: the shared in-process app and the shared real uvicorn
-(:mod:`helpers.servers`)."""
+(:mod:`tests.helpers.servers`)."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 
 import pytest
-from helpers.servers import TestClient, running_app, uvicorn_server
+
+from tests.helpers.servers import TestClient, running_app, uvicorn_fixture
 
 
 @pytest.fixture(scope="session")
@@ -16,8 +17,5 @@ def client() -> Iterator[TestClient]:
         yield c
 
 
-@pytest.fixture(scope="session")
-def live_server() -> Iterator[str]:
-    """Base URL of a real uvicorn server shared by the end-to-end tests."""
-    with uvicorn_server() as base:
-        yield base
+live_server = uvicorn_fixture(
+    doc="Base URL of a real uvicorn server shared by the end-to-end tests.")

@@ -9,9 +9,10 @@ import zlib
 import numpy as np
 import orjson
 import pytest
-from helpers.service import forms_json, icosphere
 
 from service.http.compression import PARALLEL_MINIMUM, gzip_parallel
+from tests.helpers.meshes import icosphere
+from tests.helpers.service import forms_json
 
 
 def _mesh_json(n: int) -> bytes:

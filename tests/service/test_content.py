@@ -11,11 +11,12 @@ import struct
 import numpy as np
 import pytest
 import trimesh
-from gltf_validator import validate_gltf
-from helpers.service import bumpy_grid, forms_json, icosphere, load, mesh_json
 
 from service.api.problems import ProblemError
 from service.http.negotiation import negotiate
+from tests.helpers.gltf_validator import validate_gltf
+from tests.helpers.meshes import bumpy_grid, icosphere, load
+from tests.helpers.service import forms_json, mesh_json
 
 
 def _glb_json(data: bytes) -> dict:

@@ -9,11 +9,12 @@ import time
 import httpx
 import numpy as np
 import pytest
-from helpers.servers import uvicorn_server
-from helpers.service import forms_json, load, problem
 
 import solver
 from service.api.task import encode_margin
+from tests.helpers.meshes import load
+from tests.helpers.servers import uvicorn_server
+from tests.helpers.service import forms_json, problem
 
 
 @pytest.fixture(scope="module")

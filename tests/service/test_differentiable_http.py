@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import httpx
 import numpy as np
-from helpers.service import load, problem
 
 import solver
+from tests.helpers.meshes import load
+from tests.helpers.service import problem
 
 
 def noisy_forms():

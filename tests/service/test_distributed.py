@@ -20,12 +20,13 @@ import numpy as np
 import pytest
 from distributed import Client, LocalCluster
 from distributed.scheduler import KilledWorker
-from helpers.servers import running_app
-from helpers.service import debug_task, forms_json, icosphere, problem
-from helpers.sessions import reference_solves, rotation_z
 
 from service.backends.dask.registry import Registry
 from service.backends.jobs import Job
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import running_app
+from tests.helpers.service import debug_task, forms_json, problem
+from tests.helpers.sessions import reference_solves, rotation_z
 
 HANDLES = [0, 40, 80, 120]
 GROUP = list(range(500, 506))

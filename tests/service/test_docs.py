@@ -13,10 +13,10 @@ import sys
 import httpx
 import numpy as np
 import pytest
-from helpers.servers import free_port, wait_ready
-from helpers.service import REPO
 
 from service.settings import ENV_PREFIX, Settings
+from tests.helpers import REPO
+from tests.helpers.servers import free_port, wait_ready
 
 DOC = REPO / "docs" / "service.md"
 BLOCK = re.compile(r"```(bash|python|yaml)\n(.*?)```", re.DOTALL)

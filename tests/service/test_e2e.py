@@ -10,10 +10,12 @@ import time
 import httpx
 import numpy as np
 import trimesh
-from gltf_validator import validate_gltf
-from helpers.service import DATA, bumpy_grid, forms_json, icosphere, load, mesh_json, rigid_error
 
 import solver
+from tests.helpers import DATA
+from tests.helpers.gltf_validator import validate_gltf
+from tests.helpers.meshes import bumpy_grid, icosphere, load
+from tests.helpers.service import forms_json, mesh_json, rigid_error
 
 
 def test_upload_job_progress_and_glb(live_server):

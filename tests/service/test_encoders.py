@@ -3,13 +3,9 @@
 from __future__ import annotations
 
 import base64
-import importlib.util
 import io
 import json
 import struct
-import sys
-from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -25,33 +21,18 @@ from service.worker.gltf import (
     vertex_normals,
 )
 from solver.errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
-
-
-def _load_helper() -> ModuleType:
-    """Import tests/gltf_validator.py whatever the pytest import mode / sys.path."""
-    if "gltf_validator" in sys.modules:
-        return sys.modules["gltf_validator"]
-    path = Path(__file__).resolve().parents[1] / "gltf_validator.py"
-    spec = importlib.util.spec_from_file_location("gltf_validator", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["gltf_validator"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-gv = _load_helper()
+from tests.helpers.gltf_validator import ensure_validator_installed, issue_codes, validate_gltf
+from tests.helpers.meshes import icosphere
 
 
 @pytest.fixture(scope="module", autouse=True)
 def _validator() -> None:
-    gv.ensure_validator_installed()
+    ensure_validator_installed()
 
 
 @pytest.fixture(scope="module")
 def sphere() -> tuple[np.ndarray, np.ndarray]:
-    m = trimesh.creation.icosphere(subdivisions=2)
-    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+    return icosphere(2)
 
 
 def _encode(kind: str, *args: Any, **kwargs: Any) -> bytes:
@@ -60,7 +41,7 @@ def _encode(kind: str, *args: Any, **kwargs: Any) -> bytes:
 
 
 def _validate(data: bytes, kind: str) -> dict[str, Any]:
-    report = gv.validate_gltf(data, kind)
+    report = validate_gltf(data, kind)
     issues = report["issues"]
     print(f"validator {report['validatorVersion']} ({kind}): "
           f"{issues['numErrors']} errors, {issues['numWarnings']} warnings, "
@@ -134,7 +115,7 @@ def test_degenerate_face_still_valid() -> None:
     report = _validate(encode_gltf_binary(v, f), "glb")
     assert report["issues"]["numErrors"] == 0
     assert report["issues"]["numWarnings"] == 0
-    assert set(gv.issue_codes(report)) <= {"ACCESSOR_INDEX_TRIANGLE_DEGENERATE"}
+    assert set(issue_codes(report)) <= {"ACCESSOR_INDEX_TRIANGLE_DEGENERATE"}
 
 
 def test_large_mesh_uses_uint32_indices_and_validates() -> None:

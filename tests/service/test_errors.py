@@ -6,12 +6,13 @@ import copy
 
 import numpy as np
 import pytest
-from helpers.servers import running_app
-from helpers.service import forms_json, icosphere, mesh_json, problem
 
 from service.api.problems import PROBLEM_KINDS, ProblemError, failure_of
 from service.api.schemas import EXAMPLE_FORMS, EXAMPLE_MESH
 from solver.errors import ERROR_KINDS
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import running_app
+from tests.helpers.service import forms_json, mesh_json, problem
 
 S2 = 1.4142135623730951
 QUAD = {"faces": [[0, 1, 2], [0, 2, 3]], "edges": [[0, 1], [0, 2], [0, 3], [1, 2], [2, 3]],

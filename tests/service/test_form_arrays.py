@@ -6,8 +6,9 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from helpers.service import REPO
-from meshes import grid
+
+from tests.helpers import REPO
+from tests.helpers.meshes import grid
 
 FACE = (REPO / "tests" / "data" / "face.off").read_bytes()
 HANDLES = [{"vertex": 0, "position": [0.0, 0.0, 0.0]},

@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers.service import REPO
+
+from tests.helpers import REPO
 
 DOC = REPO / "docs" / "service.md"
 PACKAGE = "fundamental_forms_service_client"

@@ -19,8 +19,11 @@ import httpx
 import numpy as np
 import orjson
 import pytest
-from helpers.servers import REPO, uvicorn_process, uvicorn_server
-from helpers.service import forms_json, icosphere, metric_value
+
+from tests.helpers import REPO
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import uvicorn_process, uvicorn_server
+from tests.helpers.service import forms_json, metric_value
 
 
 def _address(base: str) -> tuple[str, int]:

@@ -10,16 +10,18 @@ import json
 import re
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import httpx
 import numpy as np
 import orjson
 import pytest
-from helpers.servers import uvicorn_server
-from helpers.service import bumpy_grid, metric_value, problem
 
 from service.api.decoding import BINARY_MAGIC, BINARY_MEDIA_TYPE, binary_body
 from solver.io import save_mesh
+from tests.helpers.meshes import bumpy_grid
+from tests.helpers.servers import uvicorn_server
+from tests.helpers.service import metric_value, problem
 
 
 @pytest.fixture(scope="module")
@@ -120,17 +122,24 @@ def _job_body() -> dict[str, object]:
                                             "faces": GRID[1].tolist()}}
 
 
+def _finished_jobs(http: Any, count: int) -> list[str]:
+    """Locations of ``count`` forms jobs submitted through ``http`` (an httpx or test
+    client) one after the other, each waited for until it succeeded."""
+    done = []
+    for _ in range(count):
+        location = http.post("/v1/jobs", json=_job_body()).headers["location"]
+        while http.get(location).json()["status"] != "succeeded":
+            time.sleep(0.02)
+        done.append(location)
+    return done
+
+
 def test_finished_jobs_give_way_and_one_client_cannot_take_the_store():
-    from helpers.servers import running_app
-    from helpers.service import debug_task
+    from tests.helpers.servers import running_app
+    from tests.helpers.service import debug_task
 
     with running_app(workers=1, max_jobs=4, max_client_jobs=2) as c:
-        done = []
-        for _ in range(4):  # fill the store with finished jobs
-            location = c.post("/v1/jobs", json=_job_body()).headers["location"]
-            while c.get(location).json()["status"] != "succeeded":
-                time.sleep(0.02)
-            done.append(location)
+        done = _finished_jobs(c, 4)  # fill the store with finished jobs
         fresh = c.post("/v1/jobs", json=_job_body())  # was 503 too-many-jobs for an hour
         assert fresh.status_code == 202, fresh.text
         problem(c.get(done[0]), 404, "not-found")  # the oldest finished job made room
@@ -153,19 +162,15 @@ def test_finished_jobs_give_way_and_one_client_cannot_take_the_store():
 
 
 def test_job_fairness_on_the_wire():
-    from helpers.service import forms_json, icosphere
+    from tests.helpers.meshes import icosphere
+    from tests.helpers.service import forms_json
 
     slow = {"operation": "reconstruct",  # ~1 s each on one worker: unfinished for a while
             "input": {**forms_json(*icosphere(5)), "options": {"exact_shortcut": False}}}
     env = {"FFS_WORKERS": "1", "FFS_MAX_JOBS": "4", "FFS_MAX_CLIENT_JOBS": "2"}
     with uvicorn_server(env) as url, _client_at(url, "127.0.0.1") as a, \
             _client_at(url, "127.0.0.2") as b:
-        done = []
-        for _ in range(4):  # a store full of finished jobs
-            location = a.post("/v1/jobs", json=_job_body()).headers["location"]
-            while a.get(location).json()["status"] != "succeeded":
-                time.sleep(0.02)
-            done.append(location)
+        done = _finished_jobs(a, 4)  # a store full of finished jobs
         mine = [a.post("/v1/jobs", json=slow) for _ in range(2)]
         assert [r.status_code for r in mine] == [202, 202], [r.text for r in mine]
         refused = a.post("/v1/jobs", json=_job_body())  # a third unfinished one: 429
@@ -181,7 +186,7 @@ def test_job_fairness_on_the_wire():
 
 
 async def _refusal(manager) -> str:
-    from helpers.service import debug_task
+    from tests.helpers.service import debug_task
 
     try:
         await manager.submit(debug_task("debug.sleep", seconds=30), owner="client-9")
@@ -217,7 +222,7 @@ def test_requests_from_another_origin_are_refused(http, base):
 
 
 def test_ffs_cors_origins_are_allowed():
-    from helpers.servers import running_app
+    from tests.helpers.servers import running_app
 
     with running_app(cors_origins=["https://good.example"]) as c:
         ok = c.post("/v1/forms", json={"vertices": GRID[0].tolist(), "faces": GRID[1].tolist()},
@@ -443,8 +448,9 @@ def test_a_dead_worker_is_told_without_its_pid():
     import signal
     import threading
 
-    from helpers.servers import uvicorn_process
-    from helpers.service import forms_json, icosphere
+    from tests.helpers.meshes import icosphere
+    from tests.helpers.servers import uvicorn_process
+    from tests.helpers.service import forms_json
 
     body = {**forms_json(*icosphere(5)), "options": {"exact_shortcut": False}}  # ~1 s
     with uvicorn_process() as (url, proc), httpx.Client(base_url=url, timeout=60) as client:
@@ -483,7 +489,7 @@ def test_the_disconnect_line_has_time_and_level(http, base):
     import re
     import socket
 
-    from helpers.servers import REPO
+    from tests.helpers import REPO
 
     host, port = base[7:].split(":")
     with socket.create_connection((host, int(port)), timeout=10) as sock:
@@ -505,7 +511,7 @@ def test_the_disconnect_line_has_time_and_level(http, base):
 def test_a_client_that_never_reads_is_cut_off():
     import socket
 
-    from helpers.service import icosphere
+    from tests.helpers.meshes import icosphere
 
     V, F = icosphere(6)  # its forms are ~6 MB of JSON: more than the socket buffers hold
     body = orjson.dumps({"vertices": V.tolist(), "faces": F.tolist()})

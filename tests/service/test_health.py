@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import pytest
-from helpers.servers import running_app
-from helpers.service import icosphere, mesh_json
 from starlette.testclient import TestClient
 
 from service.api.problems import PROBLEM_KINDS
 from service.app import create_app
 from service.settings import Settings
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import running_app
+from tests.helpers.service import mesh_json
 
 
 def test_healthz_and_readyz(client):

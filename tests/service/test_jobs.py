@@ -9,11 +9,13 @@ import time
 
 import numpy as np
 import pytest
-from helpers.servers import running_app
-from helpers.service import DATA, debug_task, forms_json, icosphere, load, mesh_json, problem
 
 import solver
 from service.api.schemas import EXAMPLE_FORMS
+from tests.helpers import DATA
+from tests.helpers.meshes import icosphere, load
+from tests.helpers.servers import running_app
+from tests.helpers.service import debug_task, forms_json, mesh_json, problem
 
 
 def wait_job(client, location, states=("succeeded", "failed", "cancelled"), timeout=60.0):

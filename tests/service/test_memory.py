@@ -9,10 +9,11 @@ import time
 
 import orjson
 import psutil
-from helpers.servers import running_app
-from helpers.service import icosphere, mesh_json
 
 from service.memory import IDLE_RELEASE, free_deferred, free_later, gc_paused
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import running_app
+from tests.helpers.service import mesh_json
 
 
 def test_gc_paused_nests_across_threads_and_restores_the_collector():

@@ -7,8 +7,11 @@ import io
 
 import numpy as np
 import trimesh
-from gltf_validator import validate_gltf
-from helpers.service import DATA, load, problem
+
+from tests.helpers import DATA
+from tests.helpers.gltf_validator import validate_gltf
+from tests.helpers.meshes import load
+from tests.helpers.service import problem
 
 
 def test_upload_returns_file_order_and_report(client):

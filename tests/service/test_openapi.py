@@ -2,23 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
-from helpers.service import REPO
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("generate_openapi",
-                                                  REPO / "scripts" / "generate_openapi.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from scripts import generate_openapi
+from tests.helpers import REPO
 
 
 def test_committed_openapi_is_up_to_date():
     current = (REPO / "openapi" / "openapi.json").read_text(encoding="utf-8")
-    assert current == _script().render(), (
+    assert current == generate_openapi.render(), (
         "openapi/openapi.json is stale: run `python scripts/generate_openapi.py`")
 
 

@@ -4,18 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers.service import (
-    bumpy_grid,
-    forms_json,
-    icosphere,
-    load,
-    mesh_json,
-    problem,
-    rigid_error,
-)
 
 import solver
 from service.operations import OPERATIONS
+from tests.helpers.meshes import bumpy_grid, icosphere, load
+from tests.helpers.service import forms_json, mesh_json, problem, rigid_error
 
 
 @pytest.mark.parametrize("operation", list(OPERATIONS))
@@ -89,7 +82,7 @@ def test_integrability_of_perturbed_forms_names_worst_vertices(client):
 
 
 def test_integrability_open_mesh_with_holes_and_file_upload(client):
-    from meshes import bumpy_grid_with_holes
+    from tests.helpers.meshes import bumpy_grid_with_holes
 
     V, F = bumpy_grid_with_holes()
     doc = client.post("/v1/integrability", json=forms_json(V, F)).json()

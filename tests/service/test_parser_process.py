@@ -12,12 +12,12 @@ import time
 import numpy as np
 import orjson
 import pytest
-from helpers.servers import running_app
-from helpers.service import problem
-from meshes import grid
 
 from service.http import bodies
 from solver import fundamental_forms
+from tests.helpers.meshes import grid
+from tests.helpers.servers import running_app
+from tests.helpers.service import problem
 
 
 def big_grid() -> tuple[np.ndarray, np.ndarray]:

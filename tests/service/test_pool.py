@@ -9,8 +9,6 @@ import threading
 import time
 
 import pytest
-from helpers.servers import running_app
-from helpers.service import debug_task, forms_json, forms_task, icosphere, mesh_json, problem
 
 from service.backends.errors import (
     ExecutorClosedError,
@@ -20,6 +18,9 @@ from service.backends.errors import (
     WorkerDiedError,
 )
 from service.backends.local.executor import ProcessExecutor
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import running_app
+from tests.helpers.service import debug_task, forms_json, forms_task, mesh_json, problem
 
 
 def _submit(client, task, **params):

@@ -13,9 +13,11 @@ import struct
 import httpx
 import numpy as np
 import pytest
-from helpers.servers import running_app, uvicorn_server
-from helpers.service import icosphere, problem
-from helpers.sessions import reference_progressive
+
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import running_app, uvicorn_server
+from tests.helpers.service import problem
+from tests.helpers.sessions import reference_progressive
 
 HANDLES = [0, 40, 80, 120]
 OCTET = "application/octet-stream"

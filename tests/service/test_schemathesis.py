@@ -27,8 +27,6 @@ import httpx
 import numpy as np
 import pytest
 import schemathesis
-from helpers.servers import uvicorn_server
-from helpers.service import metric_value
 from hypothesis import HealthCheck, settings
 from hypothesis.errors import FlakyStrategyDefinition
 from schemathesis.checks import (
@@ -42,6 +40,8 @@ from schemathesis.specs.openapi.checks import use_after_free
 
 from service.api.decoding import BINARY_DTYPES, BINARY_MAGIC, BINARY_MEDIA_TYPE
 from service.operations import OPERATIONS
+from tests.helpers.servers import uvicorn_server
+from tests.helpers.service import metric_value
 
 ARRAYS = {f"/v1/{name}": spec.arrays for name, spec in OPERATIONS.items()}
 """Path -> the large arrays of its body (those a binary body sends as bytes)."""

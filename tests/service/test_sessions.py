@@ -15,9 +15,11 @@ import time
 import httpx
 import numpy as np
 import pytest
-from helpers.servers import running_app, uvicorn_server
-from helpers.service import icosphere, problem
-from helpers.sessions import reference_solves, rotation_z
+
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import running_app, uvicorn_server
+from tests.helpers.service import problem
+from tests.helpers.sessions import reference_solves, rotation_z
 
 HANDLES = [0, 40, 80, 120]
 GROUP = list(range(500, 506))

@@ -16,8 +16,11 @@ from collections.abc import Iterator
 import httpx
 import numpy as np
 import psutil
-from helpers.servers import REPO, free_port, wait_ready
-from helpers.service import forms_json, icosphere, problem
+
+from tests.helpers import REPO
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import free_port, wait_ready
+from tests.helpers.service import forms_json, problem
 
 
 @contextlib.contextmanager

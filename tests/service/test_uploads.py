@@ -7,10 +7,12 @@ import re
 
 import numpy as np
 import pytest
-from helpers.service import DATA, bumpy_grid, problem, rigid_error
 
 import solver
 from solver.io import load_mesh, save_mesh
+from tests.helpers import DATA
+from tests.helpers.meshes import bumpy_grid
+from tests.helpers.service import problem, rigid_error
 
 FORMATS = ["obj", "off", "ply", "stl", "glb"]
 

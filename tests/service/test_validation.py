@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers.service import bumpy_grid, forms_json, problem
 
 from service.api.decoding import (
     BINARY_MEDIA_TYPE,
@@ -17,6 +16,8 @@ from service.api.decoding import (
 from service.api.problems import ProblemError
 from service.api.schemas import SessionParams, SessionRequest
 from service.operations import OPERATIONS
+from tests.helpers.meshes import bumpy_grid
+from tests.helpers.service import forms_json, problem
 
 
 def request_arrays(operation, doc):

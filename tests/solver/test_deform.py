@@ -1,11 +1,12 @@
 import numpy as np
 import pytest
-from botsch_sorkine import load_case
-from meshes import DATA, grid, load, random_rotation, rigid_alignment_error
 
 from solver import Deformer, deform, fundamental_forms
 from solver.errors import ConstraintError, IndexOutOfRangeError, NonFiniteValueError
 from solver.metrics import distortion
+from tests.helpers import DATA
+from tests.helpers.botsch_sorkine import load_case
+from tests.helpers.meshes import grid, load, random_rotation, rigid_alignment_error
 
 
 def test_hard_handles_are_met_exactly_and_solve_reuses_factorization():

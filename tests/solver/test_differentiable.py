@@ -7,7 +7,6 @@ for the linear answer and for the refined answer at converged optima (noisy and 
 import numpy as np
 import pytest
 import scipy.linalg
-from meshes import grid, load
 
 from solver import Constraints, fundamental_forms, reconstruct
 from solver.differentiable import aligned_distance, reconstruct_vjp
@@ -17,6 +16,7 @@ from solver.refine import FormTargets, Handles, Refiner
 from solver.refined_energy import RefinedEnergy
 from solver.rotations import nearest_rotation
 from solver.topology import build_topology
+from tests.helpers.meshes import grid, load
 
 STEPS = (1e-5, 1e-6)
 TOLERANCE = 1e-4

@@ -5,10 +5,10 @@ torch.autograd.gradcheck). Each test is skipped where its framework is not insta
 
 import numpy as np
 import pytest
-from meshes import grid
 
 from solver import fundamental_forms
 from solver.differentiable_frameworks import jax_reconstruction, torch_reconstruction
+from tests.helpers.meshes import grid
 
 
 def bent_sheet_forms(angle_scale: float):

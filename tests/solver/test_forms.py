@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-from meshes import icosphere, load, random_rotation
 
 from solver import fundamental_forms
 from solver.errors import (
@@ -12,6 +11,7 @@ from solver.errors import (
     ShapeMismatchError,
 )
 from solver.forms import validate_forms
+from tests.helpers.meshes import icosphere, load, random_rotation
 
 
 def test_sphere_angles_positive_and_match_geometry():

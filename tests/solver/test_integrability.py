@@ -1,6 +1,9 @@
 import numpy as np
 import pytest
-from meshes import (
+
+from solver import check_integrability, fundamental_forms
+from solver.integrability import IntegrabilityReport
+from tests.helpers.meshes import (
     bumpy_grid_with_holes,
     double_torus,
     flat_torus_forms,
@@ -8,9 +11,6 @@ from meshes import (
     load,
     torus_grid,
 )
-
-from solver import check_integrability, fundamental_forms
-from solver.integrability import IntegrabilityReport
 
 REAL_MESHES = ["decimated-knight.off", "torus.off", "face.off", "octopus-low-surface.off",
                "bar.off", "cylinder.off"]

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
-from meshes import icosphere, load
 
 from solver import fundamental_forms, interpolate
 from solver.errors import ShapeMismatchError
 from solver.metrics import distortion, histogram, summary, wrap_angle
+from tests.helpers.meshes import icosphere, load
 
 
 def test_endpoints_are_reproduced():

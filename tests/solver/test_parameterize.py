@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
-from meshes import bumpy_grid_with_holes, grid, icosphere, load
 
 from solver import parameterize
 from solver.errors import TopologyError
 from solver.metrics import corner_angles
+from tests.helpers.meshes import bumpy_grid_with_holes, grid, icosphere, load
 
 
 def rolled_sheet(nu: int = 30, nv: int = 10):

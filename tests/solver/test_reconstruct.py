@@ -1,7 +1,13 @@
 import numpy as np
 import pytest
 import trimesh
-from meshes import (
+
+from solver import Constraints, fundamental_forms, reconstruct
+from solver.errors import ConstraintError, TriangleInequalityError
+from solver.frames import face_edge_lengths, layout_frames, triangle_layouts
+from solver.linalg import available_backends
+from solver.topology import build_topology
+from tests.helpers.meshes import (
     SHARED,
     bumpy_grid_with_holes,
     double_torus,
@@ -13,12 +19,6 @@ from meshes import (
     skinny_grid,
     torus_grid,
 )
-
-from solver import Constraints, fundamental_forms, reconstruct
-from solver.errors import ConstraintError, TriangleInequalityError
-from solver.frames import face_edge_lengths, layout_frames, triangle_layouts
-from solver.linalg import available_backends
-from solver.topology import build_topology
 
 MESHES = {
     "icosphere (closed, genus 0)": icosphere(3),

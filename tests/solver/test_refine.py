@@ -7,8 +7,6 @@ same test; parameterization with libigl's ARAP parameterization.
 
 import numpy as np
 import pytest
-from libigl_reference import arap_deformation, arap_parameterization, flipped_faces
-from meshes import double_torus, icosphere, load, rigid_alignment_error
 
 from solver import (
     Constraints,
@@ -22,6 +20,8 @@ from solver import (
 from solver.metrics import distortion
 from solver.refine import FormTargets, hinge_angles, hinges, refine, signed_areas
 from solver.topology import build_topology
+from tests.helpers.libigl_reference import arap_deformation, arap_parameterization, flipped_faces
+from tests.helpers.meshes import double_torus, icosphere, load, rigid_alignment_error
 
 NOISY_MESHES = {
     "knight (genus 0)": lambda: load("decimated-knight.off"),
@@ -186,8 +186,8 @@ def test_form_space_blend_halves_the_length_change_and_beats_vertex_blending():
     """Two near-isometric poses of the bar (rest and a refined 135-degree twist): at
     t = 0.5 the blended lengths ask for half the endpoint's length change; the refined blend
     stays within 0.6x of it, while blending vertices linearly folds the twist."""
-    from botsch_sorkine import load_case
-    from meshes import DATA
+    from tests.helpers import DATA
+    from tests.helpers.botsch_sorkine import load_case
 
     case = load_case(DATA, "bar")
     twisted = deform(case.vertices, case.faces, case.handles, case.handle_targets(),
@@ -214,8 +214,8 @@ def test_refined_deformation_matches_or_beats_arap(name):
     rotation handles, defaults: mean relative edge-length change + mean dihedral change <=
     libigl ARAP's (spokes and rims, 200 iterations) in the same run, max length change <=
     2x ARAP's; the linear answer does not manage either."""
-    from botsch_sorkine import load_case
-    from meshes import DATA
+    from tests.helpers import DATA
+    from tests.helpers.botsch_sorkine import load_case
 
     case = load_case(DATA, name)
     kw = {"rotation_handles": [case.handle_faces()],

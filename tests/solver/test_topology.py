@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-from meshes import bumpy_grid_with_holes, double_torus, grid, icosphere, load, torus_grid
 
 from solver.errors import (
     DegenerateFaceError,
@@ -11,6 +10,14 @@ from solver.errors import (
     ShapeMismatchError,
 )
 from solver.topology import build_topology, cycle_ranks
+from tests.helpers.meshes import (
+    bumpy_grid_with_holes,
+    double_torus,
+    grid,
+    icosphere,
+    load,
+    torus_grid,
+)
 
 
 @pytest.mark.parametrize(("mesh", "components", "loops", "genus", "euler"), [

@@ -10,10 +10,10 @@ import re
 
 import numpy as np
 import pytest
-from meshes import icosphere
 
 from solver import fundamental_forms, reconstruct
 from solver.errors import TriangleInequalityError
+from tests.helpers.meshes import icosphere
 
 NUMBER = r"-?\d+(?:\.\d+)?(?:e[-+]?\d+)?"
 

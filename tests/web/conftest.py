@@ -1,4 +1,4 @@
-"""Fixtures of the browser tests: a real uvicorn on loopback (:mod:`helpers.servers`), a
+"""Fixtures of the browser tests: a real uvicorn on loopback (:mod:`tests.helpers.servers`), a
 headless Debian Chromium driven by Python Playwright, and a page whose console errors fail
 the test.
 
@@ -20,8 +20,9 @@ from typing import Any
 
 import httpx
 import pytest
-from helpers.servers import uvicorn_server
-from web_helpers import (
+
+from tests.helpers.servers import uvicorn_server
+from tests.helpers.web import (
     ARTIFACTS,
     CHROMIUM_ARGS,
     SMALL_VIEWPORT,

@@ -8,7 +8,8 @@ import re
 import warnings
 
 import pytest
-from web_helpers import REPO
+
+from tests.helpers import REPO
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")

@@ -21,7 +21,9 @@ from urllib.parse import urlsplit
 import httpx
 import numpy as np
 import pytest
-from web_helpers import REPO, rigid_align
+
+from tests.helpers import REPO
+from tests.helpers.web import rigid_align
 
 ARRAYS = "application/vnd.ffs.arrays"
 SAMPLE = REPO / "service" / "static" / "samples" / "face.off"  # the page's default sample

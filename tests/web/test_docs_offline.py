@@ -9,7 +9,8 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import pytest
-from helpers.service import REPO
+
+from tests.helpers import REPO
 
 LOOPBACK = {"127.0.0.1", "localhost", "::1", "[::1]"}
 DOCUMENT = json.loads((REPO / "openapi" / "openapi.json").read_text(encoding="utf-8"))

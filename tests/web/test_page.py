@@ -14,7 +14,8 @@ import re
 import httpx
 import numpy as np
 import pytest
-from web_helpers import ARTIFACTS, assert_not_blank
+
+from tests.helpers.web import ARTIFACTS, assert_not_blank
 
 REPO_DATA = ARTIFACTS.parents[1] / "data"
 
@@ -260,7 +261,7 @@ def test_session_gone_is_replaced(web):
 def test_flatten_with_progress_and_download_glb(web, tmp_path):
     """Flatten runs as a job with a progress bar; the layout (checkerboard, flips) equals the
     API's; the current mesh downloads as a valid GLB."""
-    from gltf_validator import validate_gltf
+    from tests.helpers.gltf_validator import validate_gltf
 
     page = web.open()
     page.keyboard.press("3")  # the Flatten tab

@@ -13,7 +13,9 @@ from __future__ import annotations
 import json
 
 import pytest
-from web_helpers import ARTIFACTS, REPO
+
+from tests.helpers import REPO
+from tests.helpers.web import ARTIFACTS
 
 SHARED = REPO.parent / "shared" / "meshes"
 RESULTS = ARTIFACTS / "responsiveness.json"

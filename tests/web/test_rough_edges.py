@@ -12,7 +12,9 @@ import re
 
 import httpx
 import numpy as np
-from web_helpers import REPO, rigid_align
+
+from tests.helpers import REPO
+from tests.helpers.web import rigid_align
 
 BROKEN_OFF = b"OFF\n3 1 0\n0 0 0\n1 0 x\n0 1 0\n3 0 1 2\n"
 

@@ -14,7 +14,8 @@ import re
 import httpx
 import numpy as np
 import pytest
-from web_helpers import (
+
+from tests.helpers.web import (
     ARTIFACTS,
     SMALL_VIEWPORT,
     VIEWPORT,
@@ -27,7 +28,7 @@ REPO_DATA = ARTIFACTS.parents[1] / "data"
 
 # Delays the page's requests to URLs containing a pattern, from the page and from its worker
 # (a slow server, as the browser sees it; the page's code is untouched): the worker is started
-# through a wrapper module that patches its fetch() (web_helpers.worker_wrapper, the page's
+# through a wrapper module that patches its fetch() (tests.helpers.web.worker_wrapper, the page's
 # worker module statically imported: no message can arrive before it listens).
 # window.__setSlow(pattern, ms).
 SLOW_PATCH = """

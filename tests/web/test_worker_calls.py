@@ -5,12 +5,15 @@ is rejected after a bound with a message in words; ``window.app.ready`` settles 
 and the next call runs on a new worker.
 
 The workers here are the page's own js/worker.js behind a wrapper module
-(web_helpers.worker_wrapper) that delays it, drops a message or blocks it on purpose.
+(tests.helpers.web.worker_wrapper) that delays it, drops a message or blocks it on purpose.
 """
 
 from __future__ import annotations
 
-from web_helpers import REPO, worker_wrapper
+from typing import Any
+
+from tests.helpers import REPO
+from tests.helpers.web import worker_wrapper
 
 SAMPLE = (REPO / "service" / "static" / "samples" / "torus.off").read_bytes()
 
@@ -99,18 +102,26 @@ def test_ready_settles_when_the_first_reply_never_comes(web):
     assert "did not begin reading face.off" in web.page.locator(".toast").first.inner_text()
 
 
+def _first_failed_upload(web, limits: str, name: str) -> tuple[Any, dict[str, Any]]:
+    """Open the page with :data:`FAULTS` and ``limits`` (a JavaScript object) assigned to
+    its worker limits, upload ``name`` (a file those faults make fail) and wait until the
+    page is idle again; return the page and the one error it shows."""
+    web.page.add_init_script(FAULTS)
+    page = web.open()
+    web.app(f"Object.assign(app.workerLimits, {limits})")
+    _upload(page, name, SAMPLE)
+    web.wait_for("window.app.state.errors.length >= 1", timeout=20)
+    web.idle()
+    (error,) = web.shown_errors()
+    return page, error
+
+
 def test_a_lost_message_is_reported_and_the_worker_replaced(web):
     """An upload whose message never reaches the worker's handler fails after the bound
     with a message naming what the page was doing; a worker that then never starts fails
     after its own bound; afterwards the page reads files again on a new worker, and the
     mesh on screen stayed the previous one throughout."""
-    web.page.add_init_script(FAULTS)
-    page = web.open()
-    web.app("Object.assign(app.workerLimits, { ackMs: 1500, startMs: 1500 })")
-    _upload(page, "lost.off", SAMPLE)
-    web.wait_for("window.app.state.errors.length >= 1", timeout=20)
-    web.idle()
-    (lost,) = web.shown_errors()
+    page, lost = _first_failed_upload(web, "{ ackMs: 1500, startMs: 1500 }", "lost.off")
     assert lost["title"] == "The page stopped waiting", lost
     assert lost["detail"] == ("The page's background worker did not begin reading lost.off "
                               "within 1.5 s. It was restarted: try again."), lost
@@ -139,13 +150,7 @@ def test_a_lost_message_is_reported_and_the_worker_replaced(web):
 def test_a_hung_worker_is_reported_and_replaced(web):
     """A worker that took the call up and then stops answering (its thread blocked: no
     pulses) fails after the silence bound, in words; the page reads the next file."""
-    web.page.add_init_script(FAULTS)
-    page = web.open()
-    web.app("Object.assign(app.workerLimits, { silenceMs: 2000 })")
-    _upload(page, "stuck.off", SAMPLE)
-    web.wait_for("window.app.state.errors.length >= 1", timeout=20)
-    web.idle()
-    (stuck,) = web.shown_errors()
+    page, stuck = _first_failed_upload(web, "{ silenceMs: 2000 }", "stuck.off")
     assert stuck["detail"] == ("The page's background worker stopped responding (nothing "
                                "for 2 s) while reading stuck.off. It was restarted: try "
                                "again."), stuck

@@ -11,7 +11,7 @@ real ``uvicorn service.app:app`` on loopback, with 1 and 2 workers:
 Every worker uses one BLAS thread (``FFS_THREADS_PER_WORKER=1``), so both backends do the
 same arithmetic; the script checks that their vertices are equal to the last bit.
 
-``python bench/distributed.py [--requests 48] [--concurrency 8] [--out bench/SESSIONS.md]``
+``python -m bench.dask_throughput [--requests 48] [--concurrency 8] [--out bench/SESSIONS.md]``
 prints a markdown table (and writes it with ``--out``, replacing that file's section).
 """
 
@@ -21,7 +21,6 @@ import argparse
 import asyncio
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
@@ -30,14 +29,9 @@ import numpy as np
 import orjson
 import trimesh
 
-REPO = Path(__file__).resolve().parents[1]
-# This file is named like the `distributed` package: keep its folder off the import path.
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "bench"]
-sys.path.insert(0, str(REPO))
-
-import solver  # noqa: E402
-from bench.servers import dask_cluster, load, uvicorn  # noqa: E402
-from bench.session_latency import _write_section  # noqa: E402
+import solver
+from bench.common import load_averages, write_section
+from bench.servers import dask_cluster, uvicorn
 
 
 def body() -> tuple[bytes, int]:
@@ -83,7 +77,7 @@ def main() -> None:
     args = parser.parse_args()
     payload, n_faces = body()
     env = {"FFS_THREADS_PER_WORKER": "1", "FFS_QUEUE_SIZE": "256", "FFS_LOG_LEVEL": "warning"}
-    loads = [load()]
+    loads = [load_averages()]
     results: dict[tuple[str, int], dict] = {}
     for workers in (1, 2):
         with uvicorn({**env, "FFS_WORKERS": str(workers)}, workers) as base:
@@ -92,13 +86,13 @@ def main() -> None:
                 {**env, "FFS_EXECUTOR": "dask", "FFS_DASK_SCHEDULER_ADDRESS": address},
                 workers) as base:
             results["dask", workers] = batch(base, payload, args.requests, args.concurrency)
-    loads.append(load())
+    loads.append(load_averages())
     equal = all(np.array_equal(results["local", 1]["vertices"], r["vertices"])
                 for r in results.values())
     lines = [
         "## Throughput: local pool against Dask",
         "",
-        f"`python bench/distributed.py --requests {args.requests} --concurrency "
+        f"`python -m bench.dask_throughput --requests {args.requests} --concurrency "
         f"{args.concurrency}` on {platform.machine()} with {os.cpu_count()} cores, Python "
         f"{platform.python_version()}: {args.requests} synchronous reconstructs of an "
         f"icosphere with {n_faces} faces ({len(payload) / 1e6:.2f} MB of JSON forms each), "
@@ -132,7 +126,7 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     if args.out:
-        _write_section(args.out, "## Throughput: local pool against Dask", text)
+        write_section(args.out, "## Throughput: local pool against Dask", text)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import REPO
+
 ARTIFACTS = REPO / "tests" / "artifacts" / "web"
 VENDOR_MANIFEST = REPO / "service" / "static" / "vendor" / "three" / "manifest.json"
 CHROMIUM_ARGS = [

@@ -12,7 +12,7 @@ point ``tools/gltf-validator/validate.mjs`` reads the asset from stdin and print
 
 Usage::
 
-    from gltf_validator import ensure_validator_installed, validate_gltf
+    from tests.helpers.gltf_validator import ensure_validator_installed, validate_gltf
     ensure_validator_installed()
     report = validate_gltf(glb_bytes, "glb")
     assert report["issues"]["numErrors"] == 0
@@ -26,8 +26,9 @@ import subprocess
 from pathlib import Path
 from typing import Any, Literal
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-VALIDATOR_DIR = REPO_ROOT / "tools" / "gltf-validator"
+from tests.helpers import REPO
+
+VALIDATOR_DIR = REPO / "tools" / "gltf-validator"
 VALIDATE_SCRIPT = VALIDATOR_DIR / "validate.mjs"
 _MARKER = VALIDATOR_DIR / "node_modules" / "gltf-validator" / "package.json"
 
@@ -65,7 +66,7 @@ def ensure_validator_installed(timeout: float = 300.0) -> Path:
         npm = _require("npm")
         proc = subprocess.run(
             [npm, "ci", "--prefix", str(VALIDATOR_DIR), "--no-audit", "--no-fund"],
-            cwd=REPO_ROOT, capture_output=True, text=True, timeout=timeout, check=False)
+            cwd=REPO, capture_output=True, text=True, timeout=timeout, check=False)
         if proc.returncode != 0 or not _MARKER.is_file():
             raise ValidatorUnavailableError(
                 f"npm ci --prefix {VALIDATOR_DIR} failed (exit {proc.returncode}):\n"

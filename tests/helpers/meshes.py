@@ -2,24 +2,33 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import trimesh
 
-DATA = Path(__file__).parent / "data"
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+from tests.helpers import DATA, REPO
+
+SHARED = REPO.parent / "shared" / "meshes"
+"""The larger shared meshes beside the repository (may be absent)."""
 
 
 def load(name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, faces) of tests/data/<name>, in file order."""
+    """Read tests/data/<name> with trimesh (not the solver's reader), in file order.
+
+    Returns:
+        (vertices (n, 3) float64, faces (m, 3) int64).
+    """
     mesh = trimesh.load(DATA / name, process=False)
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
 def icosphere(subdivisions: int = 2, radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """trimesh's icosphere: 20 * 4**subdivisions faces.
+
+    Returns:
+        (vertices (n, 3) float64, faces (m, 3) int64).
+    """
     mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    return np.asarray(mesh.vertices), np.asarray(mesh.faces, dtype=np.int64)
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
 def grid(nx: int, ny: int, *, width: float = 1.0, height: float = 1.0,
@@ -39,6 +48,13 @@ def grid(nx: int, ny: int, *, width: float = 1.0, height: float = 1.0,
     remap = np.full(len(V), -1)
     remap[used] = np.arange(len(used))
     return V[used], remap[F]
+
+
+def bumpy_grid(nx: int = 8, ny: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """An open, curved grid (disk topology) of ``nx`` x ``ny`` cells."""
+    V, F = grid(nx, ny, width=1.5, height=1.0)
+    V[:, 2] = 0.2 * np.sin(3 * V[:, 0]) * np.cos(4 * V[:, 1])
+    return V, F
 
 
 def bumpy_grid_with_holes() -> tuple[np.ndarray, np.ndarray]:

@@ -56,7 +56,11 @@ class ServiceMetrics:
                                      "were solved.", registry=r)
 
     def bind(self, backend: Backend) -> None:
-        """Read the pool, job and session gauges from the backend at scrape time."""
+        """Read the pool, job and session gauges from a backend at scrape time.
+
+    Args:
+        backend: The app's backend.
+    """
         executor = backend.executor
         self.queue_depth.set_function(executor.queue_depth)
         self.pool_size.set_function(executor.size)
@@ -68,21 +72,37 @@ class ServiceMetrics:
         self.session_memory.set_function(backend.sessions.memory)
 
     def session_created(self) -> None:
+        """Count a session opened."""
         self.sessions_created.inc()
 
     def session_solve(self, transport: str, seconds: float) -> None:
+        """Record a drag's solve.
+
+        Args:
+            transport: ``http`` or ``ws``.
+            seconds: Its time.
+        """
         self.session_solves.labels(transport).observe(seconds)
 
     def session_dropped(self) -> None:
+        """Count a WebSocket drag replaced by a newer one before it was solved."""
         self.session_drops.inc()
 
     def observe_task(self, operation: str, result: TaskResult | None, outcome: str) -> None:
-        """Count a finished task and record its stage timings."""
+        """Count a finished task and record its stage timings.
+
+        Args:
+            operation: The task's operation.
+            result: Its result (its ``timings``), or None when it failed.
+            outcome: ``ok``, ``rejected``, ``timeout``, ``disconnected``, ``error`` (a
+                client's) or ``failed``.
+        """
         self.tasks.labels(operation, outcome).inc()
         for stage, seconds in (result.timings if result is not None else {}).items():
             self.stage.labels(operation, stage).observe(seconds)
 
     def render(self) -> bytes:
+        """The Prometheus exposition of every metric (job counts read now)."""
         counts = getattr(self, "_job_counts", None)
         if counts is not None:
             for status, count in counts().items():

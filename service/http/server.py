@@ -29,8 +29,20 @@ PROTOCOL = "service.http.server:HeaderTimeoutProtocol"
 
 
 def raw_problem(status: int, reason: str, kind: str, title: str, detail: str) -> bytes:
-    """A complete HTTP/1.1 response carrying a problem document, for answers given below
-    the app (the header deadline, a request uvicorn cannot parse), then ``close``."""
+    """A complete HTTP/1.1 response carrying a problem document, then ``close``.
+
+    For answers given below the app (the header deadline, a request uvicorn cannot parse).
+
+    Args:
+        status: The HTTP status.
+        reason: Its reason phrase.
+        kind: The problem kind.
+        title: The kind's title.
+        detail: What happened.
+
+    Returns:
+        The response bytes.
+    """
     body = orjson.dumps({"type": f"/problems/{kind}", "title": title, "status": status,
                          "detail": detail, "kind": kind, "errors": []})
     return (f"HTTP/1.1 {status} {reason}\r\ncontent-type: application/problem+json\r\n"

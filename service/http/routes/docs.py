@@ -33,7 +33,14 @@ def _missing(viewer: str, directory: str) -> HTMLResponse:
 
 
 def built(directory: str) -> bool:
-    """Whether ``npm ci --prefix web`` copied the files of ``vendor/<directory>``."""
+    """Whether ``npm ci --prefix web`` copied a viewer's files.
+
+    Args:
+        directory: Its folder under ``vendor/`` (``swagger-ui``, ``redoc``).
+
+    Returns:
+        True when its manifest is there.
+    """
     return (STATIC / "vendor" / directory / "manifest.json").is_file()
 
 

@@ -44,13 +44,29 @@ MAX_REFINED_WAIT = 60.0
 
 
 def refined_path(session_id: str, drag: int) -> str:
-    """Where a progressive session's drag ``drag`` has its refined shape."""
+    """Where a progressive session's drag has its refined shape.
+
+    Args:
+        session_id: The session.
+        drag: The drag's number in it.
+
+    Returns:
+        The path of ``GET /v1/sessions/{id}/drags/{drag}/refined``.
+    """
     return path_to(router, "get_refined_drag", session_id=session_id, drag=drag)
 
 
 def drag_headers(session_id: str, answer: DragAnswer) -> dict[str, str]:
-    """Server-Timing, and for a drag whose refined shape follows ``Link: <...>;
-    rel="refined"``."""
+    """The headers of a drag's answer.
+
+    Args:
+        session_id: The session.
+        answer: The drag's linear answer.
+
+    Returns:
+        Server-Timing, and for a drag whose refined shape follows
+        ``Link: <...>; rel="refined"``.
+    """
     headers = server_timing(answer.timings)
     if answer.refining:
         headers["Link"] = f'<{refined_path(session_id, answer.drag)}>; rel="refined"'
@@ -220,6 +236,7 @@ async def get_refined_drag(
 
 
 def _problem_text(problem: ProblemError, instance: str, seq: int | None) -> str:
+    """A problem as a WebSocket text message (with the drag's ``seq`` when known)."""
     doc = problem.to_dict(instance)
     if seq is not None:
         doc["seq"] = seq

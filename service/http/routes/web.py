@@ -46,6 +46,7 @@ class StaticAssets(StaticFiles):
 
 
 def assets_built() -> bool:
+    """Whether ``npm ci --prefix web`` built the page's vendored modules."""
     return VENDOR_MANIFEST.is_file()
 
 
@@ -63,5 +64,9 @@ async def favicon() -> Response:
 
 
 def static_files() -> StaticAssets:
-    """The ``/static`` mount (``app.mount("/static", static_files(), name="static")``)."""
+    """The ``/static`` mount.
+
+    Returns:
+        The static files app (``app.mount("/static", static_files(), name="static")``).
+    """
     return StaticAssets(directory=STATIC, check_dir=False)

@@ -39,9 +39,9 @@ class OperationSpec:
         request: model of the JSON body (documents it; the arrays are checked with numpy).
         params: model of the fields besides the large arrays (the other multipart fields).
         response: model of the JSON result.
-        arrays: the large arrays of the body; ``source`` says what they form (``mesh``:
-            vertices + faces, ``forms``: faces, edges, lengths, angles, ``pair``: two
-            embeddings of one connectivity).
+        source: what the large arrays of the body form (``mesh``: vertices + faces,
+            ``forms``: faces, edges, lengths, angles, ``pair``: two embeddings of one
+            connectivity); :attr:`arrays` are those arrays.
         files: upload field names of the multipart form.
         stages: progress stages, in order.
         mesh_result: the result is one mesh (glTF can be negotiated).
@@ -54,7 +54,6 @@ class OperationSpec:
     request: type[BaseModel]
     params: type[BaseModel]
     response: type[BaseModel]
-    arrays: ArraySpecs
     source: Literal["mesh", "forms", "pair"]
     stages: tuple[str, ...]
     mesh_result: bool
@@ -64,24 +63,32 @@ class OperationSpec:
     colors: tuple[str, ...] = ()
     files: tuple[str, ...] = ("file",)
 
+    @property
+    def arrays(self) -> ArraySpecs:
+        """The large arrays of the body (the ``source``'s)."""
+        return ARRAYS_OF[self.source]
+
+
+ARRAYS_OF: dict[str, ArraySpecs] = {"mesh": MESH_ARRAYS, "forms": FORMS_ARRAYS,
+                                    "pair": PAIR_ARRAYS}
 
 OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
     OperationSpec(
         "forms", schemas.FormsRequest, schemas.FormsParams, documents.FormsResponse,
-        MESH_ARRAYS, "mesh", STAGES_LIGHT, False, tasks.forms_task,
+        "mesh", STAGES_LIGHT, False, tasks.forms_task,
         "Fundamental forms of a mesh",
         "Edge lengths and signed dihedral angles of a mesh. The result is a valid body for "
         "/v1/integrability and /v1/reconstruct."),
     OperationSpec(
         "integrability", schemas.IntegrabilityRequest, schemas.IntegrabilityParams,
-        documents.IntegrabilityResponse, FORMS_ARRAYS, "forms", STAGES_LIGHT, False,
+        documents.IntegrabilityResponse, "forms", STAGES_LIGHT, False,
         tasks.integrability_task, "Integrability report",
         "Checks whether lengths and angles come from a surface: per-vertex holonomy defects "
         "(Gauss and Codazzi parts), triangle inequality, topology and the global holonomy "
         "along homology generators. A mesh file upload is checked through its own forms."),
     OperationSpec(
         "reconstruct", schemas.ReconstructRequest, schemas.ReconstructParams,
-        documents.MeshResponse, FORMS_ARRAYS, "forms", STAGES_SOLVE, True,
+        documents.MeshResponse, "forms", STAGES_SOLVE, True,
         tasks.reconstruct_task, "Reconstruct a mesh from its forms",
         "One sparse linear solve (Eq. 5) with optional position and frame constraints. The "
         "integrability condition is always checked first and summarized in "
@@ -90,7 +97,7 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         colors=("defect",)),
     OperationSpec(
         "reconstruct/vjp", schemas.ReconstructVjpRequest, schemas.ReconstructVjpParams,
-        schemas.ReconstructVjpResponse, FORMS_ARRAYS, "forms", STAGES_SOLVE, False,
+        schemas.ReconstructVjpResponse, "forms", STAGES_SOLVE, False,
         tasks.reconstruct_vjp_task, "Gradients of a reconstruction (vector-Jacobian product)",
         "Reconstructs like /v1/reconstruct and pulls the `cotangent` of the vertices (the "
         "gradient of a loss with respect to them) back to the lengths, angles and "
@@ -100,26 +107,26 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "Hessian); the gauge is the anchor of the answer (docs/differentiable.md)."),
     OperationSpec(
         "deform", schemas.DeformRequest, schemas.DeformParams, documents.MeshResponse,
-        MESH_ARRAYS, "mesh", STAGES_SOLVE, True, tasks.deform_task,
+        "mesh", STAGES_SOLVE, True, tasks.deform_task,
         "Deform a mesh with handles",
         "Moves handle vertices (and optionally rotates groups of face frames) while "
         "preserving the fundamental forms as well as possible; `report.distortion` measures "
         "the change.", colors=("distortion",)),
     OperationSpec(
         "parameterize", schemas.ParameterizeRequest, schemas.ParameterizeParams,
-        documents.ParameterizeResponse, MESH_ARRAYS, "mesh", STAGES_SOLVE, True,
+        documents.ParameterizeResponse, "mesh", STAGES_SOLVE, True,
         tasks.parameterize_task, "Flatten a mesh with boundary",
         "Planar coordinates by reconstructing with all dihedral angles 0. Closed meshes are "
         "a 422 (unsupported-topology). glTF output is the flat mesh (u, v, 0)."),
     OperationSpec(
         "interpolate", schemas.InterpolateRequest, schemas.InterpolateParams,
-        documents.InterpolateResponse, PAIR_ARRAYS, "pair", STAGES_LIGHT, True,
+        documents.InterpolateResponse, "pair", STAGES_LIGHT, True,
         tasks.interpolate_task, "Interpolate two meshes in form space",
         "Blends lengths and dihedral angles of two embeddings of the same faces and "
         "reconstructs for each t. glTF output needs a single t. Uploads use `file_a` and "
         "`file_b`.", files=("file_a", "file_b")),
     OperationSpec(
-        "mesh", schemas.MeshRequest, schemas.MeshParams, documents.MeshResponse, MESH_ARRAYS,
+        "mesh", schemas.MeshRequest, schemas.MeshParams, documents.MeshResponse,
         "mesh", STAGES_LIGHT, True, tasks.mesh_task, "Read or convert a mesh",
         "Reads a mesh file (OBJ, PLY, OFF, STL, GLB) or a JSON mesh, checks its connectivity "
         "like the other operations do, and returns it in the negotiated format: JSON "
@@ -128,7 +135,6 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "current mesh."),
 )}
 """Every operation, by name, in the order the API documents them."""
-
 
 
 def run(request: TaskRequest, progress: Progress) -> TaskResult:

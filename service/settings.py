@@ -12,14 +12,19 @@ prefixed name wins when both are set.
 from __future__ import annotations
 
 import os
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from solver.linalg import BACKENDS
+from solver.options import Backend
 
 ENV_PREFIX = "FFS_"
+
+
+def seconds(default: float, description: str, **bounds: float) -> Any:
+    """A setting in seconds: a positive number with a default and a description."""
+    return Field(default, gt=0, description=description, **bounds)
 
 
 def _default_workers() -> int:
@@ -46,8 +51,8 @@ class Settings(BaseSettings):
                                             "DASK_SCHEDULER_ADDRESS"),
         description="Scheduler of the Dask cluster, e.g. `tcp://scheduler:8786` "
                     "(required with FFS_EXECUTOR=dask).")
-    dask_connect_timeout: float = Field(
-        30.0, gt=0, description="Seconds to wait for the Dask scheduler at each connection "
+    dask_connect_timeout: float = seconds(
+        30.0, "Seconds to wait for the Dask scheduler at each connection "
                                 "attempt; the service retries until it answers.")
     workers: int = Field(default_factory=_default_workers, ge=1, le=256,
                          description="Worker processes (default: the number of cores).")
@@ -59,12 +64,12 @@ class Settings(BaseSettings):
     queue_size: int = Field(
         32, ge=0, le=100_000,
         description="Requests and jobs that may wait for a free worker; beyond it: 503.")
-    request_timeout: float = Field(
-        120.0, gt=0, description="Seconds a synchronous request waits for its result (504).")
-    job_timeout: float = Field(
-        1800.0, gt=0, description="Seconds a job may run before it is failed.")
-    job_ttl: float = Field(
-        3600.0, gt=0, description="Seconds a finished job and its result are kept.")
+    request_timeout: float = seconds(
+        120.0, "Seconds a synchronous request waits for its result (504).")
+    job_timeout: float = seconds(
+        1800.0, "Seconds a job may run before it is failed.")
+    job_ttl: float = seconds(
+        3600.0, "Seconds a finished job and its result are kept.")
     max_jobs: int = Field(
         256, ge=1, description="Jobs kept at once; when full, the oldest finished ones give "
                                "way, and only a store full of unfinished jobs answers 503.")
@@ -72,8 +77,8 @@ class Settings(BaseSettings):
         16, ge=1, description="Unfinished (queued or running) jobs one client address may "
                               "have at once; beyond it: 429.")
 
-    session_ttl: float = Field(
-        600.0, gt=0, description="Seconds a deformation session may stay idle before it is "
+    session_ttl: float = seconds(
+        600.0, "Seconds a deformation session may stay idle before it is "
                                  "closed (its memory freed).")
     max_sessions: int = Field(
         8, ge=0, le=10_000, description="Live deformation sessions at once; when full, "
@@ -94,31 +99,30 @@ class Settings(BaseSettings):
         None, ge=1, le=256,
         description="BLAS/MKL threads of each local session process (default: the number "
                     "of cores: a drag is latency-bound, and sessions rarely drag at once).")
-    session_solve_timeout: float = Field(
-        30.0, gt=0, description="Seconds one session solve may take; then 504 and the "
+    session_solve_timeout: float = seconds(
+        30.0, "Seconds one session solve may take; then 504 and the "
                                 "session is closed (410 afterwards). Also the most a "
                                 "progressive session refines one drag (`options.max_seconds` "
                                 "overrides it).")
-    session_refine_slice: float = Field(
-        0.05, gt=0, le=60, description="Seconds of one slice of a progressive session's "
-                                       "refinement (at least one iteration); a new drag waits "
-                                       "at most one slice.")
+    session_refine_slice: float = seconds(
+        0.05, "Seconds of one slice of a progressive session's refinement (at least one "
+              "iteration); a new drag waits at most one slice.", le=60)
 
     max_body_bytes: int = Field(
         64 * 1024 * 1024, ge=1024, description="Largest request body (413 beyond).")
-    header_timeout: float = Field(
-        10.0, gt=0, description="Seconds a client may take to send a request's headers; then "
+    header_timeout: float = seconds(
+        10.0, "Seconds a client may take to send a request's headers; then "
                                 "408 and the connection is closed (`python -m service`, or "
                                 "uvicorn with `--http service.http.server:HeaderTimeoutProtocol`).")
-    body_timeout: float = Field(
-        60.0, gt=0, description="Seconds a client may take to send a request body; then 408 "
+    body_timeout: float = seconds(
+        60.0, "Seconds a client may take to send a request body; then 408 "
                                 "and the connection is closed (slow or stalled uploads).")
     max_blend_steps: int = Field(
         64, ge=1, le=100_000,
         description="Most blend values `t` of one interpolate request (each is a solve of the "
                     "whole mesh; 422 beyond).")
-    send_timeout: float = Field(
-        30.0, gt=0, description="Seconds a client may leave a response unread (the send "
+    send_timeout: float = seconds(
+        30.0, "Seconds a client may leave a response unread (the send "
                                 "buffer full) before the connection is aborted and the "
                                 "buffered bytes freed.")
     shutdown_timeout: float = Field(
@@ -129,8 +133,10 @@ class Settings(BaseSettings):
     max_faces: int = Field(
         500_000, ge=1, description="Largest face count of a mesh (413 beyond).")
 
-    solver_backend: Literal["auto", *sorted(BACKENDS)] = Field(  # type: ignore[valid-type]
-        "auto", description="Default sparse backend (`auto`, `pardiso`, `cholespy`, `superlu`).")
+    solver_backend: Backend = Field(
+        "auto", description="Default sparse factorization backend (`auto`, `pardiso`, "
+        "`cholespy`, `superlu`): the solver's `backend` (solver.options.SolveOptions) of a "
+        "request whose `options.solver` is null.")
     cors_origins: Annotated[list[str], NoDecode] = Field(
         default_factory=list,
         description="Origins allowed by CORS (`*` for any); empty disables CORS.")

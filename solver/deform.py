@@ -27,7 +27,7 @@ from .metrics import compact, distortion
 from .options import DeformOptions
 from .reconstruct import Constraints, ImmersionProblem, Progress
 from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner
-from .reports import Stages
+from .reports import DeformReport, Stages
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
 from .system import ConstrainedSystem
@@ -37,12 +37,14 @@ from .validation import as_indices, as_points, require_unique
 
 @dataclass
 class Deformation(JsonDataclass):
-    """Result of :func:`deform`: vertices (n, 3) float64 and a report (timings, distortion)."""
+    """Result of :func:`deform`: vertices (n, 3) float64 and a
+    :class:`solver.reports.DeformReport` (timings, distortion)."""
 
     vertices: np.ndarray
-    report: dict[str, Any]
+    report: DeformReport
 
     _array_fields: ClassVar[dict[str, Any]] = {"vertices": np.float64}
+    _nested_fields: ClassVar[dict[str, Any]] = {"report": DeformReport}
 
 
 @dataclass(frozen=True)
@@ -511,14 +513,10 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
         stages.lap("refine")
     # The last stage that ran is complete.
     stages("refine" if deformer.last_report.get("refined") else "solve", 1.0)
-    report = {
-        "timings": {**deformer.setup_timings, **stages.timings},
-        "backend": deformer.backend,
-        "analysis": deformer.system.analysis,
-        "n_unknowns": deformer.problem.n_unknowns,
-        "roi_faces": len(deformer.sub_faces),
-        "orthonormalized": bool(opts.orthonormalize),
-        "refinement": deformer.last_report,
-        "distortion": compact(distortion(deformer.rest, result, deformer.faces)),
-    }
+    report = DeformReport(
+        timings={**deformer.setup_timings, **stages.timings}, backend=deformer.backend,
+        analysis=deformer.system.analysis, n_unknowns=deformer.problem.n_unknowns,
+        roi_faces=len(deformer.sub_faces), orthonormalized=bool(opts.orthonormalize),
+        refinement=deformer.last_report,
+        distortion=compact(distortion(deformer.rest, result, deformer.faces)))
     return Deformation(vertices=result, report=report)

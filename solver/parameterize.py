@@ -24,7 +24,7 @@ from .metrics import corner_angles, histogram, summary
 from .options import ParameterizeOptions
 from .reconstruct import ImmersionProblem, Progress
 from .refine import FormTargets, Refiner
-from .reports import Stages
+from .reports import ParameterizeReport, Stages
 from .serialization import JsonDataclass
 from .system import half_cotangents
 from .topology import MeshTopology, build_topology
@@ -40,19 +40,21 @@ class Parameterization(JsonDataclass):
         flipped_faces: (k,) int64 faces whose uv orientation is reversed.
         area_ratio: (m,) float64 uv area / 3D area.
         angle_distortion: (m,) float64 max |corner angle change| per face (radians).
-        report: summaries, histograms, timings, backend, components.
+        report: :class:`solver.reports.ParameterizeReport` (summaries, histograms,
+            timings, backend, components).
     """
 
     uv: np.ndarray
     flipped_faces: np.ndarray
     area_ratio: np.ndarray
     angle_distortion: np.ndarray
-    report: dict[str, Any]
+    report: ParameterizeReport
 
     _array_fields: ClassVar[dict[str, Any]] = {
         "uv": np.float64, "flipped_faces": np.int64, "area_ratio": np.float64,
         "angle_distortion": np.float64,
     }
+    _nested_fields: ClassVar[dict[str, Any]] = {"report": ParameterizeReport}
 
 
 def nearest_planar_rotation(frames: np.ndarray) -> np.ndarray:
@@ -255,21 +257,15 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
     angle_change = np.abs(corner_angles(flat3, F) - corner_angles(V, F)).max(axis=1)
     length_uv = np.linalg.norm(uv[forms.edges[:, 1]] - uv[forms.edges[:, 0]], axis=1)
     length_change = length_uv / forms.lengths - 1.0
-    report = {
-        "flipped_count": len(flipped),
-        "area_ratio_summary": summary(ratio - 1.0),
-        "angle_distortion_summary": summary(angle_change),
-        "length_change_summary": summary(length_change),
-        "angle_distortion_histogram": histogram(angle_change),
-        "length_change_histogram": histogram(length_change),
-        "planarity_error": planarity,
-        "orthonormalized": bool(opts.orthonormalize),
-        "refinement": refinement,
-        "anchored_components": anchored,
-        "backend": system.backend,
-        "analysis": system.analysis,
-        "timings": stages.timings,
-    }
+    report = ParameterizeReport(
+        flipped_count=len(flipped), area_ratio_summary=summary(ratio - 1.0),
+        angle_distortion_summary=summary(angle_change),
+        length_change_summary=summary(length_change),
+        angle_distortion_histogram=histogram(angle_change),
+        length_change_histogram=histogram(length_change), planarity_error=planarity,
+        orthonormalized=bool(opts.orthonormalize), refinement=refinement,
+        anchored_components=anchored, backend=system.backend, analysis=system.analysis,
+        timings=stages.timings)
     return Parameterization(uv=uv, flipped_faces=flipped, area_ratio=ratio,
                             angle_distortion=angle_change, report=report)
 

@@ -34,7 +34,7 @@ from .layout_fit import LayoutFit
 from .linalg import resolve_backend
 from .options import COTAN_FLOOR, FRAME_WEIGHT, ReconstructOptions
 from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner, reproduces
-from .reports import Progress, Stages
+from .reports import Progress, ReconstructReport, Stages
 from .rotations import nearest_rotation
 from .serialization import JsonDataclass
 from .system import (
@@ -64,14 +64,16 @@ class Reconstruction(JsonDataclass):
     Attributes:
         vertices: (n, 3) float64 positions.
         frames: (m, 3, 3) float64 face frames of the last solve (columns b1, b2, b3).
-        report: energies per term, timings per stage (s), backend, anchors, integrability.
+        report: :class:`solver.reports.ReconstructReport` (energies, timings per stage,
+            backend, anchors, integrability).
     """
 
     vertices: np.ndarray
     frames: np.ndarray
-    report: dict[str, Any]
+    report: ReconstructReport
 
     _array_fields: ClassVar[dict[str, Any]] = {"vertices": np.float64, "frames": np.float64}
+    _nested_fields: ClassVar[dict[str, Any]] = {"report": ReconstructReport}
 
 
 class ImmersionProblem:
@@ -443,13 +445,13 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     problem = ImmersionProblem(topology, L, A, frame_weight=opts.frame_weight,
                                weighting=opts.weighting, cotan_floor=opts.cotan_floor,
                                length_scale=opts.length_scale, layout_angles=layout_angles)
-    report: dict[str, Any] = {}
+    integrability = None
     known_not_integrable = False
     if opts.check_integrability:
         checked = integrability_from_terms(
             problem.terms, opts.integrability_tol, mean_length=float(L.mean()) /
             problem.length_scale, length_unit=problem.length_scale)
-        report["integrability"] = checked.summary()
+        integrability = checked.summary()
         # Forms that fail the check cannot have a zero-energy immersion: the tree
         # integration below would be built only to be refused. (Skipping it is never
         # wrong: the factorization gives the minimizer in every case.)
@@ -533,23 +535,14 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         stages.lap("refine")
         stages("refine", 1.0)
 
-    report.update({
-        "energy": energy,
-        "first_solve_energy": first_energy,
-        "frame_orthonormality_error": orthonormality,
-        "orthonormalized": bool(opts.orthonormalize),
-        "refinement": refinement,
-        "timings": stages.timings,
-        **factorized,
-        "solve_path": solve_path,
-        "n_unknowns": problem.n_unknowns,
-        "frame_weight": problem.frame_weight,
-        "weighting": problem.weighting,
-        "length_scale": problem.length_scale,
-        "regularized_components": regularized,
-        "anchored_components": anchored,
-        "isolated_vertices": topology.isolated_vertices.tolist(),
-    })
+    report = ReconstructReport(
+        energy=energy, first_solve_energy=first_energy,
+        frame_orthonormality_error=orthonormality, orthonormalized=bool(opts.orthonormalize),
+        refinement=refinement, timings=stages.timings, **factorized, solve_path=solve_path,
+        n_unknowns=problem.n_unknowns, frame_weight=problem.frame_weight,
+        weighting=problem.weighting, length_scale=problem.length_scale,
+        regularized_components=regularized, anchored_components=anchored,
+        isolated_vertices=topology.isolated_vertices.tolist(), integrability=integrability)
     return Reconstruction(vertices=vertices, frames=frames, report=report)
 
 

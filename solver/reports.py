@@ -1,18 +1,24 @@
-"""What the operations measure while they run: progress stages and their wall time.
+"""What the operations report: progress stages, their wall time, and the typed reports.
 
 Every operation reports its progress as ``progress(stage, fraction)`` with the stages
 validate, assemble, factorize, solve and refine, and its report's ``timings`` in one shape:
-stage -> seconds spent in it (:class:`Stages`).
+stage -> seconds spent in it (:class:`Stages`). Each result carries a report dataclass
+(:class:`ReconstructReport`, :class:`DeformReport`, :class:`ParameterizeReport`), read by
+attribute or like a dict (``report["timings"]``) and serialized by :meth:`Report.to_dict`
+(absent sections left out).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
+
+from .serialization import JsonDataclass, to_jsonable
 
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: a stage (validate, assemble, factorize, solve, refine)
@@ -82,3 +88,137 @@ def mesh_summary(vertices: ArrayLike, faces: ArrayLike,
               "bounds": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
               "mean_edge_length": float(lengths.mean()) if len(lengths) else 0.0}
     return points, np.asarray(topology.faces, dtype=np.int64), report
+
+
+Timings = dict[str, float]
+"""Stage (validate, assemble, factorize, solve, refine) -> seconds."""
+
+
+class Report(JsonDataclass, Mapping[str, Any]):
+    """Base of the reports: dataclass fields that also read like a dict's keys; a field
+    that is None is an absent section (not a key, left out of :meth:`to_dict`)."""
+
+    def __getitem__(self, key: str) -> Any:
+        value = getattr(self, key, None) if key in self._names() else None
+        if value is None:
+            raise KeyError(key)
+        return value
+
+    def __setitem__(self, key: str, value: Any) -> None:
+        if key not in self._names():
+            raise KeyError(f"{type(self).__name__} has no section {key!r}")
+        setattr(self, key, value)
+
+    def __iter__(self) -> Iterator[str]:
+        return (name for name in self._names() if getattr(self, name) is not None)
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready data: the present sections (:func:`solver.serialization.to_jsonable`)."""
+        return {name: to_jsonable(getattr(self, name)) for name in self}
+
+    @classmethod
+    def _names(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in dataclasses.fields(cls))  # type: ignore[arg-type]
+
+
+@dataclasses.dataclass(eq=False)
+class ReconstructReport(Report):
+    """The report of :func:`solver.reconstruct`.
+
+    Attributes:
+        energy: residual energy per term of the returned unknowns (normalized units).
+        first_solve_energy: the same of the first solve (before the orthonormalization).
+        frame_orthonormality_error: max_t ||f_t^T f_t - I||_max of the first solve.
+        orthonormalized: whether the second solve of Sec. 4 ran.
+        refinement: whether and how it refined (:meth:`solver.refine.Refiner.run`).
+        timings: seconds per stage.
+        backend, analysis: the factorization's backend and analysis ("none": no
+            factorization).
+        solve_path: "tree-integration" or "factorization".
+        n_unknowns: N = n + 3 m.
+        frame_weight, weighting, length_scale: the energy's.
+        regularized_components: components whose gauge a reference embedding fixed.
+        anchored_components: ``{"component", "vertex", "face"}`` of each anchored one.
+        isolated_vertices: vertices in no face.
+        integrability: the integrability summary (None: not checked).
+        vjp: :func:`solver.reconstruct_vjp`'s preparation (None otherwise).
+    """
+
+    energy: dict[str, float]
+    first_solve_energy: dict[str, float]
+    frame_orthonormality_error: float
+    orthonormalized: bool
+    refinement: dict[str, Any]
+    timings: Timings
+    backend: str
+    analysis: str
+    solve_path: str
+    n_unknowns: int
+    frame_weight: float
+    weighting: str
+    length_scale: float
+    regularized_components: list[int]
+    anchored_components: list[dict[str, int]]
+    isolated_vertices: list[int]
+    integrability: dict[str, Any] | None = None
+    vjp: dict[str, Any] | None = None
+
+
+@dataclasses.dataclass(eq=False)
+class DeformReport(Report):
+    """The report of :func:`solver.deform`.
+
+    Attributes:
+        timings: seconds per stage.
+        backend, analysis: the factorization's.
+        n_unknowns: unknowns of the ROI's system.
+        roi_faces: faces of the system (those touching the region of interest).
+        orthonormalized: whether the second solve of Sec. 4 ran.
+        refinement: whether and how it refined.
+        distortion: :func:`solver.metrics.distortion` against the rest mesh (compact).
+    """
+
+    timings: Timings
+    backend: str
+    analysis: str
+    n_unknowns: int
+    roi_faces: int
+    orthonormalized: bool
+    refinement: dict[str, Any]
+    distortion: dict[str, Any]
+
+
+@dataclasses.dataclass(eq=False)
+class ParameterizeReport(Report):
+    """The report of :func:`solver.parameterize`.
+
+    Attributes:
+        flipped_count: faces whose uv orientation is reversed.
+        area_ratio_summary, angle_distortion_summary, length_change_summary: summaries
+            (:func:`solver.metrics.summary`) of uv/3D area - 1, corner-angle change and
+            relative edge-length change.
+        angle_distortion_histogram, length_change_histogram: their histograms.
+        planarity_error: max |z| of the linear answer (0 in exact arithmetic).
+        orthonormalized: whether the second solve ran.
+        refinement: whether and how it refined.
+        anchored_components: ``{"component", "vertex", "face"}`` of each component.
+        backend, analysis: the factorization's.
+        timings: seconds per stage.
+    """
+
+    flipped_count: int
+    area_ratio_summary: dict[str, float]
+    angle_distortion_summary: dict[str, float]
+    length_change_summary: dict[str, float]
+    angle_distortion_histogram: dict[str, Any]
+    length_change_histogram: dict[str, Any]
+    planarity_error: float
+    orthonormalized: bool
+    refinement: dict[str, Any]
+    anchored_components: list[dict[str, int]]
+    backend: str
+    analysis: str
+    timings: Timings

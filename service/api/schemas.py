@@ -7,16 +7,20 @@ an example (``json_schema_extra``) that the OpenAPI document and the docs page s
 request examples are valid requests (a test posts each one).
 
 Request models for the multipart upload form are split into a *mesh* part (taken from the
-uploaded file) and a *params* part (the other form fields); see :data:`PARAMS_MODELS`.
+uploaded file) and a *params* part (the other form fields); the operation registry
+(:data:`service.operations.OPERATIONS`) names both of each operation.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from solver.linalg import BACKENDS
+from solver import options as solver_options
+from solver.options import MAX_WEIGHT
 
 # ---------------------------------------------------------------------------- examples
 
@@ -41,9 +45,6 @@ MAX_MAGNITUDE = 1e60
 """Largest accepted |coordinate| or length (Heron's formula takes 4th powers of lengths)."""
 MAX_INDEX = 2**31 - 1
 
-MAX_WEIGHT = 1e12
-"""Largest accepted energy weight (frame, orthonormalization, soft constraint)."""
-
 Real = Annotated[float, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
 Weight = Annotated[float, Field(gt=0, le=MAX_WEIGHT)]
 Index = Annotated[int, Field(ge=0, le=MAX_INDEX)]
@@ -53,22 +54,16 @@ Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3)]
 Tri = Annotated[list[Index], Field(min_length=3, max_length=3)]
 Pair = Annotated[list[Index], Field(min_length=2, max_length=2)]
 Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
-SolverName = Literal["auto", *sorted(BACKENDS)]  # type: ignore[valid-type]
-Weighting = Literal["uniform", "cotan", "cotan_clamped"]
 
 
-REFINE_DESCRIPTION = (
-    "Nearest-surface refinement (Levenberg-Marquardt on edge lengths and dihedral angles, "
-    "started from the linear answer): `null` (default) refines when the linear answer does "
-    "not reproduce the forms; `false` returns the linear answer of Eq. 5 (fast; it shrinks "
-    "non-integrable forms); `true` refines whenever the answer is not exact. "
-    "`report.refinement` says whether and how it refined.")
-MAX_SECONDS_DESCRIPTION = (
-    "Wall-clock budget of the solve in seconds (> 0). When the refinement runs out of it the "
-    "answer is its best shape so far, reported as `converged: false, stop_reason: "
-    "\"time_limit\"` (a 200, not a 504). The service also stops the refinement in time for "
-    "FFS_REQUEST_TIMEOUT (synchronous requests) or FFS_JOB_TIMEOUT (jobs), less a margin for "
-    "encoding; the smaller budget applies.")
+BUDGET_NOTE = (
+    " A budget that runs out is a 200, not a 504. The service also stops the refinement in "
+    "time for FFS_REQUEST_TIMEOUT (synchronous requests) or FFS_JOB_TIMEOUT (jobs), less a "
+    "margin for encoding; the smaller budget applies.")
+SESSION_REFINE_NOTE = (
+    " In a session (`POST /v1/sessions`) `true` makes drags progressive (the linear shape at "
+    "once, the refined one when ready: docs/service.md); `null` and `false` answer linear "
+    "shapes only.")
 
 
 class ApiModel(BaseModel):
@@ -172,30 +167,34 @@ class Constraints(ApiModel):
     frames: list[FrameConstraint] = Field(default_factory=list, fail_fast=True)
 
 
-class ReconstructOptions(ApiModel):
-    """Options of ``POST /v1/reconstruct``."""
+def served_options(source: type[solver_options.SolveOptions],
+                   notes: dict[str, str] | None = None) -> type[ApiModel]:
+    """The request model of an operation's ``options``, made from the solver's options
+    class ``source``: each field it serves, under its HTTP name, with its type, default,
+    bounds and description (and ``notes``, HTTP name -> text added to a description).
+    Subclass it for the docstring, the example and the service's own options."""
+    hints = typing.get_type_hints(source)
+    notes = {"max_seconds": BUDGET_NOTE, **(notes or {})}
+    fields: dict[str, Any] = {}
+    for item in dataclasses.fields(source):
+        if not item.metadata["served"]:
+            continue
+        name = solver_options.api_name(item)
+        fields[name] = (hints[item.name], Field(
+            item.default, description=item.metadata["description"] + notes.get(name, ""),
+            **item.metadata["bounds"]))
+    return create_model(f"_{source.__name__}Fields", __base__=ApiModel, **fields)
+
+
+class ReconstructOptions(served_options(solver_options.ReconstructOptions)):  # type: ignore[misc]
+    """Options of ``POST /v1/reconstruct`` (:class:`solver.options.ReconstructOptions`)."""
 
     model_config = _example({"frame_weight": 1000.0, "orthonormalize": False,
                              "solver": "auto", "require_integrable": False})
 
-    frame_weight: Weight = Field(1000.0, description="Weight w of the frame term.")
-    orthonormalize: bool = Field(False, description="Second solve with frames projected "
-                                 "to rotations (Sec. 4).")
-    orthonormal_weight: Weight = Field(1000.0,
-                                       description="Weight of that second solve's targets.")
-    weighting: Weighting = Field("uniform", description="Edge weighting of the energy.")
-    solver: SolverName | None = Field(None, description="Sparse backend; default "
-                                      "FFS_SOLVER_BACKEND.")
     require_integrable: bool = Field(
         False, description="Fail with 422 naming the worst vertices instead of returning a "
                            "least-squares answer when the forms are not integrable.")
-    tolerance: float = Field(1e-8, gt=0, description="Integrability tolerance.")
-    exact_shortcut: bool = Field(
-        True, description="Without constraints, integrate the forms along spanning trees "
-        "first and skip the factorization when that immersion already has zero energy "
-        "(integrable forms; report.solve_path = tree-integration).")
-    refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
-    max_seconds: float | None = Field(None, gt=0, le=1e9, description=MAX_SECONDS_DESCRIPTION)
 
 
 class ReconstructParams(ApiModel):
@@ -227,22 +226,12 @@ class RotationHandle(ApiModel):
     rotation: Mat3
 
 
-class DeformOptions(ApiModel):
-    """Options of ``POST /v1/deform``."""
+class DeformOptions(served_options(solver_options.DeformOptions,  # type: ignore[misc]
+                                   {"refine": SESSION_REFINE_NOTE})):
+    """Options of ``POST /v1/deform`` (:class:`solver.options.DeformOptions`)."""
 
     model_config = _example({"frame_weight": 1000.0, "orthonormalize": False,
                              "solver": "auto"})
-
-    frame_weight: Weight = 1000.0
-    orthonormalize: bool = False
-    orthonormal_weight: Weight = 1000.0
-    weighting: Weighting = "uniform"
-    solver: SolverName | None = None
-    refine: bool | None = Field(
-        None, description=REFINE_DESCRIPTION + " In a session (`POST /v1/sessions`) `true` "
-        "makes drags progressive (the linear shape at once, the refined one when ready: "
-        "docs/service.md); `null` and `false` answer linear shapes only.")
-    max_seconds: float | None = Field(None, gt=0, le=1e9, description=MAX_SECONDS_DESCRIPTION)
 
 
 class DeformParams(ApiModel):
@@ -258,18 +247,10 @@ class DeformParams(ApiModel):
     options: DeformOptions = Field(default_factory=DeformOptions)
 
 
-class ParameterizeOptions(ApiModel):
-    """Options of ``POST /v1/parameterize``."""
+class ParameterizeOptions(served_options(solver_options.ParameterizeOptions)):  # type: ignore[misc]
+    """Options of ``POST /v1/parameterize`` (:class:`solver.options.ParameterizeOptions`)."""
 
     model_config = _example({"orthonormalize": True, "solver": "auto"})
-
-    orthonormalize: bool = True
-    orthonormal_weight: Weight = 1000.0
-    frame_weight: Weight = 1000.0
-    weighting: Weighting = "uniform"
-    solver: SolverName | None = None
-    refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
-    max_seconds: float | None = Field(None, gt=0, le=1e9, description=MAX_SECONDS_DESCRIPTION)
 
 
 class ParameterizeParams(ApiModel):
@@ -280,16 +261,10 @@ class ParameterizeParams(ApiModel):
     options: ParameterizeOptions = Field(default_factory=ParameterizeOptions)
 
 
-class InterpolateOptions(ApiModel):
-    """Options of ``POST /v1/interpolate``."""
+class InterpolateOptions(served_options(solver_options.InterpolateOptions)):  # type: ignore[misc]
+    """Options of ``POST /v1/interpolate`` (:class:`solver.options.InterpolateOptions`)."""
 
     model_config = _example({"frame_weight": 1000.0, "solver": "auto"})
-
-    frame_weight: Weight = 1000.0
-    weighting: Weighting = "uniform"
-    solver: SolverName | None = None
-    refine: bool | None = Field(None, description=REFINE_DESCRIPTION)
-    max_seconds: float | None = Field(None, gt=0, le=1e9, description=MAX_SECONDS_DESCRIPTION)
 
 
 class InterpolateParams(ApiModel):
@@ -397,21 +372,6 @@ class InterpolateRequest(InterpolateParams):
     vertices_a: list[Vec3] = Field(min_length=1, fail_fast=True)
     vertices_b: list[Vec3] = Field(min_length=1, fail_fast=True)
     faces: list[Tri] = Field(min_length=1, fail_fast=True)
-
-
-REQUEST_MODELS: dict[str, type[ApiModel]] = {
-    "forms": FormsRequest, "integrability": IntegrabilityRequest,
-    "reconstruct": ReconstructRequest, "deform": DeformRequest,
-    "parameterize": ParameterizeRequest, "interpolate": InterpolateRequest,
-    "mesh": MeshRequest,
-}
-PARAMS_MODELS: dict[str, type[ApiModel]] = {
-    "forms": FormsParams, "integrability": IntegrabilityParams,
-    "reconstruct": ReconstructParams, "deform": DeformParams,
-    "parameterize": ParameterizeParams, "interpolate": InterpolateParams,
-    "mesh": MeshParams, "reconstruct/vjp": ReconstructVjpParams,
-}
-"""The non-mesh fields of each operation: the other form fields of a multipart upload."""
 
 
 class JobRequest(BaseModel):

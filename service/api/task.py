@@ -12,11 +12,16 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
+from solver.options import DeformOptions, SolveOptions
+
 Format = Literal["json", "glb", "gltf"]
+Options = TypeVar("Options", bound=SolveOptions)
+SERVICE_OPTIONS: tuple[str, ...] = ("require_integrable",)
+"""Request options the service acts on itself (not the solver's)."""
 
 
 @dataclass(frozen=True)
@@ -108,8 +113,8 @@ class TaskRequest:
             it; ``None`` for the test-only debug tasks.
         params: the operation's params model, dumped (``{}`` until a raw body is parsed).
         limits: the vertex and face limits.
-        backend: the default linear-solver backend (``FFS_SOLVER_BACKEND``), used when
-            ``options.solver`` is not given.
+        backend: the default factorization backend (``FFS_SOLVER_BACKEND``), used when
+            ``options.solver`` (the solver's ``backend``) is not given.
         output: the wanted result.
         task: the worker function to run when it is not the operation's own (test-only
             ``debug.*`` tasks, which report the operation's stages).
@@ -130,10 +135,14 @@ class TaskRequest:
     def task_name(self) -> str:
         return self.task or self.operation
 
-    @property
-    def solver_backend(self) -> str:
-        """``options.solver`` if given, else the service's default backend."""
-        return (self.params.get("options") or {}).get("solver") or self.backend
+    def solve_options(self, kind: type[Options]) -> Options:
+        """The solver's options of this request (``kind``, e.g.
+        :class:`solver.options.ReconstructOptions`), in one call: the params' ``options``
+        (HTTP names: ``solver`` is the backend), :attr:`backend` where none was chosen, and
+        :meth:`solver_budget` as ``max_seconds``."""
+        options = kind.from_api(self.params.get("options") or {}, ignore=SERVICE_OPTIONS)
+        return options.replace(backend=options.backend or self.backend,
+                               max_seconds=self.solver_budget())
 
     def with_output(self, output: Output) -> TaskRequest:
         return replace(self, output=output)
@@ -183,8 +192,8 @@ class SessionSpec:
         handles: (h,) int64 handle vertices, in the order of every drag's targets.
         rotations: one (k,) int64 face-index array per rotation group.
         roi: (r,) int64 vertices that may move, or ``None`` (all).
-        options: the deformation options (``DeformOptions``, dumped).
-        backend: the default linear-solver backend, used when ``options.solver`` is unset.
+        options: the request's ``options`` (``DeformOptions``, dumped; HTTP names).
+        backend: the default factorization backend, used when ``options.solver`` is unset.
     """
 
     vertices: np.ndarray
@@ -194,3 +203,9 @@ class SessionSpec:
     roi: np.ndarray | None = None
     options: dict[str, Any] = field(default_factory=dict)
     backend: str = "auto"
+
+    def deform_options(self) -> DeformOptions:
+        """The solver's options of the session, in one call (:meth:`TaskRequest.solve_options`
+        without a budget: each drag's refinement has its own)."""
+        options = DeformOptions.from_api(self.options)
+        return options.replace(backend=options.backend or self.backend)

@@ -77,18 +77,14 @@ class SessionState:
     def __init__(self, spec: SessionSpec, refine_seconds: float = 30.0) -> None:
         import solver
 
-        options = spec.options
+        options = spec.deform_options()
         start = time.perf_counter()
-        self.progressive = options.get("refine") is True  # null: off (linear drags only)
-        self.refine_seconds = float(options.get("max_seconds") or refine_seconds)
-        self.deformer = solver.Deformer(
+        # A Deformer reads refine=None as off (solver.options.DeformOptions): linear drags.
+        self.progressive = options.refine is True
+        self.refine_seconds = float(options.max_seconds or refine_seconds)
+        self.deformer = solver.Deformer(  # (a progressive one builds its start-up fit now)
             spec.vertices, spec.faces, spec.handles, rotation_handles=list(spec.rotations) or None,
-            roi=spec.roi, frame_weight=options.get("frame_weight", 1000.0),
-            orthonormalize=options.get("orthonormalize", False),
-            orthonormal_weight=options.get("orthonormal_weight", 1000.0),
-            weighting=options.get("weighting", "uniform"),
-            backend=options.get("solver") or spec.backend,
-            refine=self.progressive)  # (builds the refinement's start-up fit now)
+            roi=spec.roi, options=options)
         self.deformer.solve(refine=False)
         self.setup_seconds = time.perf_counter() - start
         self.faces = self.deformer.faces

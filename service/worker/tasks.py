@@ -11,6 +11,7 @@ into the failure the worker sends by :func:`service.api.problems.failure_of`. Th
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import Any
@@ -158,48 +159,31 @@ def _not_integrable(report: solver.IntegrabilityReport) -> ProblemError:
 
 
 def _constraints(data: dict[str, Any] | None) -> solver.Constraints | None:
-    if not data:
-        return None
-    positions, frames = data.get("positions") or [], data.get("frames") or []
-    if not positions and not frames:
-        return None
-
-    def weights(items: list[dict[str, Any]]) -> np.ndarray:
-        return np.array([np.inf if c.get("weight") is None else c["weight"] for c in items],
-                        dtype=np.float64)
-
-    return solver.Constraints(
-        position_vertices=np.array([c["vertex"] for c in positions], dtype=np.int64),
-        positions=np.array([c["position"] for c in positions], dtype=np.float64).reshape(-1, 3),
-        position_weights=weights(positions),
-        frame_faces=np.array([c["face"] for c in frames], dtype=np.int64),
-        frames=np.array([c["frame"] for c in frames], dtype=np.float64).reshape(-1, 3, 3),
-        frame_weights=weights(frames))
+    """The solver's constraints of the request's ``constraints`` document."""
+    data = data or {}
+    return solver.Constraints.from_records(data.get("positions") or [],
+                                           data.get("frames") or [])
 
 
 def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
     """Vertex positions from forms; validates integrability first (see the API docs)."""
     params = request.params
-    options = params["options"]
+    options = request.solve_options(solver.ReconstructOptions)
+    require_integrable = params["options"]["require_integrable"]
     progress("validate", 0.0)
     forms, n_vertices = _forms(request)
     full_report = None
-    if options["require_integrable"] or request.output.wants("defect"):
+    if require_integrable or request.output.wants("defect"):
         full_report = solver.check_integrability(
-            forms.faces, forms.edges, forms.lengths, forms.angles, tol=options["tolerance"],
-            n_vertices=n_vertices)
-        if options["require_integrable"] and not full_report.integrable:
+            forms.faces, forms.edges, forms.lengths, forms.angles,
+            tol=options.integrability_tol, n_vertices=n_vertices)
+        if require_integrable and not full_report.integrable:
             raise _not_integrable(full_report)
     result = solver.reconstruct(
         forms.faces, forms.edges, forms.lengths, forms.angles,
-        constraints=_constraints(params.get("constraints")),
-        frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
-        orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
-        backend=request.solver_backend, n_vertices=n_vertices,
-        check_integrability=full_report is None, integrability_tol=options["tolerance"],
-        exact_shortcut=options["exact_shortcut"], refine=options["refine"],
-        max_seconds=request.solver_budget(), progress=progress)
-    report = dict(result.report)
+        constraints=_constraints(params.get("constraints")), n_vertices=n_vertices,
+        options=options.replace(check_integrability=full_report is None), progress=progress)
+    report = result.report.to_dict()
     if full_report is not None:
         report = {"integrability": full_report.summary(), **report}
     faces = np.asarray(forms.faces)
@@ -212,35 +196,31 @@ def reconstruct_vjp_task(request: TaskRequest, progress: Progress) -> TaskResult
     """A reconstruction and the cotangents of its inputs for the request's ``cotangent``
     (:func:`solver.reconstruct_vjp`)."""
     params = request.params
-    options = params["options"]
+    options = request.solve_options(solver.ReconstructOptions)
     progress("validate", 0.0)
     forms, n_vertices = _forms(request)
-    if options["require_integrable"]:
+    if params["options"]["require_integrable"]:
         report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
-                                            forms.angles, tol=options["tolerance"],
+                                            forms.angles, tol=options.integrability_tol,
                                             n_vertices=n_vertices)
         if not report.integrable:
             raise _not_integrable(report)
+    # reconstruct_vjp reads the options of reconstruct as its keywords.
     result, vjp = solver.reconstruct_vjp(
         forms.faces, forms.edges, forms.lengths, forms.angles,
-        constraints=_constraints(params.get("constraints")),
-        frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
-        orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
-        backend=request.solver_backend, n_vertices=n_vertices,
-        integrability_tol=options["tolerance"], exact_shortcut=options["exact_shortcut"],
-        refine=options["refine"], max_seconds=request.solver_budget(), progress=progress)
+        constraints=_constraints(params.get("constraints")), n_vertices=n_vertices,
+        progress=progress, **dataclasses.asdict(options))
     cotangents = vjp.cotangents(np.asarray(params["cotangent"], dtype=np.float64))
     document = {"vertices": result.vertices, "faces": np.asarray(forms.faces),
                 "grad_lengths": cotangents.lengths, "grad_angles": cotangents.angles,
                 "grad_positions": cotangents.positions, "grad_frames": cotangents.frames,
-                "report": result.report}
+                "report": result.report.to_dict()}
     return _finish(request, progress, document)
 
 
 def deform_task(request: TaskRequest, progress: Progress) -> TaskResult:
     """Deform a mesh with position handles (and optional rotation handles / ROI)."""
     params = request.params
-    options = params["options"]
     progress("validate", 0.0)
     vertices, faces = _mesh(request)
     handles = params["handles"]
@@ -253,27 +233,22 @@ def deform_task(request: TaskRequest, progress: Progress) -> TaskResult:
         handle_rotations=(np.array([r["rotation"] for r in rotations], dtype=np.float64)
                           if rotations else None),
         roi=None if roi is None else np.asarray(roi, dtype=np.int64),
-        frame_weight=options["frame_weight"], orthonormalize=options["orthonormalize"],
-        orthonormal_weight=options["orthonormal_weight"], weighting=options["weighting"],
-        backend=request.solver_backend, refine=options["refine"],
-        max_seconds=request.solver_budget(), progress=progress)
+        options=request.solve_options(solver.DeformOptions), progress=progress)
     distortion = (result.report.get("distortion") or {}).get("vertex")
     colors = {} if distortion is None else {"distortion": np.asarray(distortion)}
-    document = {"vertices": result.vertices, "faces": faces, "report": result.report}
+    document = {"vertices": result.vertices, "faces": faces, "report": result.report.to_dict()}
     return _finish(request, progress, document, (result.vertices, faces), colors)
 
 
 def parameterize_task(request: TaskRequest, progress: Progress) -> TaskResult:
     """Flatten a mesh with boundary; glTF output is the flat mesh (u, v, 0)."""
-    options = request.params["options"]
     progress("validate", 0.0)
     vertices, faces = _mesh(request)
-    result = solver.parameterize(
-        vertices, faces, orthonormalize=options["orthonormalize"],
-        orthonormal_weight=options["orthonormal_weight"], frame_weight=options["frame_weight"],
-        weighting=options["weighting"], backend=request.solver_backend,
-        refine=options["refine"], max_seconds=request.solver_budget(), progress=progress)
-    document = {"uv": result.uv, "flipped_faces": result.flipped_faces, "report": result.report}
+    result = solver.parameterize(vertices, faces,
+                                 options=request.solve_options(solver.ParameterizeOptions),
+                                 progress=progress)
+    document = {"uv": result.uv, "flipped_faces": result.flipped_faces,
+                "report": result.report.to_dict()}
     flat = np.column_stack([result.uv, np.zeros(len(result.uv))])
     return _finish(request, progress, document, (flat, np.asarray(faces)))
 
@@ -281,7 +256,6 @@ def parameterize_task(request: TaskRequest, progress: Progress) -> TaskResult:
 def interpolate_task(request: TaskRequest, progress: Progress) -> TaskResult:
     """Blend two embeddings of one connectivity in form space for one or several t."""
     params = request.params
-    options = params["options"]
     progress("validate", 0.0)
     source = request.source
     if isinstance(source, tuple):  # two uploads
@@ -299,9 +273,8 @@ def interpolate_task(request: TaskRequest, progress: Progress) -> TaskResult:
                            "Accept: application/json for a list of t")
     progress("solve", 0.0)
     vertices, reports = solver.interpolate(
-        vertices_a, vertices_b, faces, t, frame_weight=options["frame_weight"],
-        weighting=options["weighting"], backend=request.solver_backend,
-        refine=options["refine"], max_seconds=request.solver_budget(), return_reports=True)
+        vertices_a, vertices_b, faces, t, options=request.solve_options(solver.InterpolateOptions),
+        return_reports=True)
     faces = np.asarray(faces)
     document = {"t": t, "vertices": vertices, "faces": faces,
                 "refinement": reports[0] if np.ndim(t) == 0 else reports}
@@ -315,18 +288,12 @@ def mesh_task(request: TaskRequest, progress: Progress) -> TaskResult:
     The connectivity is validated like every other operation does it (index range,
     manifoldness, orientation), so a viewer learns early why a mesh will not work.
     """
-    from solver.topology import build_topology
+    from solver.reports import mesh_summary
 
     progress("validate", 0.0)
     vertices, faces = _mesh(request)
     progress("solve", 0.0)
-    topology = build_topology(faces, n_vertices=len(vertices))
-    faces = topology.faces
-    edges = topology.edges
-    lengths = np.linalg.norm(vertices[edges[:, 1]] - vertices[edges[:, 0]], axis=1)
-    report = {"n_vertices": len(vertices), "n_faces": len(faces), "n_edges": len(edges),
-              "bounds": [vertices.min(axis=0), vertices.max(axis=0)],
-              "mean_edge_length": float(lengths.mean()) if len(lengths) else 0.0}
+    vertices, faces, report = mesh_summary(vertices, faces)
     document = {"vertices": vertices, "faces": faces, "report": report}
     return _finish(request, progress, document, (vertices, faces))
 

@@ -55,6 +55,14 @@ class Services:
 
 
 def services(connection: HTTPConnection) -> Services:
+    """The app's :class:`Services` (the other dependencies read one member of it).
+
+    Args:
+        connection: The request or WebSocket.
+
+    Returns:
+        ``app.state.services``.
+    """
     found: Services = connection.app.state.services
     return found
 

@@ -62,19 +62,26 @@ def formats(spec: OperationSpec) -> tuple[str, ...]:
     return MESH_FORMATS if spec.mesh_result else JSON_ONLY
 
 
-def color_query(colors: tuple[str, ...]) -> Any:
-    """The ``?color=`` parameter of an operation.
+def choice_query(values: tuple[str, ...], description: str, **query: Any) -> Any:
+    """An optional query parameter that takes one of some values.
 
     Args:
-        colors: The colour fields it offers.
+        values: The values it takes.
+        description: Its description in the OpenAPI document.
+        **query: More of :func:`fastapi.Query`'s arguments (``alias``).
 
     Returns:
-        The parameter's annotated type, described for the OpenAPI document.
+        The parameter's annotated type.
     """
+    return Annotated[Literal[values] | None,  # type: ignore[valid-type]
+                     Query(description=description, **query)]
+
+
+def color_query(colors: tuple[str, ...]) -> Any:
+    """The ``?color=`` parameter of an operation offering ``colors``."""
     meaning = "; ".join(f"`{c}`: {COLOR_MEANING[c]}" for c in colors)
-    return Annotated[Literal[colors] | None, Query(  # type: ignore[valid-type]
-        description=f"Add a per-vertex colour ramp ({meaning}). glTF gets COLOR_0, JSON a "
-                    "`colors` array.")]
+    return choice_query(colors, f"Add a per-vertex colour ramp ({meaning}). glTF gets "
+                                "COLOR_0, JSON a `colors` array.")
 
 
 FORMAT_MEANING = {"json": "`application/json`", "glb": "`model/gltf-binary`",
@@ -83,18 +90,10 @@ FORMAT_MEANING = {"json": "`application/json`", "glb": "`model/gltf-binary`",
 
 
 def format_query(offered: tuple[str, ...]) -> Any:
-    """The ``?format=`` parameter, which overrides ``Accept``.
-
-    Args:
-        offered: The formats the endpoint produces.
-
-    Returns:
-        The parameter's annotated type, described for the OpenAPI document.
-    """
+    """The ``?format=`` parameter offering ``offered``, which overrides ``Accept``."""
     meaning = ", ".join(f"`{f}`: {FORMAT_MEANING[f]}" for f in offered)
-    return Annotated[Literal[offered] | None, Query(  # type: ignore[valid-type]
-        alias="format", description=f"The result format ({meaning}); overrides `Accept` "
-                                    "(for clients that cannot set it).")]
+    return choice_query(offered, f"The result format ({meaning}); overrides `Accept` (for "
+                                 "clients that cannot set it).", alias="format")
 
 
 def result_format(request: Request, offered: tuple[str, ...], requested: str | None) -> str:

@@ -77,12 +77,19 @@ def test_batch_on_the_server_with_one_broken_file(ffs, server, workdir):
 
 
 def test_fail_fast_stops_at_the_first_failure(ffs, workdir):
+    """The broken file first: after it fails no file starts. Only those already running in
+    the other workers when it failed (at most jobs - 1) may finish or be stopped; without
+    --fail-fast all 20 would be written."""
+    jobs = 1
     names = write_batch(workdir / "in")
     broken_first = ["in/grid-17b.obj", *[f"in/{n}" for n in names if n != "grid-17b.obj"]]
     result = ffs("forms", *broken_first, "-o", "out/{stem}.npz", "--fail-fast",
-                 "--report", "report.json")
+                 "-j", str(jobs), "--report", "report.json")
     assert result.returncode == 1
     rows = json.loads((workdir / "report.json").read_text())["files"]
     assert rows[0]["status"] == "failed"
-    assert {r["status"] for r in rows[1:]} <= {"skipped", "ok"}
-    assert [r["status"] for r in rows].count("skipped") >= N_GOOD - 1
+    statuses = [r["status"] for r in rows[1:]]
+    assert set(statuses) <= {"skipped", "ok", "stopped"}
+    assert statuses.count("skipped") >= N_GOOD - (jobs - 1), statuses
+    assert statuses.count("ok") <= jobs - 1
+    assert len(list((workdir / "out").glob("*.npz"))) == statuses.count("ok")

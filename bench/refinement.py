@@ -88,6 +88,8 @@ def reconstruct(forms, **kw):
 
 
 def scale_section(meshes: list[str]) -> None:
+    """Every dihedral angle x 0.8: length ratios of the linear, orthonormalized and refined
+    answers."""
     table_head("Angles x 0.8",
                "| mesh | faces | answer | mean l/L | mean abs(l/L - 1) | p95 | iterations | s |")
     for name in meshes:
@@ -104,6 +106,7 @@ def scale_section(meshes: list[str]) -> None:
 
 
 def noise_section(meshes: list[str]) -> None:
+    """Dihedral noise N(0, 1e-3) rad: distance of each answer to the original mesh."""
     table_head("Dihedral noise N(0, 1e-3) rad: distance to the original / bbox diagonal",
                "| mesh | faces | genus | linear | orthonormalized | refined (default) "
                "| iterations | refine s | total s |")
@@ -132,6 +135,7 @@ def case_kwargs(case) -> dict:
 
 
 def deform_section(cases: list[str]) -> None:
+    """The Botsch-Sorkine cases, positions + rotation handles, against libigl ARAP."""
     table_head("Botsch-Sorkine cases, positions + rotation handles",
                "| case | faces | method | mean length change | mean dihedral change (rad) "
                "| sum | max length change | iterations | s |")
@@ -162,6 +166,8 @@ def deform_section(cases: list[str]) -> None:
 
 
 def interpolate_section(cases: list[str]) -> None:
+    """t = 0.5 between a mesh and a near-isometric pose of it: form space against vertex
+    blending."""
     table_head("Interpolation at t = 0.5 between a mesh and a near-isometric pose of it",
                "| case | endpoint mean length change | form space, refined (default) "
                "| form space, linear | vertex blend | s (refined) |")
@@ -181,6 +187,7 @@ def interpolate_section(cases: list[str]) -> None:
 
 
 def parameterize_section(meshes: list[str]) -> None:
+    """Flattening against libigl's ARAP parameterization."""
     table_head("Parameterization (flattening)",
                "| mesh | faces | method | flipped faces | mean length change | iterations | s |")
     for name in meshes:
@@ -202,6 +209,7 @@ def parameterize_section(meshes: list[str]) -> None:
 
 
 def drag_section() -> None:
+    """A session's drags at ~20K faces: linear, refined and libigl ARAP-10."""
     print("\n### Interactive drags at ~20K faces (rocker-arm, 3 handle patches)\n")
     V, F = load_bench_mesh("rocker-arm.obj")
     rng = np.random.default_rng(0)
@@ -266,6 +274,7 @@ def warm_pair(forms, repeats: int = 3) -> tuple[float, float, object]:
 
 
 def time_section(meshes: list[str]) -> None:
+    """The default (refined) answer against the linear one, both warm."""
     table_head("Time: the default (refined) answer against the linear one, warm",
                "| case | faces | linear s | default s | ratio | iterations | factorizations "
                "| solves | converged | quality |")

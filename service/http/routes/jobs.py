@@ -100,7 +100,8 @@ async def _get(jobs: JobsDep, job_id: str) -> Job:
                          "`operation`, optional `color`, the mesh in `file` (`file_a`/`file_b` "
                          "for interpolate) and the operation's other fields JSON-encoded.",
              response_class=JSONResponse, openapi_extra=jobs_body(), operation_id="submit_job",
-             responses={202: created("Accepted; poll the Location.", "/v1/jobs/{id}", "job_id",
+             responses={202: created("Accepted; poll the Location.",
+                                     f"{API_PREFIX}/jobs/{{id}}", "job_id",
                                      {"GetJob": "get_job", "GetJobResult": "get_job_result",
                                       "DeleteJob": "delete_job"}),
                         **error_responses(400, 408, 413, 415, 422, 429, 503)})

@@ -109,7 +109,7 @@ def session_document(record: SessionRecord) -> SessionInfo:
                                       "example": SessionRequest.model_config[
                                           "json_schema_extra"]["examples"][0]}}}},
              operation_id="create_session",
-             responses={201: created("Created.", "/v1/sessions/{id}", "session_id", {
+             responses={201: created("Created.", f"{API_PREFIX}/sessions/{{id}}", "session_id", {
                                  "SolveSession": "solve_session", "GetSession": "get_session",
                                  "DeleteSession": "delete_session"}),
                         **error_responses(400, 408, 413, 415, 422, 429, 500, 503, 504)})

@@ -57,8 +57,8 @@ from numpy.typing import ArrayLike
 from .adjoints import FormCotangents, LinearAdjoint, RefinedAdjoint
 from .errors import ConstraintError
 from .forms import validate_forms
+from .options import ReconstructOptions
 from .reconstruct import Constraints, ImmersionProblem, Reconstruction, reconstruct
-from .refine import ANGLE_WEIGHT
 
 
 class ReconstructionVJP:
@@ -120,14 +120,18 @@ class ReconstructionVJP:
 
 
 def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: ArrayLike,
-                    *, polish: bool = True, **keywords: Any,
-                    ) -> tuple[Reconstruction, ReconstructionVJP]:
+                    *, options: ReconstructOptions | None = None, polish: bool = True,
+                    **keywords: Any) -> tuple[Reconstruction, ReconstructionVJP]:
     """:func:`solver.reconstruct` and its vector-Jacobian product (module docstring).
 
     Args:
         faces, edges, lengths, angles: as for :func:`solver.reconstruct`.
+        options: :class:`solver.options.ReconstructOptions`, as for :func:`solver.reconstruct`
+            (keyword overrides of its fields too); the adjoint differentiates the answer of
+            exactly these options.
         polish: refined answers only: Newton steps to the optimum before differentiating.
-        **keywords: the keywords of :func:`solver.reconstruct`.
+        **keywords: the other keywords of :func:`solver.reconstruct` (``constraints``,
+            ``n_vertices``, ``progress``, ...) and option overrides.
 
     Returns:
         ``(result, vjp)``: the :class:`Reconstruction` (``report["vjp"]`` added) and a
@@ -139,8 +143,11 @@ def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angl
             gauge).
         SolverInputError: any error :func:`solver.reconstruct` raises.
     """
-    _check_supported(keywords)
-    result = reconstruct(faces, edges, lengths, angles, **keywords)
+    names = ReconstructOptions.names()
+    options = ReconstructOptions.given(
+        options, {k: keywords.pop(k) for k in list(keywords) if k in names})
+    _check_supported(options, keywords)
+    result = reconstruct(faces, edges, lengths, angles, options=options, **keywords)
     if result.report.get("regularized_components"):
         raise ConstraintError("reconstruct_vjp does not differentiate the regularized gauge "
                               "of constraints that leave a component's gauge free "
@@ -150,18 +157,17 @@ def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angl
     topology, L, A = validate_forms(faces, edges, lengths, angles, keywords.get("n_vertices"))
     user = (keywords.get("constraints") or Constraints()).validated(topology.n_vertices,
                                                                      topology.n_faces)
-    problem = ImmersionProblem(topology, L, A, frame_weight=keywords.get("frame_weight", 1e3),
-                               weighting="uniform",
-                               length_scale=keywords.get("length_scale"))
-    backend = keywords.get("backend", "auto")
-    if keywords.get("refine") is False:
+    problem = ImmersionProblem(topology, L, A, frame_weight=options.frame_weight,
+                               weighting="uniform", length_scale=options.length_scale)
+    backend = options.backend or "auto"
+    if options.refine is False:
         adjoint: LinearAdjoint | RefinedAdjoint = LinearAdjoint(
-            problem, user, L, backend, keywords.get("length_scale") is None)
+            problem, user, L, backend, options.length_scale is None)
         adjoint.check(result.vertices)
         report: dict[str, Any] = {"mode": "linear", "factorizations": 1}
     else:
-        adjoint = RefinedAdjoint(problem, user, L, A, result,
-                                  keywords.get("angle_weight", ANGLE_WEIGHT), backend, polish)
+        adjoint = RefinedAdjoint(problem, user, L, A, result, options.angle_weight, backend,
+                                 polish)
         report = {"mode": "refined", **adjoint.report}
         result = Reconstruction(vertices=adjoint.vertices,
                                 frames=problem.frames_of(adjoint.vertices), report=result.report)
@@ -170,15 +176,15 @@ def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angl
     return result, ReconstructionVJP(adjoint, topology.n_vertices, report)
 
 
-def _check_supported(keywords: dict[str, Any]) -> None:
+def _check_supported(options: ReconstructOptions, keywords: dict[str, Any]) -> None:
     """Raise :class:`ConstraintError` for options :func:`reconstruct_vjp` cannot differentiate."""
-    if keywords.get("weighting", "uniform") != "uniform":
+    if options.weighting != "uniform":
         raise ConstraintError("reconstruct_vjp differentiates the uniform weighting only",
                               field="options.weighting")
     if keywords.get("layout_angles") is not None:
         raise ConstraintError("reconstruct_vjp does not take layout_angles",
                               field="options.layout_angles")
-    if keywords.get("orthonormalize") and keywords.get("refine") is False:
+    if options.orthonormalize and options.refine is False:
         raise ConstraintError("reconstruct_vjp does not differentiate the orthonormalized "
                               "linear answer (refine=False with orthonormalize=True)",
                               field="options.orthonormalize")

@@ -86,6 +86,28 @@ def test_refined_answer_matches_finite_differences(name, kind):
     assert errors.min() <= TOLERANCE, errors
 
 
+@pytest.mark.parametrize("refine", [False, None])
+def test_options_object_and_keywords_differentiate_the_same_answer(refine):
+    """``options=`` and keyword overrides are one thing: the adjoint differentiates the
+    answer of the options the reconstruction used (a frame weight of 10, not the default)."""
+    from solver.options import ReconstructOptions
+
+    _, forms, L, A = forms_of("decimated-knight.off", "noisy")
+    by_keyword, vjp_k = reconstruct_vjp(forms.faces, forms.edges, L, A, refine=refine,
+                                        frame_weight=10.0)
+    by_options, vjp_o = reconstruct_vjp(
+        forms.faces, forms.edges, L, A,
+        options=ReconstructOptions(refine=refine, frame_weight=10.0))
+    _, vjp_d = reconstruct_vjp(forms.faces, forms.edges, L, A, refine=refine)
+    np.testing.assert_allclose(by_options.vertices, by_keyword.vertices, atol=1e-12)
+    g = np.random.default_rng(2).standard_normal(by_keyword.vertices.shape)
+    k, o, d = vjp_k.cotangents(g), vjp_o.cotangents(g), vjp_d.cotangents(g)
+    np.testing.assert_allclose(o.lengths, k.lengths, atol=1e-10)
+    np.testing.assert_allclose(o.angles, k.angles, atol=1e-10)
+    if refine is False:  # the linear answer depends on the frame weight
+        assert np.abs(d.lengths - k.lengths).max() > 1e-6
+
+
 def test_batch_of_cotangents_equals_single_ones():
     _, forms, L, A = forms_of("decimated-knight.off", "noisy")
     rng = np.random.default_rng(3)

@@ -84,17 +84,6 @@ KEPT_DAMPING = 1e-3
 (a hard previous drag ends at lambda ~ 1-10) takes short, well-predicted steps that would
 keep it for ever while E falls by 1-3% a step (icosphere, 4 handles: 50 iterations, not
 converged)."""
-INEXACT_ITERATIONS = 8
-"""Conjugate-gradient iterations (one back-substitution each) an inexact Gauss-Newton step
-may take before the matrix is factorized instead."""
-INEXACT_TOLERANCE = 0.1
-"""Relative residual at which an inexact step is taken. Where a factorization is due, the
-current Gauss-Newton matrix is first solved by conjugate gradients preconditioned with the
-previous factorization: at rocker-arm x 0.8 (third step) 6 iterations to this tolerance gave
-98% of the decrease of the exact step for a third of a factorization's time. Such a step
-never declares convergence by itself: a small one is confirmed by a factorization. It saved
-1-4 factorizations per Botsch-Sorkine case, 2 of 7 on the irregular mesh and 3 of 5 in a
-session's first drag (docs/refinement.md)."""
 QUASI_NEWTON_MEMORY = 8
 """(s, y) pairs of L-BFGS since the factor was built, in runs that start from a kept factor
 (elsewhere the steps between factorizations are plain frozen Gauss-Newton steps: L-BFGS
@@ -179,9 +168,8 @@ class Refiner:
         ``soft_positions`` (p, dim) and ``frame_edges`` (q, 2, dim) replace the handle
         targets given at construction. ``keep_factor``: start from the factorization the
         previous ``keep_factor`` run ended with and keep this run's for the next (for a
-        session's drags, which are alike); convergence may be declared on a step of that
-        kept factor whose model predicted the last decrease well, without a fresh
-        factorization to confirm it.
+        session's drags, which are alike); convergence may then be declared on a
+        quasi-Newton step of that kept factor, without a fresh factorization to confirm it.
         See :func:`refine` for the rest.
         """
         clock = time.perf_counter()
@@ -205,8 +193,7 @@ class Refiner:
         before = self.residuals(X)
         energy0 = energy = energy_of(X)
         damping, growth = INITIAL_DAMPING, 2.0
-        iterations = rejected = factorizations = solves = inexact_steps = 0
-        confirm = False  # factorize at the next refresh (no inexact step)
+        iterations = rejected = factorizations = solves = 0
         stop, converged = "max_iterations", False
         trace, steps = [energy0], []
         # The last factorized damped matrix and its J^T J; with ``keep_factor`` the previous
@@ -236,19 +223,8 @@ class Refiner:
                 stop, converged = "exact", True
                 break
             accepted = False
-            inexact_tried = inexact = False
             while not accepted and damping <= MAX_DAMPING:
-                step = None
-                if refresh and factor is not None and not (inexact_tried or confirm):
-                    # The current matrix, solved by conjugate gradients preconditioned with
-                    # the last factor: a Gauss-Newton step without a factorization.
-                    inexact_tried = True
-                    step, iterations_cg = self._inexact_step(H, damping, g, factor)
-                    solves += iterations_cg
-                    if step is not None:
-                        inexact, model, fresh = True, H, True
-                        inexact_steps += 1
-                if step is None and refresh:
+                if refresh:
                     factor = None  # frees its analysis for the cache: the next one reuses it
                     try:
                         factor = self._damped_factor(H, damping)
@@ -257,23 +233,19 @@ class Refiner:
                         continue
                     factorizations += 1
                     model, fresh, frozen_steps, factor_gain = H, True, 0, 0.0
-                    inexact = False
                     memory.clear()
-                if step is None:
-                    solves += 1
-                    # Fresh: the factor's own step; else L-BFGS on it (its model along the
-                    # step is -slope / 2).
-                    step = (-factor.solve(g) if fresh
-                            else -memory.inverse_hessian(factor, g))
-                slope = float(np.einsum("i,i->", g, step))  # < 0: H + D is SPD
-                # Gain ratio of the full step: actual decrease over the model's.
-                predicted = (-slope - 0.5 * system.quadratic_form(model, step) if fresh
-                             else -0.5 * slope)
+                solves += 1
+                if fresh:
+                    step = -factor.solve(g)
+                    slope = float(np.einsum("i,i->", g, step))  # < 0: H + D is SPD
+                    # Gain ratio of the full step: actual decrease over the model's.
+                    predicted = -slope - 0.5 * system.quadratic_form(model, step)
+                else:  # L-BFGS on the factor: its model along the step is -slope / 2
+                    step = -memory.inverse_hessian(factor, g)
+                    slope = float(np.einsum("i,i->", g, step))
+                    predicted = -0.5 * slope
                 found = self._line_search(X, step, energy, slope) if slope < 0 else None
                 accepted = found is not None
-                if found is None and inexact:  # factorize at X instead
-                    rejected, inexact, fresh = rejected + 1, False, False
-                    continue
                 if found is None:
                     rejected += 1
                     if fresh:
@@ -288,7 +260,7 @@ class Refiner:
                 gain = (energy - new_energy) / predicted if predicted > 0 else 0.0
                 # A full Gauss-Newton step (fresh matrix, little damping) that barely lowers
                 # E: converged. A quasi-Newton, shortened or heavily damped step says nothing.
-                full = fresh and not inexact and alpha == 1.0 and damping <= 1.0
+                full = fresh and alpha == 1.0 and damping <= 1.0
                 moved = float(np.abs(step).max(initial=0.0)) / system.energy.scale
                 decrease, X, energy = energy - new_energy, trial, new_energy
                 trace.append(energy)
@@ -298,18 +270,15 @@ class Refiner:
                 # forms are met): then a few more steps are cheap and reach round-off.
                 slowing = decrease <= 0.5 * (energy + decrease)
                 small = moved <= tolerance or decrease <= ENERGY_TOLERANCE * energy
-                # A small inexact step is confirmed by a factorization at the new X.
-                confirm = inexact and small and slowing
                 if (full and small and slowing) or energy <= EXACT_ENERGY:
                     stop, converged = "converged", True
                 elif small and slowing and not fresh:
                     # A small full step on a kept factor whose model just predicted the
                     # decrease well (gain near 1) is as good as a fresh one: that factor is
-                    # the Gauss-Newton matrix of a nearby point. Otherwise confirm with a
-                    # fresh step (interactive runs accepted it outright before: a session's
-                    # drags then ended up to 13% above the energy of a one-shot refinement).
+                    # the Gauss-Newton matrix of a nearby point. Interactive runs
+                    # (keep_factor) accept it outright; otherwise confirm with a fresh step.
                     trusted = alpha == 1.0 and damping <= 1.0 and abs(factor_gain - 1.0) <= 0.25
-                    if trusted:
+                    if keep_factor or trusted:
                         stop, converged = "converged", True
                     frozen_steps = max_frozen
                 if fresh:  # Levenberg-Marquardt's damping update (Nielsen)
@@ -323,8 +292,8 @@ class Refiner:
                 # ... nor, unless it was kept, after a long step: a model built before a
                 # move of more than FROZEN_REACH edge lengths was refused in every measured
                 # case (x0.8 forms, strong deformations).
-                if gain < min_gain or (moved > FROZEN_REACH and not kept) or inexact:
-                    frozen_steps = max_frozen  # (an inexact step's factor is not of this X)
+                if gain < min_gain or (moved > FROZEN_REACH and not kept):
+                    frozen_steps = max_frozen
             if not accepted:  # no step lowers E: a stationary point to working precision
                 stop, converged = "stationary", True
         if not system.n_free:
@@ -333,8 +302,7 @@ class Refiner:
             self._kept, self._kept_damping = (factor, model), damping
         return X, {"converged": converged, "stop_reason": stop, "iterations": iterations,
                    "rejected_steps": rejected, "factorizations": factorizations,
-                   "solves": solves, "inexact_steps": inexact_steps,
-                   "energy_before": energy0, "energy_after": energy,
+                   "solves": solves, "energy_before": energy0, "energy_after": energy,
                    "energy_trace": trace, "step_trace": steps, "before": before}
 
     def _damped_factor(self, H: sp.csr_array, damping: float) -> Any:
@@ -350,43 +318,6 @@ class Refiner:
         damped.has_canonical_format = True
         return factorize(damped, self.backend, triangle="upper",
                          groups=self.system.ordering_groups)
-
-    def _inexact_step(self, H: sp.csr_array, damping: float, g: np.ndarray, factor: Any,
-                      ) -> tuple[np.ndarray | None, int]:
-        """The Levenberg-Marquardt step ``-(H + damping diag(H))^-1 g`` by conjugate
-        gradients preconditioned with ``factor`` (an earlier factorization), to a relative
-        residual of :data:`INEXACT_TOLERANCE` within :data:`INEXACT_ITERATIONS`: ``(step,
-        back-substitutions)``, the step None when it did not get there."""
-        positions = self.system.diagonal_positions
-        diag = H.data[positions]
-        floor = 1e-9 * float(diag.mean())
-        extra = damping * np.maximum(diag, floor) + floor - diag  # U + U^T counts diag twice
-        upper, lower = H, H.T
-
-        def apply(x: np.ndarray) -> np.ndarray:
-            return upper @ x + lower @ x + extra * x
-
-        b = -g
-        x = np.zeros_like(b)
-        r = b.copy()
-        z = factor.solve(r)
-        p = z.copy()
-        rz = float(np.einsum("i,i->", r, z))
-        target = INEXACT_TOLERANCE * float(np.sqrt(np.einsum("i,i->", b, b)))
-        for k in range(1, INEXACT_ITERATIONS + 1):
-            q = apply(p)
-            curvature = float(np.einsum("i,i->", p, q))
-            if curvature <= 0 or not np.isfinite(curvature):
-                return None, k
-            alpha = rz / curvature
-            x += alpha * p
-            r -= alpha * q
-            if float(np.sqrt(np.einsum("i,i->", r, r))) <= target:
-                return x, k
-            z = factor.solve(r)
-            rz, rz_old = float(np.einsum("i,i->", r, z)), rz
-            p = z + (rz / rz_old) * p
-        return None, INEXACT_ITERATIONS + 1
 
     def _line_search(self, X: np.ndarray, step: np.ndarray, energy: float, slope: float,
                      ) -> tuple[float, np.ndarray, float] | None:

@@ -62,9 +62,11 @@ def test_refinement_past_the_request_deadline_answers_200(cylinder_bent):
     the answer is the best iterate, reported, where it used to be a 504."""
     linear_s, unlimited = _timed_library_call(cylinder_bent)
     assert unlimited["converged"] and unlimited["iterations"] >= 3, unlimited
-    # The solver's budget: twice the linear answer plus an eighth of the refinement it needs
-    # (the server would have to be several times faster than this process to converge).
-    timeout = _timeout_for_budget(2 * linear_s + unlimited["seconds"] / 8)
+    # The solver's budget: three times the linear answer plus a fifth of the refinement it
+    # needs (the server would have to be several times faster than this process to
+    # converge; with twice and an eighth, a loaded fresh-clone run once spent the whole
+    # 0.37 s budget before the refinement began, and answered 504).
+    timeout = _timeout_for_budget(3 * linear_s + unlimited["seconds"] / 5)
     with uvicorn_server({"FFS_REQUEST_TIMEOUT": f"{timeout:.3f}"}) as base, \
             httpx.Client(base_url=base, timeout=timeout + 30) as http:
         # Warm the worker (its first reconstruct loads what a cold process lacks).

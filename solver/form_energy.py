@@ -297,7 +297,7 @@ class FormEnergy:
 
     def energy(self, X: np.ndarray) -> float:
         """E (see the module docstring) of positions ``X`` (n, dim)."""
-        return 0.5 * sum(_square_sum(g.evaluate(X, False)[0]) for g in self.groups)
+        return 0.5 * sum(square_sum(g.evaluate(X, False)[0]) for g in self.groups)
 
     # -- residual groups (each returns weighted residuals and their gradients)
 
@@ -379,8 +379,9 @@ class FormEnergy:
         self.groups.append(ResidualGroup(np.repeat(pairs, dim, axis=0), evaluate))
 
 
-def _square_sum(r: np.ndarray) -> float:
+def square_sum(r: np.ndarray) -> float:
     """``r . r`` of a residual vector, without BLAS: numpy's ``dot`` hands long vectors to
     a multithreaded BLAS, whose threads cost ~20 ms per call on a loaded machine (measured
-    at load 7-10 on 2 cores: 8 dot products of 30K entries took 170 ms, ``einsum`` 0.2 ms)."""
+    at load 7-10 on 2 cores: 8 dot products of 30K entries took 170 ms, ``einsum`` 0.2 ms;
+    ``python -m bench.blas_threads``)."""
     return float(np.einsum("i,i->", r, r))

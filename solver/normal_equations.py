@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from .form_energy import FormEnergy, ResidualGroup
+from .form_energy import FormEnergy, ResidualGroup, square_sum
 from .topology import MeshTopology
 
 
@@ -230,7 +230,7 @@ class GaussNewtonSystem:
         energy = 0.0
         for group, g in zip(self.groups, self.scatters, strict=True):
             r, G = group.evaluate(X)
-            energy += 0.5 * float(np.einsum("i,i->", r, r))
+            energy += 0.5 * square_sum(r)
             contrib = (r[:, None, None] * G).ravel()            # (rows * q * dim,)
             if g.gradient_select is not None:
                 contrib = contrib[g.gradient_select]

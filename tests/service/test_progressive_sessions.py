@@ -137,7 +137,7 @@ def test_a_new_drag_supersedes_the_refinement_in_progress(sphere):
     (HTTP); the newest drag's refined shape comes last, converged."""
     V, F = sphere
     targets = _targets(V, [0.35, -0.2, 0.3, 0.1])
-    with running_app(workers=1, session_refine_slice=0.001) as client:
+    with running_app(workers=1, session_refine_slice=0.01) as client:
         location, _ = _create(client, V, F, refine=True)
         # HTTP: drag 1 refines (several iterations, one per slice); drag 2 supersedes it.
         first = client.post(f"{location}/solve",

@@ -436,21 +436,26 @@ class Deformer:
                                 "reason": "exact: the linear answer has the rest forms"}
             last["best"], last["report"] = local, self.last_report
             return self._embed(local)
-        soft = None if np.isinf(self._handle_weight) else last["P"]
-        refiner.set_handle_targets(soft, self._rest_face_edges(last["R"]))
-        label = "previous slice"
-        start = last["best"]
-        if start is None:
-            start, label = self.problem.refinement_start(
-                self._start_fit(), last["frames"], last["constraints"], local), "layout fit"
-            if self._previous is not None:
-                # A session's next drag: the previous refined shape, moved by what the
-                # linear answer moved (exactly the new targets at hard handles). Of the two
-                # starts the nearer to the rest forms wins.
-                warm = self._previous[1] + (local - self._previous[0])
-                if refiner.energy(warm) < refiner.energy(start):
-                    start, label = warm, "previous drag"
-        fit = refiner.run(start, keep_factor=True, time_limit=max_seconds, progress=progress)
+        if last["best"] is not None and refiner.can_resume:
+            # The previous slice of this drag stopped at its budget: continue it exactly.
+            fit = refiner.resume(max_seconds, progress)
+            label = last["report"].get("start")
+        else:
+            soft = None if np.isinf(self._handle_weight) else last["P"]
+            refiner.set_handle_targets(soft, self._rest_face_edges(last["R"]))
+            start, label = last["best"], "previous slice"
+            if start is None:
+                start, label = self.problem.refinement_start(
+                    self._start_fit(), last["frames"], last["constraints"], local), "layout fit"
+                if self._previous is not None:
+                    # A session's next drag: the previous refined shape, moved by what the
+                    # linear answer moved (exactly the new targets at hard handles). Of the
+                    # two starts the nearer to the rest forms wins.
+                    warm = self._previous[1] + (local - self._previous[0])
+                    if refiner.energy(warm) < refiner.energy(start):
+                        start, label = warm, "previous drag"
+            fit = refiner.run(start, keep_factor=True, time_limit=max_seconds,
+                              progress=progress)
         self.last_report = dict(fit.report, start=label)
         last["best"], last["report"] = fit.vertices, self.last_report
         self._previous = (local, fit.vertices)

@@ -23,7 +23,7 @@ and the reasons for each choice: ``docs/refinement.md``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -138,6 +138,7 @@ class Refiner:
         self.system = GaussNewtonSystem(self.form_energy)
         self._kept: tuple[Any, sp.csr_array] | None = None  # see run(keep_factor=True)
         self._kept_damping = INITIAL_DAMPING
+        self._paused: _Iteration | None = None  # a run stopped at its time limit (resume)
 
     def set_handle_targets(self, soft_positions: np.ndarray | None = None,
                            frame_edges: np.ndarray | None = None) -> None:
@@ -170,140 +171,147 @@ class Refiner:
         previous ``keep_factor`` run ended with and keep this run's for the next (for a
         session's drags, which are alike); convergence may then be declared on a
         quasi-Newton step of that kept factor, without a fresh factorization to confirm it.
-        See :func:`refine` for the rest.
+        A run that stops at ``time_limit`` can be continued by :meth:`resume`. See
+        :func:`refine` for the rest.
         """
         clock = time.perf_counter()
+        self.set_handle_targets(soft_positions, frame_edges)
         with _BLAS.limit(limits=1, user_api="blas"):
-            X, state = self._iterate(np.array(start, dtype=np.float64), soft_positions,
-                                     frame_edges, max_iterations, tolerance, time_limit,
-                                     keep_factor, _iteration_notifier(progress, time_limit),
-                                     clock)
-        return Refinement(vertices=X, report={
-            "refined": True, **state, "after": self.residuals(X),
+            state = _Iteration.start(self, np.array(start, dtype=np.float64), keep_factor,
+                                     max_iterations, tolerance)
+            return self._advance(state, time_limit, progress, clock)
+
+    @property
+    def can_resume(self) -> bool:
+        """Whether the last run stopped at its time limit and :meth:`resume` continues it."""
+        return self._paused is not None
+
+    def resume(self, time_limit: float | None = None, progress: Any = None) -> Refinement:
+        """Continue the last :meth:`run` that stopped at its ``time_limit`` for up to
+        ``time_limit`` more seconds, exactly as if it had not been interrupted (the same
+        damping, factor, quasi-Newton memory and counters): slices of a refinement end
+        where one uninterrupted run ends. The report counts the whole refinement, and
+        ``slices`` the calls so far; ``seconds`` is this call's. Raises ``RuntimeError``
+        when there is nothing to resume (another run, or a finished one, came since)."""
+        state, self._paused = self._paused, None
+        if state is None:
+            raise RuntimeError("no refinement stopped at its time limit to resume")
+        clock = time.perf_counter()
+        with _BLAS.limit(limits=1, user_api="blas"):
+            state.slices += 1
+            return self._advance(state, time_limit, progress, clock)
+
+    def _advance(self, state: _Iteration, time_limit: float | None, progress: Any,
+                 clock: float) -> Refinement:
+        """Iterate ``state`` until it stops (:meth:`_iterate`); the :class:`Refinement`."""
+        self._paused = None
+        self._iterate(state, time_limit, _iteration_notifier(progress, time_limit), clock)
+        if state.stop == "time_limit":
+            self._paused = state
+        if state.keep_factor and state.factor is not None:
+            self._kept, self._kept_damping = (state.factor, state.model), state.damping
+        return Refinement(vertices=state.X.copy(), report={
+            "refined": True, **state.counters(), "after": self.residuals(state.X),
             "angle_weight": self.targets.angle_weight,
             "seconds": time.perf_counter() - clock})
 
-    def _iterate(self, X: np.ndarray, soft_positions: np.ndarray | None,
-                 frame_edges: np.ndarray | None, max_iterations: int, tolerance: float,
-                 time_limit: float | None, keep_factor: bool, notify: Any, clock: float,
-                 ) -> tuple[np.ndarray, dict[str, Any]]:
-        """The iteration of :meth:`run`: (positions, the report's counters)."""
-        system, energy_of = self.system, self.form_energy.energy
-        self.set_handle_targets(soft_positions, frame_edges)
-        before = self.residuals(X)
-        energy0 = energy = energy_of(X)
-        damping, growth = INITIAL_DAMPING, 2.0
-        iterations = rejected = factorizations = solves = 0
-        stop, converged = "max_iterations", False
-        trace, steps = [energy0], []
-        # The last factorized damped matrix and its J^T J; with ``keep_factor`` the previous
-        # run's, as a start (consecutive drags of a session are alike).
-        factor, model = self._kept if keep_factor and self._kept else (None, None)
-        if factor is not None:
-            damping = self._kept_damping
-        fresh = False  # whether ``factor`` was computed at the current X
-        # Gain ratio of the last step taken with ``factor`` (how well its model predicted).
-        factor_gain = 1.0 if factor is not None else 0.0
-        frozen_steps = 0
-        # A run that starts from the previous run's lightly damped factor (a session's next
-        # drag) keeps its factors longer; see KEPT_STEPS.
-        kept = factor is not None and damping <= KEPT_DAMPING
-        max_frozen, min_gain = (KEPT_STEPS, KEPT_GAIN) if kept else (MAX_FROZEN_STEPS,
-                                                                     FROZEN_GAIN)
-        memory = _QuasiNewtonMemory(QUASI_NEWTON_MEMORY if kept else 0)
-        while iterations < max_iterations and system.n_free and not converged:
+    def _iterate(self, s: _Iteration, time_limit: float | None, notify: Any,
+                 clock: float) -> None:
+        """The iteration of :meth:`run` and :meth:`resume`, advancing ``s`` in place until
+        it converges, runs out of iterations or reaches ``time_limit`` (checked between
+        iterations)."""
+        system = self.system
+        s.stop = "max_iterations"
+        while s.iterations < s.max_iterations and system.n_free and not s.converged:
             if time_limit is not None and time.perf_counter() - clock > time_limit:
-                stop = "time_limit"
+                s.stop = "time_limit"
                 break
-            iterations += 1
-            refresh = factor is None or frozen_steps >= max_frozen
-            energy, H, g = system.normal_equations(X, matrix=refresh)
-            memory.observe(g)
+            s.iterations += 1
+            refresh = s.factor is None or s.frozen_steps >= s.max_frozen
+            energy, H, g = system.normal_equations(s.X, matrix=refresh)
+            s.memory.observe(g)
             if energy <= EXACT_ENERGY:
-                stop, converged = "exact", True
+                s.stop, s.converged = "exact", True
                 break
             accepted = False
-            while not accepted and damping <= MAX_DAMPING:
+            while not accepted and s.damping <= MAX_DAMPING:
                 if refresh:
-                    factor = None  # frees its analysis for the cache: the next one reuses it
+                    s.factor = None  # frees its analysis for the cache: the next one reuses it
                     try:
-                        factor = self._damped_factor(H, damping)
+                        s.factor = self._damped_factor(H, s.damping)
                     except SingularSystemError:
-                        damping, rejected = damping * 10.0, rejected + 1
+                        s.damping, s.rejected = s.damping * 10.0, s.rejected + 1
                         continue
-                    factorizations += 1
-                    model, fresh, frozen_steps, factor_gain = H, True, 0, 0.0
-                    memory.clear()
-                solves += 1
-                if fresh:
-                    step = -factor.solve(g)
+                    s.factorizations += 1
+                    s.model, s.fresh, s.frozen_steps, s.factor_gain = H, True, 0, 0.0
+                    s.memory.clear()
+                s.solves += 1
+                if s.fresh:
+                    step = -s.factor.solve(g)
                     slope = float(np.einsum("i,i->", g, step))  # < 0: H + D is SPD
                     # Gain ratio of the full step: actual decrease over the model's.
-                    predicted = -slope - 0.5 * system.quadratic_form(model, step)
+                    predicted = -slope - 0.5 * system.quadratic_form(s.model, step)
                 else:  # L-BFGS on the factor: its model along the step is -slope / 2
-                    step = -memory.inverse_hessian(factor, g)
+                    step = -s.memory.inverse_hessian(s.factor, g)
                     slope = float(np.einsum("i,i->", g, step))
                     predicted = -0.5 * slope
-                found = self._line_search(X, step, energy, slope) if slope < 0 else None
+                found = self._line_search(s.X, step, energy, slope) if slope < 0 else None
                 accepted = found is not None
                 if found is None:
-                    rejected += 1
-                    if fresh:
-                        damping = max(damping * growth, REFUSED_DAMPING)
-                        growth *= 2.0
+                    s.rejected += 1
+                    if s.fresh:
+                        s.damping = max(s.damping * s.growth, REFUSED_DAMPING)
+                        s.growth *= 2.0
                     elif H is None:  # a kept factor failed: rebuild it here
-                        energy, H, g = system.normal_equations(X)
+                        energy, H, g = system.normal_equations(s.X)
                     refresh = True
                     continue
                 alpha, trial, new_energy = found
-                memory.moved(alpha * step, g)
+                s.memory.moved(alpha * step, g)
                 gain = (energy - new_energy) / predicted if predicted > 0 else 0.0
                 # A full Gauss-Newton step (fresh matrix, little damping) that barely lowers
                 # E: converged. A quasi-Newton, shortened or heavily damped step says nothing.
-                full = fresh and alpha == 1.0 and damping <= 1.0
+                full = s.fresh and alpha == 1.0 and s.damping <= 1.0
                 moved = float(np.abs(step).max(initial=0.0)) / system.energy.scale
-                decrease, X, energy = energy - new_energy, trial, new_energy
-                trace.append(energy)
-                steps.append(moved)
-                notify(iterations, factorizations, energy, time.perf_counter() - clock)
+                decrease, s.X, s.energy = energy - new_energy, trial, new_energy
+                energy = new_energy
+                s.trace.append(energy)
+                s.steps.append(moved)
+                notify(s.iterations, s.factorizations, energy, time.perf_counter() - clock)
                 # ... unless E still falls fast (Gauss-Newton's quadratic convergence where the
                 # forms are met): then a few more steps are cheap and reach round-off.
                 slowing = decrease <= 0.5 * (energy + decrease)
-                small = moved <= tolerance or decrease <= ENERGY_TOLERANCE * energy
+                small = moved <= s.tolerance or decrease <= ENERGY_TOLERANCE * energy
                 if (full and small and slowing) or energy <= EXACT_ENERGY:
-                    stop, converged = "converged", True
-                elif small and slowing and not fresh:
+                    s.stop, s.converged = "converged", True
+                elif small and slowing and not s.fresh:
                     # A small full step on a kept factor whose model just predicted the
                     # decrease well (gain near 1) is as good as a fresh one: that factor is
                     # the Gauss-Newton matrix of a nearby point. Interactive runs
                     # (keep_factor) accept it outright; otherwise confirm with a fresh step.
-                    trusted = alpha == 1.0 and damping <= 1.0 and abs(factor_gain - 1.0) <= 0.25
-                    if keep_factor or trusted:
-                        stop, converged = "converged", True
-                    frozen_steps = max_frozen
-                if fresh:  # Levenberg-Marquardt's damping update (Nielsen)
-                    damping = max(MIN_DAMPING, damping * (
-                        max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3) if alpha == 1.0 else 10.0))
-                    growth = 2.0
+                    trusted = (alpha == 1.0 and s.damping <= 1.0
+                               and abs(s.factor_gain - 1.0) <= 0.25)
+                    if s.keep_factor or trusted:
+                        s.stop, s.converged = "converged", True
+                    s.frozen_steps = s.max_frozen
+                if s.fresh:  # Levenberg-Marquardt's damping update (Nielsen)
+                    s.damping = max(MIN_DAMPING, s.damping * (
+                        max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3) if alpha == 1.0
+                        else 10.0))
+                    s.growth = 2.0
                 # The next steps reuse this factor (quasi-Newton, one back-substitution each)
                 # while they lower E about as predicted; otherwise it is rebuilt at the new X.
-                fresh, factor_gain = False, gain
-                frozen_steps += 1
+                s.fresh, s.factor_gain = False, gain
+                s.frozen_steps += 1
                 # ... nor, unless it was kept, after a long step: a model built before a
                 # move of more than FROZEN_REACH edge lengths was refused in every measured
                 # case (x0.8 forms, strong deformations).
-                if gain < min_gain or (moved > FROZEN_REACH and not kept):
-                    frozen_steps = max_frozen
+                if gain < s.min_gain or (moved > FROZEN_REACH and not s.kept):
+                    s.frozen_steps = s.max_frozen
             if not accepted:  # no step lowers E: a stationary point to working precision
-                stop, converged = "stationary", True
+                s.stop, s.converged = "stationary", True
         if not system.n_free:
-            stop, converged = "no_free_vertices", True
-        if keep_factor and factor is not None:
-            self._kept, self._kept_damping = (factor, model), damping
-        return X, {"converged": converged, "stop_reason": stop, "iterations": iterations,
-                   "rejected_steps": rejected, "factorizations": factorizations,
-                   "solves": solves, "energy_before": energy0, "energy_after": energy,
-                   "energy_trace": trace, "step_trace": steps, "before": before}
+            s.stop, s.converged = "no_free_vertices", True
 
     def _damped_factor(self, H: sp.csr_array, damping: float) -> Any:
         """Factorization of ``H + damping diag(H)`` (Levenberg-Marquardt; the diagonal is
@@ -333,6 +341,70 @@ class Refiner:
             if np.isfinite(new_energy) and new_energy < energy + ARMIJO * alpha * slope:
                 return alpha, trial, new_energy
         return None
+
+
+@dataclass
+class _Iteration:
+    """Everything :meth:`Refiner._iterate` carries from step to step, so that a run stopped
+    at its time limit resumes exactly where it stopped (:meth:`Refiner.resume`)."""
+
+    X: np.ndarray
+    before: dict[str, Any]
+    energy0: float
+    energy: float
+    keep_factor: bool
+    kept: bool
+    max_frozen: int
+    min_gain: float
+    memory: _QuasiNewtonMemory
+    max_iterations: int
+    tolerance: float
+    factor: Any = None
+    model: sp.csr_array | None = None
+    damping: float = INITIAL_DAMPING
+    growth: float = 2.0
+    fresh: bool = False  # whether ``factor`` was computed at the current X
+    factor_gain: float = 0.0  # gain ratio of the last step taken with ``factor``
+    frozen_steps: int = 0
+    iterations: int = 0
+    rejected: int = 0
+    factorizations: int = 0
+    solves: int = 0
+    slices: int = 1
+    stop: str = "max_iterations"
+    converged: bool = False
+    trace: list[float] = field(default_factory=list)
+    steps: list[float] = field(default_factory=list)
+
+    @classmethod
+    def start(cls, refiner: Refiner, X: np.ndarray, keep_factor: bool, max_iterations: int,
+              tolerance: float) -> _Iteration:
+        """The state before the first step from ``X`` (n, dim). With ``keep_factor`` the
+        previous run's factor (and damping) is the first model: consecutive drags of a
+        session are alike; a run that starts from a lightly damped kept factor keeps its
+        factors longer (see :data:`KEPT_STEPS`)."""
+        energy = refiner.form_energy.energy(X)
+        factor, model = refiner._kept if keep_factor and refiner._kept else (None, None)
+        damping = refiner._kept_damping if factor is not None else INITIAL_DAMPING
+        kept = factor is not None and damping <= KEPT_DAMPING
+        max_frozen, min_gain = (KEPT_STEPS, KEPT_GAIN) if kept else (MAX_FROZEN_STEPS,
+                                                                     FROZEN_GAIN)
+        return cls(X=X, before=refiner.residuals(X), energy0=energy, energy=energy,
+                   keep_factor=keep_factor, kept=kept, max_frozen=max_frozen,
+                   min_gain=min_gain,
+                   memory=_QuasiNewtonMemory(QUASI_NEWTON_MEMORY if kept else 0),
+                   max_iterations=max_iterations, tolerance=tolerance, factor=factor,
+                   model=model, damping=damping,
+                   factor_gain=1.0 if factor is not None else 0.0, trace=[energy])
+
+    def counters(self) -> dict[str, Any]:
+        """The report's fields of the refinement so far."""
+        return {"converged": self.converged, "stop_reason": self.stop,
+                "iterations": self.iterations, "rejected_steps": self.rejected,
+                "factorizations": self.factorizations, "solves": self.solves,
+                "slices": self.slices, "energy_before": self.energy0,
+                "energy_after": self.energy, "energy_trace": list(self.trace),
+                "step_trace": list(self.steps), "before": self.before}
 
 
 class _QuasiNewtonMemory:

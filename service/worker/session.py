@@ -64,6 +64,10 @@ class _Pending:
     iterations: int = 0
     factorizations: int = 0
     slices: int = 0
+    slice_seconds: float = 0.0
+    """The shortest slice so far that iterated: a slice that ended before its first
+    iteration doubles it, so a slice too short for one iteration on this mesh and machine
+    still progresses, and the next slices keep the length that worked."""
     seconds: float = 0.0
     start: str | None = None
     started: float = field(default_factory=time.perf_counter)
@@ -127,7 +131,8 @@ class SessionState:
 
     def refine_slice(self, seconds: float) -> Refined | None:
         """Refine the pending drag for about ``seconds`` (the refinement checks its clock
-        between iterations: a slice is at least one iteration); the refined shape once it
+        between iterations; after a slice that ended before its first iteration the next
+        one is twice as long, so every refinement progresses); the refined shape once it
         converged, stopped otherwise, or spent :attr:`refine_seconds` or the refinement's
         iteration limit in all; None while it goes on (call again)."""
         from solver.refine import MAX_ITERATIONS
@@ -137,11 +142,16 @@ class SessionState:
             return None
         left = self.refine_seconds - pending.seconds
         t0 = time.perf_counter()
-        vertices = self.deformer.refine_last(max(0.0, min(seconds, left)))
+        budget = max(seconds, pending.slice_seconds)
+        vertices = self.deformer.refine_last(max(0.0, min(budget, left)))
         report = self.deformer.last_report
         pending.slices += 1
-        pending.iterations += int(report.get("iterations", 0))
-        pending.factorizations += int(report.get("factorizations", 0))
+        # A slice continues the drag's refinement (Deformer.refine_last): its report counts
+        # the whole refinement so far.
+        iterations = int(report.get("iterations", 0))
+        pending.slice_seconds = budget if iterations > pending.iterations else 2.0 * budget
+        pending.iterations = iterations
+        pending.factorizations = int(report.get("factorizations", 0))
         pending.seconds += time.perf_counter() - t0
         pending.start = pending.start or report.get("start")
         stop = report.get("stop_reason") if report.get("refined") else "exact"

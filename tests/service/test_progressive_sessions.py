@@ -230,3 +230,31 @@ def test_progressive_drags_on_a_dask_actor(dask_app, sphere):
     assert got.status_code == 200, got.text
     _check_refined_report(got.json()["refinement"], converged=False)
     assert dask_app.delete(location).status_code == 204
+
+
+def test_slices_too_short_for_one_iteration_still_converge(sphere):
+    """A slice of 1e-7 s ends before the refinement's first iteration; the session doubles
+    the next slice after each such one, so the drag converges instead of spending its whole
+    budget in empty slices, and the slices continue one refinement: the shape is the one a
+    single long slice gives."""
+    from service.api.task import SessionSpec
+    from service.worker.session import SessionState
+
+    V, F = sphere
+    spec = SessionSpec(vertices=V, faces=F, handles=np.asarray(HANDLES),
+                       options={"refine": True})
+    sliced, whole = (SessionState(spec, refine_seconds=20.0) for _ in range(2))
+    for lift in (0.3, 0.5):  # the second drag starts from the first's kept factor
+        target = _targets(V, [lift])[0]
+        sliced.solve(target, None, "f64")
+        refined, slices = None, 0
+        while refined is None:
+            refined = sliced.refine_slice(1e-7)
+            slices += 1
+        whole.solve(target, None, "f64")
+        one = whole.refine_slice(ONE_SLICE)
+        assert refined.report["converged"] and one.report["converged"], refined.report
+        assert refined.report["iterations"] == one.report["iterations"] >= 1
+        assert slices == refined.report["slices"] <= 100 and one.report["slices"] == 1
+        shapes = [np.frombuffer(r.body, "<f8").reshape(-1, 3) for r in (refined, one)]
+        assert np.abs(shapes[0] - shapes[1]).max() <= 1e-9 * np.ptp(V), lift

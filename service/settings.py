@@ -105,8 +105,9 @@ class Settings(BaseSettings):
                                 "progressive session refines one drag (`options.max_seconds` "
                                 "overrides it).")
     session_refine_slice: float = seconds(
-        0.05, "Seconds of one slice of a progressive session's refinement (at least one "
-              "iteration); a new drag waits at most one slice.", le=60)
+        0.05, "Seconds of one slice of a progressive session's refinement (a slice that "
+              "ends before its first iteration doubles the next): a new drag waits at most "
+              "one slice.", le=60)
 
     max_body_bytes: int = Field(
         64 * 1024 * 1024, ge=1024, description="Largest request body (413 beyond).")

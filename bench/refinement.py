@@ -247,6 +247,24 @@ def drag_section() -> None:
               "| |")
     except ImportError:
         print("| libigl ARAP | not installed | | | |")
+    print("\nRefined drags with a frame budget (`Deformer.solve(P, max_seconds=b)`), then one "
+          "`refine_last()` for the pause after the last drag:\n")
+    print("| budget b s | drags ms | median drag ms | mean length change, last drag "
+          "| after the pause |")
+    print("|---|---|---|---|---|")
+    for budget in (0.05, 0.1):
+        deformer, times = solver.Deformer(V, F, handles, refine=True), []
+        for P in moves:
+            out, seconds = timed(deformer.solve, P, max_seconds=budget)
+            times.append(seconds)
+        stop = deformer.last_report.get("stop_reason")
+        settled, pause = timed(deformer.refine_last)
+        r = deformer.last_report
+        print(f"| {budget} | {', '.join(f'{1000 * t:.0f}' for t in times)} | "
+              f"{1000 * float(np.median(times)):.0f} | "
+              f"{np.abs(ratios(out, rest) - 1).mean():.4f} ({stop}) | "
+              f"{np.abs(ratios(settled, rest) - 1).mean():.4f} in {1000 * pause:.0f} ms "
+              f"({r.get('stop_reason')}, {r.get('iterations')} iterations) |")
 
 
 TIME_MESHES = ["bunny.off", "cactus.off", "rocker-arm.obj", "beetle.off"]

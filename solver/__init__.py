@@ -11,6 +11,7 @@ outside; ``edges`` (E, 2) unique pairs i < j sorted lexicographically; ``lengths
 """
 
 from . import metrics
+from .allocator import retain_freed_memory
 from .constraints import Constraints
 from .deform import Deformation, Deformer, deform
 from .differentiable import ReconstructionVJP, reconstruct_vjp
@@ -27,6 +28,8 @@ from .options import (
 )
 from .parameterize import Parameterization, parameterize
 from .reconstruct import Reconstruction, reconstruct
+
+retain_freed_memory()  # numpy temporaries reuse freed pages (solver/allocator.py)
 
 __all__ = [
     "Constraints",

@@ -153,12 +153,13 @@ class Refiner:
     def reproduces(self, vertices: np.ndarray) -> bool:
         """Whether ``vertices`` already have the target forms (:func:`reproduces`)."""
         t = self.targets
-        return reproduces(vertices, t.topology, t.lengths, t.angles)
+        return reproduces(vertices, t.topology, t.lengths, t.angles, self.form_energy.hinges)
 
     def residuals(self, vertices: np.ndarray) -> dict[str, Any]:
         """:func:`form_residuals` of ``vertices`` against the targets."""
         t = self.targets
-        return form_residuals(vertices, t.topology, t.lengths, t.angles)
+        return form_residuals(vertices, t.topology, t.lengths, t.angles,
+                              self.form_energy.hinges)
 
     def run(self, start: np.ndarray, *, soft_positions: np.ndarray | None = None,
             frame_edges: np.ndarray | None = None, max_iterations: int = MAX_ITERATIONS,

@@ -205,6 +205,16 @@ _P, _Q = np.array([4, 5, 3, 2, 0, 1, 1, 2, 0]), np.array([8, 6, 7, 7, 8, 6, 5, 3
 _S, _T = np.array([5, 3, 4, 1, 2, 0, 2, 0, 1]), np.array([7, 8, 6, 8, 6, 7, 4, 5, 3])
 
 
+def _cofactors(a: np.ndarray) -> np.ndarray:
+    """Cofactor matrices (9, k), row-major, of 3x3 matrices given as row-major entries
+    (9, k), one contiguous row per entry (fancy-indexed gathers of all nine cost more)."""
+    c = np.empty_like(a)
+    for i in range(9):
+        np.multiply(a[_P[i]], a[_Q[i]], out=c[i])
+        c[i] -= a[_S[i]] * a[_T[i]]
+    return c
+
+
 def _determinants(a: np.ndarray) -> np.ndarray:
     """Determinants (k,) of 3x3 matrices given as row-major entries (9, k) (cofactor
     expansion along the first row; ``np.linalg.det``'s batched LU costs ~6x more)."""
@@ -218,8 +228,8 @@ def _polar_newton(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = X.reshape(-1, 9).T.copy()                       # (9, k) row-major entries
     change = np.full(a.shape[1], np.inf)
     for _ in range(POLAR_ITERATIONS):
-        c = a[_P] * a[_Q] - a[_S] * a[_T]               # cofactors: X^-T = C / det X
-        det = np.einsum("ik,ik->k", a[:3], c[:3])
+        c = _cofactors(a)                               # X^-T = C / det X
+        det = a[0] * c[0] + a[1] * c[1] + a[2] * c[2]
         g = np.cbrt(1.0 / det)
         new = 0.5 * (g * a + c / (g * det))
         change = np.abs(new - a).max(axis=0)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -374,9 +375,11 @@ class Deformer:
                 ``refine`` given at construction); skipped when the linear answer already
                 has the rest forms (e.g. a rigid motion of every handle).
                 :attr:`last_report` says whether and how it refined.
-            max_seconds: optional budget of the refinement (see :meth:`refine_last`).
+            max_seconds: optional budget of this call, the linear solve included: the
+                refinement gets what the linear answer leaves (see :meth:`refine_last`).
             progress: optional callback for the refinement's steps (see there).
         """
+        started = time.perf_counter()
         refine = self.refine if refine is None else bool(refine)
         P = (self.rest[self.handles] if handle_positions is None
              else as_points(handle_positions, "handle_positions"))
@@ -407,7 +410,9 @@ class Deformer:
                       "frames": frames, "best": None, "report": None}
         self.last_report = {"refined": False, "reason": "disabled (refine=false)"}
         if refine:
-            return self.refine_last(max_seconds, progress)
+            left = (None if max_seconds is None
+                    else max(0.0, max_seconds - (time.perf_counter() - started)))
+            return self.refine_last(left, progress)
         return self._embed(local)
 
     def refine_last(self, max_seconds: float | None = None,
@@ -417,13 +422,15 @@ class Deformer:
         The first call after a solve starts from the better (lower energy) of the layout
         fit of that solve's rotations and the previous drag's refined shape moved by what
         the linear answer moved; a call after a refinement that stopped early (its budget
-        ``max_seconds`` ran out: ``last_report["stop_reason"] == "time_limit"``) continues
-        from where it stopped, so an interactive client can answer the linear shape at
-        once and refine in slices while the user pauses. A converged refinement is
+        ``max_seconds``, which counts the choice of the start too, ran out:
+        ``last_report["stop_reason"] == "time_limit"``) continues from where it stopped, so
+        an interactive client can answer the linear shape at once and refine in slices
+        while the user pauses. A converged refinement is
         returned as it is. :attr:`last_report` is the refinement's report. ``progress``:
         ``progress("refine", fraction)`` after each step, and ``progress.iteration(detail)``
         where it has that method (:meth:`solver.refine.Refiner.run`).
         """
+        started = time.perf_counter()
         if self._last is None:
             raise ConstraintError("nothing to refine: call solve first", field="handles")
         last = self._last
@@ -447,15 +454,21 @@ class Deformer:
             if start is None:
                 start, label = self.problem.refinement_start(
                     self._start_fit(), last["frames"], last["constraints"], local), "layout fit"
+                energy = refiner.energy(start)
                 if self._previous is not None:
                     # A session's next drag: the previous refined shape, moved by what the
                     # linear answer moved (exactly the new targets at hard handles). Of the
                     # two starts the nearer to the rest forms wins.
                     warm = self._previous[1] + (local - self._previous[0])
-                    if refiner.energy(warm) < refiner.energy(start):
-                        start, label = warm, "previous drag"
-            fit = refiner.run(start, keep_factor=True, time_limit=max_seconds,
-                              progress=progress)
+                    warm_energy = refiner.energy(warm)
+                    if warm_energy < energy:
+                        start, label, energy = warm, "previous drag", warm_energy
+            else:
+                energy = None
+            left = (None if max_seconds is None
+                    else max(0.0, max_seconds - (time.perf_counter() - started)))
+            fit = refiner.run(start, keep_factor=True, time_limit=left, progress=progress,
+                              start_energy=energy)
         self.last_report = dict(fit.report, start=label)
         last["best"], last["report"] = fit.vertices, self.last_report
         self._previous = (local, fit.vertices)

@@ -139,6 +139,9 @@ class Refiner:
         self._kept: tuple[Any, sp.csr_array] | None = None  # see run(keep_factor=True)
         self._kept_damping = INITIAL_DAMPING
         self._paused: _Iteration | None = None  # a run stopped at its time limit (resume)
+        self._iteration_seconds = {"refresh": 0.0, "step": 0.0}
+        """Seconds of the last iteration with a factorization and without (the time limit
+        stops before an iteration that would end past it)."""
 
     def set_handle_targets(self, soft_positions: np.ndarray | None = None,
                            frame_edges: np.ndarray | None = None) -> None:
@@ -164,7 +167,8 @@ class Refiner:
     def run(self, start: np.ndarray, *, soft_positions: np.ndarray | None = None,
             frame_edges: np.ndarray | None = None, max_iterations: int = MAX_ITERATIONS,
             tolerance: float = TOLERANCE, time_limit: float | None = None,
-            keep_factor: bool = False, progress: Any = None) -> Refinement:
+            keep_factor: bool = False, progress: Any = None,
+            start_energy: float | None = None) -> Refinement:
         """Refine from ``start`` (n, dim); fixed vertices keep their ``start`` positions.
 
         ``soft_positions`` (p, dim) and ``frame_edges`` (q, 2, dim) replace the handle
@@ -172,14 +176,15 @@ class Refiner:
         previous ``keep_factor`` run ended with and keep this run's for the next (for a
         session's drags, which are alike); convergence may then be declared on a
         quasi-Newton step of that kept factor, without a fresh factorization to confirm it.
-        A run that stops at ``time_limit`` can be continued by :meth:`resume`. See
-        :func:`refine` for the rest.
+        A run that stops at ``time_limit`` can be continued by :meth:`resume`.
+        ``start_energy``: :meth:`energy` of ``start`` with these handle targets, when the
+        caller has it. See :func:`refine` for the rest.
         """
         clock = time.perf_counter()
         self.set_handle_targets(soft_positions, frame_edges)
         with _BLAS.limit(limits=1, user_api="blas"):
             state = _Iteration.start(self, np.array(start, dtype=np.float64), keep_factor,
-                                     max_iterations, tolerance)
+                                     max_iterations, tolerance, start_energy)
             return self._advance(state, time_limit, progress, clock)
 
     @property
@@ -219,16 +224,17 @@ class Refiner:
     def _iterate(self, s: _Iteration, time_limit: float | None, notify: Any,
                  clock: float) -> None:
         """The iteration of :meth:`run` and :meth:`resume`, advancing ``s`` in place until
-        it converges, runs out of iterations or reaches ``time_limit`` (checked between
-        iterations)."""
+        it converges, runs out of iterations or reaches ``time_limit`` (it stops before an
+        iteration or a factorization that the last one of its kind says would end past it)."""
         system = self.system
         s.stop = "max_iterations"
         while s.iterations < s.max_iterations and system.n_free and not s.converged:
-            if time_limit is not None and time.perf_counter() - clock > time_limit:
+            refresh = s.factor is None or s.frozen_steps >= s.max_frozen
+            if not self._fits(s, refresh, time_limit, clock):
                 s.stop = "time_limit"
                 break
+            began, factorizations = time.perf_counter(), s.factorizations
             s.iterations += 1
-            refresh = s.factor is None or s.frozen_steps >= s.max_frozen
             energy, H, g = system.normal_equations(s.X, matrix=refresh)
             s.memory.observe(g)
             if energy <= EXACT_ENERGY:
@@ -272,7 +278,13 @@ class Refiner:
                     if s.fresh:
                         s.damping = max(s.damping * s.growth, REFUSED_DAMPING)
                         s.growth *= 2.0
-                    elif H is None:  # a kept factor failed: rebuild it here
+                    if not self._fits(s, True, time_limit, clock):
+                        # The factorization this step needs would end past the time limit:
+                        # stop here; a resumed run starts this iteration again with it.
+                        s.frozen_steps, s.stop = s.max_frozen, "time_limit"
+                        s.iterations -= 1
+                        break
+                    if not s.fresh and H is None:  # a kept factor failed: rebuild it here
                         energy, H, g = system.normal_equations(s.X)
                     refresh = True
                     continue
@@ -316,10 +328,27 @@ class Refiner:
                 # case (x0.8 forms, strong deformations).
                 if gain < s.min_gain or (moved > FROZEN_REACH and not s.kept):
                     s.frozen_steps = s.max_frozen
+            if s.stop == "time_limit":
+                break
+            kind = "refresh" if s.factorizations > factorizations else "step"
+            self._iteration_seconds[kind] = time.perf_counter() - began
             if not accepted and not s.converged:  # no step lowers E: stationary
                 s.stop, s.converged = "stationary", True
         if not system.n_free:
             s.stop, s.converged = "no_free_vertices", True
+
+    def _fits(self, s: _Iteration, refresh: bool, time_limit: float | None,
+              clock: float) -> bool:
+        """Whether an iteration (a factorization first where ``refresh``) ends before
+        ``time_limit`` seconds after ``clock``, judged by the last one of its kind (a run
+        without a factor yet starts its first anyway while time is left: else a budget
+        shorter than one factorization would never progress)."""
+        if time_limit is None:
+            return True
+        left = time_limit - (time.perf_counter() - clock)
+        if s.factor is None:
+            return left > 0.0
+        return left > self._iteration_seconds["refresh" if refresh else "step"]
 
     def _damped_factor(self, H: sp.csr_array, damping: float) -> Any:
         """Factorization of ``H + damping diag(H)`` (Levenberg-Marquardt; the diagonal is
@@ -386,12 +415,12 @@ class _Iteration:
 
     @classmethod
     def start(cls, refiner: Refiner, X: np.ndarray, keep_factor: bool, max_iterations: int,
-              tolerance: float) -> _Iteration:
+              tolerance: float, energy: float | None = None) -> _Iteration:
         """The state before the first step from ``X`` (n, dim). With ``keep_factor`` the
         previous run's factor (and damping) is the first model: consecutive drags of a
         session are alike; a run that starts from a lightly damped kept factor keeps its
         factors longer (see :data:`KEPT_STEPS`)."""
-        energy = refiner.form_energy.energy(X)
+        energy = refiner.form_energy.energy(X) if energy is None else energy
         factor, model = refiner._kept if keep_factor and refiner._kept else (None, None)
         damping = refiner._kept_damping if factor is not None else INITIAL_DAMPING
         kept = factor is not None and damping <= KEPT_DAMPING
@@ -507,9 +536,11 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
             rejected step).
         tolerance: stop after a full Gauss-Newton step that moved no vertex by more than
             ``tolerance`` times the mean target edge length.
-        time_limit: optional wall-clock budget in seconds (checked between iterations):
-            when it runs out the best iterate is returned, ``converged`` False and
-            ``stop_reason`` ``"time_limit"``.
+        time_limit: optional wall-clock budget in seconds: the refinement stops before an
+            iteration (or a factorization) that, timed like the last one of its kind by
+            this :class:`Refiner`, would end past it (the first factorization of a run
+            that has none starts while time is left). It returns the best iterate,
+            ``converged`` False and ``stop_reason`` ``"time_limit"``.
         backend: sparse factorization backend (:func:`solver.linalg.factorize`).
         progress: optional ``progress(stage, fraction)`` callback, called as
             ``progress("refine", fraction)`` after every accepted step; if it also has a

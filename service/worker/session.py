@@ -130,9 +130,10 @@ class SessionState:
         return max(0.0, pending.started + DRAG_PAUSE - time.perf_counter())
 
     def refine_slice(self, seconds: float) -> Refined | None:
-        """Refine the pending drag for about ``seconds`` (the refinement checks its clock
-        between iterations; after a slice that ended before its first iteration the next
-        one is twice as long, so every refinement progresses); the refined shape once it
+        """Refine the pending drag for about ``seconds`` (the refinement does not start an
+        iteration that, timed like the last one of its kind, would end past the slice; after
+        a slice that ended before its first iteration the next one is twice as long, so
+        every refinement progresses); the refined shape once it
         converged, stopped otherwise, or spent :attr:`refine_seconds` or the refinement's
         iteration limit in all; None while it goes on (call again)."""
         from solver.refine import MAX_ITERATIONS

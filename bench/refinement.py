@@ -19,6 +19,9 @@ Sections (``--sections``, default all):
 * ``drag``: a session's refined drag at ~20K faces against the linear drag and libigl ARAP
   with 10 iterations.
 * ``weights``: the measurements behind the default angle weights and the uniform weighting.
+* ``optimum``: the time section's cases (without ``--large``): how far the default answer
+  stops from the exact optimum of its energy (the differentiable reconstruction's Newton
+  polish with the exact Hessian), in units of the answer's size.
 * ``time``: the default (refined) answer against the linear answer of the same call
   (``refine=False``), both warm (second call on the mesh: analyses cached), medians of
   alternating runs, on noisy and x0.8 forms from 5K faces up (100K with ``--large``) and on
@@ -295,6 +298,20 @@ def warm_pair(forms, repeats: int = 3) -> tuple[float, float, object]:
     return float(np.median(linear)), float(np.median(default)), result
 
 
+def time_case_forms(name: str, kind: str):
+    """(vertices, forms) of a case of the time section: ``"noise"`` (N(0, 1e-3) rad on the
+    angles), ``"x0.8"`` (every angle x 0.8) or ``"irregular"`` (30 edges split to 1e-4 of
+    their length, then noise)."""
+    V, F = load_bench_mesh(name)
+    if kind == "irregular":
+        V, F = with_tiny_edges(V, F, 30)
+    forms = solver.fundamental_forms(V, F)
+    if kind == "x0.8":
+        forms.angles *= 0.8
+        return V, forms
+    return V, noisy(forms)
+
+
 def time_section(meshes: list[str]) -> None:
     """The default (refined) answer against the linear one, both warm."""
     table_head("Time: the default (refined) answer against the linear one, warm",
@@ -304,14 +321,8 @@ def time_section(meshes: list[str]) -> None:
     cases = [(name, kind) for name in meshes for kind in ("noise", "x0.8")]
     cases.append(("rocker-arm.obj", "irregular"))
     for name, kind in cases:
-        V, F = load_bench_mesh(name)
-        if kind == "irregular":
-            V, F = with_tiny_edges(V, F, 30)
-        forms = solver.fundamental_forms(V, F)
-        if kind == "x0.8":
-            forms.angles *= 0.8
-        else:
-            forms = noisy(forms)
+        V, forms = time_case_forms(name, kind)
+        F = forms.faces
         linear, default, result = warm_pair(forms)
         rep = result.report["refinement"]
         if kind == "x0.8":
@@ -332,6 +343,28 @@ def time_section(meshes: list[str]) -> None:
         print(f"\nScaling exponents (noise rows): linear "
               f"{np.polyfit(x, np.log(linear_times), 1)[0]:.2f}, default (refined) "
               f"{np.polyfit(x, np.log(default_times), 1)[0]:.2f}")
+
+
+def optimum_section(meshes: list[str]) -> None:
+    """How far the default answer stops from the exact optimum of its energy."""
+    from solver.differentiable import reconstruct_vjp
+
+    table_head("Distance of the default answer to the exact optimum / size",
+               "| case | faces | iterations | factorizations | distance to the optimum |")
+    cases = [(name, kind) for name in meshes for kind in ("noise", "x0.8")]
+    cases.append(("rocker-arm.obj", "irregular"))
+    for name, kind in cases:
+        forms = time_case_forms(name, kind)[1]
+        args = (forms.faces, forms.edges, forms.lengths, forms.angles)
+        result = solver.reconstruct(*args)
+        optimum, vjp = reconstruct_vjp(*args)  # Newton with the exact Hessian from there
+        rep = result.report["refinement"]
+        size = np.ptp(result.vertices, axis=0).max()
+        distance = np.abs(optimum.vertices - result.vertices).max() / size
+        polished = "" if vjp.report["polish_converged"] else " (polish not converged)"
+        print(f"| {name} {kind} | {len(forms.faces)} | {rep.get('iterations', '')} | "
+              f"{rep.get('factorizations', '')} | {distance:.1e}{polished} |")
+        sys.stdout.flush()
 
 
 def weights_section() -> None:
@@ -368,7 +401,7 @@ def weights_section() -> None:
 
 
 SECTIONS = ("scale", "noise", "interpolate", "deform", "parameterize", "drag", "weights",
-            "time")
+            "time", "optimum")
 
 
 def main() -> None:
@@ -386,7 +419,8 @@ def main() -> None:
            "deform": lambda: deform_section(deform_cases),
            "parameterize": lambda: parameterize_section(param), "drag": drag_section,
            "weights": weights_section,
-           "time": lambda: time_section(TIME_MESHES + (TIME_LARGE if args.large else []))}
+           "time": lambda: time_section(TIME_MESHES + (TIME_LARGE if args.large else [])),
+           "optimum": lambda: optimum_section(TIME_MESHES)}
     for section in args.sections:
         run[section]()
         sys.stdout.flush()

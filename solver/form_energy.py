@@ -59,6 +59,18 @@ FORMS_TOLERANCE = 1e-9
 """Largest relative length error and angle error (rad) of an embedding that "has" the forms:
 then there is nothing to refine."""
 DEGENERATE = 1e-12  # floor of |N|^2 / s^4 for the dihedral gradient of collapsed faces
+STRETCH_CURVATURE = 100.0
+"""Gauss-Newton drops ``r ∇²r`` from the Hessian of a residual's ``r^2 / 2`` as small beside
+``∇r ∇r^T``. Across a stretched edge (``r > 0``) that term, ``r / (L l) (I - u u^T)``, is
+the edge's only stiffness, and on an edge far shorter than the mesh's mean it is not small:
+without it the vertex of a needle edge swings across the edge between iterations, and
+the models of the iterations after are refused or crawl (rocker-arm with 30 edges split to
+1e-4 of their length, noisy angles: 7 factorizations; the bunny with 50: 12). The
+refinement keeps it where it is at least this many times a mean edge's stiffness
+``1 / s^2``: in practice needle edges only, as a 100-fold smaller ratio also changed the
+planar refinement of the beetle, whose stretched edges are long (16 -> 29 iterations;
+``python -m bench.refinement --sections time parameterize``). Never where ``r < 0``: that
+part is negative and would make the matrix indefinite."""
 
 
 @dataclass(frozen=True)
@@ -276,6 +288,13 @@ residuals of a group at positions ``X`` (n, dim) and their gradients with respec
 ``q`` vertices of each row."""
 
 
+Curvature = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""``curvature(X, r) -> (rows (k,) int64, M (k, dim, dim))``: for residuals of two vertices
+that depend on ``x_1 - x_0`` only, the part ``r ∇²r`` of the Hessian of ``r^2 / 2`` that the
+Gauss-Newton matrix keeps for some rows: ``+M`` on the blocks (0, 0) and (1, 1), ``-M`` on
+(0, 1) (:mod:`solver.normal_equations`)."""
+
+
 @dataclass
 class ResidualGroup:
     """One kind of residual: ``rows`` residuals, each touching ``q`` vertices.
@@ -285,11 +304,13 @@ class ResidualGroup:
         evaluate: :data:`Evaluate`.
         hinge: whether the rows are hinges ``[i, j, a, b]`` (their pairs other than
             ``(a, b)`` are edges, present in the length group).
+        curvature: optional :data:`Curvature` (q = 2 only).
     """
 
     vertices: np.ndarray
     evaluate: Evaluate
     hinge: bool = False
+    curvature: Curvature | None = None
 
 
 class FormEnergy:
@@ -304,6 +325,9 @@ class FormEnergy:
     Attributes:
         groups: list of :class:`ResidualGroup`.
         free: (n,) bool, the vertices that move (not fixed, referenced by a face).
+        held: (n,) bool, the vertices a handle holds (fixed, soft, or in an orientation
+            handle's face): E is invariant under the rigid motions of a connected
+            component without any (:mod:`solver.rigid_motions`).
         hinges: :func:`hinges` of the topology (dim 3), else None.
         scale: ``s``, the mean target length.
     """
@@ -319,6 +343,7 @@ class FormEnergy:
             length_weights, hinge_weights = form_weights(topo, targets.lengths)
         else:
             length_weights = hinge_weights = np.ones(topo.n_edges)
+        self._L = targets.lengths
         self._add_lengths(topo.edges, targets.lengths, length_weights)
         self.hinges = hinges(topo) if dim == 3 else None
         if dim == 3 and targets.angle_weight > 0:
@@ -334,6 +359,10 @@ class FormEnergy:
         self.free = np.ones(self.n, dtype=bool)
         self.free[handles.fixed] = False
         self.free &= topo.is_referenced
+        self.held = np.zeros(self.n, dtype=bool)
+        self.held[handles.fixed] = True
+        self.held[handles.soft_vertices] = True
+        self.held[topo.faces[handles.frame_faces].ravel()] = True
 
     def set_handle_targets(self, soft_positions: np.ndarray | None = None,
                            frame_edges: np.ndarray | None = None) -> None:
@@ -352,6 +381,7 @@ class FormEnergy:
 
     def _add_lengths(self, edges: np.ndarray, L: np.ndarray, weights: np.ndarray) -> None:
         w = np.sqrt(weights)
+        stiff = STRETCH_CURVATURE / self.scale**2
 
         def evaluate(X: np.ndarray, grad: bool = True):
             d, length = edge_vectors(X, edges)
@@ -364,7 +394,18 @@ class FormEnergy:
             np.negative(G[:, 1], out=G[:, 0])
             return r, G
 
-        self.groups.append(ResidualGroup(edges, evaluate))
+        def curvature(X: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            # r ∇²r = w² (l/L - 1) / (L l) (I - u u^T) across a stretched edge (l from r);
+            # kept where it is at least STRETCH_CURVATURE x a mean edge's 1 / s^2.
+            length = L * (1.0 + r / w)
+            c = np.maximum(r, 0.0) * w / (L * np.maximum(length, L))
+            rows = np.flatnonzero(c >= stiff)
+            d = X[edges[rows, 1]] - X[edges[rows, 0]]
+            u = d / np.linalg.norm(d, axis=1)[:, None]
+            M = np.eye(X.shape[1]) - u[:, :, None] * u[:, None, :]
+            return rows, c[rows, None, None] * M
+
+        self.groups.append(ResidualGroup(edges, evaluate, curvature=curvature))
 
     def _add_hinges(self, hinge: np.ndarray, target: np.ndarray, weights: np.ndarray) -> None:
         w = np.sqrt(weights)

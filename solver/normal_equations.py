@@ -62,8 +62,6 @@ class GaussNewtonSystem:
         n_free: number of free vertices; the unknowns are their ``dim`` coordinates,
             vertex-major (``n_free * dim``).
         index: (n,) int64 position of each vertex among the free ones (-1: fixed).
-        ordering_groups: (n_free * dim,) int64 the vertex of each unknown (the
-            factorization's ordering hint).
         diagonal_positions: (n_free * dim,) positions of the diagonal in the CSR values.
     """
 
@@ -80,7 +78,7 @@ class GaussNewtonSystem:
         else:
             self._restore_pattern(cached)
 
-    _OBJECTIVE_FIELDS = ("index", "n_free", "ordering_groups", "indptr", "indices", "nnz",
+    _OBJECTIVE_FIELDS = ("index", "n_free", "indptr", "indices", "nnz",
                          "diagonal_positions")
     _GROUP_FIELDS = ("gradient_index", "gradient_select", "diag_r", "diag_c", "diag_scatter",
                      "diag_gather", "pair_k", "pair_l", "scatter", "gather", "twice")
@@ -125,8 +123,6 @@ class GaussNewtonSystem:
         index[self.free] = np.arange(int(self.free.sum()))
         self.index = index
         n_free = self.n_free = int(self.free.sum())
-        # Ordering hint of the factorization: a vertex's dim coordinates couple alike.
-        self.ordering_groups = np.repeat(np.arange(n_free), dim)
         # Block pattern: upper vertex pairs (a <= b) that share a residual, every diagonal.
         parts = [np.arange(n_free, dtype=np.int64) * (n_free + 1)]
         for g in self.groups:
@@ -222,8 +218,10 @@ class GaussNewtonSystem:
 
     def normal_equations(self, X: np.ndarray, matrix: bool = True,
                          ) -> tuple[float, sp.csr_array | None, np.ndarray]:
-        """(E, the upper triangle of J^T J over the free coordinates (canonical CSR, every
-        diagonal entry stored; None unless ``matrix``), J^T r (n_free * dim,))."""
+        """(E, the upper triangle of the Gauss-Newton matrix over the free coordinates
+        (``J^T J`` plus the curvature terms its groups keep, :data:`~solver.form_energy.
+        Curvature`; canonical CSR, every diagonal entry stored; None unless ``matrix``),
+        J^T r (n_free * dim,))."""
         dim = self.dim
         values = np.zeros(self.nnz) if matrix else None
         gradient = np.zeros(self.n_free * dim)
@@ -236,10 +234,15 @@ class GaussNewtonSystem:
                 contrib = contrib[g.gradient_select]
             gradient += np.bincount(g.gradient_index, contrib, minlength=len(gradient))
             if values is not None:
-                diag = (G[:, :, g.diag_r] * G[:, :, g.diag_c]).ravel()
+                diag = G[:, :, g.diag_r] * G[:, :, g.diag_c]        # (rows, q, entries)
+                off = G[:, g.pair_k, :, None] * G[:, g.pair_l, None, :]  # (rows, pairs, ...)
+                if group.curvature is not None:  # r ∇²r kept where it is not small
+                    rows, M = group.curvature(X, r)
+                    diag[rows] += M[:, None, g.diag_r, g.diag_c]
+                    off[rows, 0] -= M
+                diag, off = diag.ravel(), off.ravel()
                 values += np.bincount(g.diag_scatter, diag if g.diag_gather is None
                                       else diag[g.diag_gather], minlength=len(values))
-                off = (G[:, g.pair_k, :, None] * G[:, g.pair_l, None, :]).ravel()
                 values += np.bincount(g.scatter, off if g.gather is None else off[g.gather],
                                       minlength=len(values))
                 if g.twice is not None:

@@ -1,0 +1,97 @@
+"""PARDISO on the refinement's Gauss-Newton matrix: its own ordering against the ``groups`` hint.
+
+The refinement factorizes ``J^T J + lambda D`` (:mod:`solver.normal_equations`, one 3x3 block
+per pair of vertices that share a residual) once per fresh Gauss-Newton step and solves
+with it once per step. For one mesh, in one process and interleaved over ``--rounds``
+rounds (so that machine load hits both alike), it times on the same matrix:
+
+* ``PARDISO's ordering``: what :func:`solver.refine.Refiner` does, PARDISO ordering the
+  matrix itself (MKL's two-level factor);
+* ``groups hint``: the ordering of the compressed graph (one node per vertex,
+  :func:`solver.linalg.pardiso.group_ordering`) passed as a user permutation, which makes
+  MKL build the classic factor;
+
+the analysis (ordering and symbolic factorization, once per pattern: cached afterwards), the
+numerical factorization and a one-column solve, with nnz(L).
+
+    python -m bench.gauss_newton_factor [mesh ...] [--rounds 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+import solver
+from bench.common import load_bench_mesh
+from solver.linalg import pardiso
+from solver.refine import DEFORM_ANGLE_WEIGHT, FormTargets, Handles, Refiner
+from solver.topology import build_topology
+
+
+def gauss_newton_matrix(name: str):
+    """The damped upper-triangle Gauss-Newton matrix (values, ia, ja) and a gradient of a
+    deformation of mesh ``name`` (50 fixed vertices, every other vertex moved by 1e-3 of
+    the mean edge), as the refinement factorizes it."""
+    V, F = load_bench_mesh(name)
+    forms = solver.fundamental_forms(V, F)
+    refiner = Refiner(FormTargets(build_topology(F, len(V)), forms.lengths, forms.angles,
+                                  angle_weight=DEFORM_ANGLE_WEIGHT),
+                      Handles(fixed=np.arange(50)))
+    X = V + 1e-3 * forms.lengths.mean() * np.random.default_rng(0).normal(size=V.shape)
+    _, H, g = refiner.system.normal_equations(X)
+    values = H.data.copy()
+    values[refiner.system.diagonal_positions] *= 1.0 + 1e-9
+    return values, H.indptr.astype(np.int32), H.indices.astype(np.int32), g, len(F)
+
+
+def one_round(values, ia, ja, g, groups, solves: int = 9) -> dict[str, list[float]]:
+    """Seconds of analysis, factorization and the median one-column solve, and nnz(L), of
+    each variant."""
+    mkl = pardiso.load_mkl()
+    out = {}
+    for label, hinted in (("PARDISO's ordering", False), ("groups hint", True)):
+        t0 = time.perf_counter()
+        perm = pardiso.group_ordering(mkl, ia, ja, groups) if hinted else None
+        handle = pardiso.PardisoHandle(mkl, len(ia) - 1, perm)
+        assert handle.call(11, values, ia, ja) == 0
+        t1 = time.perf_counter()
+        assert handle.call(22, values, ia, ja) == 0
+        t2 = time.perf_counter()
+        b = np.asfortranarray(g[:, None])
+        x = np.zeros_like(b)
+        times = []
+        for _ in range(solves):
+            t = time.perf_counter()
+            handle.call(33, values, ia, ja, b, x, 1)
+            times.append(time.perf_counter() - t)
+        out[label] = [t1 - t0, t2 - t1, float(np.median(times)), float(handle.iparm[17])]
+        handle.release()
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("meshes", nargs="*", default=["rocker-arm.obj", "beetle.off"])
+    parser.add_argument("--rounds", type=int, default=5)
+    args = parser.parse_args()
+    print(f"load average {os.getloadavg()[0]:.1f}; MKL threads "
+          f"{os.environ.get('MKL_NUM_THREADS', 'default')}\n")
+    print("| mesh | faces | unknowns | variant | analysis ms | factorization ms "
+          "| solve ms | nnz(L) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name in args.meshes:
+        values, ia, ja, g, faces = gauss_newton_matrix(name)
+        groups = np.repeat(np.arange((len(ia) - 1) // 3), 3)
+        rounds = [one_round(values, ia, ja, g, groups) for _ in range(args.rounds)]
+        for label in rounds[0]:
+            medians = np.median([r[label] for r in rounds], axis=0)
+            print(f"| {name} | {faces} | {len(ia) - 1} | {label} | {1000 * medians[0]:.0f} | "
+                  f"{1000 * medians[1]:.0f} | {1000 * medians[2]:.1f} | {medians[3]:.0f} |")
+
+
+if __name__ == "__main__":
+    main()

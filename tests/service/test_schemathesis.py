@@ -203,4 +203,8 @@ def test_stateful_links(api_schema, fuzz_server):
     assert steps("POST /v1/sessions/{session_id}/solve ") >= 1, STEPS
     assert steps("DELETE /v1/sessions/{session_id} 204") >= 1, STEPS
     assert steps("POST /v1/jobs 202") >= 1, STEPS
-    assert steps("GET /v1/jobs/{job_id} 200") + steps("GET /v1/jobs/{job_id}/result 200") >= 1
+    # A job's links: its status, result or mesh answered 200 (which of them the machine
+    # follows after a job finished depends on the server's timing: in one run it followed
+    # only /mesh to a 200, and /result while the job still ran, 409).
+    assert sum(steps(f"GET /v1/jobs/{{job_id}}{link} 200")
+               for link in ("", "/result", "/mesh")) >= 1, STEPS

@@ -415,6 +415,13 @@ class Deformer:
             return self.refine_last(left, progress)
         return self._embed(local)
 
+    def expect_refresh(self, seconds: float) -> None:
+        """An estimate of one factorization of the refinement before it has timed one
+        (:meth:`solver.refine.Refiner.expect_refresh`): a budget then stops before the first
+        one too. :func:`deform` gives the set-up's; a session's drags do not, so that a
+        frame budget shorter than a factorization still gets its first."""
+        self._refinement().expect_refresh(seconds)
+
     def refine_last(self, max_seconds: float | None = None,
                     progress: Progress | None = None) -> np.ndarray:
         """The refined shape (n, 3) for the handle targets of the last :meth:`solve`.
@@ -527,6 +534,7 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
     stages.lap("solve")
     if deformer.refine:
         stages("refine")
+        deformer.expect_refresh(deformer.setup_timings.get("factorize", 0.0))
         result = deformer.refine_last(stages.left(opts.max_seconds), progress)
         stages.lap("refine")
     # The last stage that ran is complete.

@@ -241,6 +241,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
             if tutte is not None:
                 start = local_global_flattening(topology, forms.lengths, tutte, backend=backend)
                 name = "local/global from Tutte"
+            refiner.expect_refresh(stages.timings.get("factorize", 0.0))
             fit = refiner.run(start, time_limit=stages.left(opts.max_seconds),
                               progress=progress)
             uv, refinement = fit.vertices, dict(fit.report, start=name)

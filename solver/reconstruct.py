@@ -567,6 +567,7 @@ def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
                                   f"{guess.shape}", field="initial_guess")
         if refiner.energy(guess) < refiner.energy(start):
             start, label = guess, "initial guess"
+    refiner.expect_refresh(stages.timings.get("factorize", 0.0))
     fit = refiner.run(start, time_limit=stages.left(opts.max_seconds), progress=progress)
     refinement = dict(fit.report, start=label)
     return problem.place_anchored(fit.vertices, anchored), refinement

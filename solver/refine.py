@@ -151,9 +151,10 @@ class Refiner:
         self._kept: tuple[Any, sp.csr_array, RigidProjection] | None = None
         self._kept_damping = INITIAL_DAMPING
         self._paused: _Iteration | None = None  # a run stopped at its time limit (resume)
-        self._iteration_seconds = {"refresh": 0.0, "step": 0.0}
+        self._iteration_seconds: dict[str, float | None] = {"refresh": None, "step": 0.0}
         """Seconds of the last iteration with a factorization and without (the time limit
-        stops before an iteration that would end past it)."""
+        stops before an iteration that would end past it); None: no factorization timed or
+        estimated yet (:meth:`expect_refresh`)."""
 
     def set_handle_targets(self, soft_positions: np.ndarray | None = None,
                            frame_edges: np.ndarray | None = None) -> None:
@@ -364,18 +365,27 @@ class Refiner:
         if not system.n_free:
             s.stop, s.converged = "no_free_vertices", True
 
+    def expect_refresh(self, seconds: float) -> None:
+        """Estimate the seconds of an iteration with a factorization (the Gauss-Newton
+        matrix's assembly and factorization) before this refiner has timed one, e.g. from
+        the factorization of the linear answer, which costs about as much: a time limit
+        then also stops before the first factorization of a run if it would end past it
+        (a request's deadline is then not overrun by a factorization begun just before it
+        ends). Without an estimate the first factorization starts while any time is left,
+        so that a budget shorter than one still progresses (a session's slices)."""
+        if self._iteration_seconds["refresh"] is None and seconds > 0:
+            self._iteration_seconds["refresh"] = float(seconds)
+
     def _fits(self, s: _Iteration, refresh: bool, time_limit: float | None,
               clock: float) -> bool:
         """Whether an iteration (a factorization first where ``refresh``) ends before
-        ``time_limit`` seconds after ``clock``, judged by the last one of its kind (a run
-        without a factor yet starts its first anyway while time is left: else a budget
-        shorter than one factorization would never progress)."""
+        ``time_limit`` seconds after ``clock``, judged by the last one of its kind (or by
+        :meth:`expect_refresh`'s estimate; with neither it starts while time is left)."""
         if time_limit is None:
             return True
         left = time_limit - (time.perf_counter() - clock)
-        if s.factor is None:
-            return left > 0.0
-        return left > self._iteration_seconds["refresh" if refresh else "step"]
+        kind = "refresh" if refresh or s.factor is None else "step"
+        return left > (self._iteration_seconds[kind] or 0.0)
 
     def _damped_factor(self, H: sp.csr_array, damping: float) -> Any:
         """Factorization of ``H + damping diag(H)`` (Levenberg-Marquardt; the diagonal is

@@ -54,6 +54,7 @@ from .normal_equations import (  # noqa: F401 - re-exported
     clear_pattern_cache,
     pattern_cache_info,
 )
+from .quasi_newton import QuasiNewtonMemory
 from .rigid_motions import RigidMotions, RigidProjection
 
 MAX_ITERATIONS = 50
@@ -435,7 +436,7 @@ class _Iteration:
     kept: bool
     max_frozen: int
     min_gain: float
-    memory: _QuasiNewtonMemory
+    memory: QuasiNewtonMemory
     max_iterations: int
     tolerance: float
     factor: Any = None
@@ -473,7 +474,7 @@ class _Iteration:
         return cls(X=X, before=refiner.residuals(X), energy0=energy, energy=energy,
                    keep_factor=keep_factor, kept=kept, max_frozen=max_frozen,
                    min_gain=min_gain,
-                   memory=_QuasiNewtonMemory(QUASI_NEWTON_MEMORY if kept else 0),
+                   memory=QuasiNewtonMemory(QUASI_NEWTON_MEMORY if kept else 0),
                    max_iterations=max_iterations, tolerance=tolerance, factor=factor,
                    model=model, projection=projection, damping=damping,
                    factor_gain=1.0 if factor is not None else 0.0, trace=[energy])
@@ -501,64 +502,6 @@ def _trusted(s: _Iteration, gain: float | None = None) -> bool:
     (gain ratio within 0.25 of 1)."""
     gain = s.factor_gain if gain is None else gain
     return s.damping <= 1.0 and abs(gain - 1.0) <= 0.25
-
-
-class _QuasiNewtonMemory:
-    """The last ``size`` steps ``s`` and gradient changes ``y`` since the factor was built,
-    for L-BFGS's two-loop recursion (Nocedal and Wright, Alg. 7.4); with ``size`` 0 the
-    steps are plain back-substitutions with the factor (frozen Gauss-Newton steps).
-
-    The initial Hessian is the factor's matrix ``H`` scaled by ``gamma = s.y / s.H s`` of
-    the newest pair: the curvature E showed along the last step over the one the factor
-    predicted (the scaling of Nocedal and Wright's (7.20) with ``H`` for the identity). A
-    session's factor comes from an earlier drag's shape; unscaled, its steps overshot by
-    2x, so that half of the later drags' steps were halved by the line search (rocker-arm,
-    drags 2-5: 29 steps; scaled: 24, to the same or a lower E).
-    """
-
-    def __init__(self, size: int) -> None:
-        self.size = size
-        self.pairs: list[tuple[np.ndarray, np.ndarray, float]] = []
-        self._last: tuple[np.ndarray, np.ndarray, float] | None = None
-        self.gamma = 1.0
-
-    def clear(self) -> None:
-        self.pairs.clear()
-        self.gamma = 1.0
-
-    def moved(self, step: np.ndarray, gradient: np.ndarray, system: GaussNewtonSystem,
-              model: sp.csr_array) -> None:
-        """A step ``step`` was taken from where the gradient was ``gradient``; ``model`` is
-        the matrix of the factor (for the curvature it gave the step)."""
-        if self.size:
-            self._last = (step, gradient, system.quadratic_form(model, step))
-
-    def observe(self, gradient: np.ndarray) -> None:
-        """The gradient after the last step: keep the pair where it has positive curvature."""
-        if self._last is None or not self.size:
-            return
-        s, before, model = self._last
-        self._last = None
-        y = gradient - before
-        sy = float(np.einsum("i,i->", s, y))
-        if sy > 1e-12 * float(np.sqrt(np.einsum("i,i->", y, y) * np.einsum("i,i->", s, s))):
-            self.pairs.append((s, y, 1.0 / sy))
-            del self.pairs[:len(self.pairs) - self.size]
-            if model > 0:  # the curvature along s against the factor's model of it
-                self.gamma = sy / model
-
-    def inverse_hessian(self, solve: Any, g: np.ndarray) -> np.ndarray:
-        """``H^-1 g`` of L-BFGS with ``solve`` (``v -> H_0^-1 v``) as ``H_0^-1``."""
-        q = g.copy()
-        alphas = []
-        for s, y, rho in reversed(self.pairs):
-            a = rho * float(np.einsum("i,i->", s, q))
-            alphas.append(a)
-            q -= a * y
-        r = solve(q) / self.gamma
-        for (s, y, rho), a in zip(self.pairs, reversed(alphas), strict=True):
-            r += (a - rho * float(np.einsum("i,i->", y, r))) * s
-        return r
 
 
 _BLAS = ThreadpoolController()

@@ -343,7 +343,6 @@ class FormEnergy:
             length_weights, hinge_weights = form_weights(topo, targets.lengths)
         else:
             length_weights = hinge_weights = np.ones(topo.n_edges)
-        self._L = targets.lengths
         self._add_lengths(topo.edges, targets.lengths, length_weights)
         self.hinges = hinges(topo) if dim == 3 else None
         if dim == 3 and targets.angle_weight > 0:

@@ -14,7 +14,8 @@ from tests.helpers.meshes import icosphere, load
 def two_spheres() -> tuple[np.ndarray, np.ndarray]:
     """Two disjoint icospheres (two connected components), the second shifted."""
     V, F = icosphere(2)
-    return np.concatenate([V, V + [3.0, 0.5, -1.0]]), np.concatenate([F, F + len(V)])
+    shift = np.array([3.0, 0.5, -1.0])
+    return np.concatenate([V, V + shift]), np.concatenate([F, F + len(V)])
 
 
 def rigid_basis(X: np.ndarray, dim: int) -> np.ndarray:

@@ -25,7 +25,8 @@ Sections (``--sections``, default all):
 * ``time``: the default (refined) answer against the linear answer of the same call
   (``refine=False``), both warm (second call on the mesh: analyses cached), medians of
   alternating runs, on noisy and x0.8 forms from 5K faces up (100K with ``--large``) and on
-  a very irregular genus-1 mesh (rocker-arm with 30 edges split to 1e-4 of their length);
+  very irregular genus-1 meshes (rocker-arm with 30 edges split to 1e-4 of their length,
+  and the same with 9 near-zero-area faces);
   iterations, factorizations and back-substitutions of the refinement; the scaling
   exponents of both answers (least-squares slope of log time against log faces).
 
@@ -52,7 +53,7 @@ from solver.metrics import distortion
 from solver.topology import build_topology
 from tests.helpers.botsch_sorkine import load_case
 from tests.helpers.libigl_reference import arap_deformation, arap_parameterization, flipped_faces
-from tests.helpers.meshes import rigid_alignment_error, with_tiny_edges
+from tests.helpers.meshes import rigid_alignment_error, with_cap_faces, with_tiny_edges
 
 SCALE_MESHES = ["decimated-knight.off", "bunny.off", "face.off", "rocker-arm.obj", "beetle.off"]
 NOISE_MESHES = ["decimated-knight.off", "torus.off", "bunny.off", "face.off",
@@ -303,10 +304,14 @@ def warm_pair(forms, repeats: int = 3) -> tuple[float, float, object]:
 
 def time_case_forms(name: str, kind: str):
     """(vertices, forms) of a case of the time section: ``"noise"`` (N(0, 1e-3) rad on the
-    angles), ``"x0.8"`` (every angle x 0.8) or ``"irregular"`` (30 edges split to 1e-4 of
-    their length, then noise)."""
+    angles), ``"x0.8"`` (every angle x 0.8), ``"irregular"`` (30 edges split to 1e-4 of
+    their length, then noise) or ``"irregular + caps"`` (the same after 9 faces were
+    flattened to 1e-6 of their width, like the held-out mesh of issue 19 with its zero-area
+    faces)."""
     V, F = load_bench_mesh(name)
-    if kind == "irregular":
+    if kind == "irregular + caps":
+        V = with_cap_faces(V, F, 10)
+    if kind.startswith("irregular"):
         V, F = with_tiny_edges(V, F, 30)
     forms = solver.fundamental_forms(V, F)
     if kind == "x0.8":
@@ -322,7 +327,7 @@ def time_section(meshes: list[str]) -> None:
                "| solves | converged | quality |")
     sizes, linear_times, default_times = [], [], []
     cases = [(name, kind) for name in meshes for kind in ("noise", "x0.8")]
-    cases.append(("rocker-arm.obj", "irregular"))
+    cases += [("rocker-arm.obj", "irregular"), ("rocker-arm.obj", "irregular + caps")]
     for name, kind in cases:
         V, forms = time_case_forms(name, kind)
         F = forms.faces

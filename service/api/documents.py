@@ -78,7 +78,9 @@ class SessionRefinement(BaseModel):
     converged: bool
     stop_reason: str = Field(description="converged, exact, stationary, time_limit (the "
                                          "drag's budget: options.max_seconds or "
-                                         "FFS_SESSION_SOLVE_TIMEOUT), max_iterations, ...")
+                                         "FFS_SESSION_SOLVE_TIMEOUT), max_iterations, "
+                                         "stalled (5 steps lowered E by less than 0.1%), "
+                                         "...")
     iterations: int
     factorizations: int
     slices: int = Field(description="Slices it ran in (FFS_SESSION_REFINE_SLICE each).")

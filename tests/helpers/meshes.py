@@ -221,3 +221,26 @@ def with_tiny_edges(V: np.ndarray, F: np.ndarray, count: int, ratio: float = 1e-
             new_faces.append((p, w, tip))
     return (np.concatenate([V, np.array(new_vertices).reshape(-1, 3)]),
             np.concatenate([F, np.array(new_faces, dtype=np.int64).reshape(-1, 3)]))
+
+
+def with_cap_faces(V: np.ndarray, F: np.ndarray, count: int, height: float = 1e-6,
+                   seed: int = 3) -> np.ndarray:
+    """Vertices of a mesh with up to ``count`` near-zero-area "cap" faces: for faces
+    ``[a, b, c]`` (no two sharing a vertex), ``c`` moved to the midpoint of ``a b`` lifted
+    by ``height`` times ``|b - a|`` along the face's normal (a 180° corner; exactly zero
+    area would leave the face's normal, so its dihedral angles, undefined). The faces are
+    unchanged; the surface around each moved vertex is dented.
+
+    Returns (n, 3) float64 vertices.
+    """
+    V = np.array(V, dtype=np.float64)
+    used: set[int] = set()
+    for t in np.random.default_rng(seed).choice(len(F), count, replace=False):
+        a, b, c = (int(v) for v in F[t])  # test data: a short loop is fine
+        if used & {a, b, c}:
+            continue
+        normal = np.cross(V[b] - V[a], V[c] - V[a])
+        V[c] = 0.5 * (V[a] + V[b]) + height * np.linalg.norm(V[b] - V[a]) * normal / \
+            np.linalg.norm(normal)
+        used |= {a, b, c}
+    return V

@@ -35,6 +35,7 @@ from tests.helpers.meshes import (
     icosphere,
     load,
     rigid_alignment_error,
+    with_cap_faces,
     with_tiny_edges,
 )
 
@@ -133,6 +134,25 @@ def test_noisy_forms_on_needle_edges_converge_near_the_exact_optimum():
     assert vjp.report["polish_converged"]
     size = np.ptp(result.vertices, axis=0).max()
     assert np.abs(optimum.vertices - result.vertices).max() <= 1e-3 * size
+
+
+def test_a_refinement_that_crawls_stops_and_says_so():
+    """A knight with 5 faces flattened to 1e-6 of their width and 10 needle edges, noisy
+    angles: the damping grows until steps barely lower E; the refinement stops after 5
+    such steps, not converged (``stalled``), instead of spending its 50 iterations, and
+    its answer is still no worse than its start and near the original."""
+    V, F = load("decimated-knight.off")
+    V, F = with_tiny_edges(with_cap_faces(V, F, 5), F, count=10)
+    forms = fundamental_forms(V, F)
+    inner = build_topology(F, len(V)).interior_edges
+    forms.angles[inner] += np.random.default_rng(4).normal(0, 1e-3, len(inner))
+    report = (result := solve(forms)).report["refinement"]
+    assert report["stop_reason"] == "stalled" and not report["converged"], report
+    assert report["iterations"] < 30
+    assert report["energy_after"] <= report["energy_before"]
+    trace = report["energy_trace"]
+    assert trace[-6] - trace[-1] <= 1e-3 * trace[-1]
+    assert rigid_alignment_error(result.vertices, V) < 2e-3
 
 
 def test_refine_recovers_a_shrunk_mesh_exactly():

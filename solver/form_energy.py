@@ -65,12 +65,14 @@ STRETCH_CURVATURE = 100.0
 the edge's only stiffness, and on an edge far shorter than the mesh's mean it is not small:
 without it the vertex of a needle edge swings across the edge between iterations, and
 the models of the iterations after are refused or crawl (rocker-arm with 30 edges split to
-1e-4 of their length, noisy angles: 7 factorizations; the bunny with 50: 12). The
-refinement keeps it where it is at least this many times a mean edge's stiffness
-``1 / s^2``: in practice needle edges only, as a 100-fold smaller ratio also changed the
-planar refinement of the beetle, whose stretched edges are long (16 -> 29 iterations;
-``python -m bench.refinement --sections time parameterize``). Never where ``r < 0``: that
-part is negative and would make the matrix indefinite."""
+1e-4 of their length, noisy angles: 7 factorizations, 4 with it, ``python -m
+bench.refinement --sections time``; the torus with 20 of tests/solver/test_refine.py: 8
+and 4). The refinement keeps it where it is at least this many times a mean edge's
+stiffness ``1 / s^2``: in practice needle edges only, as a 100-fold smaller ratio also
+changed the planar refinement of the beetle, whose stretched edges are long (16 -> 29
+iterations with this constant at 1; ``python -m bench.refinement --sections
+parameterize``). Never where ``r < 0``: that part is negative and would make the matrix
+indefinite."""
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,9 @@ rounds (so that machine load hits both alike), it times on the same matrix:
   MKL build the classic factor;
 
 the analysis (ordering and symbolic factorization, once per pattern: cached afterwards), the
-numerical factorization and a one-column solve, with nnz(L).
+numerical factorization and a one-column solve, with nnz(L); and the assembly of the matrix
+and gradient (:meth:`solver.normal_equations.GaussNewtonSystem.normal_equations`), once per
+fresh step, and of the gradient alone, once per step.
 
     python -m bench.gauss_newton_factor [mesh ...] [--rounds 5]
 """
@@ -35,7 +37,8 @@ from solver.topology import build_topology
 def gauss_newton_matrix(name: str):
     """The damped upper-triangle Gauss-Newton matrix (values, ia, ja) and a gradient of a
     deformation of mesh ``name`` (50 fixed vertices, every other vertex moved by 1e-3 of
-    the mean edge), as the refinement factorizes it."""
+    the mean edge), as the refinement factorizes it; and the median seconds of assembling
+    the matrix with the gradient, and the gradient alone."""
     V, F = load_bench_mesh(name)
     forms = solver.fundamental_forms(V, F)
     refiner = Refiner(FormTargets(build_topology(F, len(V)), forms.lengths, forms.angles,
@@ -45,7 +48,19 @@ def gauss_newton_matrix(name: str):
     _, H, g = refiner.system.normal_equations(X)
     values = H.data.copy()
     values[refiner.system.diagonal_positions] *= 1.0 + 1e-9
-    return values, H.indptr.astype(np.int32), H.indices.astype(np.int32), g, len(F)
+    assembly = [median_seconds(refiner.system.normal_equations, X, matrix=matrix)
+                for matrix in (True, False)]
+    return values, H.indptr.astype(np.int32), H.indices.astype(np.int32), g, len(F), assembly
+
+
+def median_seconds(fn, *args, repeats: int = 15, **kw) -> float:
+    """Median wall-clock seconds of ``fn(*args, **kw)`` over ``repeats`` calls."""
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn(*args, **kw)
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
 
 
 def one_round(values, ia, ja, g, groups, solves: int = 9) -> dict[str, list[float]]:
@@ -83,14 +98,20 @@ def main() -> None:
     print("| mesh | faces | unknowns | variant | analysis ms | factorization ms "
           "| solve ms | nnz(L) |")
     print("|---|---|---|---|---|---|---|---|")
+    assemblies = []
     for name in args.meshes:
-        values, ia, ja, g, faces = gauss_newton_matrix(name)
+        values, ia, ja, g, faces, assembly = gauss_newton_matrix(name)
+        assemblies.append((name, faces, assembly))
         groups = np.repeat(np.arange((len(ia) - 1) // 3), 3)
         rounds = [one_round(values, ia, ja, g, groups) for _ in range(args.rounds)]
         for label in rounds[0]:
             medians = np.median([r[label] for r in rounds], axis=0)
             print(f"| {name} | {faces} | {len(ia) - 1} | {label} | {1000 * medians[0]:.0f} | "
                   f"{1000 * medians[1]:.0f} | {1000 * medians[2]:.1f} | {medians[3]:.0f} |")
+    print("\n| mesh | faces | assembly of matrix + gradient ms | gradient alone ms |")
+    print("|---|---|---|---|")
+    for name, faces, (full, gradient) in assemblies:
+        print(f"| {name} | {faces} | {1000 * full:.1f} | {1000 * gradient:.1f} |")
 
 
 if __name__ == "__main__":

@@ -410,9 +410,7 @@ class Deformer:
                       "frames": frames, "best": None, "report": None}
         self.last_report = {"refined": False, "reason": "disabled (refine=false)"}
         if refine:
-            left = (None if max_seconds is None
-                    else max(0.0, max_seconds - (time.perf_counter() - started)))
-            return self.refine_last(left, progress)
+            return self.refine_last(_seconds_left(max_seconds, started), progress)
         return self._embed(local)
 
     def expect_refresh(self, seconds: float) -> None:
@@ -472,10 +470,9 @@ class Deformer:
                         start, label, energy = warm, "previous drag", warm_energy
             else:
                 energy = None
-            left = (None if max_seconds is None
-                    else max(0.0, max_seconds - (time.perf_counter() - started)))
-            fit = refiner.run(start, keep_factor=True, time_limit=left, progress=progress,
-                              start_energy=energy)
+            fit = refiner.run(start, keep_factor=True,
+                              time_limit=_seconds_left(max_seconds, started),
+                              progress=progress, start_energy=energy)
         self.last_report = dict(fit.report, start=label)
         last["best"], last["report"] = fit.vertices, self.last_report
         self._previous = (local, fit.vertices)
@@ -487,6 +484,14 @@ class Deformer:
         moving = self.in_roi[self.sub_vertices]
         out[self.sub_vertices[moving]] = local[moving]
         return out
+
+
+def _seconds_left(max_seconds: float | None, started: float) -> float | None:
+    """What is left (>= 0) of a budget of ``max_seconds`` begun at ``started``
+    (``time.perf_counter()``); None: no budget."""
+    if max_seconds is None:
+        return None
+    return max(0.0, max_seconds - (time.perf_counter() - started))
 
 
 def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,

@@ -27,7 +27,8 @@ class QuasiNewtonMemory:
     predicted (the scaling of Nocedal and Wright's (7.20) with ``H`` for the identity). A
     session's factor comes from an earlier drag's shape; unscaled, its steps overshot by
     2x, so that half of the later drags' steps were halved by the line search (rocker-arm,
-    drags 2-5: 29 steps; scaled: 24, to the same or a lower E).
+    drags 2-5: 29 steps; scaled: 24, to the same or a lower E; ``python -m bench.refinement
+    --sections drag`` prints the iterations per drag).
     """
 
     def __init__(self, size: int) -> None:

@@ -76,6 +76,11 @@ def random_drags(V: np.ndarray, handles: np.ndarray, count: int,
     return out
 
 
+def scaling_exponent(sizes, seconds) -> float:
+    """k of ``seconds ~ sizes^k``: the least-squares slope of log time against log size."""
+    return float(np.polyfit(np.log(sizes), np.log(seconds), 1)[0])
+
+
 def load_averages() -> str:
     """The machine's 1, 5 and 15 minute load averages, e.g. ``"1.02, 0.87, 0.80"`` (the box
     is shared with other runs: a table records the load it was measured under)."""

@@ -16,6 +16,10 @@ numerical factorization and a one-column solve, with nnz(L); and the assembly of
 and gradient (:meth:`solver.normal_equations.GaussNewtonSystem.normal_equations`), once per
 fresh step, and of the gradient alone, once per step.
 
+Over several meshes it also fits the scaling exponents (time ~ faces^k) of the
+factorization, the solve, nnz(L) and the assembly: the refinement's factorizations set a
+floor under its own exponent.
+
     python -m bench.gauss_newton_factor [mesh ...] [--rounds 5]
 """
 
@@ -28,7 +32,7 @@ import time
 import numpy as np
 
 import solver
-from bench.common import load_bench_mesh
+from bench.common import load_bench_mesh, scaling_exponent
 from solver.linalg import pardiso
 from solver.refine import DEFORM_ANGLE_WEIGHT, FormTargets, Handles, Refiner
 from solver.topology import build_topology
@@ -98,7 +102,7 @@ def main() -> None:
     print("| mesh | faces | unknowns | variant | analysis ms | factorization ms "
           "| solve ms | nnz(L) |")
     print("|---|---|---|---|---|---|---|---|")
-    assemblies = []
+    assemblies, own = [], []
     for name in args.meshes:
         values, ia, ja, g, faces, assembly = gauss_newton_matrix(name)
         assemblies.append((name, faces, assembly))
@@ -108,10 +112,19 @@ def main() -> None:
             medians = np.median([r[label] for r in rounds], axis=0)
             print(f"| {name} | {faces} | {len(ia) - 1} | {label} | {1000 * medians[0]:.0f} | "
                   f"{1000 * medians[1]:.0f} | {1000 * medians[2]:.1f} | {medians[3]:.0f} |")
+            if label == "PARDISO's ordering":
+                own.append((faces, medians[1], medians[2], medians[3]))
     print("\n| mesh | faces | assembly of matrix + gradient ms | gradient alone ms |")
     print("|---|---|---|---|")
     for name, faces, (full, gradient) in assemblies:
         print(f"| {name} | {faces} | {1000 * full:.1f} | {1000 * gradient:.1f} |")
+    if len(own) > 1:
+        faces = [row[0] for row in own]
+        print("\nScaling exponents over faces (PARDISO's ordering): factorization "
+              f"{scaling_exponent(faces, [row[1] for row in own]):.2f}, solve "
+              f"{scaling_exponent(faces, [row[2] for row in own]):.2f}, nnz(L) "
+              f"{scaling_exponent(faces, [row[3] for row in own]):.2f}, assembly "
+              f"{scaling_exponent(faces, [a[2][0] for a in assemblies]):.2f}")
 
 
 if __name__ == "__main__":

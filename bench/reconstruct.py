@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.common import REPO, load_bench_mesh
+from bench.common import REPO, load_bench_mesh, scaling_exponent
 
 OUT = REPO / "bench" / "out"
 
@@ -258,10 +258,10 @@ def print_tables(rows: list[dict[str, Any]], deformer: dict[str, Any] | str) -> 
               f"({warm['analysis_state']}) | {_ratio(ref['total'], warm['total'])} | "
               f"{ref['peak_mb']:.0f} / {cold['peak_mb']:.0f} |")
     if len(rows) >= 3:
-        faces = np.log([r["faces"] for r in rows])
+        faces = [r["faces"] for r in rows]
         print()
         for key in ("exact", "pardiso cold", "pardiso warm", "refined", "superlu"):
-            slope = np.polyfit(faces, np.log([r[key]["seconds"] for r in rows]), 1)[0]
+            slope = scaling_exponent(faces, [r[key]["seconds"] for r in rows])
             print(f"Fitted scaling exponent, {key} (end-to-end time ~ faces^k): k = {slope:.2f}")
     print(f"\nDeformer set-up ({DEFORM_MESH}, 400 handles, whole mesh):\n")
     if isinstance(deformer, str):

@@ -48,7 +48,7 @@ import time
 import numpy as np
 
 import solver
-from bench.common import SHARED_MESHES, load_bench_mesh
+from bench.common import SHARED_MESHES, load_bench_mesh, scaling_exponent
 from solver.metrics import distortion
 from solver.topology import build_topology
 from tests.helpers.botsch_sorkine import load_case
@@ -349,10 +349,9 @@ def time_section(meshes: list[str]) -> None:
               f"{rep.get('converged', '')} | {quality} |")
         sys.stdout.flush()
     if len(sizes) > 1:
-        x = np.log(sizes)
         print(f"\nScaling exponents (noise rows): linear "
-              f"{np.polyfit(x, np.log(linear_times), 1)[0]:.2f}, default (refined) "
-              f"{np.polyfit(x, np.log(default_times), 1)[0]:.2f}")
+              f"{scaling_exponent(sizes, linear_times):.2f}, default (refined) "
+              f"{scaling_exponent(sizes, default_times):.2f}")
 
 
 def optimum_section(meshes: list[str]) -> None:

@@ -85,6 +85,12 @@ mean target edge length: where the valley of E is flat, its decrease is below
 :data:`ENERGY_TOLERANCE` long before the positions settle (angles x 0.8 on the bunny: the
 answer was 5.5e-4 of its size from the exact optimum without this, 6e-5 with it;
 ``python -m bench.refinement --sections optimum``)."""
+SMALL_FROZEN_STEPS = 2
+"""A factor takes at most this many further steps after a small, well-predicted one of its
+own that moved more than :data:`QUASI_NEWTON_REACH` before a fresh factorization confirms
+convergence (cactus x 0.8: the second of two such steps moved 1.6e-3 of an edge, 2
+factorizations instead of 3). Fewer than :data:`STALL_STEPS`: steps continued this way
+cannot end a run as stalled."""
 KEPT_STEPS = 20
 """A run that starts from a kept factor (``keep_factor``: a session's drags after the
 first) keeps it for up to this many quasi-Newton steps, rebuilding it only when a step
@@ -349,7 +355,7 @@ class Refiner:
                     well = alpha == 1.0 and _trusted(s, gain)
                     if s.keep_factor or (well and moved <= QUASI_NEWTON_REACH):
                         s.stop, s.converged = "converged", True
-                    elif not well:
+                    elif not well or s.frozen_steps > SMALL_FROZEN_STEPS:
                         s.frozen_steps = s.max_frozen
                 if s.fresh:  # Levenberg-Marquardt's damping update (Nielsen)
                     s.damping = max(MIN_DAMPING, s.damping * (

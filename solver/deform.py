@@ -277,8 +277,9 @@ class Deformer:
         self.system_orthonormal: ConstrainedSystem | None = None
         if opts.orthonormalize:
             self._orthonormal_system()
-        if self.refine:
+        if self.refine:  # the refinement's start, pattern and analysis: not in a drag
             self._start_fit()
+            self._refinement().prepare()
         stages.lap("factorize")
         self.setup_timings = stages.timings
         """Seconds of the stages validate, assemble and factorize of the set-up."""

@@ -47,7 +47,7 @@ from .form_energy import (  # noqa: F401 - re-exported: the refinement's public 
     reproduces,
     signed_areas,
 )
-from .linalg import SingularSystemError, factorize
+from .linalg import SingularSystemError, analyze, factorize
 from .normal_equations import (  # noqa: F401 - re-exported
     PATTERN_CACHE_BYTES,
     GaussNewtonSystem,
@@ -382,6 +382,20 @@ class Refiner:
                 break
         if not system.n_free:
             s.stop, s.converged = "no_free_vertices", True
+
+    def prepare(self) -> None:
+        """Have the factorization backend analyse the Gauss-Newton matrix's pattern now
+        (PARDISO's ordering and symbolic factorization, cached per pattern: they depend on
+        the pattern only), so that the first factorization of a later run pays only its
+        numerical phase: a session's first refined drag, whose frame budget would
+        otherwise go to the analysis (:class:`solver.deform.Deformer` calls it at set-up)."""
+        system = self.system
+        if system.n_free:
+            n = system.n_free * system.dim
+            pattern = sp.csr_array((np.zeros(system.nnz), system.indices, system.indptr),
+                                   shape=(n, n))
+            pattern.has_canonical_format = True
+            analyze(pattern, self.backend)
 
     def expect_refresh(self, seconds: float) -> None:
         """Estimate the seconds of an iteration with a factorization (the Gauss-Newton

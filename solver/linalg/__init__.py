@@ -82,7 +82,7 @@ from . import analysis_cache
 from .analysis_cache import analysis_cache_info, clear_analysis_cache, release_cached_factors
 from .backends import BACKENDS, available_backends, default_backend, resolve_backend
 from .errors import BackendUnavailableError, SingularSystemError
-from .factorization import RESIDUAL_TOLERANCE, Factorization, factorize
+from .factorization import RESIDUAL_TOLERANCE, Factorization, analyze, factorize
 
 __all__ = [
     "ANALYSIS_CACHE_BYTES",
@@ -92,6 +92,7 @@ __all__ = [
     "Factorization",
     "SingularSystemError",
     "analysis_cache_info",
+    "analyze",
     "available_backends",
     "clear_analysis_cache",
     "default_backend",

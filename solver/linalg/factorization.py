@@ -16,7 +16,7 @@ import scipy.sparse as sp
 
 from .backends import SOLVERS, EmptySolver, NativeSolver, resolve_backend
 from .errors import SingularSystemError
-from .pardiso import PardisoSolver
+from .pardiso import PardisoSolver, analyze_upper
 
 RESIDUAL_TOLERANCE: float = 1e-6
 """Largest accepted relative residual ``||K x - b|| / ||b||`` of a solved column."""
@@ -298,6 +298,35 @@ def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
         raise ValueError(f"triangle must be 'full' or 'upper', got {triangle!r}")
     K = _canonical_matrix(matrix, assume_symmetric)
     return Factorization(K, name, _ordering_groups(groups, K.shape[0]))
+
+
+def analyze(matrix: sp.spmatrix | sp.sparray, backend: str = "auto") -> bool:
+    """Prepare the first :func:`factorize` of a pattern ahead of time: with PARDISO, compute
+    and cache its analysis (ordering and symbolic factorization), which only the sparsity
+    pattern determines, so that the factorization later pays only its numerical phase.
+    Other backends keep no analysis: nothing is done.
+
+    Args:
+        matrix: (N, N) upper triangle as :func:`factorize` reads it with
+            ``triangle="upper"`` (canonical CSR, every diagonal entry stored); its values
+            are not read.
+        backend: as in :func:`factorize`.
+
+    Returns:
+        Whether an analysis was computed (False: another backend, or PARDISO had it
+        cached already, or the cache is disabled).
+
+    Example:
+        >>> import scipy.sparse as sp
+        >>> from solver.linalg import analyze, factorize
+        >>> upper = sp.csr_array([[4.0, 1.0], [0.0, 3.0]])
+        >>> first = analyze(upper)
+        >>> factorize(upper, triangle="upper").solve([5.0, 4.0]).round(12).tolist()
+        [1.0, 1.0]
+    """
+    if resolve_backend(backend) != "pardiso":
+        return False
+    return analyze_upper(_upper_csr(matrix))
 
 
 def _upper_csr(matrix: Any) -> sp.csr_array:

@@ -323,6 +323,46 @@ def group_ordering(mkl: _Mkl, ia: np.ndarray, ja: np.ndarray,
     return np.argsort(position[groups], kind="stable").astype(np.int32)
 
 
+def analyze_upper(triangle: sp.csr_array) -> bool:
+    """Compute and cache PARDISO's analysis (ordering and symbolic factorization) of an
+    upper-triangle pattern without factorizing, so that the first factorization of that
+    pattern pays only its numerical phase (e.g. an interactive session's first refined
+    drag). Only the pattern is read: the values may be anything.
+
+    Args:
+        triangle: (N, N) canonical CSR upper triangle, every diagonal entry stored.
+
+    Returns:
+        True where an analysis was computed; False where the cache already had the pattern
+        or is disabled (``ANALYSIS_CACHE_BYTES = 0``).
+
+    Raises:
+        ImportError: MKL cannot be loaded.
+        RuntimeError: PARDISO failed to analyse the pattern.
+    """
+    if analysis_cache.ANALYSIS_CACHE_BYTES <= 0:
+        return False
+    n = int(triangle.shape[0])
+    ia = np.ascontiguousarray(triangle.indptr, dtype=np.int32)
+    ja = np.ascontiguousarray(triangle.indices, dtype=np.int32)
+    key = pattern_key(n, ia, ja, False)
+    handle, perm = analysis_cache.CACHE.acquire(key)
+    if handle is not None:  # an idle analysed handle: give it back untouched
+        analysis_cache.CACHE.park(key, handle)
+        return False
+    handle = PardisoHandle(load_mkl(), n, perm)
+    values = np.zeros(len(ja))
+    values[ia[:-1]] = 1.0  # each row starts at its diagonal entry
+    error = handle.call(11, values, ia, ja)
+    if error:
+        handle.release()
+        raise RuntimeError(f"PARDISO analysis failed: error {error} "
+                           f"({PARDISO_ERRORS.get(error, '?')})")
+    analysis_cache.CACHE.remember(key, handle.perm)
+    analysis_cache.CACHE.park(key, handle)
+    return True
+
+
 def _retire(handle: PardisoHandle, key: bytes) -> None:
     """Finalizer of a PARDISO solver: give its analysis to the cache, or free it."""
     if analysis_cache.ANALYSIS_CACHE_BYTES > 0:

@@ -283,3 +283,36 @@ def test_new_handle_set_on_the_same_mesh_reuses_the_analysis() -> None:
     linalg.ANALYSIS_CACHE_BYTES = 0
     fresh = Deformer(mesh.vertices, mesh.faces, [5, 17, 30, 41], backend="pardiso")
     np.testing.assert_allclose(fresh.solve(target), moved, rtol=0, atol=1e-12)
+
+
+def test_analysis_ahead_of_the_first_factorization() -> None:
+    """analyze() computes and caches the analysis of a pattern from its upper triangle
+    (values unread): the first factorization of that pattern then pays only its numerical
+    phase and solves exactly as an unprepared one; a second analyze() finds it cached."""
+    K, b = noisy_system(*grid_mesh(12, False))
+    upper = sp.csr_array(sp.triu(K, format="csr"))
+    upper.sort_indices()
+    scrambled = upper.copy()
+    scrambled.data = np.random.default_rng(0).normal(size=len(upper.data))  # not SPD
+    assert linalg.analyze(scrambled, "pardiso")
+    assert analysis_cache_info()["idle_handles"] == 1
+    assert not linalg.analyze(upper, "pardiso")  # cached already
+    prepared = factorize(upper, "pardiso", triangle="upper")
+    assert prepared.analysis == "cached" and prepared.timings["analysis"] == 0.0
+    assert relative(prepared.solve(b), spsolve(sp.csc_array(K), b)) < 1e-10
+    assert not linalg.analyze(upper, "superlu")  # no analysis to keep
+
+
+def test_a_refining_deformer_analyses_its_refinement_at_set_up() -> None:
+    """Deformer(refine=True) builds its refinement (pattern included) and has PARDISO
+    analyse the Gauss-Newton matrix when it is set up, so that the first refined drag's
+    first factorization is numerical only."""
+    V, F = grid_mesh(14, False)
+    handles = np.array([0, 13, 182, 195])
+    deformer = Deformer(V, F, handles, refine=True)
+    assert deformer._refiner is not None
+    before = analysis_cache_info()
+    deformer.solve(V[handles] + [0.0, 0.0, 0.3])
+    after = analysis_cache_info()
+    assert deformer.last_report["factorizations"] >= 1
+    assert after["computed"] == before["computed"]  # nothing analysed during the drag

@@ -25,8 +25,9 @@ Sections (``--sections``, default all):
 * ``time``: the default (refined) answer against the linear answer of the same call
   (``refine=False``), both warm (second call on the mesh: analyses cached), medians of
   alternating runs, on noisy and x0.8 forms from 5K faces up (100K with ``--large``) and on
-  very irregular genus-1 meshes (rocker-arm with 30 edges split to 1e-4 of their length,
-  and the same with 9 near-zero-area faces);
+  very irregular meshes (rocker-arm, genus 1, with 30 edges split to 1e-4 of their
+  length, and the same with 9 near-zero-area faces; with ``--large`` also stanford-bunny,
+  69K faces, the size of issue 19's held-out irregular mesh);
   iterations, factorizations and back-substitutions of the refinement; the scaling
   exponents of both answers (least-squares slope of log time against log faces).
 

@@ -17,7 +17,8 @@ Sections (``--sections``, default all):
 * ``parameterize``: flipped faces and mean length change against libigl's ARAP
   parameterization (harmonic start, 200 iterations).
 * ``drag``: a session's refined drag at ~20K faces against the linear drag and libigl ARAP
-  with 10 iterations.
+  with 10 iterations; every session starts with empty pattern and analysis caches, as one
+  on a new mesh does.
 * ``weights``: the measurements behind the default angle weights and the uniform weighting.
 * ``optimum``: the time section's cases (without ``--large``): how far the default answer
   stops from the exact optimum of its energy (the differentiable reconstruction's Newton

@@ -85,6 +85,16 @@ mean target edge length: where the valley of E is flat, its decrease is below
 :data:`ENERGY_TOLERANCE` long before the positions settle (angles x 0.8 on the bunny: the
 answer was 5.5e-4 of its size from the exact optimum without this, 6e-5 with it;
 ``python -m bench.refinement --sections optimum``)."""
+REFUSED_PREDICTION = 2.0
+"""A kept factor's step that is refused after gaining at most :data:`ENERGY_TOLERANCE` of E
+at the best length tried still ends a run that is not interactive (converged) where the
+factor predicted at most this many times :data:`ENERGY_TOLERANCE` of E: the model of a
+nearby point overestimates what is left, and its best direction finds none of it
+(nefertiti, noisy angles, min angle 0.06°: its prediction was 1.02e-3 of E and its step
+gained nothing; 1 factorization instead of 2, 1.5e-5 of the size from the exact optimum
+instead of 2.6e-7, the same 3.4e-5 from the original mesh). Not in a session's drags: their
+kept factors come from other shapes (a pause's refinement stopped at a mean length change
+of 0.0183 instead of 0.0158 with it)."""
 SMALL_FROZEN_STEPS = 2
 """A factor takes at most this many further steps after a small, well-predicted one of its
 own that moved more than :data:`QUASI_NEWTON_REACH` before a fresh factorization confirms
@@ -291,8 +301,9 @@ class Refiner:
                     slope = float(np.einsum("i,i->", g, step))
                     predicted = -0.5 * slope
                 found = self._line_search(s.X, step, energy, slope) if slope < 0 else None
+                gained = energy - found[2] if found is not None else 0.0
                 if (found is not None and not s.fresh and not s.keep_factor
-                        and energy - found[2] < FROZEN_GAIN * predicted):
+                        and gained < FROZEN_GAIN * predicted):
                     # A step of a factor built elsewhere that lowers E by less than half its
                     # prediction went astray: a fresh step from here does better (angles
                     # x 0.8: one taken with gain 0.14 left the next fresh step 2e-4 of E
@@ -304,9 +315,16 @@ class Refiner:
                 # is left is below the convergence test, confirmed without a fresh
                 # factorization (x 0.8 forms: one factorization fewer).
                 reach = float(np.abs(step).max(initial=0.0)) / system.energy.scale
+                # So does one whose step, refused, gained at most that much at its best
+                # length while the factor predicted at most REFUSED_PREDICTION times it (not
+                # in a session's drags, whose kept factors come from other shapes).
                 negligible = (not s.fresh and _trusted(s)
-                              and predicted <= ENERGY_TOLERANCE * energy
-                              and (s.keep_factor or reach <= QUASI_NEWTON_REACH))
+                              and (s.keep_factor or reach <= QUASI_NEWTON_REACH)
+                              and (predicted <= ENERGY_TOLERANCE * energy
+                                   or (found is None and not s.keep_factor
+                                       and gained <= ENERGY_TOLERANCE * energy
+                                       and predicted <= REFUSED_PREDICTION
+                                       * ENERGY_TOLERANCE * energy)))
                 if found is None:
                     s.rejected += 1
                     if negligible:

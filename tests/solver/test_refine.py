@@ -157,6 +157,24 @@ def test_well_predicted_steps_of_a_kept_factor_finish_without_refactorizing():
     assert np.abs(optimum.vertices - result.vertices).max() <= 1e-4 * size
 
 
+@pytest.mark.skipif(not (SHARED / "nefertiti.obj").exists(),
+                    reason="../shared/meshes is not present")
+def test_a_refused_step_of_a_factor_that_expects_little_ends_the_run():
+    """Noisy angles on nefertiti (100K faces, min angle 0.06°): after one Gauss-Newton
+    factorization the kept factor predicts 1.02e-3 of E (just over ENERGY_TOLERANCE) and
+    its step gains nothing at any length: the run ends there, converged, instead of
+    factorizing again to confirm (solver.refine.REFUSED_PREDICTION), as near the mesh the
+    forms came from as the confirmed answer (3.4e-5 of the diagonal)."""
+    V, F = load(SHARED / "nefertiti.obj")
+    forms = fundamental_forms(V, F)
+    inner = build_topology(F, len(V)).interior_edges
+    forms.angles[inner] += np.random.default_rng(1).normal(0, 1e-3, len(inner))
+    result = solve(forms)
+    report = result.report["refinement"]
+    assert report["converged"] and report["factorizations"] == 1, report["factorizations"]
+    assert rigid_alignment_error(result.vertices, V) < 5e-5
+
+
 def test_a_refinement_that_crawls_stops_and_says_so():
     """A knight with 5 faces flattened to 1e-6 of their width and 10 needle edges, noisy
     angles: the damping grows until steps barely lower E; the refinement stops after 5

@@ -58,7 +58,12 @@ from solver.refine import clear_pattern_cache
 from solver.topology import build_topology
 from tests.helpers.botsch_sorkine import load_case
 from tests.helpers.libigl_reference import arap_deformation, arap_parameterization, flipped_faces
-from tests.helpers.meshes import rigid_alignment_error, with_cap_faces, with_tiny_edges
+from tests.helpers.meshes import (
+    rigid_alignment_error,
+    with_cap_faces,
+    with_noisy_angles,
+    with_tiny_edges,
+)
 
 SCALE_MESHES = ["decimated-knight.off", "bunny.off", "face.off", "rocker-arm.obj", "beetle.off"]
 NOISE_MESHES = ["decimated-knight.off", "torus.off", "bunny.off", "face.off",
@@ -121,9 +126,7 @@ def noise_section(meshes: list[str]) -> None:
                "| iterations | refine s | total s |")
     for name in meshes:
         V, F, forms = shared_forms(name)
-        topo = build_topology(F, len(V))
-        rng = np.random.default_rng(1)
-        forms.angles[topo.interior_edges] += rng.normal(0, 1e-3, len(topo.interior_edges))
+        forms = with_noisy_angles(forms)
         linear = reconstruct(forms, refine=False)
         ortho = reconstruct(forms, refine=False, orthonormalize=True)
         refined, seconds = timed(reconstruct, forms)
@@ -295,14 +298,6 @@ TIME_MESHES = ["bunny.off", "cactus.off", "rocker-arm.obj", "beetle.off"]
 TIME_LARGE = ["stanford-bunny.obj", "armadillo.obj", "nefertiti.obj"]
 
 
-def noisy(forms, seed: int = 1, sigma: float = 1e-3):
-    """A copy of ``forms`` with N(0, sigma) rad added to the interior dihedral angles."""
-    inner = build_topology(forms.faces).interior_edges
-    angles = forms.angles.copy()
-    angles[inner] += np.random.default_rng(seed).normal(0, sigma, len(inner))
-    return solver.Forms(forms.faces, forms.edges, forms.lengths, angles)
-
-
 def warm_pair(forms, repeats: int = 3) -> tuple[float, float, object]:
     """Median seconds of the linear and of the default answer (``solver.reconstruct`` with
     its defaults), alternating after one untimed call of each; and the default result."""
@@ -334,7 +329,7 @@ def time_case_forms(name: str, kind: str):
     if kind == "x0.8":
         forms.angles *= 0.8
         return V, forms
-    return V, noisy(forms)
+    return V, with_noisy_angles(forms)
 
 
 def time_section(meshes: list[str], irregular: list[str] | None = None) -> None:
@@ -403,9 +398,8 @@ def weights_section() -> None:
     table_head("Angle weight beta, prescribed forms: noise N(0, 1e-3), distance / diagonal",
                "| mesh | beta = 0.05 | 0.005 (default) | 0.0005 |")
     for name in ("octopus-low-surface.off", "face.off", "torus.off"):
-        V, F, forms = shared_forms(name)
-        inner = build_topology(F, len(V)).interior_edges
-        forms.angles[inner] += np.random.default_rng(5).normal(0, 1e-3, len(inner))
+        V, _, forms = shared_forms(name)
+        forms = with_noisy_angles(forms, seed=5)
         cells = [f"{rigid_alignment_error(reconstruct(forms, angle_weight=b).vertices, V):.2e}"
                  for b in (0.05, 0.005, 0.0005)]
         print(f"| {name} | " + " | ".join(cells) + " |")

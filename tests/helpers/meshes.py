@@ -244,3 +244,16 @@ def with_cap_faces(V: np.ndarray, F: np.ndarray, count: int, height: float = 1e-
             np.linalg.norm(normal)
         used |= {a, b, c}
     return V
+
+
+def with_noisy_angles(forms, seed: int = 1, sigma: float = 1e-3):
+    """A copy of ``forms`` (:class:`solver.Forms`) with N(0, ``sigma``) rad drawn from
+    ``default_rng(seed)`` added to the dihedral angles of the interior edges, in edge order
+    (boundary angles stay 0): the noisy forms of the tests and of bench/."""
+    import solver
+    from solver.topology import build_topology
+
+    inner = build_topology(forms.faces).interior_edges
+    angles = np.array(forms.angles, dtype=np.float64)
+    angles[inner] += np.random.default_rng(seed).normal(0, sigma, len(inner))
+    return solver.Forms(forms.faces, forms.edges, forms.lengths, angles)

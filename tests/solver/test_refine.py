@@ -37,6 +37,7 @@ from tests.helpers.meshes import (
     load,
     rigid_alignment_error,
     with_cap_faces,
+    with_noisy_angles,
     with_tiny_edges,
 )
 
@@ -118,23 +119,28 @@ def test_the_curvature_kept_across_needle_edges_matches_finite_differences():
     assert np.all(np.einsum("ki,kij,kj->k", d, M, d) > 0.1 * gauss_newton)  # not negligible
 
 
+def distance_to_exact_optimum(result, forms) -> float:
+    """Largest vertex distance, over the answer's size, from a reconstruction ``result`` of
+    ``forms`` to the exact optimum of its energy (the adjoint's Newton polish with the exact
+    Hessian, which must converge)."""
+    optimum, vjp = reconstruct_vjp(forms.faces, forms.edges, forms.lengths, forms.angles)
+    assert vjp.report["polish_converged"]
+    size = np.ptp(result.vertices, axis=0).max()
+    return float(np.abs(optimum.vertices - result.vertices).max() / size)
+
+
 def test_noisy_forms_on_needle_edges_converge_near_the_exact_optimum():
     """Noisy angles on a torus with 20 edges split to 1e-4 of their length: the default
     refinement converges within 1e-3 of the size of the exact optimum (the adjoint's Newton
     polish) and near the original, in at most 6 factorizations (8 before the needle edges'
     curvature was kept, 4 with it)."""
     V, F = with_tiny_edges(*load("torus.off"), count=20)
-    forms = fundamental_forms(V, F)
-    inner = build_topology(F, len(V)).interior_edges
-    forms.angles[inner] += np.random.default_rng(4).normal(0, 1e-3, len(inner))
+    forms = with_noisy_angles(fundamental_forms(V, F), seed=4)
     result = solve(forms)
     report = result.report["refinement"]
     assert report["converged"] and report["factorizations"] <= 6
     assert rigid_alignment_error(result.vertices, V) < 3e-4
-    optimum, vjp = reconstruct_vjp(forms.faces, forms.edges, forms.lengths, forms.angles)
-    assert vjp.report["polish_converged"]
-    size = np.ptp(result.vertices, axis=0).max()
-    assert np.abs(optimum.vertices - result.vertices).max() <= 1e-3 * size
+    assert distance_to_exact_optimum(result, forms) <= 1e-3
 
 
 @pytest.mark.skipif(not (SHARED / "cactus.off").exists(),
@@ -151,10 +157,7 @@ def test_well_predicted_steps_of_a_kept_factor_finish_without_refactorizing():
     result = solve(forms)
     report = result.report["refinement"]
     assert report["converged"] and report["factorizations"] == 2, report["factorizations"]
-    optimum, vjp = reconstruct_vjp(forms.faces, forms.edges, forms.lengths, forms.angles)
-    assert vjp.report["polish_converged"]
-    size = np.ptp(result.vertices, axis=0).max()
-    assert np.abs(optimum.vertices - result.vertices).max() <= 1e-4 * size
+    assert distance_to_exact_optimum(result, forms) <= 1e-4
 
 
 @pytest.mark.skipif(not (SHARED / "nefertiti.obj").exists(),
@@ -166,9 +169,7 @@ def test_a_refused_step_of_a_factor_that_expects_little_ends_the_run():
     factorizing again to confirm (solver.refine.REFUSED_PREDICTION), as near the mesh the
     forms came from as the confirmed answer (3.4e-5 of the diagonal)."""
     V, F = load(SHARED / "nefertiti.obj")
-    forms = fundamental_forms(V, F)
-    inner = build_topology(F, len(V)).interior_edges
-    forms.angles[inner] += np.random.default_rng(1).normal(0, 1e-3, len(inner))
+    forms = with_noisy_angles(fundamental_forms(V, F))
     result = solve(forms)
     report = result.report["refinement"]
     assert report["converged"] and report["factorizations"] == 1, report["factorizations"]
@@ -182,9 +183,7 @@ def test_a_refinement_that_crawls_stops_and_says_so():
     its answer is still no worse than its start and near the original."""
     V, F = load("decimated-knight.off")
     V, F = with_tiny_edges(with_cap_faces(V, F, 5), F, count=10)
-    forms = fundamental_forms(V, F)
-    inner = build_topology(F, len(V)).interior_edges
-    forms.angles[inner] += np.random.default_rng(4).normal(0, 1e-3, len(inner))
+    forms = with_noisy_angles(fundamental_forms(V, F), seed=4)
     report = (result := solve(forms)).report["refinement"]
     assert report["stop_reason"] == "stalled" and not report["converged"], report
     assert report["iterations"] < 30
@@ -214,10 +213,7 @@ def test_noisy_angles_give_the_original_mesh_back(name):
     diagonal of the mesh the forms came from (after rigid alignment), and much closer than
     the linear answer."""
     V, F = NOISY_MESHES[name]()
-    forms = fundamental_forms(V, F)
-    inner = build_topology(F, len(V)).interior_edges
-    rng = np.random.default_rng(5)
-    forms.angles[inner] += rng.normal(scale=1e-3, size=len(inner))
+    forms = with_noisy_angles(fundamental_forms(V, F), seed=5)
     linear = solve(forms, refine=False)
     refined = solve(forms)
     report = refined.report["refinement"]

@@ -20,9 +20,10 @@ Sections (``--sections``, default all):
   with 10 iterations; every session starts with empty pattern and analysis caches, as one
   on a new mesh does.
 * ``weights``: the measurements behind the default angle weights and the uniform weighting.
-* ``optimum``: the time section's cases (without ``--large``): how far the default answer
-  stops from the exact optimum of its energy (the differentiable reconstruction's Newton
-  polish with the exact Hessian), in units of the answer's size.
+* ``optimum``: the time section's cases (without ``--large``; with it, nefertiti's noisy
+  forms too): how far the default answer stops from the exact optimum of its energy (the
+  differentiable reconstruction's Newton polish with the exact Hessian), in units of the
+  answer's size.
 * ``time``: the default (refined) answer against the linear answer of the same call
   (``refine=False``), both warm (second call on the mesh: analyses cached), medians of
   alternating runs, on noisy and x0.8 forms from 5K faces up (100K with ``--large``) and on
@@ -369,14 +370,17 @@ def time_section(meshes: list[str], irregular: list[str] | None = None) -> None:
               f"{scaling_exponent(sizes, default_times):.2f}")
 
 
-def optimum_section(meshes: list[str]) -> None:
-    """How far the default answer stops from the exact optimum of its energy."""
+def optimum_section(meshes: list[str], large: bool = False) -> None:
+    """How far the default answer stops from the exact optimum of its energy; ``large``
+    adds nefertiti's noisy forms (100K faces; the case of ``REFUSED_PREDICTION``)."""
     from solver.differentiable import reconstruct_vjp
 
     table_head("Distance of the default answer to the exact optimum / size",
                "| case | faces | iterations | factorizations | distance to the optimum |")
     cases = [(name, kind) for name in meshes for kind in ("noise", "x0.8")]
     cases.append(("rocker-arm.obj", "irregular"))
+    if large:
+        cases.append(("nefertiti.obj", "noise"))
     for name, kind in cases:
         forms = time_case_forms(name, kind)[1]
         args = (forms.faces, forms.edges, forms.lengths, forms.angles)
@@ -443,7 +447,7 @@ def main() -> None:
            "parameterize": lambda: parameterize_section(param), "drag": drag_section,
            "weights": weights_section,
            "time": lambda: time_section(TIME_MESHES + (TIME_LARGE if args.large else [])),
-           "optimum": lambda: optimum_section(TIME_MESHES)}
+           "optimum": lambda: optimum_section(TIME_MESHES, args.large)}
     for section in args.sections:
         run[section]()
         sys.stdout.flush()

@@ -98,9 +98,9 @@ of 0.0183 instead of 0.0158 with it)."""
 SMALL_FROZEN_STEPS = 2
 """A factor takes at most this many further steps after a small, well-predicted one of its
 own that moved more than :data:`QUASI_NEWTON_REACH` before a fresh factorization confirms
-convergence (cactus x 0.8: the second of two such steps moved 1.6e-3 of an edge, 2
-factorizations instead of 3). Fewer than :data:`STALL_STEPS`: steps continued this way
-cannot end a run as stalled."""
+convergence (cactus x 0.8: two such steps of 1.1e-2 and 1.2e-2 of an edge, then one of
+1.6e-3 that converged; 2 factorizations instead of 3). Fewer than :data:`STALL_STEPS`:
+steps continued this way cannot end a run as stalled."""
 KEPT_STEPS = 20
 """A run that starts from a kept factor (``keep_factor``: a session's drags after the
 first) keeps it for up to this many quasi-Newton steps, rebuilding it only when a step
@@ -314,12 +314,12 @@ class Refiner:
                 # less than ENERGY_TOLERANCE of E from here (a Newton-decrement test): what
                 # is left is below the convergence test, confirmed without a fresh
                 # factorization (x 0.8 forms: one factorization fewer).
-                reach = float(np.abs(step).max(initial=0.0)) / system.energy.scale
+                moved = float(np.abs(step).max(initial=0.0)) / system.energy.scale
                 # So does one whose step, refused, gained at most that much at its best
                 # length while the factor predicted at most REFUSED_PREDICTION times it (not
                 # in a session's drags, whose kept factors come from other shapes).
                 negligible = (not s.fresh and _trusted(s)
-                              and (s.keep_factor or reach <= QUASI_NEWTON_REACH)
+                              and (s.keep_factor or moved <= QUASI_NEWTON_REACH)
                               and (predicted <= ENERGY_TOLERANCE * energy
                                    or (found is None and not s.keep_factor
                                        and gained <= ENERGY_TOLERANCE * energy
@@ -349,7 +349,6 @@ class Refiner:
                 # A full Gauss-Newton step (fresh matrix, little damping) that barely lowers
                 # E: converged. A quasi-Newton, shortened or heavily damped step says nothing.
                 full = s.fresh and alpha == 1.0 and s.damping <= 1.0
-                moved = reach
                 decrease, s.X, s.energy = energy - new_energy, trial, new_energy
                 energy = new_energy
                 s.trace.append(energy)

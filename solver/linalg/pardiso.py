@@ -338,7 +338,8 @@ def analyze_upper(triangle: sp.csr_array) -> bool:
 
     Raises:
         ImportError: MKL cannot be loaded.
-        RuntimeError: PARDISO failed to analyse the pattern.
+        MemoryError, RuntimeError: PARDISO failed to analyse the pattern (as
+            :class:`PardisoSolver` reports its failures).
     """
     if analysis_cache.ANALYSIS_CACHE_BYTES <= 0:
         return False
@@ -353,11 +354,7 @@ def analyze_upper(triangle: sp.csr_array) -> bool:
     handle = PardisoHandle(load_mkl(), n, perm)
     values = np.zeros(len(ja))
     values[ia[:-1]] = 1.0  # each row starts at its diagonal entry
-    error = handle.call(11, values, ia, ja)
-    if error:
-        handle.release()
-        raise RuntimeError(f"PARDISO analysis failed: error {error} "
-                           f"({PARDISO_ERRORS.get(error, '?')})")
+    PardisoSolver._raise_if_failed(handle, handle.call(11, values, ia, ja))
     analysis_cache.CACHE.remember(key, handle.perm)
     analysis_cache.CACHE.park(key, handle)
     return True

@@ -10,6 +10,9 @@ rounds (so that machine load hits both alike), it times on the same matrix:
 * ``groups hint``: the ordering of the compressed graph (one node per vertex,
   :func:`solver.linalg.pardiso.group_ordering`) passed as a user permutation, which makes
   MKL build the classic factor;
+* ``single precision``: PARDISO's ordering, factorized and solved in float32
+  (:mod:`solver.mixed_precision`; a refinement's solve then costs two of these solves and
+  a product with the matrix);
 
 the analysis (ordering and symbolic factorization, once per pattern: cached afterwards), the
 numerical factorization and a one-column solve, with nnz(L); and the assembly of the matrix
@@ -72,20 +75,23 @@ def one_round(values, ia, ja, g, groups, solves: int = 9) -> dict[str, list[floa
     each variant."""
     mkl = pardiso.load_mkl()
     out = {}
-    for label, hinted in (("PARDISO's ordering", False), ("groups hint", True)):
+    variants = (("PARDISO's ordering", False, False), ("groups hint", True, False),
+                ("single precision", False, True))
+    for label, hinted, single in variants:
         t0 = time.perf_counter()
         perm = pardiso.group_ordering(mkl, ia, ja, groups) if hinted else None
-        handle = pardiso.PardisoHandle(mkl, len(ia) - 1, perm)
-        assert handle.call(11, values, ia, ja) == 0
+        handle = pardiso.PardisoHandle(mkl, len(ia) - 1, perm, single=single)
+        a = values.astype(np.float32 if single else np.float64)
+        assert handle.call(11, a, ia, ja) == 0
         t1 = time.perf_counter()
-        assert handle.call(22, values, ia, ja) == 0
+        assert handle.call(22, a, ia, ja) == 0
         t2 = time.perf_counter()
-        b = np.asfortranarray(g[:, None])
+        b = np.asfortranarray(g[:, None], dtype=a.dtype)
         x = np.zeros_like(b)
         times = []
         for _ in range(solves):
             t = time.perf_counter()
-            handle.call(33, values, ia, ja, b, x, 1)
+            handle.call(33, a, ia, ja, b, x, 1)
             times.append(time.perf_counter() - t)
         out[label] = [t1 - t0, t2 - t1, float(np.median(times)), float(handle.iparm[17])]
         handle.release()
@@ -102,7 +108,7 @@ def main() -> None:
     print("| mesh | faces | unknowns | variant | analysis ms | factorization ms "
           "| solve ms | nnz(L) |")
     print("|---|---|---|---|---|---|---|---|")
-    assemblies, own = [], []
+    assemblies, own, single = [], [], []
     for name in args.meshes:
         values, ia, ja, g, faces, assembly = gauss_newton_matrix(name)
         assemblies.append((name, faces, assembly))
@@ -114,6 +120,8 @@ def main() -> None:
                   f"{1000 * medians[1]:.0f} | {1000 * medians[2]:.1f} | {medians[3]:.0f} |")
             if label == "PARDISO's ordering":
                 own.append((faces, medians[1], medians[2], medians[3]))
+            elif label == "single precision":
+                single.append(medians[1])
     print("\n| mesh | faces | assembly of matrix + gradient ms | gradient alone ms |")
     print("|---|---|---|---|")
     for name, faces, (full, gradient) in assemblies:
@@ -124,7 +132,8 @@ def main() -> None:
               f"{scaling_exponent(faces, [row[1] for row in own]):.2f}, solve "
               f"{scaling_exponent(faces, [row[2] for row in own]):.2f}, nnz(L) "
               f"{scaling_exponent(faces, [row[3] for row in own]):.2f}, assembly "
-              f"{scaling_exponent(faces, [a[2][0] for a in assemblies]):.2f}")
+              f"{scaling_exponent(faces, [a[2][0] for a in assemblies]):.2f}; "
+              f"single-precision factorization {scaling_exponent(faces, single):.2f}")
 
 
 if __name__ == "__main__":

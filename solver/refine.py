@@ -47,7 +47,8 @@ from .form_energy import (  # noqa: F401 - re-exported: the refinement's public 
     reproduces,
     signed_areas,
 )
-from .linalg import SingularSystemError, analyze, factorize
+from .linalg import SingularSystemError, analyze, factorize, resolve_backend
+from .mixed_precision import ImpreciseSolveError, SinglePrecisionFactor
 from .normal_equations import (  # noqa: F401 - re-exported
     PATTERN_CACHE_BYTES,
     GaussNewtonSystem,
@@ -128,6 +129,13 @@ iterations and 4 factorizations against 2 and 1 to a lower energy; docs/refineme
 MIN_DAMPING = 1e-12  # the Nielsen update never lowers lambda below this
 REFUSED_DAMPING = 1e-4  # at least this lambda after a fresh step that no backtracking saved
 MAX_DAMPING = 1e12  # relative damping at which a step is declared impossible
+SINGLE_PRECISION_SPREAD = 1e4
+"""Largest spread (largest over median entry) of the damped Gauss-Newton matrix's diagonal
+that is factorized in single precision (:func:`factor_precision`)."""
+SINGLE_PRECISION_ERROR = 0.1
+"""Largest relative correction of a single-precision factor's solve by its refinement step
+before the refinement factorizes in double precision instead (the beetle's soft rims:
+0.12-0.58; rocker-arm, the bunny: ~1e-3; armadillo, nefertiti: 2-4e-2)."""
 
 @dataclass
 class Refinement:
@@ -173,6 +181,7 @@ class Refiner:
         # keep_factor run ended with (see run(keep_factor=True)).
         self._kept: tuple[Any, sp.csr_array, RigidProjection] | None = None
         self._kept_damping = INITIAL_DAMPING
+        self._double = False  # a single-precision factor was too inexact: double from now on
         self._paused: _Iteration | None = None  # a run stopped at its time limit (resume)
         self._iteration_seconds: dict[str, float | None] = {"refresh": None, "step": 0.0}
         """Seconds of the last iteration with a factorization and without (the time limit
@@ -282,24 +291,16 @@ class Refiner:
                 if refresh:
                     s.factor = None  # frees its analysis for the cache: the next one reuses it
                     try:
-                        s.factor = self._damped_factor(H, s.damping)
+                        s.factor = self._damped_factor(H, s.damping, not s.keep_factor)
                     except SingularSystemError:
                         s.damping, s.rejected = s.damping * 10.0, s.rejected + 1
                         continue
-                    s.factorizations += 1
+                    s.factorizations, s.precision = s.factorizations + 1, s.factor.precision
                     s.model, s.fresh, s.frozen_steps, s.factor_gain = H, True, 0, 0.0
                     s.projection = self.rigid_motions.at(s.X[self.form_energy.free])
                     s.memory.clear()
                 s.solves += 1
-                if s.fresh:
-                    step = -s.solve(g)
-                    slope = float(np.einsum("i,i->", g, step))  # < 0: H + D is SPD
-                    # Gain ratio of the full step: actual decrease over the model's.
-                    predicted = -slope - 0.5 * system.quadratic_form(s.model, step)
-                else:  # L-BFGS on the factor: its model along the step is -slope / 2
-                    step = -s.memory.inverse_hessian(s.solve, g)
-                    slope = float(np.einsum("i,i->", g, step))
-                    predicted = -0.5 * slope
+                step, slope, predicted = self._direction(s, g)
                 found = self._line_search(s.X, step, energy, slope) if slope < 0 else None
                 gained = energy - found[2] if found is not None else 0.0
                 if (found is not None and not s.fresh and not s.keep_factor
@@ -403,9 +404,10 @@ class Refiner:
     def prepare(self) -> None:
         """Have the factorization backend analyse the Gauss-Newton matrix's pattern now
         (PARDISO's ordering and symbolic factorization, cached per pattern: they depend on
-        the pattern only), so that the first factorization of a later run pays only its
-        numerical phase: a session's first refined drag, whose frame budget would
-        otherwise go to the analysis (:class:`solver.deform.Deformer` calls it at set-up)."""
+        the pattern only), so that the first factorization of a later interactive run
+        (``keep_factor``, factorized in double precision) pays only its numerical phase: a
+        session's first refined drag, whose frame budget would otherwise go to the
+        analysis (:class:`solver.deform.Deformer` calls it at set-up)."""
         system = self.system
         if system.n_free:
             n = system.n_free * system.dim
@@ -436,7 +438,19 @@ class Refiner:
         kind = "refresh" if refresh or s.factor is None else "step"
         return left > (self._iteration_seconds[kind] or 0.0)
 
-    def _damped_factor(self, H: sp.csr_array, damping: float) -> Any:
+    def _direction(self, s: _Iteration, g: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """:meth:`_Iteration.direction`; where the factor, computed in single precision,
+        proves too inexact for it, the same matrix is factorized again in double precision,
+        as every later one of this refiner (:func:`factor_precision`)."""
+        try:
+            return s.direction(g, self.system)
+        except ImpreciseSolveError:
+            self._double = True
+            s.factor = factorize(s.factor.matrix, self.backend, triangle="upper")
+            s.factorizations, s.precision = s.factorizations + 1, "double"
+            return s.direction(g, self.system)
+
+    def _damped_factor(self, H: sp.csr_array, damping: float, single: bool = False) -> Any:
         """Factorization of ``H + damping diag(H)`` (Levenberg-Marquardt; the diagonal is
         floored at 1e-9 of its mean, which is also added, so that H + D is definite).
         Raises :class:`SingularSystemError` where the backend finds it singular.
@@ -445,7 +459,14 @@ class Refiner:
         factor, which a given ordering turns into the classic one. On the Gauss-Newton
         matrix its factorizations are 1.1-1.3x and its solves 1.7x faster than with the
         hint, its analysis (once per pattern, then cached) 1.2x slower (rocker-arm and
-        beetle, two MKL threads: ``python -m bench.gauss_newton_factor``)."""
+        beetle, two MKL threads: ``python -m bench.gauss_newton_factor``). It factorizes
+        in single precision where ``single`` asks for it and the diagonal allows
+        (:func:`factor_precision`), and in double from the first time single precision
+        finds the matrix not positive definite or one of its solves too inexact
+        (:meth:`_direction`). Interactive runs (``keep_factor``) factorize in double: their
+        factors serve many solves, each of which single precision makes three times as
+        costly (two back-substitutions and a product), and a session's pattern is analysed
+        ahead of time in one precision (:meth:`prepare`)."""
         positions = self.system.diagonal_positions
         diag = H.data[positions]
         floor = 1e-9 * float(diag.mean())
@@ -453,6 +474,12 @@ class Refiner:
         values[positions] += damping * np.maximum(diag, floor) + floor
         damped = sp.csr_array((values, H.indices, H.indptr), shape=H.shape)
         damped.has_canonical_format = True
+        if (single and not self._double and resolve_backend(self.backend) == "pardiso"
+                and factor_precision(values[positions]) == "single"):
+            try:
+                return SinglePrecisionFactor(damped, self.backend, SINGLE_PRECISION_ERROR)
+            except SingularSystemError:
+                self._double = True
         return factorize(damped, self.backend, triangle="upper")
 
     def _line_search(self, X: np.ndarray, step: np.ndarray, energy: float, slope: float,
@@ -498,6 +525,7 @@ class _Iteration:
     iterations: int = 0
     rejected: int = 0
     factorizations: int = 0
+    precision: str = "double"  # of the last factorization
     solves: int = 0
     slices: int = 1
     stop: str = "max_iterations"
@@ -527,10 +555,34 @@ class _Iteration:
                    model=model, projection=projection, damping=damping,
                    factor_gain=1.0 if factor is not None else 0.0, trace=[energy])
 
+    def direction(self, g: np.ndarray, system: GaussNewtonSystem,
+                  ) -> tuple[np.ndarray, float, float]:
+        """The step from here for the gradient ``g`` (n_free * dim,), its slope ``g.step``
+        and the decrease of E its model predicts: the Gauss-Newton step on a fresh factor,
+        else the L-BFGS step with the factor as initial Hessian (whose model along the
+        step predicts ``-slope / 2``). Raises :class:`ImpreciseSolveError` (from
+        :meth:`solve`)."""
+        if self.fresh:
+            step = -self.solve(g)
+            slope = float(np.einsum("i,i->", g, step))  # < 0: H + D is SPD
+            # Gain ratio of the full step: actual decrease over the model's.
+            return step, slope, -slope - 0.5 * system.quadratic_form(self.model, step)
+        step = -self.memory.inverse_hessian(self.solve, g)
+        slope = float(np.einsum("i,i->", g, step))
+        return step, slope, -0.5 * slope
+
     def solve(self, v: np.ndarray) -> np.ndarray:
         """``factor^-1 v`` (n_free * dim,) without its rigid motions
         (:mod:`solver.rigid_motions`: a factor used away from where it was built would
-        otherwise turn the damping's inverse into a huge linearized rotation)."""
+        otherwise turn the damping's inverse into a huge linearized rotation).
+
+        A single-precision factor (:class:`~solver.mixed_precision.SinglePrecisionFactor`)
+        refines its answer by one more back-substitution, counted in ``solves``, and
+        raises :class:`~solver.mixed_precision.ImpreciseSolveError` where that corrects
+        it by more than :data:`SINGLE_PRECISION_ERROR`."""
+        if isinstance(self.factor, SinglePrecisionFactor):
+            self.solves += 1  # its refinement step's back-substitution
+            return self.factor.solve(v, self.projection)
         x = self.factor.solve(v)
         return x if self.projection is None else self.projection(x)
 
@@ -538,10 +590,37 @@ class _Iteration:
         """The report's fields of the refinement so far."""
         return {"converged": self.converged, "stop_reason": self.stop,
                 "iterations": self.iterations, "rejected_steps": self.rejected,
-                "factorizations": self.factorizations, "solves": self.solves,
+                "factorizations": self.factorizations, "precision": self.precision,
+                "solves": self.solves,
                 "slices": self.slices, "energy_before": self.energy0,
                 "energy_after": self.energy, "energy_trace": list(self.trace),
                 "step_trace": list(self.steps), "before": self.before}
+
+
+def factor_precision(diagonal: np.ndarray) -> str:
+    """The precision to factorize a damped Gauss-Newton matrix in, from its diagonal.
+
+    Single precision nearly halves the factorization's time (:mod:`solver.mixed_precision`),
+    and with one refinement step per solve the steps are those of double precision (x 0.8
+    and noisy forms take the same steps to the same energies). Needle edges and flattened
+    faces make entries of the diagonal 1e8 times the others (the stiffness of a residual
+    grows as the inverse square of the edge's length or the face's width), beyond what
+    float32 resolves: a refinement factorized in single precision there converged to a 25%
+    higher energy. The diagonal's spread separates the two: 12-200 on every bench mesh,
+    1.5e8 and more with needle edges (:data:`SINGLE_PRECISION_SPREAD`). Soft modes that
+    the diagonal does not show are caught by the solves themselves
+    (:data:`SINGLE_PRECISION_ERROR`).
+
+    Args:
+        diagonal: (N,) float64 diagonal of the damped matrix (positive).
+
+    Returns:
+        ``"single"`` or ``"double"``.
+    """
+    if not len(diagonal):
+        return "double"
+    spread = float(diagonal.max()) / float(np.median(diagonal))
+    return "single" if spread <= SINGLE_PRECISION_SPREAD else "double"
 
 
 def _stalled(trace: list[float]) -> bool:

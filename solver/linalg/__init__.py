@@ -82,7 +82,13 @@ from . import analysis_cache
 from .analysis_cache import analysis_cache_info, clear_analysis_cache, release_cached_factors
 from .backends import BACKENDS, available_backends, default_backend, resolve_backend
 from .errors import BackendUnavailableError, SingularSystemError
-from .factorization import RESIDUAL_TOLERANCE, Factorization, analyze, factorize
+from .factorization import (
+    RESIDUAL_TOLERANCE,
+    Factorization,
+    analyze,
+    factorize,
+    upper_symmetric_product,
+)
 
 __all__ = [
     "ANALYSIS_CACHE_BYTES",
@@ -99,6 +105,7 @@ __all__ = [
     "factorize",
     "release_cached_factors",
     "resolve_backend",
+    "upper_symmetric_product",
 ]
 
 

@@ -86,9 +86,15 @@ class Factorization:
         backend: a validated, available backend name.
         groups: validated (N,) int64 ordering hint, or None.
         upper: ``matrix`` is the upper triangle only.
+        precision: ``"double"``, or ``"single"``: PARDISO factorizes a float32 copy and
+            solves in float32, and the residuals of its solves are not checked (relative
+            residuals ~1e-7 x the condition number; the caller judges the answers). Other
+            backends ignore it.
 
     Attributes:
         backend: the backend name that computed it.
+        precision: the precision of the factor (``"double"`` for every backend but
+            PARDISO).
         size: N, the order of ``K``.
         analysis: ``"cached"`` when the fill-reducing ordering of a factorization with the
             same sparsity pattern was reused from this process's analysis cache (PARDISO
@@ -104,8 +110,10 @@ class Factorization:
     timings: dict[str, float]
 
     def __init__(self, matrix: sp.csr_array, backend: str,
-                 groups: np.ndarray | None = None, upper: bool = False) -> None:
+                 groups: np.ndarray | None = None, upper: bool = False,
+                 precision: str = "double") -> None:
         self.backend = backend
+        self.precision = "single" if precision == "single" and backend == "pardiso" else "double"
         self.size = int(matrix.shape[0])
         self._upper = upper and backend == "pardiso"  # PARDISO reads the triangle as is
         if upper and not self._upper:
@@ -118,7 +126,8 @@ class Factorization:
         if self.size == 0:
             self._solver: NativeSolver = EmptySolver()
         elif backend == "pardiso":
-            self._solver = PardisoSolver(matrix, groups, self._upper)
+            self._solver = PardisoSolver(matrix, groups, self._upper,
+                                         single=self.precision == "single")
         else:
             self._solver = SOLVERS[backend](matrix)
         self.analysis = getattr(self._solver, "analysis", "computed")
@@ -160,9 +169,11 @@ class Factorization:
             return np.zeros(b.shape, dtype=np.float64)
         with self._lock:
             x = self._solver.solve(b2)
-            if self._verified and np.isfinite(x).all():
+            if (self._verified or self.precision == "single") and np.isfinite(x).all():
                 # The factor passed the residual check once: a backward-stable solve with
-                # the same factor needs no second opinion (this keeps drags cheap).
+                # the same factor needs no second opinion (this keeps drags cheap). A
+                # single-precision factor is never checked: its callers accept inexact
+                # answers (e.g. Gauss-Newton steps, which a line search judges).
                 return np.ascontiguousarray(x.reshape(b.shape))
             residual = self._relative_residual(x, b2)
             # Iterative refinement, only when the first answer is not accurate enough
@@ -176,12 +187,16 @@ class Factorization:
         self._verified = True
         return np.ascontiguousarray(x.reshape(b.shape))
 
+    @property
+    def matrix(self) -> sp.csr_array:
+        """The factorized matrix ``K`` as kept: canonical float64 CSR, only its upper
+        triangle where it was given so (``triangle="upper"``) to PARDISO. Do not modify."""
+        return self._matrix
+
     def _product(self, x: np.ndarray) -> np.ndarray:
-        """K @ x (N, k), also where only K's upper triangle U is kept: U x + U^T x - D x."""
+        """K @ x (N, k), also where only K's upper triangle is kept."""
         K = self._matrix
-        if not self._upper:
-            return K @ x
-        return K @ x + K.T @ x - K.diagonal()[:, None] * x
+        return upper_symmetric_product(K, x) if self._upper else K @ x
 
     def _relative_residual(self, x: np.ndarray, b: np.ndarray) -> float:
         """max over columns of ||K x - b|| / ||b|| (inf for a nonzero residual of b = 0)."""
@@ -215,7 +230,7 @@ class Factorization:
         K = self._matrix
         return {"backend": self.backend, "shape": K.shape,
                 "indptr": K.indptr, "indices": K.indices, "data": K.data,
-                "groups": self._groups, "upper": self._upper}
+                "groups": self._groups, "upper": self._upper, "precision": self.precision}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         """Unpickle by factorizing the matrix again with the same backend."""
@@ -225,7 +240,22 @@ class Factorization:
         upper = state.get("upper", False)
         if upper and backend != "pardiso":
             matrix, upper = _symmetric_from_upper(matrix), False
-        self.__init__(matrix, backend, state.get("groups"), upper)  # type: ignore[misc]
+        self.__init__(matrix, backend, state.get("groups"), upper,  # type: ignore[misc]
+                      state.get("precision", "double"))
+
+
+def upper_symmetric_product(upper: sp.csr_array, x: np.ndarray) -> np.ndarray:
+    """``K @ x`` for the symmetric ``K`` of which ``upper`` is the upper triangle.
+
+    Args:
+        upper: (N, N) CSR upper triangle of ``K``, diagonal included.
+        x: (N,) or (N, k) float64.
+
+    Returns:
+        ``U x + U^T x - diag(U) x``, the shape of ``x``.
+    """
+    diagonal = upper.diagonal()
+    return upper @ x + upper.T @ x - (diagonal if x.ndim == 1 else diagonal[:, None]) * x
 
 
 def _symmetric_from_upper(U: sp.csr_array) -> sp.csr_array:
@@ -239,7 +269,7 @@ def _symmetric_from_upper(U: sp.csr_array) -> sp.csr_array:
 
 def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
               assume_symmetric: bool = False, groups: Any = None,
-              triangle: str = "full") -> Factorization:
+              triangle: str = "full", precision: str = "double") -> Factorization:
     """Factorize a sparse symmetric positive definite matrix for repeated solves.
 
     Args:
@@ -266,14 +296,19 @@ def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
             a canonical CSR array (sorted, no duplicates) -- e.g. a Gauss-Newton matrix
             assembled straight into that pattern. PARDISO then reads it without a copy;
             other backends symmetrize it.
+        precision: ``"double"``, or ``"single"``: PARDISO factorizes and solves in float32
+            (about half the factorization time on the refinement's Gauss-Newton matrix:
+            ``python -m bench.gauss_newton_factor``), solutions returned as float64 and not
+            residual-checked; for callers that accept inexact solves of well-conditioned
+            matrices. Other backends ignore it.
 
     Returns:
         The :class:`Factorization`.
 
     Raises:
-        ValueError: an unknown backend name; a non-square or non-symmetric matrix;
-            ``groups`` not N integers in [0, N); a ``triangle="upper"`` matrix with entries
-            below the diagonal or a diagonal entry missing.
+        ValueError: an unknown backend name or precision; a non-square or non-symmetric
+            matrix; ``groups`` not N integers in [0, N); a ``triangle="upper"`` matrix with
+            entries below the diagonal or a diagonal entry missing.
         TypeError: not a real sparse matrix.
         BackendUnavailableError: a known backend that is not installed.
         SingularSystemError: non-finite entries, or the backend found the matrix singular
@@ -291,16 +326,20 @@ def factorize(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
         (2, 2)
     """
     name = resolve_backend(backend)
+    if precision not in ("double", "single"):
+        raise ValueError(f"precision must be 'double' or 'single', got {precision!r}")
     if triangle == "upper":
         return Factorization(_upper_csr(matrix), name,
-                             _ordering_groups(groups, matrix.shape[0]), upper=True)
+                             _ordering_groups(groups, matrix.shape[0]), upper=True,
+                             precision=precision)
     if triangle != "full":
         raise ValueError(f"triangle must be 'full' or 'upper', got {triangle!r}")
     K = _canonical_matrix(matrix, assume_symmetric)
-    return Factorization(K, name, _ordering_groups(groups, K.shape[0]))
+    return Factorization(K, name, _ordering_groups(groups, K.shape[0]), precision=precision)
 
 
-def analyze(matrix: sp.spmatrix | sp.sparray, backend: str = "auto") -> bool:
+def analyze(matrix: sp.spmatrix | sp.sparray, backend: str = "auto",
+            precision: str = "double") -> bool:
     """Prepare the first :func:`factorize` of a pattern ahead of time: with PARDISO, compute
     and cache its analysis (ordering and symbolic factorization), which only the sparsity
     pattern determines, so that the factorization later pays only its numerical phase.
@@ -311,6 +350,8 @@ def analyze(matrix: sp.spmatrix | sp.sparray, backend: str = "auto") -> bool:
             ``triangle="upper"`` (canonical CSR, every diagonal entry stored); its values
             are not read.
         backend: as in :func:`factorize`.
+        precision: as in :func:`factorize` (single and double precision keep separate
+            analyses).
 
     Returns:
         Whether an analysis was computed (False: another backend, or PARDISO had it
@@ -326,7 +367,7 @@ def analyze(matrix: sp.spmatrix | sp.sparray, backend: str = "auto") -> bool:
     """
     if resolve_backend(backend) != "pardiso":
         return False
-    return analyze_upper(_upper_csr(matrix))
+    return analyze_upper(_upper_csr(matrix), single=precision == "single")
 
 
 def _upper_csr(matrix: Any) -> sp.csr_array:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import pickle
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
@@ -316,3 +317,27 @@ def test_a_refining_deformer_analyses_its_refinement_at_set_up() -> None:
     after = analysis_cache_info()
     assert deformer.last_report["factorizations"] >= 1
     assert after["computed"] == before["computed"]  # nothing analysed during the drag
+
+
+def test_single_precision_factor_solves_to_float32_accuracy() -> None:
+    """factorize(precision="single") factorizes and solves in float32 and returns float64:
+    its answers are within float32 accuracy of the double-precision solution, but not
+    exact (the precision is really used); its analysis is kept apart from double's, and a
+    pickled factor comes back in single precision. Other backends ignore the precision."""
+    K, b = noisy_system(*grid_mesh(12, False))
+    upper = sp.csr_array(sp.triu(K, format="csr"))
+    upper.sort_indices()
+    exact = spsolve(sp.csc_array(K), b)
+    assert linalg.analyze(upper, "pardiso", precision="single")
+    single = factorize(upper, "pardiso", triangle="upper", precision="single")
+    assert single.precision == "single" and single.analysis == "cached"
+    x = single.solve(b)
+    assert x.dtype == np.float64
+    assert 1e-12 < relative(x, exact) < 1e-3
+    double = factorize(upper, "pardiso", triangle="upper")
+    assert double.precision == "double" and double.analysis == "computed"
+    assert relative(double.solve(b), exact) < 1e-10
+    assert pickle.loads(pickle.dumps(single)).precision == "single"
+    assert factorize(K, "superlu", precision="single").precision == "double"
+    with pytest.raises(ValueError, match="precision"):
+        factorize(K, "pardiso", precision="half")

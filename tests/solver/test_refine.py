@@ -8,12 +8,14 @@ same test; parameterization with libigl's ARAP parameterization.
 import numpy as np
 import pytest
 
+import solver.refine as refine_module
 from solver import (
     Constraints,
     Deformer,
     deform,
     fundamental_forms,
     interpolate,
+    linalg,
     parameterize,
     reconstruct,
 )
@@ -23,6 +25,7 @@ from solver.refine import (
     FormTargets,
     Handles,
     Refiner,
+    factor_precision,
     hinge_angles,
     hinges,
     refine,
@@ -480,3 +483,104 @@ def test_gauss_newton_patterns_are_kept_per_mesh_and_handle_set():
     np.testing.assert_array_equal(first.vertices, second.vertices)
     Refiner(targets, Handles(fixed=np.array([0, 1, 2])))
     assert pattern_cache_info()["computed"] == 2
+
+
+needs_pardiso = pytest.mark.skipif("pardiso" not in linalg.available_backends(),
+                                   reason="single precision needs PARDISO")
+
+
+def gauss_newton_diagonal(V, F):
+    """The diagonal of the Gauss-Newton matrix of noisy forms of (V, F) at V."""
+    forms = with_noisy_angles(fundamental_forms(V, F))
+    refiner = Refiner(FormTargets(build_topology(F, len(V)), forms.lengths, forms.angles))
+    _, H, _ = refiner.system.normal_equations(V)
+    return H.data[refiner.system.diagonal_positions]
+
+
+def test_needle_edges_keep_the_gauss_newton_factor_in_double_precision():
+    """A regular mesh's Gauss-Newton matrix is factorized in single precision; with needle
+    edges (1e-4 of their length) its diagonal spreads over 1e8 and it stays in double."""
+    V, F = load("torus.off")
+    assert factor_precision(gauss_newton_diagonal(V, F)) == "single"
+    assert factor_precision(gauss_newton_diagonal(*with_tiny_edges(V, F, 10))) == "double"
+
+
+def torus_x08():
+    forms = fundamental_forms(*load("torus.off"))
+    forms.angles *= 0.8
+    return forms
+
+
+@needs_pardiso
+def test_single_precision_factors_reach_the_double_precision_answer(monkeypatch):
+    """Angles x 0.8 on the torus, factorized in single precision (one step of iterative
+    refinement per solve): the same steps and the same answer, to 1e-6 of the diagonal, as
+    the refinement factorized in double precision."""
+    forms = torus_x08()
+    single = solve(forms)
+    monkeypatch.setattr(refine_module, "SINGLE_PRECISION_SPREAD", 0.0)  # double only
+    double = solve(forms)
+    s, d = single.report["refinement"], double.report["refinement"]
+    assert (s["precision"], d["precision"]) == ("single", "double")
+    assert s["converged"] and d["converged"]
+    assert (s["iterations"], s["factorizations"]) == (d["iterations"], d["factorizations"])
+    assert s["solves"] == 2 * d["solves"]  # the refinement step's back-substitution
+    assert rigid_alignment_error(single.vertices, double.vertices) < 1e-6
+
+
+@needs_pardiso
+def test_an_imprecise_single_precision_factor_is_redone_in_double(monkeypatch):
+    """A single-precision solve whose refinement step corrects it by more than
+    SINGLE_PRECISION_ERROR (forced here: 0) makes the refinement factorize the same
+    matrix in double precision, and every later one: the answer is the double-precision
+    one, at one extra factorization."""
+    forms = torus_x08()
+    monkeypatch.setattr(refine_module, "SINGLE_PRECISION_ERROR", 0.0)
+    redone = solve(forms)
+    monkeypatch.setattr(refine_module, "SINGLE_PRECISION_SPREAD", 0.0)
+    double = solve(forms)
+    r, d = redone.report["refinement"], double.report["refinement"]
+    assert r["precision"] == "double" and r["converged"]
+    assert r["factorizations"] == d["factorizations"] + 1
+    assert rigid_alignment_error(redone.vertices, double.vertices) < 1e-12
+
+
+@needs_pardiso
+def test_a_single_precision_factor_that_is_not_definite_is_redone_in_double(monkeypatch):
+    """On the knight the float32 pivots of the free rigid motions (damped by 1e-9 of the
+    diagonal, below float32's resolution) come out negative: PARDISO refuses the factor,
+    and the refinement factorizes in double precision, to the double-precision answer."""
+    forms = fundamental_forms(*load("decimated-knight.off"))
+    forms.angles *= 0.8
+    attempts = []
+    original = refine_module.SinglePrecisionFactor
+
+    class Counted(original):
+        def __init__(self, *args, **kw):
+            attempts.append(1)
+            super().__init__(*args, **kw)
+
+    monkeypatch.setattr(refine_module, "SinglePrecisionFactor", Counted)
+    redone = solve(forms)
+    monkeypatch.setattr(refine_module, "SINGLE_PRECISION_SPREAD", 0.0)
+    double = solve(forms)
+    assert len(attempts) == 1  # the first refusal sets the refiner to double
+    assert redone.report["refinement"]["precision"] == "double"
+    assert rigid_alignment_error(redone.vertices, double.vertices) < 1e-12
+
+
+@needs_pardiso
+@pytest.mark.skipif(not (SHARED / "beetle.off").exists(),
+                    reason="../shared/meshes is not present")
+def test_the_beetle_s_soft_rims_are_refined_in_double_precision():
+    """The beetle's eleven holes have softly bending rims: a single-precision factor's
+    refinement step corrects its solve by 18% (rocker-arm's by 0.3%), so the noisy forms'
+    refinement redoes its factor in double precision and ends as near the mesh the forms
+    came from as a double-precision one (8.4e-5 of the diagonal)."""
+    V, F = load(SHARED / "beetle.off")
+    forms = with_noisy_angles(fundamental_forms(V, F))
+    result = solve(forms)
+    report = result.report["refinement"]
+    assert report["converged"] and report["precision"] == "double"
+    assert report["factorizations"] == 2
+    assert rigid_alignment_error(result.vertices, V) < 1e-4

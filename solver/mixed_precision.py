@@ -29,7 +29,9 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from .linalg import factorize, upper_symmetric_product
+from .linalg import SingularSystemError, factorize, upper_symmetric_product
+
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 class ImpreciseSolveError(ArithmeticError):
@@ -49,7 +51,7 @@ class SinglePrecisionFactor:
 
     Attributes:
         precision: ``"single"`` (``"double"`` where the backend ignores the precision).
-        matrix: ``K`` as given.
+        matrix: the upper triangle of ``K``, as given.
 
     Raises:
         SingularSystemError: the backend found ``K`` not positive definite in single
@@ -89,7 +91,12 @@ class SinglePrecisionFactor:
                 ``tolerance`` of it (relative 2-norm), or it is not finite.
         """
         def solved(rhs: np.ndarray) -> np.ndarray:
-            x = self._factor.solve(rhs)
+            if not np.abs(rhs).max(initial=0.0) < FLOAT32_MAX:  # NaN too
+                raise ImpreciseSolveError("a right-hand side beyond float32's range")
+            try:
+                x = self._factor.solve(rhs)
+            except SingularSystemError as error:  # a float32 answer that is not finite
+                raise ImpreciseSolveError(f"a single-precision solve failed: {error}") from error
             return x if project is None else project(x)
 
         x = solved(v)

@@ -144,7 +144,11 @@ class Refinement:
     Attributes:
         vertices: (n, dim) float64 refined positions (fixed vertices copied bit for bit).
         report: ``refined`` (bool), ``converged``, ``iterations``, ``rejected_steps``,
-            ``factorizations``, ``solves`` (back-substitutions),
+            ``factorizations`` (the factors computed, a float32 one that PARDISO refused not
+            included) and their ``precision`` (``"single"``, ``"double"``, or ``"mixed"``
+            where single precision was given up during the run: :func:`factor_precision`),
+            ``solves`` (back-substitutions, a single-precision solve's refinement step's
+            included),
             ``seconds``, ``energy_before`` / ``energy_after``, ``before`` / ``after`` residual
             summaries (:func:`form_residuals`), ``stop_reason``.
     """
@@ -298,12 +302,27 @@ class Refiner:
                     except SingularSystemError:
                         s.damping, s.rejected = s.damping * 10.0, s.rejected + 1
                         continue
-                    s.factorizations, s.precision = s.factorizations + 1, s.factor.precision
+                    s.factorizations += 1
+                    s.precisions.add(s.factor.precision)
                     s.model, s.fresh, s.frozen_steps, s.factor_gain = H, True, 0, 0.0
                     s.projection = self.rigid_motions.at(s.X[self.form_energy.free])
                     s.memory.clear()
                 s.solves += 1
-                step, slope, predicted = self._direction(s, g)
+                try:
+                    step, slope, predicted = s.direction(g, system)
+                except ImpreciseSolveError:
+                    # A single-precision factor too inexact here (or a float32 answer that
+                    # is not finite): this refiner factorizes in double from now on, here
+                    # first, as after a refused step (its time limit included).
+                    self._double = True
+                    if not self._fits(s, True, time_limit, clock):
+                        s.frozen_steps, s.stop = s.max_frozen, "time_limit"
+                        s.iterations -= 1
+                        break
+                    if H is None:
+                        energy, H, g = system.normal_equations(s.X)
+                    refresh = True
+                    continue
                 found = self._line_search(s.X, step, energy, slope) if slope < 0 else None
                 gained = energy - found[2] if found is not None else 0.0
                 if (found is not None and not s.fresh and not s.keep_factor
@@ -441,18 +460,6 @@ class Refiner:
         kind = "refresh" if refresh or s.factor is None else "step"
         return left > (self._iteration_seconds[kind] or 0.0)
 
-    def _direction(self, s: _Iteration, g: np.ndarray) -> tuple[np.ndarray, float, float]:
-        """:meth:`_Iteration.direction`; where the factor, computed in single precision,
-        proves too inexact for it, the same matrix is factorized again in double precision,
-        as every later one of this refiner (:func:`factor_precision`)."""
-        try:
-            return s.direction(g, self.system)
-        except ImpreciseSolveError:
-            self._double = True
-            s.factor = factorize(s.factor.matrix, self.backend, triangle="upper")
-            s.factorizations, s.precision = s.factorizations + 1, "double"
-            return s.direction(g, self.system)
-
     def _damped_factor(self, H: sp.csr_array, damping: float, single: bool = False) -> Any:
         """Factorization of ``H + damping D`` (Levenberg-Marquardt with Marquardt's scaling:
         ``D`` is the diagonal of H floored at 1e-9 of its median, which is also added, so
@@ -481,7 +488,7 @@ class Refiner:
         in single precision where ``single`` asks for it and the diagonal allows
         (:func:`factor_precision`), and in double from the first time single precision
         finds the matrix not positive definite or one of its solves too inexact
-        (:meth:`_direction`). Interactive runs (``keep_factor``) factorize in double: their
+        (:meth:`_iterate`). Interactive runs (``keep_factor``) factorize in double: their
         factors serve many solves, each of which single precision makes three times as
         costly (two back-substitutions and a product), and a session's pattern is analysed
         ahead of time in one precision (:meth:`prepare`)."""
@@ -547,7 +554,7 @@ class _Iteration:
     iterations: int = 0
     rejected: int = 0
     factorizations: int = 0
-    precision: str = "double"  # of the last factorization
+    precisions: set[str] = field(default_factory=set)  # of the factorizations
     solves: int = 0
     slices: int = 1
     stop: str = "max_iterations"
@@ -612,7 +619,9 @@ class _Iteration:
         """The report's fields of the refinement so far."""
         return {"converged": self.converged, "stop_reason": self.stop,
                 "iterations": self.iterations, "rejected_steps": self.rejected,
-                "factorizations": self.factorizations, "precision": self.precision,
+                "factorizations": self.factorizations,
+                "precision": ("mixed" if len(self.precisions) > 1
+                              else next(iter(self.precisions), "double")),
                 "solves": self.solves,
                 "slices": self.slices, "energy_before": self.energy0,
                 "energy_after": self.energy, "energy_trace": list(self.trace),

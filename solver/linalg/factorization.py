@@ -113,7 +113,8 @@ class Factorization:
                  groups: np.ndarray | None = None, upper: bool = False,
                  precision: str = "double") -> None:
         self.backend = backend
-        self.precision = "single" if precision == "single" and backend == "pardiso" else "double"
+        single = precision == "single" and backend == "pardiso" and matrix.shape[0] > 0
+        self.precision = "single" if single else "double"
         self.size = int(matrix.shape[0])
         self._upper = upper and backend == "pardiso"  # PARDISO reads the triangle as is
         if upper and not self._upper:
@@ -139,7 +140,8 @@ class Factorization:
 
         The residual is checked (and improved by iterative refinement if needed) until one
         solve has passed; after that the factor is trusted and only finiteness is checked,
-        so repeated solves cost one back-substitution each.
+        so repeated solves cost one back-substitution each. A single-precision factor's
+        residuals are never checked (only finiteness: its callers refine its answers).
 
         Args:
             rhs: real array of shape (N,) or (N, k) (converted to float64).

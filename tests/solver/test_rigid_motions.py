@@ -4,7 +4,6 @@ needs it (a factor used away from where it was built)."""
 import numpy as np
 import pytest
 
-import solver.refine as refine_module
 from solver import fundamental_forms
 from solver.refine import FormTargets, Handles, Refiner
 from solver.rigid_motions import RigidMotions
@@ -67,13 +66,10 @@ def test_problems_with_handles_on_every_component_have_nothing_to_project():
     assert motions.at(V)(v) is v
 
 
-def test_a_factor_used_after_a_move_gives_a_descent_step_only_without_its_rotations(
-        monkeypatch):
-    """Angles x 0.8 on the knight, no handles: the Gauss-Newton factor built at the start
-    (in double precision, damped only), applied to the gradient after one step, returns a
-    huge linearized rotation that raises E at every step length; the same step without the
-    factor's rigid motions lowers E."""
-    monkeypatch.setattr(refine_module, "SINGLE_PRECISION_SPREAD", 0.0)
+def test_a_factor_used_after_a_move_gives_a_descent_step_only_without_its_rotations():
+    """Angles x 0.8 on the knight, no handles: the Gauss-Newton factor built at the start,
+    applied to the gradient after one step, returns a huge linearized rotation that raises
+    E at every step length; the same step without the factor's rigid motions lowers E."""
     V, F = load("decimated-knight.off")
     forms = fundamental_forms(V, F)
     topology = build_topology(F, len(V))
@@ -90,4 +86,3 @@ def test_a_factor_used_after_a_move_gives_a_descent_step_only_without_its_rotati
     energy = refiner.form_energy.energy
     assert all(energy(X2 + t * raw.reshape(-1, 3)) > E2 for t in (1.0, 0.5, 0.25, 0.1))
     assert energy(X2 + projected.reshape(-1, 3)) < E2
-

@@ -315,9 +315,7 @@ class Refiner:
                     # is not finite): this refiner factorizes in double from now on, here
                     # first, as after a refused step (its time limit included).
                     self._double = True
-                    if not self._fits(s, True, time_limit, clock):
-                        s.frozen_steps, s.stop = s.max_frozen, "time_limit"
-                        s.iterations -= 1
+                    if self._refresh_stopped(s, time_limit, clock):
                         break
                     if H is None:
                         energy, H, g = system.normal_equations(s.X)
@@ -356,11 +354,7 @@ class Refiner:
                     if s.fresh:
                         s.damping = max(s.damping * s.growth, REFUSED_DAMPING)
                         s.growth *= 2.0
-                    if not self._fits(s, True, time_limit, clock):
-                        # The factorization this step needs would end past the time limit:
-                        # stop here; a resumed run starts this iteration again with it.
-                        s.frozen_steps, s.stop = s.max_frozen, "time_limit"
-                        s.iterations -= 1
+                    if self._refresh_stopped(s, time_limit, clock):
                         break
                     if not s.fresh and H is None:  # a kept factor failed: rebuild it here
                         energy, H, g = system.normal_equations(s.X)
@@ -459,6 +453,17 @@ class Refiner:
         left = time_limit - (time.perf_counter() - clock)
         kind = "refresh" if refresh or s.factor is None else "step"
         return left > (self._iteration_seconds[kind] or 0.0)
+
+    def _refresh_stopped(self, s: _Iteration, time_limit: float | None,
+                         clock: float) -> bool:
+        """Whether the factorization that the iteration of ``s`` needs now would end past
+        ``time_limit``: then the run stops here (``time_limit``), and a resumed run starts
+        this iteration again with that factorization."""
+        if self._fits(s, True, time_limit, clock):
+            return False
+        s.frozen_steps, s.stop = s.max_frozen, "time_limit"
+        s.iterations -= 1
+        return True
 
     def _damped_factor(self, H: sp.csr_array, damping: float, single: bool = False) -> Any:
         """Factorization of ``H + damping D`` (Levenberg-Marquardt with Marquardt's scaling:

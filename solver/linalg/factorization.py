@@ -189,12 +189,6 @@ class Factorization:
         self._verified = True
         return np.ascontiguousarray(x.reshape(b.shape))
 
-    @property
-    def matrix(self) -> sp.csr_array:
-        """The factorized matrix ``K`` as kept: canonical float64 CSR, only its upper
-        triangle where it was given so (``triangle="upper"``) to PARDISO. Do not modify."""
-        return self._matrix
-
     def _product(self, x: np.ndarray) -> np.ndarray:
         """K @ x (N, k), also where only K's upper triangle is kept."""
         K = self._matrix

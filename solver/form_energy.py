@@ -4,6 +4,7 @@
 
     E(x) = 1/2 sum_e ((l_e(x) - L_e) / L_e)^2                  first form (every edge)
          + beta/2 sum_e wrap(theta_e(x) - Theta_e)^2            second form (interior edges)
+         + 1/2 sum_t |x_c - (1 - t_t) x_a - t_t x_b|^2 / L_ab^2  cap faces (dim 3)
          + 1/2 sum_v w_v |x_v - p_v|^2 / s^2                    soft position handles
          + 1/2 sum_t w_t sum_c |x_tc - x_t0 - F_t a_tc|^2 / s^2  orientation handles
 
@@ -16,6 +17,11 @@ relative to its target area, which pushes flipped and collapsing faces back with
 on the others::
 
     + gamma/2 sum_t (A_t^0 / mean A^0) min(0, A_t(x) / A_t^0 - a_min)^2
+
+A *cap* face (:func:`cap_faces`: its target height under :data:`CAP_HEIGHT` of its longest
+edge ``a b``) has no usable dihedral angles: its normal turns over when its apex ``c`` moves
+by its height. Its edges' angle residuals are left out, and its apex is held on the base at
+the foot ``t_t`` its target lengths give (a linear residual, as stiff as the base's length).
 
 Every residual is dimensionless, so the weights mean the same at every scale; ``beta`` is
 the weight of a radian of dihedral angle against a relative length change of 1 (a thin
@@ -80,6 +86,23 @@ changed the planar refinement of the beetle, whose stretched edges are long (16 
 iterations with this constant at 1; ``python -m bench.refinement --sections
 parameterize``). Never where ``r < 0``: that part is negative and would make the matrix
 indefinite."""
+CAP_HEIGHT = 1e-3
+"""A face whose target height is under this fraction of its longest edge is a cap
+(:func:`cap_faces`): its apex is held on its base by a linear residual, and the dihedral
+angles of its edges are left out. Those angles move by ~π when the apex moves by the face's
+height across the base, so Gauss-Newton's linear model of them holds only for steps
+shorter than that: with 9 faces flattened to 1e-6 of their width (``bench.refinement``'s
+``irregular + caps``) every iteration took a factorization (rocker-arm 10, stanford-bunny
+8); with the apex residual 2. A knight with 5 faces flattened to 2e-5-3e-3 of their width
+and 10 needle edges (1e-4 of their length) stalled after 12-21 iterations and 15-22
+factorizations under a threshold of 1e-5, and converges in 3 iterations and 2
+factorizations under this one for heights up to 1e-4 (4 and 8 at 1e-3, on the threshold;
+stalled at 2e-3, above it: ``tests/solver/test_refine.py``). Needle faces (next to an edge 1e-4 of
+the mean long) are caps too: held by their apex residual and their stiff short edge, with
+their angles kept the faces flattened 6e-4-1.5e-3 of their width stopped "stationary" at
+16 factorizations and 10-50 times the optimum's energy. The residual aims at height 0, so
+at the original shape it is the face's height over its base, at most this fraction: among
+the shared meshes only nefertiti has such a face (one sliver)."""
 
 
 @dataclass(frozen=True)
@@ -140,6 +163,66 @@ def hinges(topology: MeshTopology) -> tuple[np.ndarray, np.ndarray]:
     tip = lambda h: flat[3 * (h // 3) + (h % 3 + 2) % 3]  # noqa: E731 - corner opposite h
     i, j = topology.edges[inner, 0], topology.edges[inner, 1]
     return inner, np.stack([i, j, tip(h_left), tip(h_right)], axis=1)
+
+
+@dataclass(frozen=True)
+class CapFaces:
+    """Faces too flat for their dihedral angles (:func:`cap_faces`).
+
+    Attributes:
+        faces: (k,) int64 the cap faces.
+        corners: (k, 3) int64 their vertices ``[a, b, c]``: the longest edge ``a -> b`` (the
+            base, in the face's orientation) and the apex ``c``.
+        foot: (k,) float64 ``t``: where the apex sits over the base by the target lengths,
+            ``x_c = (1 - t) x_a + t x_b`` up to the face's height (0 <= t <= 1).
+        edges: (k, 3) int64 the edges ``a b``, ``b c``, ``c a`` (indices into
+            ``topology.edges``).
+        lengths: (k, 3) float64 their target lengths.
+        is_cap_edge: (E,) bool, the edges of cap faces (their angles are left out).
+    """
+
+    faces: np.ndarray
+    corners: np.ndarray
+    foot: np.ndarray
+    edges: np.ndarray
+    lengths: np.ndarray
+    is_cap_edge: np.ndarray
+
+
+def cap_faces(topology: MeshTopology, lengths: np.ndarray) -> CapFaces:
+    """The faces whose target height is under :data:`CAP_HEIGHT` of their longest edge: a
+    corner of nearly 180°, or a needle (an edge far shorter than the other two). Heights
+    come from Heron's formula on ``lengths`` (E,) float64.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.topology import build_topology
+        >>> topo = build_topology(np.array([[0, 1, 2], [0, 2, 3]]))
+        >>> V = np.array([[0., 0, 0], [2, 0, 0], [1, 1e-7, 0], [0, 1, 0]])
+        >>> L = np.linalg.norm(V[topo.edges[:, 1]] - V[topo.edges[:, 0]], axis=1)
+        >>> caps = cap_faces(topo, L)
+        >>> caps.faces.tolist(), caps.corners.tolist(), caps.foot.round(6).tolist()
+        ([0], [[0, 1, 2]], [0.5])
+    """
+    n_faces = len(topology.faces)
+    halfedge_edges = topology.halfedge_edge.reshape(n_faces, 3)
+    face_lengths = lengths[halfedge_edges]                       # half-edge k: corner k -> k+1
+    half = 0.5 * face_lengths.sum(axis=1)
+    heron = half * (half[:, None] - face_lengths).prod(axis=1)
+    longest = face_lengths.max(axis=1)
+    height = 2.0 * np.sqrt(np.maximum(heron, 0.0)) / np.where(longest > 0, longest, 1.0)
+    faces = np.flatnonzero(height < CAP_HEIGHT * longest)
+    base = face_lengths[faces].argmax(axis=1)
+    turn = (base[:, None] + np.arange(3)) % 3                     # base, then b -> c, c -> a
+    rows = faces[:, None]
+    corners = topology.faces[rows, turn]
+    edges = halfedge_edges[rows, turn]
+    L = lengths[edges]
+    foot = 0.5 + (L[:, 2] ** 2 - L[:, 1] ** 2) / (2.0 * L[:, 0] ** 2)
+    is_cap_edge = np.zeros(len(lengths), dtype=bool)
+    is_cap_edge[edges.ravel()] = True
+    return CapFaces(faces, corners.astype(np.int64), np.clip(foot, 0.0, 1.0),
+                    edges.astype(np.int64), L, is_cap_edge)
 
 
 def corner_coordinates(X: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -338,6 +421,8 @@ class FormEnergy:
             handle's face): E is invariant under the rigid motions of a connected
             component without any (:mod:`solver.rigid_motions`).
         hinges: :func:`hinges` of the topology (dim 3), else None.
+        caps: :func:`cap_faces` of the targets (dim 3), else None; where the angles weigh
+            (``angle_weight > 0``) their edges' angles are replaced by the apex residual.
         scale: ``s``, the mean target length.
         needle_vertices: (k,) int64 the vertices of needle edges, whose length residual's
             stiffness ``w / L^2`` is at least :data:`NEEDLE_STIFFNESS` times a mean edge's
@@ -357,10 +442,15 @@ class FormEnergy:
             length_weights = hinge_weights = np.ones(topo.n_edges)
         self._add_lengths(topo.edges, targets.lengths, length_weights)
         self.hinges = hinges(topo) if dim == 3 else None
+        self.caps = cap_faces(topo, targets.lengths) if dim == 3 else None
         if dim == 3 and targets.angle_weight > 0:
             inner, hinge = self.hinges
+            kept = ~self.caps.is_cap_edge[inner]
+            inner, hinge = inner[kept], hinge[kept]
             self._add_hinges(hinge, targets.angles[inner],
                              targets.angle_weight * hinge_weights[inner])
+            if len(self.caps.faces):
+                self._add_caps(self.caps, length_weights)
         if dim == 2 and targets.area_weight > 0:
             self._add_areas(topo, targets.lengths, targets.area_weight)
         if len(handles.soft_vertices):
@@ -430,6 +520,22 @@ class FormEnergy:
             return r, (None if G is None else w[:, None, None] * G)
 
         self.groups.append(ResidualGroup(hinge, evaluate, hinge=True))
+
+    def _add_caps(self, caps: CapFaces, length_weights: np.ndarray) -> None:
+        # x_c - (1 - t) x_a - t x_b over the base's length: one row per coordinate.
+        dim = self.dim
+        w = np.sqrt(length_weights[caps.edges[:, 0]]) / caps.lengths[:, 0]
+        a, b, c = caps.corners.T
+        t = caps.foot
+        coefficients = w[:, None] * np.stack([t - 1.0, -t, np.ones_like(t)], axis=1)
+        G = coefficients[:, None, :, None] * np.eye(dim)[None, :, None, :]  # (k, dim, 3, dim)
+        G = G.reshape(-1, 3, dim)
+
+        def evaluate(X: np.ndarray, grad: bool = True):
+            d = X[c] - (1.0 - t)[:, None] * X[a] - t[:, None] * X[b]
+            return (w[:, None] * d).ravel(), (G if grad else None)
+
+        self.groups.append(ResidualGroup(np.repeat(caps.corners, dim, axis=0), evaluate))
 
     def _add_areas(self, topo: MeshTopology, L: np.ndarray, weight: float) -> None:
         from .frames import face_edge_lengths, triangle_areas

@@ -4,9 +4,12 @@
 :func:`solver.reconstruct`)::
 
     E(x) = 1/2 sum_e (l_e(x) / L_e - 1)^2 + beta/2 sum_e wrap(theta_e(x) - Theta_e)^2
+         + 1/2 sum_t |x_c - (1 - t_t) x_a - t_t x_b|^2 / L_ab^2
          + 1/2 sum_v w_v |x_v - p_v|^2 / s^2 + 1/2 sum_t w_t sum_c |x_tc - x_t0 - E_tc|^2 / s^2
 
-with ``s`` the mean target length. Levenberg-Marquardt there only needs ``J^T J``; implicit
+with ``s`` the mean target length; the second sum leaves out the edges of cap faces, whose
+apex the third holds on their base (:func:`solver.form_energy.cap_faces`, where beta > 0).
+Levenberg-Marquardt there only needs ``J^T J``; implicit
 differentiation of its optimum needs the stationarity condition ``grad E(x*; targets) = 0``
 differentiated exactly: the Hessian ``H = J^T J + sum_r r_r Hess(r_r)`` (the second term is
 what distinguishes the optimum of forms that no surface has from an exact fit) and the
@@ -28,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .form_energy import DEGENERATE, FormTargets, Handles, hinge_angles, hinges
+from .form_energy import DEGENERATE, FormTargets, Handles, cap_faces, hinge_angles, hinges
 from .metrics import wrap_angle
 
 
@@ -137,8 +140,18 @@ class RefinedEnergy:
         self.scale = float(np.mean(self.lengths))
         self.floor = DEGENERATE * self.scale**4
         self.inner, self.hinge = hinges(topo)
-        if self.beta <= 0:
-            self.inner, self.hinge = self.inner[:0], self.hinge[:0]
+        caps = cap_faces(topo, self.lengths)
+        kept = ~caps.is_cap_edge[self.inner] if self.beta > 0 else np.zeros(0, dtype=int)
+        self.inner, self.hinge = self.inner[kept], self.hinge[kept]
+        # Cap faces (where the angles weigh): corners [a, b, c], the apex's coefficients
+        # (t - 1, -t, 1) over the base length, and the target lengths of ab, bc, ca.
+        chosen = slice(None) if self.beta > 0 else slice(0)
+        self.cap_corners = caps.corners[chosen]
+        self.cap_foot = caps.foot[chosen]
+        self.cap_edges, self.cap_lengths = caps.edges[chosen], caps.lengths[chosen]
+        t = self.cap_foot
+        self.cap_coefficients = np.stack([t - 1.0, -t, np.ones_like(t)], axis=1) / \
+            self.cap_lengths[:, :1]
         self.soft_vertices = np.asarray(handles.soft_vertices, dtype=np.int64)
         self.soft_positions = np.asarray(handles.soft_positions, dtype=np.float64).reshape(-1, 3)
         self.soft_weights = np.asarray(handles.soft_weights, dtype=np.float64)
@@ -162,6 +175,10 @@ class RefinedEnergy:
         p = self.frame_pairs
         return X[p[:, :, 1]] - X[p[:, :, 0]] - self.frame_edges
 
+    def _cap_residuals(self, X: np.ndarray) -> np.ndarray:
+        """(k, 3) ``(x_c - (1 - t) x_a - t x_b) / L_ab`` of the cap faces."""
+        return np.einsum("kc,kcd->kd", self.cap_coefficients, X[self.cap_corners])
+
     def energy(self, X: np.ndarray) -> float:
         """E(X) for positions (n, 3)."""
         _, _, r_len = self._lengths(X)
@@ -169,8 +186,9 @@ class RefinedEnergy:
         r_ang = wrap_angle(theta - self.angles[self.inner])
         soft = X[self.soft_vertices] - self.soft_positions
         frame = self._frame_residuals(X)
+        cap = self._cap_residuals(X)
         s2 = self.scale**2
-        return 0.5 * float(r_len @ r_len + self.beta * (r_ang @ r_ang)
+        return 0.5 * float(r_len @ r_len + self.beta * (r_ang @ r_ang) + np.sum(cap * cap)
                            + np.einsum("v,vk,vk->", self.soft_weights, soft, soft) / s2
                            + np.einsum("q,qck,qck->", self.frame_weights, frame, frame) / s2)
 
@@ -187,6 +205,10 @@ class RefinedEnergy:
         r_ang = wrap_angle(theta - self.angles[self.inner])
         for slot in range(4):
             self._scatter(grad, self.hinge[:, slot], self.beta * r_ang[:, None] * G[:, slot])
+        cap = self._cap_residuals(X)
+        for corner in range(3):
+            self._scatter(grad, self.cap_corners[:, corner],
+                          self.cap_coefficients[:, corner, None] * cap)
         soft = self.soft_weights[:, None] * (X[self.soft_vertices] - self.soft_positions) / s2
         self._scatter(grad, self.soft_vertices, soft)
         frame = self.frame_weights[:, None, None] * self._frame_residuals(X) / s2
@@ -237,6 +259,11 @@ class RefinedEnergy:
             for a in range(4):
                 for b in range(4):
                     pattern.add(hinge[:, a], hinge[:, b], columns[:, a, :, b, :])
+        for p in range(3):   # cap faces: constant blocks c_p c_q I
+            for q in range(3):
+                weight = self.cap_coefficients[:, p] * self.cap_coefficients[:, q]
+                pattern.add(self.cap_corners[:, p], self.cap_corners[:, q],
+                            weight[:, None, None] * eye)
         s2 = self.scale**2
         if len(self.soft_vertices):
             pattern.add(self.soft_vertices, self.soft_vertices,
@@ -272,6 +299,10 @@ class RefinedEnergy:
             contrib = self.beta * (G * gv[:, None, None] + r_ang[:, None, None] * dG)
             for slot in range(4):
                 self._scatter(out, self.hinge[:, slot], contrib[:, slot])
+        cap = self._cap_residuals(V)
+        for corner in range(3):
+            self._scatter(out, self.cap_corners[:, corner],
+                          self.cap_coefficients[:, corner, None] * cap)
         self._scatter(out, self.soft_vertices,
                       (self.soft_weights / s2)[:, None] * V[self.soft_vertices])
         p = self.frame_pairs
@@ -293,6 +324,7 @@ class RefinedEnergy:
             _, G = hinge_angles(X, self.hinge, self.floor)
             angles[:, self.inner] = -self.beta * np.einsum("bhck,hck->bh",
                                                            lam[:, self.hinge], G)
+        self._cap_mixed(X, lam, lengths)
         soft_res = X[self.soft_vertices] - self.soft_positions
         lam_soft = lam[:, self.soft_vertices]
         soft_positions = -(self.soft_weights / s**2)[None, :, None] * lam_soft
@@ -304,3 +336,29 @@ class RefinedEnergy:
         scale = scale - 2.0 / s3 * np.einsum("q,bqck,qck->b", self.frame_weights, lam_frame,
                                              frame_res)
         return MixedCotangents(lengths, angles, soft_positions, frame_edges, scale)
+
+    def _cap_mixed(self, X: np.ndarray, lam: np.ndarray, lengths: np.ndarray) -> None:
+        """Add the cap faces' ``lambda^T d(grad E)/d(lengths)`` to ``lengths`` (B, E).
+
+        A cap's gradient is ``c_p d / L_ab^2`` at corner p, ``d = x_c - (1 - t) x_a - t x_b``
+        and ``c = (t - 1, -t, 1)``; so ``lambda . grad = d . mu / L_ab^2`` with ``mu = sum_p
+        c_p lambda_p``. Its derivative in ``t`` is ``((x_a - x_b) . mu + d . (lambda_a -
+        lambda_b)) / L_ab^2``, in ``L_ab`` through the weight ``-2 d . mu / L_ab^3``; and
+        ``t = 1/2 + (L_ca^2 - L_bc^2) / (2 L_ab^2)``."""
+        if not len(self.cap_corners):
+            return
+        t, L = self.cap_foot, self.cap_lengths
+        a, b, c = self.cap_corners.T
+        d = X[c] - (1.0 - t)[:, None] * X[a] - t[:, None] * X[b]              # (k, 3)
+        mu = lam[:, c] - (1.0 - t)[None, :, None] * lam[:, a] - t[None, :, None] * lam[:, b]
+        base2 = L[:, 0] ** 2
+        d_mu = np.einsum("kd,bkd->bk", d, mu)
+        along = (np.einsum("kd,bkd->bk", X[a] - X[b], mu)
+                 + np.einsum("kd,bkd->bk", d, lam[:, a] - lam[:, b])) / base2      # d/dt
+        dt = np.stack([-(L[:, 2] ** 2 - L[:, 1] ** 2) / L[:, 0] ** 3,           # d t / d L_ab
+                       -L[:, 1] / base2, L[:, 2] / base2], axis=1)             # L_bc, L_ca
+        values = along[:, :, None] * dt[None]                                   # (B, k, 3)
+        values[:, :, 0] -= 2.0 * d_mu / L[:, 0] ** 3
+        for row in range(len(lam)):   # B cotangents, few
+            lengths[row] += np.bincount(self.cap_edges.ravel(), values[row].ravel(),
+                                        minlength=lengths.shape[1])

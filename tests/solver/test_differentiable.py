@@ -16,7 +16,7 @@ from solver.refine import FormTargets, Handles, Refiner
 from solver.refined_energy import RefinedEnergy
 from solver.rotations import nearest_rotation
 from solver.topology import build_topology
-from tests.helpers.meshes import grid, load
+from tests.helpers.meshes import grid, load, with_cap_faces
 
 STEPS = (1e-5, 1e-6)
 TOLERANCE = 1e-4
@@ -207,10 +207,17 @@ def test_constraint_targets_match_finite_differences(refine):
     assert np.min(checks, axis=0).max() <= TOLERANCE, checks
 
 
-def test_energy_is_the_refinements():
-    """RefinedEnergy evaluates the energy Refiner minimizes (handles included), its gradient
-    is that energy's, and its Hessian that gradient's derivative."""
+@pytest.mark.parametrize("caps", [0, 5])
+def test_energy_is_the_refinements(caps):
+    """RefinedEnergy evaluates the energy Refiner minimizes (handles included; with
+    ``caps`` faces flattened to 1e-6 of their width, whose apex residuals replace their
+    edges' angles), its gradient is that energy's, and its Hessian that gradient's
+    derivative."""
     V, forms, L, A = forms_of("decimated-knight.off", "x0.8")
+    if caps:
+        V = with_cap_faces(V, forms.faces, caps)
+        forms = fundamental_forms(V, forms.faces)
+        L, A = forms.lengths, 0.8 * forms.angles
     topo = build_topology(forms.faces)
     rng = np.random.default_rng(7)
     handles = Handles(fixed=np.array([0, 5]), soft_vertices=np.array([7, 9]),
@@ -233,6 +240,35 @@ def test_energy_is_the_refinements():
         Hd).max())
     H = energy.hessian(X)
     assert abs(H - H.T).max() <= 1e-10 * abs(H).max()
+    assert len(energy.cap_corners) == caps
+
+
+def test_cap_faces_mixed_derivatives_match_finite_differences(monkeypatch):
+    """``lambda^T d(grad E)/d(lengths)`` of the cap faces' apex residuals (their foot and
+    weight depend on all three target lengths) against central differences of the
+    gradient, on a knight with 5 faces flattened to 1e-3 of their width and caps up to
+    1e-2 (a flat face's height moves with the square root of its lengths' excess: at the
+    default threshold, a difference step of 1e-7 would turn caps into faces)."""
+    monkeypatch.setattr("solver.form_energy.CAP_HEIGHT", 1e-2)
+    V, F = load("decimated-knight.off")
+    V = with_cap_faces(V, F, 5, height=1e-3)
+    forms = fundamental_forms(V, F)
+    topo = build_topology(F)
+    rng = np.random.default_rng(3)
+    X = V + 1e-3 * rng.standard_normal(V.shape)
+    lam = rng.standard_normal((2, *V.shape))
+    dL = rng.standard_normal(len(forms.lengths)) * forms.lengths
+
+    def gradient(L):
+        return RefinedEnergy(FormTargets(topo, L, forms.angles), Handles()).gradient(X)
+
+    energy = RefinedEnergy(FormTargets(topo, forms.lengths, forms.angles), Handles())
+    assert len(energy.cap_corners) == 5
+    predicted = energy.mixed_vjp(X, lam).lengths @ dL
+    h = 1e-7
+    fd = np.einsum("bnk,nk->b", lam, gradient(forms.lengths + h * dL)
+                   - gradient(forms.lengths - h * dL)) / (2 * h)
+    np.testing.assert_allclose(predicted, fd, rtol=1e-5)
 
 
 def test_inverse_design_folds_a_sheet():

@@ -97,7 +97,9 @@ shorter than that: with 9 faces flattened to 1e-6 of their width (``bench.refine
 and 10 needle edges (1e-4 of their length) stalled after 12-21 iterations and 15-22
 factorizations under a threshold of 1e-5, and converges in 3 iterations and 2
 factorizations under this one for heights up to 1e-4 (4 and 8 at 1e-3, on the threshold;
-stalled at 2e-3, above it: ``tests/solver/test_refine.py``). Needle faces (next to an edge 1e-4 of
+stalled at 2e-3, above it). That sweep of heights and thresholds was a development
+measurement; ``tests/solver/test_refine.py`` checks 1e-6 and 1e-4 (converged in at most 3
+factorizations) and 2e-3 (stalled). Needle faces (next to an edge 1e-4 of
 the mean long) are caps too: held by their apex residual and their stiff short edge, with
 their angles kept the faces flattened 6e-4-1.5e-3 of their width stopped "stationary" at
 16 factorizations and 10-50 times the optimum's energy. The residual aims at height 0, so
@@ -175,6 +177,8 @@ class CapFaces:
             base, in the face's orientation) and the apex ``c``.
         foot: (k,) float64 ``t``: where the apex sits over the base by the target lengths,
             ``x_c = (1 - t) x_a + t x_b`` up to the face's height (0 <= t <= 1).
+        coefficients: (k, 3) float64 ``(t - 1, -t, 1) / L_ab``: the apex residual
+            ``(x_c - (1 - t) x_a - t x_b) / L_ab`` is ``sum_p coefficients[p] x_corners[p]``.
         edges: (k, 3) int64 the edges ``a b``, ``b c``, ``c a`` (indices into
             ``topology.edges``).
         lengths: (k, 3) float64 their target lengths.
@@ -184,6 +188,7 @@ class CapFaces:
     faces: np.ndarray
     corners: np.ndarray
     foot: np.ndarray
+    coefficients: np.ndarray
     edges: np.ndarray
     lengths: np.ndarray
     is_cap_edge: np.ndarray
@@ -192,7 +197,7 @@ class CapFaces:
 def cap_faces(topology: MeshTopology, lengths: np.ndarray) -> CapFaces:
     """The faces whose target height is under :data:`CAP_HEIGHT` of their longest edge: a
     corner of nearly 180°, or a needle (an edge far shorter than the other two). Heights
-    come from Heron's formula on ``lengths`` (E,) float64.
+    come from the target ``lengths`` (E,) float64 (:func:`solver.frames.triangle_areas`).
 
     Example:
         >>> import numpy as np
@@ -204,24 +209,23 @@ def cap_faces(topology: MeshTopology, lengths: np.ndarray) -> CapFaces:
         >>> caps.faces.tolist(), caps.corners.tolist(), caps.foot.round(6).tolist()
         ([0], [[0, 1, 2]], [0.5])
     """
-    n_faces = len(topology.faces)
-    halfedge_edges = topology.halfedge_edge.reshape(n_faces, 3)
-    face_lengths = lengths[halfedge_edges]                       # half-edge k: corner k -> k+1
-    half = 0.5 * face_lengths.sum(axis=1)
-    heron = half * (half[:, None] - face_lengths).prod(axis=1)
+    from .frames import face_edge_lengths, triangle_areas
+
+    face_lengths = face_edge_lengths(topology, lengths)          # half-edge k: corner k -> k+1
     longest = face_lengths.max(axis=1)
-    height = 2.0 * np.sqrt(np.maximum(heron, 0.0)) / np.where(longest > 0, longest, 1.0)
+    height = 2.0 * triangle_areas(face_lengths) / np.where(longest > 0, longest, 1.0)
     faces = np.flatnonzero(height < CAP_HEIGHT * longest)
     base = face_lengths[faces].argmax(axis=1)
     turn = (base[:, None] + np.arange(3)) % 3                     # base, then b -> c, c -> a
     rows = faces[:, None]
     corners = topology.faces[rows, turn]
-    edges = halfedge_edges[rows, turn]
+    edges = topology.halfedge_edge.reshape(-1, 3)[rows, turn]
     L = lengths[edges]
-    foot = 0.5 + (L[:, 2] ** 2 - L[:, 1] ** 2) / (2.0 * L[:, 0] ** 2)
+    foot = np.clip(0.5 + (L[:, 2] ** 2 - L[:, 1] ** 2) / (2.0 * L[:, 0] ** 2), 0.0, 1.0)
+    coefficients = np.stack([foot - 1.0, -foot, np.ones_like(foot)], axis=1) / L[:, :1]
     is_cap_edge = np.zeros(len(lengths), dtype=bool)
     is_cap_edge[edges.ravel()] = True
-    return CapFaces(faces, corners.astype(np.int64), np.clip(foot, 0.0, 1.0),
+    return CapFaces(faces, corners.astype(np.int64), foot, coefficients,
                     edges.astype(np.int64), L, is_cap_edge)
 
 
@@ -524,16 +528,13 @@ class FormEnergy:
     def _add_caps(self, caps: CapFaces, length_weights: np.ndarray) -> None:
         # x_c - (1 - t) x_a - t x_b over the base's length: one row per coordinate.
         dim = self.dim
-        w = np.sqrt(length_weights[caps.edges[:, 0]]) / caps.lengths[:, 0]
-        a, b, c = caps.corners.T
-        t = caps.foot
-        coefficients = w[:, None] * np.stack([t - 1.0, -t, np.ones_like(t)], axis=1)
+        coefficients = np.sqrt(length_weights[caps.edges[:, 0]])[:, None] * caps.coefficients
         G = coefficients[:, None, :, None] * np.eye(dim)[None, :, None, :]  # (k, dim, 3, dim)
         G = G.reshape(-1, 3, dim)
 
         def evaluate(X: np.ndarray, grad: bool = True):
-            d = X[c] - (1.0 - t)[:, None] * X[a] - t[:, None] * X[b]
-            return (w[:, None] * d).ravel(), (G if grad else None)
+            r = np.einsum("kc,kcd->kd", coefficients, X[caps.corners])
+            return r.ravel(), (G if grad else None)
 
         self.groups.append(ResidualGroup(np.repeat(caps.corners, dim, axis=0), evaluate))
 

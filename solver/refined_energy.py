@@ -140,18 +140,14 @@ class RefinedEnergy:
         self.scale = float(np.mean(self.lengths))
         self.floor = DEGENERATE * self.scale**4
         self.inner, self.hinge = hinges(topo)
+        # Cap faces, where the angles weigh: their edges' angles are left out.
         caps = cap_faces(topo, self.lengths)
-        kept = ~caps.is_cap_edge[self.inner] if self.beta > 0 else np.zeros(0, dtype=int)
-        self.inner, self.hinge = self.inner[kept], self.hinge[kept]
-        # Cap faces (where the angles weigh): corners [a, b, c], the apex's coefficients
-        # (t - 1, -t, 1) over the base length, and the target lengths of ab, bc, ca.
         chosen = slice(None) if self.beta > 0 else slice(0)
+        kept = np.flatnonzero(~caps.is_cap_edge[self.inner])[chosen]
+        self.inner, self.hinge = self.inner[kept], self.hinge[kept]
         self.cap_corners = caps.corners[chosen]
-        self.cap_foot = caps.foot[chosen]
+        self.cap_coefficients = caps.coefficients[chosen]
         self.cap_edges, self.cap_lengths = caps.edges[chosen], caps.lengths[chosen]
-        t = self.cap_foot
-        self.cap_coefficients = np.stack([t - 1.0, -t, np.ones_like(t)], axis=1) / \
-            self.cap_lengths[:, :1]
         self.soft_vertices = np.asarray(handles.soft_vertices, dtype=np.int64)
         self.soft_positions = np.asarray(handles.soft_positions, dtype=np.float64).reshape(-1, 3)
         self.soft_weights = np.asarray(handles.soft_weights, dtype=np.float64)
@@ -340,25 +336,24 @@ class RefinedEnergy:
     def _cap_mixed(self, X: np.ndarray, lam: np.ndarray, lengths: np.ndarray) -> None:
         """Add the cap faces' ``lambda^T d(grad E)/d(lengths)`` to ``lengths`` (B, E).
 
-        A cap's gradient is ``c_p d / L_ab^2`` at corner p, ``d = x_c - (1 - t) x_a - t x_b``
-        and ``c = (t - 1, -t, 1)``; so ``lambda . grad = d . mu / L_ab^2`` with ``mu = sum_p
-        c_p lambda_p``. Its derivative in ``t`` is ``((x_a - x_b) . mu + d . (lambda_a -
-        lambda_b)) / L_ab^2``, in ``L_ab`` through the weight ``-2 d . mu / L_ab^3``; and
+        With ``k = (t - 1, -t, 1) / L_ab`` (:attr:`CapFaces.coefficients`), a cap's
+        residual is ``r = sum_p k_p x_p`` and its gradient ``k_p r`` at corner p, so ``lambda
+        . grad = r . m`` with ``m = sum_p k_p lambda_p``. Its derivative in ``t`` (``dk/dt =
+        (1, -1, 0) / L_ab``) is ``((x_a - x_b) . m + r . (lambda_a - lambda_b)) / L_ab``, in
+        ``L_ab`` through the common factor ``1 / L_ab`` of both ``-2 r . m / L_ab``; and
         ``t = 1/2 + (L_ca^2 - L_bc^2) / (2 L_ab^2)``."""
         if not len(self.cap_corners):
             return
-        t, L = self.cap_foot, self.cap_lengths
-        a, b, c = self.cap_corners.T
-        d = X[c] - (1.0 - t)[:, None] * X[a] - t[:, None] * X[b]              # (k, 3)
-        mu = lam[:, c] - (1.0 - t)[None, :, None] * lam[:, a] - t[None, :, None] * lam[:, b]
+        L = self.cap_lengths
+        a, b = self.cap_corners[:, 0], self.cap_corners[:, 1]
+        r = self._cap_residuals(X)                                             # d / L_ab
+        m = np.einsum("kc,bkcd->bkd", self.cap_coefficients, lam[:, self.cap_corners])
         base2 = L[:, 0] ** 2
-        d_mu = np.einsum("kd,bkd->bk", d, mu)
-        along = (np.einsum("kd,bkd->bk", X[a] - X[b], mu)
-                 + np.einsum("kd,bkd->bk", d, lam[:, a] - lam[:, b])) / base2      # d/dt
+        along = (np.einsum("kd,bkd->bk", X[a] - X[b], m)                         # d/dt
+                 + np.einsum("kd,bkd->bk", r, lam[:, a] - lam[:, b])) / L[:, 0]
         dt = np.stack([-(L[:, 2] ** 2 - L[:, 1] ** 2) / L[:, 0] ** 3,           # d t / d L_ab
                        -L[:, 1] / base2, L[:, 2] / base2], axis=1)             # L_bc, L_ca
         values = along[:, :, None] * dt[None]                                   # (B, k, 3)
-        values[:, :, 0] -= 2.0 * d_mu / L[:, 0] ** 3
-        for row in range(len(lam)):   # B cotangents, few
-            lengths[row] += np.bincount(self.cap_edges.ravel(), values[row].ravel(),
-                                        minlength=lengths.shape[1])
+        values[:, :, 0] -= 2.0 * np.einsum("kd,bkd->bk", r, m) / L[:, 0]
+        np.add.at(lengths, (slice(None), self.cap_edges.ravel()),
+                  values.reshape(len(lam), -1))

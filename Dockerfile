@@ -7,7 +7,7 @@
 # copies reach the final image.
 FROM node:20-bookworm-slim AS web
 WORKDIR /src
-COPY web/package.json web/package-lock.json web/build.mjs web/
+COPY web/package.json web/package-lock.json web/build.mjs web/redoc-logo-mini.svg web/
 RUN npm ci --prefix web --no-audit --no-fund
 
 # The runtime dependencies in a virtual environment that the final stage copies whole:

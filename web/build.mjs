@@ -4,6 +4,9 @@
 // there), and Swagger UI and ReDoc for the API documentation at /docs and /redoc
 // (service/http/routes/docs.py), so that nothing is loaded from a CDN.
 // Run by `npm ci --prefix web` (postinstall) and by `npm run build --prefix web`.
+// A copied file may have URLs rewritten (REWRITES): ReDoc's sidebar credit loads its logo
+// from cdn.redoc.ly, which the pages' Content-Security-Policy (this origin only) refuses; the
+// copy loads web/redoc-logo-mini.svg from this service instead.
 import { copyFileSync, mkdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { dirname, join } from "node:path";
 import { fileURLToPath } from "node:url";
@@ -33,6 +36,25 @@ const PACKAGES = {
   }],
 };
 
+// vendor directory -> {copied file: [[text in it, replacement], ...]}
+const REWRITES = {
+  redoc: {
+    "redoc.standalone.js": [["https://cdn.redoc.ly/redoc/logo-mini.svg",
+      "/static/vendor/redoc/logo-mini.svg"]],
+  },
+};
+// vendor directory -> {file of web/: file in the directory}
+const LOCAL_FILES = { redoc: { "redoc-logo-mini.svg": "logo-mini.svg" } };
+
+function rewrite(path, replacements) {
+  let text = readFileSync(path, "utf8");
+  for (const [from, to] of replacements) {
+    if (!text.includes(from)) throw new Error(`build.mjs: ${path} no longer contains ${from}`);
+    text = text.split(from).join(to);
+  }
+  writeFileSync(path, text);
+}
+
 for (const [name, [pkg, files]] of Object.entries(PACKAGES)) {
   const source = join(here, "node_modules", pkg);
   const out = join(vendor, name);
@@ -41,6 +63,13 @@ for (const [name, [pkg, files]] of Object.entries(PACKAGES)) {
   for (const [from, to] of Object.entries(files)) {
     mkdirSync(dirname(join(out, to)), { recursive: true });
     copyFileSync(join(source, from), join(out, to));
+  }
+  for (const [file, replacements] of Object.entries(REWRITES[name] ?? {})) {
+    rewrite(join(out, file), replacements);
+  }
+  for (const [from, to] of Object.entries(LOCAL_FILES[name] ?? {})) {
+    copyFileSync(join(here, from), join(out, to));
+    files[from] = to;
   }
   // Written last: the service checks for it to know the vendor files are complete.
   writeFileSync(join(out, "manifest.json"),

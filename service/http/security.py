@@ -5,14 +5,21 @@ API responses get ``default-src 'none'`` (nothing in them may load anything). HT
 (the web page, ``/docs``, ``/redoc``) get a policy that allows this origin's scripts, styles,
 workers, WebSockets and ``data:``/``blob:`` images, plus each inline ``<script>`` of the page
 by its SHA-256 hash (the page's import map, the docs' start-up script): no
-``'unsafe-inline'`` scripts. :data:`DOCS_SOURCES` lists what the docs pages load from
-elsewhere while they load Swagger UI and ReDoc from a CDN.
+``'unsafe-inline'`` scripts, and no source outside this origin (Swagger UI and ReDoc are
+served from ``/static/vendor/``).
+
+A revalidation answer (304 Not Modified) carries the same headers as the 200 it confirms:
+browsers merge a 304's headers into their cached copy, so a 304 with another policy would
+change the policy of a cached script (the page's worker could no longer reach the API). A
+304 has no ``Content-Type``: its media type is guessed from the path, and an HTML page's
+304 keeps the policy its file computes (:func:`page_policy`, set by the static files app).
 """
 
 from __future__ import annotations
 
 import base64
 import hashlib
+import mimetypes
 import re
 
 from starlette.datastructures import MutableHeaders
@@ -22,9 +29,6 @@ API_POLICY = "default-src 'none'; frame-ancestors 'none'"
 WORKER_POLICY = "default-src 'self'; connect-src 'self'; frame-ancestors 'none'"
 """Scripts' policy: it governs a worker started from the script (the page's js/worker.js
 fetches from this origin and imports its modules), and nothing else."""
-DOCS_SOURCES = "https://cdn.jsdelivr.net"
-"""Where FastAPI's /docs and /redoc pages load their scripts and styles from (until they are
-served locally)."""
 _INLINE_SCRIPT = re.compile(rb"<script(?![^>]*\bsrc=)[^>]*>(.*?)</script>", re.S | re.I)
 
 
@@ -41,11 +45,20 @@ def page_policy(html: bytes) -> str:
         "'sha256-" + base64.b64encode(hashlib.sha256(body).digest()).decode() + "'"
         for body in _INLINE_SCRIPT.findall(html))
     return ("default-src 'self'; "
-            f"script-src 'self' {hashes} {DOCS_SOURCES}; "
-            f"style-src 'self' 'unsafe-inline' {DOCS_SOURCES}; "
-            "img-src 'self' data: blob: https://fastapi.tiangolo.com; "
+            f"script-src 'self' {hashes}; "
+            "style-src 'self' 'unsafe-inline'; "
+            "img-src 'self' data: blob:; "
             "worker-src 'self' blob:; connect-src 'self' ws: wss:; "
             "object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'")
+
+
+def response_media(status: int, headers: MutableHeaders, scope: Scope) -> str:
+    """The media type an answer's policy depends on: its ``Content-Type``, or for a 304 (which
+    has none) the type of the file its path names, as its 200 had."""
+    media = headers.get("content-type", "")
+    if media or status != 304:
+        return media
+    return mimetypes.guess_type(scope.get("path", ""))[0] or ""
 
 
 class SecurityHeadersMiddleware:
@@ -67,8 +80,10 @@ class SecurityHeadersMiddleware:
                 headers = MutableHeaders(scope=message)
                 headers["X-Content-Type-Options"] = "nosniff"
                 headers["X-Frame-Options"] = "DENY"
-                media = headers.get("content-type", "")
-                if not media.startswith("text/html"):
+                media = response_media(message["status"], headers, scope)
+                if message["status"] == 304 and media.startswith("text/html"):
+                    await send(message)  # the static files app set the page's policy
+                elif not media.startswith("text/html"):
                     headers["Content-Security-Policy"] = (
                         WORKER_POLICY if "javascript" in media else API_POLICY)
                     await send(message)

@@ -16,6 +16,8 @@ from starlette.responses import FileResponse, HTMLResponse, Response
 from starlette.staticfiles import StaticFiles
 from starlette.types import Scope
 
+from service.http.security import page_policy
+
 STATIC = Path(__file__).resolve().parents[2] / "static"
 VENDOR_MANIFEST = STATIC / "vendor" / "three" / "manifest.json"
 BUILD_COMMAND = "npm ci --prefix web"
@@ -42,6 +44,10 @@ class StaticAssets(StaticFiles):
     async def get_response(self, path: str, scope: Scope) -> Response:
         response = await super().get_response(path, scope)
         response.headers.setdefault("Cache-Control", "no-cache")
+        if response.status_code == 304 and path.endswith((".html", ".htm")):
+            # The 200's policy hashes the page's inline scripts: the 304 repeats it.
+            response.headers["Content-Security-Policy"] = page_policy(
+                (STATIC / path).read_bytes())
         return response
 
 

@@ -83,6 +83,12 @@ class Mesh:
     def from_dict(cls, doc: dict[str, Any]) -> Mesh:
         return cls(_floats(doc["vertices"]), _ints(doc["faces"]), doc.get("report") or {})
 
+    @property
+    def warnings(self) -> list[dict[str, Any]]:
+        """The report's ``warnings``: ``{code, message, value, limit}`` of each threshold
+        the answer is past ([] for a good answer; see docs/service.md#warnings)."""
+        return list(self.report.get("warnings") or [])
+
 
 Reconstruction = Mesh
 """The result of ``reconstruct`` (the library's ``Reconstruction`` without frames)."""
@@ -102,6 +108,11 @@ class Parameterization:
     def from_dict(cls, doc: dict[str, Any]) -> Parameterization:
         return cls(_floats(doc["uv"], 2), _ints(doc.get("flipped_faces", []), None),
                    doc.get("report") or {})
+
+    @property
+    def warnings(self) -> list[dict[str, Any]]:
+        """The report's ``warnings`` (as :attr:`Mesh.warnings`)."""
+        return list(self.report.get("warnings") or [])
 
 
 @dataclass

@@ -26,6 +26,7 @@ from .frames import layout_frames
 from .layout_fit import LayoutFit
 from .metrics import compact, distortion
 from .options import DeformOptions
+from .outcomes import not_refined
 from .reconstruct import Constraints, ImmersionProblem, Progress
 from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner
 from .reports import DeformReport, Stages
@@ -34,6 +35,7 @@ from .serialization import JsonDataclass
 from .system import ConstrainedSystem
 from .topology import MeshTopology, build_topology
 from .validation import as_indices, as_points, require_unique
+from .warnings import as_report, refinement_warnings
 
 
 @dataclass
@@ -249,7 +251,7 @@ class Deformer:
         self.refine = opts.refine is True
         self.backend_name = opts.backend or "auto"
         self.rest_forms = forms
-        self.last_report: dict[str, Any] = {"refined": False, "reason": "no solve yet"}
+        self.last_report: dict[str, Any] = not_refined("no solve yet")
         self._refiner: Refiner | None = None
         self._layout_fit: LayoutFit | None = None
         self._previous: tuple[np.ndarray, np.ndarray] | None = None  # (linear, refined)
@@ -409,7 +411,7 @@ class Deformer:
         local = self.problem.recenter(local, constraints, self.rest[self.sub_vertices])
         self._last = {"P": P, "R": R, "constraints": constraints, "linear": local,
                       "frames": frames, "best": None, "report": None}
-        self.last_report = {"refined": False, "reason": "disabled (refine=false)"}
+        self.last_report = not_refined("disabled (refine=false)")
         if refine:
             return self.refine_last(_seconds_left(max_seconds, started), progress)
         return self._embed(local)
@@ -445,8 +447,7 @@ class Deformer:
         refiner = self._refinement()
         local = last["linear"]
         if last["best"] is None and refiner.reproduces(local):
-            self.last_report = {"refined": False,
-                                "reason": "exact: the linear answer has the rest forms"}
+            self.last_report = not_refined("exact: the linear answer has the rest forms")
             last["best"], last["report"] = local, self.last_report
             return self._embed(local)
         if last["best"] is not None and refiner.can_resume:
@@ -550,5 +551,6 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
         analysis=deformer.system.analysis, n_unknowns=deformer.problem.n_unknowns,
         roi_faces=len(deformer.sub_faces), orthonormalized=bool(opts.orthonormalize),
         refinement=deformer.last_report,
-        distortion=compact(distortion(deformer.rest, result, deformer.faces)))
+        distortion=compact(distortion(deformer.rest, result, deformer.faces)),
+        warnings=as_report(refinement_warnings(deformer.last_report)))
     return Deformation(vertices=result, report=report)

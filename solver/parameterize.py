@@ -22,6 +22,7 @@ from .frames import face_edge_lengths, triangle_areas, triangle_layouts
 from .linalg import factorize
 from .metrics import corner_angles, histogram, summary
 from .options import ParameterizeOptions
+from .outcomes import not_refined
 from .reconstruct import ImmersionProblem, Progress
 from .refine import FormTargets, Refiner
 from .reports import ParameterizeReport, Stages
@@ -29,6 +30,7 @@ from .serialization import JsonDataclass
 from .system import half_cotangents
 from .topology import MeshTopology, build_topology
 from .validation import as_points
+from .warnings import as_report, flattening_warnings
 
 
 @dataclass
@@ -224,12 +226,12 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
     uv = flat[:, :2]
     # Used vertices lie in z = 0 exactly (see module docstring); report any deviation.
     planarity = float(np.abs(flat[topology.is_referenced, 2]).max())
-    refinement: dict[str, Any] = {"refined": False, "reason": "disabled (refine=false)"}
+    refinement: dict[str, Any] = not_refined("disabled (refine=false)")
     if opts.refine is not False:
         refiner = Refiner(FormTargets(topology, forms.lengths, np.zeros_like(forms.angles),
                                       area_weight=opts.area_weight), dim=2, backend=backend)
         if refiner.reproduces(uv):
-            refinement = {"refined": False, "reason": "exact: the surface is developable"}
+            refinement = not_refined("exact: the surface is developable")
         else:
             stages("refine")
             # Start from local/global steps begun at a Tutte embedding (robust under large
@@ -266,7 +268,8 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
         length_change_histogram=histogram(length_change), planarity_error=planarity,
         orthonormalized=bool(opts.orthonormalize), refinement=refinement,
         anchored_components=anchored, backend=system.backend, analysis=system.analysis,
-        timings=stages.timings)
+        timings=stages.timings, warnings=as_report(flattening_warnings(
+            len(flipped), len(F), float(np.abs(length_change).max(initial=0.0)), refinement)))
     return Parameterization(uv=uv, flipped_faces=flipped, area_ratio=ratio,
                             angle_distortion=angle_change, report=report)
 

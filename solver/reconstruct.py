@@ -33,6 +33,7 @@ from .integrability import (
 from .layout_fit import LayoutFit
 from .linalg import resolve_backend
 from .options import COTAN_FLOOR, FRAME_WEIGHT, ReconstructOptions
+from .outcomes import not_refined
 from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner, reproduces
 from .reports import Progress, ReconstructReport, Stages
 from .rotations import nearest_rotation
@@ -52,6 +53,7 @@ from .system import (
 )
 from .topology import MeshTopology
 from .validation import as_points
+from .warnings import as_report, refinement_warnings
 
 REGULARIZATION = 1e-6
 EXACT_TOLERANCE = 1e-10  # residual rows (normalized lengths) accepted without a solve
@@ -506,12 +508,12 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     vertices, frames = problem.unknowns_to_geometry(u, user)
     vertices = problem.recenter(vertices, user, ref_v)
     orthonormality = _orthonormality_error(frames)
-    refinement: dict[str, Any] = {"refined": False, "reason": "exact: tree integration"}
+    refinement: dict[str, Any] = not_refined("exact: tree integration")
     refine = opts.refine
     if solve_path == "factorization":
         exact = refine is not False and reproduces(vertices, topology, L, A)
-        refinement = {"refined": False, "reason": "disabled (refine=false)" if refine is False
-                      else "exact: the linear answer reproduces the forms"}
+        refinement = not_refined("disabled (refine=false)" if refine is False
+                                 else "exact: the linear answer reproduces the forms")
     if opts.orthonormalize and solve_path == "factorization":  # integrated: rotations
         stages("factorize", 0.5)
         rotations = nearest_rotation(frames)
@@ -542,7 +544,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         n_unknowns=problem.n_unknowns, frame_weight=problem.frame_weight,
         weighting=problem.weighting, length_scale=problem.length_scale,
         regularized_components=regularized, anchored_components=anchored,
-        isolated_vertices=topology.isolated_vertices.tolist(), integrability=integrability)
+        isolated_vertices=topology.isolated_vertices.tolist(), integrability=integrability,
+        warnings=as_report(refinement_warnings(refinement)))
     return Reconstruction(vertices=vertices, frames=frames, report=report)
 
 

@@ -55,6 +55,7 @@ from .normal_equations import (  # noqa: F401 - re-exported
     clear_pattern_cache,
     pattern_cache_info,
 )
+from .outcomes import with_outcome
 from .quasi_newton import QuasiNewtonMemory
 from .rigid_motions import RigidMotions, RigidProjection
 
@@ -150,7 +151,8 @@ class Refinement:
             ``solves`` (back-substitutions, a single-precision solve's refinement step's
             included),
             ``seconds``, ``energy_before`` / ``energy_after``, ``before`` / ``after`` residual
-            summaries (:func:`form_residuals`), ``stop_reason``.
+            summaries (:func:`form_residuals`), ``stop_reason``, ``outcome`` and
+            ``outcome_text`` (:mod:`solver.outcomes`: converged, partial or not refined).
     """
 
     vertices: np.ndarray
@@ -269,10 +271,10 @@ class Refiner:
         if state.keep_factor and state.factor is not None:
             self._kept = (state.factor, state.model, state.projection)
             self._kept_damping = state.damping
-        return Refinement(vertices=state.X.copy(), report={
+        return Refinement(vertices=state.X.copy(), report=with_outcome({
             "refined": True, **state.counters(), "after": self.residuals(state.X),
             "angle_weight": self.targets.angle_weight,
-            "seconds": time.perf_counter() - clock})
+            "seconds": time.perf_counter() - clock}))
 
     def _iterate(self, s: _Iteration, time_limit: float | None, notify: Any,
                  clock: float) -> None:

@@ -145,6 +145,7 @@ class ReconstructReport(Report):
         isolated_vertices: vertices in no face.
         integrability: the integrability summary (None: not checked).
         vjp: :func:`solver.reconstruct_vjp`'s preparation (None otherwise).
+        warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
     """
 
     energy: dict[str, float]
@@ -165,6 +166,7 @@ class ReconstructReport(Report):
     isolated_vertices: list[int]
     integrability: dict[str, Any] | None = None
     vjp: dict[str, Any] | None = None
+    warnings: list[dict[str, Any]] | None = None
 
 
 @dataclasses.dataclass(eq=False)
@@ -179,6 +181,7 @@ class DeformReport(Report):
         orthonormalized: whether the second solve of Sec. 4 ran.
         refinement: whether and how it refined.
         distortion: :func:`solver.metrics.distortion` against the rest mesh (compact).
+        warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
     """
 
     timings: Timings
@@ -189,6 +192,7 @@ class DeformReport(Report):
     orthonormalized: bool
     refinement: dict[str, Any]
     distortion: dict[str, Any]
+    warnings: list[dict[str, Any]] | None = None
 
 
 @dataclasses.dataclass(eq=False)
@@ -207,6 +211,7 @@ class ParameterizeReport(Report):
         anchored_components: ``{"component", "vertex", "face"}`` of each component.
         backend, analysis: the factorization's.
         timings: seconds per stage.
+        warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
     """
 
     flipped_count: int
@@ -222,3 +227,4 @@ class ParameterizeReport(Report):
     backend: str
     analysis: str
     timings: Timings
+    warnings: list[dict[str, Any]] | None = None

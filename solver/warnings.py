@@ -21,6 +21,8 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import math
+from collections.abc import Mapping
 from typing import Any
 
 from .serialization import JsonDataclass
@@ -52,11 +54,15 @@ class WarningRules:
         max_length_error: the largest relative edge-length error left (a fraction:
             0.05 is 5%) of a reconstruction, deformation or flattening.
         max_angle_error: the largest dihedral-angle error left, radians.
+        max_flattening_length_error: the largest relative edge-length change of a
+            flattening (a fraction): a curved surface cannot flatten without changing
+            lengths, so its limit is wider than ``max_length_error``.
     """
 
     max_flipped_fraction: float = 1e-3
     max_length_error: float = 0.05
     max_angle_error: float = 0.1
+    max_flattening_length_error: float = 0.5
 
 
 DEFAULT_RULES = WarningRules()
@@ -82,3 +88,68 @@ def exceeded(value: float, limit: float, code: str, template: str,
 def as_report(warnings: list[AnswerWarning | None]) -> list[dict[str, Any]]:
     """The report's ``warnings`` list: the warnings found, as JSON-ready dicts."""
     return [dataclasses.asdict(found) for found in warnings if found is not None]
+
+
+LENGTH_ERROR_MESSAGE = ("the largest edge-length error left is {value:.1%} of the edge's "
+                        "target length (limit {limit:.0%})")
+ANGLE_ERROR_MESSAGE = ("the largest dihedral-angle error left is {value:.3g} rad "
+                       "({degrees:.3g}°; limit {limit:g} rad)")
+FLIPPED_MESSAGE = "{value:.2%} of the faces are flipped (limit {limit:.2%})"
+
+
+def residual_warnings(length_error: float | None, angle_error: float | None,
+                      rules: WarningRules = DEFAULT_RULES, *,
+                      length_limit: float | None = None) -> list[AnswerWarning | None]:
+    """Warnings for the largest relative edge-length error (a fraction) and dihedral-angle
+    error (radians) an answer leaves; None for a measure that is absent. ``length_limit``:
+    instead of ``rules.max_length_error``."""
+    found: list[AnswerWarning | None] = []
+    if length_error is not None:
+        limit = rules.max_length_error if length_limit is None else length_limit
+        found.append(exceeded(length_error, limit, "length-error", LENGTH_ERROR_MESSAGE))
+    if angle_error is not None:
+        found.append(exceeded(angle_error, rules.max_angle_error, "angle-error",
+                              ANGLE_ERROR_MESSAGE.replace(
+                                  "{degrees:.3g}", f"{math.degrees(angle_error):.3g}")))
+    return found
+
+
+def time_limit_warning(refinement: Mapping[str, Any]) -> AnswerWarning | None:
+    """A warning when a refinement's time limit ran out before any step lowered the energy:
+    the answer is the refinement's start (``value`` and ``limit``: the energy left as a
+    fraction of the start's, and 1)."""
+    if refinement.get("stop_reason") != "time_limit" or refinement.get("outcome") != (
+            "not-refined"):
+        return None
+    before, after = refinement.get("energy_before"), refinement.get("energy_after")
+    left = 1.0 if not before or after is None else float(after) / float(before)
+    return AnswerWarning(
+        "time-limit-no-progress",
+        f"the time limit ran out after {int(refinement.get('iterations') or 0)} refinement "
+        "iterations, before any progress: the answer is the refinement's start (energy "
+        f"{after if after is not None else float('nan'):.4g}, unchanged); raise max_seconds",
+        left, 1.0)
+
+
+def refinement_warnings(refinement: Mapping[str, Any] | None,
+                        rules: WarningRules = DEFAULT_RULES) -> list[AnswerWarning | None]:
+    """The warnings of a refinement report (:mod:`solver.refine`): the length and angle
+    errors it left (``after``) and a time limit with no progress."""
+    if not refinement:
+        return []
+    after = refinement.get("after") or {}
+    length = (after.get("length_error") or {}).get("max")
+    angle = (after.get("angle_error") or {}).get("max")
+    return [*residual_warnings(length, angle, rules), time_limit_warning(refinement)]
+
+
+def flattening_warnings(flipped_count: int, face_count: int, length_error: float,
+                        refinement: Mapping[str, Any] | None,
+                        rules: WarningRules = DEFAULT_RULES) -> list[AnswerWarning | None]:
+    """The warnings of a flattening: flipped faces (as a fraction of ``face_count``), the
+    largest relative edge-length change of the uv layout, a time limit with no progress."""
+    fraction = flipped_count / face_count if face_count else 0.0
+    return [exceeded(fraction, rules.max_flipped_fraction, "flipped-faces", FLIPPED_MESSAGE),
+            *residual_warnings(length_error, None, rules,
+                               length_limit=rules.max_flattening_length_error),
+            time_limit_warning(refinement or {})]

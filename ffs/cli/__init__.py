@@ -14,9 +14,10 @@ service, ``python -m service``).
   on the server); a failing file is reported and the rest carry on (``--fail-fast`` stops).
 * A progress bar per running file with its stage (on a terminal; quiet otherwise or with
   ``-q``), then a summary table on stdout; ``--report FILE`` writes every file's full report.
-* Exit codes: 0 all done, 1 a file failed (its message names the file, field and index),
-  2 usage; 130 interrupted. Bad input never prints a traceback (``-v`` shows the traceback
-  of an unexpected error).
+* Exit codes: 0 all done, 1 a file failed (its message names the file, field and index)
+  or, with ``--strict``, an answer carries a warning (``WARN`` in the table, one line per
+  warning on stderr), 2 usage; 130 interrupted. Bad input never prints a traceback
+  (``-v`` shows the traceback of an unexpected error).
 
 Modules, in the order a run goes through them: :mod:`~ffs.cli.arguments` (the parser),
 :mod:`~ffs.cli.items` (inputs and outputs of each unit of work), :mod:`~ffs.cli.batch`
@@ -101,6 +102,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print_summary(args.command, rows, elapsed, args.quiet)
     if args.report:
         write_report(args.report, args.command, args, rows, elapsed)
+    if args.strict and any(r.warnings for r in rows):
+        return EXIT_FAILED
     return EXIT_OK if all(r.status == "ok" for r in rows) else EXIT_FAILED
 
 

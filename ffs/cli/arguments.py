@@ -70,6 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "only errors")
     run.add_argument("-v", "--verbose", action="store_true",
                      help="tracebacks of unexpected errors")
+    run.add_argument("--strict", action="store_true",
+                     help="exit 1 when an answer carries a warning (past a documented "
+                     "threshold: flipped faces, length or angle error, a time limit with "
+                     "no progress)")
 
     solve = _Parser(add_help=False)
     group = solve.add_argument_group("solver options (named like the HTTP options)")
@@ -96,7 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ffs", description="Fundamental forms of triangle meshes: forms, "
                      "integrability, reconstruction, deformation, flattening, blending; "
                      "in-process or on a service (--server).",
-                     epilog="Exit codes: 0 done, 1 a file failed, 2 usage. "
+                     epilog="Exit codes: 0 done, 1 a file failed (or, with --strict, an "
+                     "answer carries a warning), 2 usage. "
                      "Example: ffs reconstruct forms/*.npz -o out/{stem}.glb -j 2")
     parser.add_argument("--version", action="version", version=f"ffs {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="command", required=True,

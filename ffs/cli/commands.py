@@ -31,6 +31,7 @@ def _refinement_columns(row: Row, report: dict[str, Any] | None) -> None:
     if not isinstance(refinement, dict):
         return
     row.refined = bool(refinement.get("refined"))
+    row.outcome = str(refinement.get("outcome_text") or "")
     after = refinement.get("after") or {}
     row.length_error = (after.get("length_error") or {}).get("max")
     row.angle_error = (after.get("angle_error") or {}).get("max")
@@ -74,6 +75,7 @@ def _write_mesh_result(item: Item, args: argparse.Namespace, row: Row, vertices:
     files.write_mesh(out, _output_format(out, args), vertices, faces, report)
     row.faces, row.report = len(faces), report
     _refinement_columns(row, report)
+    row.warnings = list(report.get("warnings") or [])
 
 
 def _forms_of(backend: Any, path: str, args: argparse.Namespace, progress: Progress) -> Any:
@@ -174,6 +176,7 @@ def run_flatten(backend: Any, item: Item, args: argparse.Namespace, progress: Pr
     row.faces, row.report = len(faces), result.report
     row.note = f"{len(result.flipped_faces)} flipped faces"
     _refinement_columns(row, result.report)
+    row.warnings = list(result.report.get("warnings") or [])
 
 
 def run_blend(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,

@@ -54,6 +54,9 @@ class Row:
         length_error: Max edge-length error after refinement.
         angle_error: Max dihedral-angle error after refinement.
         note: The summary table's ``result`` cell.
+        outcome: The refinement's outcome in words (``converged after 3 iterations``,
+            ``partly: time limit after 2 iterations``, ``not refined: ...``; "" without one).
+        warnings: The report's ``warnings``: thresholds the answer is past.
         error: One line naming what failed (field and index where known).
         pid: The process that ran it.
         started: Wall-clock start (``time.time()``).
@@ -72,6 +75,8 @@ class Row:
     length_error: float | None = None
     angle_error: float | None = None
     note: str = ""
+    outcome: str = ""
+    warnings: list[dict[str, Any]] = field(default_factory=list)
     error: str | None = None
     pid: int = 0
     started: float = 0.0

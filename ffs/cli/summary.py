@@ -15,6 +15,43 @@ def _number(value: float | None) -> str:
     return "-" if value is None else f"{value:.2e}"
 
 
+def _percent(value: float | None) -> str:
+    """A relative error (a fraction) as a percentage: ``0.0123`` -> ``1.23%``."""
+    return "-" if value is None else f"{100 * value:.3g}%"
+
+
+def _radians(value: float | None) -> str:
+    """An angle error in radians, with degrees: ``2.25`` -> ``2.25 rad (129°)``."""
+    import math
+
+    return "-" if value is None else f"{value:.3g} rad ({math.degrees(value):.3g}°)"
+
+
+def _refined_cell(row: Row) -> str:
+    """The ``refined`` cell: the outcome with its stop reason, else yes/no/-."""
+    if row.outcome:
+        return row.outcome
+    return "-" if row.refined is None else ("yes" if row.refined else "no")
+
+
+def _result_cell(row: Row) -> str:
+    """The ``result`` cell: ok (or the command's note), WARN with the warnings' codes, or
+    the status."""
+    if row.status != "ok":
+        return row.status.upper()
+    if row.warnings:
+        return "WARN " + ", ".join(w.get("code", "?") for w in row.warnings)
+    return row.note or "ok"
+
+
+def print_warnings(command: str, rows: list[Row]) -> None:
+    """One line per warning on stderr: ``ffs <command>: <file>: warning: <message>``."""
+    for row in rows:
+        for warning in row.warnings:
+            print(f"ffs {command}: {row.path or row.file}: warning: {warning.get('message')}",
+                  file=sys.stderr)
+
+
 def print_summary(command: str, rows: list[Row], elapsed: float, quiet: bool) -> None:
     """Print each failure's line, then the table and a total line.
 
@@ -30,13 +67,13 @@ def print_summary(command: str, rows: list[Row], elapsed: float, quiet: bool) ->
             print(f"ffs {command}: {row.path or row.file}: {row.error}", file=sys.stderr)
             if row.extra.get("traceback"):
                 print(row.extra["traceback"], file=sys.stderr, end="")
+    print_warnings(command, rows)
     if quiet:
         return
     headers = ["file", "faces", "seconds", "refined", "length err", "angle err", "result"]
     table = [[r.file, "-" if r.faces is None else str(r.faces), f"{r.seconds:.3f}",
-              "-" if r.refined is None else ("yes" if r.refined else "no"),
-              _number(r.length_error), _number(r.angle_error),
-              (r.note or "ok") if r.status == "ok" else r.status.upper()] for r in rows]
+              _refined_cell(r), _percent(r.length_error), _radians(r.angle_error),
+              _result_cell(r)] for r in rows]
     total = (f"{len(rows) - len(failed)} of {len(rows)} done, {len(failed)} failed "
              f"in {elapsed:.2f} s")
     try:
@@ -51,7 +88,7 @@ def print_summary(command: str, rows: list[Row], elapsed: float, quiet: bool) ->
     console = Console(highlight=False, width=None if sys.stdout.isatty() else 1000)
     grid = Table(*headers, box=None, pad_edge=False, show_edge=False)
     for line, row in zip(table, rows, strict=True):
-        style = None if row.status == "ok" else "red"
+        style = "red" if row.status != "ok" else ("yellow" if row.warnings else None)
         grid.add_row(*line, style=style)
     console.print(grid)
     console.print(total)
@@ -68,7 +105,8 @@ def write_report(path: str, command: str, args: argparse.Namespace, rows: list[R
         "files": [{"file": r.file, "outputs": r.outputs, "status": r.status,
                    "error": r.error, "faces": r.faces, "seconds": r.seconds,
                    "refined": r.refined, "length_error": r.length_error,
-                   "angle_error": r.angle_error, "pid": r.pid, "started": r.started,
+                   "angle_error": r.angle_error, "outcome": r.outcome,
+                   "warnings": r.warnings, "pid": r.pid, "started": r.started,
                    "finished": r.finished, **r.extra, "report": r.report} for r in rows]}
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json_text(document))

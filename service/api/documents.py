@@ -209,7 +209,42 @@ _REPORT_EXAMPLE = {"integrability": {"integrable": True, "max_defect": 5.2e-16,
                                      "worst_vertices": [{"vertex": 4, "defect": 5.2e-16}],
                                      "rotation_holonomy": [], "translation_holonomy": []},
                    "backend": "pardiso", "timings": {"validate": 0.002, "assemble": 0.008,
-                                                     "factorize": 0.02, "solve": 0.001}}
+                                                     "factorize": 0.02, "solve": 0.001},
+                   "warnings": []}
+
+
+class AnswerWarningDocument(BaseModel):
+    """A threshold the answer is past (``solver.warnings.AnswerWarning``)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"code": "length-error", "value": 1.308, "limit": 0.05,
+         "message": "the largest edge-length error left is 130.8% of the edge's target "
+                    "length (limit 5%)"}]})
+
+    code: str = Field(description="The rule: flipped-faces, length-error, angle-error, "
+                      "time-limit-no-progress, ...")
+    message: str = Field(description="One sentence for people, with units.")
+    value: float = Field(description="What was measured, in the unit of `limit`.")
+    limit: float = Field(description="The documented threshold it is past.")
+
+
+class AnswerReport(BaseModel):
+    """An operation's report: timings, backend, integrability, ``refinement`` (with its
+    ``outcome``: converged, partial or not-refined, and ``outcome_text``), distortion, ...
+    and ``warnings``: the documented thresholds the answer is past ([] for a good answer)."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [
+        {"refinement": {"refined": True, "converged": False, "stop_reason": "time_limit",
+                        "iterations": 0, "outcome": "not-refined",
+                        "outcome_text": "not refined: time limit before the first iteration"},
+         "warnings": [{"code": "time-limit-no-progress", "value": 1.0, "limit": 1.0,
+                       "message": "the time limit ran out after 0 refinement iterations, "
+                                  "before any progress: the answer is the refinement's "
+                                  "start (energy 80.27, unchanged); raise max_seconds"}]}]})
+
+    warnings: list[AnswerWarningDocument] = Field(
+        default_factory=list, description="Thresholds the answer is past (docs/service.md, "
+        "Warnings); absent where the operation has no rules (mesh).")
 
 
 class MeshResponse(BaseModel):
@@ -223,7 +258,7 @@ class MeshResponse(BaseModel):
 
     vertices: list[Vec3]
     faces: list[Tri]
-    report: dict[str, Any]
+    report: AnswerReport
     colors: list[Annotated[list[float], Field(min_length=4, max_length=4)]] | None = None
 
 
@@ -236,7 +271,7 @@ class ParameterizeResponse(BaseModel):
 
     uv: list[Annotated[list[float], Field(min_length=2, max_length=2)]]
     flipped_faces: list[int]
-    report: dict[str, Any]
+    report: AnswerReport
 
 
 class InterpolateResponse(BaseModel):

@@ -1,0 +1,66 @@
+"""What a newcomer hits (issue 43), through ``ffs`` as a user runs it: the summary says how
+a refinement ended (its stop reason), carries units (% and rad), says WARN for answers past
+the documented thresholds (one line per warning on stderr) and ``--strict`` exits 1."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+OLD_README_HANDLES = [{"vertex": 0, "position": [0, 0, 0]},
+                      {"vertex": 500, "position": [0, 0, 1]}]
+"""The README's old deform example: two vertices 79 units apart pinned 1 unit apart."""
+
+
+def _lines(text: str, start: str) -> list[str]:
+    return [line for line in text.splitlines() if line.startswith(start)]
+
+
+def test_warn_in_the_summary_and_strict_exits_1(ffs, workdir: Path) -> None:
+    (workdir / "handles.json").write_text(json.dumps(OLD_README_HANDLES))
+    run = ffs("deform", "face.off", "--handles", "handles.json", "-o", "out.ply",
+              "--report", "report.json")
+    assert run.returncode == 0, run.stderr
+    row = _lines(run.stdout, "face.off")[0]
+    assert "WARN length-error" in row and "converged after" in row, run.stdout
+    report = json.loads((workdir / "report.json").read_text())["files"][0]
+    warning = {w["code"]: w for w in report["warnings"]}["length-error"]
+    rest = trimesh.load(workdir / "face.off", process=False)
+    out = trimesh.load(workdir / "out.ply", process=False)
+    edges = rest.edges_unique
+    ratio = (np.linalg.norm(np.diff(out.vertices[edges], axis=1)[:, 0], axis=1)
+             / np.linalg.norm(np.diff(rest.vertices[edges], axis=1)[:, 0], axis=1))
+    assert abs(warning["value"] - np.abs(ratio - 1).max()) < 1e-5  # PLY stores float32
+    assert f"{100 * warning['value']:.3g}%" in row  # the length error, as a percentage
+    assert "rad (" in row and "°)" in row  # the angle error in radians and degrees
+    assert f"face.off: warning: {warning['message']}" in run.stderr
+    strict = ffs("deform", "face.off", "--handles", "handles.json", "-o", "out.ply",
+                 "--strict")
+    assert strict.returncode == 1, strict.stdout + strict.stderr
+
+
+def test_scaled_example_is_clean_even_with_strict(ffs, workdir: Path) -> None:
+    rest = trimesh.load(workdir / "face.off", process=False).vertices
+    handles = [{"vertex": 0, "position": rest[0].tolist()},
+               {"vertex": 500, "position": (rest[500] + [0, 0, 3]).tolist()}]
+    (workdir / "handles.json").write_text(json.dumps(handles))
+    run = ffs("deform", "face.off", "--handles", "handles.json", "-o", "out.ply", "--strict")
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "WARN" not in run.stdout and "warning" not in run.stderr
+
+
+def test_summary_shows_the_stop_reason(ffs, workdir: Path) -> None:
+    ffs("forms", "face.off", "-o", "forms.json")
+    forms = json.loads((workdir / "forms.json").read_text())
+    forms["angles"] = [0.8 * a for a in forms["angles"]]
+    (workdir / "bent.json").write_text(json.dumps(forms))
+    hurried = ffs("reconstruct", "bent.json", "-o", "bent.ply", "--max-seconds", "0.0001")
+    assert hurried.returncode == 0, hurried.stderr
+    row = _lines(hurried.stdout, "bent.json")[0]
+    assert "not refined: time limit before the first iteration" in row, hurried.stdout
+    assert "WARN" in row and "time-limit-no-progress" in row
+    calm = ffs("reconstruct", "bent.json", "-o", "bent.ply")
+    assert "converged after" in _lines(calm.stdout, "bent.json")[0], calm.stdout

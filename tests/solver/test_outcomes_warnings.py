@@ -1,0 +1,122 @@
+"""Honest outcomes (issue 43): a refinement report says whether it converged, stopped partly
+(and why, after how many iterations) or did not refine; answers past the documented
+thresholds of :class:`solver.warnings.WarningRules` carry ``warnings`` whose values are the
+errors measured independently on the returned shapes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+import solver
+from solver.outcomes import not_refined, outcome_text, refinement_outcome
+from solver.refine import FormTargets, refine
+from solver.topology import build_topology
+from solver.warnings import DEFAULT_RULES, WarningRules, flattening_warnings, refinement_warnings
+from tests.helpers import REPO
+
+DATA = REPO / "tests" / "data"
+
+
+def _face() -> tuple[np.ndarray, np.ndarray]:
+    mesh = trimesh.load(DATA / "face.off", process=False)
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+
+
+def _max_length_error(vertices: np.ndarray, rest: np.ndarray, faces: np.ndarray) -> float:
+    """max |l / L - 1| over the mesh's edges, from the positions alone."""
+    edges = np.unique(np.sort(np.concatenate(
+        [faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
+    now = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    before = np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
+    return float(np.abs(now / before - 1).max())
+
+
+def test_converged_refinement_says_so() -> None:
+    vertices, faces = _face()
+    forms = solver.fundamental_forms(vertices, faces)
+    result = solver.reconstruct(forms.faces, forms.edges, forms.lengths, 0.8 * forms.angles)
+    refinement = result.report["refinement"]
+    assert refinement["refined"] and refinement["converged"]
+    assert refinement["outcome"] == "converged"
+    assert refinement["outcome_text"] == f"converged after {refinement['iterations']} " \
+        "iterations"
+
+
+def test_time_limit_before_any_step_is_not_refined_and_warns() -> None:
+    vertices, faces = _face()
+    forms = solver.fundamental_forms(vertices, faces)
+    result = solver.reconstruct(forms.faces, forms.edges, forms.lengths, 0.8 * forms.angles,
+                                max_seconds=1e-4)
+    refinement = result.report["refinement"]
+    assert refinement["stop_reason"] == "time_limit" and refinement["iterations"] == 0
+    assert refinement["energy_after"] == refinement["energy_before"]
+    assert refinement["outcome"] == "not-refined"
+    assert refinement["outcome_text"] == "not refined: time limit before the first iteration"
+    codes = {w["code"]: w for w in result.report["warnings"]}
+    assert "time-limit-no-progress" in codes and codes["time-limit-no-progress"]["value"] == 1.0
+
+
+def test_iteration_budget_after_one_step_is_partial() -> None:
+    vertices, faces = _face()
+    forms = solver.fundamental_forms(vertices, faces)
+    start = vertices + np.random.default_rng(0).normal(0, 0.5, vertices.shape)
+    targets = FormTargets(build_topology(faces, len(vertices)), forms.lengths, forms.angles)
+    fit = refine(start, targets, max_iterations=1)
+    assert fit.report["iterations"] == 1 and not fit.report["converged"]
+    assert fit.report["energy_after"] < fit.report["energy_before"]
+    assert fit.report["outcome"] == "partial"
+    assert fit.report["outcome_text"] == "partly: iteration budget after 1 iteration"
+
+
+def test_outcome_of_a_refinement_that_did_not_run() -> None:
+    report = not_refined("disabled (refine=false)")
+    assert refinement_outcome(report) == "not-refined"
+    assert outcome_text(report) == "not refined: disabled (refine=false)"
+    vertices, faces = _face()
+    forms = solver.fundamental_forms(vertices, faces)
+    result = solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles)
+    assert result.report["refinement"]["outcome"] == "not-refined"  # exact: nothing to do
+    assert result.report["warnings"] == []
+
+
+def test_deformation_past_the_length_limit_warns_with_the_measured_error() -> None:
+    vertices, faces = _face()
+    # The old README example: two vertices 79 units apart pinned 1 unit apart.
+    moved = solver.deform(vertices, faces, [0, 500], np.array([[0, 0, 0], [0, 0, 1.0]]))
+    found = {w["code"]: w for w in moved.report["warnings"]}
+    measured = _max_length_error(moved.vertices, vertices, faces)
+    assert found["length-error"]["value"] == pytest.approx(measured, rel=1e-9)
+    assert found["length-error"]["limit"] == DEFAULT_RULES.max_length_error
+    assert f"{measured:.1%}" in found["length-error"]["message"]
+    # Scaled to the mesh (the README's example now): 3 units on a 181-unit face, no warning.
+    lifted = solver.deform(vertices, faces, [0, 500],
+                           np.array([vertices[0], vertices[500] + [0, 0, 3.0]]))
+    assert _max_length_error(lifted.vertices, vertices, faces) < 0.05
+    assert lifted.report["warnings"] == []
+
+
+def test_flattening_warnings_measure_flips_and_lengths() -> None:
+    vertices, faces = _face()
+    flat = solver.parameterize(vertices, faces)
+    uv = flat.uv
+    e1, e2 = uv[faces[:, 1]] - uv[faces[:, 0]], uv[faces[:, 2]] - uv[faces[:, 0]]
+    flips = int(((e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) < 0).sum())
+    uv3 = np.column_stack([uv, np.zeros(len(uv))])
+    length = _max_length_error(uv3, vertices, faces)
+    strict = WarningRules(max_flipped_fraction=-1.0, max_flattening_length_error=length / 2)
+    found = {w.code: w for w in flattening_warnings(
+        flips, len(faces), length, flat.report["refinement"], strict) if w}
+    assert found["flipped-faces"].value == flips / len(faces)
+    assert found["length-error"].value == pytest.approx(length)
+    # The defaults: 0.32 of a face is within the flattening limit (0.5), no flips.
+    assert length < DEFAULT_RULES.max_flattening_length_error and flips == 0
+    assert flat.report["warnings"] == []
+
+
+def test_angle_warning_in_radians_and_degrees() -> None:
+    found = [w for w in refinement_warnings(
+        {"after": {"length_error": {"max": 0.01}, "angle_error": {"max": 0.5}}}) if w]
+    assert [w.code for w in found] == ["angle-error"]
+    assert "0.5 rad (28.6°; limit 0.1 rad)" in found[0].message

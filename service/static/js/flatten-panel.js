@@ -1,6 +1,7 @@
 // The Flatten panel: the mesh's flat layout (a parameterize job), shown beside the 3D view
 // with its flipped faces in red, its distortion figures, and the checkerboard on the mesh.
 
+import { showAnswerWarnings } from "./answer-warnings.js";
 import * as api from "./api.js";
 import { badge, deg, fmt, pct, setStats } from "./format.js";
 import { rows3 } from "./mesh.js";
@@ -18,6 +19,7 @@ function drawAvailability(s) {
 
 function drawLayout(s) {
   const flat = s.flat;
+  showAnswerWarnings("flatten-warnings", flat?.report?.warnings);
   if (!flat) {
     setStats("flatten-stats", []);
     return;

@@ -3,6 +3,7 @@
 // integrability, placed on the mesh it came from, with the refined and the linear answers
 // side by side (their residuals) and a switch between them.
 
+import { showAnswerWarnings } from "./answer-warnings.js";
 import * as api from "./api.js";
 import { badge, deg, fmt, loopsText, maxOf, num, pct, setStats } from "./format.js";
 import { flatten3, forms as meshForms, rigidAlign } from "./mesh.js";
@@ -57,6 +58,7 @@ function drawResiduals(f) {
 function drawReconstruction(s) {
   const rec = s.reconstruction;
   $("compare-row").hidden = !rec?.refinement?.refined;
+  showAnswerWarnings("forms-warnings", rec?.report?.warnings);
   if (!rec) {
     setStats("forms-stats", []);
     drawResiduals(null);
@@ -77,6 +79,7 @@ function drawReconstruction(s) {
     rows.push(["Showing", rec.showing === "refined" ? "refined answer" : "linear answer"]);
     rows.push(["Refinement", num(`${f.iterations} steps, ${(1000 * f.seconds).toFixed(0)} ms`
       + (f.converged ? "" : " (not converged)"))]);
+    if (f.outcome_text) rows.push(["Outcome", f.outcome_text, "wrap"]);
   } else if (seconds !== null) {
     rows.push(["Solve time", num(`${(1000 * (seconds + (f?.seconds ?? 0))).toFixed(0)} ms`)]);
   }

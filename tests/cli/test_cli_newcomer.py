@@ -64,3 +64,51 @@ def test_summary_shows_the_stop_reason(ffs, workdir: Path) -> None:
     assert "WARN" in row and "time-limit-no-progress" in row
     calm = ffs("reconstruct", "bent.json", "-o", "bent.ply")
     assert "converged after" in _lines(calm.stdout, "bent.json")[0], calm.stdout
+
+
+# ------------------------------------------------------- the README's install keeps promises
+
+
+def test_progress_bars_come_with_the_base_install() -> None:
+    """``pip install -e .`` (the README's install) brings every package ``ffs``'s bars and
+    table need: rich is a base dependency, not only the client extra's."""
+    import tomllib
+
+    from tests.helpers import REPO
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    base = {dep.split(">")[0].split("=")[0].split("[")[0].split(";")[0].strip().lower()
+            for dep in project["dependencies"]}
+    assert "rich" in base, sorted(base)
+
+
+def test_progress_bar_on_a_terminal(ffs, workdir: Path) -> None:
+    """On a terminal (a pseudo-terminal here) a running file has a bar with its stage."""
+    import os
+    import pty
+    import subprocess
+    import sys
+
+    from tests.helpers import REPO
+
+    leader, follower = pty.openpty()
+    env = {k: v for k, v in os.environ.items() if k != "FFS_SERVER"}
+    env["PYTHONPATH"] = str(REPO)
+    env["COLUMNS"] = "120"
+    proc = subprocess.Popen([sys.executable, "-m", "ffs", "flatten", "face.off", "-o",
+                             "flat.obj"], cwd=workdir, stdout=subprocess.DEVNULL,
+                            stderr=follower, env=env)
+    os.close(follower)
+    chunks = []
+    while True:
+        try:
+            chunk = os.read(leader, 65536)
+        except OSError:  # the follower side closed: the process ended
+            break
+        if not chunk:
+            break
+        chunks.append(chunk)
+    assert proc.wait(timeout=120) == 0
+    os.close(leader)
+    shown = b"".join(chunks).decode("utf-8", "replace")
+    assert "face.off" in shown and "━" in shown, shown[:2000]

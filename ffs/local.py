@@ -83,7 +83,7 @@ class Local:
                 worst = [int(v) for v in report_first.worst_vertices]
                 raise NotIntegrableError(
                     f"the forms are not integrable: max defect {report_first.max_defect:.3g} "
-                    f"(tolerance {tolerance:g}); worst vertices {worst}",
+                    f"rad (tolerance {tolerance:g} rad); worst vertices {worst}",
                     field="vertices", index=worst[0] if worst else None)
         constraints = constraints or {}
         result = solver.reconstruct(

@@ -116,14 +116,15 @@ def run_check(backend: Any, item: Item, args: argparse.Namespace, progress: Prog
     row.faces, row.report = len(forms.faces), report.report
     row.extra = {"integrable": report.integrable, "max_defect": report.max_defect}
     row.note = ("integrable" if report.integrable else "NOT integrable") + \
-        f", max defect {report.max_defect:.3g}"
+        f", max defect {report.max_defect:.3g} rad"
     if item.outputs:
         out = Path(item.outputs[0])
         files.write_arrays(out, _output_format(out, args, ("json",)), {}, report.report)
     if args.require_integrable and not report.integrable:
         worst = (report.report.get("worst_vertices") or [None])[0]
-        raise RunFailedError(f"the forms are not integrable: max defect {report.max_defect:.3g} "
-                             f"(tolerance {args.tolerance or 1e-8:g}); worst vertex {worst}")
+        raise RunFailedError(f"the forms are not integrable: max defect "
+                             f"{report.max_defect:.3g} rad (tolerance "
+                             f"{args.tolerance or 1e-8:g} rad); worst vertex {worst}")
 
 
 def run_reconstruct(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,

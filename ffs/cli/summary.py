@@ -11,10 +11,6 @@ from ffs import __version__
 from ffs.cli.items import Row
 
 
-def _number(value: float | None) -> str:
-    return "-" if value is None else f"{value:.2e}"
-
-
 def _percent(value: float | None) -> str:
     """A relative error (a fraction) as a percentage: ``0.0123`` -> ``1.23%``."""
     return "-" if value is None else f"{100 * value:.3g}%"

@@ -153,8 +153,8 @@ def _not_integrable(report: solver.IntegrabilityReport) -> ProblemError:
     worst = [int(v) for v in report.worst_vertices]
     return ProblemError(
         "not-integrable",
-        f"the forms are not integrable: max defect {report.max_defect:.3g} (tolerance "
-        f"{report.tolerance:g}); worst vertices {worst}", errors=errors,
+        f"the forms are not integrable: max defect {report.max_defect:.3g} rad (tolerance "
+        f"{report.tolerance:g} rad); worst vertices {worst}", errors=errors,
         worst_vertices=worst, integrability=report.summary())
 
 

@@ -112,3 +112,20 @@ def test_progress_bar_on_a_terminal(ffs, workdir: Path) -> None:
     os.close(leader)
     shown = b"".join(chunks).decode("utf-8", "replace")
     assert "face.off" in shown and "━" in shown, shown[:2000]
+
+
+def test_every_number_says_its_unit(ffs, workdir: Path) -> None:
+    """The integrability defect and its tolerance are angles: rad, in the table and in the
+    failure line (the length and angle errors' % and rad: test_warn_in_the_summary...)."""
+    import re
+
+    ffs("forms", "face.off", "-o", "forms.json")
+    forms = json.loads((workdir / "forms.json").read_text())
+    forms["angles"] = [0.8 * a for a in forms["angles"]]
+    (workdir / "bent.json").write_text(json.dumps(forms))
+    check = ffs("check", "bent.json")
+    assert re.search(r"NOT integrable, max defect [0-9.e+-]+ rad", check.stdout), check.stdout
+    strict = ffs("reconstruct", "bent.json", "-o", "x.ply", "--require-integrable")
+    assert strict.returncode == 1
+    assert re.search(r"max defect [0-9.e+-]+ rad \(tolerance 1e-08 rad\)", strict.stderr), \
+        strict.stderr

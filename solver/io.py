@@ -52,6 +52,7 @@ from .errors import (
     ShapeMismatchError,
     UnsupportedFormatError,
 )
+from .file_diagnosis import off_problem
 
 __all__ = [
     "LOAD_FORMATS",
@@ -81,6 +82,10 @@ _ALIASES: Final[dict[str, str]] = {
 """Media types accepted in place of a file name or extension."""
 
 _log = logging.getLogger(__name__)
+_INTERNAL_MESSAGE: Final = re.compile(
+    r"array|shape|dtype|sequence|index \d+ is out of bounds|object|NoneType|attribute|"
+    r"unpack|not subscriptable|argument", re.I)
+"""Words of numpy and Python internals that a parse failure's message must not show."""
 
 _OBJ_REF_TAIL: Final = re.compile(r"/\S*")
 """The ``/vt/vn`` tail of an OBJ face entry."""
@@ -160,10 +165,36 @@ def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], 
         raise
     except Exception as exc:  # trimesh raises all kinds of errors on bad data
         _log.debug("mesh parse failure", exc_info=True)
-        raise MeshFileError(f"cannot parse {fmt.upper()} data: {exc}", file_type=fmt) from exc
+        raise MeshFileError(f"cannot parse {fmt.upper()} data: {_in_words(exc, data, fmt)}",
+                            file_type=fmt) from exc
+    if fmt == "off" and (problem := _off_short(data, vertices, faces)):
+        raise MeshFileError(problem, file_type=fmt)
     if fmt == "stl":
         vertices, faces = _merge_identical(vertices, faces)
     return _finish(vertices, faces, fmt)
+
+
+def _in_words(exc: Exception, data: bytes, fmt: str) -> str:
+    """Why a parser failed, for people: the OFF record at fault
+    (:func:`solver.file_diagnosis.off_problem`), else the parser's message unless it is a
+    numpy or Python internal (ragged arrays, dtypes), else a plain sentence."""
+    if fmt == "off" and (problem := off_problem(data)):
+        return problem
+    text = str(exc)
+    if text and not _INTERNAL_MESSAGE.search(text) and len(text) < 200:
+        return text
+    return "the file's records do not form a mesh (a truncated or malformed line?)"
+
+
+def _off_short(data: bytes, vertices: np.ndarray, faces: np.ndarray) -> str | None:
+    """The OFF record at fault when the parser read fewer vertices or faces than the file's
+    header announces (trimesh drops a truncated last face silently); None otherwise."""
+    header = re.match(rb"\s*\w*OFF\s+(\d+)\s+(\d+)", data)
+    if header is None:
+        return None
+    if len(vertices) >= int(header[1]) and len(faces) >= int(header[2]):
+        return None
+    return off_problem(data)
 
 
 def load_mesh_file(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:

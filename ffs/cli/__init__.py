@@ -37,7 +37,7 @@ from collections.abc import Sequence
 
 from ffs.cli.arguments import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, build_parser
 from ffs.cli.batch import run_batch
-from ffs.cli.items import UsageError, plan_items
+from ffs.cli.items import UsageError, check_output_formats, plan_items
 from ffs.cli.summary import print_summary, write_report
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
@@ -82,6 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         items = plan_items(args.command, args.inputs, args.output,
                            args.t if args.command == "blend" else None)
+        check_output_formats(args.command, items, args.format)
     except UsageError as exc:
         print(f"ffs {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -13,8 +13,37 @@ DEFAULT_EXTENSIONS = {"forms": ".json", "check": ".json", "reconstruct": ".obj"}
 """Output extension when ``-o`` is a folder (others: the input's, if writable, else .obj)."""
 
 
+MESH_OUTPUTS = ("obj", "off", "ply", "stl", "glb", "json", "npz")
+"""What a mesh result is written as (``--format`` or the extension)."""
+OUTPUT_FORMATS = {"forms": ("json", "npz"), "check": ("json",)}
+"""Command -> the formats its outputs may have (the others: :data:`MESH_OUTPUTS`)."""
+
+
 class UsageError(Exception):
     """A command line that cannot run (exit 2)."""
+
+
+def output_format(command: str, path: str, override: str | None = None) -> str:
+    """The format ``path`` is written in by ``command``: ``override`` (``--format``) or its
+    extension.
+
+    Raises:
+        UsageError: A format the command cannot write (checked before any work).
+    """
+    fmt = (override or Path(path).suffix.lstrip(".")).lower()
+    writable = OUTPUT_FORMATS.get(command, MESH_OUTPUTS)
+    if fmt not in writable:
+        raise UsageError(f"cannot write {path} as {fmt or '(no extension)'!r}: {command} "
+                         f"writes {', '.join(writable)} (the extension, or --format)")
+    return fmt
+
+
+def check_output_formats(command: str, items: Sequence[Item], override: str | None) -> None:
+    """Every output of ``items`` has a format ``command`` writes (:func:`output_format`),
+    so a bad ``-o`` is a usage error before any computation."""
+    for item in items:
+        for out in item.outputs:
+            output_format(command, out, override)
 
 
 @dataclass

@@ -129,3 +129,28 @@ def test_every_number_says_its_unit(ffs, workdir: Path) -> None:
     assert strict.returncode == 1
     assert re.search(r"max defect [0-9.e+-]+ rad \(tolerance 1e-08 rad\)", strict.stderr), \
         strict.stderr
+
+
+# --------------------------------------------------- file errors in words, usage errors early
+
+
+def test_unwritable_output_format_is_a_usage_error_before_any_work(ffs, workdir: Path) -> None:
+    for args in (("reconstruct", "face.off", "-o", "x.xyz"),
+                 ("forms", "face.off", "-o", "forms.ply"),
+                 ("flatten", "face.off", "torus.off", "-o", "flat/{stem}.xyz"),
+                 ("convert", "face.off", "-o", "x.ply", "--format", "xyz")):
+        run = ffs(*args, "--report", "report.json")
+        assert run.returncode == 2, (args, run.stdout, run.stderr)
+        assert "cannot write" in run.stderr and "Traceback" not in run.stderr
+        assert run.stdout == ""  # no summary table: nothing ran
+        assert not (workdir / "report.json").exists()
+
+
+def test_truncated_off_in_words(ffs, workdir: Path) -> None:
+    lines = (workdir / "torus.off").read_text().splitlines(keepends=True)
+    (workdir / "cut.off").write_text("".join(lines[:60]) + "0.5 0.25\n")
+    run = ffs("convert", "cut.off", "-o", "x.ply")
+    assert run.returncode == 1
+    assert "cut.off: cannot parse OFF data: line 61: vertex 58 has 2 coordinates, " \
+        "expected 3" in run.stderr, run.stderr
+    assert "inhomogeneous" not in run.stderr and "sequence" not in run.stderr

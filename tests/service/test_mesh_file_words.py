@@ -1,0 +1,14 @@
+"""A truncated OFF upload is a 400 whose problem says, in words, which record is cut
+(issue 43: it quoted numpy's "setting an array element with a sequence")."""
+
+from __future__ import annotations
+
+from tests.solver.test_file_diagnosis import CASES, INTERNALS
+
+
+def test_the_service_answers_the_same_words(client) -> None:
+    data, words = CASES["vertex cut"]
+    response = client.post("/v1/forms", files={"file": ("cut.off", data)})
+    assert response.status_code == 400, response.text
+    text = response.text
+    assert words in text and not any(word in text.lower() for word in INTERNALS[:2]), text

@@ -7,7 +7,8 @@
   ``lengths``, ``angles``) or ``.npz`` with the same names.
 * Handles (``ffs deform --handles``): JSON, either the API's ``handles`` list
   ``[{"vertex": i, "position": [x, y, z]}, ...]`` or an object with ``handles`` and the
-  optional ``rotations`` (``[{"faces": [...], "rotation": 3x3 rows}]``) and ``roi``.
+  optional ``rotations`` (``[{"faces": [...], "rotation": 3x3 rows}]``) and ``roi``; or a
+  Botsch-Sorkine ``.sel`` / ``.def`` pair (:mod:`ffs.selections`).
 
 Every problem with a file raises :class:`InputFileError` naming the file, the field and the
 index, so the command line can print one line.
@@ -177,12 +178,14 @@ class Handles:
     roi: np.ndarray | None
 
 
-def read_handles(path: str | os.PathLike[str]) -> Handles:
+def read_handles(path: str | os.PathLike[str], vertices: np.ndarray | None = None,
+                 faces: np.ndarray | None = None) -> Handles:
     """Read deformation handles (``ffs deform --handles``).
 
     Args:
         path: JSON: the API's ``handles`` list, or an object with ``handles`` and the
-            optional ``rotations`` and ``roi``.
+            optional ``rotations`` and ``roi``; or a ``.sel`` / ``.def`` pair
+            (:mod:`ffs.selections`), which needs the mesh's ``vertices`` and ``faces``.
 
     Returns:
         The handles.
@@ -190,6 +193,13 @@ def read_handles(path: str | os.PathLike[str]) -> Handles:
     Raises:
         InputFileError: Not such a document (naming the field and index).
     """
+    from ffs.selections import is_selection_file, read_selection
+
+    if is_selection_file(path):
+        if vertices is None or faces is None:
+            raise InputFileError(path, "a .sel/.def handle set needs the mesh it selects on")
+        handles, targets, groups, rotations, roi = read_selection(path, vertices, faces)
+        return Handles(handles, targets, groups, rotations, roi)
     doc = read_json(path)
     if isinstance(doc, list):
         doc = {"handles": doc}

@@ -121,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
     deform.add_argument("inputs", **meshes)
     deform.add_argument("--handles", required=True, metavar="FILE", help="JSON: "
                         "[{\"vertex\": i, \"position\": [x, y, z]}, ...] or {\"handles\", "
-                        "\"rotations\", \"roi\"}")
+                        "\"rotations\", \"roi\"}; or a Botsch-Sorkine NAME.sel (0 fixed, 1 "
+                        "free, 2 handle per vertex) with NAME.def (4x4 transform) beside it")
     commands.add_parser("flatten", parents=[common, solve], help="flatten meshes with "
                         "boundary (uv as z = 0 meshes, or .json/.npz)").add_argument(
                             "inputs", **meshes)

@@ -147,8 +147,8 @@ def run_deform(backend: Any, item: Item, args: argparse.Namespace, progress: Pro
     """``ffs deform``: the mesh with its ``--handles`` moved."""
     from ffs import files
 
-    handles = files.read_handles(args.handles)
     vertices, faces = files.read_mesh(item.inputs[0], args.input_format)
+    handles = files.read_handles(args.handles, vertices, faces)
     result = backend.deform(vertices, faces, handles.vertices, handles.positions,
                             rotation_handles=handles.rotation_faces or None,
                             handle_rotations=handles.rotations, roi=handles.roi,

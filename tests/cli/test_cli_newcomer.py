@@ -154,3 +154,52 @@ def test_truncated_off_in_words(ffs, workdir: Path) -> None:
     assert "cut.off: cannot parse OFF data: line 61: vertex 58 has 2 coordinates, " \
         "expected 3" in run.stderr, run.stderr
     assert "inhomogeneous" not in run.stderr and "sequence" not in run.stderr
+
+
+# ------------------------------------------------------------- Botsch-Sorkine handle sets
+
+
+def test_deform_reads_a_sel_def_pair(ffs, workdir: Path) -> None:
+    """``--handles bar.sel`` (bar.def beside it): the handle vertices reach the .def's
+    transform of their rest positions, the fixed ones stay at rest bit for bit, and the
+    answer is the library's deformation with the same handles, ROI and rotation."""
+    import shutil
+
+    import solver
+    from tests.helpers import DATA
+    from tests.helpers.botsch_sorkine import load_case
+
+    for suffix in (".off", ".sel", ".def"):
+        shutil.copy(DATA / f"bar{suffix}", workdir / f"bar{suffix}")
+    run = ffs("deform", "bar.off", "--handles", "bar.sel", "-o", "twisted.ply", "--no-refine")
+    assert run.returncode == 0, run.stderr
+    case = load_case(DATA, "bar")
+    out = np.asarray(trimesh.load(workdir / "twisted.ply", process=False).vertices)
+    size = np.ptp(case.vertices)
+    assert np.abs(out[case.handles] - case.handle_targets()).max() < 1e-5 * size
+    assert np.array_equal(out[case.fixed], case.vertices[case.fixed])
+    assert np.abs(out[case.handles] - case.vertices[case.handles]).max() > 0.1 * size
+    library = solver.deform(case.vertices, case.faces, case.handles, case.handle_targets(),
+                            rotation_handles=[case.handle_faces()],
+                            handle_rotations=case.transform[None, :3, :3], roi=case.roi,
+                            refine=False).vertices
+    assert np.abs(out - library).max() < 1e-4 * size
+    same = ffs("deform", "bar.off", "--handles", "bar.def", "-o", "twisted2.ply",
+               "--no-refine")  # the .def names the pair as well
+    assert same.returncode == 0, same.stderr
+    again = np.asarray(trimesh.load(workdir / "twisted2.ply", process=False).vertices)
+    assert np.array_equal(again, out)
+
+
+def test_sel_def_errors_in_words(ffs, workdir: Path) -> None:
+    (workdir / "face.sel").write_text("# three values for 1180 vertices\n0\n1\n2\n")
+    (workdir / "face.def").write_text("1 0 0 0\n0 1 0 0\n0 0 1 5\n0 0 0 1\n")
+    run = ffs("deform", "face.off", "--handles", "face.sel", "-o", "x.ply")
+    assert run.returncode == 1
+    assert "face.sel: 3 values for a mesh of 1180 vertices" in run.stderr, run.stderr
+    (workdir / "face.sel").write_text("\n".join(["0"] * 1179 + ["7"]) + "\n")
+    run = ffs("deform", "face.off", "--handles", "face.sel", "-o", "x.ply")
+    assert "face.sel: vertex[1179]: 7 is not 0 (fixed), 1 (free) or 2 (handle)" in run.stderr
+    (workdir / "torus.sel").write_text("2\n" * 1200)
+    run = ffs("deform", "torus.off", "--handles", "torus.sel", "-o", "x.ply")
+    assert run.returncode == 1 and "torus.def: no such file" in run.stderr, run.stderr

@@ -127,3 +127,85 @@ def test_rebuild_panel_shows_the_answers_warnings(web) -> None:
     web.wait_for("window.app.state.reconstruction.report.warnings.length === 0", timeout=180)
     web.idle()
     assert box.is_hidden()
+
+
+# ------------------------------------------------------------------- handle sets as files
+
+
+def _ffs(*args: str, cwd) -> "subprocess.CompletedProcess[str]":
+    import os
+    import subprocess
+    import sys
+
+    from tests.helpers import REPO
+
+    env = {k: v for k, v in os.environ.items() if k != "FFS_SERVER"}
+    env["PYTHONPATH"] = str(REPO)
+    return subprocess.run([sys.executable, "-m", "ffs", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=300, env=env)
+
+
+def test_handles_export_to_ffs_and_import_back(web, tmp_path) -> None:
+    """Two handles on the face (one pinned, one moved and turned): Export handles writes the
+    targets the page solves for, ffs deform reads the file and puts those vertices there,
+    and Import handles on a fresh page rebuilds the same handles at the same targets."""
+    import json
+
+    import numpy as np
+    import trimesh
+
+    from tests.helpers import REPO
+
+    page = web.open()
+    rest = np.asarray(web.app("app.vertices()")).reshape(-1, 3)
+    sample = REPO / "service" / "static" / "samples" / "face.off"
+    np.testing.assert_array_equal(
+        rest, np.asarray(trimesh.load(sample, process=False).vertices))
+    page.click("#tab-deform")
+    web.app("app.makeHandle([0, 1, 2])")
+    web.app("app.makeHandle(app.visibleVertices().slice(600, 606))")
+    web.app("app.dragHandle(5, -4, 12, {axis: [1, 0, 0], angle: 0.2})")
+    targets = np.asarray(web.app("app.handleTargets().positions")).reshape(-1, 3)
+    groups = web.app("app.state.handles.map((h) => h.vertices)")
+    with page.expect_download() as info:
+        page.click("#export-handles")
+    saved = tmp_path / "face-handles.json"
+    info.value.save_as(saved)
+    doc = json.loads(saved.read_text())
+    assert [h["vertex"] for h in doc["handles"]] == [v for g in groups for v in g]
+    np.testing.assert_allclose([h["position"] for h in doc["handles"]], targets, atol=1e-12)
+    assert [g["vertices"] for g in doc["groups"]] == groups and doc["rotations"]
+
+    run = _ffs("deform", str(sample), "--handles", str(saved), "-o", "out.ply", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    out = np.asarray(trimesh.load(tmp_path / "out.ply", process=False).vertices)
+    handle_vertices = [h["vertex"] for h in doc["handles"]]
+    np.testing.assert_allclose(out[handle_vertices], targets, atol=1e-6 * np.ptp(rest))
+
+    page.goto("about:blank")
+    web.open()
+    page.click("#tab-deform")
+    page.set_input_files("#handles-file", str(saved))
+    web.wait_for("window.app.state.handles.length === 2", timeout=60)
+    web.idle()
+    assert web.app("app.state.handles.map((h) => h.vertices)") == groups
+    assert web.app("app.state.handles.map((h) => h.id)") == [1, 2]
+    again = np.asarray(web.app("app.handleTargets().positions")).reshape(-1, 3)
+    np.testing.assert_allclose(again, targets, atol=1e-9 * np.ptp(rest))
+    shown = np.asarray(web.app("app.vertices()")).reshape(-1, 3)
+    np.testing.assert_allclose(shown[handle_vertices], targets, atol=1e-4 * np.ptp(rest))
+    assert web.shown_errors() == []
+
+
+def test_import_of_a_bad_handle_file_says_why(web, tmp_path) -> None:
+    page = web.open()
+    page.click("#tab-deform")
+    bad = tmp_path / "bad.json"
+    bad.write_text('[{"vertex": 99999, "position": [0, 0, 0]}]')
+    web.allow(r"Not a handle set")
+    page.set_input_files("#handles-file", str(bad))
+    web.wait_for("window.app.state.errors.length > 0", timeout=30)
+    error = web.shown_errors()[-1]
+    assert error["title"] == "Not a handle set"
+    assert "vertex 99999 is not a vertex of this mesh (0 to 1179)" in error["detail"]
+    assert web.app("app.state.handles.length") == 0

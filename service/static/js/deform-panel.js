@@ -6,6 +6,7 @@ import { ApiError } from "./api.js";
 import { deformBody } from "./deform.js";
 import { DragLoop } from "./drag-loop.js";
 import { deg, pct, setStats } from "./format.js";
+import { handleSetDocument, HandleFileError, handlesFromDocument } from "./handle-files.js";
 import { bake, handleTargets, newHandle, setupFor } from "./handles.js";
 import { createHistory } from "./history.js";
 import { distortion, forms as meshForms, histogram } from "./mesh.js";
@@ -165,6 +166,48 @@ export function installDeformPanel({ view, pinned }) {
     if (state.transport) loop.request();
   }
 
+  /** Download the handles as JSON (the file `ffs deform --handles` reads); its text. */
+  function exportHandles() {
+    const text = JSON.stringify(handleSetDocument(), null, 1);
+    const url = URL.createObjectURL(new Blob([text], { type: "application/json" }));
+    const a = document.createElement("a");
+    a.href = url;
+    a.download = `${(state.name || "mesh").replace(/\.[^.]*$/, "")}-handles.json`;
+    document.body.append(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 10000);
+    return text;
+  }
+
+  /** Replace the handles by those of a handle-set document (Export handles' or ffs's JSON),
+   * moved to its targets. */
+  async function importHandles(doc) {
+    let handles;
+    try {
+      handles = handlesFromDocument(doc);
+    } catch (err) {
+      if (err instanceof HandleFileError) {
+        throw new ApiError({ title: "Not a handle set", detail: err.message });
+      }
+      throw err;
+    }
+    history.remember();
+    if (state.deformed) store.set({ rest: bake(), deformed: false });
+    store.set({ handles, active: handles.at(-1) ?? null, selection: [] });
+    await loop.open();
+  }
+
+  async function importHandlesFile(file) {
+    let doc;
+    try {
+      doc = JSON.parse(await file.text());
+    } catch (err) {
+      throw new ApiError({ title: "Not a handle set", detail: `${file.name}: not JSON (${err.message})` });
+    }
+    await importHandles(doc);
+  }
+
   /** The pivots in the scene are the handles' (the gizmo holds the active one, on this tab);
    * no handles, no deformation. */
   function syncHandles(s) {
@@ -191,6 +234,7 @@ export function installDeformPanel({ view, pinned }) {
     $("make-handle").disabled = !s.selection.length;
     $("reset-shape").disabled = !s.handles.length;
     $("remove-handles").disabled = !s.handles.length;
+    $("export-handles").disabled = !s.handles.length;
   }
 
   store.subscribe(["handles"], syncHandles);
@@ -214,6 +258,12 @@ export function installDeformPanel({ view, pinned }) {
   $("clear-selection").addEventListener("click", () => store.set({ selection: [] }));
   $("reset-shape").addEventListener("click", action(resetShape));
   $("remove-handles").addEventListener("click", action(removeHandles));
+  $("export-handles").addEventListener("click", () => exportHandles());
+  $("handles-file").addEventListener("change", (event) => {
+    const file = event.target.files[0];
+    event.target.value = "";
+    if (file) action(importHandlesFile)(file);
+  });
   $("undo").addEventListener("click", action(history.undo));
   $("redo").addEventListener("click", action(history.redo));
   $("deform-refine").checked = state.refineDrags;
@@ -234,6 +284,7 @@ export function installDeformPanel({ view, pinned }) {
 
   return {
     loop, select, setActive, makeHandle, removeHandle, resetShape, onHandleMoved, undo: history.undo,
+    exportHandles, importHandles,
     redo: history.redo, remember: history.remember,
     /** The POST /v1/deform body equivalent to the current handles. */
     deformRequest() {

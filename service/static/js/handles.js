@@ -7,10 +7,16 @@ import { facesAround } from "./mesh.js";
 import { state } from "./store.js";
 
 const HANDLE_COLORS = [0xe4572e, 0x2e86ab, 0x9c27b0, 0xff9f1c, 0x43aa8b, 0xd81159];
-let handleCounter = 0;
 
-/** A handle of `vertices` (ids) of the shown shape, its pivot at their centre. */
-export function newHandle(vertices) {
+/** The number of the next handle: one more than the mesh's highest (a fresh mesh starts at
+ * 1: the numbers name the handles of this mesh, not every handle the page ever made). */
+export function nextHandleNumber(handles = state.handles) {
+  return handles.reduce((top, h) => Math.max(top, h.id), 0) + 1;
+}
+
+/** A handle of `vertices` (ids) of the shown shape, its pivot at their centre, numbered
+ * `number`. */
+export function newHandle(vertices, number = nextHandleNumber()) {
   const start = new Float64Array(3 * vertices.length);
   const center = new THREE.Vector3();
   vertices.forEach((v, k) => {
@@ -21,9 +27,8 @@ export function newHandle(vertices) {
   });
   const pivot = new THREE.Object3D();
   pivot.position.copy(center);
-  handleCounter++;
-  return { id: handleCounter, vertices, start, center: center.clone(), pivot,
-    color: HANDLE_COLORS[(handleCounter - 1) % HANDLE_COLORS.length], rotationFaces: [] };
+  return { id: number, vertices, start, center: center.clone(), pivot,
+    color: HANDLE_COLORS[(number - 1) % HANDLE_COLORS.length], rotationFaces: [] };
 }
 
 /** Targets of all handle vertices (Float64Array), and the rotation (3x3 rows) of each

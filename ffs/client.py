@@ -246,24 +246,29 @@ class Client:
 
     def reconstruct_call(self, faces: Any, edges: Any = None, lengths: Any = None,
                          angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
-                         refine: bool | None = None, **options: Any) -> Call:
+                         refine: bool | None = None, align_to: Any = None,
+                         **options: Any) -> Call:
         params: dict[str, Any] = {"options": _options(refine, options)}
         if constraints:
             params["constraints"] = dict(constraints)
+        if align_to is not None:
+            params["align_to"] = np.asarray(align_to, dtype=np.float64).reshape(-1, 3).tolist()
         return Call("reconstruct", _forms_arrays(faces, edges, lengths, angles), params,
                     Mesh.from_dict)
 
     def reconstruct(self, faces: Any, edges: Any = None, lengths: Any = None,
                     angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
                     refine: bool | None = None, progress: Progress | None = None,
-                    **options: Any) -> Mesh:
+                    align_to: Any = None, **options: Any) -> Mesh:
         """Vertex positions from forms (``POST /v1/reconstruct``). ``constraints`` is the
         API's ``{"positions": [{"vertex", "position", "weight"?}], "frames": [...]}``;
-        ``options``: frame_weight, orthonormalize, orthonormal_weight, weighting, solver,
-        tolerance, require_integrable, exact_shortcut."""
+        ``align_to``: (n, 3) vertices of a reference to move the answer onto rigidly
+        (``report["alignment"]`` has the residual); ``options``: frame_weight,
+        orthonormalize, orthonormal_weight, weighting, solver, tolerance,
+        require_integrable, exact_shortcut."""
         return self.run(self.reconstruct_call(faces, edges, lengths, angles,
                                               constraints=constraints, refine=refine,
-                                              **options), progress)
+                                              align_to=align_to, **options), progress)
 
     def deform_call(self, vertices: Any, faces: Any, handles: Sequence[int] | np.ndarray,
                     handle_positions: Any, *, rotation_handles: Sequence[Any] | None = None,

@@ -70,7 +70,7 @@ class Local:
     def reconstruct(self, faces: Any, edges: Any = None, lengths: Any = None,
                     angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
                     refine: bool | None = None, progress: Progress | None = None,
-                    **options: Any) -> Mesh:
+                    align_to: Any = None, **options: Any) -> Mesh:
         forms = _forms(faces, edges, lengths, angles)
         solve = ReconstructOptions.from_api({**options, "refine": refine},
                                             ignore=("require_integrable",))
@@ -95,7 +95,11 @@ class Local:
         report = result.report.to_dict()
         if report_first is not None:
             report = {"integrability": to_jsonable(report_first.summary()), **report}
-        return Mesh(result.vertices, np.asarray(forms.faces, dtype=np.int64), report)
+        vertices = result.vertices
+        if align_to is not None:
+            alignment = solver.rigid_alignment(vertices, align_to)
+            vertices, report["alignment"] = alignment.vertices, alignment.report()
+        return Mesh(vertices, np.asarray(forms.faces, dtype=np.int64), report)
 
     def deform(self, vertices: Any, faces: Any, handles: Sequence[int] | np.ndarray,
                handle_positions: Any, *, rotation_handles: Sequence[Any] | None = None,

@@ -11,6 +11,7 @@ outside; ``edges`` (E, 2) unique pairs i < j sorted lexicographically; ``lengths
 """
 
 from . import metrics
+from .alignment import Alignment, rigid_alignment
 from .allocator import retain_freed_memory
 from .constraints import Constraints
 from .deform import Deformation, Deformer, deform
@@ -32,6 +33,7 @@ from .reconstruct import Reconstruction, reconstruct
 retain_freed_memory()  # numpy temporaries reuse freed pages (solver/allocator.py)
 
 __all__ = [
+    "Alignment",
     "Constraints",
     "DeformOptions",
     "Deformation",
@@ -54,4 +56,5 @@ __all__ = [
     "parameterize",
     "reconstruct",
     "reconstruct_vjp",
+    "rigid_alignment",
 ]

@@ -117,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     rebuild.add_argument("inputs", nargs="+", metavar="FORMS_OR_MESH")
     rebuild.add_argument("--constraints", metavar="FILE", help="JSON constraints as the API "
                          "takes them: {\"positions\": [...], \"frames\": [...]}")
+    rebuild.add_argument("--align-to", metavar="REF", help="move the answer rigidly onto "
+                         "this mesh (same vertices; e.g. the mesh the forms came from) and "
+                         "report the residual")
     deform = commands.add_parser("deform", parents=[common, solve], help="move handles")
     deform.add_argument("inputs", **meshes)
     deform.add_argument("--handles", required=True, metavar="FILE", help="JSON: "

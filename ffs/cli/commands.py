@@ -138,8 +138,16 @@ def run_reconstruct(backend: Any, item: Item, args: argparse.Namespace, progress
                                       "require_integrable": args.require_integrable or None
                                       }.items() if v is not None})
     constraints = files.read_json(args.constraints) if args.constraints else None
+    reference = files.read_mesh(args.align_to)[0] if args.align_to else None
+    if reference is not None:
+        options["align_to"] = reference
     result = backend.reconstruct(forms, constraints=constraints, progress=progress, **options)
     _write_mesh_result(item, args, row, result.vertices, result.faces, result.report)
+    alignment = result.report.get("alignment")
+    if alignment:
+        row.note = (f"aligned to {Path(args.align_to).name}: residual rms "
+                    f"{alignment['residual_rms']:.3g}, max {alignment['residual_max']:.3g} "
+                    "(mesh units)")
 
 
 def run_deform(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,

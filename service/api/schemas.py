@@ -206,6 +206,12 @@ class ReconstructParams(ApiModel):
 
     constraints: Constraints | None = None
     options: ReconstructOptions = Field(default_factory=ReconstructOptions)
+    align_to: list[Vec3] | None = Field(
+        None, description="(n, 3) vertices of a reference mesh with the same vertices (the "
+        "mesh the forms came from): the answer is moved rigidly onto it (rotation and "
+        "translation, least squares) and `report.alignment` gives the residual left "
+        "(`residual_rms`, `residual_max`, in the mesh's units), the rotation and the "
+        "translation. Without it the answer's placement is the solver's (arbitrary).")
 
 
 class HandleTarget(ApiModel):

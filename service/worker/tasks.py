@@ -186,10 +186,14 @@ def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
     report = result.report.to_dict()
     if full_report is not None:
         report = {"integrability": full_report.summary(), **report}
+    vertices = result.vertices
+    if params.get("align_to") is not None:
+        alignment = solver.rigid_alignment(vertices, params["align_to"])
+        vertices, report["alignment"] = alignment.vertices, alignment.report()
     faces = np.asarray(forms.faces)
     colors = {"defect": full_report.vertex_defect} if full_report is not None else {}
-    document = {"vertices": result.vertices, "faces": faces, "report": report}
-    return _finish(request, progress, document, (result.vertices, faces), colors)
+    document = {"vertices": vertices, "faces": faces, "report": report}
+    return _finish(request, progress, document, (vertices, faces), colors)
 
 
 def reconstruct_vjp_task(request: TaskRequest, progress: Progress) -> TaskResult:

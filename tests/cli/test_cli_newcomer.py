@@ -203,3 +203,52 @@ def test_sel_def_errors_in_words(ffs, workdir: Path) -> None:
     (workdir / "torus.sel").write_text("2\n" * 1200)
     run = ffs("deform", "torus.off", "--handles", "torus.sel", "-o", "x.ply")
     assert run.returncode == 1 and "torus.def: no such file" in run.stderr, run.stderr
+
+
+# ------------------------------------------------------------------------- --align-to REF
+
+
+def _rms(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
+def test_align_to_puts_the_answer_on_the_reference(ffs, workdir: Path) -> None:
+    """Without --align-to the reconstruction lies anywhere; with it, the face rebuilt from
+    its own forms lies on face.off (residual ~0), and from bent forms the reported residual
+    is the RMS distance between the written answer and the reference."""
+    face = np.asarray(trimesh.load(workdir / "face.off", process=False).vertices)
+    ffs("forms", "face.off", "-o", "forms.json")
+    loose = ffs("reconstruct", "forms.json", "-o", "loose.ply")
+    assert loose.returncode == 0, loose.stderr
+    placed = np.asarray(trimesh.load(workdir / "loose.ply", process=False).vertices)
+    assert _rms(placed, face) > 1.0  # the solver's placement is not the face's
+    run = ffs("reconstruct", "forms.json", "-o", "aligned.ply", "--align-to", "face.off",
+              "--report", "report.json")
+    assert run.returncode == 0, run.stderr
+    aligned = np.asarray(trimesh.load(workdir / "aligned.ply", process=False).vertices)
+    assert _rms(aligned, face) < 1e-6 * np.ptp(face)
+    assert "aligned to face.off: residual rms" in run.stdout
+
+    forms = json.loads((workdir / "forms.json").read_text())
+    forms["angles"] = [0.8 * a for a in forms["angles"]]
+    (workdir / "bent.json").write_text(json.dumps(forms))
+    bent = ffs("reconstruct", "bent.json", "-o", "bent.ply", "--align-to", "face.off",
+               "--report", "bent.json.report")
+    assert bent.returncode == 0, bent.stderr
+    shape = np.asarray(trimesh.load(workdir / "bent.ply", process=False).vertices)
+    alignment = json.loads((workdir / "bent.json.report").read_text())["files"][0][
+        "report"]["alignment"]
+    assert abs(alignment["residual_rms"] - _rms(shape, face)) < 1e-9 * np.ptp(face)
+    distances = np.linalg.norm(shape - face, axis=1)
+    assert abs(alignment["residual_max"] - distances.max()) < 1e-9 * np.ptp(face)
+    rotation = np.asarray(alignment["rotation"])
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rotation) > 0
+
+
+def test_align_to_a_mesh_with_other_vertices_fails_in_words(ffs) -> None:
+    ffs("forms", "face.off", "-o", "forms.json")
+    run = ffs("reconstruct", "forms.json", "-o", "x.ply", "--align-to", "torus.off")
+    assert run.returncode == 1
+    assert "align_to: the reference has 1200 vertices, the answer 1180" in run.stderr, \
+        run.stderr

@@ -4,7 +4,10 @@ headers as the 200s), every HTML page's Content-Security-Policy names no externa
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
 
 import httpx
 import pytest
@@ -132,11 +135,7 @@ def test_rebuild_panel_shows_the_answers_warnings(web) -> None:
 # ------------------------------------------------------------------- handle sets as files
 
 
-def _ffs(*args: str, cwd) -> "subprocess.CompletedProcess[str]":
-    import os
-    import subprocess
-    import sys
-
+def _ffs(*args: str, cwd) -> subprocess.CompletedProcess[str]:
     from tests.helpers import REPO
 
     env = {k: v for k, v in os.environ.items() if k != "FFS_SERVER"}

@@ -27,7 +27,7 @@ from service.http.origins import OriginMiddleware
 from service.http.problems import install_handlers
 from service.http.routes import docs, health, jobs, operations, sessions, web
 from service.http.security import SecurityHeadersMiddleware
-from service.logs import configure_logging
+from service.logs import configure_access_log, configure_logging
 from service.settings import Settings
 
 VERSION = "1.0.0"
@@ -69,6 +69,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """
     settings = settings or Settings()
     configure_logging(settings.log_level)
+    configure_access_log(settings.access_log_static)
     metrics = ServiceMetrics()
 
     def on_job_finished(operation: str, result: TaskResult) -> None:

@@ -38,6 +38,38 @@ LOG_CONFIG: dict[str, Any] = {
 }
 
 
+STATIC_PREFIXES = ("/static/", "/favicon.ico")
+"""Paths of the page's files, left out of the access log unless FFS_ACCESS_LOG_STATIC."""
+
+
+class StaticFilesFilter(logging.Filter):
+    """Drops uvicorn's access-log lines of successful static-file requests (a page load asks
+    for dozens of modules); API calls, pages and any answer of 400 or more stay.
+
+    uvicorn logs ``'%s - "%s %s HTTP/%s" %d'`` with ``(client, method, path, version,
+    status)`` as the record's arguments.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """False for a static file answered below 400."""
+        args = record.args
+        if not isinstance(args, tuple) or len(args) < 5:
+            return True
+        path, status = str(args[2]), args[4]
+        return not (path.startswith(STATIC_PREFIXES) and isinstance(status, int)
+                    and status < 400)
+
+
+def configure_access_log(static: bool) -> None:
+    """Leave static files out of uvicorn's access log (:class:`StaticFilesFilter`), or put
+    them back (``static``: FFS_ACCESS_LOG_STATIC)."""
+    access = logging.getLogger("uvicorn.access")
+    for old in [f for f in access.filters if isinstance(f, StaticFilesFilter)]:
+        access.removeFilter(old)
+    if not static:
+        access.addFilter(StaticFilesFilter())
+
+
 def configure_logging(level: str) -> None:
     """Give the ``service`` logger a timed, levelled handler on stderr (once).
 

@@ -41,6 +41,10 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535, description="Port of `python -m service`.")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field(
         "info", description="Log level of `python -m service`.")
+    access_log_static: bool = Field(
+        False, description="Also log successful requests for the page's static files "
+        "(`/static/...`, `/favicon.ico`); by default uvicorn's access log keeps only API "
+        "calls, pages and failed requests.")
 
     executor: Literal["local", "process", "dask"] = Field(
         "local", validation_alias=AliasChoices("FFS_EXECUTOR", "SOLVER_EXECUTOR"),

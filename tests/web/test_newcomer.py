@@ -208,3 +208,45 @@ def test_import_of_a_bad_handle_file_says_why(web, tmp_path) -> None:
     assert error["title"] == "Not a handle set"
     assert "vertex 99999 is not a vertex of this mesh (0 to 1179)" in error["detail"]
     assert web.app("app.state.handles.length") == 0
+
+
+# -------------------------------------------------------- the colour map of a rebuilt surface
+
+
+def test_rebuilt_surface_is_coloured_by_the_forms_being_rebuilt(web) -> None:
+    """Face, angles x 0.8: the rebuilt surface's own forms are exact, so its defect map was
+    empty; the map now shows the bent forms' per-vertex defect (measured here with the
+    library), the legend says so and its title fits in its box."""
+    import numpy as np
+
+    import solver
+
+    page = web.open()
+    page.click("#tab-forms")
+    page.fill("#angle-scale", "0.8")
+    page.click("#bend-forms")
+    web.wait_for("window.app.state.source === 'reconstruction'", timeout=180)
+    web.idle()
+    assert web.app("app.state.colorMode") == "defect"
+    forms = web.app("app.state.reconstruction.input")
+    truth = solver.check_integrability(np.asarray(forms["faces"]), np.asarray(forms["edges"]),
+                                       np.asarray(forms["lengths"]),
+                                       np.asarray(forms["angles"]))
+    assert not truth.integrable and truth.max_defect > 0.1
+    rgb = np.asarray(web.app("app.colors()")).reshape(-1, 3)
+    luminance = rgb @ np.array([0.2126, 0.7152, 0.0722])
+    values = np.asarray(truth.vertex_defect)
+    above = values > truth.tolerance  # below the tolerance the ramp is flat (dark)
+    ranks = [np.argsort(np.argsort(x)) for x in (np.log10(values[above]), luminance[above])]
+    assert np.corrcoef(*ranks)[0, 1] > 0.99
+    assert np.ptp(luminance) > 0.3  # not one colour: the map is not empty
+    title = page.locator("#legend-title")
+    assert "of the forms being rebuilt" in title.inner_text()
+    fits = page.evaluate("""() => { const t = document.getElementById('legend-title');
+        const box = document.getElementById('legend').getBoundingClientRect();
+        const r = t.getBoundingClientRect();
+        return t.scrollWidth <= t.clientWidth && r.left >= box.left && r.right <= box.right; }""")
+    assert fits
+    page.click("#tab-mesh")
+    assert "defects of the forms it was rebuilt from" in page.locator(
+        "#integrability-note").inner_text()

@@ -2,6 +2,7 @@
 // as a verdict in words and a table (defects, loops, topology, the worst vertices).
 
 import { describe } from "./api.js";
+import { shownDefects } from "./color-view.js";
 import { DEFECT_LABELS, badge, fmt, loopsText, maxOf, num, setStats } from "./format.js";
 import { withProgress } from "./progress.js";
 import { state, store } from "./store.js";
@@ -69,7 +70,11 @@ function drawIntegrability(s) {
     ["Global loops", loopsText(r), "wrap"],
     ["Worst", r.worst_vertices.length ? worst : "–", "wrap"],
   ]);
-  $("integrability-note").textContent = r.integrable
+  const rebuiltFrom = s.source === "reconstruction" ? s.reconstruction?.integrability : null;
+  $("integrability-note").textContent = r.integrable && rebuiltFrom && !rebuiltFrom.integrable
+    ? "This rebuilt surface has exact forms of its own; the colours show the defects of the "
+      + "forms it was rebuilt from (Rebuild, 4), which do not fit."
+    : r.integrable
     ? "A surface with exactly these edge lengths and angles exists (this one), so there is "
       + "nothing to colour. To see forms that do not fit, open Rebuild (4) and scale the angles."
     : "No surface has exactly these forms: the colours show where they fail, and a "
@@ -80,7 +85,8 @@ function drawIntegrability(s) {
  * `analyze()`: the report of the shape on screen, into the state. */
 export function installAnalysisPanel({ inWorker }) {
   let run = 0;
-  store.subscribe(["topo", "integrability", "analysisError", "defectPart"], drawIntegrability);
+  store.subscribe(["topo", "integrability", "analysisError", "defectPart", "reconstruction"],
+    drawIntegrability);
   $("show-defect").addEventListener("click", () => store.set({ colorMode: "defect" }));
   for (const input of document.querySelectorAll('input[name="defect-part"]')) {
     input.addEventListener("change", () => store.set({ defectPart: input.value,
@@ -100,8 +106,10 @@ export function installAnalysisPanel({ inWorker }) {
       throw err;
     }
     if (mine !== run) return;  // another mesh (or answer) was shown meanwhile
-    // Colours only where there is something to see: exact forms are plain.
+    // Colours only where there is something to see: exact forms are plain. A rebuilt
+    // surface is coloured by the forms it was rebuilt from (color-view.js shownDefects).
+    const shown = shownDefects({ ...state, integrability: result.integrability }).report;
     store.set({ forms: result.forms, integrability: result.integrability,
-      colorMode: result.integrability.integrable ? "plain" : "defect" });
+      colorMode: shown.integrable ? "plain" : "defect" });
   };
 }

@@ -27,17 +27,27 @@ function defectScale(r, values) {
     : scaleFor(values, { log: true, min: r.tolerance });
 }
 
+/** The integrability report the defect map shows: on a rebuilt surface, that of the forms
+ * being rebuilt (the rebuilt surface's own forms are exact); otherwise the shown mesh's. */
+export function shownDefects(s) {
+  const rebuilt = s.source === "reconstruction" ? s.reconstruction?.integrability : null;
+  return rebuilt ? { report: rebuilt, of: "the forms being rebuilt" }
+    : s.integrability ? { report: s.integrability, of: "" } : null;
+}
+
 function drawColors(view, s) {
   if (!s.vertices) return;
   const mode = s.colorMode;
   $("color-mode").value = mode;
   view.setTexture(mode === "checker" && s.flat ? s.flat.texcoords : null);
-  if (mode === "defect" && s.integrability) {
-    const r = s.integrability;
+  const defects = shownDefects(s);
+  if (mode === "defect" && defects) {
+    const r = defects.report;
     const values = r[s.defectPart];
     const scale = defectScale(r, values);
     view.setColors(vertexColors(values, scale));
-    setLegend(`${DEFECT_LABELS[s.defectPart]} defect per vertex (rad, log scale)`
+    setLegend(`${DEFECT_LABELS[s.defectPart]} defect per vertex`
+      + (defects.of ? ` of ${defects.of}` : "") + " (rad, log scale)"
       + (r.integrable ? ": all below the tolerance" : ""), scale, (x) => fmt(x, 2),
     r.integrable ? " (tolerance)" : "");
   } else if (mode === "distortion" && s.distortion) {
@@ -60,14 +70,15 @@ function drawColors(view, s) {
 /** The colour menu offers what there is data for. */
 function drawOptions(s) {
   for (const option of $("color-mode").options) {
-    option.disabled = { plain: false, defect: !s.integrability, distortion: !s.distortion,
+    option.disabled = { plain: false, defect: !shownDefects(s), distortion: !s.distortion,
       checker: !s.flat }[option.value];
   }
 }
 
 export function installColorView(view) {
-  store.subscribe(["integrability", "distortion", "flat"], drawOptions);
-  store.subscribe(["topo", "colorMode", "integrability", "distortion", "flat", "defectPart",
-    "distortionKind"], (s) => drawColors(view, s));
+  store.subscribe(["integrability", "reconstruction", "source", "distortion", "flat"],
+    drawOptions);
+  store.subscribe(["topo", "colorMode", "integrability", "reconstruction", "source",
+    "distortion", "flat", "defectPart", "distortionKind"], (s) => drawColors(view, s));
   $("color-mode").addEventListener("change", (event) => store.set({ colorMode: event.target.value }));
 }

@@ -250,3 +250,120 @@ def test_rebuilt_surface_is_coloured_by_the_forms_being_rebuilt(web) -> None:
     page.click("#tab-mesh")
     assert "defects of the forms it was rebuilt from" in page.locator(
         "#integrability-note").inner_text()
+
+
+# ----------------------------------------------------------------------- page details (8)
+
+RECORD_TRANSPORT = """() => { window.__seen = [];
+  const note = () => window.__seen.push({
+    text: document.getElementById('transport').textContent,
+    preparing: !document.getElementById('progress').hidden
+      && document.getElementById('progress-label').textContent.includes('Preparing') });
+  new MutationObserver(note).observe(document.body,
+    { subtree: true, childList: true, characterData: true, attributes: true });
+  return true; }"""
+
+
+def test_no_old_timing_beside_the_preparation(web) -> None:
+    """Adding a handle prepares a new deformation: the panel says so, never the previous
+    deformation's "ms per update" while "Preparing the deformation" is shown."""
+    page = web.open()
+    page.click("#tab-deform")
+    web.app("app.makeHandle([0, 1, 2])")
+    web.app("app.makeHandle(app.visibleVertices().slice(600, 606))")
+    web.app("app.dragHandle(0, 0, 5)")
+    assert "ms per update" in page.locator("#transport").inner_text()
+    page.evaluate(RECORD_TRANSPORT)
+    web.app("app.makeHandle(app.visibleVertices().slice(300, 304))")
+    seen = page.evaluate("window.__seen")
+    preparing = [s["text"] for s in seen if s["preparing"]]
+    assert preparing, seen  # the preparation was seen
+    assert not any("ms per update" in text for text in preparing), preparing
+    assert any("Setting up the live deformation" in text for text in preparing), preparing
+    web.app("app.dragHandle(0, 0, 2)")
+    assert "ms per update" in page.locator("#transport").inner_text()
+
+
+def test_handles_are_numbered_per_mesh(web) -> None:
+    page = web.open()
+    page.click("#tab-deform")
+    for ids in ([0, 1], [600, 601], [300, 301]):
+        web.app("app.makeHandle(arg)", ids)
+    assert "Handle 3" in page.locator("#handle-list").inner_text()
+    web.app("app.loadSample('decimated-knight.off')")
+    web.idle()
+    page.click("#tab-deform")
+    web.app("app.makeHandle([0, 1])")
+    names = page.locator("#handle-list").inner_text()
+    assert "Handle 1" in names and "Handle 4" not in names, names
+
+
+GIZMO_TOP = """() => { const view = app.view; const root = view.gizmo.getHelper();
+  root.updateMatrixWorld(true);
+  const gizmo = root.children.find((c) => c.gizmo);
+  const shown = (o) => { for (let x = o; x; x = x.parent) if (!x.visible) return false;
+                         return true; };
+  let top = Infinity;
+  gizmo.gizmo[view.gizmo.mode].traverse((o) => {
+    if (!o.geometry || !shown(o)) return;
+    const p = o.geometry.getAttribute('position');
+    for (let i = 0; i < p.count; i++) {
+      const v = new view.camera.position.constructor(p.getX(i), p.getY(i), p.getZ(i))
+        .applyMatrix4(o.matrixWorld);
+      top = Math.min(top, view.project(v.x, v.y, v.z).y);
+    }
+  });
+  return top; }"""
+MESH_TOP = """() => { const v = app.state.vertices; let top = Infinity;
+  for (let i = 0; i < v.length; i += 3) top = Math.min(top, app.view.project(v[i], v[i + 1],
+    v[i + 2]).y);
+  return top; }"""
+
+
+def test_fit_keeps_the_mesh_and_the_gizmo_below_the_toolbar(web) -> None:
+    """At 1280 x 720 the face's and the knight's tops were under the floating toolbar after
+    Fit (F); with a handle at the top of the shape, so was its gizmo."""
+    from tests.helpers.web import SMALL_VIEWPORT
+
+    page = web.open()
+    page.set_viewport_size(SMALL_VIEWPORT)
+    bar = "document.getElementById('view-toolbar').getBoundingClientRect().bottom"
+    for sample in ("face.off", "decimated-knight.off"):
+        web.app("app.loadSample(arg)", sample)
+        web.idle()
+        page.click("#tab-mesh")
+        page.keyboard.press("f")
+        web.frame()
+        assert web.app(f"({MESH_TOP})()") > page.evaluate(bar), sample
+    page.click("#tab-deform")
+    topmost = web.app("""(() => { const v = app.state.vertices; let best = 0, y = Infinity;
+        for (let i = 0; i < v.length / 3; i++) { const p = app.view.project(v[3 * i],
+          v[3 * i + 1], v[3 * i + 2]); if (p.y < y) { y = p.y; best = i; } }
+        return best; })()""")
+    web.app("app.makeHandle(arg)", [topmost])
+    page.keyboard.press("f")
+    web.frame()
+    assert web.app(f"({MESH_TOP})()") > page.evaluate(bar)
+    assert web.app(f"({GIZMO_TOP})()") > page.evaluate(bar)
+
+
+def test_linear_answer_note_and_empty_angle_scale(web) -> None:
+    page = web.open("?sample=decimated-knight.off")
+    page.click("#tab-forms")
+    page.fill("#angle-scale", "0.8")
+    page.click("#bend-forms")
+    web.wait_for("window.app.state.source === 'reconstruction'", timeout=180)
+    web.idle()
+    assert "the refined one shown here" in page.locator("#forms-note").inner_text()
+    page.locator("#compare-row label", has_text="Linear").click()
+    web.wait_for("window.app.state.reconstruction.showing === 'linear'", timeout=120)
+    web.idle()
+    note = page.locator("#forms-note").inner_text()
+    assert "The linear answer shown here" in note and "refined one shown here" not in note
+    before = web.app("app.state.name")
+    page.fill("#angle-scale", "")
+    page.click("#bend-forms")
+    web.wait_for("window.app.state.errors.length > 0", timeout=30)
+    error = web.shown_errors()[-1]
+    assert error["title"] == "Invalid angle scale" and "empty" in error["detail"]
+    assert web.app("app.state.name") == before  # nothing was rebuilt

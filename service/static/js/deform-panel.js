@@ -69,7 +69,7 @@ function drawTransport(s) {
       : "each drag solved from scratch (slower)";
     const last = s.lastSolveMs !== null ? `, ${s.lastSolveMs.toFixed(0)} ms per update` : "";
     text = `Live: ${how}${last}.`;
-  }
+  } else text = "Setting up the live deformation for these handles…";  // not the old timing
   if (text !== null) $("transport").textContent = text;
 }
 

@@ -36,7 +36,8 @@ export class DragLoop {
   close(options) {
     this.generation++;
     if (state.transport) state.transport.close(options);
-    store.set({ transport: null, transportKey: null });
+    // The time per update was the closed transport's: the next one reports its own.
+    store.set({ transport: null, transportKey: null, lastSolveMs: null });
   }
 
   /** Whether the open transport was opened for the current rest shape, handles and options. */

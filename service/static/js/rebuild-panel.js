@@ -86,7 +86,10 @@ function drawReconstruction(s) {
   setStats("forms-stats", rows);
   drawResiduals(f);
   document.querySelector(`input[name="answer"][value="${rec.showing}"]`).checked = true;
-  $("forms-note").textContent = f?.refined
+  $("forms-note").textContent = f?.refined && rec.showing === "linear"
+    ? "The linear answer shown here can shrink or crumple a surface whose forms do not fit; "
+      + "the refined one is the nearest surface to the forms. Switch to Refined to see it."
+    : f?.refined
     ? "The linear answer can shrink or crumple a surface whose forms do not fit; the refined "
       + "one shown here is the nearest surface to the forms. Switch to Linear to compare."
     : rec.integrability.integrable ? "The forms fit together: this is the surface they describe."
@@ -178,9 +181,10 @@ export function installRebuildPanel({ view, openMesh, analyze }) {
   }
 
   async function bendForms() {
-    const scale = Number($("angle-scale").value);
+    const box = $("angle-scale");
+    const scale = box.value.trim() === "" ? NaN : Number(box.value);
     if (!Number.isFinite(scale)) throw new api.ApiError({ title: "Invalid angle scale",
-      detail: "enter a number, e.g. 0.8" });
+      detail: "the Angles × box is empty or not a number: enter a number, e.g. 0.8" });
     if (!state.forms) return;
     const stem = state.name.replace(/ \(.*\)$/, "");
     await reconstructForms(formsInput(state.forms, scale), `${stem} (angles × ${scale})`, undefined,

@@ -11,6 +11,12 @@ import { RenderView, checkerTexture, discTexture, edgeIndex, vertexNormals } fro
 const BASE_COLOR = [200, 206, 214];
 const SELECTION_COLOR = 0xffb000;
 const MARKER_PIXELS = 9;
+// Fit leaves the top of the canvas that the floating toolbar covers (plus this gap, pixels),
+// and, while the gizmo is shown, the reach of its arrows and rings above a handle at the top
+// (about 0.13 of the canvas height at the gizmo's size 0.9), as a fraction of the height.
+const TOOLBAR_GAP = 8;
+const GIZMO_REACH = 0.14;
+const MAX_INSET = 0.45;
 
 /** Unit vector of an up-axis name: "+y", "-z", ... */
 export function axisVector(name) {
@@ -115,7 +121,21 @@ export class MeshView extends RenderView {
 
   updateCamera(w, h) {
     this.camera.aspect = w / h;
+    // The view's centre is the centre of the part of the canvas below the toolbar.
+    const inset = this.inset ?? 0;
+    if (inset) this.camera.setViewOffset(w, h, 0, -inset / 2, w, h);
+    else this.camera.clearViewOffset();
     this.camera.updateProjectionMatrix();
+  }
+
+  /** Pixels at the top of the canvas that Fit leaves free: what the floating toolbar covers,
+   * and the gizmo's reach while it is shown. */
+  topInset() {
+    const canvas = this.canvas.getBoundingClientRect();
+    const bar = this.container.querySelector(".view-toolbar");
+    const covered = bar ? bar.getBoundingClientRect().bottom - canvas.top + TOOLBAR_GAP : 0;
+    const gizmo = this.gizmo?.object ? GIZMO_REACH * canvas.height : 0;
+    return Math.max(0, Math.min(covered + gizmo, MAX_INSET * canvas.height));
   }
 
   /** Replace the mesh: vertices Float64Array(3n), faces Uint32Array(3m), edges Uint32Array(2E). */
@@ -196,7 +216,14 @@ export class MeshView extends RenderView {
   frame({ keep = false } = {}) {
     const sphere = this.mesh.geometry.boundingSphere;
     this.radius = sphere.radius || 1;
-    const vertical = THREE.MathUtils.degToRad(this.camera.fov / 2);
+    const height = this.canvas.getBoundingClientRect().height;
+    if (height) {
+      this.inset = this.topInset();
+      this.updateCamera(this.canvas.clientWidth, height);
+    }
+    // The sphere fits the free part of the canvas: its height is (height - inset).
+    const vertical = Math.atan(Math.tan(THREE.MathUtils.degToRad(this.camera.fov / 2))
+      * (height ? (height - (this.inset ?? 0)) / height : 1));
     const horizontal = Math.atan(Math.tan(vertical) * this.camera.aspect);
     const distance = (this.radius / Math.sin(Math.min(vertical, horizontal))) * 1.08;
     this.camera.near = distance / 100;

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The whole test suite, set-up included: Python package with test extras, the Khronos glTF
-# validator and the web page's three.js modules (npm, from the committed lockfiles), Debian's
+# validator, axe-core and the web page's three.js modules (npm, from the committed lockfiles), Debian's
 # Chromium for the browser tests (installed with apt when missing and running as root), then
 # pytest. Used by .ci/run and README.
 set -euo pipefail
@@ -9,6 +9,10 @@ cd "$(dirname "$0")/.."
 python -m pip install --quiet --disable-pip-version-check -e ".[test,dev]"
 if [ ! -d tools/gltf-validator/node_modules ]; then
   npm ci --silent --no-audit --no-fund --prefix tools/gltf-validator
+fi
+# axe-core for the accessibility browser test (tests/web/test_accessibility.py).
+if [ ! -d tools/axe-core/node_modules ]; then
+  npm ci --silent --no-audit --no-fund --prefix tools/axe-core
 fi
 # The page's three.js modules: `npm ci` installs the pinned package and its postinstall
 # (web/build.mjs) copies the modules into service/static/vendor/ (git-ignored).

@@ -191,6 +191,7 @@ def test_the_broken_file_toast_says_it_once(web):
     page.locator(".toast").first.wait_for()
     toast = page.locator(".toast").first
     text = toast.inner_text()
-    assert text.count("could not convert string to float") == 1, text
+    # The reason in words (issue 43: it was Python's "could not convert string to float").
+    assert text.count("vertex 1 has a coordinate that is not a number") == 1, text
     assert toast.locator("li").count() == 0
     assert "broken.off" in toast.locator(".toast-detail").inner_text()

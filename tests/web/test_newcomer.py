@@ -35,6 +35,8 @@ def _loaded(web) -> None:
     web.evaluate("window.app.ready", timeout=90, what="window.app.ready")
     web.idle()
     assert web.page.evaluate("window.app.state.name"), web.diagnostics()
+    # The worker (js/worker.js, revalidated) read the mesh and computed its report.
+    assert web.page.evaluate("window.app.state.integrability !== null")
     assert web.shown_errors() == []
 
 

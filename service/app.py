@@ -20,6 +20,7 @@ from starlette.middleware.cors import CORSMiddleware
 from service.api.task import TaskResult
 from service.backends import make_backend
 from service.http import openapi
+from service.http.auth import Access, AuthMiddleware, declare_bearer
 from service.http.compression import ParallelGZipMiddleware
 from service.http.dependencies import Services
 from service.http.metrics import MetricsMiddleware, ServiceMetrics
@@ -76,6 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     services = Services(settings, make_backend(settings, on_job_finished), metrics)
     metrics.bind(services.backend)
+    services.access = Access(settings, metrics.registry)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -96,6 +98,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.mount("/static", web.static_files(), name="static")
 
     app.add_middleware(OriginMiddleware, allowed=settings.cors_origins)  # inside the metrics
+    app.add_middleware(AuthMiddleware, access=services.access)  # every route, WebSockets too
     app.add_middleware(SecurityHeadersMiddleware)  # on every answer, the 403s included
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(ParallelGZipMiddleware, minimum_size=settings.gzip_minimum_size,
@@ -106,7 +109,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            expose_headers=["Location", "Retry-After", "Server-Timing"])
 
     def custom_openapi() -> dict[str, Any]:
-        return openapi.build(app)
+        return declare_bearer(openapi.build(app))
 
     app.openapi = custom_openapi  # type: ignore[method-assign]
     return app

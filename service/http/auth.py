@@ -34,6 +34,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.access.keys import ApiKey, KeyLimits, KeyRing, ring_from_file, ring_from_mapping
 from service.access.quotas import Quota, RateLimiter
+from service.access.webhooks import WebhookPolicy, WebhookSender
 from service.api.problems import ProblemError, element_error
 from service.http.problems import problem_response
 from service.settings import Settings
@@ -126,6 +127,9 @@ class KeyMetrics:
         self.refused = Counter("ffs_auth_refused",
                                "Requests refused for a missing or unknown key (401) or a role "
                                "(403).", ["reason"], registry=registry)
+        self.webhooks = Counter("ffs_webhook_deliveries",
+                                "Webhook deliveries: delivered, retried (an attempt failed) "
+                                "or given-up.", ["outcome"], registry=registry)
 
 
 class Access:
@@ -136,6 +140,14 @@ class Access:
         self.ring = key_ring(settings)
         self.limiter = RateLimiter()
         self.metrics = KeyMetrics(registry)
+        self.webhooks = WebhookSender(
+            WebhookPolicy(tuple(settings.webhook_hosts), settings.webhook_attempts,
+                          settings.webhook_backoff, settings.webhook_timeout),
+            lambda outcome: self.metrics.webhooks.labels(outcome).inc())
+
+    async def stop(self) -> None:
+        """Stop following jobs for their webhooks (unsent ones are dropped)."""
+        await self.webhooks.stop()
 
     @property
     def enabled(self) -> bool:

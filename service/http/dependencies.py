@@ -59,6 +59,8 @@ class Services:
         """Stop the backend (its workers, jobs and sessions), then end the parser process."""
         self.started = False
         try:
+            if self.access is not None:
+                await self.access.stop()
             await self.backend.stop()
         finally:
             await asyncio.to_thread(self.parser.stop)

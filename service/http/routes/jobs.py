@@ -21,9 +21,10 @@ from service.http.auth import Caller, CallerDep, quota_problem
 from service.http.dependencies import JobsDep, ParserDep, SettingsDep
 from service.http.negotiation import MESH_FORMATS
 from service.http.openapi import created, error_responses, jobs_body
-from service.http.payloads import job_request
+from service.http.payloads import job_submission
 from service.http.routes import API_PREFIX, model_response, path_to
 from service.http.routes.operations import check_color, format_query, formats, result_format
+from service.http.webhooks import callback_target, follow_job
 from service.operations import OPERATIONS
 from service.worker.output import (
     MEDIA_TYPES,
@@ -116,7 +117,8 @@ async def _get(jobs: JobsDep, job_id: str, caller: Caller | None = None) -> Job:
                         **error_responses(400, 408, 413, 415, 422, 429, 503)})
 async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep,
                      parser: ParserDep, caller: CallerDep) -> Response:
-    color, task = await job_request(request, settings, parser)
+    head, task = await job_submission(request, settings, parser)
+    color, callback = head.color, callback_target(request, head.callback_url, caller)
     check_color(OPERATIONS[task.operation], color)
     task = task.with_deadline(settings.job_timeout)  # refinement stops in time (a result)
     try:
@@ -127,6 +129,8 @@ async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep,
             raise
         raise quota_problem(caller, CONCURRENT_JOBS, exc.limit, "jobs queued or running"
                             ) from None
+    if callback is not None:
+        follow_job(request, jobs, job.id, callback, caller, job_document)
     return _status_response(job, 202, {"Location": path_to(router, "get_job", job_id=job.id)})
 
 

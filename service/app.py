@@ -26,7 +26,7 @@ from service.http.dependencies import Services
 from service.http.metrics import MetricsMiddleware, ServiceMetrics
 from service.http.origins import OriginMiddleware
 from service.http.problems import install_handlers
-from service.http.routes import docs, health, jobs, operations, sessions, web
+from service.http.routes import access, docs, health, jobs, operations, sessions, web
 from service.http.security import SecurityHeadersMiddleware
 from service.logs import configure_logging
 from service.settings import Settings
@@ -95,6 +95,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in (operations.router, jobs.router, sessions.router, health.router,
                    web.router, docs.router):
         app.include_router(router)
+    app.include_router(access.router)
     app.mount("/static", web.static_files(), name="static")
 
     app.add_middleware(OriginMiddleware, allowed=settings.cors_origins)  # inside the metrics

@@ -22,6 +22,8 @@ Key material never reaches a log, a problem document or a metric: only key *name
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Annotated, Any
@@ -262,6 +264,29 @@ def _with_headers(send: Send, headers: dict[str, str]) -> Callable[[Message], Aw
     return sender
 
 
+DRAIN_BYTES = 1024 * 1024
+"""A refused request's body is read up to this many bytes before the answer, so that a
+client still sending a small upload reads the 401 instead of a reset connection (a larger
+one is cut: its connection closes)."""
+DRAIN_SECONDS = 2.0
+
+
+async def _drain(receive: Receive) -> None:
+    """Read what is left of a small request body (at most :data:`DRAIN_BYTES`, for at most
+    :data:`DRAIN_SECONDS`)."""
+    async def read() -> None:
+        received = 0
+        while received <= DRAIN_BYTES:
+            message = await receive()
+            if message["type"] != "http.request":
+                return
+            received += len(message.get("body", b""))
+            if not message.get("more_body", False):
+                return
+    with contextlib.suppress(TimeoutError):
+        await asyncio.wait_for(read(), DRAIN_SECONDS)
+
+
 async def _refuse(scope: Scope, receive: Receive, send: Send, problem: ProblemError) -> None:
     """Answer ``problem``; a WebSocket handshake is refused with it (an HTTP answer)."""
     response = problem_response(problem, scope.get("path"))
@@ -272,6 +297,7 @@ async def _refuse(scope: Scope, receive: Receive, send: Send, problem: ProblemEr
                     "headers": headers})
         await send({"type": "websocket.http.response.body", "body": response.body})
         return
+    await _drain(receive)
     await response(scope, receive, send)
 
 

@@ -277,6 +277,21 @@ def test_openapi_declares_the_bearer_scheme(server):
     assert document["paths"]["/healthz"]["get"]["security"] == []
 
 
+def test_me_and_a_refused_upload_is_a_401(server, alice, ops):
+    assert alice.get("/v1/me").json() == {
+        "keys": True, "name": "alice", "role": "user",
+        "limits": {"requests_per_minute": 600, "concurrent_jobs": 16,
+                   "concurrent_sessions": 4, "max_faces": 500_000}}
+    assert ops.get("/v1/me").json()["role"] == "admin"
+    with _client(server, None) as anonymous:
+        problem(anonymous.get("/v1/me"), 401, "unauthorized")
+        upload = (REPO / "tests" / "data" / "bar.off").read_bytes()  # 450 KB
+        assert len(upload) > 400_000
+        for _ in range(3):  # (the service reads up to 1 MiB of it before answering)
+            response = anonymous.post("/v1/mesh", files={"file": ("bar.off", upload)})
+            problem(response, 401, "unauthorized")
+
+
 def test_no_key_material_in_what_the_server_wrote(server, alice, limited_key):
     """Last: every request above went through; the log holds access lines, no key."""
     alice.get("/v1/jobs", params={"x": "y"})
@@ -285,3 +300,4 @@ def test_no_key_material_in_what_the_server_wrote(server, alice, limited_key):
     assert '"GET /v1/jobs?x=y HTTP/1.1" 200' in log  # the access log is on
     for key in (*KEYS.values(), *limited_key[1:], "bearer."):
         assert key not in log
+

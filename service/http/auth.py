@@ -250,18 +250,23 @@ class AuthMiddleware:
                 retry_after=decision.retry_after))
             return
         self.access.metrics.requests.labels(key.name).inc()
-        await self.app(scope, receive, _with_headers(send, decision.headers()))
+        await self.app(scope, receive, self._answering(send, key.name, decision.headers()))
 
-
-def _with_headers(send: Send, headers: dict[str, str]) -> Callable[[Message], Awaitable[None]]:
-    async def sender(message: Message) -> None:
-        if message["type"] == "http.response.start":
-            mutable = MutableHeaders(scope=message)
-            for name, value in headers.items():
-                if name not in mutable:
-                    mutable[name] = value
-        await send(message)
-    return sender
+    def _answering(self, send: Send, name: str, headers: dict[str, str]
+                   ) -> Callable[[Message], Awaitable[None]]:
+        """``send`` adding the request-rate headers, and counting a route's 429 of a
+        concurrent quota (named by its RateLimit-Policy) in ``ffs_key_throttled_total``."""
+        async def sender(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                mutable = MutableHeaders(scope=message)
+                if message["status"] == 429 and "ratelimit-policy" in mutable:
+                    quota = mutable["ratelimit-policy"].split(";", 1)[0].strip('"')
+                    self.access.metrics.throttled.labels(name, quota).inc()
+                for header, value in headers.items():
+                    if header not in mutable:
+                        mutable[header] = value
+            await send(message)
+        return sender
 
 
 DRAIN_BYTES = 1024 * 1024

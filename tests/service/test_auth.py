@@ -264,6 +264,8 @@ def test_quotas_answer_429_with_both_header_sets_and_run_nothing(server, ops, li
     ops.delete(running.headers["location"])
     text = ops.get("/metrics").text
     assert metric_value(text, "ffs_key_throttled_total", key="tight", quota="requests") == 1
+    assert metric_value(text, "ffs_key_throttled_total", key="tight",
+                        quota="concurrent-jobs") == 1
     assert metric_value(text, "ffs_key_requests_total", key="tight") == 5
 
 

@@ -147,8 +147,8 @@ class Settings(BaseSettings):
     gzip_level: int = Field(1, ge=1, le=9, description="gzip compression level (1 fastest).")
 
     # Who may use the service (docs/deployment.md#api-keys): off unless keys are given.
-    api_keys: Annotated[dict[str, SecretStr], NoDecode] = Field(
-        default_factory=dict,
+    api_keys: SecretStr | None = Field(
+        None,
         description="API keys as a JSON object name -> key (`{\"alice\": \"...\"}`); "
                     "with keys (here or in FFS_API_KEYS_FILE) every request but the health "
                     "checks, the page and the docs needs `Authorization: Bearer <key>`.")
@@ -196,16 +196,36 @@ class Settings(BaseSettings):
 
     @field_validator("api_keys", mode="before")
     @classmethod
-    def _keys_from_json(cls, value: object) -> object:
-        if isinstance(value, str):
+    def _keys_as_json(cls, value: object) -> object:
+        """A mapping given in Python is kept as its JSON text: the keys stay a secret
+        (parsed by :meth:`api_key_mapping`, whose errors never echo them)."""
+        if isinstance(value, dict):
             import json
 
-            try:
-                return json.loads(value) if value.strip() else {}
-            except json.JSONDecodeError as exc:  # (never echo the value: it holds keys)
-                raise ValueError(f"FFS_API_KEYS is not a JSON object of name -> key "
-                                 f"(line {exc.lineno}, column {exc.colno})") from None
+            return json.dumps(value)
         return value
+
+    def api_key_mapping(self) -> dict[str, str]:
+        """FFS_API_KEYS as name -> key (empty when unset).
+
+        Raises:
+            ValueError: not a JSON object of strings (the message quotes no key).
+        """
+        text = self.api_keys.get_secret_value().strip() if self.api_keys else ""
+        if not text:
+            return {}
+        import json
+
+        try:
+            found = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"FFS_API_KEYS is not a JSON object of name -> key (line "
+                             f"{exc.lineno}, column {exc.colno})") from None
+        if not isinstance(found, dict) or not all(
+                isinstance(k, str) and isinstance(v, str) for k, v in found.items()):
+            raise ValueError('FFS_API_KEYS must be a JSON object of name -> key strings, '
+                             'e.g. {"alice": "..."}')
+        return found
 
     @field_validator("admin_keys", "webhook_hosts", mode="before")
     @classmethod

@@ -106,7 +106,7 @@ def default_limits(settings: Settings) -> KeyLimits:
 def key_ring(settings: Settings) -> KeyRing:
     """The keys of FFS_API_KEYS and FFS_API_KEYS_FILE (none: keys are off)."""
     defaults = default_limits(settings)
-    plain = {name: secret.get_secret_value() for name, secret in settings.api_keys.items()}
+    plain = settings.api_key_mapping()
     in_file = set()
     keys = []
     if settings.api_keys_file is not None:

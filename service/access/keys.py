@@ -25,7 +25,7 @@ import os
 import secrets
 import tempfile
 from collections.abc import Iterable, Mapping
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -102,16 +102,18 @@ def derived_webhook_secret(key: str) -> str:
 class KeyRing:
     """The known keys; :meth:`authenticate` finds a presented one in constant time."""
 
-    def __init__(self, keys: Iterable[ApiKey] = ()) -> None:
+    def __init__(self, keys: Iterable[ApiKey] = (), required: bool = False) -> None:
         self._keys = tuple(keys)
+        self._required = required or bool(self._keys)
         names = [k.name for k in self._keys]
         if len(set(names)) != len(names):
             raise ValueError("two API keys have the same name")
 
     @property
     def enabled(self) -> bool:
-        """Whether any key is configured (else the service is open, as by default)."""
-        return bool(self._keys)
+        """Whether keys are required: any key is configured, or a keys file is named (even
+        an empty one: then nobody gets in). Else the service is open, as by default."""
+        return self._required
 
     def __len__(self) -> int:
         return len(self._keys)
@@ -159,8 +161,12 @@ def ring_from_file(path: Path, defaults: KeyLimits, admins: Iterable[str] = ()
     """The keys of an ``FFS_API_KEYS_FILE`` (see the module docstring).
 
     Raises:
-        ValueError: the file is not such a document (naming the entry).
+        ValueError: the file is missing (a mistyped path must not open the service) or is
+            not such a document (naming the entry).
     """
+    if not path.is_file():
+        raise ValueError(f"FFS_API_KEYS_FILE {path} does not exist (create it with python "
+                         "-m service.access add NAME --file ...)")
     document = _read_file(path)
     admins = set(admins)
     out = []
@@ -231,8 +237,3 @@ def _write_private(path: Path, text: str) -> None:
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
-
-
-def with_defaults(keys: Iterable[ApiKey], defaults: KeyLimits) -> list[ApiKey]:
-    """The keys with each unset limit taken from ``defaults``."""
-    return [replace(k, limits=k.limits.over(defaults)) for k in keys]

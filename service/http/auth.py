@@ -93,9 +93,6 @@ class Caller:
         return self.key.limits.concurrent_sessions if self.key else None
 
 
-ANONYMOUS = Caller(None, None)
-
-
 def default_limits(settings: Settings) -> KeyLimits:
     """The limits of a key that sets none (FFS_KEY_*)."""
     return KeyLimits(settings.key_requests_per_minute, settings.key_concurrent_jobs,
@@ -114,7 +111,7 @@ def key_ring(settings: Settings) -> KeyRing:
         in_file = {k.name for k in keys}
     admins = [n for n in settings.admin_keys if n not in in_file or n in plain]
     keys += ring_from_mapping(plain, admins, defaults)
-    return KeyRing(keys)
+    return KeyRing(keys, required=settings.api_keys_file is not None)
 
 
 class KeyMetrics:

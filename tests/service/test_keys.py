@@ -73,6 +73,10 @@ def test_settings_read_keys_without_echoing_them(monkeypatch, tmp_path):
     monkeypatch.delenv("FFS_ADMIN_KEYS")
     assert not key_ring(Settings()).enabled  # no keys: off
     assert key_ring(Settings(api_keys={"bob": "k"})).names() == ["bob"]
+    with pytest.raises(ValueError, match="does not exist"):  # a mistyped path: no open door
+        key_ring(Settings(api_keys_file=tmp_path / "typo.json"))
+    (tmp_path / "empty.json").write_text('{"keys": []}')
+    assert key_ring(Settings(api_keys_file=tmp_path / "empty.json")).enabled  # nobody gets in
 
 
 def test_the_request_window_and_its_headers():

@@ -182,7 +182,7 @@ class Settings(BaseSettings):
     webhook_timeout: float = seconds(
         10.0, "Seconds one webhook delivery may take.", le=120)
 
-    @field_validator("cors_origins", mode="before")
+    @field_validator("cors_origins", "admin_keys", "webhook_hosts", mode="before")
     @classmethod
     def _split_origins(cls, value: object) -> object:
         if isinstance(value, str):
@@ -226,18 +226,6 @@ class Settings(BaseSettings):
             raise ValueError('FFS_API_KEYS must be a JSON object of name -> key strings, '
                              'e.g. {"alice": "..."}')
         return found
-
-    @field_validator("admin_keys", "webhook_hosts", mode="before")
-    @classmethod
-    def _split_names(cls, value: object) -> object:
-        if isinstance(value, str):
-            text = value.strip()
-            if text.startswith("["):
-                import json
-
-                return json.loads(text)
-            return [part.strip() for part in text.split(",") if part.strip()]
-        return value
 
     @field_validator("executor", mode="after")
     @classmethod

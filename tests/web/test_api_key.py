@@ -86,3 +86,35 @@ def test_the_page_asks_for_a_key_and_keeps_it_for_the_tab(keyed_page, keyed_serv
     log = server_log(keyed_server).read_text()
     assert "GET /static/js/auth.js" in log or "GET /static/js/" in log  # access log on
     assert KEY not in log and "not-the-key" not in log
+
+
+def test_swagger_ui_authorize_sends_the_key(browser: Any, keyed_server: str) -> None:
+    """/docs: the document's bearer scheme gives Swagger UI its Authorize button; a request
+    tried out after authorizing carries the key (GET /v1/me names it), before it a 401."""
+    context = browser.new_context(viewport=VIEWPORT)
+    page = context.new_page()
+    try:
+        page.goto(f"{keyed_server}/docs")
+        page.wait_for_selector(".opblock-summary", timeout=60_000)
+        operation = page.locator("#operations-health-get_caller")  # GET /v1/me
+
+        def try_me() -> str:
+            if not operation.locator(".execute").count():
+                if not operation.locator(".try-out__btn").count():
+                    operation.locator(".opblock-summary").click()
+                operation.locator(".try-out__btn").click()
+            operation.locator(".execute").click()
+            status = operation.locator(".live-responses-table tbody .response-col_status").first
+            status.wait_for(timeout=30_000)
+            return status.inner_text().strip()
+
+        assert try_me().startswith("401")
+        page.click("button.authorize")
+        page.locator(".auth-container input").first.fill(KEY)
+        page.locator(".auth-btn-wrapper button.authorize").first.click()
+        page.locator(".auth-btn-wrapper button.btn-done, button.close-modal").first.click()
+        operation.locator(".btn-clear").first.click()
+        assert try_me().startswith("200")
+        assert '"viewer"' in operation.locator(".live-responses-table").inner_text()
+    finally:
+        context.close()

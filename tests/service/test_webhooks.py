@@ -141,6 +141,25 @@ def test_a_finished_job_is_delivered_signed(http, receiver):
     assert KEY not in delivery["body"].decode() and KEY not in str(headers)
 
 
+def test_cancelled_and_failed_jobs_are_delivered_too(http, receiver):
+    from tests.helpers.service import forms_json
+
+    slow = {"operation": "reconstruct", "callback_url": f"http://127.0.0.1:{receiver.port}/end",
+            "input": {**forms_json(*icosphere(5)), "options": {"exact_shortcut": False}}}
+    submitted = http.post("/v1/jobs", json=slow)
+    assert submitted.status_code == 202, submitted.text
+    assert http.delete(submitted.headers["location"]).status_code == 200
+    bad = _job(receiver, "/end")
+    bad["input"]["faces"] = (icosphere(1)[1] + 1000).tolist()  # index out of range: the job fails
+    assert http.post("/v1/jobs", json=bad).status_code == 202
+    deliveries = receiver.wait("/end", 2)
+    events = sorted(d["headers"]["X-FFS-Event"] for d in deliveries)
+    assert events == ["job.cancelled", "job.failed"], events
+    failed = next(json.loads(d["body"]) for d in deliveries
+                  if d["headers"]["X-FFS-Event"] == "job.failed")
+    assert failed["status"] == "failed" and failed["error"]["kind"] == "index-out-of-range"
+
+
 def test_a_failing_receiver_is_retried_with_backoff(http, receiver, server):
     receiver.plan["/flaky"] = [500, 503]
     submitted = http.post("/v1/jobs", json=_job(receiver, "/flaky"))

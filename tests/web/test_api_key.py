@@ -44,11 +44,14 @@ def keyed_page(browser: Any, keyed_server: str) -> Iterator[tuple[Any, WebPage]]
     assert not wrapper.unexpected(), wrapper.unexpected()
 
 
-def _answer(page: Any, key: str) -> str:
-    """Wait for the key dialog, type ``key`` and submit; returns the dialog's text."""
+def _answer(page: Any, key: str, web: WebPage | None = None) -> str:
+    """Wait for the key dialog, type ``key`` and submit; returns the dialog's text (with
+    ``web``, a screenshot of it first: tests/artifacts/web/api-key-dialog-*.png)."""
     dialog = page.locator("#api-key-dialog[open]")
     dialog.wait_for(timeout=60_000)
     text = dialog.inner_text()
+    if web is not None:
+        web.screenshot("api-key-dialog")
     page.fill("#api-key-input", key)
     page.click("#api-key-use")
     return text
@@ -58,8 +61,8 @@ def test_the_page_asks_for_a_key_and_keeps_it_for_the_tab(keyed_page, keyed_serv
     context, web = keyed_page
     page = web.page
     page.goto(f"{keyed_server}/?test", timeout=90_000)
-    first = _answer(page, "not-the-key")
-    assert "API key" in first
+    first = _answer(page, "not-the-key", web)
+    assert "needs an API key" in first
     again = _answer(page, KEY)  # the wrong key was refused: asked again, saying so
     assert "does not know this key" in again
     web.evaluate("window.app.ready", timeout=120, what="the page's start-up")

@@ -69,7 +69,8 @@ function showDialog(problem) {
   title.textContent = "API key required";
   const text = document.createElement("p");
   text.textContent = hadKey ? "The service does not know this key. Enter another one."
-    : (problem?.detail || "This service needs an API key.");
+    : "This service needs an API key. Ask whoever runs it for one.";
+  text.title = problem?.detail || "";  // the service's own words, on hover
   const note = document.createElement("p");
   note.className = "api-key-note";
   note.textContent = "The key is kept for this tab only and sent to this service alone.";

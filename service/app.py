@@ -107,7 +107,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["*"], allow_headers=["*"],
-                           expose_headers=["Location", "Retry-After", "Server-Timing"])
+                           expose_headers=["Location", "Retry-After", "Server-Timing",
+                                           "RateLimit", "RateLimit-Policy",
+                                           "WWW-Authenticate"])
 
     def custom_openapi() -> dict[str, Any]:
         return declare_bearer(openapi.build(app))

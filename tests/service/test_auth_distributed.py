@@ -74,6 +74,10 @@ def test_jobs_and_sessions_belong_to_their_key_on_every_replica(replicas):
         problem(bob_b.get(session), 404, "not-found")
         problem(bob_b.delete(session), 404, "not-found")
         assert alice_b.post(f"{session}/solve", json=drag).status_code == 200
+        session_id = session.rsplit("/", 1)[1]
+        assert session_id in [x["id"] for x in ops_b.get("/v1/sessions").json()]
+        assert session_id in [x["id"] for x in alice_b.get("/v1/sessions").json()]
+        assert session_id not in [x["id"] for x in bob_b.get("/v1/sessions").json()]
         assert ops_b.post(f"{session}/solve", json=drag).status_code == 200
         url = b.replace("http://", "ws://") + session + "/ws"
         with connect(url, subprotocols=["ffs", f"bearer.{KEYS['bob']}"]) as ws:

@@ -1,7 +1,8 @@
 """Ownership across replicas (issue 46): two real uvicorn replicas with the same API keys
 on one Dask cluster (FFS_EXECUTOR=dask). A job or session of one key, created through one
 replica, is 404 for another key through the other replica (HTTP and WebSocket), served to
-its owner and to an admin key there, and counted against its key's quota cluster-wide."""
+its owner and to an admin key there, and counted against its key's quota cluster-wide; a
+job's webhook is delivered, signed, from the cluster."""
 
 from __future__ import annotations
 
@@ -24,13 +25,23 @@ HANDLES = [0, 40, 80, 120]
 
 
 @pytest.fixture(scope="module")
-def replicas():
+def receiver():
+    from tests.service.test_webhooks import Receiver
+
+    found = Receiver()
+    yield found
+    found.close()
+
+
+@pytest.fixture(scope="module")
+def replicas(receiver):
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}), LocalCluster(
             n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
             dashboard_address=":0", worker_dashboard_address=None) as cluster:
         env = {"FFS_EXECUTOR": "dask", "FFS_DASK_SCHEDULER_ADDRESS": cluster.scheduler_address,
                "FFS_WORKERS": "2", "FFS_API_KEYS": json.dumps(KEYS), "FFS_ADMIN_KEYS": "ops",
-               "FFS_KEY_CONCURRENT_SESSIONS": "1"}
+               "FFS_KEY_CONCURRENT_SESSIONS": "1",
+               "FFS_WEBHOOK_HOSTS": f"127.0.0.1:{receiver.port}"}
         with uvicorn_process(env) as (a, _), uvicorn_process(env) as (b, _):
             yield a, b
 
@@ -96,3 +107,22 @@ def test_jobs_and_sessions_belong_to_their_key_on_every_replica(replicas):
         assert second.headers["ratelimit-policy"].startswith('"concurrent-sessions";q=1')
         assert ops_b.delete(session).status_code == 204
         problem(alice_a.get(session), 404, "not-found")
+
+
+def test_a_job_on_the_cluster_calls_its_webhook(replicas, receiver):
+    from service.access.keys import derived_webhook_secret
+    from service.access.webhooks import signature
+
+    a, b = replicas
+    V, F = icosphere(2)
+    with _as(a, "alice") as alice_a, _as(b, "alice") as alice_b:
+        job = alice_a.post("/v1/jobs", json={
+            "operation": "forms", "input": {"vertices": V.tolist(), "faces": F.tolist()},
+            "callback_url": f"http://127.0.0.1:{receiver.port}/dask"})
+        assert job.status_code == 202, job.text
+        [delivery] = receiver.wait("/dask", 1)
+        assert json.loads(delivery["body"]) == alice_b.get(job.headers["location"]).json()
+        header = delivery["headers"]["X-FFS-Signature"]
+        stamp = int(header.split(",")[0].removeprefix("t="))
+        assert header == signature(derived_webhook_secret(KEYS["alice"]), stamp,
+                                   delivery["body"])

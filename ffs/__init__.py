@@ -28,6 +28,7 @@ _EXPORTS.update({name: "ffs.errors" for name in (
     "BadRequestError", "ServiceUnreachableError", "FFSError", "GoneError", "InvalidInputError",
     "JobCancelledError", "NotFoundError", "ProblemError", "RequestTimeoutError", "ServerError",
     "ServiceUnavailableError", "TooManyRequestsError")})
+_EXPORTS.update({name: "ffs.errors" for name in ("UnauthorizedError", "ForbiddenError")})
 
 
 def __getattr__(name: str) -> Any:
@@ -44,6 +45,7 @@ __all__ = [
     "Blend",
     "Client",
     "FFSError",
+    "ForbiddenError",
     "Forms",
     "GoneError",
     "Integrability",
@@ -61,5 +63,6 @@ __all__ = [
     "ServiceUnreachableError",
     "Session",
     "TooManyRequestsError",
+    "UnauthorizedError",
     "__version__",
 ]

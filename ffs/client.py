@@ -62,6 +62,8 @@ solve, refine, encode; ``queued`` while a job waits), fraction of that stage in 
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 SERVER_ENV = "FFS_SERVER"
+TOKEN_ENV = "FFS_TOKEN"
+"""The API key a :class:`Client` sends when it is given none (services with keys)."""
 """Environment variable naming the service when ``Client()`` is given no URL."""
 
 
@@ -120,6 +122,9 @@ class Client:
         max_wait: longest single wait, whatever ``Retry-After`` says.
         headers: extra headers for every request.
         transport: an ``httpx`` transport (tests, proxies).
+        token: the API key of a service with keys (default ``$FFS_TOKEN``), sent as
+            ``Authorization: Bearer`` on every request and the sessions' WebSocket
+            handshake (never in a URL).
 
     The client is thread-safe: one instance can run many requests and jobs at once.
     """
@@ -127,8 +132,12 @@ class Client:
     def __init__(self, url: str | None = None, *, timeout: float = 60.0, binary: bool = True,
                  retries: int = 4, backoff: float = 0.5, max_wait: float = 30.0,
                  headers: Mapping[str, str] | None = None,
-                 transport: httpx.BaseTransport | None = None) -> None:
+                 transport: httpx.BaseTransport | None = None,
+                 token: str | None = None) -> None:
         self.url = (url or os.environ.get(SERVER_ENV) or DEFAULT_URL).rstrip("/")
+        self.token = token or os.environ.get(TOKEN_ENV) or None
+        """The API key sent as ``Authorization: Bearer`` (HTTP and the sessions'
+        WebSocket handshake); None for a service without keys."""
         self.timeout = timeout
         self.binary = binary
         self.retries = retries
@@ -136,9 +145,13 @@ class Client:
         self.max_wait = max_wait
         self._http = httpx.Client(base_url=self.url, timeout=timeout, transport=transport,
                                   headers={"User-Agent": f"ffs-client/{__version__}",
-                                           **(headers or {})})
+                                           **self.auth_headers(), **(headers or {})})
 
     # ------------------------------------------------------------------ plumbing
+
+    def auth_headers(self) -> dict[str, str]:
+        """``Authorization: Bearer <token>``, or nothing without a token."""
+        return {"Authorization": f"Bearer {self.token}"} if self.token else {}
 
     def close(self) -> None:
         self._http.close()
@@ -533,7 +546,7 @@ class Session:
         try:
             self._socket = self._closing.enter_context(connect(
                 base + path, open_timeout=self.client.timeout, max_size=None,
-                compression=None))
+                compression=None, additional_headers=self.client.auth_headers() or None))
         except Exception as exc:  # handshake refused, proxy without WebSockets...
             raise ServiceUnreachableError(f"cannot open the session's WebSocket: {exc}") from None
         self.transport = "ws"

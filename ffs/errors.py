@@ -85,6 +85,15 @@ class BadRequestError(ProblemError):
     """400: a malformed body or an unreadable mesh file."""
 
 
+class UnauthorizedError(ProblemError):
+    """401: the service needs an API key (``token=`` / ``FFS_TOKEN`` / ``--token``), or does
+    not know the one given."""
+
+
+class ForbiddenError(ProblemError):
+    """403: the key's role does not allow this (e.g. ``/metrics`` needs an admin key)."""
+
+
 class NotFoundError(ProblemError):
     """404: no such job or session (or it expired)."""
 
@@ -127,6 +136,7 @@ class GatewayTimeoutError(ServerError):
 
 PROBLEM_CLASSES: dict[int, type[ProblemError]] = {
     400: BadRequestError, 404: NotFoundError, 409: ConflictError, 410: GoneError,
+    401: UnauthorizedError, 403: ForbiddenError,
     413: PayloadTooLargeError, 415: UnsupportedMediaTypeError, 422: InvalidInputError,
     429: TooManyRequestsError, 503: ServiceUnavailableError, 504: GatewayTimeoutError,
 }

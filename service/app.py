@@ -20,12 +20,13 @@ from starlette.middleware.cors import CORSMiddleware
 from service.api.task import TaskResult
 from service.backends import make_backend
 from service.http import openapi
+from service.http.auth import Access, AuthMiddleware, declare_bearer
 from service.http.compression import ParallelGZipMiddleware
 from service.http.dependencies import Services
 from service.http.metrics import MetricsMiddleware, ServiceMetrics
 from service.http.origins import OriginMiddleware
 from service.http.problems import install_handlers
-from service.http.routes import docs, health, jobs, operations, sessions, web
+from service.http.routes import access, docs, health, jobs, operations, sessions, web
 from service.http.security import SecurityHeadersMiddleware
 from service.logs import configure_access_log, configure_logging
 from service.settings import Settings
@@ -77,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     services = Services(settings, make_backend(settings, on_job_finished), metrics)
     metrics.bind(services.backend)
+    services.access = Access(settings, metrics.registry)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -94,9 +96,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in (operations.router, jobs.router, sessions.router, health.router,
                    web.router, docs.router):
         app.include_router(router)
+    app.include_router(access.router)
     app.mount("/static", web.static_files(), name="static")
 
     app.add_middleware(OriginMiddleware, allowed=settings.cors_origins)  # inside the metrics
+    app.add_middleware(AuthMiddleware, access=services.access)  # every route, WebSockets too
     app.add_middleware(SecurityHeadersMiddleware)  # on every answer, the 403s included
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(ParallelGZipMiddleware, minimum_size=settings.gzip_minimum_size,
@@ -104,10 +108,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["*"], allow_headers=["*"],
-                           expose_headers=["Location", "Retry-After", "Server-Timing"])
+                           expose_headers=["Location", "Retry-After", "Server-Timing",
+                                           "RateLimit", "RateLimit-Policy",
+                                           "WWW-Authenticate"])
 
     def custom_openapi() -> dict[str, Any]:
-        return openapi.build(app)
+        return declare_bearer(openapi.build(app))
 
     app.openapi = custom_openapi  # type: ignore[method-assign]
     return app

@@ -12,9 +12,10 @@ prefixed name wins when both are set.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import AliasChoices, Field, field_validator, model_validator
+from pydantic import AliasChoices, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from solver.options import Backend
@@ -149,7 +150,43 @@ class Settings(BaseSettings):
         65536, ge=0, description="Responses at least this large are gzip-compressed.")
     gzip_level: int = Field(1, ge=1, le=9, description="gzip compression level (1 fastest).")
 
-    @field_validator("cors_origins", mode="before")
+    # Who may use the service (docs/deployment.md#api-keys): off unless keys are given.
+    api_keys: SecretStr | None = Field(
+        None,
+        description="API keys as a JSON object name -> key (`{\"alice\": \"...\"}`); "
+                    "with keys (here or in FFS_API_KEYS_FILE) every request but the health "
+                    "checks, the page and the docs needs `Authorization: Bearer <key>`.")
+    admin_keys: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="Names of FFS_API_KEYS (or of the keys file) with "
+                                          "the `admin` role (/metrics, every job and "
+                                          "session); comma-separated or JSON.")
+    api_keys_file: Path | None = Field(
+        None, description="JSON file of hashed keys with a name, role and limits each "
+                          "(`python -m service.access add NAME` creates a key in it).")
+    key_requests_per_minute: int = Field(
+        600, ge=1, description="Default requests per minute of one key (429 beyond).")
+    key_concurrent_jobs: int = Field(
+        16, ge=1, description="Default jobs one key may have queued or running (429 "
+                              "beyond); replaces FFS_MAX_CLIENT_JOBS when keys are on.")
+    key_concurrent_sessions: int = Field(
+        4, ge=1, description="Default sessions one key may have open (429 beyond); "
+                             "replaces FFS_MAX_CLIENT_SESSIONS when keys are on.")
+    key_max_faces: int | None = Field(
+        None, ge=1, description="Default largest face count of one key's meshes (413 "
+                                "beyond; default FFS_MAX_FACES).")
+    webhook_hosts: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="Hosts a job's `callback_url` may name (`host` or `host:port`; "
+                    "`*.example.com` for its subdomains); empty: no webhooks. Loopback "
+                    "and private addresses only when listed.")
+    webhook_attempts: int = Field(
+        5, ge=1, le=20, description="Deliveries of one webhook before it is given up.")
+    webhook_backoff: float = seconds(
+        1.0, "Seconds before the second delivery of a webhook; doubled each time.", le=600)
+    webhook_timeout: float = seconds(
+        10.0, "Seconds one webhook delivery may take.", le=120)
+
+    @field_validator("cors_origins", "admin_keys", "webhook_hosts", mode="before")
     @classmethod
     def _split_origins(cls, value: object) -> object:
         if isinstance(value, str):
@@ -160,6 +197,39 @@ class Settings(BaseSettings):
                 return json.loads(text)
             return [part.strip() for part in text.split(",") if part.strip()]
         return value
+
+    @field_validator("api_keys", mode="before")
+    @classmethod
+    def _keys_as_json(cls, value: object) -> object:
+        """A mapping given in Python is kept as its JSON text: the keys stay a secret
+        (parsed by :meth:`api_key_mapping`, whose errors never echo them)."""
+        if isinstance(value, dict):
+            import json
+
+            return json.dumps(value)
+        return value
+
+    def api_key_mapping(self) -> dict[str, str]:
+        """FFS_API_KEYS as name -> key (empty when unset).
+
+        Raises:
+            ValueError: not a JSON object of strings (the message quotes no key).
+        """
+        text = self.api_keys.get_secret_value().strip() if self.api_keys else ""
+        if not text:
+            return {}
+        import json
+
+        try:
+            found = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"FFS_API_KEYS is not a JSON object of name -> key (line "
+                             f"{exc.lineno}, column {exc.colno})") from None
+        if not isinstance(found, dict) or not all(
+                isinstance(k, str) and isinstance(v, str) for k, v in found.items()):
+            raise ValueError('FFS_API_KEYS must be a JSON object of name -> key strings, '
+                             'e.g. {"alice": "..."}')
+        return found
 
     @field_validator("executor", mode="after")
     @classmethod

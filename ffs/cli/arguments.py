@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
                      "(default: cores / jobs)")
     run.add_argument("--server", default=os.environ.get("FFS_SERVER") or None, metavar="URL",
                      help="run on this service (default $FFS_SERVER; none: in-process)")
+    run.add_argument("--token", default=os.environ.get("FFS_TOKEN") or None, metavar="KEY",
+                     help="API key of a service with keys (default $FFS_TOKEN, which keeps "
+                     "it out of the process list)")
     run.add_argument("--local", dest="server", action="store_const", const=None,
                      help="run in-process even if FFS_SERVER is set")
     run.add_argument("--timeout", type=_positive_float, default=60.0,

@@ -103,7 +103,7 @@ def _backend(args: argparse.Namespace) -> Any:
     if args.server:
         from ffs.client import Client
 
-        return Client(args.server, timeout=args.timeout)
+        return Client(args.server, timeout=args.timeout, token=args.token)
     from ffs.local import Local
 
     return Local()

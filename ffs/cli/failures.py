@@ -59,7 +59,9 @@ def describe_error(exc: BaseException) -> str:
         if first.get("field") and not exc.detail.startswith(str(first["field"])):
             index = first.get("index")
             where = f"{first['field']}" + (f"[{index}]" if index is not None else "") + ": "
-        return f"{where}{exc.detail} ({exc.kind})"
+        hint = " (give the service's API key with --token or FFS_TOKEN)" \
+            if exc.status == 401 else ""
+        return f"{where}{exc.detail} ({exc.kind}){hint}"
     if isinstance(exc, FFSError):
         return str(exc)
     if isinstance(exc, MemoryError):

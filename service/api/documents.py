@@ -375,6 +375,20 @@ class JobStatus(BaseModel):
     links: dict[str, str]
 
 
+class Caller(BaseModel):
+    """``GET /v1/me``: whether the service has API keys, and the caller's key."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"keys": True, "name": "alice", "role": "user",
+         "limits": {"requests_per_minute": 600, "concurrent_jobs": 16,
+                    "concurrent_sessions": 4, "max_faces": 500000}}]})
+
+    keys: bool = Field(description="Whether the service requires API keys.")
+    name: str | None = Field(None, description="The key's name (with keys).")
+    role: Literal["user", "admin"] | None = Field(None, description="The key's role.")
+    limits: dict[str, int | None] | None = Field(None, description="The key's quotas.")
+
+
 class Health(BaseModel):
     """Liveness."""
 

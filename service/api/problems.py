@@ -105,6 +105,17 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
     "worker-died": (500, "Worker died", "The worker process running the request exited."),
     "internal-error": (500, "Internal error", "An unexpected error; it has been logged."),
     "http-error": (400, "HTTP error", "A generic HTTP error."),
+    "unauthorized": (401, "API key required",
+                     "The service requires an API key (`Authorization: Bearer <key>`) and "
+                     "the request had none, or one it does not know."),
+    "forbidden": (403, "Not allowed for this key",
+                  "The key's role may not do this (e.g. `/metrics` needs an admin key)."),
+    "rate-limited": (429, "Too many requests for this key",
+                     "The key used its requests of the current minute; retry after "
+                     "Retry-After seconds (RateLimit and RateLimit-Policy say more)."),
+    "quota-exceeded": (429, "Quota of this key exceeded",
+                       "The key has as many jobs or sessions as its quota allows; wait for "
+                       "one to finish or close one."),
 }
 for _cls in ERROR_KINDS:
     PROBLEM_KINDS[_cls.kind] = (422, _cls.kind.replace("-", " ").capitalize(),

@@ -392,6 +392,11 @@ class JobRequest(BaseModel):
     color: ColorField | None = Field(
         None, description="Precompute this vertex colour field so that "
                           "GET /v1/jobs/{id}/result?color=... can add it.")
+    callback_url: str | None = Field(
+        None, max_length=2048,
+        description="Where to POST the job's status document, signed, when it succeeds, "
+                    "fails or is cancelled (a host of FFS_WEBHOOK_HOSTS; services with API "
+                    "keys only). See docs/deployment.md#webhooks.")
 
 
 # ---------------------------------------------------------------------------- sessions

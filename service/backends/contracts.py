@@ -93,10 +93,14 @@ class JobService(Protocol):
     async def stop(self) -> None: ...
 
     async def submit(self, request: TaskRequest, *, color: str | None = None,
-                     owner: str | None = None) -> Job:
-        """Create and queue a job for ``owner`` (the client), evicting the oldest finished
-        jobs when the store is full; ``JobStoreFullError``, ``ClientJobsError``,
-        ``QueueFullError`` or ``ExecutorClosedError`` when it cannot."""
+                     owner: str | None = None, max_per_owner: int | None = None) -> Job:
+        """Create and queue a job for ``owner`` (the client's address, or its API key),
+        evicting the oldest finished jobs when the store is full; ``JobStoreFullError``,
+        ``ClientJobsError`` (``owner`` has ``max_per_owner`` unfinished jobs, by default
+        the policy's), ``QueueFullError`` or ``ExecutorClosedError`` when it cannot."""
+
+    async def list(self, owner: str | None = None) -> list[Job]:
+        """The stored jobs of ``owner`` (every job when None), oldest first."""
 
     async def get(self, job_id: str) -> Job | None:
         """The job, or None when it is unknown or expired."""
@@ -189,14 +193,23 @@ class SessionBackend(Protocol):
 
     async def stop(self) -> None: ...
 
-    async def create(self, spec: SessionSpec, owner: str | None = None) -> SessionRecord:
-        """Build a session for client ``owner`` (admission:
+    async def create(self, spec: SessionSpec, owner: str | None = None,
+                     max_per_owner: int | None = None) -> SessionRecord:
+        """Build a session for client ``owner``, who may have ``max_per_owner`` open (by
+        default the policy's) (admission:
         :func:`~service.backends.admission.admit_session`, which may close idle sessions to
         make room: they answer ``SessionGoneError`` afterwards; ``ClientSessionsError``,
         ``TooManySessionsError``, ``SessionMemoryError``, ``TaskFailedError`` for a bad mesh,
         ``DeadlineError``, ``WorkerDiedError``)."""
 
     async def describe(self, session_id: str) -> SessionRecord: ...
+
+    async def owner(self, session_id: str) -> str | None:
+        """Who created the session (its ``owner`` at :meth:`create`), also while it is
+        gone; ``SessionNotFoundError`` for an unknown id."""
+
+    async def list(self, owner: str | None = None) -> list[SessionRecord]:
+        """The live sessions of ``owner`` (every one when None)."""
 
     async def shape(self, session_id: str) -> tuple[int, int]:
         """(handles, rotation groups) of a session."""

@@ -16,6 +16,7 @@ from fastapi import Depends
 from starlette.requests import HTTPConnection
 
 from service.backends.contracts import Backend, Executor, JobService, SessionBackend
+from service.http.auth import Access, caller
 from service.http.bodies import ParserPool
 from service.http.metrics import ServiceMetrics
 from service.settings import Settings
@@ -38,6 +39,8 @@ class Services:
     metrics: ServiceMetrics = field(default_factory=ServiceMetrics)
     parser: ParserPool = field(default_factory=ParserPool)
     started: bool = False
+    access: Access | None = None
+    """The API keys and their quotas (:mod:`service.http.auth`); None: keys off."""
 
     async def start(self) -> None:
         """Start the backend, then open the parser."""
@@ -45,10 +48,19 @@ class Services:
         self.parser.start()
         self.started = True
 
+    def settings_for(self, connection: HTTPConnection) -> Settings:
+        """The settings of one request: its key's face quota as FFS_MAX_FACES where lower
+        (:meth:`service.http.auth.Access.effective_settings`)."""
+        if self.access is None:
+            return self.settings
+        return self.access.effective_settings(self.settings, caller(connection))
+
     async def stop(self) -> None:
         """Stop the backend (its workers, jobs and sessions), then end the parser process."""
         self.started = False
         try:
+            if self.access is not None:
+                await self.access.stop()
             await self.backend.stop()
         finally:
             await asyncio.to_thread(self.parser.stop)
@@ -68,7 +80,8 @@ def services(connection: HTTPConnection) -> Services:
 
 
 def settings(connection: HTTPConnection) -> Settings:
-    return services(connection).settings
+    """The settings, with the caller's key's face quota as FFS_MAX_FACES where lower."""
+    return services(connection).settings_for(connection)
 
 
 def executor(connection: HTTPConnection) -> Executor:

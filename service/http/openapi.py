@@ -271,6 +271,9 @@ def jobs_body() -> dict[str, Any]:
     properties: dict[str, Any] = {
         "operation": {"type": "string", "enum": list(OPERATIONS)},
         "color": {"type": "string", "enum": ["defect", "distortion"]},
+        "callback_url": {"type": "string", "maxLength": 2048,
+                         "description": "Where to POST the finished job's status, signed "
+                                        "(services with API keys; FFS_WEBHOOK_HOSTS)."},
         "file": {"type": "string", "format": "binary",
                  "description": FILE_DESCRIPTION + " `file_a` and `file_b` for interpolate."},
         "file_a": {"type": "string", "format": "binary"},

@@ -132,15 +132,23 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
 
 async def job_request(request: Request, settings: Settings, parser: ParserPool
                       ) -> tuple[str | None, TaskRequest]:
-    """(colour, task) of ``POST /v1/jobs``: JSON ``{"operation", "input", "color"?}`` (the
-    input validated like the synchronous body, in ``parser`` when it is large) or a
-    multipart upload with ``operation`` and ``color`` fields. The task keeps its mesh arrays
-    and the wanted colour for later."""
+    """(colour, task) of ``POST /v1/jobs`` (:func:`job_submission`)."""
+    head, task = await job_submission(request, settings, parser)
+    return head.color, task
+
+
+async def job_submission(request: Request, settings: Settings, parser: ParserPool
+                         ) -> tuple[JobRequest, TaskRequest]:
+    """(head, task) of ``POST /v1/jobs``: JSON ``{"operation", "input", "color"?,
+    "callback_url"?}`` (the input validated like the synchronous body, in ``parser`` when it
+    is large) or a multipart upload with ``operation``, ``color`` and ``callback_url``
+    fields. The task keeps its mesh arrays and the wanted colour for later."""
     mtype = media_type(request)
     if mtype == "multipart/form-data":
         fields, files = await read_form(request, settings)
         head = validate_object(JobRequest, {"operation": fields.pop("operation", None),
-                                            "color": fields.pop("color", None), "input": {}})
+                                            "color": fields.pop("color", None), "input": {},
+                                            "callback_url": fields.pop("callback_url", None)})
         task = await form_request(OPERATIONS[head.operation], fields, files, settings,
                                   Output())
     elif is_json(mtype):
@@ -148,8 +156,8 @@ async def job_request(request: Request, settings: Settings, parser: ParserPool
         head, task = await off_loop(parser, len(body), _json_job, body, settings)
     else:
         raise unsupported_media_type(mtype)
-    return head.color, task.with_output(Output(compute=(head.color,) if head.color else (),
-                                               keep=True))
+    return head, task.with_output(Output(compute=(head.color,) if head.color else (),
+                                         keep=True))
 
 
 def _json_job(body: bytes, settings: Settings) -> tuple[JobRequest, TaskRequest]:

@@ -13,6 +13,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -80,9 +81,10 @@ def uvicorn_server(env: dict[str, str] | None = None) -> Iterator[str]:
 
 
 @contextlib.contextmanager
-def uvicorn_process(env: dict[str, str] | None = None,
+def uvicorn_process(env: dict[str, str] | None = None, log_level: str = "warning",
                     ) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
-    """:func:`uvicorn_server`, also yielding the server process (its pid, for psutil)."""
+    """:func:`uvicorn_server`, also yielding the server process (its pid, for psutil); its
+    output goes to :func:`server_log` (``log_level`` ``info`` adds uvicorn's access log)."""
     port = free_port()
     full_env = {**os.environ, "FFS_WORKERS": "2", "PYTHONUNBUFFERED": "1", **(env or {})}
     full_env["PYTHONPATH"] = os.pathsep.join(
@@ -92,7 +94,7 @@ def uvicorn_process(env: dict[str, str] | None = None,
     with open(log / f"uvicorn-{port}.log", "wb") as out:
         proc = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
-             "--port", str(port), "--log-level", "warning",
+             "--port", str(port), "--log-level", log_level,
              "--http", "service.http.server:HeaderTimeoutProtocol"],
             cwd=REPO, env=full_env, stdout=out, stderr=subprocess.STDOUT,
             start_new_session=True)
@@ -109,6 +111,11 @@ def uvicorn_process(env: dict[str, str] | None = None,
             yield base, proc
         finally:
             stop_process(proc)
+
+
+def server_log(base: str) -> Path:
+    """The file a :func:`uvicorn_process` at ``base`` writes its output to."""
+    return REPO / "tests" / "artifacts" / f"uvicorn-{base.rsplit(':', 1)[1]}.log"
 
 
 def uvicorn_fixture(env: dict[str, str] | None = None, *, scope: str = "session",

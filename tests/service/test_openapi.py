@@ -130,7 +130,7 @@ def test_job_upload_fields_are_typed():
     properties = form["schema"]["properties"]
     every = {name for spec in OPERATIONS.values() for name in (*spec.files,
                                                                *spec.params.model_fields)}
-    assert set(properties) == every | {"operation", "color"}
+    assert set(properties) == every | {"operation", "color", "callback_url"}  # (issue 46)
     assert form["schema"]["additionalProperties"] is False
     options = {ref["$ref"].rsplit("/", 1)[1] for ref in properties["options"]["anyOf"]}
     assert options == {spec.params.model_fields["options"].annotation.__name__

@@ -72,15 +72,15 @@ class DaskJobManager:
                 await client.unpublish_dataset(JOB_PREFIX + job_id)
 
     async def submit(self, request: TaskRequest, *, color: str | None = None,
-                     owner: str | None = None) -> Job:
+                     owner: str | None = None, max_per_owner: int | None = None) -> Job:
         client = await self.connection.wait_connected(5.0)
         job = Job(id=uuid.uuid4().hex, operation=request.operation, color=color, owner=owner)
         meta = {"key": JOB_PREFIX + job.id, "ttl": self.policy.ttl, "timeout": self.policy.timeout}
         refusal = await self.connection.call("job_add", job_fields(job), meta,
                                              self.policy.max_jobs, time.time(),
-                                             self.policy.max_per_client)
+                                             max_per_owner or self.policy.max_per_client)
         if refusal == "owner":
-            raise ClientJobsError(self.policy.max_per_client)
+            raise ClientJobsError(max_per_owner or self.policy.max_per_client)
         if refusal is not None:
             raise JobStoreFullError(int(refusal), self.policy.max_jobs)
         try:
@@ -108,6 +108,10 @@ class DaskJobManager:
     async def get(self, job_id: str) -> Job | None:
         record = await self.connection.call("job_get", job_id, time.time())
         return None if record is None else Job(**record)
+
+    async def list(self, owner: str | None = None) -> list[Job]:
+        records = await self.connection.call("job_list", owner, time.time())
+        return [Job(**record) for record in records]
 
     async def result(self, job: Job) -> TaskResult:
         client = self.connection.require()

@@ -100,6 +100,13 @@ class Registry(SchedulerPlugin):  # type: ignore[misc,valid-type]
             return None
         return job_fields(job)
 
+    def job_list(self, owner: str | None, now: float) -> list[dict[str, Any]]:
+        """The records of ``owner``'s unexpired jobs (every owner's when None), oldest
+        first."""
+        return [job_fields(j) for j in sorted(self.jobs.values(), key=lambda j: j.created_at)
+                if (owner is None or j.owner == owner)
+                and (j.expires_at is None or j.expires_at > now)]
+
     def job_finish(self, job_id: str, status: str, error: dict[str, Any] | None,
                    now: float) -> dict[str, Any] | None:
         """Finish a job from outside (cancel, timeout) unless it already finished."""
@@ -244,6 +251,11 @@ class Registry(SchedulerPlugin):  # type: ignore[misc,valid-type]
     def session_get(self, session_id: str) -> dict[str, Any] | None:
         record = self.sessions.get(session_id)
         return None if record is None else dict(record)
+
+    def session_list(self, owner: str | None) -> list[dict[str, Any]]:
+        """The records of ``owner``'s ready sessions (every owner's when None)."""
+        return [dict(r) for r in self.sessions.values()
+                if r["state"] == "ready" and (owner is None or r.get("owner") == owner)]
 
     def session_touch(self, session_id: str, now: float, solves: int) -> None:
         record = self.sessions.get(session_id)

@@ -39,6 +39,8 @@ class DaskSessions:
         self._actors: dict[str, Any] = {}
         self._futures: dict[str, Any] = {}
         self._shapes: dict[str, tuple[int, int]] = {}
+        self._owners: dict[str, str | None] = {}
+        """Owners seen by this replica (an owner never changes: one registry call each)."""
         self._unsent: dict[str, int] = {}
         self._touched: dict[str, float] = {}
         self._background: set[asyncio.Task[None]] = set()
@@ -78,6 +80,7 @@ class DaskSessions:
         self._futures.pop(session_id, None)
         self._shapes.pop(session_id, None)
         self._unsent.pop(session_id, None)
+        self._owners.pop(session_id, None)
         self._touched.pop(session_id, None)
 
     async def _release(self, session_id: str) -> None:
@@ -108,7 +111,8 @@ class DaskSessions:
 
     # --------------------------------------------------------------------- create
 
-    async def create(self, spec: SessionSpec, owner: str | None = None) -> SessionRecord:
+    async def create(self, spec: SessionSpec, owner: str | None = None,
+                     max_per_owner: int | None = None) -> SessionRecord:
         client = await self.connection.wait_connected(5.0)
         session_id = uuid.uuid4().hex
         estimate = estimate_memory(len(spec.vertices), len(spec.faces))
@@ -116,7 +120,7 @@ class DaskSessions:
         answer = await self.connection.call("session_admit", session_id, estimate,
                                             policy.max_sessions, policy.max_memory,
                                             time.time(), policy.setup_timeout + 30, policy.ttl,
-                                            owner, policy.max_per_client,
+                                            owner, max_per_owner or policy.max_per_client,
                                             policy.give_way_after)
         kind = None if answer is None else answer["kind"]
         if kind == "too-many":
@@ -125,7 +129,7 @@ class DaskSessions:
         if kind == "memory":
             raise errors.SessionMemoryError(answer["used"], estimate, policy.max_memory)
         if kind == "client":
-            raise errors.ClientSessionsError(policy.max_per_client)
+            raise errors.ClientSessionsError(max_per_owner or policy.max_per_client)
         for evicted in (answer or {}).get("evict", ()):
             await self._release(evicted)
             self._count = max(0, self._count - 1)
@@ -166,6 +170,7 @@ class DaskSessions:
                     await client.cancel([future], force=True)
             raise
         info = built["info"]
+        self._owners[session_id] = owner
         self._actors[session_id] = actor
         self._futures[session_id] = future
         self._shapes[session_id] = (len(info["handles"]), int(info["n_rotation_groups"]))
@@ -191,6 +196,23 @@ class DaskSessions:
         expires = self.policy.ttl - (time.time() - record["last_used"])
         return SessionRecord(session_id, record["info"], max(0.0, expires), record["memory"],
                              record["solves"], self.name)
+
+    async def owner(self, session_id: str) -> str | None:
+        if session_id in self._owners:
+            return self._owners[session_id]
+        record = await self.connection.call("session_get", session_id)
+        if record is None or record["state"] == "creating":
+            raise errors.SessionNotFoundError(session_id)
+        owner = self._owners[session_id] = record.get("owner")
+        return owner
+
+    async def list(self, owner: str | None = None) -> list[SessionRecord]:
+        await self._flush_touches(force=True)
+        now = time.time()
+        return [SessionRecord(r["id"], r["info"],
+                              max(0.0, self.policy.ttl - (now - r["last_used"])), r["memory"],
+                              r["solves"], self.name)
+                for r in await self.connection.call("session_list", owner)]
 
     async def shape(self, session_id: str) -> tuple[int, int]:
         shape = self._shapes.get(session_id)

@@ -152,15 +152,15 @@ class JobManager:
         self.expire()
 
     async def submit(self, request: TaskRequest, *, color: str | None = None,
-                     owner: str | None = None) -> Job:
+                     owner: str | None = None, max_per_owner: int | None = None) -> Job:
         """Create a job and queue it; the oldest finished jobs give way when the store is
         full (``JobStoreFullError``, ``ClientJobsError``, ``QueueFullError``,
         ``ExecutorClosedError``)."""
         self.expire()
-        evict, refusal = admit(self.store.jobs(), self.policy.max_jobs, owner,
-                               self.policy.max_per_client)
+        per_owner = max_per_owner or self.policy.max_per_client
+        evict, refusal = admit(self.store.jobs(), self.policy.max_jobs, owner, per_owner)
         if refusal == "owner":
-            raise ClientJobsError(self.policy.max_per_client)
+            raise ClientJobsError(per_owner)
         if refusal == "full":
             raise JobStoreFullError(len(self.store), self.policy.max_jobs)
         job = Job(id=new_job_id(self.started_ms), operation=request.operation, color=color,
@@ -211,6 +211,11 @@ class JobManager:
         if job is None and started_before(job_id, self.started_ms):
             raise JobLostError(job_id, _iso_ms(self.started_ms))
         return job
+
+    async def list(self, owner: str | None = None) -> list[Job]:
+        self.expire()
+        return sorted((j for j in self.store.jobs() if owner is None or j.owner == owner),
+                      key=lambda j: j.created_at)
 
     async def result(self, job: Job) -> TaskResult:
         assert job.result is not None, "only a succeeded job is asked for its result"

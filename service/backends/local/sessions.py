@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import functools
 import logging
 import time
@@ -116,6 +117,8 @@ class LocalSessions:
         self.start_method = start_method
         self._sessions: dict[str, _LocalSession] = {}
         self._gone: dict[str, tuple[str, float]] = {}
+        self._owners: dict[str, str | None] = {}
+        """Who created each live or gone session (ownership outlives the process)."""
         self._reserved: dict[str, SessionSlot] = {}
         """Sessions being built: admission counts them (never idle)."""
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -150,6 +153,7 @@ class LocalSessions:
         for sid, (_, until) in list(self._gone.items()):
             if until <= now:
                 del self._gone[sid]
+                self._owners.pop(sid, None)
         return len(idle)
 
     # ---------------------------------------------------------------------- state
@@ -203,8 +207,8 @@ class LocalSessions:
             raise
         return proc
 
-    def _admit(self, session_id: str, owner: str | None, estimate: int
-               ) -> list[_LocalSession]:
+    def _admit(self, session_id: str, owner: str | None, estimate: int,
+               max_per_owner: int | None = None) -> list[_LocalSession]:
         """Reserve room for session ``session_id`` of ``owner`` (:func:`admit_session`);
         the idle sessions that give way are buried here and returned, to be closed."""
         now = time.monotonic()
@@ -212,7 +216,7 @@ class LocalSessions:
                              None if s.lock.locked() else now - s.last_used)
                  for s in self._sessions.values() if s.alive]
         evicted = [self._sessions[sid] for sid in admit_session(
-            [*slots, *self._reserved.values()], owner, estimate, self.policy.admission())]
+            [*slots, *self._reserved.values()], owner, estimate, self._limits(max_per_owner))]
         for session in evicted:
             self._bury(session, f"it gave way to a new session after "
                                 f"{now - session.last_used:.0f} s without a drag (the open "
@@ -221,11 +225,18 @@ class LocalSessions:
         self._reserved[session_id] = SessionSlot(session_id, owner, estimate, None)
         return evicted
 
-    async def create(self, spec: SessionSpec, owner: str | None = None) -> SessionRecord:
+    def _limits(self, max_per_owner: int | None) -> Any:
+        limits = self.policy.admission()
+        if max_per_owner is None:
+            return limits
+        return dataclasses.replace(limits, max_per_owner=max_per_owner)
+
+    async def create(self, spec: SessionSpec, owner: str | None = None,
+                     max_per_owner: int | None = None) -> SessionRecord:
         await self.expire()
         estimate = estimate_memory(len(spec.vertices), len(spec.faces))
         session_id = uuid.uuid4().hex
-        evicted = self._admit(session_id, owner, estimate)
+        evicted = self._admit(session_id, owner, estimate, max_per_owner)
         proc: WorkerProcess | None = None
         try:
             await asyncio.gather(*(asyncio.to_thread(self._close, s) for s in evicted))
@@ -254,6 +265,7 @@ class LocalSessions:
             await asyncio.to_thread(proc.kill)
             raise errors.SessionMemoryError(used, session.memory, self.policy.max_memory)
         self._sessions[session_id] = session
+        self._owners[session_id] = owner
         proc.read(self._loop, lambda message: self._on_message(session, message),
                   lambda: self._on_exit(session), _unreadable,
                   f"ffs-session-reader-{session_id[:8]}")
@@ -263,6 +275,15 @@ class LocalSessions:
 
     async def describe(self, session_id: str) -> SessionRecord:
         return self._record(self._get(session_id))
+
+    async def owner(self, session_id: str) -> str | None:
+        if session_id not in self._owners:
+            raise errors.SessionNotFoundError(session_id)
+        return self._owners[session_id]
+
+    async def list(self, owner: str | None = None) -> list[SessionRecord]:
+        return [self._record(s) for s in self._sessions.values()
+                if s.alive and (owner is None or s.owner == owner)]
 
     async def shape(self, session_id: str) -> tuple[int, int]:
         info = self._get(session_id).info
@@ -333,12 +354,14 @@ class LocalSessions:
 
     async def delete(self, session_id: str) -> None:
         if self._gone.pop(session_id, None) is not None:
+            self._owners.pop(session_id, None)
             return
         session = self._sessions.get(session_id)
         if session is None:
             raise errors.SessionNotFoundError(session_id)
         session.closing = True
         self._sessions.pop(session_id, None)
+        self._owners.pop(session_id, None)
         session.alive = False
         session.reason = "deleted"
         if session.pending is not None:

@@ -9,20 +9,30 @@ import anyio
 from fastapi import APIRouter, Path, Query, Request
 from starlette.responses import JSONResponse, Response
 
+from service.access.quotas import CONCURRENT_JOBS
 from service.api.documents import JobStatus
 from service.api.problems import ProblemError, element_error
 from service.api.schemas import ColorField
 from service.api.task import TaskResult
 from service.backends.contracts import JobService
+from service.backends.errors import ClientJobsError
 from service.backends.jobs import Job
+from service.http.auth import Caller, CallerDep, quota_problem
 from service.http.dependencies import JobsDep, ParserDep, SettingsDep
 from service.http.negotiation import MESH_FORMATS
 from service.http.openapi import created, error_responses, jobs_body
-from service.http.payloads import job_request
+from service.http.payloads import job_submission
 from service.http.routes import API_PREFIX, model_response, path_to
 from service.http.routes.operations import check_color, format_query, formats, result_format
+from service.http.webhooks import callback_target, follow_job
 from service.operations import OPERATIONS
-from service.worker.output import MEDIA_TYPES, colors_for, mesh_bytes, with_colors
+from service.worker.output import (
+    MEDIA_TYPES,
+    colors_for,
+    json_bytes,
+    mesh_bytes,
+    with_colors,
+)
 
 router = APIRouter(prefix=API_PREFIX, tags=["jobs"])
 
@@ -86,9 +96,9 @@ def _status_response(job: Job, status_code: int = 200,
     return model_response(job_document(job), status_code, headers)
 
 
-async def _get(jobs: JobsDep, job_id: str) -> Job:
+async def _get(jobs: JobsDep, job_id: str, caller: Caller | None = None) -> Job:
     job = await jobs.get(job_id)
-    if job is None:
+    if job is None or (caller is not None and not caller.sees(job.owner)):
         raise ProblemError("not-found", f"no job {job_id!r} (it may have expired)")
     return job
 
@@ -106,12 +116,21 @@ async def _get(jobs: JobsDep, job_id: str) -> Job:
                                       "DeleteJob": "delete_job"}),
                         **error_responses(400, 408, 413, 415, 422, 429, 503)})
 async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep,
-                     parser: ParserDep) -> Response:
-    color, task = await job_request(request, settings, parser)
+                     parser: ParserDep, caller: CallerDep) -> Response:
+    head, task = await job_submission(request, settings, parser)
+    color, callback = head.color, callback_target(request, head.callback_url, caller)
     check_color(OPERATIONS[task.operation], color)
     task = task.with_deadline(settings.job_timeout)  # refinement stops in time (a result)
-    job = await jobs.submit(task, color=color,
-                            owner=request.client.host if request.client else None)
+    try:
+        job = await jobs.submit(task, color=color, owner=caller.owner,
+                                max_per_owner=caller.concurrent_jobs)
+    except ClientJobsError as exc:
+        if caller.key is None:
+            raise
+        raise quota_problem(caller, CONCURRENT_JOBS, exc.limit, "jobs queued or running"
+                            ) from None
+    if callback is not None:
+        follow_job(request, jobs, job.id, callback, caller, job_document)
     return _status_response(job, 202, {"Location": path_to(router, "get_job", job_id=job.id)})
 
 
@@ -120,8 +139,8 @@ async def submit_job(request: Request, settings: SettingsDep, jobs: JobsDep,
             description="State, progress by stage with fractions, timings and the error "
                         "(a problem document) of a job.",
             response_class=JSONResponse, responses=error_responses(404, 410, 422))
-async def get_job(jobs: JobsDep, job_id: JobId) -> Response:
-    return _status_response(await _get(jobs, job_id))
+async def get_job(jobs: JobsDep, job_id: JobId, caller: CallerDep) -> Response:
+    return _status_response(await _get(jobs, job_id, caller))
 
 
 @router.get("/jobs/{job_id}/result", summary="Job result", operation_id="get_job_result",
@@ -131,9 +150,9 @@ async def get_job(jobs: JobsDep, job_id: JobId) -> Response:
             response_class=Response,
             responses={200: {"description": "The result.", "content": _RESULT_CONTENT},
                        **error_responses(404, 406, 409, 410, 422)})
-async def get_result(request: Request, jobs: JobsDep, job_id: JobId,
+async def get_result(request: Request, jobs: JobsDep, job_id: JobId, caller: CallerDep,
                      color: ColorQuery = None, fmt: FormatQuery = None) -> Response:
-    job = await _get(jobs, job_id)
+    job = await _get(jobs, job_id, caller)
     return await _result(job, result_format(request, formats(OPERATIONS[job.operation]), fmt),
                          color, jobs)
 
@@ -147,9 +166,9 @@ async def get_result(request: Request, jobs: JobsDep, job_id: JobId,
             response_class=Response,
             responses={200: {"description": "The mesh file.", "content": GLTF_FILES},
                        **error_responses(404, 406, 409, 410, 422)})
-async def get_mesh(jobs: JobsDep, job_id: JobId, color: ColorQuery = None,
-                   fmt: MeshFormatQuery = "glb") -> Response:
-    job = await _get(jobs, job_id)
+async def get_mesh(jobs: JobsDep, job_id: JobId, caller: CallerDep,
+                   color: ColorQuery = None, fmt: MeshFormatQuery = "glb") -> Response:
+    job = await _get(jobs, job_id, caller)
     if not OPERATIONS[job.operation].mesh_result:
         raise ProblemError("not-acceptable", f"a {job.operation} job has no mesh result; use "
                            f"GET {path_to(router, 'get_result', job_id=job.id)}",
@@ -201,10 +220,23 @@ def _encode(result: TaskResult, fmt: str, values: Any) -> bytes:
                response_class=JSONResponse,
                responses={204: {"description": "Deleted."},
                           **error_responses(404, 410, 422)})
-async def delete_job(jobs: JobsDep, job_id: JobId) -> Response:
-    job = await _get(jobs, job_id)
+async def delete_job(jobs: JobsDep, job_id: JobId, caller: CallerDep) -> Response:
+    job = await _get(jobs, job_id, caller)
     if job.done:
         await jobs.delete(job)
         return Response(status_code=204)
     await jobs.cancel(job)
     return _status_response(job)
+
+
+@router.get("/jobs", response_model=list[JobStatus], summary="List jobs",
+            operation_id="list_jobs",
+            description="The caller's stored jobs (queued, running, and finished ones until "
+                        "they expire), oldest first: those of its API key (an admin key: "
+                        "every key's), or without keys those submitted from its address.",
+            response_class=JSONResponse)
+async def list_jobs(jobs: JobsDep, caller: CallerDep) -> Response:
+    owner = None if caller.is_admin else caller.owner  # keys off: the caller's address
+    found = await jobs.list(owner)
+    return Response(json_bytes([job_document(j).model_dump(exclude_unset=True)
+                                for j in found]), media_type="application/json")

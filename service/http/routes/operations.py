@@ -129,7 +129,7 @@ def _endpoint(spec: OperationSpec) -> Callable[..., Awaitable[Response]]:
                             query.get("fmt", request.query_params.get("format")))
         color = query.get("color", request.query_params.get("color"))
         check_color(spec, color)
-        settings = services.settings
+        settings = services.settings_for(request)  # a key's face quota
         task = await operation_request(request, spec, settings, Output(fmt, color))
         return result_response(await run_task(request, task, services.backend.executor,
                                               services.metrics, settings.request_timeout))

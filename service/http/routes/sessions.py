@@ -17,11 +17,18 @@ from fastapi import APIRouter, Path, Query, Request, WebSocket
 from starlette.responses import JSONResponse, Response
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
+from service.access.quotas import CONCURRENT_SESSIONS
 from service.api.documents import RefiningStatus, SessionInfo, SessionVertices
 from service.api.problems import ProblemError, element_error
 from service.api.schemas import SessionDrag, SessionRequest
-from service.backends.contracts import DragAnswer, SessionRecord
-from service.backends.errors import BackendError, DragSupersededError
+from service.backends.contracts import DragAnswer, SessionBackend, SessionRecord
+from service.backends.errors import (
+    BackendError,
+    ClientSessionsError,
+    DragSupersededError,
+    SessionNotFoundError,
+)
+from service.http.auth import Caller, CallerDep, accepted_subprotocol, quota_problem
 from service.http.bodies import is_json, media_type, read_body
 from service.http.dependencies import MetricsDep, ParserDep, SessionsDep, SettingsDep
 from service.http.drags import parse_drag_binary, parse_drag_json, ws_reply
@@ -73,6 +80,14 @@ def drag_headers(session_id: str, answer: DragAnswer) -> dict[str, str]:
     return headers
 
 
+async def check_owner(sessions: SessionBackend, caller: Caller, session_id: str) -> None:
+    """404 for a session of another key (keys off, or an admin key: every session)."""
+    if caller.key is None or caller.is_admin:
+        return
+    if await sessions.owner(session_id) != caller.owner:
+        raise SessionNotFoundError(session_id)
+
+
 def session_document(record: SessionRecord) -> SessionInfo:
     """The 201 body of ``POST /v1/sessions`` and the body of ``GET /v1/sessions/{id}``.
 
@@ -114,18 +129,37 @@ def session_document(record: SessionRecord) -> SessionInfo:
                                  "DeleteSession": "delete_session"}),
                         **error_responses(400, 408, 413, 415, 422, 429, 500, 503, 504)})
 async def create_session(request: Request, settings: SettingsDep, sessions: SessionsDep,
-                         metrics: MetricsDep, parser: ParserDep) -> Response:
+                         metrics: MetricsDep, parser: ParserDep, caller: CallerDep) -> Response:
     spec = await session_spec(request, settings, parser)
-    owner = request.client.host if request.client else None  # FFS_MAX_CLIENT_SESSIONS
-    doc = session_document(await sessions.create(spec, owner))
+    try:  # FFS_MAX_CLIENT_SESSIONS per address, or the key's quota
+        record = await sessions.create(spec, caller.owner, caller.concurrent_sessions)
+    except ClientSessionsError as exc:
+        if caller.key is None:
+            raise
+        raise quota_problem(caller, CONCURRENT_SESSIONS, exc.limit, "sessions open") from None
+    doc = session_document(record)
     metrics.session_created()
     return model_response(doc, 201, {"Location": doc.links["self"]})
+
+
+@router.get("/sessions", response_model=list[SessionInfo], summary="List sessions",
+            operation_id="list_sessions",
+            description="The caller's open sessions: those of its API key (an admin key: "
+                        "every key's), or without keys those opened from its address.",
+            response_class=JSONResponse)
+async def list_sessions(sessions: SessionsDep, caller: CallerDep) -> Response:
+    owner = None if caller.is_admin else caller.owner
+    documents = [session_document(r).model_dump(exclude_unset=True)
+                 for r in await sessions.list(owner)]
+    return Response(orjson.dumps(documents), media_type="application/json")
 
 
 @router.get("/sessions/{session_id}", response_model=SessionInfo, summary="Session state",
             operation_id="get_session",
             response_class=JSONResponse, responses=error_responses(404, 410))
-async def get_session(sessions: SessionsDep, session_id: SessionId) -> Response:
+async def get_session(sessions: SessionsDep, session_id: SessionId,
+                      caller: CallerDep) -> Response:
+    await check_owner(sessions, caller, session_id)
     return model_response(session_document(await sessions.describe(session_id)))
 
 
@@ -134,7 +168,9 @@ async def get_session(sessions: SessionsDep, session_id: SessionId) -> Response:
                description="Frees the session's factorization (204). A session that expired "
                            "or whose worker died is forgotten as well.",
                response_class=Response, responses=error_responses(404))
-async def delete_session(sessions: SessionsDep, session_id: SessionId) -> Response:
+async def delete_session(sessions: SessionsDep, session_id: SessionId,
+                         caller: CallerDep) -> Response:
+    await check_owner(sessions, caller, session_id)
     await sessions.delete(session_id)
     return Response(status_code=204)
 
@@ -175,9 +211,10 @@ _SOLVE_CONTENT = {
                               "content": _SOLVE_CONTENT},
                         **error_responses(400, 404, 406, 408, 410, 413, 415, 422, 503, 504)})
 async def solve_session(request: Request, session_id: SessionId, settings: SettingsDep,
-                        sessions: SessionsDep, metrics: MetricsDep,
+                        sessions: SessionsDep, metrics: MetricsDep, caller: CallerDep,
                         fmt: SolveFormat = None) -> Response:
     fmt = result_format(request, SESSION_FORMATS, fmt)
+    await check_owner(sessions, caller, session_id)
     n_handles, n_groups = await sessions.shape(session_id)
     mtype = media_type(request)
     body = await read_body(request, settings)
@@ -220,12 +257,13 @@ async def solve_session(request: Request, session_id: SessionId, settings: Setti
                              "model": RefiningStatus},
                        **error_responses(404, 409, 410, 422)})
 async def get_refined_drag(
-        sessions: SessionsDep, session_id: SessionId,
+        sessions: SessionsDep, session_id: SessionId, caller: CallerDep,
         drag: Annotated[int, Path(ge=1, le=2**32 - 1, description="The drag's number (in "
                                                                   "its Link).")],
         wait: Annotated[float, Query(ge=0, le=MAX_REFINED_WAIT,
                                      description="Seconds to wait for the refined shape "
                                                  "before answering 202.")] = 0.0) -> Response:
+    await check_owner(sessions, caller, session_id)
     refined = await sessions.refined(session_id, drag, wait)
     if refined is None:
         doc = RefiningStatus(drag=drag, status="refining",
@@ -245,12 +283,12 @@ def _problem_text(problem: ProblemError, instance: str, seq: int | None) -> str:
 
 @router.websocket("/sessions/{session_id}/ws")
 async def session_ws(websocket: WebSocket, session_id: str, sessions: SessionsDep,
-                     metrics: MetricsDep) -> None:
+                     metrics: MetricsDep, caller: CallerDep) -> None:
     """Drags in, vertices out; the newest drag wins (see docs/service.md). In a progressive
     session each drag answers twice, the linear shape at once and the refined one when it
     is ready (unless a newer drag came first), each reply with a JSON trailer saying which."""
     instance = path_to(router, "session_ws", session_id=session_id)
-    await websocket.accept()
+    await websocket.accept(subprotocol=accepted_subprotocol(websocket.scope))
     send_lock = asyncio.Lock()
 
     async def send_problem(problem: ProblemError, seq: int | None) -> None:
@@ -258,6 +296,7 @@ async def session_ws(websocket: WebSocket, session_id: str, sessions: SessionsDe
             await websocket.send_text(_problem_text(problem, instance, seq))
 
     try:
+        await check_owner(sessions, caller, session_id)
         n_handles, n_groups = await sessions.shape(session_id)
     except BackendError as exc:
         problem = problem_for(exc)

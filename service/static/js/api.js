@@ -1,6 +1,9 @@
 // The service's public HTTP API as used by the page. Every failure becomes an ApiError that
 // carries the RFC 9457 problem document (or one made up for network errors), so the page can
-// show a readable message; nothing is swallowed here.
+// show a readable message; nothing is swallowed here. A 401 on the page asks for an API key
+// (js/auth.js) and sends the request again with it.
+
+import { askForKey, authHeaders, canAsk } from "./auth.js";
 
 export class ApiError extends Error {
   constructor(problem, context = "") {
@@ -51,9 +54,15 @@ export async function request(path, { method = "POST", json, form, body, content
   const bound = AbortSignal.timeout(timeoutMs);
   let response;
   try {
-    response = await fetch(path, { method, headers, body, keepalive,
-      signal: signal ? AbortSignal.any([signal, bound]) : bound });
+    for (;;) {
+      response = await fetch(path, { method, headers: { ...headers, ...authHeaders() }, body,
+        keepalive, signal: signal ? AbortSignal.any([signal, bound]) : bound });
+      if (response.status !== 401 || !canAsk()) break;
+      const problem = await problemFrom(response, context);
+      if (!await askForKey(problem.problem)) throw problem;  // cancelled: the 401 stands
+    }
   } catch (err) {
+    if (err instanceof ApiError) throw err;
     if (err.name === "TimeoutError") {
       throw new ApiError({ title: "No answer", status: 0,
         detail: `${context}: the service did not answer within ${timeoutMs / 1000} s.` }, context);

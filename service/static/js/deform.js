@@ -16,6 +16,7 @@
 // {"shape": "refined", ...}, over HTTP the drag's Link rel="refined", long-polled.
 
 import { ApiError, postArrays, request } from "./api.js";
+import { socketProtocols } from "./auth.js";
 import { flatten3, rows3 } from "./mesh.js";
 
 /** The small fields of a deformation body (handles, rotations, options) for a set-up and
@@ -122,7 +123,7 @@ export class SessionTransport {
     await new Promise((resolve) => {
       let socket;
       try {
-        socket = new WebSocket(url);
+        socket = new WebSocket(url, socketProtocols());  // the key, not in the URL
       } catch (err) {
         console.warn("WebSocket unavailable, using HTTP", err);
         resolve();

@@ -17,6 +17,8 @@ import { showError, status } from "./toasts.js";
 import { FlatView } from "./flat-view.js";
 import { MeshView } from "./viewer.js";
 import { WorkerClient } from "./worker-client.js";
+import { apiKey, askForKey } from "./auth.js";
+import { getJson } from "./api.js";
 
 const $ = (id) => document.getElementById(id);
 const query = new URLSearchParams(location.search);
@@ -25,7 +27,16 @@ const pinned = query.get("transport");
 // Reading meshes and the big JSON of forms and reports happen in js/worker.js; every call
 // settles (js/worker-client.js bounds the waits and says in words what did not answer).
 const worker = new WorkerClient("/static/js/worker.js");
-const inWorker = (kind, args, label) => worker.call(kind, args, label);
+// The worker's requests carry the page's API key; a 401 asks for one and calls again.
+const inWorker = async (kind, args, label) => {
+  for (;;) {
+    try {
+      return await worker.call(kind, { ...args, apiKey: apiKey() }, label);
+    } catch (err) {
+      if (err?.status !== 401 || !await askForKey(err.problem)) throw err;
+    }
+  }
+};
 
 const page = {};  // the views and panels, once start() has made them
 
@@ -42,6 +53,7 @@ async function start() {
   const { select, makeHandle, removeHandle, undo, redo } = page.deform;
   installInput({ view, actions: { select, makeHandle, removeHandle, undo, redo,
     setUp: page.mesh.setUp } });
+  await getJson("/v1/me");  // a service with keys: the key is asked for here, before any upload
   const samples = await page.mesh.loadSampleList();
   const first = query.get("sample") ?? samples[0]?.file;
   if (first) await page.mesh.loadSample(first);

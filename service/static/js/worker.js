@@ -10,6 +10,7 @@
 // first and bounds the silences).
 
 import { ApiError, arraysBody, readMeshFile, request } from "./api.js";
+import { setApiKey } from "./auth.js";
 import { prepareMesh, preparedBuffers } from "./mesh.js";
 
 const F64 = ["vertex_defect", "gauss_defect", "codazzi_defect"];
@@ -55,6 +56,7 @@ const PULSE_MS = 5000;
 let working = 0, pulse = null;
 
 self.onmessage = async ({ data: { id, kind, args } }) => {
+  setApiKey(args?.apiKey);  // the page's key (js/auth.js): no sessionStorage in a worker
   self.postMessage({ id, accepted: true });
   if (!working++) pulse = setInterval(() => self.postMessage({ alive: true }), PULSE_MS);
   try {

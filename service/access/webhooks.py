@@ -1,0 +1,237 @@
+"""Signed webhooks for finished jobs (docs/deployment.md#webhooks).
+
+A job submitted with ``callback_url`` gets one POST of its status document (the body of
+``GET /v1/jobs/{id}``) when it succeeds, fails or is cancelled:
+
+* only to hosts of ``FFS_WEBHOOK_HOSTS`` (:func:`check_callback_url`, at submission: a URL
+  elsewhere is refused with 422 naming ``callback_url``). A loopback, private, link-local or
+  otherwise special address is refused unless the list names that host exactly; a
+  ``*.example.com`` entry never reaches such an address (checked again when the name is
+  resolved at delivery), so the service cannot be made into a proxy into its own network;
+* signed: ``X-FFS-Signature: t=<unix seconds>,v1=<hex HMAC-SHA256 of "<t>.<body>" under the
+  key's webhook secret>`` (:func:`signature`), with ``X-FFS-Event`` (``job.succeeded``,
+  ``job.failed``, ``job.cancelled``), ``X-FFS-Delivery`` (one id for every attempt) and
+  ``X-FFS-Attempt``;
+* retried: a connection error, a timeout, a 3xx (redirects are never followed), a 408, 429
+  or 5xx is tried again after ``FFS_WEBHOOK_BACKOFF`` seconds, doubled each time, at most
+  ``FFS_WEBHOOK_ATTEMPTS`` attempts in all; another 4xx ends the delivery.
+
+The replica that accepted the job delivers its webhook (it follows the job through the
+backend's contract, so jobs on a Dask cluster are covered); a webhook whose replica stops
+before the job finishes is not sent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import hmac
+import ipaddress
+import logging
+import socket
+import time
+import uuid
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+from urllib.parse import urlsplit
+
+import httpx
+
+logger = logging.getLogger("service.webhooks")
+
+SIGNATURE_HEADER = "X-FFS-Signature"
+RETRIED_STATUSES = frozenset({408, 429})
+DEFAULT_PORTS = {"http": 80, "https": 443}
+
+
+@dataclass(frozen=True)
+class WebhookPolicy:
+    """Where and how webhooks are delivered (FFS_WEBHOOK_*)."""
+
+    hosts: tuple[str, ...] = ()
+    attempts: int = 5
+    backoff: float = 1.0
+    timeout: float = 10.0
+    poll_interval: float = 0.2
+    """Seconds between two looks at an unfinished job (up to 1 s as it runs longer)."""
+
+    def delays(self) -> list[float]:
+        """The waits before the second, third, ... attempt."""
+        return [self.backoff * 2**n for n in range(self.attempts - 1)]
+
+
+class CallbackRefusedError(ValueError):
+    """A callback URL the policy does not allow (the message says why)."""
+
+
+def _special(address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
+    """Loopback, private, link-local, multicast, reserved or unspecified."""
+    return (address.is_loopback or address.is_private or address.is_link_local
+            or address.is_multicast or address.is_reserved or address.is_unspecified)
+
+
+def _ip(host: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
+    try:
+        return ipaddress.ip_address(host)
+    except ValueError:
+        return None
+
+
+@dataclass(frozen=True)
+class CallbackTarget:
+    """A checked callback URL: its host and port, and whether an exact entry of the list
+    named it (then its addresses are the operator's choice)."""
+
+    url: str
+    host: str
+    port: int
+    exact: bool
+
+
+def check_callback_url(url: str, policy: WebhookPolicy) -> CallbackTarget:
+    """The target of a callback URL, if the policy allows it.
+
+    Raises:
+        CallbackRefused: not http(s), credentials in it, a host not listed, or a special
+            address not listed exactly.
+    """
+    parts = urlsplit(url.strip())
+    if parts.scheme not in DEFAULT_PORTS or not parts.hostname:
+        raise CallbackRefusedError("an absolute http:// or https:// URL is required")
+    if parts.username is not None or parts.password is not None:
+        raise CallbackRefusedError("credentials in the URL are not allowed")
+    try:
+        port = parts.port or DEFAULT_PORTS[parts.scheme]
+    except ValueError:
+        raise CallbackRefusedError("the port is not a number in 1-65535") from None
+    host = parts.hostname.lower().rstrip(".")
+    if not policy.hosts:
+        raise CallbackRefusedError("this service sends no webhooks (FFS_WEBHOOK_HOSTS is empty)")
+    exact = any(entry.lower() in (host, f"{host}:{port}") for entry in policy.hosts)
+    wildcard = any(entry.startswith("*.") and host.endswith(entry[1:].lower())
+                   for entry in policy.hosts)
+    if not exact and not wildcard:
+        raise CallbackRefusedError(f"the host {host!r} is not one of FFS_WEBHOOK_HOSTS")
+    address = _ip(host)
+    if address is not None and _special(address) and not exact:
+        raise CallbackRefusedError(f"{host} is a loopback or private address (allowed only when "
+                              "FFS_WEBHOOK_HOSTS names it)")
+    return CallbackTarget(url.strip(), host, port, exact)
+
+
+def signature(secret: str, timestamp: int, body: bytes) -> str:
+    """The ``X-FFS-Signature`` value of ``body`` sent at ``timestamp``."""
+    mac = hmac.new(secret.encode("utf-8"), f"{timestamp}.".encode() + body, hashlib.sha256)
+    return f"t={timestamp},v1={mac.hexdigest()}"
+
+
+async def _resolves_to_special(host: str, port: int) -> bool:
+    if _ip(host) is not None:
+        return _special(ipaddress.ip_address(host))
+    loop = asyncio.get_running_loop()
+    try:
+        infos = await loop.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError:
+        return False  # the delivery fails to connect and is retried
+    return any(_special(ipaddress.ip_address(info[4][0].split("%")[0])) for info in infos)
+
+
+JobLookup = Callable[[], Awaitable[tuple[str, bytes] | None]]
+"""Returns ``(status, status document)`` of a finished job, ``None`` while it runs; raises
+when the job is gone."""
+Outcome = Callable[[str], None]
+"""Called with ``delivered``, ``retried`` or ``given-up`` (the metrics)."""
+
+
+class WebhookSender:
+    """Follows jobs with a callback and delivers their webhooks (module docstring)."""
+
+    def __init__(self, policy: WebhookPolicy, on_outcome: Outcome | None = None) -> None:
+        self.policy = policy
+        self.on_outcome = on_outcome or (lambda outcome: None)
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._client: httpx.AsyncClient | None = None
+
+    def _http(self) -> httpx.AsyncClient:
+        if self._client is None:
+            self._client = httpx.AsyncClient(follow_redirects=False, trust_env=False,
+                                             timeout=self.policy.timeout)
+        return self._client
+
+    def schedule(self, job_id: str, target: CallbackTarget, secret: str,
+                 lookup: JobLookup) -> None:
+        """Deliver job ``job_id``'s webhook to ``target`` once ``lookup`` says it finished."""
+        task = asyncio.create_task(self._follow(job_id, target, secret, lookup))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def stop(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        if self._client is not None:
+            await self._client.aclose()
+            self._client = None
+
+    async def _follow(self, job_id: str, target: CallbackTarget, secret: str,
+                      lookup: JobLookup) -> None:
+        interval = self.policy.poll_interval
+        try:
+            while (finished := await lookup()) is None:
+                await asyncio.sleep(interval)
+                interval = min(1.0, interval * 1.5)
+        except Exception as exc:
+            logger.warning("webhook of job %s not sent: the job is gone (%s)", job_id,
+                           type(exc).__name__)
+            return
+        status, body = finished
+        await self.deliver(target, secret, f"job.{status}", body, job_id)
+
+    async def deliver(self, target: CallbackTarget, secret: str, event: str, body: bytes,
+                      job_id: str) -> bool:
+        """POST ``body`` to ``target``, retrying as the module docstring says."""
+        delivery = uuid.uuid4().hex
+        delays: Sequence[float] = self.policy.delays()
+        for attempt in range(1, self.policy.attempts + 1):
+            outcome = await self._attempt(target, secret, event, body, delivery, attempt)
+            if outcome == "delivered":
+                self.on_outcome("delivered")
+                return True
+            if outcome == "final" or attempt == self.policy.attempts:
+                break
+            self.on_outcome("retried")
+            await asyncio.sleep(delays[attempt - 1])
+        self.on_outcome("given-up")
+        logger.warning("webhook of job %s given up after %d attempt(s) (%s)", job_id,
+                       attempt, target.host)
+        return False
+
+    async def _attempt(self, target: CallbackTarget, secret: str, event: str, body: bytes,
+                       delivery: str, attempt: int) -> str:
+        """``delivered``, ``retry`` or ``final`` (a 4xx other than 408/429, or a refused
+        address)."""
+        if not target.exact and await _resolves_to_special(target.host, target.port):
+            logger.warning("webhook to %s refused: it resolves to a loopback or private "
+                           "address", target.host)
+            return "final"
+        headers = {"Content-Type": "application/json", "User-Agent": "ffs-webhooks/1",
+                   SIGNATURE_HEADER: signature(secret, int(time.time()), body),
+                   "X-FFS-Event": event, "X-FFS-Delivery": delivery,
+                   "X-FFS-Attempt": str(attempt)}
+        try:
+            response = await self._http().post(target.url, content=body, headers=headers)
+        except httpx.HTTPError as exc:
+            logger.info("webhook attempt %d to %s failed: %s", attempt, target.host,
+                        type(exc).__name__)
+            return "retry"
+        if 200 <= response.status_code < 300:
+            return "delivered"
+        logger.info("webhook attempt %d to %s answered %d", attempt, target.host,
+                    response.status_code)
+        if 300 <= response.status_code < 400 or response.status_code >= 500 \
+                or response.status_code in RETRIED_STATUSES:
+            return "retry"
+        return "final"

@@ -1,0 +1,119 @@
+"""Schemathesis against a real uvicorn with API keys (issue 46): every operation with
+generated inputs and the stateful link-following runs of test_schemathesis.py, each request
+with an admin key (``Authorization: Bearer``); and every operation without a key, answered
+with the documented 401 problem (nothing else, nothing executed)."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from collections.abc import Iterator
+
+import httpx
+import pytest
+import schemathesis
+from hypothesis import HealthCheck, settings
+from hypothesis.errors import FlakyStrategyDefinition
+from schemathesis.specs.openapi.checks import use_after_free
+
+from tests.helpers.servers import uvicorn_server
+from tests.helpers.service import metric_value
+from tests.service.test_schemathesis import (
+    CHECKS,
+    SETTINGS,
+    SKIP,
+    STATEFUL_EXAMPLES,
+    binary_as_json_body,
+)
+
+KEY = "schemathesis-key-0123456789"
+AUTH = {"Authorization": f"Bearer {KEY}"}
+STEPS: Counter[str] = Counter()
+ANONYMOUS: Counter[int] = Counter()
+
+
+@pytest.fixture(scope="module")
+def keyed_fuzz_server() -> Iterator[str]:
+    # As test_schemathesis.py's server, with an admin key whose quotas the run cannot reach.
+    with uvicorn_server({"FFS_MAX_SESSIONS": "4", "FFS_SESSION_TTL": "3",
+                         "FFS_REQUEST_TIMEOUT": "20", "FFS_QUEUE_SIZE": "64",
+                         "FFS_API_KEYS": json.dumps({"fuzz": KEY}), "FFS_ADMIN_KEYS": "fuzz",
+                         "FFS_KEY_REQUESTS_PER_MINUTE": "1000000",
+                         "FFS_KEY_CONCURRENT_JOBS": "256",
+                         "FFS_KEY_CONCURRENT_SESSIONS": "4"}) as base:
+        yield base
+
+
+def _schema(base: str, headers: dict[str, str]):
+    doc = httpx.get(f"{base}/openapi.json", timeout=30).json()
+    found = schemathesis.openapi.from_dict(binary_as_json_body(doc))
+    found.config.update(base_url=base, headers=headers)
+    return found
+
+
+@pytest.fixture(scope="module")
+def keyed_schema(keyed_fuzz_server: str):
+    return _schema(keyed_fuzz_server, AUTH)
+
+
+@pytest.fixture(scope="module")
+def anonymous_schema(keyed_fuzz_server: str):
+    return _schema(keyed_fuzz_server, {})
+
+
+keyed = schemathesis.pytest.from_fixture("keyed_schema")
+anonymous = schemathesis.pytest.from_fixture("anonymous_schema")
+
+
+@keyed.exclude(path=SKIP[0]).parametrize()
+@SETTINGS
+def test_every_operation_with_a_key(case):
+    case.call_and_validate(checks=CHECKS, timeout=60)
+
+
+@anonymous.exclude(path=SKIP[0]).parametrize()
+@settings(max_examples=3, deadline=None, derandomize=True,
+          suppress_health_check=list(HealthCheck), database=None)
+def test_every_operation_without_a_key(case):
+    response = case.call_and_validate(checks=CHECKS, timeout=60)
+    ANONYMOUS[response.status_code] += 1
+    public = case.operation.path in ("/healthz", "/readyz", "/problems", "/problems/{kind}",
+                                     "/", "/favicon.ico", "/docs", "/redoc", "/openapi.json")
+    if not public:
+        assert response.status_code == 401, (case.operation.path, response.text)
+
+
+def test_nothing_ran_without_a_key(keyed_fuzz_server):
+    if not ANONYMOUS:
+        pytest.skip("runs after test_every_operation_without_a_key")
+    text = httpx.get(f"{keyed_fuzz_server}/metrics", headers=AUTH).text
+    assert metric_value(text, "ffs_auth_refused_total", reason="unauthorized") >= \
+        ANONYMOUS[401]
+
+
+def test_stateful_links_with_a_key(keyed_schema):
+    machine = keyed_schema.as_state_machine()
+
+    class Checked(machine):  # type: ignore[misc, valid-type]
+        def validate_response(self, response, case, **kwargs):
+            STEPS[f"{case.method} {case.operation.path} {response.status_code}"] += 1
+            try:
+                case.validate_response(response, checks=[*CHECKS, use_after_free])
+            except BaseException as exc:
+                failures.append(f"{case.method} {case.formatted_path}: {exc}")
+                raise
+
+    failures: list[str] = []
+    try:
+        Checked.run(settings=settings(max_examples=STATEFUL_EXAMPLES, stateful_step_count=8,
+                                      deadline=None, derandomize=True,
+                                      suppress_health_check=list(HealthCheck), database=None))
+    except FlakyStrategyDefinition:
+        assert not failures, failures
+
+    def steps(prefix: str) -> int:
+        return sum(n for step, n in STEPS.items() if step.startswith(prefix))
+
+    assert steps("POST /v1/sessions 201") >= 1, STEPS
+    assert steps("POST /v1/jobs 202") >= 1, STEPS
+    assert not any(step.endswith(" 401") or step.endswith(" 403") for step in STEPS), STEPS

@@ -1,0 +1,236 @@
+"""Signed webhooks of finished jobs (issue 46) against a real uvicorn and a real receiver on
+loopback: delivered with a signature that the snippet of docs/deployment.md verifies,
+retried after 500s with the same delivery id, redirects never followed, and callback URLs
+outside FFS_WEBHOOK_HOSTS (other hosts, other ports, private addresses) refused at
+submission with a 422 naming ``callback_url``. No request leaves loopback."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import re
+import threading
+import time
+from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
+
+import httpx
+import pytest
+
+from service.access.keys import derived_webhook_secret
+from service.access.webhooks import (
+    CallbackRefusedError,
+    WebhookPolicy,
+    check_callback_url,
+    signature,
+)
+from tests.helpers import REPO
+from tests.helpers.meshes import icosphere
+from tests.helpers.servers import running_app, uvicorn_process
+from tests.helpers.service import metric_value, problem
+
+KEY = "webhook-key-0123456789"
+ADMIN = "webhook-admin-9876543210"
+
+
+class Receiver:
+    """An HTTP server on 127.0.0.1 that records every request; ``plan[path]`` lists the
+    statuses to answer in turn (then 200), 302 redirecting to ``/elsewhere``."""
+
+    def __init__(self) -> None:
+        self.requests: list[dict[str, Any]] = []
+        self.plan: dict[str, list[int]] = {}
+        self.lock = threading.Lock()
+        receiver = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self) -> None:
+                body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
+                with receiver.lock:
+                    receiver.requests.append({"path": self.path, "body": body,
+                                              "headers": dict(self.headers), "at": time.time()})
+                    statuses = receiver.plan.get(self.path, [])
+                    status = statuses.pop(0) if statuses else 200
+                self.send_response(status)
+                if status == 302:
+                    self.send_header("Location", "/elsewhere")
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+
+            def log_message(self, *args: Any) -> None:
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.port = self.server.server_address[1]
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    def at(self, path: str) -> list[dict[str, Any]]:
+        with self.lock:
+            return [r for r in self.requests if r["path"] == path]
+
+    def wait(self, path: str, count: int, timeout: float = 60) -> list[dict[str, Any]]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if len(found := self.at(path)) >= count:
+                return found
+            time.sleep(0.05)
+        raise AssertionError(f"{path}: {len(self.at(path))} of {count} requests")
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.fixture(scope="module")
+def receiver() -> Iterator[Receiver]:
+    found = Receiver()
+    yield found
+    found.close()
+
+
+@pytest.fixture(scope="module")
+def server(receiver) -> Iterator[str]:
+    env = {"FFS_WORKERS": "1", "FFS_API_KEYS": json.dumps({"hooks": KEY, "ops": ADMIN}),
+           "FFS_ADMIN_KEYS": "ops", "FFS_WEBHOOK_HOSTS": f"127.0.0.1:{receiver.port}",
+           "FFS_WEBHOOK_BACKOFF": "0.2", "FFS_WEBHOOK_ATTEMPTS": "3"}
+    with uvicorn_process(env) as (base, _):
+        yield base
+
+
+@pytest.fixture(scope="module")
+def http(server) -> Iterator[httpx.Client]:
+    with httpx.Client(base_url=server, timeout=60,
+                      headers={"Authorization": f"Bearer {KEY}"}) as client:
+        yield client
+
+
+def _documented_verifier():
+    """The verification snippet of docs/deployment.md, run as documented."""
+    text = (REPO / "docs" / "deployment.md").read_text(encoding="utf-8")
+    code = re.search(r"<!-- webhook-verification -->\n```python\n(.*?)```", text, re.S)
+    assert code, "the snippet is marked in docs/deployment.md"
+    namespace: dict[str, Any] = {}
+    exec(compile(code.group(1), "deployment.md", "exec"), namespace)
+    return namespace["verify_ffs_webhook"]
+
+
+def _job(receiver: Receiver, path: str, **extra: Any) -> dict[str, Any]:
+    V, F = icosphere(1)
+    return {"operation": "forms", "input": {"vertices": V.tolist(), "faces": F.tolist()},
+            "callback_url": f"http://127.0.0.1:{receiver.port}{path}", **extra}
+
+
+def test_a_finished_job_is_delivered_signed(http, receiver):
+    verify = _documented_verifier()
+    submitted = http.post("/v1/jobs", json=_job(receiver, "/done"))
+    assert submitted.status_code == 202, submitted.text
+    [delivery] = receiver.wait("/done", 1)
+    status = http.get(submitted.headers["location"]).json()
+    assert json.loads(delivery["body"]) == status and status["status"] == "succeeded"
+    headers = {k.lower(): v for k, v in delivery["headers"].items()}
+    assert headers["x-ffs-event"] == "job.succeeded" and headers["x-ffs-attempt"] == "1"
+    assert headers["content-type"] == "application/json"
+    secret = derived_webhook_secret(KEY)  # a key of FFS_API_KEYS: HMAC(key, "ffs-webhook")
+    assert verify(secret, headers["x-ffs-signature"], delivery["body"])
+    assert not verify(secret, headers["x-ffs-signature"], delivery["body"] + b" ")
+    assert not verify("another-secret", headers["x-ffs-signature"], delivery["body"])
+    stale = signature(secret, int(time.time()) - 3600, delivery["body"])
+    assert not verify(secret, stale, delivery["body"])  # replayed an hour later
+    assert KEY not in delivery["body"].decode() and KEY not in str(headers)
+
+
+def test_cancelled_and_failed_jobs_are_delivered_too(http, receiver):
+    from tests.helpers.service import forms_json
+
+    slow = {"operation": "reconstruct", "callback_url": f"http://127.0.0.1:{receiver.port}/end",
+            "input": {**forms_json(*icosphere(5)), "options": {"exact_shortcut": False}}}
+    submitted = http.post("/v1/jobs", json=slow)
+    assert submitted.status_code == 202, submitted.text
+    assert http.delete(submitted.headers["location"]).status_code == 200
+    bad = _job(receiver, "/end")
+    bad["input"]["faces"] = (icosphere(1)[1] + 1000).tolist()  # index out of range: the job fails
+    assert http.post("/v1/jobs", json=bad).status_code == 202
+    deliveries = receiver.wait("/end", 2)
+    events = sorted(d["headers"]["X-FFS-Event"] for d in deliveries)
+    assert events == ["job.cancelled", "job.failed"], events
+    failed = next(json.loads(d["body"]) for d in deliveries
+                  if d["headers"]["X-FFS-Event"] == "job.failed")
+    assert failed["status"] == "failed" and failed["error"]["kind"] == "index-out-of-range"
+
+
+def test_a_failing_receiver_is_retried_with_backoff(http, receiver, server):
+    receiver.plan["/flaky"] = [500, 503]
+    submitted = http.post("/v1/jobs", json=_job(receiver, "/flaky"))
+    assert submitted.status_code == 202, submitted.text
+    attempts = receiver.wait("/flaky", 3)
+    time.sleep(0.5)
+    assert len(receiver.at("/flaky")) == 3  # the third answered 200: no more
+    headers = [{k.lower(): v for k, v in a["headers"].items()} for a in attempts]
+    assert [h["x-ffs-attempt"] for h in headers] == ["1", "2", "3"]
+    assert len({h["x-ffs-delivery"] for h in headers}) == 1
+    gaps = [b["at"] - a["at"] for a, b in itertools.pairwise(attempts)]
+    assert gaps[0] >= 0.2 and gaps[1] >= 0.4  # FFS_WEBHOOK_BACKOFF, doubled
+
+
+def test_redirects_are_not_followed_and_attempts_are_bounded(http, receiver, server):
+    receiver.plan["/moved"] = [302] * 10
+    submitted = http.post("/v1/jobs", json=_job(receiver, "/moved"))
+    assert submitted.status_code == 202, submitted.text
+    receiver.wait("/moved", 3)
+    time.sleep(1.5)
+    assert len(receiver.at("/moved")) == 3  # FFS_WEBHOOK_ATTEMPTS
+    assert receiver.at("/elsewhere") == []
+    with httpx.Client(base_url=server, headers={"Authorization": f"Bearer {ADMIN}"}) as ops:
+        text = ops.get("/metrics").text
+    assert metric_value(text, "ffs_webhook_deliveries_total", outcome="given-up") >= 1
+    assert metric_value(text, "ffs_webhook_deliveries_total", outcome="delivered") >= 2
+
+
+@pytest.mark.parametrize("url", [
+    "http://127.0.0.2:{port}/x",          # loopback, not listed
+    "http://127.0.0.1:{other}/x",         # the listed host on another port
+    "http://localhost:{port}/x",          # a name for it, not listed
+    "http://10.0.0.1/x", "http://169.254.169.254/latest/meta-data",  # private, metadata
+    "http://example.com/x", "ftp://127.0.0.1:{port}/x", "/relative",
+    "http://user:pw@127.0.0.1:{port}/x",
+])
+def test_callbacks_outside_the_allowed_hosts_are_refused_at_submission(http, receiver, url):
+    before = len(http.get("/v1/jobs").json())
+    body = _job(receiver, "/never")
+    body["callback_url"] = url.format(port=receiver.port, other=receiver.port + 1)
+    doc = problem(http.post("/v1/jobs", json=body), 422, "validation-error")
+    assert doc["errors"][0]["field"] == "callback_url" and "callback_url" in doc["detail"]
+    assert len(http.get("/v1/jobs").json()) == before  # no job was created
+    V, F = icosphere(1)  # the form field of an upload too
+    from solver.io import save_mesh
+
+    upload = http.post("/v1/jobs", data={"operation": "forms", "callback_url": body[
+        "callback_url"]}, files={"file": ("m.off", save_mesh(V, F, "off"))})
+    assert problem(upload, 422, "validation-error")["errors"][0]["field"] == "callback_url"
+    assert receiver.at("/never") == []
+
+
+def test_the_policy_alone():
+    policy = WebhookPolicy(("hooks.example.com", "*.corp.example", "10.1.2.3"))
+    assert check_callback_url("https://hooks.example.com/a", policy).exact
+    assert not check_callback_url("https://x.corp.example/a", policy).exact
+    assert check_callback_url("http://10.1.2.3:80/a", policy).exact  # listed exactly
+    for url in ("https://corp.example.evil.com/", "http://10.1.2.4/", "https://example.com",
+                "https://hooks.example.com.evil/", "javascript:alert(1)"):
+        with pytest.raises(CallbackRefusedError):
+            check_callback_url(url, policy)
+    with pytest.raises(CallbackRefusedError, match="FFS_WEBHOOK_HOSTS is empty"):
+        check_callback_url("https://hooks.example.com/", WebhookPolicy())
+    assert WebhookPolicy(attempts=4, backoff=0.5).delays() == [0.5, 1.0, 2.0]
+
+
+def test_without_keys_a_callback_is_refused():
+    with running_app(workers=1, webhook_hosts=["127.0.0.1"]) as client:
+        V, F = icosphere(1)
+        response = client.post("/v1/jobs", json={
+            "operation": "forms", "input": {"vertices": V.tolist(), "faces": F.tolist()},
+            "callback_url": "http://127.0.0.1/x"})
+        doc = problem(response, 422, "validation-error")
+        assert doc["errors"][0]["field"] == "callback_url" and "API keys" in doc["detail"]

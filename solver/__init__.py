@@ -20,6 +20,7 @@ from .forms import Forms, fundamental_forms
 from .integrability import IntegrabilityReport, check_integrability
 from .interpolate import interpolate
 from .options import (
+    BlendOptions,
     DeformOptions,
     InterpolateOptions,
     ParameterizeOptions,
@@ -28,10 +29,13 @@ from .options import (
 )
 from .parameterize import Parameterization, parameterize
 from .reconstruct import Reconstruction, reconstruct
+from .shape_space import Blend, blend, mean, transfer
 
 retain_freed_memory()  # numpy temporaries reuse freed pages (solver/allocator.py)
 
 __all__ = [
+    "Blend",
+    "BlendOptions",
     "Constraints",
     "DeformOptions",
     "Deformation",
@@ -46,12 +50,15 @@ __all__ = [
     "ReconstructionVJP",
     "SolveOptions",
     "SolverInputError",
+    "blend",
     "check_integrability",
     "deform",
     "fundamental_forms",
     "interpolate",
+    "mean",
     "metrics",
     "parameterize",
     "reconstruct",
     "reconstruct_vjp",
+    "transfer",
 ]

@@ -169,7 +169,7 @@ def affine_weights(weights: ArrayLike, count: int) -> np.ndarray:
     off = np.abs(W.sum(axis=1) - 1.0) > WEIGHT_SUM_TOLERANCE
     if off.any():
         row = int(np.flatnonzero(off)[0])
-        raise ShapeMismatchError(f"weights[{row}] sum to {W[row].sum()!r}, not 1 (blends are "
+        raise ShapeMismatchError(f"the row sums to {W[row].sum()!r}, not 1 (blends are "
                                  "affine: negative weights extrapolate)", field="weights",
                                  index=row)
     return W

@@ -242,6 +242,10 @@ class BlendOptions(SolveOptions):
         "of its neighbour's answer and its vertex blend and keeps the Gauss-Newton factor of "
         "the rows before (playback rate; rows whose weights pick one shape are reconstructed "
         "on their own). `false`: every row is an independent reconstruction.")
+    align: bool = option(
+        False, "Move each shape rigidly onto the first (Kabsch) before the vertex blends the "
+        "rows are aligned to are formed: where the shapes sit then does not matter (a mean "
+        "of poses scanned in different frames). The forms do not depend on it.")
 
 
 __all__ = ["BlendOptions", "DeformOptions", "InterpolateOptions", "OrthonormalizeOptions",

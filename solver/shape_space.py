@@ -78,6 +78,12 @@ class ShapeSet:
         """Blended lengths and angles, each (T, E) float64, of weights (T, K)."""
         return np.exp(weights @ self.log_lengths), wrap_angle(weights @ self.angles)
 
+    def arithmetic_lengths(self, row: np.ndarray) -> np.ndarray:
+        """``sum_k w_k L_k`` (E,) of one row (K,): for a convex row (weights >= 0) these
+        lengths satisfy every triangle inequality the shapes do, which the log-space blend
+        of nearly degenerate faces may not (Hoelder's inequality runs the other way)."""
+        return row @ np.exp(self.log_lengths)
+
     def vertex_blend(self, row: np.ndarray) -> np.ndarray | None:
         """``sum_k w_k V_k`` (n, 3) of one row of weights (K,); None without vertices."""
         if self.vertices is None:
@@ -200,9 +206,12 @@ class Blend:
         weights: (T, K) float64 the rows.
         reports: one dict per row: ``row``, ``path`` (``"reconstruct"``: Eq. 5 then the
             refinement; ``"sequence"``: refined from the neighbour's answer with the kept
-            factor), ``refinement`` (:class:`solver.refine.Refinement`'s report, its
-            ``start``), ``form_error`` (:func:`solver.form_energy.form_residuals` of the
-            answer against the row's blended forms) and ``seconds``.
+            factor), ``length_blend`` (``"log"``, or ``"arithmetic"`` for a convex row
+            whose log-space lengths violate a triangle inequality of a nearly degenerate
+            face: :meth:`ShapeSet.arithmetic_lengths`), ``refinement``
+            (:class:`solver.refine.Refinement`'s report, its ``start``), ``form_error``
+            (:func:`solver.form_energy.form_residuals` of the answer against the row's
+            blended forms) and ``seconds``.
         timings: stage -> seconds (``validate``, ``rows``).
     """
 
@@ -228,6 +237,9 @@ class _Rows:
               budget: float | None) -> tuple[np.ndarray, dict[str, Any]]:
         """Vertices (n, 3), aligned to the row's vertex blend, and the row's report."""
         shapes, topology = self.shapes, self.shapes.topology
+        length_blend = "log"
+        if _violated(topology, lengths) and row.min() >= 0:
+            lengths, length_blend = shapes.arithmetic_lengths(row), "arithmetic"
         _check_triangles(topology, lengths, index)
         guess = shapes.vertex_blend(row)
         one_hot = np.count_nonzero(row) == 1
@@ -248,8 +260,8 @@ class _Rows:
             vertices = aligned(vertices, guess)
         self.answers, self.blends = [*self.answers[-1:], vertices], [*self.blends[-1:], guess]
         self.rows = [*self.rows[-1:], row]
-        return vertices, {"row": index, "path": path, "refinement": refinement,
-                          "form_error": residual}
+        return vertices, {"row": index, "path": path, "length_blend": length_blend,
+                          "refinement": refinement, "form_error": residual}
 
     def _starts(self, row: np.ndarray, guess: np.ndarray | None,
                 ) -> list[tuple[str, np.ndarray]]:
@@ -297,6 +309,11 @@ class _Rows:
         return fit.vertices, dict(fit.report, start=label)
 
 
+def _violated(topology: MeshTopology, lengths: np.ndarray) -> bool:
+    """Whether lengths (E,) violate the triangle inequality at some face."""
+    return bool(len(triangle_inequality_violations(face_edge_lengths(topology, lengths))))
+
+
 def _check_triangles(topology: MeshTopology, lengths: np.ndarray, row: int) -> None:
     """Raise :class:`TriangleInequalityError` naming the row and face where the blended
     lengths (E,) make no triangle (an extrapolation too far)."""
@@ -341,6 +358,11 @@ def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
     stages = Stages(progress)
     stages("validate")
     shape_space = shape_set(shapes, faces)
+    if opts.align and shape_space.vertices is not None:
+        first = shape_space.vertices[0]
+        moved = np.stack([first, *(aligned(v, first) for v in shape_space.vertices[1:])])
+        shape_space = ShapeSet(shape_space.topology, shape_space.log_lengths,
+                               shape_space.angles, moved)
     W = affine_weights(weights, shape_space.count)
     stages.lap("validate")
     rows = _Rows(shape_space, opts)
@@ -366,8 +388,8 @@ def mean(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None = None, *,
          ) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
     """The form-space mean (n, 3) of K shapes of one connectivity: the equal-weight blend
     (geometric mean of the lengths, arithmetic mean of the unwrapped angles), nearest
-    surface, aligned to the Procrustes vertex mean (each shape first moved rigidly onto the
-    first, so that where the shapes sit does not matter).
+    surface, aligned to the Procrustes vertex mean (``align``: each shape first moved
+    rigidly onto the first, so that where the shapes sit does not matter).
 
     Args:
         shapes, faces, options, progress, overrides: as for :func:`blend`.
@@ -382,11 +404,7 @@ def mean(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None = None, *,
         True
     """
     items = list(shapes)
-    if items and not isinstance(items[0], Forms):
-        first = as_points(items[0], "shapes[0]")
-        items = [first] + [aligned(as_points(s, f"shapes[{k}]"), first)
-                           if np.shape(s) == first.shape else s
-                           for k, s in enumerate(items[1:], start=1)]
+    overrides = {"align": True, **overrides}
     result = blend(items, np.full(len(items), 1.0 / max(len(items), 1)), faces,
                    options=options, progress=progress, **overrides)
     return (result.vertices[0], result.reports[0]) if return_report else result.vertices[0]

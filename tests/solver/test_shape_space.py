@@ -91,6 +91,21 @@ def test_mismatched_shapes_and_too_far_extrapolation_are_refused(knight):
     assert error.value.field == "weights" and error.value.index == 1
 
 
+def test_a_convex_row_whose_log_lengths_make_no_triangle_blends_lengths_arithmetically():
+    """A face that is a sliver in both shapes, its long edge sliding: the geometric mean of
+    its lengths (1, 1, 1.99) and (0.5, 1.5, 1.99) is (0.71, 1.22, 1.99), no triangle; the
+    arithmetic mean (0.75, 1.25, 1.99) is one. Rows whose log blend is a triangle keep it."""
+    F = np.array([[0, 1, 2]])
+    A = np.array([[0.0, 0, 0], [1.99, 0, 0], [0.995, np.sqrt(1 - 0.995**2), 0]])
+    x = (1.99**2 + 1.5**2 - 0.5**2) / (2 * 1.99)
+    B = np.array([[0.0, 0, 0], [1.99, 0, 0], [x, np.sqrt(1.5**2 - x**2), 0]])
+    out = blend([A, B], [[0.5, 0.5]], F)
+    assert out.reports[0]["length_blend"] == "arithmetic"
+    lengths = np.sort(fundamental_forms(out.vertices[0], F).lengths)
+    np.testing.assert_allclose(lengths, [0.75, 1.25, 1.99], atol=1e-9)
+    assert blend([A, B], [[0.9, 0.1]], F).reports[0]["length_blend"] == "log"
+
+
 def test_shapes_given_as_forms_blend_like_shapes_given_as_vertices(knight):
     V, F = knight
     P = bent_pose(V, F, 0.4)

@@ -103,7 +103,7 @@ def test_a_convex_row_whose_log_lengths_make_no_triangle_blends_lengths_arithmet
     assert out.reports[0]["length_blend"] == "arithmetic"
     lengths = np.sort(fundamental_forms(out.vertices[0], F).lengths)
     np.testing.assert_allclose(lengths, [0.75, 1.25, 1.99], atol=1e-9)
-    assert blend([A, B], [[0.9, 0.1]], F).reports[0]["length_blend"] == "log"
+    assert blend([A, B], [[0.99, 0.01]], F).reports[0]["length_blend"] == "log"
 
 
 def test_shapes_given_as_forms_blend_like_shapes_given_as_vertices(knight):

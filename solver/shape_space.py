@@ -255,7 +255,8 @@ class _Rows:
         else:
             path = "sequence"
             vertices, refinement = self._continue(row, lengths, angles, guess, budget)
-        residual = form_residuals(vertices, topology, lengths, angles)
+        after = refinement.get("after") if refinement.get("refined") else None
+        residual = after or form_residuals(vertices, topology, lengths, angles)
         if guess is not None:
             vertices = aligned(vertices, guess)
         self.answers, self.blends = [*self.answers[-1:], vertices], [*self.blends[-1:], guess]
@@ -266,11 +267,13 @@ class _Rows:
     def _starts(self, row: np.ndarray, guess: np.ndarray | None,
                 ) -> list[tuple[str, np.ndarray]]:
         """Candidate starts of a sequence row: the previous answer moved by what the vertex
-        blend moved (as a session's next drag starts), the secant prediction from the two
-        previous answers (the rows of a sequence lie on a smooth path), the previous answer
-        and the vertex blend itself."""
+        blend moved (as a session's next drag starts) and the secant prediction from the two
+        previous answers (the rows of a sequence lie on a smooth path); before there are
+        two, the previous answer and the vertex blend itself. (The secant had the lowest
+        energy on every row after the second of the rocker-arm and knight sequences; the
+        other two starts are then not scored, each costing an energy.)"""
         previous = self.answers[-1]
-        starts = [("previous row", previous)]
+        starts = []
         if guess is not None and self.blends[-1] is not None:
             starts.append(("previous row + vertex-blend motion",
                            previous + (guess - self.blends[-1])))
@@ -280,8 +283,10 @@ class _Rows:
                 ratio = float(np.linalg.norm(row - self.rows[-1]) / step)
                 starts.append(("secant of the previous rows",
                                previous + ratio * (previous - self.answers[-2])))
-        if guess is not None:
-            starts.append(("vertex blend", guess))
+        if len(starts) < 2:
+            starts.append(("previous row", previous))
+            if guess is not None:
+                starts.append(("vertex blend", guess))
         return starts
 
     def _refines(self) -> bool:

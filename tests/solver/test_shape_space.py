@@ -219,3 +219,19 @@ def test_interpolate_is_the_two_shape_blend(knight):
     ts = [0.0, 0.4, 1.2]
     via_blend = blend([V, P], np.stack([1 - np.array(ts), ts], axis=1), F).vertices
     assert np.abs(interpolate(V, P, F, ts) - via_blend).max() < 1e-12
+
+
+def test_a_budget_is_shared_among_the_rows(knight):
+    """max_seconds covers the whole sequence: with 0.05 s for 30 rows every row is still
+    answered (the rows past the budget keep their start, reported as time_limit)."""
+    import time
+
+    V, F = knight
+    P = bent_pose(V, F, 0.8)
+    t = np.linspace(0.05, 0.95, 30)
+    began = time.perf_counter()
+    out = blend([V, P], np.stack([1 - t, t], axis=1), F, max_seconds=0.05)
+    assert out.vertices.shape == (30, len(V), 3) and np.isfinite(out.vertices).all()
+    stops = [r["refinement"].get("stop_reason") for r in out.reports]
+    assert stops.count("time_limit") >= 20, stops
+    assert time.perf_counter() - began < 0.05 + 30 * 0.2  # no row refines past its share

@@ -54,7 +54,7 @@ from ffs.errors import (
     ServiceUnreachableError,
     problem_error,
 )
-from ffs.results import Blend, Forms, Integrability, Mesh, Parameterization
+from ffs.results import Blend, Forms, Integrability, Mesh, Parameterization, ShapeBlend
 
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: the service's stage names (validate, assemble, factorize,
@@ -343,6 +343,67 @@ class Client:
         return self.run(self.interpolate_call(vertices_a, vertices_b, faces, t, refine=refine,
                                               **options), progress)
 
+    def blend_call(self, shapes: Any, faces: Any, weights: Any = None, *,
+                   t: float | Sequence[float] | None = None, times: Sequence[float] | None = None,
+                   refine: bool | None = None, **options: Any) -> Call:
+        params: dict[str, Any] = {"options": _options(refine, options)}
+        if weights is not None:
+            params["weights"] = np.asarray(weights, dtype=np.float64).reshape(
+                -1, len(shapes)).tolist()
+        if t is not None:
+            params["t"] = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
+        if times is not None:
+            params["times"] = [float(x) for x in times]
+        return Call("blend", {"shapes": np.asarray(shapes, dtype=np.float64),
+                              "faces": np.asarray(faces)}, params, ShapeBlend.from_dict)
+
+    def blend(self, shapes: Any, faces: Any, weights: Any = None, *,
+              t: float | Sequence[float] | None = None, refine: bool | None = None,
+              progress: Progress | None = None, **options: Any) -> ShapeBlend:
+        """Blend K embeddings (K, n, 3) of ``faces`` in form space (``POST /v1/blend``): one
+        shape per row of affine ``weights`` (T, K), or per ``t`` for two shapes; ``options``:
+        sequence, align, solver, max_seconds. With ``progress`` it runs as a job and
+        reports the rows as they are solved (stage ``rows``)."""
+        return self.run(self.blend_call(shapes, faces, weights, t=t, refine=refine,
+                                        **options), progress)
+
+    def blend_gltf(self, shapes: Any, faces: Any, weights: Any = None, *,
+                   t: float | Sequence[float] | None = None,
+                   times: Sequence[float] | None = None, kind: str = "glb",
+                   refine: bool | None = None, **options: Any) -> bytes:
+        """The blend as one animated glTF file (``kind`` ``glb`` or ``gltf``): the first
+        shape as the mesh, each row a morph target, an animation playing them at ``times``
+        (default 24 rows per second)."""
+        call = self.blend_call(shapes, faces, weights, t=t, times=times, refine=refine,
+                               **options)
+        media = {"glb": "model/gltf-binary", "gltf": "model/gltf+json"}[kind]
+        return self._post_json("/v1/blend", call.json_body(),
+                               headers={"Accept": media}).content
+
+    def mean(self, shapes: Any, faces: Any, *, refine: bool | None = None,
+             progress: Progress | None = None, **options: Any) -> Mesh:
+        """The form-space mean (n, 3) of K shapes (``POST /v1/blend`` with equal weights and
+        ``align``: where each shape sits does not matter)."""
+        count = len(shapes)
+        result = self.blend(shapes, faces, np.full((1, count), 1.0 / count), refine=refine,
+                            progress=progress, **{"align": True, **options})
+        return Mesh(result.vertices[0], result.faces, result.reports[0])
+
+    def transfer_call(self, source: Any, source_deformed: Any, target: Any, faces: Any, *,
+                      refine: bool | None = None, **options: Any) -> Call:
+        return Call("transfer", {"source": np.asarray(source),
+                                 "source_deformed": np.asarray(source_deformed),
+                                 "target": np.asarray(target), "faces": np.asarray(faces)},
+                    {"options": _options(refine, options)}, Mesh.from_dict)
+
+    def transfer(self, source: Any, source_deformed: Any, target: Any, faces: Any, *,
+                 refine: bool | None = None, progress: Progress | None = None,
+                 **options: Any) -> Mesh:
+        """``target`` deformed as ``source`` was into ``source_deformed`` (``POST
+        /v1/transfer``; three embeddings of ``faces``)."""
+        return self.run(self.transfer_call(source, source_deformed, target, faces,
+                                           refine=refine, **options), progress)
+
     def mesh_call(self, vertices: Any, faces: Any) -> Call:
         return Call("mesh", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
                     {}, Mesh.from_dict)
@@ -361,7 +422,7 @@ class Client:
     # ---------------------------------------------------------------------- jobs
 
     CALLS = ("forms", "integrability", "reconstruct", "deform", "parameterize",
-             "interpolate", "mesh")
+             "interpolate", "mesh", "blend", "transfer")
     """Operations :meth:`submit` takes (the job API's names)."""
 
     def submit(self, operation: str, *args: Any, **kwargs: Any) -> Job:
@@ -371,7 +432,8 @@ class Client:
                     "integrability": self.check_integrability_call,
                     "reconstruct": self.reconstruct_call, "deform": self.deform_call,
                     "parameterize": self.parameterize_call,
-                    "interpolate": self.interpolate_call, "mesh": self.mesh_call}
+                    "interpolate": self.interpolate_call, "mesh": self.mesh_call,
+                    "blend": self.blend_call, "transfer": self.transfer_call}
         if operation not in builders:
             raise ValueError(f"unknown operation {operation!r}; one of {', '.join(builders)}")
         return self.submit_call(builders[operation](*args, **kwargs))

@@ -255,6 +255,11 @@ def json_text(document: Any) -> str:
     return json.dumps(document, default=json_default)
 
 
+def write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write a file's bytes (an animated GLB from the service or the library), atomically."""
+    _atomic_write(Path(path), data)
+
+
 def _atomic_write(path: Path, data: bytes) -> None:
     """Write through a temporary file in the same folder, so that a failed or interrupted
     run never leaves a truncated output behind."""

@@ -15,9 +15,10 @@ from typing import Any
 import numpy as np
 
 import solver
-from ffs.results import Blend, Forms, Integrability, Mesh, Parameterization
+from ffs.results import Blend, Forms, Integrability, Mesh, Parameterization, ShapeBlend
 from solver.errors import SolverInputError
 from solver.options import (
+    BlendOptions,
     DeformOptions,
     InterpolateOptions,
     ParameterizeOptions,
@@ -133,6 +134,53 @@ class Local:
             options=InterpolateOptions.from_api({**options, "refine": refine}))
         return Blend(t_value, vertices, np.asarray(faces, dtype=np.int64),
                      to_jsonable(reports[0] if np.ndim(t_value) == 0 else reports))
+
+    def _blend(self, shapes: Any, faces: Any, weights: Any, t: Any, refine: bool | None,
+               progress: Progress | None, options: Mapping[str, Any]) -> solver.Blend:
+        if (weights is None) == (t is None):
+            raise SolverInputError("give exactly one of weights and t", field="weights")
+        if weights is None:
+            from solver.interpolate import two_shape_weights
+
+            weights = two_shape_weights(t)
+        return solver.blend(list(np.asarray(shapes, dtype=np.float64)), weights, faces,
+                            options=BlendOptions.from_api({**options, "refine": refine}),
+                            progress=progress)
+
+    def blend(self, shapes: Any, faces: Any, weights: Any = None, *,
+              t: float | Sequence[float] | None = None, refine: bool | None = None,
+              progress: Progress | None = None, **options: Any) -> ShapeBlend:
+        result = self._blend(shapes, faces, weights, t, refine, progress, options)
+        return ShapeBlend(result.weights, result.vertices, result.faces,
+                          to_jsonable(result.reports))
+
+    def blend_gltf(self, shapes: Any, faces: Any, weights: Any = None, *,
+                   t: float | Sequence[float] | None = None,
+                   times: Sequence[float] | None = None, kind: str = "glb",
+                   refine: bool | None = None, progress: Progress | None = None,
+                   **options: Any) -> bytes:
+        # The service's one glTF writer, pure numpy (the in-process backend only).
+        from service.worker.gltf import encode_gltf_animation
+
+        result = self._blend(shapes, faces, weights, t, refine, progress, options)
+        return encode_gltf_animation(result.vertices, result.faces,
+                                     base=np.asarray(shapes, dtype=np.float64)[0],
+                                     times=times, kind=kind)  # type: ignore[arg-type]
+
+    def mean(self, shapes: Any, faces: Any, *, refine: bool | None = None,
+             progress: Progress | None = None, **options: Any) -> Mesh:
+        count = len(shapes)
+        result = self.blend(shapes, faces, np.full((1, count), 1.0 / count), refine=refine,
+                            progress=progress, **{"align": True, **options})
+        return Mesh(result.vertices[0], result.faces, result.reports[0])
+
+    def transfer(self, source: Any, source_deformed: Any, target: Any, faces: Any, *,
+                 refine: bool | None = None, progress: Progress | None = None,
+                 **options: Any) -> Mesh:
+        vertices, report = solver.transfer(
+            source, source_deformed, target, faces, return_report=True, progress=progress,
+            options=BlendOptions.from_api({**options, "refine": refine}))
+        return Mesh(vertices, np.asarray(faces, dtype=np.int64), to_jsonable(report))
 
     def mesh(self, vertices: Any, faces: Any, *, progress: Progress | None = None) -> Mesh:
         """The mesh checked like the service checks it (``POST /v1/mesh``), its report."""

@@ -131,3 +131,20 @@ class Blend:
         vertices = np.asarray(doc["vertices"], dtype=np.float64)
         return cls(t, vertices.reshape(-1, 3) if np.ndim(t) == 0 else vertices,
                    _ints(doc["faces"]), doc.get("refinement"))
+
+
+@dataclass
+class ShapeBlend:
+    """Rows of a form-space blend of K shapes (``POST /v1/blend``): ``weights`` (T, K),
+    ``vertices`` (T, n, 3), the faces and one report per row."""
+
+    weights: np.ndarray
+    vertices: np.ndarray
+    faces: np.ndarray
+    reports: list[dict[str, Any]] = field(default_factory=list)
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any]) -> ShapeBlend:
+        weights = np.asarray(doc["weights"], dtype=np.float64)
+        vertices = np.asarray(doc["vertices"], dtype=np.float64).reshape(len(weights), -1, 3)
+        return cls(weights, vertices, _ints(doc["faces"]), list(doc.get("reports") or []))

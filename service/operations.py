@@ -18,7 +18,15 @@ from typing import Any, Literal
 from pydantic import BaseModel
 
 from service.api import documents, schemas
-from service.api.decoding import FORMS_ARRAYS, MESH_ARRAYS, PAIR_ARRAYS, ArraySpecs, decode_raw
+from service.api.decoding import (
+    FORMS_ARRAYS,
+    MESH_ARRAYS,
+    PAIR_ARRAYS,
+    STACK_ARRAYS,
+    TRANSFER_ARRAYS,
+    ArraySpecs,
+    decode_raw,
+)
 from service.api.task import RawBody, TaskRequest, TaskResult
 from service.worker import tasks
 from service.worker.runtime import Progress, StageClock
@@ -28,6 +36,9 @@ STAGES_SOLVE: tuple[str, ...] = ("validate", "assemble", "factorize", "solve", "
 """Progress stages of the operations that factorize and refine."""
 STAGES_LIGHT: tuple[str, ...] = ("validate", "solve", "encode")
 """Progress stages of the operations that only compute."""
+STAGES_ROWS: tuple[str, ...] = ("validate", "rows", "encode")
+"""Progress stages of the shape-space operations: ``rows`` goes from 0 to 1 as the rows of
+weights are solved, in order (:func:`solver.blend`)."""
 
 
 @dataclass(frozen=True)
@@ -54,7 +65,7 @@ class OperationSpec:
     request: type[BaseModel]
     params: type[BaseModel]
     response: type[BaseModel]
-    source: Literal["mesh", "forms", "pair"]
+    source: Literal["mesh", "forms", "pair", "shapes", "transfer"]
     stages: tuple[str, ...]
     mesh_result: bool
     task: Callable[..., Any]
@@ -70,7 +81,8 @@ class OperationSpec:
 
 
 ARRAYS_OF: dict[str, ArraySpecs] = {"mesh": MESH_ARRAYS, "forms": FORMS_ARRAYS,
-                                    "pair": PAIR_ARRAYS}
+                                    "pair": PAIR_ARRAYS, "shapes": STACK_ARRAYS,
+                                    "transfer": TRANSFER_ARRAYS}
 
 OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
     OperationSpec(
@@ -125,6 +137,27 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "Blends lengths and dihedral angles of two embeddings of the same faces and "
         "reconstructs for each t. glTF output needs a single t. Uploads use `file_a` and "
         "`file_b`.", files=("file_a", "file_b")),
+    OperationSpec(
+        "blend", schemas.BlendRequest, schemas.BlendParams, documents.BlendResponse,
+        "shapes", STAGES_ROWS, True, tasks.blend_task,
+        "Blend, average or extrapolate K meshes in form space",
+        "K embeddings of the same faces (`shapes`) and rows of affine `weights` (or `t` for "
+        "two shapes): lengths blend in log space, dihedral angles linearly (unwrapped "
+        "against the first shape), and each row is the nearest surface to its blended "
+        "forms, aligned rigidly to the row's vertex blend. Rows are solved in order, each "
+        "from its neighbour's answer with a kept factorization (`options.sequence`); a job "
+        "reports progress per row. GLB / glTF output is one animated file: the first shape "
+        "as the mesh, each row a morph target, and an animation playing them at `times`. "
+        "Uploads use `file_a` and `file_b` (two shapes).", files=("file_a", "file_b")),
+    OperationSpec(
+        "transfer", schemas.TransferRequest, schemas.TransferParams,
+        documents.TransferResponse, "transfer", STAGES_ROWS, True, tasks.transfer_task,
+        "Transfer a deformation to another mesh of the same connectivity",
+        "The target's forms plus the source's change (lengths stretched by the source's "
+        "ratios, dihedral angles bent by its change), then the nearest surface, aligned to "
+        "the vertex transfer `target + source_deformed - source`. Uploads use "
+        "`file_source`, `file_source_deformed` and `file_target`.",
+        files=("file_source", "file_source_deformed", "file_target")),
     OperationSpec(
         "mesh", schemas.MeshRequest, schemas.MeshParams, documents.MeshResponse,
         "mesh", STAGES_LIGHT, True, tasks.mesh_task, "Read or convert a mesh",

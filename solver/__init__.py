@@ -21,6 +21,7 @@ from .forms import Forms, fundamental_forms
 from .integrability import IntegrabilityReport, check_integrability
 from .interpolate import interpolate
 from .options import (
+    BlendOptions,
     DeformOptions,
     InterpolateOptions,
     ParameterizeOptions,
@@ -29,11 +30,14 @@ from .options import (
 )
 from .parameterize import Parameterization, parameterize
 from .reconstruct import Reconstruction, reconstruct
+from .shape_space import Blend, blend, mean, transfer
 
 retain_freed_memory()  # numpy temporaries reuse freed pages (solver/allocator.py)
 
 __all__ = [
     "Alignment",
+    "Blend",
+    "BlendOptions",
     "Constraints",
     "DeformOptions",
     "Deformation",
@@ -48,13 +52,16 @@ __all__ = [
     "ReconstructionVJP",
     "SolveOptions",
     "SolverInputError",
+    "blend",
     "check_integrability",
     "deform",
     "fundamental_forms",
     "interpolate",
+    "mean",
     "metrics",
     "parameterize",
     "reconstruct",
     "reconstruct_vjp",
     "rigid_alignment",
+    "transfer",
 ]

@@ -1,11 +1,13 @@
-"""Shape interpolation in form space: blend lengths and dihedral angles, then reconstruct.
+"""Shape interpolation in form space: the two-shape case of :func:`solver.blend`.
 
-Beyond the paper (which cites [WDAH10] for the idea): for each t the blended forms are
-reconstructed with one solve and, by default, refined to the surface whose forms are
-nearest to the blended ones (:mod:`solver.refine`; blended forms of two poses do not
-integrate, and the linear answer alone shrinks), started from whichever of the linear answer
-and the vertex blend ``(1 - t) A + t B`` is nearer to them. The result is rigidly aligned
-(rotation + translation, no scale) to the vertex blend so it sits where a user expects it.
+Beyond the paper (which cites [WDAH10] for the idea): for each t the blended forms (lengths
+in log space, dihedral angles along the shorter way round) are reconstructed and, by
+default, refined to the surface whose forms are nearest to them (:mod:`solver.refine`;
+blended forms of two poses do not integrate, and the linear answer alone shrinks), started
+from whichever of the linear answer and the vertex blend ``(1 - t) A + t B`` is nearer to
+them; a list of t is solved as a sequence (:mod:`solver.shape_space`). The result is rigidly
+aligned (rotation + translation, no scale) to the vertex blend so it sits where a user
+expects it.
 """
 
 from __future__ import annotations
@@ -17,42 +19,44 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .errors import ShapeMismatchError
-from .forms import fundamental_forms
-from .metrics import wrap_angle
-from .options import InterpolateOptions, ReconstructOptions
-from .reconstruct import reconstruct
-from .reports import Stages
+from .options import BlendOptions, InterpolateOptions
+from .reports import Progress
+from .shape_space import blend, rigid_alignment
 from .validation import as_points
 
+__all__ = ["interpolate", "rigid_alignment", "two_shape_weights"]
 
-def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R (3, 3) and translation t (3,) minimizing ||source R^T + t - target|| (Kabsch)."""
-    cs, ct = source.mean(axis=0), target.mean(axis=0)
-    U, _, Vt = np.linalg.svd((source - cs).T @ (target - ct))
-    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
-    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
-    return R, ct - cs @ R.T
+
+def two_shape_weights(t: float | Sequence[float]) -> np.ndarray:
+    """Rows ``(1 - t, t)`` (k, 2) float64 of blend values ``t`` (a number or k of them).
+
+    Raises:
+        ShapeMismatchError: a t that is not finite (``field="t"``).
+    """
+    ts = np.atleast_1d(np.asarray(t, dtype=np.float64)).ravel()
+    if not np.all(np.isfinite(ts)):
+        raise ShapeMismatchError("t must be finite", field="t")
+    return np.stack([1.0 - ts, ts], axis=1)
 
 
 def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
                 t: float | Sequence[float], *, options: InterpolateOptions | None = None,
-                return_reports: bool = False, **overrides: Any,
+                return_reports: bool = False, progress: Progress | None = None,
+                **overrides: Any,
                 ) -> np.ndarray | tuple[np.ndarray, list[dict[str, Any]]]:
-    """Blend two meshes with the same faces in form space.
-
-    Lengths blend linearly; dihedral angles along the shorter way round. For each t the
-    blended forms are reconstructed (one solve of Eq. 5), refined unless ``refine=False``
-    (see the module docstring) and aligned rigidly to (1 - t) A + t B.
+    """Blend two meshes with the same faces in form space (:func:`solver.blend` of ``(A, B)``
+    with rows ``(1 - t, t)``).
 
     Args:
         vertices_a, vertices_b: (n, 3) the two embeddings (t = 0 and t = 1).
         faces: (m, 3) int, their faces.
-        t: a blend value or a sequence of k of them.
+        t: a blend value or a sequence of k of them (outside [0, 1]: extrapolation).
         options: :class:`solver.options.InterpolateOptions`; ``max_seconds`` budgets the
             whole call, shared out evenly among the blend values still to compute (a
             refinement that runs out of its share returns its best shape,
             ``stop_reason: "time_limit"``).
         return_reports: also return the refinement reports.
+        progress: optional ``progress("rows", fraction)`` after each blend value.
         **overrides: fields of ``options`` given as keywords.
 
     Returns:
@@ -70,35 +74,13 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
         >>> bool(np.allclose(ends[0], V, atol=1e-6)), bool(np.allclose(ends[1], W, atol=1e-6))
         (True, True)
     """
-    opts = InterpolateOptions.given(options, overrides)
+    opts = BlendOptions.given(InterpolateOptions.given(options, overrides), {})
     A = as_points(vertices_a, "vertices_a")
     B = as_points(vertices_b, "vertices_b")
     if A.shape != B.shape:
         raise ShapeMismatchError(f"vertices_b has shape {B.shape}, vertices_a {A.shape}",
                                  field="vertices_b")
-    forms_a = fundamental_forms(A, faces)
-    forms_b = fundamental_forms(B, forms_a.faces)
-    scalar = np.ndim(t) == 0
-    ts = np.atleast_1d(np.asarray(t, dtype=np.float64))
-    if not np.all(np.isfinite(ts)):
-        raise ShapeMismatchError("t must be finite", field="t")
-    results, reports = [], []
-    stages = Stages()
-    per_blend = ReconstructOptions.given(opts, {"check_integrability": False})
-    for k, s in enumerate(ts):  # one solve (and refinement) per requested blend value
-        lengths = (1 - s) * forms_a.lengths + s * forms_b.lengths
-        angles = wrap_angle(forms_a.angles + s * wrap_angle(forms_b.angles - forms_a.angles))
-        linear = (1 - s) * A + s * B
-        left = stages.left(opts.max_seconds)
-        share = None if left is None else left / (len(ts) - k)
-        # The refinement starts from the better of the layout fit and the vertex blend.
-        rec = reconstruct(forms_a.faces, forms_a.edges, lengths, angles, n_vertices=len(A),
-                          options=per_blend.replace(max_seconds=share), initial_guess=linear)
-        vertices, report = rec.vertices, rec.report["refinement"]
-        if report.get("start") == "initial guess":
-            report["start"] = "vertex blend"
-        R, shift = rigid_alignment(vertices, linear)
-        results.append(vertices @ R.T + shift)
-        reports.append(report)
-    out = results[0] if scalar else np.stack(results)
+    result = blend([A, B], two_shape_weights(t), faces, options=opts, progress=progress)
+    reports = [row["refinement"] for row in result.reports]
+    out = result.vertices[0] if np.ndim(t) == 0 else result.vertices
     return (out, reports) if return_reports else out

@@ -232,5 +232,21 @@ class InterpolateOptions(SolveOptions):
     """Options of :func:`solver.interpolate` (each blend value is one reconstruction)."""
 
 
-__all__ = ["DeformOptions", "InterpolateOptions", "OrthonormalizeOptions",
+@dataclasses.dataclass(frozen=True)
+class BlendOptions(SolveOptions):
+    """Options of :func:`solver.blend`, :func:`solver.mean` and :func:`solver.transfer`
+    (each row of weights is one nearest surface)."""
+
+    sequence: bool = option(
+        True, "Solve the rows as a sequence: each row after the first starts from the better "
+        "of its neighbour's answer and its vertex blend and keeps the Gauss-Newton factor of "
+        "the rows before (playback rate; rows whose weights pick one shape are reconstructed "
+        "on their own). `false`: every row is an independent reconstruction.")
+    align: bool = option(
+        False, "Move each shape rigidly onto the first (Kabsch) before the vertex blends the "
+        "rows are aligned to are formed: where the shapes sit then does not matter (a mean "
+        "of poses scanned in different frames). The forms do not depend on it.")
+
+
+__all__ = ["BlendOptions", "DeformOptions", "InterpolateOptions", "OrthonormalizeOptions",
            "ParameterizeOptions", "ReconstructOptions", "SolveOptions"]

@@ -222,7 +222,8 @@ class Refiner:
             frame_edges: np.ndarray | None = None, max_iterations: int = MAX_ITERATIONS,
             tolerance: float = TOLERANCE, time_limit: float | None = None,
             keep_factor: bool = False, progress: Any = None,
-            start_energy: float | None = None) -> Refinement:
+            start_energy: float | None = None, interactive: bool | None = None,
+            ) -> Refinement:
         """Refine from ``start`` (n, dim); fixed vertices keep their ``start`` positions.
 
         ``soft_positions`` (p, dim) and ``frame_edges`` (q, 2, dim) replace the handle
@@ -232,14 +233,37 @@ class Refiner:
         quasi-Newton step of that kept factor, without a fresh factorization to confirm it.
         A run that stops at ``time_limit`` can be continued by :meth:`resume`.
         ``start_energy``: :meth:`energy` of ``start`` with these handle targets, when the
-        caller has it. See :func:`refine` for the rest.
+        caller has it. ``interactive`` (default: ``keep_factor``): convergence may be
+        declared on a step of a kept factor without the checks a one-shot refinement makes
+        (a session's drags); ``keep_factor=True, interactive=False`` keeps factors from run
+        to run but converges as a one-shot refinement does (the rows of a blend sequence,
+        :func:`solver.blend`, whose answers are compared with independent ones). See
+        :func:`refine` for the rest.
         """
         clock = time.perf_counter()
         self.set_handle_targets(soft_positions, frame_edges)
         with _BLAS.limit(limits=1, user_api="blas"):
             state = _Iteration.start(self, np.array(start, dtype=np.float64), keep_factor,
                                      max_iterations, tolerance, start_energy)
+            state.interactive = keep_factor if interactive is None else interactive
             return self._advance(state, time_limit, progress, clock)
+
+    def adopt_factor(self, other: Refiner) -> bool:
+        """Take the factor (and its damping) that ``other``'s last ``keep_factor`` run kept,
+        as this refiner's first model for its next ``keep_factor`` run: rows of a blend
+        sequence have other targets but, with the same residuals' pattern, the Gauss-Newton
+        matrix of a nearby shape (:func:`solver.blend`). Returns whether it was taken (not
+        where the patterns differ, e.g. other cap faces, or ``other`` kept none)."""
+        mine, theirs = self.system, other.system
+        same = (other._kept is not None and mine.n_free == theirs.n_free
+                and mine.dim == theirs.dim and mine.nnz == theirs.nnz
+                and np.array_equal(mine.indptr, theirs.indptr)
+                and np.array_equal(mine.indices, theirs.indices))
+        if same:
+            self._kept, self._kept_damping = other._kept, other._kept_damping
+            self._double = other._double
+            self._iteration_seconds = dict(other._iteration_seconds)
+        return same
 
     @property
     def can_resume(self) -> bool:
@@ -325,7 +349,7 @@ class Refiner:
                     continue
                 found = self._line_search(s.X, step, energy, slope) if slope < 0 else None
                 gained = energy - found[2] if found is not None else 0.0
-                if (found is not None and not s.fresh and not s.keep_factor
+                if (found is not None and not s.fresh and not s.interactive
                         and gained < FROZEN_GAIN * predicted):
                     # A step of a factor built elsewhere that lowers E by less than half its
                     # prediction went astray: a fresh step from here does better (angles
@@ -342,9 +366,9 @@ class Refiner:
                 # length while the factor predicted at most REFUSED_PREDICTION times it (not
                 # in a session's drags, whose kept factors come from other shapes).
                 negligible = (not s.fresh and _trusted(s)
-                              and (s.keep_factor or moved <= QUASI_NEWTON_REACH)
+                              and (s.interactive or moved <= QUASI_NEWTON_REACH)
                               and (predicted <= ENERGY_TOLERANCE * energy
-                                   or (found is None and not s.keep_factor
+                                   or (found is None and not s.interactive
                                        and gained <= ENERGY_TOLERANCE * energy
                                        and predicted <= REFUSED_PREDICTION
                                        * ENERGY_TOLERANCE * energy)))
@@ -389,7 +413,7 @@ class Refiner:
                     # moved more takes the next step on the same factor (cactus x 0.8: 2
                     # factorizations instead of 3); any other is confirmed by a fresh one.
                     well = alpha == 1.0 and _trusted(s, gain)
-                    if s.keep_factor or (well and moved <= QUASI_NEWTON_REACH):
+                    if s.interactive or (well and moved <= QUASI_NEWTON_REACH):
                         s.stop, s.converged = "converged", True
                     elif not well or s.frozen_steps > SMALL_FROZEN_STEPS:
                         s.frozen_steps = s.max_frozen
@@ -544,6 +568,7 @@ class _Iteration:
     energy0: float
     energy: float
     keep_factor: bool
+    interactive: bool  # loose convergence on kept factors (Refiner.run's ``interactive``)
     kept: bool
     max_frozen: int
     min_gain: float
@@ -584,7 +609,8 @@ class _Iteration:
         max_frozen, min_gain = (KEPT_STEPS, KEPT_GAIN) if kept else (MAX_FROZEN_STEPS,
                                                                      FROZEN_GAIN)
         return cls(X=X, before=refiner.residuals(X), energy0=energy, energy=energy,
-                   keep_factor=keep_factor, kept=kept, max_frozen=max_frozen,
+                   keep_factor=keep_factor, interactive=keep_factor, kept=kept,
+                   max_frozen=max_frozen,
                    min_gain=min_gain,
                    memory=QuasiNewtonMemory(QUASI_NEWTON_MEMORY if kept else 0),
                    max_iterations=max_iterations, tolerance=tolerance, factor=factor,

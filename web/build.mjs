@@ -21,6 +21,10 @@ const PACKAGES = {
     "build/three.core.js": "three.core.js",
     "examples/jsm/controls/OrbitControls.js": "addons/controls/OrbitControls.js",
     "examples/jsm/controls/TransformControls.js": "addons/controls/TransformControls.js",
+    // The Blend panel plays the service's animated GLB (morph targets, an animation).
+    "examples/jsm/loaders/GLTFLoader.js": "addons/loaders/GLTFLoader.js",
+    "examples/jsm/utils/BufferGeometryUtils.js": "addons/utils/BufferGeometryUtils.js",
+    "examples/jsm/utils/SkeletonUtils.js": "addons/utils/SkeletonUtils.js",
     "LICENSE": "LICENSE",
   }],
   "swagger-ui": ["swagger-ui-dist", {

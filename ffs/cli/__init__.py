@@ -2,8 +2,9 @@
 
 Commands: ``forms`` (edge lengths and dihedral angles), ``check`` (integrability),
 ``reconstruct`` (a mesh from forms), ``deform`` (handles), ``flatten`` (parameterize),
-``blend`` (interpolate two meshes), ``convert`` (read, check, write), ``serve`` (the
-service, ``python -m service``).
+``blend`` (blend or extrapolate 2 to 64 meshes, one file per row or one animated GLB),
+``mean`` (their form-space mean), ``transfer`` (a deformation applied to another mesh),
+``convert`` (read, check, write), ``serve`` (the service, ``python -m service``).
 
 * In-process through :mod:`solver` by default; ``--server URL`` (or ``FFS_SERVER``) runs the
   same work on a service through :class:`ffs.client.Client` (as jobs: stage progress, no
@@ -67,6 +68,35 @@ def serve(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _blend_rows(args: argparse.Namespace) -> list[float]:
+    """The row labels of ``ffs blend`` (its ``-t`` values, or the row numbers of
+    ``--weights``), after reading ``--weights`` into ``args.weights_rows`` and
+    ``args.times``."""
+    args.weights_rows, args.times = None, None
+    if args.weights is not None:
+        if args.t is not None:
+            raise UsageError("give -t (two meshes) or --weights, not both")
+        from ffs import files
+
+        try:
+            document = files.read_json(args.weights)
+        except files.InputFileError as exc:
+            raise UsageError(str(exc)) from None
+        rows = document.get("weights") if isinstance(document, dict) else document
+        args.times = document.get("times") if isinstance(document, dict) else None
+        if (not isinstance(rows, list) or not rows
+                or not all(isinstance(r, list) and len(r) == len(args.inputs) for r in rows)):
+            raise UsageError(f"{args.weights}: expected rows of {len(args.inputs)} weights "
+                             "(one per mesh): [[w1, ..., wK], ...]")
+        args.weights_rows = rows
+        return [float(k) for k in range(len(rows))]
+    if len(args.inputs) != 2:
+        raise UsageError(f"{len(args.inputs)} meshes need --weights (rows of "
+                         f"{len(args.inputs)} weights); -t blends two")
+    args.t = args.t or [0.5]
+    return list(args.t)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line.
 
@@ -80,8 +110,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "serve":
         return serve(args)
     try:
-        items = plan_items(args.command, args.inputs, args.output,
-                           args.t if args.command == "blend" else None)
+        rows = _blend_rows(args) if args.command == "blend" else None
+        items = plan_items(args.command, args.inputs, args.output, rows)
         check_output_formats(args.command, items, args.format)
     except UsageError as exc:
         print(f"ffs {args.command}: error: {exc}", file=sys.stderr)

@@ -133,10 +133,28 @@ def build_parser() -> argparse.ArgumentParser:
                         "boundary (uv as z = 0 meshes, or .json/.npz)").add_argument(
                             "inputs", **meshes)
     blend = commands.add_parser("blend", parents=[common, solve],
-                                help="blend two meshes with the same faces in form space")
-    blend.add_argument("inputs", nargs="+", metavar="MESH", help="A and B")
-    blend.add_argument("-t", "--t", type=float, nargs="+", default=[0.5],
-                       help="blend value(s): 0 gives A, 1 gives B (default 0.5)")
+                                help="blend, extrapolate or animate 2 to 64 meshes with the "
+                                "same faces in form space")
+    blend.add_argument("inputs", nargs="+", metavar="MESH", help="A and B (-t), or K meshes "
+                       "(--weights)")
+    blend.add_argument("-t", "--t", type=float, nargs="+", default=None,
+                       help="two meshes: blend value(s): 0 gives A, 1 gives B, 1.5 "
+                       "extrapolates (default 0.5)")
+    blend.add_argument("--weights", metavar="FILE", help="JSON rows of affine weights, one "
+                       "per mesh ([[w1, ..., wK], ...], or {\"weights\": rows, \"times\": "
+                       "seconds}); each row is a shape")
+    blend.add_argument("--rows-per-second", type=_positive_float, default=24.0,
+                       help="playback rate of an animated .glb (default 24)")
+    blend.add_argument("--independent", action="store_true", help="solve every row on its "
+                       "own (default: as a sequence, each row from its neighbour)")
+    mean = commands.add_parser("mean", parents=[common, solve],
+                               help="the form-space mean of meshes with the same faces")
+    mean.add_argument("inputs", nargs="+", metavar="MESH")
+    transfer = commands.add_parser("transfer", parents=[common, solve],
+                                   help="apply the deformation SOURCE -> DEFORMED to TARGET "
+                                   "(same faces)")
+    transfer.add_argument("inputs", nargs=3, metavar="MESH",
+                          help="SOURCE DEFORMED TARGET")
     commands.add_parser("convert", parents=[common], help="read, check and write meshes "
                         "(formats from the extensions)").add_argument("inputs", **meshes)
     serve = commands.add_parser("serve", help="run the service (python -m service)")

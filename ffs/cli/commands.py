@@ -190,8 +190,13 @@ def run_flatten(backend: Any, item: Item, args: argparse.Namespace, progress: Pr
 
 def run_blend(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
               row: Row) -> None:
-    """``ffs blend``: meshes between A and B (same faces) at each ``-t``, in form space."""
+    """``ffs blend``: meshes between A and B (same faces) at each ``-t``, in form space
+    (K meshes, ``--weights`` or one file for several rows: :func:`run_shape_blend`)."""
     from ffs import files
+
+    if args.weights_rows is not None or len(item.outputs) != len(args.t):
+        run_shape_blend(backend, item, args, progress, row)
+        return
 
     vertices_a, faces = files.read_mesh(item.inputs[0], args.input_format)
     vertices_b, _ = files.read_mesh(item.inputs[1], args.input_format)
@@ -209,6 +214,94 @@ def run_blend(backend: Any, item: Item, args: argparse.Namespace, progress: Prog
     _refinement_columns(row, row.report)
 
 
+def _shapes(item: Item, args: argparse.Namespace) -> tuple[list[Any], Any]:
+    """The meshes of an item with several inputs (same faces), and their faces."""
+    import numpy as np
+
+    from ffs import files
+
+    shapes, faces = [], None
+    for path in item.inputs:
+        vertices, these = files.read_mesh(path, args.input_format)
+        if faces is None:
+            faces = these
+        elif np.shape(these) != np.shape(faces) or not np.array_equal(these, faces):
+            raise files.InputFileError(path, f"its faces differ from {item.inputs[0]}'s (a "
+                                       "blend needs one connectivity)", field="faces")
+        shapes.append(vertices)
+    return shapes, faces
+
+
+def _shape_options(args: argparse.Namespace) -> dict[str, Any]:
+    options = _mesh_options(args)
+    options.pop("orthonormalize", None)
+    if getattr(args, "independent", False):
+        options["sequence"] = False
+    return options
+
+
+def run_shape_blend(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+                    row: Row) -> None:
+    """``ffs blend`` of K meshes (``--weights``) or of several ``-t`` into one file: an
+    animated GLB (the first mesh, each row a morph target, an animation at
+    ``--rows-per-second`` or the weights file's ``times``), the rows as .json/.npz arrays,
+    or one mesh file per row (``{index}``, ``{t}``)."""
+    import numpy as np
+
+    from ffs import files
+
+    shapes, faces = _shapes(item, args)
+    weights = args.weights_rows
+    t = None if weights is not None else list(args.t)
+    options = _shape_options(args)
+    first = Path(item.outputs[0])
+    if len(item.outputs) == 1 and _output_format(first, args) == "glb":
+        count = len(weights) if weights is not None else len(t or [])
+        times = args.times or (np.arange(count) / args.rows_per_second).tolist()
+        data = backend.blend_gltf(np.stack(shapes), faces, weights, t=t, times=times,
+                                  **options)
+        files.write_bytes(first, data)
+        row.faces, row.note = len(faces), f"{count} rows, animated"
+        return
+    result = backend.blend(np.stack(shapes), faces, weights, t=t, progress=progress,
+                           **options)
+    if len(item.outputs) == 1 and len(result.vertices) > 1:
+        files.write_arrays(first, _output_format(first, args, files.DATA_FORMATS),
+                           {"weights": result.weights, "vertices": result.vertices,
+                            "faces": result.faces}, {"reports": result.reports})
+    else:
+        for out, vertices, report in zip(item.outputs, result.vertices, result.reports,
+                                         strict=True):
+            files.write_mesh(Path(out), _output_format(Path(out), args), vertices,
+                             result.faces, report)
+    worst = max(result.reports, key=lambda r: r["form_error"]["length_error"]["mean"])
+    row.faces, row.report = len(result.faces), {"rows": result.reports}
+    row.refined = any((r.get("refinement") or {}).get("refined") for r in result.reports)
+    row.length_error = worst["form_error"]["length_error"]["max"]
+    row.angle_error = worst["form_error"]["angle_error"]["max"]
+    row.note = f"{len(result.vertices)} rows"
+
+
+def run_mean(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+             row: Row) -> None:
+    """``ffs mean``: the form-space mean of the meshes (same faces)."""
+    import numpy as np
+
+    shapes, faces = _shapes(item, args)
+    result = backend.mean(np.stack(shapes), faces, progress=progress, **_shape_options(args))
+    _write_mesh_result(item, args, row, result.vertices, result.faces, result.report)
+    row.note = f"mean of {len(shapes)}"
+
+
+def run_transfer(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+                 row: Row) -> None:
+    """``ffs transfer SOURCE DEFORMED TARGET``: TARGET deformed as SOURCE was."""
+    (source, deformed, target), faces = _shapes(item, args)
+    result = backend.transfer(source, deformed, target, faces, progress=progress,
+                              **_shape_options(args))
+    _write_mesh_result(item, args, row, result.vertices, result.faces, result.report)
+
+
 def run_convert(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
                 row: Row) -> None:
     """``ffs convert``: read, check and write a mesh (formats from the extensions)."""
@@ -224,5 +317,6 @@ def run_convert(backend: Any, item: Item, args: argparse.Namespace, progress: Pr
 
 RUNNERS: dict[str, Callable[[Any, Item, argparse.Namespace, Progress, Row], None]] = {
     "forms": run_forms, "check": run_check, "reconstruct": run_reconstruct,
-    "deform": run_deform, "flatten": run_flatten, "blend": run_blend, "convert": run_convert}
+    "deform": run_deform, "flatten": run_flatten, "blend": run_blend, "convert": run_convert,
+    "mean": run_mean, "transfer": run_transfer}
 """Command name -> its runner."""

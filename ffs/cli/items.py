@@ -119,6 +119,11 @@ def skipped_row(item: Item) -> Row:
     return Row(item.name, item.outputs, status="skipped", error="not run (--fail-fast)")
 
 
+SEQUENCE_FILES = (".glb", ".json", ".npz")
+"""Outputs that hold every row of a blend in one file: an animated GLB (morph targets),
+or the rows as arrays."""
+
+
 def _template_fields(path: Path, index: int) -> dict[str, Any]:
     return {"stem": path.stem, "name": path.name, "parent": str(path.parent),
             "index": index, "ext": path.suffix.lstrip(".")}
@@ -153,9 +158,11 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
         >>> [item.outputs for item in plan_items("convert", ["a.off", "b.off"], "{stem}.ply")]
         [['a.ply'], ['b.ply']]
     """
-    groups = [list(inputs)] if command == "blend" else [[p] for p in inputs]
-    if command == "blend" and len(inputs) != 2:
-        raise UsageError("blend takes exactly two meshes with the same faces: A B")
+    together = command in ("blend", "mean", "transfer")  # one item of all the inputs
+    groups = [list(inputs)] if together else [[p] for p in inputs]
+    if command == "blend" and not 2 <= len(inputs) <= 64:
+        raise UsageError("blend takes 2 to 64 meshes with the same faces: A B (-t), or "
+                         "A B C ... (--weights)")
     if output is None:
         if command != "check":
             raise UsageError(f"{command} needs -o OUTPUT (a file, a template with {{stem}}, "
@@ -170,14 +177,18 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
     elif not templated and len(groups) > 1:
         raise UsageError(f"{len(groups)} inputs cannot all be written to {output}: use a "
                          "template such as -o 'out/{stem}.glb' or a folder")
+    elif not templated and many_t and Path(output).suffix.lower() in SEQUENCE_FILES:
+        return [Item(0, groups[0], [output])]  # every row in one file (animation, arrays)
     elif not templated and many_t:
-        raise UsageError("several -t values need a template with {t} or {index} in -o")
+        raise UsageError("several -t values (or rows of --weights) need a template with {t} "
+                         "or {index} in -o, or one .glb (an animation), .json or .npz file")
     items, seen = [], {}
     for i, group in enumerate(groups):
         fields = _template_fields(Path(group[0]), i)
         try:
             if many_t:
-                outs = [output.format(**fields, t=f"{t:g}") for t in t_values or []]
+                outs = [output.format(**{**fields, "index": k}, t=f"{t:g}")
+                        for k, t in enumerate(t_values or [])]
             else:
                 t0 = f"{t_values[0]:g}" if t_values else ""
                 outs = [output.format(**fields, t=t0)]

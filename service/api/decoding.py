@@ -61,6 +61,8 @@ class ArraySpec:
     cols: int
     integer: bool
     min_rows: int = 0
+    stacked: bool = False
+    """A list of such arrays, all of one shape (``blend``'s ``shapes``: (K, n, cols))."""
 
     @property
     def dtype(self) -> type:
@@ -79,6 +81,12 @@ FORMS_ARRAYS: dict[str, ArraySpec] = {"faces": _TRIANGLES, "edges": ArraySpec(2,
                                       "angles": ArraySpec(0, False)}
 PAIR_ARRAYS: dict[str, ArraySpec] = {"vertices_a": _POINTS, "vertices_b": _POINTS,
                                      "faces": _TRIANGLES}
+STACK_ARRAYS: dict[str, ArraySpec] = {"shapes": ArraySpec(3, False, 1, stacked=True),
+                                      "faces": _TRIANGLES}
+TRANSFER_ARRAYS: dict[str, ArraySpec] = {"source": _POINTS, "source_deformed": _POINTS,
+                                         "target": _POINTS, "faces": _TRIANGLES}
+MAX_SHAPES = 64
+"""Most shapes of one ``blend`` body (:data:`solver.shape_space.MAX_SHAPES`)."""
 ArraySpecs = Mapping[str, ArraySpec]
 """The large arrays of a body (its request model's fields minus its params model's)."""
 
@@ -211,6 +219,8 @@ def as_array(name: str, value: Any, spec: ArraySpec
     if not isinstance(value, list):
         return None, [_error((name,), f"Input should be a valid list, got {_json_type(value)}",
                              "list_type")]
+    if spec.stacked:
+        return _stacked_array(name, value, spec)
     if len(value) < spec.min_rows:
         return None, [_error((name,), f"List should have at least {spec.min_rows} item, "
                              f"not {len(value)}", "too_short")]
@@ -350,9 +360,39 @@ def parse_binary(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     return header, arrays
 
 
+def _stacked_array(name: str, value: list[Any], spec: ArraySpec
+                   ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
+    """A JSON list of arrays of one shape (``spec.stacked``), each checked by
+    :func:`as_array` (errors located as ``name[k]...``), stacked (K, n, cols)."""
+    if not 1 <= len(value) <= MAX_SHAPES:
+        return None, [_error((name,), f"expected 1 to {MAX_SHAPES} arrays, got {len(value)}",
+                             "too_long" if value else "too_short")]
+    single = replace(spec, stacked=False)
+    arrays, errors = [], []
+    for k, item in enumerate(value):  # a loop over shapes (at most MAX_SHAPES)
+        array, found = as_array(f"{name}.{k}", item, single)
+        errors += [{**e, "loc": (name, k, *e["loc"][1:])} for e in found]
+        if array is not None:
+            if arrays and array.shape != arrays[0].shape:
+                errors.append(_error((name, k), f"expected shape {list(arrays[0].shape)} like "
+                                     f"{name}[0], got {list(array.shape)}", "shape"))
+            arrays.append(array)
+        if len(errors) >= MAX_ERRORS:
+            break
+    if errors:
+        return None, errors[:MAX_ERRORS]
+    return np.stack(arrays), []
+
+
 def _binary_array(name: str, array: np.ndarray, spec: ArraySpec
                   ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
     """A binary array checked like a JSON one (shape, integer dtype for indices, range)."""
+    if spec.stacked:
+        if array.ndim != 3 or array.shape[2] != spec.cols or not array.shape[0]:
+            return None, [_error((name,), f"expected shape (K, n, {spec.cols}), got "
+                                 f"{list(array.shape)}", "shape")]
+        values, errors = _numbers(name, array.ravel(), replace(spec, stacked=False))
+        return (None if values is None else values.reshape(array.shape)), errors
     shape = f"(n, {spec.cols})" if spec.cols else "(n,)"
     if array.ndim != (2 if spec.cols else 1) or (spec.cols and array.shape[1] != spec.cols):
         return None, [_error((name,), f"expected shape {shape}, got {list(array.shape)}",
@@ -439,15 +479,19 @@ def check_work(params: Mapping[str, Any], limits: Limits, prefix: tuple[Any, ...
             values in ``t`` (each one is a solve of the whole mesh).
     """
     t = params.get("t")
+    if not isinstance(t, list) and isinstance(params.get("weights"), list):
+        t, name = params["weights"], "weights"  # blend: rows of weights are its blends
+    else:
+        name = "t"
     if isinstance(t, list) and len(t) > limits.max_blend_steps:
-        field = ".".join(map(str, (*prefix, "t")))
+        field = ".".join(map(str, (*prefix, name)))
         raise ProblemError(
             "validation-error", f"{field}: {len(t)} blend values; at most "
             f"{limits.max_blend_steps} are allowed (FFS_MAX_BLEND_STEPS): send the others in "
             "further requests",
             errors=[element_error(field, f"at most {limits.max_blend_steps} values",
                                   type="too_long",
-                                  pointer="/" + "/".join(map(str, (*prefix, "t"))))])
+                                  pointer="/" + "/".join(map(str, (*prefix, name))))])
 
 
 def array_source(kind: str, arrays: Mapping[str, np.ndarray], limits: Limits
@@ -468,6 +512,11 @@ def array_source(kind: str, arrays: Mapping[str, np.ndarray], limits: Limits
     elif kind == "pair":
         n_vertices = max(len(arrays["vertices_a"]), len(arrays["vertices_b"]))
         field = "vertices_a"
+    elif kind == "shapes":
+        n_vertices, field = arrays["shapes"].shape[1], "shapes"
+    elif kind == "transfer":
+        n_vertices = max(len(arrays[name]) for name in ("source", "source_deformed", "target"))
+        field = "source"
     else:
         n_vertices, field = len(arrays["vertices"]), "vertices"
     check_limits(n_vertices, len(faces), limits, field)

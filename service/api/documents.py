@@ -288,6 +288,33 @@ class InterpolateResponse(BaseModel):
         "blended forms): one report for a single t, a list for a list of t.")
 
 
+class BlendResponse(BaseModel):
+    """One shape per row of weights, each the nearest surface to the blended forms."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"weights": [[0.5, 0.5]], "vertices": [EXAMPLE_MESH["vertices"]],
+         "faces": EXAMPLE_MESH["faces"], "reports": [{"row": 0, "path": "reconstruct"}]}]})
+
+    weights: list[list[float]] = Field(description="(T, K) the rows, as solved.")
+    vertices: list[list[Vec3]] = Field(description="(T, n, 3) one shape per row, aligned "
+                                       "rigidly to the row's vertex blend.")
+    faces: list[Tri]
+    reports: list[dict[str, Any]] = Field(
+        description="Per row: `row`, `path` (`reconstruct` or `sequence`), `refinement`, "
+        "`form_error` (length and angle errors against the blended forms), `seconds`.")
+
+
+class TransferResponse(BaseModel):
+    """The target deformed as the source was."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {**EXAMPLE_MESH, "report": {"row": 0, "path": "reconstruct"}}]})
+
+    vertices: list[Vec3]
+    faces: list[Tri]
+    report: dict[str, Any] = Field(description="`refinement` and `form_error` of the answer.")
+
+
 class ProblemItem(BaseModel):
     """One machine-readable pointer to what is wrong."""
 

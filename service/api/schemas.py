@@ -17,7 +17,7 @@ import dataclasses
 import typing
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from solver import options as solver_options
 from solver.options import MAX_WEIGHT
@@ -37,7 +37,7 @@ EXAMPLE_FORMS: dict[str, Any] = {"faces": _F, "edges": _E, "lengths": _L, "angle
 _IDENTITY = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 
 Operation = Literal["reconstruct", "deform", "parameterize", "integrability", "forms",
-                    "interpolate", "mesh", "reconstruct/vjp"]
+                    "interpolate", "mesh", "reconstruct/vjp", "blend", "transfer"]
 ColorField = Literal["defect", "distortion"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
@@ -284,6 +284,47 @@ class InterpolateParams(ApiModel):
     options: InterpolateOptions = Field(default_factory=InterpolateOptions)
 
 
+class BlendOptions(served_options(solver_options.BlendOptions)):  # type: ignore[misc]
+    """Options of ``POST /v1/blend`` and ``POST /v1/transfer``
+    (:class:`solver.options.BlendOptions`)."""
+
+    model_config = _example({"sequence": True, "solver": "auto"})
+
+
+class BlendParams(ApiModel):
+    """Parameters of ``POST /v1/blend`` besides the shapes: ``weights`` or ``t``."""
+
+    model_config = _example({"weights": [[1.0, 0.0], [0.5, 0.5], [-0.5, 1.5]]})
+
+    weights: Annotated[list[Annotated[list[Real], Field(min_length=1)]],
+                       Field(min_length=1, fail_fast=True)] | None = Field(
+        None, description="(T, K) rows of affine weights, one per shape (each row sums to "
+        "1; negative weights extrapolate); at most FFS_MAX_BLEND_STEPS (default 64) rows. "
+        "Give `weights` or `t`.")
+    t: Real | Annotated[list[Real], Field(min_length=1, fail_fast=True)] | None = Field(
+        None, description="Two shapes only: blend value(s), the rows (1 - t, t); 0 gives the "
+        "first shape, 1 the second, 1.5 extrapolates.")
+    times: Annotated[list[Real], Field(min_length=1, fail_fast=True)] | None = Field(
+        None, description="glTF output: the keyframe time of each row in seconds, strictly "
+        "increasing (default: 24 rows per second).")
+    options: BlendOptions = Field(default_factory=BlendOptions)
+
+    @model_validator(mode="after")
+    def _weights_or_t(self) -> BlendParams:
+        if (self.weights is None) == (self.t is None):
+            raise ValueError("give exactly one of `weights` (rows of K weights) and `t` "
+                             "(two shapes)")
+        return self
+
+
+class TransferParams(ApiModel):
+    """Parameters of ``POST /v1/transfer`` besides the three meshes."""
+
+    model_config = _example({"options": {"refine": True}})
+
+    options: BlendOptions = Field(default_factory=BlendOptions)
+
+
 # ---------------------------------------------------------------------- request bodies
 
 
@@ -377,6 +418,31 @@ class InterpolateRequest(InterpolateParams):
 
     vertices_a: list[Vec3] = Field(min_length=1, fail_fast=True)
     vertices_b: list[Vec3] = Field(min_length=1, fail_fast=True)
+    faces: list[Tri] = Field(min_length=1, fail_fast=True)
+
+
+class BlendRequest(BlendParams):
+    """Body of ``POST /v1/blend``: K embeddings of the same faces and the rows of weights."""
+
+    model_config = _example({"shapes": [_V, _V_UP], "faces": _F,
+                             "weights": [[1.0, 0.0], [0.5, 0.5], [-0.5, 1.5]]})
+
+    shapes: Annotated[list[Annotated[list[Vec3], Field(min_length=1)]],
+                      Field(min_length=1, max_length=64, fail_fast=True)] = Field(
+        description="K (n, 3) embeddings of `faces` (1 to 64 shapes).")
+    faces: list[Tri] = Field(min_length=1, fail_fast=True)
+
+
+class TransferRequest(TransferParams):
+    """Body of ``POST /v1/transfer``: the deformation ``source -> source_deformed`` applied to
+    ``target`` (three embeddings of the same faces)."""
+
+    model_config = _example({"source": _V, "source_deformed": _V_UP,
+                             "target": [[2.0 * x, y, z] for x, y, z in _V], "faces": _F})
+
+    source: list[Vec3] = Field(min_length=1, fail_fast=True)
+    source_deformed: list[Vec3] = Field(min_length=1, fail_fast=True)
+    target: list[Vec3] = Field(min_length=1, fail_fast=True)
     faces: list[Tri] = Field(min_length=1, fail_fast=True)
 
 

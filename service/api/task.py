@@ -53,6 +53,26 @@ class MeshPair:
 
 
 @dataclass(frozen=True)
+class MeshStack:
+    """K embeddings of one connectivity (``blend``): ``shapes`` (K, n, 3) float64,
+    ``faces`` (m, 3) int64."""
+
+    shapes: np.ndarray
+    faces: np.ndarray
+
+
+@dataclass(frozen=True)
+class MeshTriple:
+    """A deformation and the mesh it is transferred to (``transfer``): ``source``,
+    ``source_deformed`` and ``target`` (n, 3) float64 of one connectivity ``faces``."""
+
+    source: np.ndarray
+    source_deformed: np.ndarray
+    target: np.ndarray
+    faces: np.ndarray
+
+
+@dataclass(frozen=True)
 class MeshFile:
     """An uploaded mesh file: its bytes and the name (or media type) that says its format."""
 
@@ -70,10 +90,13 @@ class RawBody:
     body: bytes
 
 
-MeshFiles = tuple[MeshFile, MeshFile]
-"""Two uploaded mesh files (``interpolate``: ``file_a``, ``file_b``)."""
-Source = MeshArrays | FormsArrays | MeshPair | MeshFile | MeshFiles | RawBody | None
-ARRAY_SOURCES: dict[str, type] = {"mesh": MeshArrays, "forms": FormsArrays, "pair": MeshPair}
+MeshFiles = tuple[MeshFile, ...]
+"""Several uploaded mesh files (``interpolate``, ``blend``: ``file_a``, ``file_b``;
+``transfer``: ``file_source``, ``file_source_deformed``, ``file_target``)."""
+Source = (MeshArrays | FormsArrays | MeshPair | MeshStack | MeshTriple | MeshFile | MeshFiles
+          | RawBody | None)
+ARRAY_SOURCES: dict[str, type] = {"mesh": MeshArrays, "forms": FormsArrays, "pair": MeshPair,
+                                  "shapes": MeshStack, "transfer": MeshTriple}
 """The array source of each operation's ``source`` kind (:mod:`service.operations`)."""
 
 
@@ -181,6 +204,9 @@ class TaskResult:
     mesh: tuple[np.ndarray, np.ndarray] | None = None
     colors: dict[str, np.ndarray] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    encoded: dict[str, bytes] = field(default_factory=dict)
+    """Bodies of other formats computed with the result (``output.keep``), for results that
+    are not one mesh: ``blend``'s animated GLB / glTF (format -> bytes)."""
 
 
 @dataclass(frozen=True)

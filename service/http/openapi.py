@@ -275,9 +275,14 @@ def jobs_body() -> dict[str, Any]:
                          "description": "Where to POST the finished job's status, signed "
                                         "(services with API keys; FFS_WEBHOOK_HOSTS)."},
         "file": {"type": "string", "format": "binary",
-                 "description": FILE_DESCRIPTION + " `file_a` and `file_b` for interpolate."},
+                 "description": FILE_DESCRIPTION + " `file_a` and `file_b` for interpolate "
+                 "and blend; `file_source`, `file_source_deformed` and `file_target` for "
+                 "transfer."},
         "file_a": {"type": "string", "format": "binary"},
         "file_b": {"type": "string", "format": "binary"},
+        **{name: {"type": "string", "format": "binary"}
+           for spec in OPERATIONS.values() for name in spec.files
+           if name not in ("file", "file_a", "file_b")},  # transfer's three files
         **job_form_properties(),
     }
     upload = {"type": "object", "required": ["operation"], "properties": properties,

@@ -125,7 +125,7 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
     params = validate_object(spec.params, as_arrays(spec.params, fields))
     check_work(params.model_dump(), limits(settings))
     uploads = [await upload(files[n], n) for n in spec.files]
-    source = (uploads[0], uploads[1]) if len(uploads) == 2 else uploads[0]
+    source = tuple(uploads) if len(uploads) > 1 else uploads[0]
     return TaskRequest(spec.name, source, params.model_dump(), limits(settings),
                        settings.solver_backend, output)
 

@@ -41,6 +41,7 @@ __all__ = [
     "MEDIA_TYPE_JSON",
     "color_ramp",
     "encode_gltf",
+    "encode_gltf_animation",
     "encode_gltf_binary",
     "encode_gltf_json",
     "vertex_normals",
@@ -418,3 +419,127 @@ def encode_gltf(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None 
     if kind == "gltf":
         return encode_gltf_json(vertices, faces, colors, normals)
     raise ValueError(f"unknown glTF kind {kind!r} (expected 'glb' or 'gltf')")
+
+
+# ----------------------------------------------------------------- morph targets, animation
+
+ROWS_PER_SECOND: Final = 24.0
+"""Default playback rate of an animated blend: rows (keyframes) per second."""
+
+
+def _check_rows(rows: ArrayLike, n: int) -> NDArray[np.float64]:
+    """Validate (T, n, 3) finite rows of vertices for :func:`encode_gltf_animation`."""
+    r = np.asarray(rows, dtype=np.float64)
+    if r.ndim != 3 or r.shape[1:] != (n, 3) or r.shape[0] == 0:
+        raise ShapeMismatchError(f"expected rows of shape (T, {n}, 3) with T >= 1, got "
+                                 f"{r.shape}", field="rows")
+    bad = ~np.isfinite(r).all(axis=(1, 2))
+    if bad.any():
+        raise NonFiniteValueError("non-finite coordinate", field="rows",
+                                  index=int(np.flatnonzero(bad)[0]))
+    return r
+
+
+def _add_morph_animation(doc: dict[str, Any], buf: _BufferBuilder, base: NDArray[np.float64],
+                         faces: NDArray[np.int64], rows: NDArray[np.float64],
+                         times: NDArray[np.float64], normals: bool) -> None:
+    """Add each row as a morph target of the document's one primitive (POSITION, and NORMAL
+    where ``normals``, as displacements from ``base``) and an animation whose weights step
+    from target to target at ``times`` (LINEAR: consecutive rows cross-fade)."""
+    primitive = doc["meshes"][0]["primitives"][0]
+    base_normals = vertex_normals(base, faces) if normals else None
+    targets = []
+    for row in rows:  # a loop over rows (morph targets), not over mesh elements
+        target = {"POSITION": buf.add((row - base).astype(np.float32), component_type=_FLOAT,
+                                      type_="VEC3", target=_ARRAY_BUFFER, minmax=True)}
+        if base_normals is not None:
+            target["NORMAL"] = buf.add(vertex_normals(row, faces) - base_normals,
+                                       component_type=_FLOAT, type_="VEC3",
+                                       target=_ARRAY_BUFFER)
+        targets.append(target)
+    primitive["targets"] = targets
+    count = len(rows)
+    doc["meshes"][0]["weights"] = [0.0] * count
+    doc["meshes"][0]["extras"] = {"targetNames": [f"row {k}" for k in range(count)]}
+    # Animation input and output are not vertex data: bufferViews without a target.
+    key_times = buf.add(times.astype(np.float32).reshape(-1, 1), component_type=_FLOAT,
+                        type_="SCALAR", target=_ARRAY_BUFFER, minmax=True)
+    weights = buf.add(np.eye(count, dtype=np.float32).ravel(), component_type=_FLOAT,
+                      type_="SCALAR", target=_ARRAY_BUFFER)
+    for accessor in (key_times, weights):
+        del buf.buffer_views[buf.accessors[accessor]["bufferView"]]["target"]
+    doc["animations"] = [{
+        "name": "blend",
+        "samplers": [{"input": key_times, "output": weights, "interpolation": "LINEAR"}],
+        "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+    }]
+
+
+def encode_gltf_animation(rows: ArrayLike, faces: ArrayLike, *, base: ArrayLike | None = None,
+                          times: ArrayLike | None = None, normals: bool = True,
+                          kind: Literal["glb", "gltf"] = "glb") -> bytes:
+    """Encode a sequence of shapes of one mesh as an animated glTF: the base mesh, each row
+    a morph target, and one animation (``blend``) that plays them.
+
+    Args:
+        rows: (T, n, 3) float, the shapes (e.g. :func:`solver.blend`'s rows), finite.
+        faces: (m, 3) int, their faces.
+        base: (n, 3) the mesh itself (default: ``rows[0]``); targets are displacements
+            from it (float32).
+        times: (T,) strictly increasing keyframe times in seconds (default: row ``k`` at
+            ``k / ROWS_PER_SECOND``). At time ``times[k]`` the weights are one-hot on
+            target ``k``; between keyframes they cross-fade linearly.
+        normals: write ``NORMAL`` for the base and each target.
+        kind: ``"glb"`` or ``"gltf"`` (buffer as a ``data:`` URI).
+
+    Returns:
+        The file's bytes.
+
+    Raises:
+        solver.errors.SolverInputError: As :func:`encode_gltf_binary`, or rows / times of
+            the wrong shape, not finite, or times not increasing.
+
+    Example:
+        >>> import json, numpy as np
+        >>> V = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]])
+        >>> data = encode_gltf_animation(np.stack([V, 2 * V]), [[0, 1, 2]], kind="gltf")
+        >>> doc = json.loads(data)
+        >>> len(doc["meshes"][0]["primitives"][0]["targets"]), doc["animations"][0]["name"]
+        (2, 'blend')
+    """
+    f = np.asarray(faces)
+    first = np.asarray(rows, dtype=np.float64)
+    n = first.shape[1] if first.ndim == 3 else 0
+    r = _check_rows(rows, n)
+    b = r[0] if base is None else np.asarray(base, dtype=np.float64)
+    if b.shape != r.shape[1:]:
+        raise ShapeMismatchError(f"base has shape {b.shape}, rows {r.shape[1:]}",
+                                 field="base")
+    doc, binary = _build(b, f, None, normals)
+    _, f64, _, v64 = _check_inputs(b, f, None)
+    t = (np.arange(len(r)) / ROWS_PER_SECOND if times is None
+         else np.asarray(times, dtype=np.float64).ravel())
+    if t.shape != (len(r),) or not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+        raise ShapeMismatchError(f"times must be {len(r)} finite, strictly increasing "
+                                 "seconds", field="times")
+    buf = _BufferBuilder()
+    buf.parts, buf.length = [binary], len(binary)
+    buf.buffer_views, buf.accessors = doc["bufferViews"], doc["accessors"]
+    _add_morph_animation(doc, buf, v64, f64, r, t, normals)
+    binary = buf.tobytes()
+    doc["buffers"] = [{"byteLength": len(binary)}]
+    if kind == "gltf":
+        doc["buffers"][0]["uri"] = ("data:application/octet-stream;base64,"
+                                    + base64.b64encode(binary).decode("ascii"))
+        return _json_bytes(doc)
+    if kind != "glb":
+        raise ValueError(f"unknown glTF kind {kind!r} (expected 'glb' or 'gltf')")
+    js = _json_bytes(doc)
+    js += b" " * ((-len(js)) % 4)
+    bin_chunk = binary + b"\x00" * ((-len(binary)) % 4)
+    total = 12 + 8 + len(js) + 8 + len(bin_chunk)
+    return b"".join([
+        struct.pack("<III", _GLB_MAGIC, _GLB_VERSION, total),
+        struct.pack("<II", len(js), _CHUNK_JSON), js,
+        struct.pack("<II", len(bin_chunk), _CHUNK_BIN), bin_chunk,
+    ])

@@ -26,10 +26,12 @@ from service.api.task import (
     MeshArrays,
     MeshFile,
     MeshPair,
+    MeshStack,
+    MeshTriple,
     TaskRequest,
     TaskResult,
 )
-from service.worker import output
+from service.worker import gltf, output
 
 Progress = Callable[[str, float], None]
 TaskFn = Callable[[TaskRequest, Progress], TaskResult]
@@ -284,6 +286,88 @@ def interpolate_task(request: TaskRequest, progress: Progress) -> TaskResult:
                 "refinement": reports[0] if np.ndim(t) == 0 else reports}
     mesh = (vertices, faces) if np.ndim(t) == 0 else None
     return _finish(request, progress, document, mesh)
+
+
+def _same_faces(uploads: tuple[MeshFile, ...], request: TaskRequest
+                ) -> tuple[list[np.ndarray], np.ndarray]:
+    """The vertices of several uploads of one connectivity, and their faces."""
+    loaded = [_load_file(upload, request) for upload in uploads]
+    faces = loaded[0][1]
+    for upload, (_, other) in zip(uploads[1:], loaded[1:], strict=True):
+        if other.shape != faces.shape or not np.array_equal(other, faces):
+            raise ProblemError("shape-mismatch", f"{upload.field} must have the same faces as "
+                               f"{uploads[0].field}", errors=[element_error(
+                                   upload.field, f"faces differ from {uploads[0].field}'s")])
+    return [vertices for vertices, _ in loaded], faces
+
+
+def _blend_weights(params: dict[str, Any], count: int) -> Any:
+    """The rows of weights of a blend request: ``weights``, or ``(1 - t, t)`` of ``t``."""
+    if params.get("weights") is not None:
+        return params["weights"]
+    if count != 2:
+        raise ProblemError("validation-error", f"`t` blends two shapes; {count} were sent: "
+                           "give `weights` (one per shape)",
+                           errors=[element_error("t", "two shapes only")])
+    from solver.interpolate import two_shape_weights
+
+    return two_shape_weights(params["t"])
+
+
+def blend_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Blend K embeddings of one connectivity in form space, one shape per row of weights.
+    JSON answers every row; glTF answers one animated file (each row a morph target, an
+    animation that plays them at ``times``)."""
+    params = request.params
+    progress("validate", 0.0)
+    source = request.source
+    if isinstance(source, tuple):  # uploads
+        shapes, faces = _same_faces(source, request)
+    else:
+        assert isinstance(source, MeshStack)
+        shapes, faces = list(source.shapes), source.faces
+    weights = _blend_weights(params, len(shapes))
+    result = solver.blend(shapes, weights, faces,
+                          options=request.solve_options(solver.BlendOptions),
+                          progress=progress)
+    document = {"weights": result.weights, "vertices": result.vertices, "faces": result.faces,
+                "reports": result.reports}
+    out = request.output
+    formats = ("glb", "gltf") if out.keep else (out.format,) if out.format != "json" else ()
+    encoded = {}
+    if formats:
+        progress("encode", 0.0)
+        try:
+            encoded = {fmt: gltf.encode_gltf_animation(
+                result.vertices, result.faces, base=shapes[0], times=params.get("times"),
+                kind=fmt) for fmt in formats}
+        except solver.SolverInputError as exc:  # times of the wrong length or order
+            raise ProblemError("validation-error", f"times: {exc}", errors=[element_error(
+                "times", str(exc))]) from None
+    if out.format != "json":
+        progress("encode", 1.0)
+        return TaskResult(output.MEDIA_TYPES[out.format], encoded[out.format],
+                          encoded=encoded)
+    finished = _finish(request, progress, document)
+    finished.encoded = encoded
+    return finished
+
+
+def transfer_task(request: TaskRequest, progress: Progress) -> TaskResult:
+    """Deformation transfer: ``target`` deformed as ``source`` was into ``source_deformed``."""
+    progress("validate", 0.0)
+    source = request.source
+    if isinstance(source, tuple):  # uploads: source, source_deformed, target
+        (a, a2, b), faces = _same_faces(source, request)
+    else:
+        assert isinstance(source, MeshTriple)
+        a, a2, b, faces = source.source, source.source_deformed, source.target, source.faces
+    vertices, report = solver.transfer(a, a2, b, faces, return_report=True,
+                                       options=request.solve_options(solver.BlendOptions),
+                                       progress=progress)
+    faces = np.asarray(faces)
+    document = {"vertices": vertices, "faces": faces, "report": report}
+    return _finish(request, progress, document, (vertices, faces))
 
 
 def mesh_task(request: TaskRequest, progress: Progress) -> TaskResult:

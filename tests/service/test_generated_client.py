@@ -123,6 +123,28 @@ def test_every_operation_with_json(gen, client):
     assert read.vertices == mesh["vertices"] and read.faces == mesh["faces"]
 
 
+def test_blend_and_transfer(gen, client):
+    """The shape-space endpoints through the generated client: the example blend's rows
+    (1, 0) and (0, 1) are its two shapes, the example transfer of a pyramid's lift to a
+    stretched pyramid lifts it by the same ratio."""
+    m = gen("models")
+    example = _example("BlendRequest")
+    blended = gen("api.operations.blend").sync(
+        client=client, body=m.BlendRequest.from_dict(example))
+    assert isinstance(blended, m.BlendResponse), blended
+    np.testing.assert_allclose(blended.vertices[0], example["shapes"][0], atol=1e-8)
+    paths = [row.to_dict()["path"] for row in blended.reports]
+    assert paths[0] == "reconstruct" and set(paths) <= {"reconstruct", "sequence"}
+    example = _example("TransferRequest")
+    moved = gen("api.operations.transfer").sync(
+        client=client, body=m.TransferRequest.from_dict(example))
+    assert isinstance(moved, m.TransferResponse), moved
+    edges = np.array([[0, 4], [1, 4], [2, 4], [3, 4]])
+    ratio = _lengths(example["source_deformed"], edges) / _lengths(example["source"], edges)
+    np.testing.assert_allclose(_lengths(moved.vertices, edges),
+                               ratio * _lengths(example["target"], edges), rtol=2e-3)
+
+
 def test_health_and_problem_types(gen, client):
     assert gen("api.health.healthz").sync(client=client).status == "ok"
     assert gen("api.health.readyz").sync(client=client).workers_ready >= 1

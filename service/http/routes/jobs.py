@@ -206,6 +206,8 @@ async def _result(job: Job, fmt: str, color: str | None, jobs: JobService) -> Re
 def _encode(result: TaskResult, fmt: str, values: Any) -> bytes:
     if fmt == "json":
         return result.body if values is None else with_colors(result.body, colors_for(values))
+    if fmt in result.encoded:  # an animated blend, encoded when it finished
+        return result.encoded[fmt]
     if result.mesh is None:
         raise ProblemError("not-acceptable", "this result is not a single mesh; use "
                            "format=json or Accept: application/json")

@@ -6,7 +6,7 @@ import { action } from "./progress.js";
 import { state, store } from "./store.js";
 
 const $ = (id) => document.getElementById(id);
-export const TABS = ["mesh", "deform", "flatten", "forms"];
+export const TABS = ["mesh", "deform", "flatten", "forms", "blend"];
 const UP_AXES = ["+y", "+z", "+x", "-y", "-z", "-x"];
 
 function setHelp(open) {
@@ -95,7 +95,7 @@ export function installInput({ view, actions }) {
       action(actions.redo)();
     } else if (ctrl || event.altKey) {
       return;
-    } else if (key >= "1" && key <= "4") {
+    } else if (key >= "1" && key <= String(TABS.length)) {
       store.set({ tab: TABS[Number(key) - 1] });
     } else if (key === "w" || key === "e") {
       const mode = key === "w" ? "translate" : "rotate";

@@ -1,11 +1,12 @@
 // The page, wired: the state (store.js), the 3D and flat views (viewer.js), the panels
-// (Mesh with its integrability report, Deform, Flatten, Rebuild), mouse and keyboard
+// (Mesh with its integrability report, Deform, Flatten, Rebuild, Blend), mouse and keyboard
 // (input.js), and the worker that reads meshes (worker-client.js). Everything the page knows
 // comes from the service's public HTTP API. `?sample=<file>` picks the first mesh,
 // `?transport=http|deform` pins the deformation path, and `?test` installs the browser
 // tests' `window.app` (test-hooks.js).
 
 import { installAnalysisPanel } from "./analysis-panel.js";
+import { installBlendPanel } from "./blend-panel.js";
 import { installColorView } from "./color-view.js";
 import { installDeformPanel } from "./deform-panel.js";
 import { installFlattenPanel } from "./flatten-panel.js";
@@ -50,6 +51,7 @@ async function start() {
   installRebuildPanel({ view, openMesh: page.mesh.openMesh, analyze });
   page.flatten = installFlattenPanel({ view, flatView });
   page.deform = installDeformPanel({ view, pinned });
+  page.blend = installBlendPanel({ view });
   const { select, makeHandle, removeHandle, undo, redo } = page.deform;
   installInput({ view, actions: { select, makeHandle, removeHandle, undo, redo,
     setUp: page.mesh.setUp } });

@@ -68,6 +68,8 @@ export function installTestHooks({ page, worker, ready, startup, pinned }) {
     setRefine: (on) => change("deform-refine", on),
     setOrthonormalize: (on) => change("orthonormalize", on),
     flatten: () => action(page.flatten.flatten)(),
+    /** The Blend panel's actions (blend-panel.js). */
+    get blend() { return page.blend; },
     downloadGlb: () => action(page.mesh.downloadGlb)(),
     undo: () => action(page.deform.undo)(),
     redo: () => action(page.deform.redo)(),

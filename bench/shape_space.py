@@ -1,0 +1,150 @@
+"""Shape-space sequences: rows per second of a blend sequence against independent rows.
+
+For each mesh, a near-isometric pose is made with the library's deformation (one end of
+the longest axis held, the other turned by 0.6 rad: tests/helpers/poses.py), and a T-row
+blend from the rest shape to the pose (t = 0 .. 1) is solved twice in the same run:
+
+* as a sequence (:func:`solver.blend`, the default: one symbolic analysis, each row from
+  its neighbour's answer, the Gauss-Newton factor kept across rows);
+* as independent reconstructions (``sequence=False``: each row Eq. 5, then the nearest
+  surface from the better of the layout fit and the vertex blend), on every row, or on
+  ``--independent`` rows spread over the sequence (the rate is then per row measured).
+
+Quality per row: the mean relative length error and the mean dihedral-angle error of each
+answer against its row's blended forms (what the row asks for), for the sequence, the
+independent answer and the vertex blend ``(1 - t) A + t B``; the table gives the worst
+ratio sequence / independent over the rows compared, and the mean errors.
+
+    python -m bench.shape_space [--meshes bunny.off rocker-arm.obj bumpy-plane.off]
+        [--rows 100] [--independent 100] [--write]
+
+``--write`` replaces the section "Shape space: blend sequences" of bench/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from bench.common import REPO, load_averages, load_bench_mesh, write_section
+from solver import blend
+from solver.form_energy import form_residuals
+from solver.topology import build_topology
+from tests.helpers.poses import bent_pose
+
+MESHES = ("bunny.off", "rocker-arm.obj", "bumpy-plane.off")
+SECTION = "## Shape space: blend sequences"
+
+
+def errors(X: np.ndarray, topology, lengths: np.ndarray, angles: np.ndarray) -> tuple[float,
+                                                                                       float]:
+    """Mean relative length error and mean angle error (rad) of ``X`` against forms."""
+    r = form_residuals(X, topology, lengths, angles)
+    return r["length_error"]["mean"], r["angle_error"]["mean"]
+
+
+def measure(name: str, rows: int, independent: int) -> dict:
+    V, F = load_bench_mesh(name)
+    clock = time.perf_counter()
+    P = bent_pose(V, F, 0.6)
+    pose_seconds = time.perf_counter() - clock
+    t = np.linspace(0.0, 1.0, rows)
+    weights = np.stack([1 - t, t], axis=1)
+    clock = time.perf_counter()
+    sequence = blend([V, P], weights, F)
+    sequence_seconds = time.perf_counter() - clock
+    picked = np.unique(np.linspace(0, rows - 1, min(independent, rows)).round().astype(int))
+    clock = time.perf_counter()
+    alone = blend([V, P], weights[picked], F, sequence=False)
+    alone_seconds = time.perf_counter() - clock
+    topology = build_topology(F, len(V))
+    ratios, seq_err, ind_err, vtx_err = [], [], [], []
+    from solver.shape_space import shape_set
+
+    shapes = shape_set([V, P], F)
+    for k, row in zip(picked, alone.vertices, strict=True):
+        L, A = shapes.forms(weights[k][None])
+        ours = errors(sequence.vertices[k], topology, L[0], A[0])
+        theirs = errors(row, topology, L[0], A[0])
+        vertex = errors((1 - t[k]) * V + t[k] * P, topology, L[0], A[0])
+        seq_err.append(ours)
+        ind_err.append(theirs)
+        vtx_err.append(vertex)
+        if theirs[0] > 1e-12 and theirs[1] > 1e-12:
+            ratios.append(max(ours[0] / theirs[0], ours[1] / theirs[1]))
+    paths = [r["path"] for r in sequence.reports]
+    return {
+        "mesh": name, "faces": len(F), "rows": rows, "independent_rows": len(picked),
+        "pose_seconds": pose_seconds,
+        "sequence_rows_per_second": rows / sequence_seconds,
+        "independent_rows_per_second": len(picked) / alone_seconds,
+        "factorizations": sum(r["refinement"].get("factorizations", 0)
+                              for r in sequence.reports),
+        "iterations": float(np.mean([r["refinement"].get("iterations", 0)
+                                     for r in sequence.reports])),
+        "sequence_rows": paths.count("sequence"),
+        "worst_ratio": max(ratios) if ratios else float("nan"),
+        "length_error": [float(np.mean([e[0] for e in x])) for x in (seq_err, ind_err,
+                                                                     vtx_err)],
+        "angle_error": [float(np.mean([e[1] for e in x])) for x in (seq_err, ind_err,
+                                                                    vtx_err)],
+    }
+
+
+def table(results: list[dict], command: str) -> str:
+    lines = [
+        SECTION, "",
+        f"`{command}` (load averages before the run: {load_averages()}; 2 cores shared with "
+        "other developers' runs, so the rates are lower bounds of an idle machine's). A "
+        "row blend from a mesh to its pose bent by 0.6 rad (tests/helpers/poses.py), t = 0 "
+        "... 1. *Sequence*: `solver.blend` (one analysis, each row from its neighbour, "
+        "the factor kept); *independent*: `sequence=False` on the rows compared. Errors: "
+        "mean |l / L - 1| and mean |angle error| (rad) of each answer against its row's "
+        "blended forms, averaged over the rows compared (sequence / independent / vertex "
+        "blend); *worst ratio*: the largest of sequence / independent over those rows "
+        "(length or angle).", "",
+        "| mesh | faces | rows | sequence rows/s | independent rows/s (rows timed) | "
+        "speed-up | factorizations in the sequence | iterations per row | worst ratio | "
+        "length error seq / ind / vertex | angle error seq / ind / vertex |",
+        "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        le, ae = r["length_error"], r["angle_error"]
+        lines.append(
+            f"| {r['mesh']} | {r['faces']} | {r['rows']} | "
+            f"{r['sequence_rows_per_second']:.1f} | "
+            f"{r['independent_rows_per_second']:.2f} ({r['independent_rows']}) | "
+            f"{r['sequence_rows_per_second'] / r['independent_rows_per_second']:.1f}x | "
+            f"{r['factorizations']} | {r['iterations']:.1f} | {r['worst_ratio']:.3f} | "
+            f"{le[0]:.2e} / {le[1]:.2e} / {le[2]:.2e} | "
+            f"{ae[0]:.2e} / {ae[1]:.2e} / {ae[2]:.2e} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--meshes", nargs="+", default=list(MESHES))
+    parser.add_argument("--rows", type=int, default=100)
+    parser.add_argument("--independent", type=int, default=100,
+                        help="independent rows timed and compared (spread over the rows)")
+    parser.add_argument("--write", action="store_true",
+                        help="replace the section of bench/README.md")
+    args = parser.parse_args()
+    command = "python -m bench.shape_space " + " ".join(
+        ["--meshes", *args.meshes, "--rows", str(args.rows),
+         "--independent", str(args.independent)])
+    results = []
+    for name in args.meshes:
+        result = measure(name, args.rows, args.independent)
+        print(result, flush=True)
+        results.append(result)
+    text = table(results, command)
+    print(text)
+    if args.write:
+        write_section(REPO / "bench" / "README.md", SECTION, text)
+
+
+if __name__ == "__main__":
+    main()

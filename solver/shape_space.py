@@ -1,0 +1,445 @@
+"""Shape space: blends of K shapes of one connectivity in form space, means and transfer.
+
+Beyond the paper (which cites [WDAH10] for blending forms and names deformation transfer as
+future work). K shapes with the same faces give K sets of fundamental forms; a row of
+affine weights ``w`` (K,), ``sum w = 1`` (negative weights extrapolate) blends them::
+
+    log L(w) = sum_k w_k log L_k          lengths in log space: positive under extrapolation
+    Theta(w) = wrap(sum_k w_k Theta~_k)    Theta~_k = Theta_0 + wrap(Theta_k - Theta_0)
+
+(each shape's angles unwrapped against the first shape's, so that a fin near pi does not
+average to 0). Each row's answer is the surface nearest to the blended forms
+(:mod:`solver.refine`; blended forms of different poses do not integrate), rigidly aligned
+(rotation + translation, Kabsch) to the vertex blend ``sum_k w_k V_k`` of the shapes as
+given, so that it sits where a user expects it. :func:`mean` is the equal-weight row;
+:func:`transfer` is the row ``(1, -1, 1)`` over ``(target, source, source_deformed)``: the
+target's forms plus the source's change, ``log L_B' = log L_B + log L_A' - log L_A``.
+
+A sequence of rows (``options.sequence``, the default) is solved as a session's drags are
+(:class:`solver.deform.Deformer`): the rows run in order, a row whose weights are one-hot
+(a given shape) and the first row are reconstructed on their own (Eq. 5, then refined),
+every other row starts from the better of its neighbour's answer and its vertex blend, and
+keeps the Gauss-Newton factor of the rows before (:meth:`solver.refine.Refiner.run` with
+``keep_factor``; its symbolic analysis is computed once and cached per pattern).
+``sequence=False`` reconstructs every row on its own.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .errors import ShapeMismatchError, TriangleInequalityError
+from .form_energy import form_residuals
+from .forms import Forms, fundamental_forms
+from .frames import face_edge_lengths, triangle_inequality_violations
+from .metrics import wrap_angle
+from .options import BlendOptions, ReconstructOptions
+from .reconstruct import reconstruct
+from .refine import FormTargets, Refiner
+from .reports import Progress, Stages
+from .topology import MeshTopology, build_topology
+from .validation import as_points
+
+WEIGHT_SUM_TOLERANCE = 1e-9
+"""Largest ``|sum_k w_k - 1|`` of a row of weights (affine combinations only)."""
+MAX_SHAPES = 64
+"""Most shapes one blend takes."""
+
+
+@dataclass(frozen=True)
+class ShapeSet:
+    """K shapes of one connectivity, as what a blend combines.
+
+    Attributes:
+        topology: the shared connectivity (n vertices, m faces, E edges).
+        log_lengths: (K, E) float64 logarithms of the edge lengths.
+        angles: (K, E) float64 dihedral angles, shape 0's in (-pi, pi], the others
+            unwrapped against it (``Theta_0 + wrap(Theta_k - Theta_0)``).
+        vertices: (K, n, 3) float64 embeddings, or None where the shapes were given as forms.
+    """
+
+    topology: MeshTopology
+    log_lengths: np.ndarray
+    angles: np.ndarray
+    vertices: np.ndarray | None
+
+    @property
+    def count(self) -> int:
+        """K, the number of shapes."""
+        return len(self.log_lengths)
+
+    def forms(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Blended lengths and angles, each (T, E) float64, of weights (T, K)."""
+        return np.exp(weights @ self.log_lengths), wrap_angle(weights @ self.angles)
+
+    def arithmetic_lengths(self, row: np.ndarray) -> np.ndarray:
+        """``sum_k w_k L_k`` (E,) of one row (K,): for a convex row (weights >= 0) these
+        lengths satisfy every triangle inequality the shapes do, which the log-space blend
+        of nearly degenerate faces may not (Hoelder's inequality runs the other way)."""
+        return row @ np.exp(self.log_lengths)
+
+    def vertex_blend(self, row: np.ndarray) -> np.ndarray | None:
+        """``sum_k w_k V_k`` (n, 3) of one row of weights (K,); None without vertices."""
+        if self.vertices is None:
+            return None
+        return np.einsum("k,kvc->vc", row, self.vertices)
+
+
+def shape_set(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None = None) -> ShapeSet:
+    """The :class:`ShapeSet` of ``shapes``: K embeddings (n, 3) of ``faces`` (or a (K, n, 3)
+    array), or K :class:`solver.forms.Forms` of one connectivity (``faces`` then unused).
+
+    Raises:
+        ShapeMismatchError: fewer than one or more than :data:`MAX_SHAPES` shapes, shapes of
+            different sizes or connectivities (``shapes[k]``), or embeddings without faces.
+
+    Example:
+        >>> import numpy as np
+        >>> V = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.2]])
+        >>> shapes = shape_set([V, 2 * V], [[0, 1, 2], [2, 1, 3]])
+        >>> shapes.count, shapes.log_lengths.shape, bool(np.allclose(
+        ...     shapes.log_lengths[1] - shapes.log_lengths[0], np.log(2)))
+        (2, (2, 5), True)
+    """
+    items = list(shapes)
+    if not 1 <= len(items) <= MAX_SHAPES:
+        raise ShapeMismatchError(f"a blend takes 1 to {MAX_SHAPES} shapes, got {len(items)}",
+                                 field="shapes")
+    if all(isinstance(item, Forms) for item in items):
+        return _from_forms(items)
+    if faces is None:
+        raise ShapeMismatchError("shapes given as vertices need their faces", field="faces")
+    first = as_points(items[0], "shapes[0]")
+    topology = build_topology(np.asarray(faces), n_vertices=len(first))
+    vertices = np.empty((len(items), len(first), 3))
+    vertices[0] = first
+    for k, item in enumerate(items[1:], start=1):  # a loop over shapes, not mesh elements
+        points = as_points(item, f"shapes[{k}]")
+        if points.shape != first.shape:
+            raise ShapeMismatchError(f"shapes[{k}] has shape {points.shape}, shapes[0] "
+                                     f"{first.shape}", field=f"shapes[{k}]")
+        vertices[k] = points
+    forms = [fundamental_forms(v, topology.faces) for v in vertices]
+    return _stacked(topology, [f.lengths for f in forms], [f.angles for f in forms], vertices)
+
+
+def _from_forms(items: list[Forms]) -> ShapeSet:
+    """The :class:`ShapeSet` of K forms with one connectivity (no vertices)."""
+    from .forms import validate_forms
+
+    first = items[0]
+    topology, _, _ = validate_forms(first.faces, first.edges, first.lengths, first.angles)
+    lengths, angles = [], []
+    for k, item in enumerate(items):
+        if (np.shape(item.faces) != topology.faces.shape
+                or not np.array_equal(item.faces, topology.faces)):
+            raise ShapeMismatchError(f"shapes[{k}] has other faces than shapes[0]",
+                                     field=f"shapes[{k}].faces")
+        _, L, A = validate_forms(item.faces, item.edges, item.lengths, item.angles,
+                                 topology.n_vertices)
+        lengths.append(L)
+        angles.append(A)
+    return _stacked(topology, lengths, angles, None)
+
+
+def _stacked(topology: MeshTopology, lengths: list[np.ndarray], angles: list[np.ndarray],
+             vertices: np.ndarray | None) -> ShapeSet:
+    A = np.stack(angles)
+    A[1:] = A[0] + wrap_angle(A[1:] - A[0])
+    return ShapeSet(topology, np.log(np.stack(lengths)), A, vertices)
+
+
+def affine_weights(weights: ArrayLike, count: int) -> np.ndarray:
+    """Rows of affine weights (T, K) float64 from ``weights`` (K,) or (T, K).
+
+    Raises:
+        ShapeMismatchError: a wrong shape, a value that is not finite, or a row whose sum is
+            not 1 (``weights[t]``).
+    """
+    W = np.asarray(weights, dtype=np.float64)
+    if W.ndim == 1:
+        W = W[None]
+    if W.ndim != 2 or W.shape[1] != count or not len(W):
+        raise ShapeMismatchError(f"weights must have shape (T, {count}), got "
+                                 f"{np.shape(weights)}", field="weights")
+    finite = np.isfinite(W).all(axis=1)
+    if not finite.all():
+        row = int(np.flatnonzero(~finite)[0])
+        raise ShapeMismatchError(f"weights[{row}] is not finite", field="weights", index=row)
+    off = np.abs(W.sum(axis=1) - 1.0) > WEIGHT_SUM_TOLERANCE
+    if off.any():
+        row = int(np.flatnonzero(off)[0])
+        raise ShapeMismatchError(f"the row sums to {W[row].sum()!r}, not 1 (blends are "
+                                 "affine: negative weights extrapolate)", field="weights",
+                                 index=row)
+    return W
+
+
+def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (3, 3) and translation t (3,) minimizing ||source R^T + t - target|| (Kabsch)."""
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    U, _, Vt = np.linalg.svd((source - cs).T @ (target - ct))
+    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
+    return R, ct - cs @ R.T
+
+
+def aligned(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``source`` (n, 3) moved rigidly onto ``target`` (n, 3) (:func:`rigid_alignment`)."""
+    R, shift = rigid_alignment(source, target)
+    return source @ R.T + shift
+
+
+@dataclass
+class Blend:
+    """Result of :func:`blend`.
+
+    Attributes:
+        vertices: (T, n, 3) float64, one shape per row of weights.
+        faces: (m, 3) int64.
+        weights: (T, K) float64 the rows.
+        reports: one dict per row: ``row``, ``path`` (``"reconstruct"``: Eq. 5 then the
+            refinement; ``"sequence"``: refined from the neighbour's answer with the kept
+            factor), ``length_blend`` (``"log"``, or ``"arithmetic"`` for a convex row
+            whose log-space lengths violate a triangle inequality of a nearly degenerate
+            face: :meth:`ShapeSet.arithmetic_lengths`), ``refinement``
+            (:class:`solver.refine.Refinement`'s report, its ``start``), ``form_error``
+            (:func:`solver.form_energy.form_residuals` of the answer against the row's
+            blended forms) and ``seconds``.
+        timings: stage -> seconds (``validate``, ``rows``).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    weights: np.ndarray
+    reports: list[dict[str, Any]] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class _Rows:
+    """Solves the rows of one blend in order (see the module docstring)."""
+
+    def __init__(self, shapes: ShapeSet, opts: BlendOptions) -> None:
+        self.shapes = shapes
+        self.opts = opts
+        self.answers: list[np.ndarray] = []      # the last two rows' aligned answers
+        self.blends: list[np.ndarray | None] = []  # ... and their vertex blends
+        self.rows: list[np.ndarray] = []          # ... and their weights
+        self.refiner: Refiner | None = None       # the last sequence row's refiner
+
+    def solve(self, index: int, row: np.ndarray, lengths: np.ndarray, angles: np.ndarray,
+              budget: float | None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Vertices (n, 3), aligned to the row's vertex blend, and the row's report."""
+        shapes, topology = self.shapes, self.shapes.topology
+        length_blend = "log"
+        if _violated(topology, lengths) and row.min() >= 0:
+            lengths, length_blend = shapes.arithmetic_lengths(row), "arithmetic"
+        _check_triangles(topology, lengths, index)
+        guess = shapes.vertex_blend(row)
+        one_hot = np.count_nonzero(row) == 1
+        if not self.answers or one_hot or not self.opts.sequence or not self._refines():
+            path = "reconstruct"
+            rec = reconstruct(topology.faces, topology.edges, lengths, angles,
+                              n_vertices=topology.n_vertices, initial_guess=guess,
+                              options=ReconstructOptions.given(self.opts, {
+                                  "check_integrability": False, "max_seconds": budget}))
+            vertices, refinement = rec.vertices, dict(rec.report["refinement"])
+            if refinement.get("start") == "initial guess":
+                refinement["start"] = "vertex blend"
+        else:
+            path = "sequence"
+            vertices, refinement = self._continue(row, lengths, angles, guess, budget)
+        after = refinement.get("after") if refinement.get("refined") else None
+        residual = after or form_residuals(vertices, topology, lengths, angles)
+        if guess is not None:
+            vertices = aligned(vertices, guess)
+        self.answers, self.blends = [*self.answers[-1:], vertices], [*self.blends[-1:], guess]
+        self.rows = [*self.rows[-1:], row]
+        return vertices, {"row": index, "path": path, "length_blend": length_blend,
+                          "refinement": refinement, "form_error": residual}
+
+    def _starts(self, row: np.ndarray, guess: np.ndarray | None,
+                ) -> list[tuple[str, np.ndarray]]:
+        """Candidate starts of a sequence row: the previous answer moved by what the vertex
+        blend moved (as a session's next drag starts) and the secant prediction from the two
+        previous answers (the rows of a sequence lie on a smooth path); before there are
+        two, the previous answer and the vertex blend itself. (The secant had the lowest
+        energy on every row after the second of the rocker-arm and knight sequences; the
+        other two starts are then not scored, each costing an energy.)"""
+        previous = self.answers[-1]
+        starts = []
+        if guess is not None and self.blends[-1] is not None:
+            starts.append(("previous row + vertex-blend motion",
+                           previous + (guess - self.blends[-1])))
+        if len(self.answers) == 2:
+            step = np.linalg.norm(self.rows[-1] - self.rows[-2])
+            if step > 0:
+                ratio = float(np.linalg.norm(row - self.rows[-1]) / step)
+                starts.append(("secant of the previous rows",
+                               previous + ratio * (previous - self.answers[-2])))
+        if len(starts) < 2:
+            starts.append(("previous row", previous))
+            if guess is not None:
+                starts.append(("vertex blend", guess))
+        return starts
+
+    def _refines(self) -> bool:
+        return self.opts.refine is not False
+
+    def _continue(self, row: np.ndarray, lengths: np.ndarray, angles: np.ndarray,
+                  guess: np.ndarray | None, budget: float | None,
+                  ) -> tuple[np.ndarray, dict[str, Any]]:
+        """The refinement of a row from the best of :meth:`_starts` (lowest energy), with
+        the factor the rows before kept."""
+        targets = FormTargets(self.shapes.topology, lengths, angles,
+                              angle_weight=self.opts.angle_weight)
+        refiner = Refiner(targets, backend=self.opts.backend or "auto")
+        if self.refiner is not None:
+            refiner.adopt_factor(self.refiner)
+        scored = [(refiner.energy(start), k, label, start)
+                  for k, (label, start) in enumerate(self._starts(row, guess))]
+        energy, _, label, start = min(scored)
+        if refiner.reproduces(start):
+            return start, {"refined": False, "reason": "exact: the start has the forms",
+                           "start": label}
+        fit = refiner.run(start, keep_factor=True, interactive=False, time_limit=budget,
+                         start_energy=energy)
+        self.refiner = refiner
+        return fit.vertices, dict(fit.report, start=label)
+
+
+def _violated(topology: MeshTopology, lengths: np.ndarray) -> bool:
+    """Whether lengths (E,) violate the triangle inequality at some face."""
+    return bool(len(triangle_inequality_violations(face_edge_lengths(topology, lengths))))
+
+
+def _check_triangles(topology: MeshTopology, lengths: np.ndarray, row: int) -> None:
+    """Raise :class:`TriangleInequalityError` naming the row and face where the blended
+    lengths (E,) make no triangle (an extrapolation too far)."""
+    bad = triangle_inequality_violations(face_edge_lengths(topology, lengths))
+    if len(bad):
+        raise TriangleInequalityError(
+            f"the blended lengths of weights[{row}] violate the triangle inequality at face "
+            f"{int(bad[0])} ({len(bad)} faces): extrapolate less", field="weights", index=row)
+
+
+def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
+          faces: ArrayLike | None = None, *, options: BlendOptions | None = None,
+          progress: Progress | None = None, **overrides: Any) -> Blend:
+    """Blend K shapes of one connectivity in form space, one shape per row of weights.
+
+    Args:
+        shapes: K embeddings (n, 3) of ``faces`` (or a (K, n, 3) array), or K
+            :class:`solver.forms.Forms` of one connectivity (then the answers are not
+            aligned: they sit where the reconstruction's anchors put them).
+        weights: (K,) or (T, K) affine weights (each row sums to 1; negative weights
+            extrapolate).
+        faces: (m, 3) int, for shapes given as vertices.
+        options: :class:`solver.options.BlendOptions`; ``max_seconds`` budgets the whole
+            call, shared out evenly among the rows still to compute.
+        progress: optional ``progress("rows", fraction)`` after each row (and the stages of
+            the rows that are reconstructed on their own).
+        **overrides: fields of ``options`` given as keywords.
+
+    Returns:
+        :class:`Blend` with vertices (T, n, 3) and one report per row.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import blend
+        >>> V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.5]])
+        >>> F = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        >>> out = blend([V, V * [1, 1, 2], V * [1, 1, 3]], [[1, 0, 0], [0, 0, 1]], F)
+        >>> out.vertices.shape, bool(np.allclose(out.vertices[1], V * [1, 1, 3]))
+        ((2, 5, 3), True)
+    """
+    opts = BlendOptions.given(options, overrides)
+    stages = Stages(progress)
+    stages("validate")
+    shape_space = shape_set(shapes, faces)
+    if opts.align and shape_space.vertices is not None:
+        first = shape_space.vertices[0]
+        moved = np.stack([first, *(aligned(v, first) for v in shape_space.vertices[1:])])
+        shape_space = ShapeSet(shape_space.topology, shape_space.log_lengths,
+                               shape_space.angles, moved)
+    W = affine_weights(weights, shape_space.count)
+    stages.lap("validate")
+    rows = _Rows(shape_space, opts)
+    out = np.empty((len(W), shape_space.topology.n_vertices, 3))
+    reports = []
+    for k, row in enumerate(W):  # rows in order: each starts from its neighbour's answer
+        lengths, angles = shape_space.forms(row[None])
+        left = stages.left(opts.max_seconds)
+        budget = None if left is None else max(left, 0.0) / (len(W) - k)
+        clock = time.perf_counter()
+        out[k], report = rows.solve(k, row, lengths[0], angles[0], budget)
+        report["seconds"] = time.perf_counter() - clock
+        reports.append(report)
+        stages("rows", (k + 1) / len(W))
+    stages.lap("rows")
+    return Blend(vertices=out, faces=shape_space.topology.faces, weights=W, reports=reports,
+                 timings=stages.timings)
+
+
+def mean(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None = None, *,
+         options: BlendOptions | None = None, progress: Progress | None = None,
+         return_report: bool = False, **overrides: Any,
+         ) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
+    """The form-space mean (n, 3) of K shapes of one connectivity: the equal-weight blend
+    (geometric mean of the lengths, arithmetic mean of the unwrapped angles), nearest
+    surface, aligned to the Procrustes vertex mean (``align``: each shape first moved
+    rigidly onto the first, so that where the shapes sit does not matter).
+
+    Args:
+        shapes, faces, options, progress, overrides: as for :func:`blend`.
+        return_report: also return the row's report.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import mean
+        >>> V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.5]])
+        >>> F = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        >>> bool(np.allclose(mean([V, V + 5.0, V], F), V))
+        True
+    """
+    items = list(shapes)
+    overrides = {"align": True, **overrides}
+    result = blend(items, np.full(len(items), 1.0 / max(len(items), 1)), faces,
+                   options=options, progress=progress, **overrides)
+    return (result.vertices[0], result.reports[0]) if return_report else result.vertices[0]
+
+
+def transfer(source: Any, source_deformed: Any, target: Any, faces: ArrayLike | None = None,
+             *, options: BlendOptions | None = None, progress: Progress | None = None,
+             return_report: bool = False, **overrides: Any,
+             ) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
+    """Deformation transfer in form space: the target (n, 3) deformed as the source was.
+
+    ``forms(B') = forms(B) + (forms(A') - forms(A))`` (lengths in log space: each edge is
+    stretched by the source's ratio; angles bent by the source's change), then the nearest
+    surface, aligned to the vertex transfer ``B + A' - A``. It is the blend of ``(target,
+    source, source_deformed)`` with weights ``(1, -1, 1)``.
+
+    Args:
+        source, source_deformed, target: embeddings (n, 3) of ``faces`` (or forms).
+        faces, options, progress, overrides: as for :func:`blend`.
+        return_report: also return the row's report.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import transfer
+        >>> V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.5]])
+        >>> F = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        >>> tall = V * [1, 1, 2]
+        >>> bool(np.allclose(transfer(V, tall, V, F), tall))
+        True
+    """
+    result = blend([target, source, source_deformed], [1.0, -1.0, 1.0], faces,
+                   options=options, progress=progress, **overrides)
+    return (result.vertices[0], result.reports[0]) if return_report else result.vertices[0]

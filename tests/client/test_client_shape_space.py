@@ -1,0 +1,59 @@
+"""ffs.Client's shape-space methods against a real uvicorn: blend (binary and JSON bodies,
+as a job with per-row progress), blend_gltf, mean, transfer, submit, and a bad row as a
+typed exception naming it; each against the library."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import ffs
+import solver
+from tests.helpers.gltf_validator import validate_gltf
+from tests.helpers.meshes import load
+from tests.helpers.poses import bent_pose
+
+
+@pytest.fixture(scope="module")
+def poses():
+    V, F = load("decimated-knight.off")
+    return V, bent_pose(V, F, 0.5), bent_pose(V, F, -0.4, bend_axis=0), F
+
+
+def test_blend_mean_transfer_match_the_library(server, poses):
+    V, P, Q, F = poses
+    weights = [[0.2, 0.5, 0.3], [-0.2, 0.6, 0.6]]
+    truth = solver.blend([V, P, Q], weights, F).vertices
+    for binary in (True, False):
+        with ffs.Client(server, binary=binary) as client:
+            rows = client.blend([V, P, Q], F, weights)
+            np.testing.assert_allclose(rows.vertices, truth, atol=1e-9)
+            assert rows.weights.tolist() == weights and len(rows.reports) == 2
+    with ffs.Client(server) as client:
+        np.testing.assert_allclose(client.blend([V, P], F, t=[0.0, 1.5]).vertices,
+                                   solver.interpolate(V, P, F, [0.0, 1.5]), atol=1e-9)
+        np.testing.assert_allclose(client.mean([V, P, Q], F).vertices,
+                                   solver.mean([V, P, Q], F), atol=1e-9)
+        np.testing.assert_allclose(client.transfer(V, P, Q, F).vertices,
+                                   solver.transfer(V, P, Q, F), atol=1e-9)
+        glb = client.blend_gltf([V, P], F, t=[0.0, 0.5, 1.0], times=[0.0, 1.0, 2.0])
+        report = validate_gltf(glb, "glb")
+        assert report["issues"]["numErrors"] == 0 and report["info"]["animationCount"] == 1
+
+
+def test_blend_as_a_job_reports_rows_and_bad_rows_raise(server, poses):
+    V, P, _, F = poses
+    t = np.linspace(0.0, 1.0, 30)
+    with ffs.Client(server) as client:
+        seen: list[tuple[str, float]] = []
+        rows = client.blend([V, P], F, t=t, progress=lambda stage, f: seen.append((stage, f)))
+        assert rows.vertices.shape == (30, len(V), 3)
+        fractions = [f for stage, f in seen if stage == "rows"]
+        assert fractions == sorted(fractions) and any(0 < f < 1 for f in fractions), seen
+        assert seen[-1] == ("encode", 1.0)
+        job = client.submit("blend", [V, P], F, [[0.5, 0.5]])
+        assert job.result(timeout=120).vertices.shape == (1, len(V), 3)
+        job.discard()
+        with pytest.raises(ffs.InvalidInputError) as error:
+            client.blend([V, P], F, [[0.5, 0.5], [0.7, 0.7]])
+        assert "weights" in str(error.value) and "1.4" in str(error.value)

@@ -1,0 +1,64 @@
+"""The Blend panel in headless Chromium against a real uvicorn: a second shape from a mesh
+file, a weight dragged past 1 (extrapolation) blended as the API blends it, and the
+sequence played from the service's animated GLB (three.js GLTFLoader and AnimationMixer):
+the view moves through the rows and ends on the last one."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+
+from solver.io import load_mesh_file, save_mesh
+from tests.helpers import DATA
+from tests.helpers.poses import bent_pose
+from tests.helpers.web import assert_not_blank
+
+
+def test_blend_panel_extrapolates_and_plays_the_glb(web, tmp_path):
+    V, F = load_mesh_file(DATA / "decimated-knight.off")
+    bent = bent_pose(V, F, 0.6)
+    path = tmp_path / "knight-bent.off"
+    path.write_bytes(save_mesh(bent, F, "off"))
+    page = web.open("sample=decimated-knight.off")
+    page.keyboard.press("5")
+    assert page.locator("#panel-blend").is_visible()
+    page.click("#blend-add")
+    page.set_input_files("#blend-file", str(path))
+    web.idle()
+    assert web.app("app.state.blendShapes.length") == 2
+    shown = np.asarray(web.app("Array.from(app.state.vertices)")).reshape(-1, 3)
+
+    web.app("app.blend.setWeight(1, 1.5)")
+    assert web.app("app.blend.weights()") == [-0.5, 1.5]
+    page.click("#blend-apply")
+    web.idle()
+    with httpx.Client(base_url=web.base, timeout=120) as api:
+        want = api.post("/v1/blend", json={"shapes": [shown.tolist(), bent.tolist()],
+                                           "faces": F.tolist(),
+                                           "weights": [[-0.5, 1.5]]}).json()
+        rows = web.app("app.blend.sequenceRows()")
+        sequence = api.post("/v1/blend", json={"shapes": [shown.tolist(), bent.tolist()],
+                                               "faces": F.tolist(), "weights": rows}).json()
+    on_screen = np.asarray(web.app("app.blend.shown()")).reshape(-1, 3)
+    scale = np.ptp(V)
+    assert np.abs(on_screen - np.asarray(want["vertices"][0])).max() < 1e-5 * scale
+    assert page.locator("#blend-stats").inner_text().startswith("Rows")
+    assert_not_blank(web.screenshot("blend-extrapolated"), min_colored=0.0)
+
+    web.app("app.blend.play()")
+    samples = []
+    for _ in range(200):
+        frame = web.app("app.state.blendFrame")
+        samples.append(np.asarray(web.app("app.blend.shown()")).reshape(-1, 3))
+        if not web.app("app.state.blendPlaying"):
+            break
+        web.frame()
+    assert not web.app("app.state.blendPlaying") and frame > 5
+    rows_out = np.asarray(sequence["vertices"])
+    assert np.abs(samples[-1] - rows_out[-1]).max() < 1e-4 * scale   # ends on the last row
+    # in between it passed through the sequence: each sample is near a cross-fade of rows
+    middle = samples[len(samples) // 2]
+    nearest = np.abs(rows_out - middle).max(axis=(1, 2)).min()
+    assert nearest < 0.2 * np.abs(rows_out[-1] - rows_out[0]).max()
+    assert np.abs(middle - rows_out[0]).max() > 1e-3 * scale           # it moved
+    assert web.shown_errors() == []

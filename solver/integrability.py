@@ -25,7 +25,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .forms import validate_forms
+from .forms import validate_forms, wrapped_angle_count
 from .frames import face_edge_lengths, transition_quaternions, triangle_inequality_violations
 from .rotations import (
     quaternion_angles,
@@ -94,6 +94,8 @@ class IntegrabilityReport(JsonDataclass):
         isolated_vertices: vertices that no face uses.
         rotation_holonomy, translation_holonomy: the global generator loops.
         local_integrable, global_integrable: the two halves of ``integrable``.
+        wrapped_angles: angles given outside (-pi, pi] and wrapped into it (an angle is
+            periodic; :func:`solver.forms.wrap_angles`).
     """
 
     integrable: bool
@@ -115,6 +117,7 @@ class IntegrabilityReport(JsonDataclass):
     translation_holonomy: list[HolonomyLoop]
     local_integrable: bool
     global_integrable: bool
+    wrapped_angles: int = 0
 
     _array_fields: ClassVar[dict[str, Any]] = {
         "vertex_defect": np.float64, "gauss_defect": np.float64, "codazzi_defect": np.float64,
@@ -189,8 +192,10 @@ def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     violations = triangle_inequality_violations(face_edge_lengths(topology, L))
     terms = energy_terms(topology, L, A, check=False)
-    return integrability_from_terms(terms, tol, mean_length=float(L.mean()),
-                                    violations=violations)
+    report = integrability_from_terms(terms, tol, mean_length=float(L.mean()),
+                                      violations=violations)
+    report.wrapped_angles = wrapped_angle_count(angles)
+    return report
 
 
 def integrability_from_terms(terms: EnergyTerms, tol: float, mean_length: float,

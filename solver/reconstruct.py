@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike
 
 from .constraints import Constraints
 from .errors import ConstraintError, TriangleInequalityError
-from .forms import validate_forms
+from .forms import validate_forms, wrapped_angle_count
 from .frames import (
     face_edge_lengths,
     layout_frames,
@@ -32,7 +32,9 @@ from .integrability import (
 )
 from .layout_fit import LayoutFit
 from .linalg import resolve_backend
+from .manifold import ManifoldCut
 from .options import COTAN_FLOOR, FRAME_WEIGHT, ReconstructOptions
+from .placement import Placement, apply_placement
 from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner, reproduces
 from .reports import Progress, ReconstructReport, Stages
 from .rotations import nearest_rotation
@@ -388,6 +390,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                 options: ReconstructOptions | None = None, n_vertices: int | None = None,
                 layout_angles: np.ndarray | None = None,
                 initial_guess: ArrayLike | None = None, progress: Progress | None = None,
+                vertex_map: ArrayLike | None = None,
+                placement: Placement | dict[str, Any] | None = None,
                 **overrides: Any) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
 
@@ -415,11 +419,20 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         progress: optional ``progress(stage, fraction)`` for the stages validate,
             assemble, factorize, solve (and refine); see :meth:`solver.refine.Refiner.run`
             for the per-iteration ``progress.iteration``.
+        vertex_map: the forms' (n_cut,) file vertex of each vertex of ``faces`` (forms of a
+            non-manifold mesh, :func:`solver.fundamental_forms`): the answer is given per
+            file vertex, the mean of its copies, their spread in ``report["input"]["cut"]``
+            (``n_vertices`` is then the file's vertex count).
+        placement: the forms' component placement (:class:`solver.placement.Placement` or
+            its dict): each component without constraints is moved rigidly so that its
+            anchor face has that pose (a multi-part round trip is exact as a whole);
+            without it each component is anchored at the origin.
         **overrides: fields of ``options`` given as keywords (``refine=False``).
 
     Returns:
         :class:`Reconstruction` with vertices (n, 3), frames (m, 3, 3) and a report
-        (energies, ``timings`` per stage in seconds, backend, anchors, integrability).
+        (energies, ``timings`` per stage in seconds, backend, anchors, integrability,
+        ``input``: wrapped angles, placement and cut).
 
     Example:
         >>> import numpy as np
@@ -438,7 +451,12 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     stages = Stages(progress)
     stages("validate")
     backend = resolve_backend(opts.backend or "auto")  # refused even when nothing factorizes
+    cut = None
+    if vertex_map is not None:
+        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices)
+        n_vertices = cut.n_vertices
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
+    place = Placement.coerce(placement, topology.n_faces)
     user = (constraints or Constraints()).validated(topology.n_vertices, topology.n_faces)
     stages.lap("validate")
     stages("assemble")
@@ -535,6 +553,16 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         stages.lap("refine")
         stages("refine", 1.0)
 
+    input_report: dict[str, Any] = {"wrapped_angles": wrapped_angle_count(angles),
+                                     "placement": "none"}
+    if place is not None:
+        moving = ~touched[topology.face_component[place.faces]]
+        vertices, frames = apply_placement(vertices, topology.faces, place.subset(moving),
+                                           frames=frames)
+        input_report["placement"] = f"{int(moving.sum())} of {len(moving)} components placed"
+    if cut is not None:
+        vertices, spread = cut.to_file(vertices)
+        input_report["cut"] = cut.report(spread)
     report = ReconstructReport(
         energy=energy, first_solve_energy=first_energy,
         frame_orthonormality_error=orthonormality, orthonormalized=bool(opts.orthonormalize),
@@ -542,7 +570,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         n_unknowns=problem.n_unknowns, frame_weight=problem.frame_weight,
         weighting=problem.weighting, length_scale=problem.length_scale,
         regularized_components=regularized, anchored_components=anchored,
-        isolated_vertices=topology.isolated_vertices.tolist(), integrability=integrability)
+        isolated_vertices=topology.isolated_vertices.tolist(), integrability=integrability,
+        input=input_report)
     return Reconstruction(vertices=vertices, frames=frames, report=report)
 
 

@@ -145,6 +145,9 @@ class ReconstructReport(Report):
         isolated_vertices: vertices in no face.
         integrability: the integrability summary (None: not checked).
         vjp: :func:`solver.reconstruct_vjp`'s preparation (None otherwise).
+        input: what was done to the input to solve it (``wrapped_angles``: angles given
+            outside (-pi, pi] and wrapped; a non-manifold mesh's cut, see
+            :mod:`solver.manifold`).
     """
 
     energy: dict[str, float]
@@ -165,6 +168,7 @@ class ReconstructReport(Report):
     isolated_vertices: list[int]
     integrability: dict[str, Any] | None = None
     vjp: dict[str, Any] | None = None
+    input: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(eq=False)

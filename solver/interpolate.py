@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike
 
 from .errors import ShapeMismatchError
 from .forms import fundamental_forms
+from .manifold import cut_to_manifold
 from .metrics import wrap_angle
 from .options import InterpolateOptions, ReconstructOptions
 from .reconstruct import reconstruct
@@ -76,6 +77,14 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
     if A.shape != B.shape:
         raise ShapeMismatchError(f"vertices_b has shape {B.shape}, vertices_a {A.shape}",
                                  field="vertices_b")
+    cut = cut_to_manifold(faces, A)
+    if not cut.is_identity:  # a non-manifold mesh: blended on its cut (solver.manifold)
+        blended = interpolate(cut.to_cut(A), cut.to_cut(B), cut.faces, t, options=opts,
+                              return_reports=True)
+        out = np.asarray(blended[0])
+        out = (cut.to_file(out)[0] if np.ndim(t) == 0
+               else np.stack([cut.to_file(x)[0] for x in out]))
+        return (out, blended[1]) if return_reports else out
     forms_a = fundamental_forms(A, faces)
     forms_b = fundamental_forms(B, forms_a.faces)
     scalar = np.ndim(t) == 0

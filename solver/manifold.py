@@ -132,6 +132,19 @@ class ManifoldCut:
         np.maximum.at(spread, self.vertex_map, distance)
         return mean.reshape((n, *values.shape[1:])), spread
 
+    def largest_to_file(self, values: np.ndarray) -> np.ndarray:
+        """Per-cut-vertex values (n_cut,) float as per-file-vertex ones (n,): the value of
+        largest magnitude among the copies (e.g. the worst holonomy defect)."""
+        values = np.asarray(values, dtype=np.float64)
+        if self.is_identity:
+            return values.copy()
+        order = np.lexsort((-np.abs(values), self.vertex_map))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = self.vertex_map[order][1:] != self.vertex_map[order][:-1]
+        out = np.zeros(self.n_file_vertices)
+        out[self.vertex_map[order[first]]] = values[order[first]]
+        return out
+
     def copies_of(self, file_vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every cut vertex of the given file vertices.
 

@@ -183,6 +183,8 @@ class DeformReport(Report):
         orthonormalized: whether the second solve of Sec. 4 ran.
         refinement: whether and how it refined.
         distortion: :func:`solver.metrics.distortion` against the rest mesh (compact).
+        input: what was done to the input (``cut``: a non-manifold mesh's manifold cut,
+            :mod:`solver.manifold`, with the spread of the copies); None: nothing.
     """
 
     timings: Timings
@@ -193,6 +195,7 @@ class DeformReport(Report):
     orthonormalized: bool
     refinement: dict[str, Any]
     distortion: dict[str, Any]
+    input: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(eq=False)
@@ -211,6 +214,8 @@ class ParameterizeReport(Report):
         anchored_components: ``{"component", "vertex", "face"}`` of each component.
         backend, analysis: the factorization's.
         timings: seconds per stage.
+        input: what was done to the input (``cut``: a non-manifold mesh's manifold cut,
+            :mod:`solver.manifold`, with the spread of the copies' uv); None: nothing.
     """
 
     flipped_count: int
@@ -226,3 +231,4 @@ class ParameterizeReport(Report):
     backend: str
     analysis: str
     timings: Timings
+    input: dict[str, Any] | None = None

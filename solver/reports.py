@@ -77,17 +77,22 @@ def mesh_summary(vertices: ArrayLike, faces: ArrayLike,
         >>> report["n_edges"], report["bounds"]
         (3, [[0.0, 0.0, 0.0], [2.0, 1.0, 0.0]])
     """
+    from .manifold import cut_to_manifold
     from .topology import build_topology
     from .validation import as_points
 
     points = as_points(vertices, "vertices")
-    topology = build_topology(faces, n_vertices=len(points))
-    edges = topology.edges
+    cut = cut_to_manifold(faces, points)  # a non-manifold mesh is checked as its cut
+    topology = build_topology(cut.faces, n_vertices=cut.n_vertices)
+    edges = np.unique(np.sort(cut.vertex_map[topology.edges], axis=1), axis=0)
     lengths = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
-    report = {"n_vertices": len(points), "n_faces": len(topology.faces), "n_edges": len(edges),
-              "bounds": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
-              "mean_edge_length": float(lengths.mean()) if len(lengths) else 0.0}
-    return points, np.asarray(topology.faces, dtype=np.int64), report
+    report: dict[str, Any] = {
+        "n_vertices": len(points), "n_faces": len(topology.faces), "n_edges": len(edges),
+        "bounds": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
+        "mean_edge_length": float(lengths.mean()) if len(lengths) else 0.0}
+    if not cut.is_identity:
+        report["input"] = {"cut": cut.report()}
+    return points, cut.vertex_map[topology.faces], report
 
 
 Timings = dict[str, float]

@@ -4,8 +4,9 @@ Beyond the paper (which cites [WDAH10] for the idea): for each t the blended for
 reconstructed with one solve and, by default, refined to the surface whose forms are
 nearest to the blended ones (:mod:`solver.refine`; blended forms of two poses do not
 integrate, and the linear answer alone shrinks), started from whichever of the linear answer
-and the vertex blend ``(1 - t) A + t B`` is nearer to them. The result is rigidly aligned
-(rotation + translation, no scale) to the vertex blend so it sits where a user expects it.
+and the vertex blend ``(1 - t) A + t B`` is nearer to them. Each connected part of the result
+is rigidly aligned (rotation + translation, no scale) to its vertex blend so it sits where a
+user expects it. A non-manifold mesh is blended on its manifold cut (:mod:`solver.manifold`).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from .forms import fundamental_forms
 from .manifold import cut_to_manifold
 from .metrics import wrap_angle
 from .options import InterpolateOptions, ReconstructOptions
+from .placement import align_components, face_components
 from .reconstruct import reconstruct
 from .reports import Stages
 from .validation import as_points
@@ -87,6 +89,7 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
         return (out, blended[1]) if return_reports else out
     forms_a = fundamental_forms(A, faces)
     forms_b = fundamental_forms(B, forms_a.faces)
+    components = face_components(np.asarray(forms_a.faces), len(A))[0]
     scalar = np.ndim(t) == 0
     ts = np.atleast_1d(np.asarray(t, dtype=np.float64))
     if not np.all(np.isfinite(ts)):
@@ -106,8 +109,8 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
         vertices, report = rec.vertices, rec.report["refinement"]
         if report.get("start") == "initial guess":
             report["start"] = "vertex blend"
-        R, shift = rigid_alignment(vertices, linear)
-        results.append(vertices @ R.T + shift)
+        # Every part moved rigidly onto its vertex blend (one part: one rigid alignment).
+        results.append(align_components(vertices, linear, components))
         reports.append(report)
     out = results[0] if scalar else np.stack(results)
     return (out, reports) if return_reports else out

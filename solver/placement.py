@@ -186,3 +186,38 @@ def apply_placement(vertices: np.ndarray, faces: np.ndarray, placement: Placemen
     if frames is None:
         return placed
     return placed, rotation[face_component] @ frames
+
+
+def align_components(source: np.ndarray, target: np.ndarray,
+                     vertex_component: np.ndarray) -> np.ndarray:
+    """Each component of ``source`` moved rigidly (rotation + translation, Kabsch) onto the
+    same vertices of ``target``: parts keep their places (a blend, a reconstruction).
+
+    Args:
+        source, target: (n, 3) float64.
+        vertex_component: (n,) int64 component of each vertex.
+
+    Returns:
+        (n, 3) float64.
+
+    Example:
+        >>> import numpy as np
+        >>> X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [0, 0, 1.0]])
+        >>> Y = X + np.array([[0, 0, 5]] * 3 + [[7, 0, 0]] * 2)  # each part its own way
+        >>> bool(np.allclose(align_components(X, Y, np.array([0, 0, 0, 1, 1])), Y))
+        True
+    """
+    c = np.asarray(vertex_component, dtype=np.int64)
+    k = int(c.max(initial=-1)) + 1
+    counts = np.maximum(np.bincount(c, minlength=k), 1).astype(np.float64)[:, None]
+    cs = np.stack([np.bincount(c, source[:, d], k) for d in range(3)], axis=1) / counts
+    ct = np.stack([np.bincount(c, target[:, d], k) for d in range(3)], axis=1) / counts
+    xs, yt = source - cs[c], target - ct[c]
+    H = np.zeros((k, 3, 3))
+    np.add.at(H, c, xs[:, :, None] * yt[:, None, :])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d[d == 0] = 1.0
+    U[:, :, 2] *= d[:, None]
+    R = np.swapaxes(U @ Vt, 1, 2)  # x -> R x maps source onto target
+    return np.einsum("kij,kj->ki", R[c], xs) + ct[c]

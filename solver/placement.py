@@ -221,3 +221,44 @@ def align_components(source: np.ndarray, target: np.ndarray,
     U[:, :, 2] *= d[:, None]
     R = np.swapaxes(U @ Vt, 1, 2)  # x -> R x maps source onto target
     return np.einsum("kij,kj->ki", R[c], xs) + ct[c]
+
+
+def side_by_side(vertices: np.ndarray, vertex_component: np.ndarray,
+                 components: np.ndarray, gap_ratio: float = 0.1) -> np.ndarray:
+    """Components laid out along +x without overlap: the first of ``components`` stays, each
+    next one starts ``gap`` beyond the previous one's largest x (``gap``: ``gap_ratio``
+    times the largest bounding-box diagonal); y and z are untouched. For a reconstruction
+    without placement, whose components would otherwise all sit at the origin.
+
+    Args:
+        vertices: (n, 3) float64.
+        vertex_component: (n,) int64.
+        components: (k,) int64 the components to lay out, in order.
+        gap_ratio: the gap relative to the largest diagonal.
+
+    Returns:
+        (n, 3) float64.
+
+    Example:
+        >>> import numpy as np
+        >>> V = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [2, 0, 0.0]])
+        >>> side_by_side(V, np.array([0, 0, 1, 1]), np.array([0, 1]))[:, 0].tolist()
+        [0.0, 1.0, 1.2, 3.2]
+    """
+    components = np.asarray(components, dtype=np.int64)
+    if len(components) < 2:
+        return vertices
+    k = int(vertex_component.max()) + 1
+    low = np.full((k, 3), np.inf)
+    high = np.full((k, 3), -np.inf)
+    np.minimum.at(low, vertex_component, vertices)
+    np.maximum.at(high, vertex_component, vertices)
+    width = (high - low)[components, 0]
+    gap = gap_ratio * float(np.linalg.norm(high - low, axis=1)[components].max())
+    start = np.concatenate([[low[components[0], 0]],
+                            low[components[0], 0] + np.cumsum(width + gap)[:-1]])
+    shift = np.zeros(k)
+    shift[components] = start - low[components, 0]
+    out = vertices.copy()
+    out[:, 0] += shift[vertex_component]
+    return out

@@ -34,7 +34,7 @@ from .layout_fit import LayoutFit
 from .linalg import resolve_backend
 from .manifold import ManifoldCut
 from .options import COTAN_FLOOR, FRAME_WEIGHT, ReconstructOptions
-from .placement import Placement, apply_placement
+from .placement import Placement, apply_placement, side_by_side
 from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner, reproduces
 from .reports import Progress, ReconstructReport, Stages
 from .rotations import nearest_rotation
@@ -445,7 +445,9 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         placement: the forms' component placement (:class:`solver.placement.Placement` or
             its dict): each component without constraints is moved rigidly so that its
             anchor face has that pose (a multi-part round trip is exact as a whole);
-            without it each component is anchored at the origin.
+            without it each component is anchored at the origin and the anchored
+            components are then laid out side by side along +x, without overlap
+            (``report["input"]["placement"]`` says so).
         **overrides: fields of ``options`` given as keywords (``refine=False``).
 
     Returns:
@@ -582,6 +584,12 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
 
     input_report: dict[str, Any] = {"wrapped_angles": wrapped_angle_count(angles),
                                      "placement": "none"}
+    laid_out = np.array([a["component"] for a in anchored], dtype=np.int64)
+    if place is None and len(laid_out) > 1:
+        # No placement: the anchored parts would all sit at the origin (issue 40).
+        vertices = side_by_side(vertices, topology.vertex_component, laid_out)
+        input_report["placement"] = (f"none: {len(laid_out)} components laid out side by "
+                                     "side along +x")
     if place is not None:
         moving = ~touched[topology.face_component[place.faces]]
         vertices, frames = apply_placement(vertices, topology.faces, place.subset(moving),

@@ -6,6 +6,8 @@ flatten and blend accept them; answers are in the file's vertex numbering."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -197,3 +199,18 @@ def test_integrability_answers_per_file_vertex():
     assert report.vertex_defect.shape == (len(V),)
     assert not report.integrable
     assert set(report.failing_vertices.tolist()) <= set(range(len(V)))
+
+
+def test_without_placement_parts_are_side_by_side():
+    V, F = CASES["multi-component"]()
+    forms = solver.fundamental_forms(V, F)
+    result = solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles)
+    assert "side by side" in result.report["input"]["placement"]
+    component = build_topology(F).vertex_component
+    boxes = []
+    for c in np.unique(component):  # four parts: a short loop over parts
+        part = component == c
+        assert rigid_alignment_error(result.vertices[part], V[part]) < 1e-8
+        boxes.append((result.vertices[part, 0].min(), result.vertices[part, 0].max()))
+    boxes.sort()
+    assert all(left[1] < right[0] for left, right in itertools.pairwise(boxes))

@@ -14,6 +14,10 @@ libigl's ``cut_to_disk``-style corner unions follow in spirit):
    fan becomes one vertex. The first fan (the one holding the lowest corner ``3 t + k``)
    keeps the file's index, every other fan is a new vertex numbered ``n, n + 1, ...`` in the
    order (file vertex, lowest corner).
+3. **Self-touching surfaces.** Where fans joined around an endpoint leave an edge with more
+   than two faces, the faces of that edge other than its lowest half-edge's and that one's
+   pair are detached from all their neighbours (each becomes a part of its own), and rule 2
+   runs again.
 
 So a manifold mesh is its own cut (``vertex_map`` = ``arange(n)``, faces unchanged), the cut
 faces keep the file's face order, and ``vertex_map[c]`` names the file vertex of cut vertex
@@ -214,13 +218,55 @@ def cut_to_manifold(faces: ArrayLike, vertices: ArrayLike | None = None,
                                             return_counts=True)
     halfedge_edge = halfedge_edge.ravel()
     h_first, h_second = _paired_halfedges(F, origin, dest, halfedge_edge, counts, vertices)
-    # Corners (named by the half-edge leaving them) joined across each paired edge.
-    same_way = origin[h_first] == origin[h_second]
-    nxt = lambda h: h - h % 3 + (h + 1) % 3  # noqa: E731 - the next half-edge in the face
-    a = np.concatenate([h_first, nxt(h_first)])
-    b = np.concatenate([np.where(same_way, h_second, nxt(h_second)),
-                        np.where(same_way, nxt(h_second), h_second)])
     H = 3 * m
+    partner = np.full(H, -1, dtype=np.int64)
+    partner[h_first], partner[h_second] = h_second, h_first
+    detached = np.zeros(m, dtype=bool)
+    for _ in range(MAX_PASSES):
+        kept = ~(detached[h_first // 3] | detached[h_second // 3])
+        first, second = h_first[kept], h_second[kept]
+        # Corners (named by the half-edge leaving them) joined across each paired edge.
+        same_way = origin[first] == origin[second]
+        a = np.concatenate([first, _next(first)])
+        b = np.concatenate([np.where(same_way, second, _next(second)),
+                            np.where(same_way, _next(second), second)])
+        corner_vertex, vertex_map = _fans(a, b, origin, n)
+        crowded = _crowded_halfedges(corner_vertex, partner, len(vertex_map))
+        if not len(crowded):
+            break
+        # Fans joined around an endpoint kept an edge crowded (a surface touching itself):
+        # its extra faces are detached from their neighbours and the fans formed again.
+        detached[crowded // 3] = True
+    split_vertices = np.unique(vertex_map[n:])
+    many = counts > 2
+    split_edges = np.stack([keys[many] // n, keys[many] % n], axis=1).astype(np.int64)
+    return ManifoldCut(faces=corner_vertex.reshape(m, 3), vertex_map=vertex_map,
+                       n_file_vertices=n, split_edges=split_edges,
+                       split_vertices=split_vertices.astype(np.int64))
+
+
+MAX_PASSES = 8
+"""Passes of :func:`cut_to_manifold`: an edge still crowded after the fans are formed (the
+faces' fans join around an endpoint: a surface touching itself) has its extra faces, all
+but its lowest half-edge's and that one's partner's, detached from every neighbour (rule 3
+of the module docstring), and the fans are formed again."""
+
+
+def _next(h: np.ndarray) -> np.ndarray:
+    """The next half-edge in the face of each of ``h`` (k,) int64."""
+    return h - h % 3 + (h + 1) % 3
+
+
+def _fans(a: np.ndarray, b: np.ndarray, origin: np.ndarray, n: int
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Cut vertices of the corners joined by the links ``a[i] ~ b[i]`` (module docstring,
+    rule 2).
+
+    Returns:
+        ``(corner_vertex, vertex_map)``: (H,) int64 cut vertex of each corner and (n_cut,)
+        int64 file vertex of each cut vertex.
+    """
+    H = len(origin)
     graph = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(H, H))
     _, fan = connected_components(graph, directed=False)
     lowest = np.full(fan.max() + 1, H, dtype=np.int64)
@@ -234,12 +280,27 @@ def cut_to_manifold(faces: ArrayLike, vertices: ArrayLike | None = None,
     new_index[order[first]] = fan_vertex[order[first]]
     new_index[extra] = n + np.arange(len(extra))
     vertex_map = np.concatenate([np.arange(n), fan_vertex[extra]]).astype(np.int64)
-    split_vertices = np.unique(fan_vertex[extra])
-    many = counts > 2
-    split_edges = np.stack([keys[many] // n, keys[many] % n], axis=1).astype(np.int64)
-    return ManifoldCut(faces=new_index[fan].reshape(m, 3), vertex_map=vertex_map,
-                       n_file_vertices=n, split_edges=split_edges,
-                       split_vertices=split_vertices.astype(np.int64))
+    return new_index[fan], vertex_map
+
+
+def _crowded_halfedges(corner_vertex: np.ndarray, partner: np.ndarray, n_cut: int
+                       ) -> np.ndarray:
+    """Half-edges of cut edges with more than two faces, except the lowest one of each such
+    edge and its partner: (k,) int64."""
+    origin = corner_vertex
+    dest = corner_vertex[_next(np.arange(len(corner_vertex)))]
+    key = np.minimum(origin, dest) * n_cut + np.maximum(origin, dest)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    halfedges = np.flatnonzero(counts[inverse] > 2)
+    if not len(halfedges):
+        return halfedges
+    order = np.lexsort((halfedges, inverse[halfedges]))
+    halfedges = halfedges[order]
+    group = inverse[halfedges]
+    starts = np.r_[True, group[1:] != group[:-1]]
+    first = halfedges[starts][np.cumsum(starts) - 1]
+    return halfedges[(halfedges != first) & (halfedges != partner[first])]
 
 
 def _paired_halfedges(F: np.ndarray, origin: np.ndarray, dest: np.ndarray,

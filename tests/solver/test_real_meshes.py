@@ -214,3 +214,21 @@ def test_without_placement_parts_are_side_by_side():
         boxes.append((result.vertices[part, 0].min(), result.vertices[part, 0].max()))
     boxes.sort()
     assert all(left[1] < right[0] for left, right in itertools.pairwise(boxes))
+
+
+def test_self_touching_faces_are_detached():
+    """Two tetrahedra on one triangle, both listing it with the same orientation (each base
+    edge has four faces and the fans join around the corners: rule 3 of solver.manifold):
+    the round trip still gives the file's mesh."""
+    V = np.array([[1, 0, 0], [-0.5, 0.8660254, 0], [-0.5, -0.8660254, 0], [0, 0, 1],
+                  [0, 0, -1.0]])
+    F = np.array([[3, 0, 1], [3, 1, 2], [3, 2, 0], [2, 1, 0],
+                  [4, 1, 0], [4, 2, 1], [4, 0, 2], [2, 0, 1]])
+    cut = cut_to_manifold(F, V)
+    counts = np.unique(np.sort(np.concatenate([cut.faces[:, [0, 1]], cut.faces[:, [1, 2]],
+                                               cut.faces[:, [2, 0]]]), axis=1),
+                       axis=0, return_counts=True)[1]
+    assert counts.max() <= 2
+    forms = solver.fundamental_forms(V, F)
+    result = _reconstruct(forms, len(V))
+    assert np.abs(result.vertices - V).max() < 1e-12

@@ -24,11 +24,12 @@ Per format:
   (the same rule in every format; :func:`read_mesh` reports how many faces were polygons and
   which file face each triangle comes from). Answers are given on these triangles.
 * **STL** -- trimesh, then merge of bit-identical positions (``-0.0`` equals ``0.0``).
-* **GLB** / **glTF** (``.gltf`` only with ``data:`` URI buffers) -- trimesh. The scene must
-  hold exactly one triangle mesh primitive used by exactly one node; its node transform is
-  applied (skipped when it is the identity, so positions are bit-exact). Scenes with several
-  meshes/primitives or instances are rejected with :class:`MeshFileError`: concatenating them
-  would give disconnected pieces whose seams the solver would treat as boundaries.
+* **GLB** / **glTF** (``.gltf`` only with ``data:`` URI buffers) -- trimesh. Every triangle
+  mesh primitive of every node instance is taken with its node transform applied (skipped
+  when it is the identity, so positions are bit-exact), concatenated in the scene graph's node
+  order: the parts of a multi-part model are components of one mesh, and the forms keep each
+  component's placement (:mod:`solver.placement`). A multi-solid ASCII STL is read the same
+  way (then merged). Points and lines are ignored.
 
 Saving (:func:`save_mesh`): OBJ, OFF and PLY are written here with full float64 precision
 (``%.17g`` text, binary little-endian ``double`` PLY) so a save/load round trip is exact; STL
@@ -520,29 +521,33 @@ def _parse_off(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _single_scene_mesh(scene: Any, fmt: str) -> tuple[np.ndarray, np.ndarray]:
-    """The one triangle mesh of a glTF scene, with its node transform applied."""
+    """The triangle meshes of a scene (glTF, multi-solid STL), each instance with its node
+    transform applied, concatenated in the scene graph's node order (each primitive's
+    vertices in its own order). The parts keep their places: the forms carry each
+    component's placement (:mod:`solver.placement`)."""
     import trimesh
 
-    instances = list(scene.graph.nodes_geometry)
     meshes = {name: g for name, g in scene.geometry.items() if isinstance(g, trimesh.Trimesh)}
     if not meshes:
         raise MeshFileError("no triangle mesh found in the data", file_type=fmt)
-    if len(scene.geometry) != 1 or len(instances) > 1:
-        raise MeshFileError(
-            f"scene holds {len(scene.geometry)} geometries (mesh primitives) in "
-            f"{len(instances)} node instances; exactly one triangle mesh primitive used by one "
-            "node is supported -- merge the meshes into one before uploading",
-            file_type=fmt,
-            details={"geometries": len(scene.geometry), "instances": len(instances)})
-    mesh = next(iter(meshes.values()))
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    if instances:
-        transform, _ = scene.graph[instances[0]]
+    instances = [node for node in scene.graph.nodes_geometry
+                 if scene.graph[node][1] in meshes] or [None]
+    vertices, faces, offset = [], [], 0
+    for node in instances:
+        if node is None:  # no node: the one mesh as stored
+            name, transform = next(iter(meshes)), np.eye(4)
+        else:
+            transform, name = scene.graph[node]
+        mesh = meshes[name]
+        part = np.asarray(mesh.vertices, dtype=np.float64)
         transform = np.asarray(transform, dtype=np.float64)
         if not np.array_equal(transform, np.eye(4)):
-            homog = np.hstack([vertices, np.ones((vertices.shape[0], 1))]) @ transform.T
-            vertices = homog[:, :3] / homog[:, 3:4]
-    return vertices, np.asarray(mesh.faces)
+            homog = np.hstack([part, np.ones((part.shape[0], 1))]) @ transform.T
+            part = homog[:, :3] / homog[:, 3:4]
+        vertices.append(part)
+        faces.append(np.asarray(mesh.faces, dtype=np.int64) + offset)
+        offset += len(part)
+    return np.concatenate(vertices), np.concatenate(faces)
 
 
 def _merge_identical(vertices: np.ndarray, faces: np.ndarray

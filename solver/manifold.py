@@ -3,7 +3,8 @@
 The rule (deterministic, vectorized; the one MeshLab's "split non-manifold vertices" and
 libigl's ``cut_to_disk``-style corner unions follow in spirit):
 
-1. **Edges.** An edge of two faces keeps them together. Around an edge of more than two
+1. **Edges.** An edge of two faces keeps them together when they run it opposite ways (two
+   faces flipped against each other are cut apart there). Around an edge of more than two
    faces the faces are sorted by the angle of their third vertex about the edge (from a
    reference direction perpendicular to the edge; ties by face index). A face that runs the
    edge ``i -> j`` (``i < j``) is paired with the face just before it in that order when that
@@ -61,7 +62,8 @@ class ManifoldCut:
         vertex_map: (n_cut,) int64 file vertex of each cut vertex; ``vertex_map[:n]`` is
             ``arange(n)`` (the first copy keeps the file index).
         n_file_vertices: n, the file's vertex count.
-        split_edges: (k, 2) int64 file edges ``[i, j]`` (i < j) of more than two faces.
+        split_edges: (k, 2) int64 file edges ``[i, j]`` (i < j) of more than two faces, or
+            of two faces that run them the same way.
         split_vertices: (j,) int64 file vertices with more than one copy.
     """
 
@@ -178,8 +180,8 @@ class ManifoldCut:
             spread: optional (n,) per-file-vertex spread of the answer (:meth:`to_file`).
         """
         section: dict[str, Any] = {
-            "rule": "non-manifold vertices split per fan; faces of an edge of more than two "
-                    "faces paired by orientation and angle",
+            "rule": "non-manifold vertices split per fan; faces of an edge paired by "
+                    "orientation and angle, flipped neighbours cut apart",
             "split_vertices": len(self.split_vertices), "split_edges": len(self.split_edges),
             "added_vertices": self.n_vertices - self.n_file_vertices,
             "split_vertex_list": self.split_vertices[:20].tolist(),
@@ -200,8 +202,8 @@ def cut_to_manifold(faces: ArrayLike, vertices: ArrayLike | None = None,
         n_vertices: vertex count (default ``len(vertices)`` or ``faces.max() + 1``).
 
     Returns:
-        :class:`ManifoldCut`; an edge whose two faces run it the same way stays joined (the
-        topology then refuses it as inconsistently oriented).
+        :class:`ManifoldCut`; an edge whose two faces run it the same way is cut (each side
+        is then consistently oriented).
 
     Raises:
         IndexOutOfRangeError, DegenerateFaceError, ShapeMismatchError: malformed faces.
@@ -238,7 +240,8 @@ def cut_to_manifold(faces: ArrayLike, vertices: ArrayLike | None = None,
         # its extra faces are detached from their neighbours and the fans formed again.
         detached[crowded // 3] = True
     split_vertices = np.unique(vertex_map[n:])
-    many = counts > 2
+    forward = np.bincount(halfedge_edge, weights=origin < dest, minlength=len(counts))
+    many = (counts > 2) | ((counts == 2) & (forward != 1))  # crowded, or flipped neighbours
     split_edges = np.stack([keys[many] // n, keys[many] % n], axis=1).astype(np.int64)
     return ManifoldCut(faces=corner_vertex.reshape(m, 3), vertex_map=vertex_map,
                        n_file_vertices=n, split_edges=split_edges,
@@ -317,6 +320,9 @@ def _paired_halfedges(F: np.ndarray, origin: np.ndarray, dest: np.ndarray,
     count_of = counts[edge_of]
     two = count_of == 2
     pairs_two = by_edge[two].reshape(-1, 2)
+    # Two faces that run their edge the same way (flipped against each other) are not
+    # joined there: the edge is cut, each side consistently oriented (rule 1).
+    pairs_two = pairs_two[origin[pairs_two[:, 0]] != origin[pairs_two[:, 1]]]
     many = np.flatnonzero(count_of > 2)
     if len(many) == 0:
         return pairs_two[:, 0], pairs_two[:, 1]

@@ -262,14 +262,18 @@ def test_ply_point_cloud_rejected() -> None:
 # ------------------------------------------------------------------ GLB scenes
 
 
-def test_glb_multiple_meshes_rejected() -> None:
+def test_glb_multiple_meshes_are_parts_of_one_mesh() -> None:
+    # Issue 40: a multi-part model is read whole, its parts in scene order, in place.
     a = trimesh.creation.box()
     b = trimesh.creation.icosphere(1)
     b.apply_translation([3, 0, 0])
     data = trimesh.Scene([a, b]).export(file_type="glb")
-    with pytest.raises(MeshFileError, match="exactly one triangle mesh") as info:
-        load_mesh(data, "glb")
-    assert info.value.details["geometries"] == 2
+    v, f = load_mesh(data, "glb")
+    assert v.shape == (len(a.vertices) + len(b.vertices), 3)
+    assert f.shape == (len(a.faces) + len(b.faces), 3)
+    found = sorted([np.round(v[: len(a.vertices)].mean(axis=0), 5).tolist(),
+                    np.round(v[len(a.vertices):].mean(axis=0), 5).tolist()])
+    assert found[1][0] == pytest.approx(3.0, abs=1e-5)  # the sphere kept its place
 
 
 def test_glb_node_transform_applied() -> None:

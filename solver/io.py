@@ -482,9 +482,10 @@ def _parse_off(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     text = data.decode("utf-8", errors="replace")
     lines = [ln.split("#", 1)[0].split() for ln in text.replace("\r", "\n").split("\n")]
     lines = [ln for ln in lines if ln]
-    if not lines or not lines[0][0].upper().endswith("OFF"):
+    if not lines or not re.match(r"^[A-Za-z]*OFF", lines[0][0]):
         raise MeshFileError("not an OFF file: the first line must be OFF")
-    header = lines[0]
+    glued = re.match(r"^([A-Za-z]*OFF)(\S+)$", lines[0][0])  # "OFF8 6 12": counts glued on
+    header = [glued.group(1), glued.group(2), *lines[0][1:]] if glued else lines[0]
     if any(word.upper() == "BINARY" for word in header[1:]):
         raise MeshFileError("binary OFF is not supported; save the mesh as text OFF")
     rest = lines[1:]

@@ -232,3 +232,13 @@ def test_self_touching_faces_are_detached():
     forms = solver.fundamental_forms(V, F)
     result = _reconstruct(forms, len(V))
     assert np.abs(result.vertices - V).max() < 1e-12
+
+
+def test_blend_keeps_each_part_in_place():
+    """Each part of a blend sits on its own vertex blend (one rigid alignment per part)."""
+    V, F = CASES["multi-component"]()
+    W = V.copy()
+    component = build_topology(F).vertex_component
+    W[component == component[F[0, 0]]] += [0.0, 0.0, 2.0]  # one part moved, the others not
+    middle = solver.interpolate(V, W, F, 0.5)
+    np.testing.assert_allclose(middle, (V + W) / 2, atol=1e-6 * diagonal(V))

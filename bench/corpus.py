@@ -161,7 +161,8 @@ def print_table(rows: list[Row]) -> None:
         noisy_error = f"{v.get('noisy_error', 0):.1e}"
         miss = f"{v.get('handle_miss', 0):.1e}"
         print(f"| {r.name} | {r.faces} | {v.get('cut', '-')} | {v.get('parts', '-')} | "
-              f"{_cell(r, 'forms', forms_s)} | {_cell(r, 'exact', exact)} | "
+              f"{_cell(r, 'forms', forms_s) if r.outcome['read'] == 'ok' else r.outcome['read']}"
+              f" | {_cell(r, 'exact', exact)} | "
               f"{_cell(r, 'noisy', noisy_error)} | {v.get('converged', '-')} | "
               f"{v.get('iterations', '-')} / {v.get('factorizations', '-')} | {noisy} | "
               f"{_cell(r, 'deform', miss)} | {r.outcome.get('flatten', '-')} |")

@@ -19,7 +19,7 @@ alternating runs, warm (a first call on the mesh primes the analysis caches).
 The targets: exact forms never refine; noisy forms converge within 2.5x the linear time and
 at most 4 factorizations.
 
-    python -m bench.slivers [--large] [--repeat 1]
+    python -m bench.slivers [--large] [--repeat 1] [--meshes rocker-arm.obj ...]
 """
 
 from __future__ import annotations
@@ -90,11 +90,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--large", action="store_true")
     parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--meshes", nargs="+", default=None,
+                        help="shared meshes instead of the default ones")
     args = parser.parse_args()
     print("| mesh | stand-in | faces | length ratio | corners < 5 deg | forms | refined? | "
           "converged | iterations / factorizations | linear s | default s | x linear |")
     print("|---|---|---:|---:|---:|---|---|---|---:|---:|---:|---:|")
-    for name in MESHES + (LARGE if args.large else ()):
+    for name in args.meshes or MESHES + (LARGE if args.large else ()):
         V, F = load_bench_mesh(name)
         for label, (U, G) in stand_ins(V, F).items():
             shape = irregularity(U, G)

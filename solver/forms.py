@@ -179,13 +179,15 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
     return forms
 
 
-def forms_of(V: np.ndarray, topology: MeshTopology) -> Forms:
+def forms_of(V: np.ndarray, topology: MeshTopology, allow_degenerate: bool = False) -> Forms:
     """:func:`fundamental_forms` on a topology built already (callers that have one do not
     build it again).
 
     Args:
         V: (n, 3) float64 validated vertices.
         topology: their mesh's connectivity.
+        allow_degenerate: measure a mesh with zero-area faces anyway (their dihedral angles
+            are 0): for metrics of an answer, never for forms to solve with.
 
     Returns:
         :class:`Forms`.
@@ -205,7 +207,7 @@ def forms_of(V: np.ndarray, topology: MeshTopology) -> Forms:
             field="faces", index=t)
     scale = float(lengths.max()) ** 2
     zero = areas <= 1e-15 * scale
-    if zero.any():
+    if zero.any() and not allow_degenerate:
         t = int(np.flatnonzero(zero)[0])
         raise DegenerateFaceError(
             f"face {topology.faces[t].tolist()} has zero area; its normal is undefined",

@@ -242,3 +242,13 @@ def test_blend_keeps_each_part_in_place():
     W[component == component[F[0, 0]]] += [0.0, 0.0, 2.0]  # one part moved, the others not
     middle = solver.interpolate(V, W, F, 0.5)
     np.testing.assert_allclose(middle, (V + W) / 2, atol=1e-6 * diagonal(V))
+
+
+def test_deform_that_collapses_a_face_still_answers():
+    """The distortion report measures a collapsed face instead of refusing the answer."""
+    V, F = CASES["fin-at-pi"]()
+    a, b, c = F[0]
+    targets = np.array([V[a], V[b], (V[a] + V[b]) / 2])  # the face's corners on one line
+    result = solver.deform(V, F, [a, b, c], targets, refine=False)
+    np.testing.assert_allclose(result.vertices[[a, b, c]], targets, atol=1e-12)
+    assert np.isfinite(result.report["distortion"]["length_summary"]["max"])

@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike
 
 from .constraints import Constraints
 from .errors import ConstraintError, TriangleInequalityError
+from .form_energy import well_shaped_errors
 from .forms import validate_forms, wrapped_angle_count
 from .frames import (
     face_edge_lengths,
@@ -634,7 +635,17 @@ def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
     refiner.expect_refresh(stages.timings.get("factorize", 0.0))
     fit = refiner.run(start, time_limit=stages.left(opts.max_seconds), progress=progress)
     refinement = dict(fit.report, start=label)
-    return problem.place_anchored(fit.vertices, anchored), refinement
+    vertices = fit.vertices
+    if not refinement.get("converged"):
+        # A refinement that stopped short never leaves the well-shaped elements worse off
+        # than its start (slivers and needles: issue 40).
+        before = well_shaped_errors(start, topology, problem.lengths, problem.angles)
+        after = well_shaped_errors(vertices, topology, problem.lengths, problem.angles)
+        refinement["well_shaped_error"] = {"start": before, "refined": after}
+        if after > before:
+            vertices, refinement["returned"] = start, "start: the refined shape's errors on " \
+                "well-shaped elements were larger"
+    return problem.place_anchored(vertices, anchored), refinement
 
 
 def _orthonormality_error(frames: np.ndarray) -> float:

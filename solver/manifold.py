@@ -84,9 +84,14 @@ class ManifoldCut:
             n_file_vertices: n (default ``vertex_map.max() + 1``).
 
         Raises:
-            IndexOutOfRangeError: a face beyond the map, or a map entry beyond n.
+            IndexOutOfRangeError: a face beyond the map, or a map entry beyond n (without n:
+                beyond the map's length).
         """
-        vmap = as_indices(vertex_map, "vertex_map", upper=n_file_vertices)
+        # A cut's map numbers its file vertices 0 .. n - 1 first (n <= n_cut): without n the
+        # entries are bounded by the map's length (never a huge vertex count from one entry).
+        vmap = as_indices(vertex_map, "vertex_map",
+                          upper=n_file_vertices if n_file_vertices is not None
+                          else len(np.asarray(vertex_map).reshape(-1)))
         n = int(vmap.max()) + 1 if n_file_vertices is None else int(n_file_vertices)
         F = as_faces(faces, len(vmap))
         counts = np.bincount(vmap, minlength=n)

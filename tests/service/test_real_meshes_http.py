@@ -150,3 +150,19 @@ def test_bad_vertex_map_is_a_clear_422(http):
     response = http.post("/v1/reconstruct", json=doc)
     assert response.status_code == 422, response.text
     assert "faces" in response.text or "vertex_map" in response.text
+
+
+def test_hostile_vertex_map_and_placement_are_422(http):
+    V, F = CASES["cones-at-apex"]()
+    doc = http.post("/v1/forms", files={"file": ("cones.off", save_mesh(V, F, "off"))}).json()
+    huge = {**doc, "vertex_map": [*doc["vertex_map"][:-1], 10**9]}
+    assert http.post("/v1/reconstruct", json=huge).status_code == 422
+    bad_frame = {**doc, "placement": {**doc["placement"],
+                                      "frames": [[[2.0, 0, 0], [0, 1, 0], [0, 0, 1]]] * 2}}
+    assert http.post("/v1/reconstruct", json=bad_frame).status_code == 422
+    short = {**doc, "placement": {**doc["placement"], "faces": doc["placement"]["faces"][:1]}}
+    assert http.post("/v1/reconstruct", json=short).status_code == 422
+    twice = {**doc, "placement": {**doc["placement"], "faces": [0, 1]}}
+    response = http.post("/v1/reconstruct", json=twice)  # two anchors in one part
+    assert response.status_code == 422, response.text
+    assert "placement" in response.text

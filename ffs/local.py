@@ -92,7 +92,8 @@ class Local:
             forms.faces, forms.edges, forms.lengths, forms.angles,
             constraints=solver.Constraints.from_records(constraints.get("positions") or [],
                                                         constraints.get("frames") or []),
-            options=solve.replace(check_integrability=report_first is None),
+            options=solve.replace(check_integrability=report_first is None
+                                  or report_first.integrable),
             progress=progress, vertex_map=forms.vertex_map, placement=forms.placement)
         report = result.report.to_dict()
         if report_first is not None:

@@ -219,7 +219,10 @@ def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
     result = solver.reconstruct(
         forms.faces, forms.edges, forms.lengths, forms.angles,
         constraints=_constraints(params.get("constraints")), n_vertices=n_vertices,
-        options=options.replace(check_integrability=full_report is None), progress=progress,
+        # Integrable forms are checked again inside: their verdict (with the linear energy)
+        # spares them a refinement (solver.reconstruct.linear_answer_is_exact).
+        options=options.replace(check_integrability=full_report is None
+                                or full_report.integrable), progress=progress,
         vertex_map=forms.vertex_map, placement=forms.placement)
     report = result.report.to_dict()
     if full_report is not None:

@@ -166,3 +166,15 @@ def test_hostile_vertex_map_and_placement_are_422(http):
     response = http.post("/v1/reconstruct", json=twice)  # two anchors in one part
     assert response.status_code == 422, response.text
     assert "placement" in response.text
+
+
+def test_integrable_sliver_forms_are_not_refined_with_require_integrable(http):
+    V, F = CASES["slivers-1e-6"]()
+    forms = solver.fundamental_forms(V, F)
+    body = {"faces": forms.faces.tolist(), "edges": forms.edges.tolist(),
+            "lengths": forms.lengths.tolist(), "angles": forms.angles.tolist(),
+            "options": {"require_integrable": True}}
+    response = http.post("/v1/reconstruct", json=body, params={"color": "defect"})
+    assert response.status_code == 200, response.text
+    assert response.json()["report"]["refinement"]["refined"] is False
+    assert rigid_alignment_error(np.asarray(response.json()["vertices"]), V) < 1e-8

@@ -212,6 +212,11 @@ def forms_of(V: np.ndarray, topology: MeshTopology, allow_degenerate: bool = Fal
         raise DegenerateFaceError(
             f"face {topology.faces[t].tolist()} has zero area; its normal is undefined",
             field="faces", index=t)
+    if allow_degenerate:  # a collapsed face or edge has no angle: 0 (measured, not solved)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            angles = np.nan_to_num(dihedral_angles(V, topology, normals), nan=0.0)
+        return Forms(faces=topology.faces, edges=topology.edges, lengths=lengths,
+                     angles=angles)
     return Forms(faces=topology.faces, edges=topology.edges, lengths=lengths,
                  angles=dihedral_angles(V, topology, normals))
 

@@ -186,7 +186,9 @@ def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike,
     now = forms_of(V1, build_topology(rest.faces, n_vertices=len(V0)), allow_degenerate=True)
     report = forms_distortion(now, rest.lengths, rest.angles, len(V0))
     F = rest.faces
-    corner_change = np.abs(corner_angles(V1, F) - corner_angles(V0, F)).max(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a collapsed face: changed by pi
+        corner_change = np.nan_to_num(
+            np.abs(corner_angles(V1, F) - corner_angles(V0, F)).max(axis=1), nan=np.pi)
     area0 = 0.5 * np.linalg.norm(np.cross(V0[F[:, 1]] - V0[F[:, 0]], V0[F[:, 2]] - V0[F[:, 0]]),
                                  axis=1)
     area1 = 0.5 * np.linalg.norm(np.cross(V1[F[:, 1]] - V1[F[:, 0]], V1[F[:, 2]] - V1[F[:, 0]]),

@@ -92,8 +92,9 @@ class ManifoldCut:
         vmap = as_indices(vertex_map, "vertex_map",
                           upper=n_file_vertices if n_file_vertices is not None
                           else len(np.asarray(vertex_map).reshape(-1)))
-        n = int(vmap.max()) + 1 if n_file_vertices is None else int(n_file_vertices)
-        F = as_faces(faces, len(vmap))
+        n = (int(vmap.max(initial=-1)) + 1 if n_file_vertices is None
+             else int(n_file_vertices))
+        F = as_faces(faces, len(vmap))  # an empty map: every face index is out of range
         counts = np.bincount(vmap, minlength=n)
         return cls(faces=F, vertex_map=vmap, n_file_vertices=n,
                    split_edges=np.zeros((0, 2), dtype=np.int64),

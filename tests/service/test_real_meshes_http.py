@@ -178,3 +178,11 @@ def test_integrable_sliver_forms_are_not_refined_with_require_integrable(http):
     assert response.status_code == 200, response.text
     assert response.json()["report"]["refinement"]["refined"] is False
     assert rigid_alignment_error(np.asarray(response.json()["vertices"]), V) < 1e-8
+
+
+def test_empty_vertex_map_is_a_422(http):
+    V, F = CASES["cones-at-apex"]()
+    doc = http.post("/v1/forms", files={"file": ("cones.off", save_mesh(V, F, "off"))}).json()
+    for operation in ("integrability", "reconstruct"):
+        response = http.post(f"/v1/{operation}", json={**doc, "vertex_map": []})
+        assert response.status_code == 422, response.text

@@ -24,7 +24,7 @@ from .errors import ConstraintError
 from .forms import forms_of
 from .frames import layout_frames
 from .layout_fit import LayoutFit
-from .manifold import ManifoldCut, cut_to_manifold
+from .manifold import ManifoldCut, manifold_topology
 from .metrics import compact, distortion
 from .options import DeformOptions
 from .reconstruct import Constraints, ImmersionProblem, Progress
@@ -189,7 +189,11 @@ class Deformer:
         rest = None if key is None else _REST_CACHE.get(key)
         # A non-manifold mesh is solved on its manifold cut (solver.manifold): handles and
         # the ROI name file vertices (every copy follows), answers are per file vertex.
-        self.cut = rest.cut if rest is not None else cut_to_manifold(faces, self.rest)
+        cut_topology = None
+        if rest is not None:
+            self.cut = rest.cut
+        else:
+            self.cut, cut_topology = manifold_topology(faces, self.rest)
         self.file_faces = np.asarray(given if given is not None else self.cut.faces,
                                      dtype=np.int64)
         self.file_handles = as_indices(handles, "handles", upper=n)
@@ -199,8 +203,7 @@ class Deformer:
             self.rest = self.cut.to_cut(self.rest)
             in_roi = in_roi[self.cut.vertex_map]
             n = len(self.rest)
-        full = (rest.topology if rest is not None
-                else build_topology(self.cut.faces, n_vertices=n))
+        full = rest.topology if rest is not None else cut_topology
         self.faces = full.faces
         self.last_spread = np.zeros(len(self.file_rest))
         """(n_file,) largest distance of a file vertex's copies from their mean in the last

@@ -22,7 +22,7 @@ from .errors import (
     NonFiniteValueError,
     NonPositiveLengthError,
 )
-from .manifold import cut_to_manifold
+from .manifold import manifold_topology
 from .placement import Placement, placement_of
 from .serialization import JsonDataclass
 from .topology import MeshTopology, build_topology
@@ -170,10 +170,10 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
         True
     """
     V = as_points(vertices, "vertices")
-    cut = cut_to_manifold(faces, V)
+    cut, topology = manifold_topology(faces, V)
     cut_vertices = V if cut.is_identity else cut.to_cut(V)
-    forms = forms_of(cut_vertices, build_topology(cut.faces, n_vertices=cut.n_vertices))
-    forms.placement = placement_of(cut_vertices, forms.faces)
+    forms = forms_of(cut_vertices, topology)
+    forms.placement = placement_of(cut_vertices, forms.faces, topology.face_component)
     if not cut.is_identity:
         forms.vertex_map = cut.vertex_map
     return forms

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 
 from .errors import ShapeMismatchError
 from .forms import fundamental_forms
-from .manifold import cut_to_manifold
+from .manifold import manifold_topology
 from .metrics import wrap_angle
 from .options import InterpolateOptions, ReconstructOptions
 from .placement import align_components, face_components
@@ -79,7 +79,7 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
     if A.shape != B.shape:
         raise ShapeMismatchError(f"vertices_b has shape {B.shape}, vertices_a {A.shape}",
                                  field="vertices_b")
-    cut = cut_to_manifold(faces, A)
+    cut = manifold_topology(faces, A)[0]
     if not cut.is_identity:  # a non-manifold mesh: blended on its cut (solver.manifold)
         blended = interpolate(cut.to_cut(A), cut.to_cut(B), cut.faces, t, options=opts,
                               return_reports=True)

@@ -50,6 +50,12 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike
 from scipy.sparse.csgraph import connected_components
 
+from .errors import (
+    InconsistentOrientationError,
+    NonManifoldEdgeError,
+    NonManifoldVertexError,
+)
+from .topology import MeshTopology, build_topology
 from .validation import as_faces, as_indices
 
 
@@ -195,6 +201,38 @@ class ManifoldCut:
         if spread is not None:
             section["max_spread"] = float(spread.max()) if len(spread) else 0.0
         return section
+
+
+def manifold_topology(faces: ArrayLike, vertices: ArrayLike | None = None,
+                      n_vertices: int | None = None) -> tuple[ManifoldCut, MeshTopology]:
+    """The one layer every mesh entry point passes through: the mesh's topology when it is
+    manifold and consistently oriented (the cut is then the identity, at no extra cost),
+    else its :func:`cut_to_manifold` and the cut's topology.
+
+    Args:
+        faces, vertices, n_vertices: as for :func:`cut_to_manifold`.
+
+    Returns:
+        ``(cut, topology)``: the :class:`ManifoldCut` and the cut mesh's
+        :class:`~solver.topology.MeshTopology`.
+
+    Example:
+        >>> cut, topology = manifold_topology([[0, 1, 2], [0, 1, 3]])  # flipped neighbours
+        >>> cut.is_identity, topology.n_vertices
+        (False, 6)
+    """
+    if n_vertices is None and vertices is not None:
+        n_vertices = len(vertices)
+    try:
+        topology = build_topology(faces, n_vertices)
+    except (NonManifoldEdgeError, NonManifoldVertexError, InconsistentOrientationError):
+        cut = cut_to_manifold(faces, vertices, n_vertices)
+        return cut, build_topology(cut.faces, n_vertices=cut.n_vertices)
+    n = topology.n_vertices
+    identity = ManifoldCut(faces=topology.faces, vertex_map=np.arange(n, dtype=np.int64),
+                           n_file_vertices=n, split_edges=np.zeros((0, 2), dtype=np.int64),
+                           split_vertices=np.zeros(0, dtype=np.int64))
+    return identity, topology
 
 
 def cut_to_manifold(faces: ArrayLike, vertices: ArrayLike | None = None,

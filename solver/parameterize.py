@@ -20,7 +20,7 @@ from .errors import TopologyError
 from .forms import fundamental_forms
 from .frames import face_edge_lengths, triangle_areas, triangle_layouts
 from .linalg import factorize
-from .manifold import ManifoldCut, cut_to_manifold
+from .manifold import ManifoldCut, manifold_topology
 from .metrics import corner_angles, histogram, summary
 from .options import ParameterizeOptions
 from .reconstruct import ImmersionProblem, Progress
@@ -183,7 +183,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
         ((5, 2), 0)
     """
     opts = ParameterizeOptions.given(options, overrides)
-    cut = cut_to_manifold(faces, as_points(vertices, "vertices"))
+    cut = manifold_topology(faces, as_points(vertices, "vertices"))[0]
     if not cut.is_identity:  # a non-manifold mesh: flattened on its cut (solver.manifold)
         return _on_file_vertices(parameterize(cut.to_cut(as_points(vertices, "vertices")),
                                               cut.faces, options=opts, progress=progress), cut)

@@ -121,19 +121,23 @@ def face_components(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.
     return labels[m:].astype(np.int64), labels[:m].astype(np.int64)
 
 
-def placement_of(vertices: ArrayLike, faces: ArrayLike) -> Placement:
+def placement_of(vertices: ArrayLike, faces: ArrayLike,
+                 face_component: np.ndarray | None = None) -> Placement:
     """The placement of every component of a mesh (anchor: its lowest-numbered face).
 
     Args:
         vertices: (n, 3) float.
         faces: (m, 3) int.
+        face_component: optional (m,) int64 component of each face, when the caller has
+            it (:attr:`solver.topology.MeshTopology.face_component`).
 
     Returns:
         :class:`Placement`, components in the order of their anchor faces.
     """
     V = as_points(vertices, "vertices")
     F = np.asarray(faces, dtype=np.int64)
-    _, face_component = face_components(F, len(V))
+    if face_component is None:
+        _, face_component = face_components(F, len(V))
     _, anchors = np.unique(face_component, return_index=True)
     anchors = np.sort(anchors)
     return Placement(faces=anchors.astype(np.int64), origins=V[F[anchors, 0]].copy(),

@@ -77,13 +77,11 @@ def mesh_summary(vertices: ArrayLike, faces: ArrayLike,
         >>> report["n_edges"], report["bounds"]
         (3, [[0.0, 0.0, 0.0], [2.0, 1.0, 0.0]])
     """
-    from .manifold import cut_to_manifold
-    from .topology import build_topology
+    from .manifold import manifold_topology
     from .validation import as_points
 
     points = as_points(vertices, "vertices")
-    cut = cut_to_manifold(faces, points)  # a non-manifold mesh is checked as its cut
-    topology = build_topology(cut.faces, n_vertices=cut.n_vertices)
+    cut, topology = manifold_topology(faces, points)  # a non-manifold mesh: as its cut
     edges = np.unique(np.sort(cut.vertex_map[topology.edges], axis=1), axis=0)
     lengths = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
     report: dict[str, Any] = {

@@ -109,6 +109,14 @@ def _forms_arrays(faces: Any, edges: Any, lengths: Any, angles: Any) -> dict[str
             "lengths": np.asarray(lengths), "angles": np.asarray(angles)}
 
 
+def _forms_params(faces: Any, edges: Any) -> dict[str, Any]:
+    """A :class:`Forms`' ``vertex_map`` (non-manifold mesh) and ``placement`` as params:
+    the answer then comes per file vertex, every component where it was."""
+    if isinstance(faces, Forms) and edges is None:
+        return faces.params()
+    return {}
+
+
 class Client:
     """The service at ``url`` (default: ``$FFS_SERVER``, else http://127.0.0.1:8000).
 
@@ -246,6 +254,7 @@ class Client:
     def check_integrability_call(self, faces: Any, edges: Any = None, lengths: Any = None,
                                  angles: Any = None, *, tol: float | None = None) -> Call:
         params = {} if tol is None else {"tolerance": tol}
+        params.update(_forms_params(faces, edges))
         return Call("integrability", _forms_arrays(faces, edges, lengths, angles), params,
                     Integrability.from_dict)
 
@@ -266,6 +275,7 @@ class Client:
             params["constraints"] = dict(constraints)
         if align_to is not None:
             params["align_to"] = np.asarray(align_to, dtype=np.float64).reshape(-1, 3).tolist()
+        params.update(_forms_params(faces, edges))
         return Call("reconstruct", _forms_arrays(faces, edges, lengths, angles), params,
                     Mesh.from_dict)
 

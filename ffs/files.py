@@ -4,7 +4,9 @@
   OBJ/OFF/PLY are written with full float64 precision, STL and GLB in float32), or ``.json``
   / ``.npz`` holding ``vertices`` and ``faces`` (the API's mesh document).
 * Forms: ``.json`` with the fields of the API's forms response (``faces``, ``edges``,
-  ``lengths``, ``angles``) or ``.npz`` with the same names.
+  ``lengths``, ``angles``, and the optional ``vertex_map`` of a non-manifold mesh and
+  ``placement`` of its components) or ``.npz`` with the same names (the placement as
+  ``placement_faces``, ``placement_origins``, ``placement_frames``).
 * Handles (``ffs deform --handles``): JSON, either the API's ``handles`` list
   ``[{"vertex": i, "position": [x, y, z]}, ...]`` or an object with ``handles`` and the
   optional ``rotations`` (``[{"faces": [...], "rotation": 3x3 rows}]``) and ``roi``; or a
@@ -161,9 +163,15 @@ def read_forms(path: str | os.PathLike[str], fmt: str | None = None) -> Forms:
     if fmt not in DATA_FORMATS:
         raise InputFileError(path, "forms are read from .json or .npz files")
     doc = _read_fields(path, fmt)
-    return Forms(_array(path, doc, "faces", np.int64, 3), _array(path, doc, "edges", np.int64, 2),
-                 _array(path, doc, "lengths", np.float64, None),
-                 _array(path, doc, "angles", np.float64, None))
+    forms = Forms(_array(path, doc, "faces", np.int64, 3),
+                  _array(path, doc, "edges", np.int64, 2),
+                  _array(path, doc, "lengths", np.float64, None),
+                  _array(path, doc, "angles", np.float64, None))
+    if doc.get("vertex_map") is not None:  # forms of a non-manifold mesh (its cut)
+        forms.vertex_map = _array(path, doc, "vertex_map", np.int64, None)
+    extras = Forms.from_dict({**doc, "faces": [], "edges": [], "lengths": [], "angles": []})
+    forms.placement = extras.placement
+    return forms
 
 
 @dataclass(frozen=True)

@@ -56,7 +56,8 @@ class Local:
     def fundamental_forms(self, vertices: Any, faces: Any, *,
                           progress: Progress | None = None) -> Forms:
         forms = solver.fundamental_forms(vertices, faces)
-        return Forms(forms.faces, forms.edges, forms.lengths, forms.angles)
+        return Forms(forms.faces, forms.edges, forms.lengths, forms.angles, forms.vertex_map,
+                     None if forms.placement is None else forms.placement.to_dict())
 
     def check_integrability(self, faces: Any, edges: Any = None, lengths: Any = None,
                             angles: Any = None, *, tol: float | None = None,
@@ -65,7 +66,7 @@ class Local:
         forms = _forms(faces, edges, lengths, angles)
         report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
                                             forms.angles, tol=1e-8 if tol is None else tol,
-                                            n_vertices=n_vertices)
+                                            n_vertices=n_vertices, vertex_map=forms.vertex_map)
         return integrability_report(report)
 
     def reconstruct(self, faces: Any, edges: Any = None, lengths: Any = None,
@@ -79,7 +80,8 @@ class Local:
         report_first = None
         if options.get("require_integrable"):
             report_first = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
-                                                      forms.angles, tol=tolerance)
+                                                      forms.angles, tol=tolerance,
+                                                      vertex_map=forms.vertex_map)
             if not report_first.integrable:
                 worst = [int(v) for v in report_first.worst_vertices]
                 raise NotIntegrableError(
@@ -91,16 +93,20 @@ class Local:
             forms.faces, forms.edges, forms.lengths, forms.angles,
             constraints=solver.Constraints.from_records(constraints.get("positions") or [],
                                                         constraints.get("frames") or []),
-            options=solve.replace(check_integrability=report_first is None),
-            progress=progress)
+            options=solve.replace(check_integrability=report_first is None
+                                  or report_first.integrable),
+            progress=progress, vertex_map=forms.vertex_map, placement=forms.placement)
         report = result.report.to_dict()
         if report_first is not None:
             report = {"integrability": to_jsonable(report_first.summary()), **report}
+        faces = np.asarray(forms.faces, dtype=np.int64)
+        if forms.vertex_map is not None:  # the answer is on the file's vertices
+            faces = np.asarray(forms.vertex_map, dtype=np.int64)[faces]
         vertices = result.vertices
         if align_to is not None:
             alignment = solver.rigid_alignment(vertices, align_to)
             vertices, report["alignment"] = alignment.vertices, alignment.report()
-        return Mesh(vertices, np.asarray(forms.faces, dtype=np.int64), report)
+        return Mesh(vertices, faces, report)
 
     def deform(self, vertices: Any, faces: Any, handles: Sequence[int] | np.ndarray,
                handle_positions: Any, *, rotation_handles: Sequence[Any] | None = None,

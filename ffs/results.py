@@ -28,23 +28,62 @@ def _ints(value: Any, cols: int | None = 3) -> np.ndarray:
 @dataclass
 class Forms:
     """Discrete fundamental forms (``solver.Forms``): faces (m, 3), edges (E, 2), lengths
-    (E,) and signed dihedral angles (E,) aligned with the edges."""
+    (E,) and signed dihedral angles (E,) aligned with the edges; for a non-manifold mesh
+    ``vertex_map`` (n_cut,) int64, the file vertex of each vertex of the (cut) faces; and
+    ``placement``, each component's pose (``{"faces", "origins", "frames"}``), which
+    ``reconstruct`` uses to put every part back where it was."""
 
     faces: np.ndarray
     edges: np.ndarray
     lengths: np.ndarray
     angles: np.ndarray
+    vertex_map: np.ndarray | None = None
+    placement: dict[str, Any] | None = None
+
+    PLACEMENT_ARRAYS = ("faces", "origins", "frames")
+    """The placement's arrays, stored as ``placement_<name>`` in an .npz."""
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any]) -> Forms:
-        """From the API's forms document (``{"faces", "edges", "lengths", "angles"}``)."""
+        """From the API's forms document (``{"faces", "edges", "lengths", "angles"}``, and
+        the optional ``vertex_map`` and ``placement``; an .npz's ``placement_faces``,
+        ``placement_origins`` and ``placement_frames``)."""
+        placement = doc.get("placement")
+        if placement is None and "placement_faces" in doc:
+            placement = {name: np.asarray(doc[f"placement_{name}"]).tolist()
+                         for name in cls.PLACEMENT_ARRAYS}
+        vertex_map = doc.get("vertex_map")
         return cls(_ints(doc["faces"]), _ints(doc["edges"], 2), _floats(doc["lengths"], None),
-                   _floats(doc["angles"], None))
+                   _floats(doc["angles"], None),
+                   None if vertex_map is None else _ints(vertex_map, None),
+                   None if placement is None else dict(placement))
 
     def to_dict(self) -> dict[str, Any]:
         """The API's forms document (lists; a valid body for integrability/reconstruct)."""
-        return {name: getattr(self, name).tolist()
-                for name in ("faces", "edges", "lengths", "angles")}
+        doc = {name: getattr(self, name).tolist()
+               for name in ("faces", "edges", "lengths", "angles")}
+        return {**doc, **self.params()}
+
+    def params(self) -> dict[str, Any]:
+        """The optional ``vertex_map`` and ``placement`` as request params (JSON-ready)."""
+        out: dict[str, Any] = {}
+        if self.vertex_map is not None:
+            out["vertex_map"] = np.asarray(self.vertex_map).tolist()
+        if self.placement is not None:
+            out["placement"] = {name: np.asarray(self.placement[name]).tolist()
+                                for name in self.PLACEMENT_ARRAYS}
+        return out
+
+    def stored_arrays(self) -> dict[str, np.ndarray]:
+        """Every array by name, for an .npz: :meth:`arrays`, ``vertex_map`` and the
+        ``placement_*`` arrays where present."""
+        out = dict(self.arrays())
+        if self.vertex_map is not None:
+            out["vertex_map"] = np.asarray(self.vertex_map)
+        if self.placement is not None:
+            out.update({f"placement_{name}": np.asarray(self.placement[name])
+                        for name in self.PLACEMENT_ARRAYS})
+        return out
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {"faces": self.faces, "edges": self.edges, "lengths": self.lengths,

@@ -90,7 +90,12 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "mesh", STAGES_LIGHT, False, tasks.forms_task,
         "Fundamental forms of a mesh",
         "Edge lengths and signed dihedral angles of a mesh. The result is a valid body for "
-        "/v1/integrability and /v1/reconstruct."),
+        "/v1/integrability and /v1/reconstruct. Meshes as they come: polygons are "
+        "fan-triangulated; a non-manifold mesh (an edge of 3 or more faces, a vertex joining "
+        "two fans, faces flipped against a neighbour) is cut into a manifold one and its "
+        "forms carry `vertex_map` (the file vertex of each cut vertex); `placement` holds "
+        "each connected part's pose, so /v1/reconstruct puts every part back in place "
+        "(docs/service.md, Meshes as they come)."),
     OperationSpec(
         "integrability", schemas.IntegrabilityRequest, schemas.IntegrabilityParams,
         documents.IntegrabilityResponse, "forms", STAGES_LIGHT, False,
@@ -105,7 +110,11 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "One sparse linear solve (Eq. 5) with optional position and frame constraints. The "
         "integrability condition is always checked first and summarized in "
         "`report.integrability`; with `options.require_integrable` a failed check is a 422 "
-        "naming the worst vertices. A mesh file upload is reconstructed from its own forms.",
+        "naming the worst vertices. A mesh file upload is reconstructed from its own forms. "
+        "With `vertex_map` the answer is per file vertex (the mean of its copies, their "
+        "spread in `report.input.cut`) on the file's triangles; with `placement` every "
+        "unconstrained part is put where it was, without it the parts are laid side by side. "
+        "Angles outside (-pi, pi] are wrapped (`report.input.wrapped_angles`).",
         colors=("defect",)),
     OperationSpec(
         "reconstruct/vjp", schemas.ReconstructVjpRequest, schemas.ReconstructVjpParams,
@@ -123,13 +132,16 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "Deform a mesh with handles",
         "Moves handle vertices (and optionally rotates groups of face frames) while "
         "preserving the fundamental forms as well as possible; `report.distortion` measures "
-        "the change.", colors=("distortion",)),
+        "the change. A non-manifold mesh is deformed on its manifold cut (every copy of a "
+        "handle vertex follows it) and answered per file vertex (`report.input.cut`); parts "
+        "without handles stay where they are.", colors=("distortion",)),
     OperationSpec(
         "parameterize", schemas.ParameterizeRequest, schemas.ParameterizeParams,
         documents.ParameterizeResponse, "mesh", STAGES_SOLVE, True,
         tasks.parameterize_task, "Flatten a mesh with boundary",
         "Planar coordinates by reconstructing with all dihedral angles 0. Closed meshes are "
-        "a 422 (unsupported-topology). glTF output is the flat mesh (u, v, 0)."),
+        "a 422 (unsupported-topology). glTF output is the flat mesh (u, v, 0). A non-manifold "
+        "mesh is flattened on its manifold cut, uv per file vertex (`report.input.cut`)."),
     OperationSpec(
         "interpolate", schemas.InterpolateRequest, schemas.InterpolateParams,
         documents.InterpolateResponse, "pair", STAGES_LIGHT, True,
@@ -162,7 +174,8 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "mesh", schemas.MeshRequest, schemas.MeshParams, documents.MeshResponse,
         "mesh", STAGES_LIGHT, True, tasks.mesh_task, "Read or convert a mesh",
         "Reads a mesh file (OBJ, PLY, OFF, STL, GLB) or a JSON mesh, checks its connectivity "
-        "like the other operations do, and returns it in the negotiated format: JSON "
+        "like the other operations do (a non-manifold mesh's cut in `report.input.cut`, "
+        "triangulated polygons in `report.input`), and returns it in the negotiated format: JSON "
         "`vertices` (file order) and `faces` with a `report` (counts, bounds, mean edge "
         "length), or GLB / glTF. The web page uses it to open uploads and to download the "
         "current mesh."),

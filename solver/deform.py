@@ -24,6 +24,7 @@ from .errors import ConstraintError
 from .forms import forms_of
 from .frames import layout_frames
 from .layout_fit import LayoutFit
+from .manifold import ManifoldCut, manifold_topology
 from .metrics import compact, distortion
 from .options import DeformOptions
 from .outcomes import not_refined
@@ -60,6 +61,7 @@ class _RestState:
     forms: Any
     problem: ImmersionProblem
     frames: np.ndarray
+    cut: ManifoldCut
 
 
 class _RestCache:
@@ -179,7 +181,7 @@ class Deformer:
         self.options = opts = DeformOptions.given(options, overrides)
         stages = Stages(progress)
         stages("validate")
-        self.rest = as_points(vertices, "vertices")
+        self.file_rest = self.rest = as_points(vertices, "vertices")
         n = len(self.rest)
         # The rest-state cache is keyed by the faces as given (when they are an (m, 3)
         # integer array): a hit also skips validating the same connectivity again.
@@ -187,10 +189,27 @@ class Deformer:
         in_roi = _roi_mask(roi, n)
         key = None if given is None else _rest_key(self.rest, given, in_roi, opts)
         rest = None if key is None else _REST_CACHE.get(key)
-        full = rest.topology if rest is not None else build_topology(faces, n_vertices=n)
+        # A non-manifold mesh is solved on its manifold cut (solver.manifold): handles and
+        # the ROI name file vertices (every copy follows), answers are per file vertex.
+        cut_topology = None
+        if rest is not None:
+            self.cut = rest.cut
+        else:
+            self.cut, cut_topology = manifold_topology(faces, self.rest)
+        self.file_faces = np.asarray(given if given is not None else self.cut.faces,
+                                     dtype=np.int64)
+        self.file_handles = as_indices(handles, "handles", upper=n)
+        require_unique(self.file_handles, "handles", "vertex")
+        self.handles, self._handle_source = self.cut.copies_of(self.file_handles)
+        if not self.cut.is_identity:
+            self.rest = self.cut.to_cut(self.rest)
+            in_roi = in_roi[self.cut.vertex_map]
+            n = len(self.rest)
+        full = rest.topology if rest is not None else cut_topology
         self.faces = full.faces
-        self.handles = as_indices(handles, "handles", upper=n)
-        require_unique(self.handles, "handles", "vertex")
+        self.last_spread = np.zeros(len(self.file_rest))
+        """(n_file,) largest distance of a file vertex's copies from their mean in the last
+        answer (0 for a manifold mesh)."""
         groups = [as_indices(g, f"rotations[{i}].faces", upper=len(self.faces))
                   for i, g in enumerate(rotation_handles or [])]
         for i, g in enumerate(groups):
@@ -240,7 +259,7 @@ class Deformer:
                                        weighting=opts.weighting)
             frames = layout_frames(sub_rest / problem.length_scale, forms.faces,
                                    problem.terms.layouts)
-            rest = _RestState(full, forms, problem, frames)
+            rest = _RestState(full, forms, problem, frames, self.cut)
         forms, self.problem, self.rest_frames = rest.forms, rest.problem, rest.frames
         fixed_local = np.flatnonzero(~in_roi[self.sub_vertices])
         self._handle_local = local_index[self.handles]
@@ -384,11 +403,12 @@ class Deformer:
         """
         started = time.perf_counter()
         refine = self.refine if refine is None else bool(refine)
-        P = (self.rest[self.handles] if handle_positions is None
+        P = (self.file_rest[self.file_handles] if handle_positions is None
              else as_points(handle_positions, "handle_positions"))
-        if len(P) != len(self.handles):
-            raise ConstraintError(f"expected {len(self.handles)} handle positions, got {len(P)}",
-                                  field="handle_positions")
+        if len(P) != len(self.file_handles):
+            raise ConstraintError(f"expected {len(self.file_handles)} handle positions, got "
+                                  f"{len(P)}", field="handle_positions")
+        P = P[self._handle_source]  # every copy of a handle vertex follows it
         R = (np.tile(np.eye(3), (self.n_groups, 1, 1)) if handle_rotations is None
              else np.asarray(handle_rotations, dtype=np.float64).reshape(-1, 3, 3))
         if len(R) != self.n_groups:
@@ -481,10 +501,14 @@ class Deformer:
         return self._embed(fit.vertices)
 
     def _embed(self, local: np.ndarray) -> np.ndarray:
-        """Whole-mesh vertices (n, 3): the rest, with the ROI's vertices from ``local``."""
+        """Whole-mesh vertices (n, 3) per file vertex: the rest, with the ROI's vertices
+        from ``local`` (copies of a file vertex averaged, :attr:`last_spread`)."""
         out = self.rest.copy()
         moving = self.in_roi[self.sub_vertices]
         out[self.sub_vertices[moving]] = local[moving]
+        if self.cut.is_identity:
+            return out
+        out, self.last_spread = self.cut.to_file(out)
         return out
 
 
@@ -551,6 +575,12 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
         analysis=deformer.system.analysis, n_unknowns=deformer.problem.n_unknowns,
         roi_faces=len(deformer.sub_faces), orthonormalized=bool(opts.orthonormalize),
         refinement=deformer.last_report,
-        distortion=compact(distortion(deformer.rest, result, deformer.faces)),
+        distortion=compact(distortion(deformer.rest, deformer.cut.to_cut(result),
+                                      deformer.faces)),
         warnings=as_report(refinement_warnings(deformer.last_report)))
+    if not deformer.cut.is_identity:
+        vertex = report.distortion.get("vertex")
+        if vertex is not None:
+            report.distortion["vertex"] = deformer.cut.to_file(np.asarray(vertex))[0]
+        report.input = {"cut": deformer.cut.report(deformer.last_spread)}
     return Deformation(vertices=result, report=report)

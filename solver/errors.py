@@ -125,12 +125,6 @@ class TriangleInequalityError(SolverInputError):
     kind = "triangle-inequality"
 
 
-class AngleRangeError(SolverInputError):
-    """A dihedral angle outside (-pi, pi]."""
-
-    kind = "angle-out-of-range"
-
-
 class EdgeMismatchError(SolverInputError):
     """The edge list is not exactly the set of undirected edges of the faces (sorted, i < j)."""
 
@@ -175,7 +169,7 @@ class TopologyError(SolverInputError):
 
 ERROR_KINDS: tuple[type[SolverInputError], ...] = (
     ShapeMismatchError, IndexOutOfRangeError, NonFiniteValueError, NonPositiveLengthError,
-    TriangleInequalityError, AngleRangeError, EdgeMismatchError, DegenerateFaceError,
+    TriangleInequalityError, EdgeMismatchError, DegenerateFaceError,
     NonManifoldEdgeError, NonManifoldVertexError, InconsistentOrientationError,
     ConstraintError, TopologyError,
 )

@@ -362,6 +362,31 @@ def form_residuals(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
     return out
 
 
+def well_shaped_errors(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
+                       angles: np.ndarray) -> float:
+    """The largest form error of ``X`` (n, 3) on the well-shaped elements: the largest
+    relative length error plus the largest dihedral-angle error (rad) over the edges of no
+    cap face (:func:`cap_faces`: needles, slivers, near-zero-area faces).
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.topology import build_topology
+        >>> topo = build_topology(np.array([[0, 1, 2], [0, 2, 3]]))
+        >>> V = np.array([[0., 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+        >>> L = np.linalg.norm(V[topo.edges[:, 1]] - V[topo.edges[:, 0]], axis=1)
+        >>> well_shaped_errors(V, topo, L, np.zeros(5)), well_shaped_errors(V, topo, L * 1.1,
+        ...                                                                np.zeros(5)) > 0.09
+        (0.0, True)
+    """
+    keep = ~cap_faces(topology, lengths).is_cap_edge
+    _, current = edge_vectors(X, topology.edges)
+    length_error = np.abs(current[keep] / lengths[keep] - 1.0).max(initial=0.0)
+    inner, hinge = hinges(topology)
+    theta, _ = hinge_angles(X, hinge, gradients=False)
+    angle_error = np.abs(wrap_angle(theta - angles[inner]))[keep[inner]].max(initial=0.0)
+    return float(length_error + angle_error)
+
+
 def reproduces(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
                angles: np.ndarray, hinge: tuple[np.ndarray, np.ndarray] | None = None) -> bool:
     """Whether ``X`` (n, 3) or (n, 2) has the target forms: every relative length error and

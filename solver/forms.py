@@ -17,18 +17,47 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .errors import (
-    AngleRangeError,
     DegenerateFaceError,
     EdgeMismatchError,
     NonFiniteValueError,
     NonPositiveLengthError,
 )
+from .manifold import manifold_topology
+from .placement import Placement, placement_of
 from .serialization import JsonDataclass
 from .topology import MeshTopology, build_topology
 from .validation import as_indices, as_points, as_vector
 
 ANGLE_SLACK = 1e-12
 """Angles this far beyond +-pi (radians) are accepted and clamped (rounding of pi)."""
+
+
+def wrap_angles(angles: np.ndarray) -> tuple[np.ndarray, int]:
+    """Dihedral angles mapped into (-pi, pi]: an angle is periodic (pi + x means -pi + x).
+
+    Angles within :data:`ANGLE_SLACK` of -pi or pi are clamped to pi (rounding of pi) and
+    not counted; every other finite angle outside (-pi, pi] is wrapped by a multiple of
+    2 pi and counted.
+
+    Args:
+        angles: (E,) float64, finite.
+
+    Returns:
+        ``(wrapped, count)``: (E,) float64 in (-pi, pi] and how many were wrapped.
+
+    Example:
+        >>> import numpy as np
+        >>> wrapped, count = wrap_angles(np.array([np.pi + 1e-3, -np.pi, 0.5, 7.0]))
+        >>> wrapped.round(6).tolist(), count
+        ([-3.140593, 3.141593, 0.5, 0.716815], 2)
+    """
+    near = (np.abs(angles) <= np.pi + ANGLE_SLACK) & (np.abs(angles) >= np.pi - ANGLE_SLACK)
+    outside = ~near & ((angles <= -np.pi) | (angles > np.pi))
+    turns = np.ceil((angles - np.pi) / (2 * np.pi))
+    wrapped = np.where(outside, angles - 2 * np.pi * turns, angles)
+    wrapped = np.where(near & (np.abs(angles) >= np.pi), np.pi, wrapped)
+    wrapped = np.where(wrapped <= -np.pi, np.pi, wrapped)
+    return wrapped, int(np.count_nonzero(outside))
 
 
 @dataclass
@@ -40,17 +69,26 @@ class Forms(JsonDataclass):
         edges: (E, 2) int64, i < j, sorted lexicographically.
         lengths: (E,) float64 edge lengths (first fundamental form).
         angles: (E,) float64 signed dihedral angles in (-pi, pi], 0 on boundary edges.
+        vertex_map: None for a manifold mesh; for a non-manifold one, whose forms are those
+            of its manifold cut (:mod:`solver.manifold`; ``faces`` are the cut faces), the
+            (n_cut,) int64 file vertex of each cut vertex.
+        placement: the rigid placement of each connected component
+            (:class:`solver.placement.Placement`), so that :func:`solver.reconstruct` puts
+            every part where it was; None when not known.
     """
 
     faces: np.ndarray
     edges: np.ndarray
     lengths: np.ndarray
     angles: np.ndarray
+    vertex_map: np.ndarray | None = None
+    placement: Placement | None = None
 
     _array_fields: ClassVar[dict[str, Any]] = {
         "faces": np.int64, "edges": np.int64, "lengths": np.float64,
-        "angles": np.float64,
+        "angles": np.float64, "vertex_map": np.int64,
     }
+    _nested_fields: ClassVar[dict[str, Any]] = {"placement": Placement}
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,8 +142,13 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
         vertices: (n, 3) float coordinates.
         faces: (m, 3) int, 0-based, counter-clockwise seen from outside.
 
+    A non-manifold mesh is cut into a manifold one first (:mod:`solver.manifold`): the
+    forms are those of the cut, ``faces`` are the cut faces and ``vertex_map`` names the
+    file vertex of each cut vertex. ``placement`` holds each component's pose
+    (:mod:`solver.placement`).
+
     Returns:
-        :class:`Forms` with edges (E, 2), lengths (E,), angles (E,).
+        :class:`Forms` with edges (E, 2), lengths (E,), angles (E,), vertex_map, placement.
 
     Raises:
         SolverInputError: a subclass naming the first bad element of a malformed mesh;
@@ -127,16 +170,24 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
         True
     """
     V = as_points(vertices, "vertices")
-    return forms_of(V, build_topology(faces, n_vertices=len(V)))
+    cut, topology = manifold_topology(faces, V)
+    cut_vertices = V if cut.is_identity else cut.to_cut(V)
+    forms = forms_of(cut_vertices, topology)
+    forms.placement = placement_of(cut_vertices, forms.faces, topology.face_component)
+    if not cut.is_identity:
+        forms.vertex_map = cut.vertex_map
+    return forms
 
 
-def forms_of(V: np.ndarray, topology: MeshTopology) -> Forms:
+def forms_of(V: np.ndarray, topology: MeshTopology, allow_degenerate: bool = False) -> Forms:
     """:func:`fundamental_forms` on a topology built already (callers that have one do not
     build it again).
 
     Args:
         V: (n, 3) float64 validated vertices.
         topology: their mesh's connectivity.
+        allow_degenerate: measure a mesh with zero-area faces anyway (their dihedral angles
+            are 0): for metrics of an answer, never for forms to solve with.
 
     Returns:
         :class:`Forms`.
@@ -156,13 +207,23 @@ def forms_of(V: np.ndarray, topology: MeshTopology) -> Forms:
             field="faces", index=t)
     scale = float(lengths.max()) ** 2
     zero = areas <= 1e-15 * scale
-    if zero.any():
+    if zero.any() and not allow_degenerate:
         t = int(np.flatnonzero(zero)[0])
         raise DegenerateFaceError(
             f"face {topology.faces[t].tolist()} has zero area; its normal is undefined",
             field="faces", index=t)
+    if allow_degenerate:  # a collapsed face or edge has no angle: 0 (measured, not solved)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            angles = np.nan_to_num(dihedral_angles(V, topology, normals), nan=0.0)
+        return Forms(faces=topology.faces, edges=topology.edges, lengths=lengths,
+                     angles=angles)
     return Forms(faces=topology.faces, edges=topology.edges, lengths=lengths,
                  angles=dihedral_angles(V, topology, normals))
+
+
+def wrapped_angle_count(angles: ArrayLike) -> int:
+    """How many of validated ``angles`` (E,) :func:`validate_forms` wraps into (-pi, pi]."""
+    return wrap_angles(np.asarray(angles, dtype=np.float64).ravel())[1]
 
 
 def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: ArrayLike,
@@ -177,19 +238,19 @@ def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angle
         faces: (m, 3) int, counter-clockwise.
         edges: (E, 2) int, the faces' edges ``[i, j]``, i < j, sorted.
         lengths: (E,) float edge lengths.
-        angles: (E,) float dihedral angles in (-pi, pi] (within :data:`ANGLE_SLACK`).
+        angles: (E,) finite float dihedral angles; those outside (-pi, pi] are wrapped
+            into it (:func:`wrap_angles`: an angle is periodic).
         n_vertices: vertex count (default ``faces.max() + 1``).
 
     Returns:
         ``(topology, lengths, angles)``: the :class:`~solver.topology.MeshTopology` and
-        (E,) float64 lengths and angles, angles clamped into (-pi, pi].
+        (E,) float64 lengths and angles, angles wrapped into (-pi, pi].
 
     Raises:
         EdgeMismatchError: edges that are not the faces' edges (sorted, i < j).
         ShapeMismatchError: arrays of the wrong shape or length.
         NonFiniteValueError: a length or angle that is not finite.
         NonPositiveLengthError: a length that is not positive.
-        AngleRangeError: an angle outside (-pi, pi].
 
     Example:
         >>> from solver.forms import validate_forms
@@ -220,11 +281,4 @@ def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angle
         raise NonPositiveLengthError(
             f"length {float(L[e])!r} of edge {E[e].tolist()} is not positive",
             field="lengths", index=e)
-    outside = (-np.pi - ANGLE_SLACK >= A) | (np.pi + ANGLE_SLACK < A)
-    if outside.any():
-        e = int(np.flatnonzero(outside)[0])
-        raise AngleRangeError(
-            f"angle {float(A[e])!r} of edge {E[e].tolist()} is outside (-pi, pi]",
-            field="angles", index=e)
-    A = np.where(-np.pi >= A, np.pi, np.minimum(A, np.pi))
-    return topology, L, A
+    return topology, L, wrap_angles(A)[0]

@@ -25,8 +25,9 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .forms import validate_forms
+from .forms import validate_forms, wrapped_angle_count
 from .frames import face_edge_lengths, transition_quaternions, triangle_inequality_violations
+from .manifold import ManifoldCut
 from .rotations import (
     quaternion_angles,
     quaternion_conjugate,
@@ -94,6 +95,8 @@ class IntegrabilityReport(JsonDataclass):
         isolated_vertices: vertices that no face uses.
         rotation_holonomy, translation_holonomy: the global generator loops.
         local_integrable, global_integrable: the two halves of ``integrable``.
+        wrapped_angles: angles given outside (-pi, pi] and wrapped into it (an angle is
+            periodic; :func:`solver.forms.wrap_angles`).
     """
 
     integrable: bool
@@ -115,6 +118,7 @@ class IntegrabilityReport(JsonDataclass):
     translation_holonomy: list[HolonomyLoop]
     local_integrable: bool
     global_integrable: bool
+    wrapped_angles: int = 0
 
     _array_fields: ClassVar[dict[str, Any]] = {
         "vertex_defect": np.float64, "gauss_defect": np.float64, "codazzi_defect": np.float64,
@@ -149,7 +153,8 @@ class IntegrabilityReport(JsonDataclass):
 
 def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
                         angles: ArrayLike, tol: float = 1e-8,
-                        n_vertices: int | None = None) -> IntegrabilityReport:
+                        n_vertices: int | None = None,
+                        vertex_map: ArrayLike | None = None) -> IntegrabilityReport:
     """Check whether edge lengths and dihedral angles come from an immersion.
 
     Args:
@@ -159,7 +164,11 @@ def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
         angles: (E,) signed dihedral angles in (-pi, pi].
         tol: tolerance on defects (radians) and on translation holonomy (relative to the mean
             edge length).
-        n_vertices: vertex count (default ``faces.max() + 1``).
+        n_vertices: vertex count (default ``faces.max() + 1``; the file's with
+            ``vertex_map``).
+        vertex_map: the forms' (n_cut,) file vertex of each vertex of ``faces`` (forms of a
+            non-manifold mesh, :mod:`solver.manifold`): the per-vertex defects are then given
+            per file vertex (the copy of largest defect).
 
     Returns:
         :class:`IntegrabilityReport`. Faces violating the triangle inequality are listed in
@@ -186,11 +195,26 @@ def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
         ...                     ).failing_vertices.tolist()
         [0, 1]
     """
+    cut = None
+    if vertex_map is not None:
+        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices)
+        n_vertices = cut.n_vertices
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     violations = triangle_inequality_violations(face_edge_lengths(topology, L))
     terms = energy_terms(topology, L, A, check=False)
-    return integrability_from_terms(terms, tol, mean_length=float(L.mean()),
-                                    violations=violations)
+    report = integrability_from_terms(terms, tol, mean_length=float(L.mean()),
+                                      violations=violations)
+    report.wrapped_angles = wrapped_angle_count(angles)
+    if cut is not None and not cut.is_identity:
+        report.vertex_defect, report.gauss_defect, report.codazzi_defect = (
+            cut.largest_to_file(values) for values in
+            (report.vertex_defect, report.gauss_defect, report.codazzi_defect))
+        report.failing_vertices = np.flatnonzero(report.vertex_defect > tol)
+        worst = np.argsort(-report.vertex_defect, kind="stable")[:WORST_COUNT]
+        report.worst_vertices = worst[report.vertex_defect[worst] > 0]
+        report.isolated_vertices = np.setdiff1d(np.arange(cut.n_file_vertices),
+                                                cut.vertex_map[topology.faces.ravel()])
+    return report
 
 
 def integrability_from_terms(terms: EnergyTerms, tol: float, mean_length: float,

@@ -7,7 +7,7 @@ blended forms of two poses do not integrate, and the linear answer alone shrinks
 from whichever of the linear answer and the vertex blend ``(1 - t) A + t B`` is nearer to
 them; a list of t is solved as a sequence (:mod:`solver.shape_space`). The result is rigidly
 aligned (rotation + translation, no scale) to the vertex blend so it sits where a user
-expects it.
+expects it. A non-manifold mesh is blended on its manifold cut (:mod:`solver.manifold`).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .errors import ShapeMismatchError
+from .manifold import manifold_topology
 from .options import BlendOptions, InterpolateOptions
 from .reports import Progress
 from .shape_space import blend, rigid_alignment
@@ -80,6 +81,14 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
     if A.shape != B.shape:
         raise ShapeMismatchError(f"vertices_b has shape {B.shape}, vertices_a {A.shape}",
                                  field="vertices_b")
+    cut = manifold_topology(faces, A)[0]
+    if not cut.is_identity:  # a non-manifold mesh: blended on its cut (solver.manifold)
+        blended = interpolate(cut.to_cut(A), cut.to_cut(B), cut.faces, t, options=opts,
+                              return_reports=True, progress=progress)
+        out = np.asarray(blended[0])
+        out = (cut.to_file(out)[0] if np.ndim(t) == 0
+               else np.stack([cut.to_file(x)[0] for x in out]))
+        return (out, blended[1]) if return_reports else out
     result = blend([A, B], two_shape_weights(t), faces, options=opts, progress=progress)
     reports = [row["refinement"] for row in result.reports]
     out = result.vertices[0] if np.ndim(t) == 0 else result.vertices

@@ -15,13 +15,21 @@ Per format:
   ``v`` index (``v``, ``v/vt``, ``v//vn``, ``v/vt/vn``; negative = relative), polygons are
   fan-triangulated, and all groups/objects/materials are merged in file order. ``vt``, ``vn``,
   ``l``, ``p``, materials and vertex colours are ignored.
-* **OFF**, **PLY** -- trimesh (``process=False``); polygons are triangulated by trimesh.
+* **OFF** -- parsed here (``OFF``/``COFF``/``NOFF`` text headers; extra vertex columns and
+  face colours are ignored).
+* **PLY** -- trimesh (``process=False``); polygon faces are read back from the file's face
+  list and triangulated here.
+* **Polygons** -- in OBJ, OFF and PLY a face with k > 3 corners ``(v0, ..., vk-1)`` is
+  fan-triangulated into the k - 2 triangles ``(v0, vj, vj+1)``, j = 1 .. k - 2, in file order
+  (the same rule in every format; :func:`read_mesh` reports how many faces were polygons and
+  which file face each triangle comes from). Answers are given on these triangles.
 * **STL** -- trimesh, then merge of bit-identical positions (``-0.0`` equals ``0.0``).
-* **GLB** / **glTF** (``.gltf`` only with ``data:`` URI buffers) -- trimesh. The scene must
-  hold exactly one triangle mesh primitive used by exactly one node; its node transform is
-  applied (skipped when it is the identity, so positions are bit-exact). Scenes with several
-  meshes/primitives or instances are rejected with :class:`MeshFileError`: concatenating them
-  would give disconnected pieces whose seams the solver would treat as boundaries.
+* **GLB** / **glTF** (``.gltf`` only with ``data:`` URI buffers) -- trimesh. Every triangle
+  mesh primitive of every node instance is taken with its node transform applied (skipped
+  when it is the identity, so positions are bit-exact), concatenated in the scene graph's node
+  order: the parts of a multi-part model are components of one mesh, and the forms keep each
+  component's placement (:mod:`solver.placement`). A multi-solid ASCII STL is read the same
+  way (then merged). Points and lines are ignored.
 
 Saving (:func:`save_mesh`): OBJ, OFF and PLY are written here with full float64 precision
 (``%.17g`` text, binary little-endian ``double`` PLY) so a save/load round trip is exact; STL
@@ -39,6 +47,7 @@ import io
 import logging
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
@@ -57,10 +66,12 @@ from .file_diagnosis import off_problem
 __all__ = [
     "LOAD_FORMATS",
     "SAVE_FORMATS",
+    "LoadedMesh",
     "MeshFileError",
     "UnsupportedFormatError",
     "load_mesh",
     "load_mesh_file",
+    "read_mesh",
     "resolve_format",
     "save_mesh",
 ]
@@ -124,6 +135,30 @@ def resolve_format(filename_or_type: str, supported: tuple[str, ...] = LOAD_FORM
 # Loading
 # --------------------------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class LoadedMesh:
+    """A mesh file read as triangles, with what the reading did to its polygons.
+
+    Attributes:
+        vertices: (n, 3) float64, every vertex record of the file in order.
+        faces: (m, 3) int64 triangles (polygons fan-triangulated, in file order).
+        face_polygon: (m,) int64 the file face (0-based record) each triangle comes from.
+        polygons: number of file faces with more than three corners.
+    """
+
+    vertices: NDArray[np.float64]
+    faces: NDArray[np.int64]
+    face_polygon: NDArray[np.int64]
+    polygons: int
+
+    def report(self) -> dict[str, int]:
+        """The ``input`` report's entries of the file: ``file_faces``,
+        ``triangulated_polygons`` and ``triangles``."""
+        file_faces = int(self.face_polygon.max()) + 1 if len(self.face_polygon) else 0
+        return {"file_faces": file_faces, "triangulated_polygons": self.polygons,
+                "triangles": len(self.faces)}
+
+
 def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Read a triangle mesh from file bytes, keeping the file's vertex order and count.
 
@@ -134,7 +169,7 @@ def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], 
 
     Returns:
         ``(vertices, faces)``: (n, 3) float64, finite, C-contiguous, and (m, 3) int64 with
-        m >= 1 and indices in ``[0, n)`` (polygons triangulated).
+        m >= 1 and indices in ``[0, n)`` (polygons fan-triangulated, see :func:`read_mesh`).
 
     Raises:
         UnsupportedFormatError: Unknown format.
@@ -146,6 +181,31 @@ def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], 
         >>> vertices.shape, faces.tolist()
         ((3, 3), [[0, 1, 2]])
     """
+    loaded = read_mesh(data, filename_or_type)
+    return loaded.vertices, loaded.faces
+
+
+def read_mesh(data: bytes, filename_or_type: str) -> LoadedMesh:
+    """:func:`load_mesh` with what the reading did: which file face each triangle comes from.
+
+    Args:
+        data: The whole file.
+        filename_or_type: as for :func:`load_mesh`.
+
+    Returns:
+        :class:`LoadedMesh`.
+
+    Raises:
+        UnsupportedFormatError, MeshFileError: as :func:`load_mesh`.
+
+    Example:
+        A quad and a triangle in an OFF file: the quad becomes two triangles.
+
+        >>> off = b"OFF\\n5 2 0\\n0 0 0\\n1 0 0\\n1 1 0\\n0 1 0\\n2 0 0\\n4 0 1 2 3\\n3 1 4 2\\n"
+        >>> loaded = read_mesh(off, "off")
+        >>> loaded.faces.tolist(), loaded.face_polygon.tolist(), loaded.polygons
+        ([[0, 1, 2], [0, 2, 3], [1, 4, 2]], [0, 0, 1], 1)
+    """
     fmt = resolve_format(filename_or_type)
     if isinstance(data, memoryview | bytearray):
         data = bytes(data)
@@ -153,11 +213,14 @@ def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], 
         raise TypeError(f"data must be bytes, got {type(data).__name__}")
     if not data.strip():
         raise MeshFileError("empty file", file_type=fmt)
+    face_polygon = None
     try:
         if fmt == "obj":
-            vertices, faces = _parse_obj(data)
+            vertices, faces, face_polygon = _parse_obj(data)
+        elif fmt == "off":
+            vertices, faces, face_polygon = _parse_off(_text_as_utf8(data, fmt))
         else:
-            vertices, faces = _load_trimesh(_text_as_utf8(data, fmt), fmt)
+            vertices, faces, face_polygon = _load_trimesh(_text_as_utf8(data, fmt), fmt)
     except MeshFileError as exc:
         exc.located(file_type=fmt)
         raise
@@ -171,7 +234,12 @@ def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], 
         raise MeshFileError(problem, file_type=fmt)
     if fmt == "stl":
         vertices, faces = _merge_identical(vertices, faces)
-    return _finish(vertices, faces, fmt)
+    vertices, faces = _finish(vertices, faces, fmt)
+    if face_polygon is None or len(face_polygon) != len(faces):
+        face_polygon = np.arange(len(faces), dtype=np.int64)
+    face_polygon = np.asarray(face_polygon, dtype=np.int64)
+    polygons = int(np.count_nonzero(np.bincount(face_polygon) > 1)) if len(faces) else 0
+    return LoadedMesh(vertices, faces, face_polygon, polygons)
 
 
 def _in_words(exc: Exception, data: bytes, fmt: str) -> str:
@@ -265,15 +333,16 @@ def _is_binary_stl(data: bytes) -> bool:
     return len(data) == 84 + 50 * count
 
 
-def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Positions from every ``v`` line, triangles from the ``v`` index of every ``f`` entry.
 
     Args:
         data: The OBJ file.
 
     Returns:
-        (n, 3) float64 vertices in ``v``-line order and (m, 3) int64 faces (0-based; each
-        k-gon fan-triangulated into k - 2 triangles ``(i0, ij, ij+1)``, in file order).
+        (n, 3) float64 vertices in ``v``-line order, (m, 3) int64 faces (0-based; each
+        k-gon fan-triangulated, :func:`fan_triangulate`) and (m,) int64 the ``f`` record
+        of each triangle.
     """
     text = data.decode("utf-8", errors="replace")
     text = text.replace("\r\n", "\n").replace("\r", "\n").replace("\\\n", " ")
@@ -297,7 +366,7 @@ def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
 
     f_rows = np.flatnonzero(is_f)
     if f_rows.size == 0:
-        return vertices, np.zeros((0, 3), dtype=np.int64)
+        return vertices, np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
     # "f 1/2/3 4//5 6" -> "1 4 6": keep each entry's leading v index.
     f_text = _OBJ_REF_TAIL.sub("", "\n".join([lines[r][2:] for r in f_rows]))
     counts = np.fromiter(map(len, map(str.split, f_text.split("\n"))), dtype=np.int64,
@@ -322,14 +391,36 @@ def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray]:
         lineno = int(np.repeat(f_rows, counts)[np.argmax(bad)]) + 1
         raise MeshFileError(f"line {lineno}: face references a vertex not defined before it",
                             details={"line": lineno})
-    # Fan triangulation, vectorized: face j with k corners starting at token offset o gives
-    # triangles (o, o + t, o + t + 1) for t = 1 .. k - 2.
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    triangles, face_polygon = fan_triangulate(counts)
+    return vertices, idx[triangles], face_polygon
+
+
+def fan_triangulate(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fan triangulation of polygons stored back to back, vectorized.
+
+    Polygon j with k_j corners at token offsets ``o .. o + k_j - 1`` gives the triangles
+    ``(o, o + t, o + t + 1)`` for t = 1 .. k_j - 2 (a triangle stays itself).
+
+    Args:
+        counts: (p,) int64 corners of each polygon, each >= 3.
+
+    Returns:
+        ``(triangles, polygon)``: (m, 3) int64 token offsets and (m,) int64 the polygon of
+        each triangle, m = sum(counts - 2).
+
+    Example:
+        >>> import numpy as np
+        >>> triangles, polygon = fan_triangulate(np.array([4, 3]))
+        >>> triangles.tolist(), polygon.tolist()
+        ([[0, 1, 2], [0, 2, 3], [4, 5, 6]], [0, 0, 1])
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     ntri = counts - 2
     first = np.repeat(starts, ntri)
     t = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
-    tok = np.stack([first, first + t, first + t + 1], axis=1)
-    return vertices, idx[tok]
+    polygon = np.repeat(np.arange(len(counts), dtype=np.int64), ntri)
+    return np.stack([first, first + t, first + t + 1], axis=1), polygon
 
 
 def _huge_index(tokens: list[str], token_rows: np.ndarray) -> MeshFileError:
@@ -350,44 +441,145 @@ def _huge_index(tokens: list[str], token_rows: np.ndarray) -> MeshFileError:
                          "of the file", details={"line": lineno, "value": tokens[k]})
 
 
-def _load_trimesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray]:
-    """OFF/PLY/STL/GLB/glTF through trimesh without any processing or reordering."""
+def _load_trimesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """PLY/STL/GLB/glTF through trimesh without any processing or reordering; a PLY's
+    polygon faces are triangulated here (:func:`_ply_polygons`)."""
     import trimesh  # deferred: heavy import, and only needed for these formats
 
     loaded = trimesh.load(io.BytesIO(data), file_type=fmt, process=False,
                           maintain_order=True)
     if isinstance(loaded, trimesh.Scene):
-        return _single_scene_mesh(loaded, fmt)
+        return (*_single_scene_mesh(loaded, fmt), None)
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshFileError(f"no triangle faces (file holds a {type(loaded).__name__})",
                             file_type=fmt)
-    return np.asarray(loaded.vertices), np.asarray(loaded.faces)
+    if fmt == "ply":
+        polygons = _ply_polygons(loaded.metadata)
+        if polygons is not None:
+            return (np.asarray(loaded.vertices), *polygons)
+    return np.asarray(loaded.vertices), np.asarray(loaded.faces), None
+
+
+def _ply_polygons(metadata: dict[str, Any]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The PLY file's own face list, fan-triangulated (:func:`fan_triangulate`), or None
+    when the file has no face list or only triangles (trimesh's faces are then the file's).
+
+    trimesh triangulates polygons itself, but reorders the faces (triangles first) and
+    splits quads differently from larger polygons; the raw list it keeps is used instead.
+    """
+    face = (metadata.get("_ply_raw") or {}).get("face") or {}
+    data = face.get("data")
+    if data is None:
+        return None
+    names = data.dtype.names or () if isinstance(data, np.ndarray) else tuple(data)
+    lists = [data[name] for name in ("vertex_indices", "vertex_index") if name in names]
+    if not lists:
+        return None
+    raw = lists[0]
+    if isinstance(raw, np.ndarray) and raw.dtype.names:  # binary: (count, indices) records
+        raw = raw[raw.dtype.names[-1]]
+    if isinstance(raw, np.ndarray) and raw.dtype != object:
+        rows = raw.reshape(len(raw), -1)
+        if rows.shape[1] == 3:
+            return None
+        counts = np.full(len(rows), rows.shape[1], dtype=np.int64)
+        tokens = rows.ravel()
+    else:
+        polygons = [np.asarray(row).ravel() for row in raw]
+        counts = np.fromiter(map(len, polygons), dtype=np.int64, count=len(polygons))
+        if (counts == 3).all():
+            return None
+        tokens = np.concatenate(polygons) if polygons else np.zeros(0, dtype=np.int64)
+    if len(counts) and counts.min() < 3:
+        k = int(np.argmax(counts < 3))
+        raise MeshFileError(f"face {k} has fewer than 3 vertices", index=k)
+    triangles, polygon = fan_triangulate(counts)
+    return tokens.astype(np.int64)[triangles], polygon
+
+
+def _parse_off(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An OFF file (``OFF``, ``COFF``, ``NOFF``, ``CNOFF``... text header).
+
+    Vertex records keep their first three numbers (colours and normals are ignored); a face
+    record ``k i0 ... ik-1 [colour]`` is fan-triangulated (:func:`fan_triangulate`).
+
+    Args:
+        data: The OFF file, UTF-8.
+
+    Returns:
+        (n, 3) float64 vertices, (m, 3) int64 triangles and (m,) int64 the face record of
+        each triangle.
+    """
+    text = data.decode("utf-8", errors="replace")
+    lines = [ln.split("#", 1)[0].split() for ln in text.replace("\r", "\n").split("\n")]
+    lines = [ln for ln in lines if ln]
+    if not lines or not re.match(r"^[A-Za-z]*OFF", lines[0][0]):
+        raise MeshFileError("not an OFF file: the first line must be OFF")
+    glued = re.match(r"^([A-Za-z]*OFF)(\S+)$", lines[0][0])  # "OFF8 6 12": counts glued on
+    header = [glued.group(1), glued.group(2), *lines[0][1:]] if glued else lines[0]
+    if any(word.upper() == "BINARY" for word in header[1:]):
+        raise MeshFileError("binary OFF is not supported; save the mesh as text OFF")
+    rest = lines[1:]
+    counts_line = header[1:] if len(header) >= 3 else (rest.pop(0) if rest else [])
+    try:
+        n_vertices, n_faces = int(counts_line[0]), int(counts_line[1])
+    except (IndexError, ValueError):
+        raise MeshFileError("the OFF header needs the vertex and face counts") from None
+    if len(rest) < n_vertices + n_faces:
+        raise MeshFileError(f"the header announces {n_vertices} vertices and {n_faces} faces "
+                            f"but the file has {len(rest)} records")
+    try:
+        vertices = np.array([ln[:3] for ln in rest[:n_vertices]], dtype=np.float64)
+    except ValueError as exc:
+        raise MeshFileError(f"bad vertex coordinate ({exc})") from exc
+    if vertices.ndim != 2 or (n_vertices and vertices.shape[1] != 3):
+        raise MeshFileError("a vertex record needs 3 coordinates")
+    records = rest[n_vertices:n_vertices + n_faces]
+    try:
+        corners = np.array([int(ln[0]) for ln in records], dtype=np.int64)
+        short = [k for k, ln in enumerate(records) if len(ln) < corners[k] + 1]
+        if short:
+            raise MeshFileError(f"face {short[0]} lists fewer indices than its count",
+                                index=short[0])
+        tokens = np.array([i for ln, k in zip(records, corners, strict=True)
+                           for i in ln[1:k + 1]], dtype=np.int64)
+    except ValueError as exc:
+        raise MeshFileError(f"bad face record ({exc})") from exc
+    if len(corners) and corners.min() < 3:
+        k = int(np.argmax(corners < 3))
+        raise MeshFileError(f"face {k} has fewer than 3 vertices", index=k)
+    triangles, polygon = fan_triangulate(corners)
+    return vertices.reshape(-1, 3), tokens[triangles].reshape(-1, 3), polygon
 
 
 def _single_scene_mesh(scene: Any, fmt: str) -> tuple[np.ndarray, np.ndarray]:
-    """The one triangle mesh of a glTF scene, with its node transform applied."""
+    """The triangle meshes of a scene (glTF, multi-solid STL), each instance with its node
+    transform applied, concatenated in the scene graph's node order (each primitive's
+    vertices in its own order). The parts keep their places: the forms carry each
+    component's placement (:mod:`solver.placement`)."""
     import trimesh
 
-    instances = list(scene.graph.nodes_geometry)
     meshes = {name: g for name, g in scene.geometry.items() if isinstance(g, trimesh.Trimesh)}
     if not meshes:
         raise MeshFileError("no triangle mesh found in the data", file_type=fmt)
-    if len(scene.geometry) != 1 or len(instances) > 1:
-        raise MeshFileError(
-            f"scene holds {len(scene.geometry)} geometries (mesh primitives) in "
-            f"{len(instances)} node instances; exactly one triangle mesh primitive used by one "
-            "node is supported -- merge the meshes into one before uploading",
-            file_type=fmt,
-            details={"geometries": len(scene.geometry), "instances": len(instances)})
-    mesh = next(iter(meshes.values()))
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    if instances:
-        transform, _ = scene.graph[instances[0]]
+    instances = [node for node in scene.graph.nodes_geometry
+                 if scene.graph[node][1] in meshes] or [None]
+    vertices, faces, offset = [], [], 0
+    for node in instances:
+        if node is None:  # no node: the one mesh as stored
+            name, transform = next(iter(meshes)), np.eye(4)
+        else:
+            transform, name = scene.graph[node]
+        mesh = meshes[name]
+        part = np.asarray(mesh.vertices, dtype=np.float64)
         transform = np.asarray(transform, dtype=np.float64)
         if not np.array_equal(transform, np.eye(4)):
-            homog = np.hstack([vertices, np.ones((vertices.shape[0], 1))]) @ transform.T
-            vertices = homog[:, :3] / homog[:, 3:4]
-    return vertices, np.asarray(mesh.faces)
+            homog = np.hstack([part, np.ones((part.shape[0], 1))]) @ transform.T
+            part = homog[:, :3] / homog[:, 3:4]
+        vertices.append(part)
+        faces.append(np.asarray(mesh.faces, dtype=np.int64) + offset)
+        offset += len(part)
+    return np.concatenate(vertices), np.concatenate(faces)
 
 
 def _merge_identical(vertices: np.ndarray, faces: np.ndarray

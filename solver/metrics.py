@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .forms import Forms, fundamental_forms
+from .forms import Forms, forms_of, fundamental_forms
+from .topology import build_topology
 from .validation import as_points
 
 HISTOGRAM_BINS = 20
@@ -179,10 +180,15 @@ def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike,
     V0 = as_points(vertices_ref, "vertices_ref")
     V1 = as_points(vertices, "vertices")
     rest = fundamental_forms(V0, faces)
-    now = fundamental_forms(V1, rest.faces)
+    if rest.vertex_map is not None:  # a non-manifold mesh: measured on its cut
+        V0, V1 = V0[rest.vertex_map], V1[rest.vertex_map]
+    # The measured shape may have collapsed a face: it is measured, not refused.
+    now = forms_of(V1, build_topology(rest.faces, n_vertices=len(V0)), allow_degenerate=True)
     report = forms_distortion(now, rest.lengths, rest.angles, len(V0))
     F = rest.faces
-    corner_change = np.abs(corner_angles(V1, F) - corner_angles(V0, F)).max(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a collapsed face: changed by pi
+        corner_change = np.nan_to_num(
+            np.abs(corner_angles(V1, F) - corner_angles(V0, F)).max(axis=1), nan=np.pi)
     area0 = 0.5 * np.linalg.norm(np.cross(V0[F[:, 1]] - V0[F[:, 0]], V0[F[:, 2]] - V0[F[:, 0]]),
                                  axis=1)
     area1 = 0.5 * np.linalg.norm(np.cross(V1[F[:, 1]] - V1[F[:, 0]], V1[F[:, 2]] - V1[F[:, 0]]),

@@ -20,6 +20,7 @@ from .errors import TopologyError
 from .forms import fundamental_forms
 from .frames import face_edge_lengths, triangle_areas, triangle_layouts
 from .linalg import factorize
+from .manifold import ManifoldCut, manifold_topology
 from .metrics import corner_angles, histogram, summary
 from .options import ParameterizeOptions
 from .outcomes import not_refined
@@ -184,6 +185,10 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
         ((5, 2), 0)
     """
     opts = ParameterizeOptions.given(options, overrides)
+    cut = manifold_topology(faces, as_points(vertices, "vertices"))[0]
+    if not cut.is_identity:  # a non-manifold mesh: flattened on its cut (solver.manifold)
+        return _on_file_vertices(parameterize(cut.to_cut(as_points(vertices, "vertices")),
+                                              cut.faces, options=opts, progress=progress), cut)
     backend = opts.backend or "auto"
     stages = Stages(progress)
     stages("validate")
@@ -276,3 +281,12 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
 
 __all__ = ["Parameterization", "local_global_flattening", "nearest_planar_rotation",
            "parameterize", "tutte_embedding"]
+
+
+def _on_file_vertices(flat: Parameterization, cut: ManifoldCut) -> Parameterization:
+    """A flattening of a manifold cut given per file vertex: each file vertex's uv is the
+    mean of its copies' (spread in ``report["input"]["cut"]``)."""
+    uv, spread = cut.to_file(flat.uv)
+    flat.uv = uv
+    flat.report.input = {"cut": cut.report(spread)}
+    return flat

@@ -18,7 +18,8 @@ from numpy.typing import ArrayLike
 
 from .constraints import Constraints
 from .errors import ConstraintError, TriangleInequalityError
-from .forms import validate_forms
+from .form_energy import well_shaped_errors
+from .forms import validate_forms, wrapped_angle_count
 from .frames import (
     face_edge_lengths,
     layout_frames,
@@ -32,8 +33,10 @@ from .integrability import (
 )
 from .layout_fit import LayoutFit
 from .linalg import resolve_backend
+from .manifold import ManifoldCut
 from .options import COTAN_FLOOR, FRAME_WEIGHT, ReconstructOptions
 from .outcomes import not_refined
+from .placement import Placement, apply_placement, side_by_side
 from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner, reproduces
 from .reports import Progress, ReconstructReport, Stages
 from .rotations import nearest_rotation
@@ -385,11 +388,32 @@ class ImmersionProblem:
         return frame_columns(self.topology.n_vertices, np.arange(self.topology.n_faces)).ravel()
 
 
+def linear_answer_is_exact(energy: dict[str, float], tolerance: float, n_edges: int) -> bool:
+    """Whether a linear answer of integrable forms is exact: its Eq. (5) energy (normalized
+    units, edge and frame parts) is at most ``tolerance**2`` per edge, i.e. the residuals are
+    at the integrability check's own tolerance.
+
+    On meshes with needles and slivers the per-element residuals of an exact answer can
+    exceed :func:`solver.refine.reproduces`'s thresholds through round-off alone, while the
+    refinement of such a mesh is ill-conditioned; the verdict of the integrability check and
+    this energy decide instead.
+
+    Example:
+        >>> linear_answer_is_exact({"edge": 1e-18, "frame": 2e-15}, 1e-8, 2000)
+        True
+        >>> linear_answer_is_exact({"edge": 1e-9, "frame": 0.0}, 1e-8, 2000)
+        False
+    """
+    return sum(energy.values()) <= tolerance ** 2 * max(n_edges, 1)
+
+
 def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: ArrayLike, *,
                 constraints: Constraints | None = None,
                 options: ReconstructOptions | None = None, n_vertices: int | None = None,
                 layout_angles: np.ndarray | None = None,
                 initial_guess: ArrayLike | None = None, progress: Progress | None = None,
+                vertex_map: ArrayLike | None = None,
+                placement: Placement | dict[str, Any] | None = None,
                 **overrides: Any) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
 
@@ -417,11 +441,22 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         progress: optional ``progress(stage, fraction)`` for the stages validate,
             assemble, factorize, solve (and refine); see :meth:`solver.refine.Refiner.run`
             for the per-iteration ``progress.iteration``.
+        vertex_map: the forms' (n_cut,) file vertex of each vertex of ``faces`` (forms of a
+            non-manifold mesh, :func:`solver.fundamental_forms`): the answer is given per
+            file vertex, the mean of its copies, their spread in ``report["input"]["cut"]``
+            (``n_vertices`` is then the file's vertex count).
+        placement: the forms' component placement (:class:`solver.placement.Placement` or
+            its dict): each component without constraints is moved rigidly so that its
+            anchor face has that pose (a multi-part round trip is exact as a whole);
+            without it each component is anchored at the origin and the anchored
+            components are then laid out side by side along +x, without overlap
+            (``report["input"]["placement"]`` says so).
         **overrides: fields of ``options`` given as keywords (``refine=False``).
 
     Returns:
         :class:`Reconstruction` with vertices (n, 3), frames (m, 3, 3) and a report
-        (energies, ``timings`` per stage in seconds, backend, anchors, integrability).
+        (energies, ``timings`` per stage in seconds, backend, anchors, integrability,
+        ``input``: wrapped angles, placement and cut).
 
     Example:
         >>> import numpy as np
@@ -440,7 +475,12 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     stages = Stages(progress)
     stages("validate")
     backend = resolve_backend(opts.backend or "auto")  # refused even when nothing factorizes
+    cut = None
+    if vertex_map is not None:
+        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices)
+        n_vertices = cut.n_vertices
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
+    place = Placement.coerce(placement, topology.n_faces)
     user = (constraints or Constraints()).validated(topology.n_vertices, topology.n_faces)
     stages.lap("validate")
     stages("assemble")
@@ -448,7 +488,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                                weighting=opts.weighting, cotan_floor=opts.cotan_floor,
                                length_scale=opts.length_scale, layout_angles=layout_angles)
     integrability = None
-    known_not_integrable = False
+    known_not_integrable = known_integrable = False
     if opts.check_integrability:
         checked = integrability_from_terms(
             problem.terms, opts.integrability_tol, mean_length=float(L.mean()) /
@@ -458,6 +498,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         # integration below would be built only to be refused. (Skipping it is never
         # wrong: the factorization gives the minimizer in every case.)
         known_not_integrable = not checked.integrable
+        known_integrable = checked.integrable
     linear = problem.linear_constraints(user)
     touched = problem.constrained_components(user)
     anchor, anchored = problem.anchors(~touched)
@@ -514,6 +555,13 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         exact = refine is not False and reproduces(vertices, topology, L, A)
         refinement = not_refined("disabled (refine=false)" if refine is False
                                  else "exact: the linear answer reproduces the forms")
+        if refine is not False and not exact and known_integrable and linear_answer_is_exact(
+                first_energy, opts.integrability_tol, topology.n_edges):
+            # Integrable forms never pay for a refinement: the verdict and the linear
+            # energy decide it, not the per-element residuals of slivers (issue 40).
+            exact = True
+            refinement = not_refined("exact: integrable forms and a linear energy within "
+                                     "the integrability tolerance")
     if opts.orthonormalize and solve_path == "factorization":  # integrated: rotations
         stages("factorize", 0.5)
         rotations = nearest_rotation(frames)
@@ -537,6 +585,22 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         stages.lap("refine")
         stages("refine", 1.0)
 
+    input_report: dict[str, Any] = {"wrapped_angles": wrapped_angle_count(angles),
+                                     "placement": "none"}
+    laid_out = np.array([a["component"] for a in anchored], dtype=np.int64)
+    if place is None and len(laid_out) > 1:
+        # No placement: the anchored parts would all sit at the origin (issue 40).
+        vertices = side_by_side(vertices, topology.vertex_component, laid_out)
+        input_report["placement"] = (f"none: {len(laid_out)} components laid out side by "
+                                     "side along +x")
+    if place is not None:
+        moving = ~touched[topology.face_component[place.faces]]
+        vertices, frames = apply_placement(vertices, topology.faces, place.subset(moving),
+                                           frames=frames)
+        input_report["placement"] = f"{int(moving.sum())} of {len(moving)} components placed"
+    if cut is not None:
+        vertices, spread = cut.to_file(vertices)
+        input_report["cut"] = cut.report(spread)
     report = ReconstructReport(
         energy=energy, first_solve_energy=first_energy,
         frame_orthonormality_error=orthonormality, orthonormalized=bool(opts.orthonormalize),
@@ -545,7 +609,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         weighting=problem.weighting, length_scale=problem.length_scale,
         regularized_components=regularized, anchored_components=anchored,
         isolated_vertices=topology.isolated_vertices.tolist(), integrability=integrability,
-        warnings=as_report(refinement_warnings(refinement)))
+        warnings=as_report(refinement_warnings(refinement)), input=input_report)
     return Reconstruction(vertices=vertices, frames=frames, report=report)
 
 
@@ -573,7 +637,17 @@ def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
     refiner.expect_refresh(stages.timings.get("factorize", 0.0))
     fit = refiner.run(start, time_limit=stages.left(opts.max_seconds), progress=progress)
     refinement = dict(fit.report, start=label)
-    return problem.place_anchored(fit.vertices, anchored), refinement
+    vertices = fit.vertices
+    if not refinement.get("converged"):
+        # A refinement that stopped short never leaves the well-shaped elements worse off
+        # than its start (slivers and needles: issue 40).
+        before = well_shaped_errors(start, topology, problem.lengths, problem.angles)
+        after = well_shaped_errors(vertices, topology, problem.lengths, problem.angles)
+        refinement["well_shaped_error"] = {"start": before, "refined": after}
+        if after > before:
+            vertices, refinement["returned"] = start, "start: the refined shape's errors on " \
+                "well-shaped elements were larger"
+    return problem.place_anchored(vertices, anchored), refinement
 
 
 def _orthonormality_error(frames: np.ndarray) -> float:

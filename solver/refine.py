@@ -347,6 +347,14 @@ class Refiner:
                         energy, H, g = system.normal_equations(s.X)
                     refresh = True
                     continue
+                except SingularSystemError:
+                    # The backend's solve is inaccurate (a factor of an ill-conditioned
+                    # matrix: needles and slivers, issue 40): more damping, a new factor.
+                    s.damping, s.rejected = s.damping * 10.0, s.rejected + 1
+                    if H is None:
+                        energy, H, g = system.normal_equations(s.X)
+                    refresh = True
+                    continue
                 found = self._line_search(s.X, step, energy, slope) if slope < 0 else None
                 gained = energy - found[2] if found is not None else 0.0
                 if (found is not None and not s.fresh and not s.interactive

@@ -77,17 +77,20 @@ def mesh_summary(vertices: ArrayLike, faces: ArrayLike,
         >>> report["n_edges"], report["bounds"]
         (3, [[0.0, 0.0, 0.0], [2.0, 1.0, 0.0]])
     """
-    from .topology import build_topology
+    from .manifold import manifold_topology
     from .validation import as_points
 
     points = as_points(vertices, "vertices")
-    topology = build_topology(faces, n_vertices=len(points))
-    edges = topology.edges
+    cut, topology = manifold_topology(faces, points)  # a non-manifold mesh: as its cut
+    edges = np.unique(np.sort(cut.vertex_map[topology.edges], axis=1), axis=0)
     lengths = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
-    report = {"n_vertices": len(points), "n_faces": len(topology.faces), "n_edges": len(edges),
-              "bounds": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
-              "mean_edge_length": float(lengths.mean()) if len(lengths) else 0.0}
-    return points, np.asarray(topology.faces, dtype=np.int64), report
+    report: dict[str, Any] = {
+        "n_vertices": len(points), "n_faces": len(topology.faces), "n_edges": len(edges),
+        "bounds": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
+        "mean_edge_length": float(lengths.mean()) if len(lengths) else 0.0}
+    if not cut.is_identity:
+        report["input"] = {"cut": cut.report()}
+    return points, cut.vertex_map[topology.faces], report
 
 
 Timings = dict[str, float]
@@ -146,6 +149,9 @@ class ReconstructReport(Report):
         integrability: the integrability summary (None: not checked).
         vjp: :func:`solver.reconstruct_vjp`'s preparation (None otherwise).
         warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
+        input: what was done to the input to solve it (``wrapped_angles``: angles given
+            outside (-pi, pi] and wrapped; a non-manifold mesh's cut, see
+            :mod:`solver.manifold`).
     """
 
     energy: dict[str, float]
@@ -167,6 +173,7 @@ class ReconstructReport(Report):
     integrability: dict[str, Any] | None = None
     vjp: dict[str, Any] | None = None
     warnings: list[dict[str, Any]] | None = None
+    input: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(eq=False)
@@ -182,6 +189,8 @@ class DeformReport(Report):
         refinement: whether and how it refined.
         distortion: :func:`solver.metrics.distortion` against the rest mesh (compact).
         warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
+        input: what was done to the input (``cut``: a non-manifold mesh's manifold cut,
+            :mod:`solver.manifold`, with the spread of the copies); None: nothing.
     """
 
     timings: Timings
@@ -193,6 +202,7 @@ class DeformReport(Report):
     refinement: dict[str, Any]
     distortion: dict[str, Any]
     warnings: list[dict[str, Any]] | None = None
+    input: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(eq=False)
@@ -212,6 +222,8 @@ class ParameterizeReport(Report):
         backend, analysis: the factorization's.
         timings: seconds per stage.
         warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
+        input: what was done to the input (``cut``: a non-manifold mesh's manifold cut,
+            :mod:`solver.manifold`, with the spread of the copies' uv); None: nothing.
     """
 
     flipped_count: int
@@ -228,3 +240,4 @@ class ParameterizeReport(Report):
     analysis: str
     timings: Timings
     warnings: list[dict[str, Any]] | None = None
+    input: dict[str, Any] | None = None

@@ -105,7 +105,15 @@ def build_parser() -> argparse.ArgumentParser:
                      "in-process or on a service (--server).",
                      epilog="Exit codes: 0 done, 1 a file failed (or, with --strict, an "
                      "answer carries a warning), 2 usage. "
-                     "Example: ffs reconstruct forms/*.npz -o out/{stem}.glb -j 2")
+                     "Example: ffs reconstruct forms/*.npz -o out/{stem}.glb -j 2. "
+                     "Meshes as they come: polygons (OBJ, OFF, PLY) are fan-triangulated and "
+                     "answers are on those triangles; a non-manifold mesh (an edge of 3 or "
+                     "more faces, a vertex joining two fans) is solved on its manifold cut and "
+                     "answered per file vertex (copies averaged, spread in the report); forms "
+                     "files keep the cut's vertex_map and each part's placement, so "
+                     "reconstruct puts every part back where it was (without a placement "
+                     "parts are laid side by side); angles outside (-pi, pi] are wrapped and "
+                     "counted. See docs/service.md#meshes-as-they-come.")
     parser.add_argument("--version", action="version", version=f"ffs {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="command", required=True,
                                      parser_class=_Parser)

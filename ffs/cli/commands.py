@@ -97,7 +97,8 @@ def run_forms(backend: Any, item: Item, args: argparse.Namespace, progress: Prog
     forms = backend.fundamental_forms(vertices, faces, progress=progress)
     out = Path(item.outputs[0])
     fmt = _output_format(out, args, ("json", "npz"))
-    files.write_arrays(out, fmt, forms.arrays(), {})
+    files.write_arrays(out, fmt, forms.stored_arrays() if fmt == "npz" else forms.arrays(),
+                       forms.params())
     row.faces = len(forms.faces)
     row.note = f"{len(forms.edges)} edges"
 

@@ -114,6 +114,13 @@ class FormsResponse(BaseModel):
     edges: list[Annotated[list[int], Field(min_length=2, max_length=2)]]
     lengths: list[float]
     angles: list[float]
+    vertex_map: list[int] | None = Field(
+        None, description="Present for a non-manifold mesh, whose forms are those of its "
+                          "manifold cut (`faces` are the cut faces): the file vertex of each "
+                          "cut vertex. Send it back with the forms.")
+    placement: dict[str, Any] | None = Field(
+        None, description="Each connected component's rigid placement (`faces`, `origins`, "
+                          "`frames`): `reconstruct` puts every part back where it was.")
 
 
 class HolonomyLoop(BaseModel):

@@ -127,7 +127,39 @@ class MeshParams(ApiModel):
     model_config = _example({})
 
 
-class IntegrabilityParams(ApiModel):
+class PlacementModel(ApiModel):
+    """The rigid placement of each connected component (``solver.placement``): the pose
+    of its anchor face (its lowest-numbered face) when the forms were computed."""
+
+    model_config = _example({"faces": [0], "origins": [[0.0, 0.0, 0.0]],
+                             "frames": [_IDENTITY]})
+
+    faces: list[Index] = Field(fail_fast=True, description="(c,) anchor face of each "
+                               "component.")
+    origins: list[Vec3] = Field(fail_fast=True, description="(c, 3) position of each anchor "
+                                "face's first vertex.")
+    frames: list[Mat3] = Field(fail_fast=True, description="(c, 3, 3) rotation whose columns "
+                               "are the anchor face's edge direction, in-plane normal and "
+                               "face normal (rows given).")
+
+
+class CutFormsParams(ApiModel):
+    """What forms of ``POST /v1/forms`` carry besides the arrays (issue 40)."""
+
+    vertex_map: list[Index] | None = Field(
+        None, fail_fast=True,
+        description="Forms of a non-manifold mesh are those of its manifold cut (`faces` are "
+                    "the cut faces): `vertex_map[c]` is the file vertex of cut vertex c. "
+                    "Answers are then per file vertex (the mean of its copies; their spread "
+                    "in `report.input.cut`). Omitted: the faces' own vertices.")
+    placement: PlacementModel | None = Field(
+        None, description="Each component's rigid placement (from `POST /v1/forms`): "
+                          "`reconstruct` moves every unconstrained component so that its "
+                          "anchor face has that pose, so a multi-part model comes back whole. "
+                          "Omitted: each component is anchored at the origin.")
+
+
+class IntegrabilityParams(CutFormsParams):
     """Parameters of ``POST /v1/integrability``."""
 
     model_config = _example({"tolerance": 1e-8})
@@ -197,7 +229,7 @@ class ReconstructOptions(served_options(solver_options.ReconstructOptions)):  # 
                            "least-squares answer when the forms are not integrable.")
 
 
-class ReconstructParams(ApiModel):
+class ReconstructParams(CutFormsParams):
     """Parameters of ``POST /v1/reconstruct`` besides the forms (or mesh file)."""
 
     model_config = _example({"constraints": {"positions": [{"vertex": 0,

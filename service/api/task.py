@@ -41,6 +41,10 @@ class FormsArrays:
     edges: np.ndarray
     lengths: np.ndarray
     angles: np.ndarray
+    vertex_map: np.ndarray | None = None
+    """The cut's file vertex of each vertex (forms of a non-manifold mesh), or None."""
+    placement: Any = None
+    """The components' placement (:class:`solver.placement.Placement` or its dict), or None."""
 
 
 @dataclass(frozen=True)

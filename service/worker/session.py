@@ -91,7 +91,7 @@ class SessionState:
             roi=spec.roi, options=options)
         self.deformer.solve(refine=False)
         self.setup_seconds = time.perf_counter() - start
-        self.faces = self.deformer.faces
+        self.faces = self.deformer.file_faces  # a non-manifold mesh is solved on its cut
         self.solves = 0
         self.drags = 0
         """Drags answered so far; drag k (1, 2, ...) is the k-th."""
@@ -100,8 +100,8 @@ class SessionState:
     def info(self) -> dict[str, Any]:
         """Sizes, handles, set-up time, linear-solver backend and whether drags refine."""
         d = self.deformer
-        return {"n_vertices": len(d.rest), "n_faces": len(d.faces),
-                "handles": [int(h) for h in d.handles], "n_rotation_groups": d.n_groups,
+        return {"n_vertices": len(d.file_rest), "n_faces": len(d.file_faces),
+                "handles": [int(h) for h in d.file_handles], "n_rotation_groups": d.n_groups,
                 "setup_seconds": self.setup_seconds, "backend": d.backend,
                 "refine": self.progressive}
 

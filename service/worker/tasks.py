@@ -41,32 +41,65 @@ TaskFn = Callable[[TaskRequest, Progress], TaskResult]
 
 
 def _load_file(upload: MeshFile, request: TaskRequest) -> tuple[np.ndarray, np.ndarray]:
-    from solver.io import MeshFileError, load_mesh
-
-    try:
-        vertices, faces = load_mesh(upload.data, upload.filename)
-    except MeshFileError as exc:  # its problem names the upload's field and file name
-        exc.located(field=upload.field, file_name=upload.filename)
-        raise
-    check_limits(len(vertices), len(faces), request.limits, upload.field)
+    vertices, faces, _ = _read_file(upload, request)
     return vertices, faces
 
 
+def _read_file(upload: MeshFile, request: TaskRequest
+               ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """An upload's vertices, triangles and the ``input`` report of its reading (polygons
+    triangulated, :func:`solver.io.read_mesh`)."""
+    from solver.io import MeshFileError, read_mesh
+
+    try:
+        loaded = read_mesh(upload.data, upload.filename)
+    except MeshFileError as exc:  # its problem names the upload's field and file name
+        exc.located(field=upload.field, file_name=upload.filename)
+        raise
+    check_limits(len(loaded.vertices), len(loaded.faces), request.limits, upload.field)
+    return loaded.vertices, loaded.faces, loaded.report()
+
+
 def _mesh(request: TaskRequest) -> tuple[np.ndarray, np.ndarray]:
+    vertices, faces, _ = _mesh_and_input(request)
+    return vertices, faces
+
+
+def _mesh_and_input(request: TaskRequest) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """The request's mesh and the ``input`` report of reading it ({} for arrays)."""
     source = request.source
     if isinstance(source, MeshFile):
-        return _load_file(source, request)
+        return _read_file(source, request)
     assert isinstance(source, MeshArrays)
-    return source.vertices, source.faces
+    return source.vertices, source.faces, {}
+
+
+def _with_input(report: dict[str, Any], read: dict[str, Any]) -> dict[str, Any]:
+    """A report with the file's reading (polygons) added to its ``input`` section."""
+    if read:
+        report["input"] = {**read, **(report.get("input") or {})}
+    return report
 
 
 def _forms(request: TaskRequest) -> tuple[FormsArrays, int | None]:
-    """Forms from the request (computed from the mesh for a file upload) and n_vertices."""
+    """Forms from the request (computed from the mesh for a file upload) and n_vertices;
+    a non-manifold mesh's forms carry the cut's ``vertex_map`` (solver.manifold)."""
     if isinstance(request.source, FormsArrays):
-        return request.source, None
+        params = request.params
+        vertex_map = params.get("vertex_map")
+        return dataclasses.replace(
+            request.source, placement=params.get("placement"),
+            vertex_map=None if vertex_map is None else np.asarray(vertex_map, np.int64)), None
     vertices, faces = _mesh(request)
     forms = solver.fundamental_forms(vertices, faces)
-    return FormsArrays(forms.faces, forms.edges, forms.lengths, forms.angles), len(vertices)
+    return FormsArrays(forms.faces, forms.edges, forms.lengths, forms.angles,
+                       forms.vertex_map, forms.placement), len(vertices)
+
+
+def _file_faces(forms: FormsArrays) -> np.ndarray:
+    """The answer's faces: the forms' faces on the file's vertices."""
+    faces = np.asarray(forms.faces)
+    return faces if forms.vertex_map is None else np.asarray(forms.vertex_map)[faces]
 
 
 def _finish(request: TaskRequest, progress: Progress, document: dict[str, Any],
@@ -102,7 +135,9 @@ def forms_task(request: TaskRequest, progress: Progress) -> TaskResult:
     progress("solve", 0.0)
     forms = solver.fundamental_forms(vertices, faces)
     document = {"faces": forms.faces, "edges": forms.edges, "lengths": forms.lengths,
-                "angles": forms.angles}
+                "angles": forms.angles, "placement": forms.placement.to_dict()}
+    if forms.vertex_map is not None:
+        document["vertex_map"] = forms.vertex_map
     return _finish(request, progress, document)
 
 
@@ -122,6 +157,7 @@ def integrability_document(report: solver.IntegrabilityReport) -> dict[str, Any]
                      "components": report.components},
         "global_holonomy": {"rotation": [g.to_dict() for g in report.rotation_holonomy],
                             "translation": [g.to_dict() for g in report.translation_holonomy]},
+        "wrapped_angles": report.wrapped_angles,
     }
 
 
@@ -131,7 +167,8 @@ def integrability_task(request: TaskRequest, progress: Progress) -> TaskResult:
     forms, n_vertices = _forms(request)
     progress("solve", 0.0)
     report = solver.check_integrability(forms.faces, forms.edges, forms.lengths, forms.angles,
-                                        tol=request.params["tolerance"], n_vertices=n_vertices)
+                                        tol=request.params["tolerance"], n_vertices=n_vertices,
+                                        vertex_map=forms.vertex_map)
     return _finish(request, progress, integrability_document(report))
 
 
@@ -178,13 +215,17 @@ def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
     if require_integrable or request.output.wants("defect"):
         full_report = solver.check_integrability(
             forms.faces, forms.edges, forms.lengths, forms.angles,
-            tol=options.integrability_tol, n_vertices=n_vertices)
+            tol=options.integrability_tol, n_vertices=n_vertices, vertex_map=forms.vertex_map)
         if require_integrable and not full_report.integrable:
             raise _not_integrable(full_report)
     result = solver.reconstruct(
         forms.faces, forms.edges, forms.lengths, forms.angles,
         constraints=_constraints(params.get("constraints")), n_vertices=n_vertices,
-        options=options.replace(check_integrability=full_report is None), progress=progress)
+        # Integrable forms are checked again inside: their verdict (with the linear energy)
+        # spares them a refinement (solver.reconstruct.linear_answer_is_exact).
+        options=options.replace(check_integrability=full_report is None
+                                or full_report.integrable), progress=progress,
+        vertex_map=forms.vertex_map, placement=forms.placement)
     report = result.report.to_dict()
     if full_report is not None:
         report = {"integrability": full_report.summary(), **report}
@@ -192,7 +233,7 @@ def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
     if params.get("align_to") is not None:
         alignment = solver.rigid_alignment(vertices, params["align_to"])
         vertices, report["alignment"] = alignment.vertices, alignment.report()
-    faces = np.asarray(forms.faces)
+    faces = _file_faces(forms)
     colors = {"defect": full_report.vertex_defect} if full_report is not None else {}
     document = {"vertices": vertices, "faces": faces, "report": report}
     return _finish(request, progress, document, (vertices, faces), colors)
@@ -205,6 +246,11 @@ def reconstruct_vjp_task(request: TaskRequest, progress: Progress) -> TaskResult
     options = request.solve_options(solver.ReconstructOptions)
     progress("validate", 0.0)
     forms, n_vertices = _forms(request)
+    if forms.vertex_map is not None:
+        raise ProblemError("validation-error", "vertex_map: the gradients of a non-manifold "
+                           "mesh's forms are not supported; send the forms of a manifold mesh",
+                           errors=[element_error("vertex_map", "not supported by "
+                                                 "/v1/reconstruct/vjp")])
     if params["options"]["require_integrable"]:
         report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
                                             forms.angles, tol=options.integrability_tol,
@@ -228,7 +274,7 @@ def deform_task(request: TaskRequest, progress: Progress) -> TaskResult:
     """Deform a mesh with position handles (and optional rotation handles / ROI)."""
     params = request.params
     progress("validate", 0.0)
-    vertices, faces = _mesh(request)
+    vertices, faces, read = _mesh_and_input(request)
     handles = params["handles"]
     rotations = params.get("rotations") or []
     roi = params.get("roi")
@@ -242,19 +288,20 @@ def deform_task(request: TaskRequest, progress: Progress) -> TaskResult:
         options=request.solve_options(solver.DeformOptions), progress=progress)
     distortion = (result.report.get("distortion") or {}).get("vertex")
     colors = {} if distortion is None else {"distortion": np.asarray(distortion)}
-    document = {"vertices": result.vertices, "faces": faces, "report": result.report.to_dict()}
+    document = {"vertices": result.vertices, "faces": faces,
+                "report": _with_input(result.report.to_dict(), read)}
     return _finish(request, progress, document, (result.vertices, faces), colors)
 
 
 def parameterize_task(request: TaskRequest, progress: Progress) -> TaskResult:
     """Flatten a mesh with boundary; glTF output is the flat mesh (u, v, 0)."""
     progress("validate", 0.0)
-    vertices, faces = _mesh(request)
+    vertices, faces, read = _mesh_and_input(request)
     result = solver.parameterize(vertices, faces,
                                  options=request.solve_options(solver.ParameterizeOptions),
                                  progress=progress)
     document = {"uv": result.uv, "flipped_faces": result.flipped_faces,
-                "report": result.report.to_dict()}
+                "report": _with_input(result.report.to_dict(), read)}
     flat = np.column_stack([result.uv, np.zeros(len(result.uv))])
     return _finish(request, progress, document, (flat, np.asarray(faces)))
 
@@ -379,10 +426,10 @@ def mesh_task(request: TaskRequest, progress: Progress) -> TaskResult:
     from solver.reports import mesh_summary
 
     progress("validate", 0.0)
-    vertices, faces = _mesh(request)
+    vertices, faces, read = _mesh_and_input(request)
     progress("solve", 0.0)
     vertices, faces, report = mesh_summary(vertices, faces)
-    document = {"vertices": vertices, "faces": faces, "report": report}
+    document = {"vertices": vertices, "faces": faces, "report": _with_input(report, read)}
     return _finish(request, progress, document, (vertices, faces))
 
 

@@ -54,7 +54,10 @@ def test_forms_json_and_npz_are_the_librarys(ffs, server, workdir):
                 data = dict(np.load(path))
             else:
                 data = {k: np.asarray(v) for k, v in json.loads(path.read_text()).items()}
-            assert sorted(data) == ["angles", "edges", "faces", "lengths"]
+            # + each part's placement (issue 40): one part, anchored at face 0
+            placement = ["placement"] if path.suffix == ".json" else [
+                "placement_faces", "placement_frames", "placement_origins"]
+            assert sorted(data) == sorted(["angles", "edges", "faces", "lengths", *placement])
             np.testing.assert_array_equal(data["edges"], truth.edges)
             np.testing.assert_array_equal(data["faces"], truth.faces)
             np.testing.assert_array_equal(data["lengths"], truth.lengths)

@@ -22,13 +22,13 @@ BAD_FORMS = {"faces": [[0, 1, 2]], "edges": [[0, 1], [0, 2], [1, 2]], "lengths":
 @pytest.mark.parametrize("where", ["local", "server"])
 def test_input_errors_name_file_field_and_index(ffs, server, workdir, where):
     options = ["--server", server] if where == "server" else []
-    (workdir / "angles.json").write_text(json.dumps(BAD_FORMS))
+    (workdir / "angles.json").write_text(json.dumps({**BAD_FORMS, "lengths": [1, 0, 1]}))
     (workdir / "degenerate.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
                                             "f 1 2 3\nf 2 4 4\n")
     (workdir / "handles.json").write_text(json.dumps([{"vertex": 99999, "position": [0, 0, 0]}]))
     cases = [
         (("reconstruct", "angles.json", "-o", "x.obj"),
-         ["angles.json", "angles[1]", "4.0", "angle-out-of-range"]),
+         ["angles.json", "lengths[1]", "non-positive-length"]),
         (("flatten", "degenerate.obj", "-o", "x.obj"),
          ["degenerate.obj", "faces[1]", "degenerate-face"]),
         (("deform", "torus.off", "-o", "x.obj", "--handles", "handles.json"),

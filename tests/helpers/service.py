@@ -14,9 +14,11 @@ def mesh_json(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
 
 
 def forms_json(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
+    """The four arrays of a (manifold) mesh's forms, without the placement (issue 40)."""
     import solver
 
-    return solver.fundamental_forms(V, F).to_dict()
+    forms = solver.fundamental_forms(V, F).to_dict()
+    return {name: forms[name] for name in ("faces", "edges", "lengths", "angles")}
 
 
 def rigid_error(A: np.ndarray, B: np.ndarray) -> float:

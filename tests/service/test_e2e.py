@@ -50,7 +50,8 @@ def test_upload_job_progress_and_glb(live_server):
         V, F = load("face.off")
         forms = solver.fundamental_forms(V, F)
         want = solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles,
-                                  orthonormalize=True, n_vertices=len(V))
+                                  orthonormalize=True, n_vertices=len(V),
+                                  placement=forms.placement)  # an upload's parts stay put
         np.testing.assert_allclose(mesh.vertices, want.vertices, atol=1e-5)
         assert rigid_error(mesh.vertices, V) < 1e-4
         assert b'"COLOR_0"' in glb.content[:4096]  # the defect colour ramp
@@ -67,7 +68,8 @@ def _workload():
         if kind == 0:
             V, F = icosphere(1 + i % 4)  # 80 .. 5120 faces
             forms = solver.fundamental_forms(V, F)
-            want = solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles)
+            want = solver.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles,
+                                      placement=forms.placement)
             requests.append(("/v1/reconstruct", forms.to_dict(), "vertices", want.vertices))
         elif kind == 1:
             V, F = load("decimated-knight.off") if i % 8 == 1 else icosphere(2)
@@ -111,7 +113,10 @@ def test_forms_reconstruct_roundtrip_over_http(live_server):
     V, F = icosphere(3)
     with httpx.Client(base_url=live_server, timeout=60) as http:
         forms = http.post("/v1/forms", json=mesh_json(V, F)).json()
+        placement = forms.pop("placement")  # each part's pose (issue 40): one part here
         assert forms == {k: np.asarray(v).tolist() for k, v in forms_json(V, F).items()}
+        assert placement["faces"] == [0]
+        forms["placement"] = placement
         rebuilt = http.post("/v1/reconstruct", json=forms).json()
     assert rigid_error(rebuilt["vertices"], V) < 1e-7
 

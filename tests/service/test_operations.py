@@ -26,7 +26,7 @@ def test_forms_match_library(client):
     assert response.status_code == 200, response.text
     got = response.json()
     want = solver.fundamental_forms(V, F)
-    assert set(got) == {"faces", "edges", "lengths", "angles"}
+    assert set(got) == {"faces", "edges", "lengths", "angles", "placement"}
     np.testing.assert_array_equal(got["faces"], want.faces)
     np.testing.assert_array_equal(got["edges"], want.edges)
     np.testing.assert_array_equal(got["lengths"], want.lengths)  # orjson floats round-trip

@@ -3,7 +3,6 @@ import pytest
 
 from solver import fundamental_forms
 from solver.errors import (
-    AngleRangeError,
     DegenerateFaceError,
     EdgeMismatchError,
     NonFiniteValueError,
@@ -116,18 +115,21 @@ class TestValidateForms:
             validate_forms(**self.args(lengths=L))
         assert err.value.index == 3
 
-    def test_angle_out_of_range(self):
+    def test_angle_out_of_range_is_wrapped(self):
+        # An angle is periodic: 3.5 rad is the angle 3.5 - 2 pi (issue 40).
         A = self.forms.angles.copy()
         A[11] = 3.5
-        with pytest.raises(AngleRangeError) as err:
-            validate_forms(**self.args(angles=A))
-        assert err.value.index == 11
+        _, _, wrapped = validate_forms(**self.args(angles=A))
+        assert wrapped[11] == pytest.approx(3.5 - 2 * np.pi, abs=1e-15)
+        np.testing.assert_array_equal(np.delete(wrapped, 11), np.delete(A, 11))
 
     def test_minus_pi_excluded(self):
         A = self.forms.angles.copy()
         A[2] = -np.pi - 1e-6
-        with pytest.raises(AngleRangeError):
-            validate_forms(**self.args(angles=A))
+        A[3] = -np.pi
+        _, _, wrapped = validate_forms(**self.args(angles=A))
+        assert wrapped[2] == pytest.approx(np.pi - 1e-6, abs=1e-14)
+        assert wrapped[3] == np.pi
 
     def test_lengths_wrong_count(self):
         with pytest.raises(ShapeMismatchError) as err:

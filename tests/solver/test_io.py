@@ -262,14 +262,18 @@ def test_ply_point_cloud_rejected() -> None:
 # ------------------------------------------------------------------ GLB scenes
 
 
-def test_glb_multiple_meshes_rejected() -> None:
+def test_glb_multiple_meshes_are_parts_of_one_mesh() -> None:
+    # Issue 40: a multi-part model is read whole, its parts in scene order, in place.
     a = trimesh.creation.box()
     b = trimesh.creation.icosphere(1)
     b.apply_translation([3, 0, 0])
     data = trimesh.Scene([a, b]).export(file_type="glb")
-    with pytest.raises(MeshFileError, match="exactly one triangle mesh") as info:
-        load_mesh(data, "glb")
-    assert info.value.details["geometries"] == 2
+    v, f = load_mesh(data, "glb")
+    assert v.shape == (len(a.vertices) + len(b.vertices), 3)
+    assert f.shape == (len(a.faces) + len(b.faces), 3)
+    found = sorted([np.round(v[: len(a.vertices)].mean(axis=0), 5).tolist(),
+                    np.round(v[len(a.vertices):].mean(axis=0), 5).tolist()])
+    assert found[1][0] == pytest.approx(3.0, abs=1e-5)  # the sphere kept its place
 
 
 def test_glb_node_transform_applied() -> None:
@@ -359,3 +363,25 @@ def test_load_mesh_file(tmp_path: Path, permuted: tuple[np.ndarray, np.ndarray])
     v2, f2 = load_mesh_file(path)
     np.testing.assert_array_equal(v2, v)
     np.testing.assert_array_equal(f2, f)
+
+
+def test_off_polygons_fan_triangulated_like_obj_and_ply() -> None:
+    """Issue 40: the same quads in OFF, OBJ and PLY give the same triangles, in file order,
+    and read_mesh says which file face each comes from; counts glued to the header too."""
+    from solver.io import read_mesh
+
+    off = b"OFF8 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 0 0\n2 1 0\n3 2 0\n3 3 0\n" \
+          b"5 1 4 5 6 2 255 0 0\n4 0 1 2 3\n"
+    obj = b"".join(f"v {x} {y} 0\n".encode() for x, y in
+                   [(0, 0), (1, 0), (1, 1), (0, 1), (2, 0), (2, 1), (3, 2), (3, 3)])
+    obj += b"f 2 5 6 7 3\nf 1 2 3 4\n"
+    ply = (b"ply\nformat ascii 1.0\nelement vertex 8\nproperty float x\nproperty float y\n"
+           b"property float z\nelement face 2\nproperty list uchar int vertex_indices\n"
+           b"end_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 0 0\n2 1 0\n3 2 0\n3 3 0\n"
+           b"5 1 4 5 6 2\n4 0 1 2 3\n")
+    want = [[1, 4, 5], [1, 5, 6], [1, 6, 2], [0, 1, 2], [0, 2, 3]]
+    for data, fmt in ((off, "off"), (obj, "obj"), (ply, "ply")):
+        loaded = read_mesh(data, fmt)
+        assert loaded.faces.tolist() == want, fmt
+        assert loaded.face_polygon.tolist() == [0, 0, 0, 1, 1] and loaded.polygons == 2
+        assert loaded.report() == {"file_faces": 2, "triangulated_polygons": 2, "triangles": 5}

@@ -22,10 +22,10 @@ from .errors import ShapeMismatchError
 from .manifold import manifold_topology
 from .options import BlendOptions, InterpolateOptions
 from .reports import Progress
-from .shape_space import blend, rigid_alignment
+from .shape_space import blend
 from .validation import as_points
 
-__all__ = ["interpolate", "rigid_alignment", "two_shape_weights"]
+__all__ = ["interpolate", "two_shape_weights"]
 
 
 def two_shape_weights(t: float | Sequence[float]) -> np.ndarray:

@@ -40,6 +40,7 @@ from .forms import Forms, fundamental_forms
 from .frames import face_edge_lengths, triangle_inequality_violations
 from .metrics import wrap_angle
 from .options import BlendOptions, ReconstructOptions
+from .placement import align_components
 from .reconstruct import reconstruct
 from .refine import FormTargets, Refiner
 from .reports import Progress, Stages
@@ -181,19 +182,11 @@ def affine_weights(weights: ArrayLike, count: int) -> np.ndarray:
     return W
 
 
-def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R (3, 3) and translation t (3,) minimizing ||source R^T + t - target|| (Kabsch)."""
-    cs, ct = source.mean(axis=0), target.mean(axis=0)
-    U, _, Vt = np.linalg.svd((source - cs).T @ (target - ct))
-    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
-    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
-    return R, ct - cs @ R.T
-
-
-def aligned(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """``source`` (n, 3) moved rigidly onto ``target`` (n, 3) (:func:`rigid_alignment`)."""
-    R, shift = rigid_alignment(source, target)
-    return source @ R.T + shift
+def aligned(source: np.ndarray, target: np.ndarray, topology: MeshTopology) -> np.ndarray:
+    """``source`` (n, 3) with each connected part moved rigidly onto the same vertices of
+    ``target`` (n, 3) (:func:`solver.placement.align_components`): a multi-part blend keeps
+    every part where its vertex blend puts it."""
+    return align_components(source, target, topology.vertex_component)
 
 
 @dataclass
@@ -258,7 +251,7 @@ class _Rows:
         after = refinement.get("after") if refinement.get("refined") else None
         residual = after or form_residuals(vertices, topology, lengths, angles)
         if guess is not None:
-            vertices = aligned(vertices, guess)
+            vertices = aligned(vertices, guess, topology)
         self.answers, self.blends = [*self.answers[-1:], vertices], [*self.blends[-1:], guess]
         self.rows = [*self.rows[-1:], row]
         return vertices, {"row": index, "path": path, "length_blend": length_blend,
@@ -365,7 +358,8 @@ def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
     shape_space = shape_set(shapes, faces)
     if opts.align and shape_space.vertices is not None:
         first = shape_space.vertices[0]
-        moved = np.stack([first, *(aligned(v, first) for v in shape_space.vertices[1:])])
+        moved = np.stack([first, *(aligned(v, first, shape_space.topology)
+                                  for v in shape_space.vertices[1:])])
         shape_space = ShapeSet(shape_space.topology, shape_space.log_lengths,
                                shape_space.angles, moved)
     W = affine_weights(weights, shape_space.count)

@@ -23,10 +23,9 @@ def forms_json(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
 
 def rigid_error(A: np.ndarray, B: np.ndarray) -> float:
     """max |R A + t - B| after the best rigid alignment of A onto B (Kabsch)."""
-    from solver.interpolate import rigid_alignment
+    from solver import rigid_alignment
 
-    R, t = rigid_alignment(np.asarray(A), np.asarray(B))
-    return float(np.abs(np.asarray(A) @ R.T + t - np.asarray(B)).max())
+    return rigid_alignment(A, B).residual_max
 
 
 def metric_value(text: str, name: str, **labels: str) -> float:

@@ -51,9 +51,9 @@ def main(argv: list[str] | None = None) -> int:
             print(entry["name"], entry.get("role", "user"),
                   json.dumps(entry.get("limits", {})))
         return 0
-    limits = KeyLimits(args.requests_per_minute, args.concurrent_jobs,
-                       args.concurrent_sessions, args.max_faces)
     try:
+        limits = KeyLimits(args.requests_per_minute, args.concurrent_jobs,
+                           args.concurrent_sessions, args.max_faces)
         key, secret = add_key(path, args.name, args.role, limits)
     except ValueError as exc:
         print(f"python -m service.access: {exc}", file=sys.stderr)

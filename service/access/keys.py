@@ -53,6 +53,14 @@ class KeyLimits:
     concurrent_sessions: int | None = None
     max_faces: int | None = None
 
+    def __post_init__(self) -> None:
+        """Refuse a limit that is not a whole number of at least 1 (a 0 would otherwise
+        read as unset and give the key the service-wide default)."""
+        for name, value in asdict(self).items():
+            if value is not None and (type(value) is not int or value < 1):
+                raise ValueError(f"the limit {name} must be a whole number of at least 1 "
+                                 f"(or absent: the default), not {value!r}")
+
     def over(self, defaults: KeyLimits) -> KeyLimits:
         """These limits, each unset one taken from ``defaults``."""
         return KeyLimits(**{name: value if value is not None else getattr(defaults, name)

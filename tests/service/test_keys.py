@@ -55,6 +55,11 @@ def test_the_keys_file_and_its_command(tmp_path, capsys):
     path.write_text(json.dumps({"keys": [{"name": "x", "role": "root", "hash": "h"}]}))
     with pytest.raises(ValueError, match=r"keys\[0\]: role 'root'"):
         ring_from_file(path, DEFAULTS)
+    assert access_main(["list", "--file", str(path)]) == 0
+    assert capsys.readouterr().out.startswith("x root {}")
+    path.write_text("{not json")
+    assert access_main(["list", "--file", str(path)]) == 1  # a reason, not a traceback
+    assert "is not JSON" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("value", [0, -1, "5", 2.5, True])

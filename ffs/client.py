@@ -62,9 +62,9 @@ solve, refine, encode; ``queued`` while a job waits), fraction of that stage in 
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 SERVER_ENV = "FFS_SERVER"
+"""Environment variable naming the service when ``Client()`` is given no URL."""
 TOKEN_ENV = "FFS_TOKEN"
 """The API key a :class:`Client` sends when it is given none (services with keys)."""
-"""Environment variable naming the service when ``Client()`` is given no URL."""
 
 
 @dataclass(frozen=True)

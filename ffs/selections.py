@@ -79,6 +79,7 @@ def read_selection(path: str | os.PathLike[str], vertices: np.ndarray, faces: np
             or 2, no handle vertex, a transform that is not 4x4 affine.
     """
     from ffs.files import InputFileError
+    from solver.rotations import is_rotation, nearest_rotation
 
     base = Path(path)
     sel_path, def_path = base.with_suffix(".sel"), base.with_suffix(".def")
@@ -107,10 +108,8 @@ def read_selection(path: str | os.PathLike[str], vertices: np.ndarray, faces: np
     roi = np.flatnonzero(status != FIXED)
     groups: list[np.ndarray] = []
     rotations = None
-    if np.abs(linear.T @ linear - np.eye(3)).max() <= ROTATION_TOLERANCE and (
-            np.linalg.det(linear) > 0):
-        u, _, vt = np.linalg.svd(linear)
+    if is_rotation(linear, ROTATION_TOLERANCE):
         handle_faces = np.flatnonzero((status[faces] == HANDLE).all(axis=1))
         if len(handle_faces):
-            groups, rotations = [handle_faces], (u @ vt)[None]
+            groups, rotations = [handle_faces], nearest_rotation(linear[None])
     return handles, targets, groups, rotations, roi

@@ -69,7 +69,7 @@ DEFAULT_RULES = WarningRules()
 """The thresholds every operation uses unless given others."""
 
 
-def exceeded(value: float, limit: float, code: str, template: str,
+def exceeded(value: float, limit: float, code: str, template: str, **fields: Any,
              ) -> AnswerWarning | None:
     """An :class:`AnswerWarning` when ``value`` is past ``limit`` (None otherwise).
 
@@ -77,12 +77,14 @@ def exceeded(value: float, limit: float, code: str, template: str,
         value: the measured quantity.
         limit: its threshold; ``value > limit`` warns (NaN warns too).
         code: the rule's name.
-        template: the message, formatted with ``value`` and ``limit``.
+        template: the message, formatted with ``value``, ``limit`` and ``fields``.
+        fields: more values the message names (e.g. ``degrees``).
     """
     value = float(value)
     if value <= limit:
         return None
-    return AnswerWarning(code, template.format(value=value, limit=limit), value, float(limit))
+    return AnswerWarning(code, template.format(value=value, limit=limit, **fields), value,
+                         float(limit))
 
 
 def as_report(warnings: list[AnswerWarning | None]) -> list[dict[str, Any]]:
@@ -109,8 +111,7 @@ def residual_warnings(length_error: float | None, angle_error: float | None,
         found.append(exceeded(length_error, limit, "length-error", LENGTH_ERROR_MESSAGE))
     if angle_error is not None:
         found.append(exceeded(angle_error, rules.max_angle_error, "angle-error",
-                              ANGLE_ERROR_MESSAGE.replace(
-                                  "{degrees:.3g}", f"{math.degrees(angle_error):.3g}")))
+                              ANGLE_ERROR_MESSAGE, degrees=math.degrees(angle_error)))
     return found
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ffs.cli.failures import RunFailedError
-from ffs.cli.items import Item, Row
+from ffs.cli.items import MESH_OUTPUTS, Item, Row
 
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: a stage's name and how far the item is, 0 to 1."""
@@ -59,7 +59,7 @@ def _output_format(path: Path, args: argparse.Namespace,
     from ffs import files
 
     fmt = (args.format or path.suffix.lstrip(".")).lower()
-    writable = allowed or ("obj", "off", "ply", "stl", "glb", "json", "npz")
+    writable = allowed or MESH_OUTPUTS
     if fmt not in writable:
         raise files.InputFileError(path, f"cannot write {fmt or '(no extension)'!r} here; "
                                    f"use one of {', '.join(writable)} (or --format)")

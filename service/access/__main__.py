@@ -18,7 +18,7 @@ import os
 import sys
 from pathlib import Path
 
-from service.access.keys import ROLES, KeyLimits, add_key
+from service.access.keys import ROLES, KeyLimits, add_key, read_keys_file
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -46,14 +46,18 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     path = Path(args.file)
     if args.command == "list":
-        document = json.loads(path.read_text(encoding="utf-8")) if path.exists() else {}
-        for entry in document.get("keys", []):
+        try:
+            document = read_keys_file(path)
+        except ValueError as exc:
+            print(f"python -m service.access: {exc}", file=sys.stderr)
+            return 1
+        for entry in document["keys"]:
             print(entry["name"], entry.get("role", "user"),
                   json.dumps(entry.get("limits", {})))
         return 0
-    limits = KeyLimits(args.requests_per_minute, args.concurrent_jobs,
-                       args.concurrent_sessions, args.max_faces)
     try:
+        limits = KeyLimits(args.requests_per_minute, args.concurrent_jobs,
+                           args.concurrent_sessions, args.max_faces)
         key, secret = add_key(path, args.name, args.role, limits)
     except ValueError as exc:
         print(f"python -m service.access: {exc}", file=sys.stderr)

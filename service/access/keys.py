@@ -53,6 +53,14 @@ class KeyLimits:
     concurrent_sessions: int | None = None
     max_faces: int | None = None
 
+    def __post_init__(self) -> None:
+        """Refuse a limit that is not a whole number of at least 1 (a 0 would otherwise
+        read as unset and give the key the service-wide default)."""
+        for name, value in asdict(self).items():
+            if value is not None and (type(value) is not int or value < 1):
+                raise ValueError(f"the limit {name} must be a whole number of at least 1 "
+                                 f"(or absent: the default), not {value!r}")
+
     def over(self, defaults: KeyLimits) -> KeyLimits:
         """These limits, each unset one taken from ``defaults``."""
         return KeyLimits(**{name: value if value is not None else getattr(defaults, name)
@@ -167,7 +175,7 @@ def ring_from_file(path: Path, defaults: KeyLimits, admins: Iterable[str] = ()
     if not path.is_file():
         raise ValueError(f"FFS_API_KEYS_FILE {path} does not exist (create it with python "
                          "-m service.access add NAME --file ...)")
-    document = _read_file(path)
+    document = read_keys_file(path)
     admins = set(admins)
     out = []
     for index, entry in enumerate(document.get("keys", [])):
@@ -183,7 +191,12 @@ def ring_from_file(path: Path, defaults: KeyLimits, admins: Iterable[str] = ()
     return out
 
 
-def _read_file(path: Path) -> dict[str, Any]:
+def read_keys_file(path: Path) -> dict[str, Any]:
+    """The document of a keys file (``{"keys": []}`` when it does not exist).
+
+    Raises:
+        ValueError: not JSON, or not ``{"keys": [...]}``.
+    """
     if not path.exists():
         return {"keys": []}
     try:
@@ -212,7 +225,7 @@ def add_key(path: Path, name: str, role: Role = "user", limits: KeyLimits = KeyL
         raise ValueError(f"the name {name!r} must match {NAME_PATTERN}")
     if role not in ROLES:
         raise ValueError(f"role {role!r} is not one of {ROLES}")
-    document = _read_file(path)
+    document = read_keys_file(path)
     if any(entry.get("name") == name for entry in document["keys"]):
         raise ValueError(f"{path} already has a key named {name!r}")
     key, secret = new_key(), secrets.token_hex(32)

@@ -66,9 +66,12 @@ class CallbackRefusedError(ValueError):
 
 
 def _special(address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
-    """Loopback, private, link-local, multicast, reserved or unspecified."""
-    return (address.is_loopback or address.is_private or address.is_link_local
-            or address.is_multicast or address.is_reserved or address.is_unspecified)
+    """Loopback, private, link-local, multicast, reserved, unspecified, or otherwise not
+    globally reachable (``is_global``: also the shared address space 100.64.0.0/10, which
+    ``is_private`` leaves out and where some clouds serve instance metadata)."""
+    return (not address.is_global or address.is_loopback or address.is_private
+            or address.is_link_local or address.is_multicast or address.is_reserved
+            or address.is_unspecified)
 
 
 def _ip(host: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:

@@ -12,13 +12,9 @@ from starlette.requests import HTTPConnection
 from service.access.webhooks import CallbackRefusedError, CallbackTarget, check_callback_url
 from service.api.problems import ProblemError, element_error
 from service.backends.contracts import JobService
-from service.http.auth import Access, Caller
+from service.http.auth import Caller
+from service.http.dependencies import services
 from service.worker.output import json_bytes
-
-
-def _access(connection: HTTPConnection) -> Access | None:
-    found: Access | None = connection.app.state.services.access
-    return found
 
 
 def _refuse(reason: str) -> ProblemError:
@@ -37,7 +33,7 @@ def callback_target(connection: HTTPConnection, url: str | None, caller: Caller
     """
     if url is None:
         return None
-    access = _access(connection)
+    access = services(connection).access
     if access is None or caller.key is None:
         raise _refuse("webhooks need API keys (each key's webhook secret signs them); "
                       "this service has none")
@@ -54,7 +50,7 @@ def follow_job(connection: HTTPConnection, jobs: JobService, job_id: str,
                document: Callable[[Any], Any]) -> None:
     """Deliver job ``job_id``'s status document (``document(job)``, a response model) to
     ``target`` once it finishes."""
-    access = _access(connection)
+    access = services(connection).access
     assert access is not None and caller.key is not None
 
     async def lookup() -> tuple[str, bytes] | None:

@@ -55,6 +55,26 @@ def test_the_keys_file_and_its_command(tmp_path, capsys):
     path.write_text(json.dumps({"keys": [{"name": "x", "role": "root", "hash": "h"}]}))
     with pytest.raises(ValueError, match=r"keys\[0\]: role 'root'"):
         ring_from_file(path, DEFAULTS)
+    assert access_main(["list", "--file", str(path)]) == 0
+    assert capsys.readouterr().out.startswith("x root {}")
+    path.write_text("{not json")
+    assert access_main(["list", "--file", str(path)]) == 1  # a reason, not a traceback
+    assert "is not JSON" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", [0, -1, "5", 2.5, True])
+def test_a_limit_below_one_or_not_whole_is_refused(tmp_path, capsys, value):
+    """Not read as unset (a 0 used to give the key the service's default quota)."""
+    path = tmp_path / "keys.json"
+    path.write_text(json.dumps({"keys": [{"name": "x", "hash": "h",
+                                          "limits": {"concurrent_jobs": value}}]}))
+    with pytest.raises(ValueError, match=r"keys\[0\]: the limit concurrent_jobs must be"):
+        ring_from_file(path, DEFAULTS)
+    if isinstance(value, int) and not isinstance(value, bool):
+        assert access_main(["add", "y", "--file", str(tmp_path / "new.json"),
+                            "--concurrent-jobs", str(value)]) == 1
+        assert "the limit concurrent_jobs must be" in capsys.readouterr().err
+        assert not (tmp_path / "new.json").exists()
 
 
 def test_settings_read_keys_without_echoing_them(monkeypatch, tmp_path):

@@ -170,13 +170,15 @@ def _no_sessions(base: str) -> None:
         time.sleep(0.2)
 
 
-def test_stateful_links(api_schema, fuzz_server):
-    _no_sessions(fuzz_server)
-    machine = api_schema.as_state_machine()
+def run_stateful(schema, steps: Counter[str]) -> None:
+    """Follow ``schema``'s links as a state machine (:data:`STATEFUL_EXAMPLES` runs of 8
+    steps), every response checked (:data:`CHECKS` and ``use_after_free``) and counted in
+    ``steps`` as ``"METHOD path status"``."""
+    machine = schema.as_state_machine()
 
     class Checked(machine):  # type: ignore[misc, valid-type]
         def validate_response(self, response, case, **kwargs):
-            STEPS[f"{case.method} {case.operation.path} {response.status_code}"] += 1
+            steps[f"{case.method} {case.operation.path} {response.status_code}"] += 1
             try:
                 case.validate_response(response, checks=[*CHECKS, use_after_free])
             except BaseException as exc:
@@ -193,11 +195,22 @@ def test_stateful_links(api_schema, fuzz_server):
         # it may follow depend on the live server's answers (a 201 one time, a 429 the
         # next). Not a failure of the service, as long as no check failed.
         assert not failures, failures
+
+
+def steps_starting(prefix: str, steps: Counter[str]) -> int:
+    """The requests of ``steps`` (:func:`run_stateful`) whose ``"METHOD path status"``
+    starts with ``prefix``."""
+    return sum(n for step, n in steps.items() if step.startswith(prefix))
+
+
+def test_stateful_links(api_schema, fuzz_server):
+    _no_sessions(fuzz_server)
+    run_stateful(api_schema, STEPS)
     print(f"stateful: {sum(STEPS.values())} requests", dict(STEPS))
     # The links were followed (by the state machine itself, counted in STEPS): sessions
     # were created, solved and deleted through them, jobs submitted and followed.
     def steps(prefix: str) -> int:
-        return sum(n for step, n in STEPS.items() if step.startswith(prefix))
+        return steps_starting(prefix, STEPS)
 
     assert steps("POST /v1/sessions 201") >= 1, STEPS
     assert steps("POST /v1/sessions/{session_id}/solve ") >= 1, STEPS

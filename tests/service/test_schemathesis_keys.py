@@ -13,8 +13,6 @@ import httpx
 import pytest
 import schemathesis
 from hypothesis import HealthCheck, settings
-from hypothesis.errors import FlakyStrategyDefinition
-from schemathesis.specs.openapi.checks import use_after_free
 
 from tests.helpers.servers import uvicorn_server
 from tests.helpers.service import metric_value
@@ -22,8 +20,9 @@ from tests.service.test_schemathesis import (
     CHECKS,
     SETTINGS,
     SKIP,
-    STATEFUL_EXAMPLES,
     binary_as_json_body,
+    run_stateful,
+    steps_starting,
 )
 
 KEY = "schemathesis-key-0123456789"
@@ -92,27 +91,10 @@ def test_nothing_ran_without_a_key(keyed_fuzz_server):
 
 
 def test_stateful_links_with_a_key(keyed_schema):
-    machine = keyed_schema.as_state_machine()
-
-    class Checked(machine):  # type: ignore[misc, valid-type]
-        def validate_response(self, response, case, **kwargs):
-            STEPS[f"{case.method} {case.operation.path} {response.status_code}"] += 1
-            try:
-                case.validate_response(response, checks=[*CHECKS, use_after_free])
-            except BaseException as exc:
-                failures.append(f"{case.method} {case.formatted_path}: {exc}")
-                raise
-
-    failures: list[str] = []
-    try:
-        Checked.run(settings=settings(max_examples=STATEFUL_EXAMPLES, stateful_step_count=8,
-                                      deadline=None, derandomize=True,
-                                      suppress_health_check=list(HealthCheck), database=None))
-    except FlakyStrategyDefinition:
-        assert not failures, failures
+    run_stateful(keyed_schema, STEPS)
 
     def steps(prefix: str) -> int:
-        return sum(n for step, n in STEPS.items() if step.startswith(prefix))
+        return steps_starting(prefix, STEPS)
 
     assert steps("POST /v1/sessions 201") >= 1, STEPS
     assert steps("POST /v1/jobs 202") >= 1, STEPS

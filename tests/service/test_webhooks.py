@@ -6,6 +6,7 @@ submission with a 422 naming ``callback_url``. No request leaves loopback."""
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import json
 import re
@@ -22,6 +23,7 @@ from service.access.keys import derived_webhook_secret
 from service.access.webhooks import (
     CallbackRefusedError,
     WebhookPolicy,
+    _resolves_to_special,
     check_callback_url,
     signature,
 )
@@ -224,6 +226,17 @@ def test_the_policy_alone():
     with pytest.raises(CallbackRefusedError, match="FFS_WEBHOOK_HOSTS is empty"):
         check_callback_url("https://hooks.example.com/", WebhookPolicy())
     assert WebhookPolicy(attempts=4, backoff=0.5).delays() == [0.5, 1.0, 2.0]
+
+
+@pytest.mark.parametrize("address", ["127.0.0.1", "10.0.0.1", "169.254.169.254",
+                                     "100.100.100.200", "100.64.0.1", "0.0.0.0", "224.0.0.1",
+                                     "::1", "fd00::1", "::ffff:127.0.0.1", "64:ff9b::a00:1"])
+def test_a_wildcard_host_never_reaches_a_non_global_address(address):
+    """What a ``*.`` entry's name resolves to at delivery: any address that is not globally
+    reachable is refused, the shared address space 100.64.0.0/10 (not ``is_private``; a
+    cloud's metadata service may live there) included."""
+    assert asyncio.run(_resolves_to_special(address, 80))
+    assert not asyncio.run(_resolves_to_special("93.184.215.14", 80))
 
 
 def test_without_keys_a_callback_is_refused():

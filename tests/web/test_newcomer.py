@@ -87,10 +87,14 @@ def test_redoc_asks_for_no_external_logo(browser, web_server: str) -> None:
 # ------------------------------------------------------------------ warnings on the page
 
 
-def _wrapped(a):
-    import numpy as np
-
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+def _bend_forms(web, page, scale: str = "0.8") -> None:
+    """Rebuild the shown mesh from its forms with the dihedral angles scaled by ``scale``
+    (the Forms tab), and wait for the reconstruction."""
+    page.click("#tab-forms")
+    page.fill("#angle-scale", scale)
+    page.click("#bend-forms")
+    web.wait_for("window.app.state.source === 'reconstruction'", timeout=180)
+    web.idle()
 
 
 def test_rebuild_panel_shows_the_answers_warnings(web) -> None:
@@ -101,13 +105,11 @@ def test_rebuild_panel_shows_the_answers_warnings(web) -> None:
     import numpy as np
 
     import solver
+    from solver.metrics import wrap_angle
+    from solver.topology import build_topology
 
     page = web.open()
-    page.click("#tab-forms")
-    page.fill("#angle-scale", "0.8")
-    page.click("#bend-forms")
-    web.wait_for("window.app.state.source === 'reconstruction'", timeout=180)
-    web.idle()
+    _bend_forms(web, page)
     box = page.locator("#forms-warnings")
     assert box.is_visible()
     warnings = web.app("app.state.reconstruction.report.warnings")
@@ -119,11 +121,8 @@ def test_rebuild_panel_shows_the_answers_warnings(web) -> None:
     faces = np.asarray(forms["faces"])
     got = solver.fundamental_forms(shown, faces)
     np.testing.assert_array_equal(got.edges, np.asarray(forms["edges"]))
-    interior = np.bincount(np.searchsorted(  # edges of two faces
-        got.edges[:, 0] * len(shown) + got.edges[:, 1],
-        np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]),
-                axis=1) @ [len(shown), 1]), minlength=len(got.edges)) == 2
-    measured = np.abs(_wrapped(got.angles - np.asarray(forms["angles"]))[interior]).max()
+    interior = build_topology(faces, len(shown)).interior_edges
+    measured = np.abs(wrap_angle(got.angles - np.asarray(forms["angles"]))[interior]).max()
     assert abs(angle["value"] - measured) < 1e-6
     assert "Outcome" in page.locator("#forms-stats").inner_text()
     assert "converged after" in page.locator("#forms-stats").inner_text()
@@ -224,11 +223,7 @@ def test_rebuilt_surface_is_coloured_by_the_forms_being_rebuilt(web) -> None:
     import solver
 
     page = web.open()
-    page.click("#tab-forms")
-    page.fill("#angle-scale", "0.8")
-    page.click("#bend-forms")
-    web.wait_for("window.app.state.source === 'reconstruction'", timeout=180)
-    web.idle()
+    _bend_forms(web, page)
     assert web.app("app.state.colorMode") == "defect"
     forms = web.app("app.state.reconstruction.input")
     truth = solver.check_integrability(np.asarray(forms["faces"]), np.asarray(forms["edges"]),
@@ -351,11 +346,7 @@ def test_fit_keeps_the_mesh_and_the_gizmo_below_the_toolbar(web) -> None:
 
 def test_linear_answer_note_and_empty_angle_scale(web) -> None:
     page = web.open("?sample=decimated-knight.off")
-    page.click("#tab-forms")
-    page.fill("#angle-scale", "0.8")
-    page.click("#bend-forms")
-    web.wait_for("window.app.state.source === 'reconstruction'", timeout=180)
-    web.idle()
+    _bend_forms(web, page)
     assert "the refined one shown here" in page.locator("#forms-note").inner_text()
     page.locator("#compare-row label", has_text="Linear").click()
     web.wait_for("window.app.state.reconstruction.showing === 'linear'", timeout=120)

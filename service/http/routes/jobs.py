@@ -96,9 +96,10 @@ def _status_response(job: Job, status_code: int = 200,
     return model_response(job_document(job), status_code, headers)
 
 
-async def _get(jobs: JobsDep, job_id: str, caller: Caller | None = None) -> Job:
+async def _get(jobs: JobsDep, job_id: str, caller: Caller) -> Job:
+    """The job, if ``caller`` may see it (404 for an unknown job and another key's alike)."""
     job = await jobs.get(job_id)
-    if job is None or (caller is not None and not caller.sees(job.owner)):
+    if job is None or not caller.sees(job.owner):
         raise ProblemError("not-found", f"no job {job_id!r} (it may have expired)")
     return job
 

@@ -223,7 +223,7 @@ def read_mesh(data: bytes, filename_or_type: str) -> LoadedMesh:
             vertices, faces, face_polygon = _load_trimesh(_text_as_utf8(data, fmt), fmt)
     except MeshFileError as exc:
         if fmt == "off" and (problem := off_problem(data)):  # the record at fault, in words
-            raise MeshFileError(problem, file_type=fmt) from exc
+            raise MeshFileError(f"cannot parse OFF data: {problem}", file_type=fmt) from exc
         exc.located(file_type=fmt)
         raise
     except (ImportError, MemoryError):  # the environment, not the file: not a client error

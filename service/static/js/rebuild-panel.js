@@ -12,6 +12,10 @@ import { state, store } from "./store.js";
 
 const $ = (id) => document.getElementById(id);
 const FORM_KEYS = ["faces", "edges", "lengths", "angles"];
+/** What a forms document may also carry (POST /v1/forms of a non-manifold or multi-part
+ * mesh): the cut's vertex map and each part's placement, passed on so that the rebuilt
+ * surface is the file's, in place. */
+const OPTIONAL_FORM_KEYS = ["vertex_map", "placement"];
 
 /** The reconstruct job's input: options.refine null (the default) refines when the linear
  * answer needs it; false asks for the linear least-squares answer. */
@@ -127,7 +131,8 @@ export function installRebuildPanel({ view, openMesh, analyze }) {
    */
   async function reconstructForms(doc, name, source = name, from = null) {
     checkFormsDocument(doc, source);
-    const input = Object.fromEntries(FORM_KEYS.map((k) => [k, doc[k]]));
+    const input = Object.fromEntries([...FORM_KEYS, ...OPTIONAL_FORM_KEYS]
+      .filter((k) => doc[k] != null).map((k) => [k, doc[k]]));
     const { integrability, result } = await withProgress("Rebuilding the surface…", async (signal) => {
       const arrays = api.formsArrays(input);  // null: not well-formed, JSON names the element
       const report = arrays ? await api.postArrays("/v1/integrability", {}, arrays, { signal })

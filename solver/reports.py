@@ -207,6 +207,10 @@ class ParameterizeReport(Report):
         anchored_components: ``{"component", "vertex", "face"}`` of each component.
         backend, analysis: the factorization's.
         timings: seconds per stage.
+        atlas: ``charts``, ``seam_edges``, ``seam_length`` (input units),
+            ``packing_efficiency`` (fraction of the unit square covered), ``padding``
+            (fraction of the side) and ``padding_texels`` at ``atlas_texels``, ``uv_count``.
+        warnings: :mod:`solver.warnings` dicts past the flattening thresholds.
     """
 
     flipped_count: int
@@ -222,3 +226,5 @@ class ParameterizeReport(Report):
     backend: str
     analysis: str
     timings: Timings
+    atlas: dict[str, Any] | None = None
+    warnings: list[dict[str, Any]] | None = None

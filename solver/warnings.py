@@ -52,11 +52,19 @@ class WarningRules:
         max_length_error: the largest relative edge-length error left (a fraction:
             0.05 is 5%) of a reconstruction, deformation or flattening.
         max_angle_error: the largest dihedral-angle error left, radians.
+        max_flatten_length_change: a flattening's mean relative edge-length change.
+        max_flatten_angle_change: a flattening's mean (over faces) largest corner-angle
+            change, radians.
+        min_packing_efficiency: the fraction of the unit square an atlas of several
+            charts should cover.
     """
 
     max_flipped_fraction: float = 1e-3
     max_length_error: float = 0.05
     max_angle_error: float = 0.1
+    max_flatten_length_change: float = 0.1
+    max_flatten_angle_change: float = 0.2
+    min_packing_efficiency: float = 0.4
 
 
 DEFAULT_RULES = WarningRules()

@@ -231,7 +231,7 @@ class ParameterizeOptions(OrthonormalizeOptions):
         "that flattens well as one chart keeps it); none: one chart per component, closed "
         "components refused.")
     max_chart_distortion: float = option(
-        0.1, "The largest mean relative edge-length change a chart may keep (0.1 is 10%); "
+        0.05, "The largest mean relative edge-length change a chart may keep (0.05 is 5%); "
         "a chart above it, or with a flipped face or overlapping itself, is split in two.",
         gt=0.0, le=10.0)
     crease_weight: float = option(

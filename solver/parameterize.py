@@ -373,11 +373,12 @@ def _mean_change(V: np.ndarray, uv: np.ndarray, faces: np.ndarray) -> float:
     return float(np.abs(relative_length_change(V, uv, faces, identity)).mean())
 
 
-def _overlaps_itself(uv: np.ndarray, faces: np.ndarray, resolution: int = 256) -> bool:
-    """Whether the chart's layout covers a texel centre twice (rasterized on its bounding
-    square)."""
+def _overlaps_itself(uv: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether the chart's layout covers a texel centre twice, rasterized on its bounding
+    square at 40 sqrt(faces) texels a side (256 to 2048: about 400 texels a face)."""
     low = uv.min(axis=0)
     side = float((uv.max(axis=0) - low).max())
+    resolution = int(np.clip(40 * np.sqrt(len(faces)), 256, 2048))
     return rasterized_overlap((uv - low) / side * 0.98 + 0.01, faces, resolution) > 0
 
 
@@ -388,12 +389,13 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
     and packed into the unit square (an atlas).
 
     With ``seams="auto"`` (default) a mesh that is one component with a boundary is first
-    flattened as one chart (today's layout, unchanged); it is kept when it has no flipped
-    face, does not overlap itself and its mean relative length change is at most
-    ``max_chart_distortion``. Otherwise (closed surfaces, handles, several parts, too much
-    distortion) :func:`chart_layouts` cuts it into charts, each flattened by the same
-    method, and :func:`solver.packing.pack_charts` packs them. ``seams="none"``: one chart
-    per component as before (a closed component is refused).
+    flattened as one chart (today's layout, unchanged); it is kept when it is disk-like
+    (genus 0), has at most 0.1% flipped faces, does not overlap itself where it has none,
+    and its mean relative length change is at most twice ``max_chart_distortion``.
+    Otherwise (closed surfaces, handles, several parts, too much distortion)
+    :func:`chart_layouts` cuts it into charts, each flattened by the same method, and
+    :func:`solver.packing.pack_charts` packs them. ``seams="none"``: one chart per
+    component as before (a closed component is refused).
 
     Args:
         vertices: (n, 3) float.
@@ -468,10 +470,19 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
 
 def _keeps_single_chart(V: np.ndarray, uv: np.ndarray, topology: MeshTopology,
                         opts: ParameterizeOptions) -> bool:
+    """Whether today's single chart stands: a disk-like mesh whose flattening has at most
+    :attr:`WarningRules.max_flipped_fraction` flipped faces (a local fold, which also
+    overlaps locally; without flips, no overlap at all) and a mean relative length change
+    of at most twice ``max_chart_distortion`` (the bumpy plane's 0.055 stays one chart)."""
     F = topology.faces
-    return bool(is_disk_like(topology) and not (signed_areas(uv, F) <= 0).any()
-                and _mean_change(V, uv, F) <= opts.max_chart_distortion
-                and not _overlaps_itself(uv, F, 512))
+    if not is_disk_like(topology):
+        return False
+    flipped = int((signed_areas(uv, F) < 0).sum())
+    if flipped > DEFAULT_RULES.max_flipped_fraction * len(F):
+        return False
+    if _mean_change(V, uv, F) > 2 * opts.max_chart_distortion:
+        return False
+    return flipped > 0 or not _overlaps_itself(uv, F)
 
 
 def _single_texcoords(uv: np.ndarray, topology: MeshTopology) -> np.ndarray:

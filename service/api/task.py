@@ -181,6 +181,8 @@ class TaskResult:
     mesh: tuple[np.ndarray, np.ndarray] | None = None
     colors: dict[str, np.ndarray] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    texcoords: np.ndarray | None = None
+    """(n, 2) uv of ``mesh``'s vertices (a flattening's atlas), written as TEXCOORD_0."""
 
 
 @dataclass(frozen=True)

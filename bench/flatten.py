@@ -1,0 +1,142 @@
+"""Flatten whole models into atlases: ours (solver.parameterize, seams="auto") beside
+xatlas's own atlas (its charting, parameterization and packing) in the same run.
+
+Per mesh and method: charts, flipped faces, mean relative edge-length change and mean
+largest corner-angle change (uv scaled once so its area equals the 3D area: no per-chart
+rescaling), packing efficiency (fraction of the bounding square the charts cover),
+overlapping texels (rasterized at 2048²) and seconds.
+
+Meshes: every mesh in ../shared/meshes, a multi-part model made of the small shared
+meshes side by side, and a public collection fetched from GitHub (odedstein/meshes @
+835213277571d625722d25880c9c3010c6f45a5a, ``objects/<name>/<name>.obj``, not committed:
+pass the folder holding them with ``--extra``; OBJ files with ``vt`` are welded by
+position, since trimesh splits their vertices). Run from the repository root::
+
+    PYTHONPATH=$PWD python -m bench.flatten --extra /tmp/odedstein [--only bunny.off ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.common import SHARED_MESHES
+from solver.packing import rasterized_overlap, signed_areas
+from solver.parameterize import relative_length_change
+
+SMALL_PARTS = ("decimated-knight.off", "torus.off", "octopus-low-surface.off", "face.off")
+"""The shared meshes put side by side into the multi-part model."""
+
+
+def load(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of a file, welded by position when trimesh split it on ``vt``."""
+    import trimesh
+
+    mesh = trimesh.load(path, process=False, force="mesh")
+    if path.suffix == ".obj" and "vt " in path.read_text(errors="ignore")[:2_000_000]:
+        mesh.merge_vertices(merge_tex=True, merge_norm=True)
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+
+
+def multi_part() -> tuple[np.ndarray, np.ndarray]:
+    """The :data:`SMALL_PARTS` meshes side by side (one model of 4 parts)."""
+    vertices, faces, offset, shift = [], [], 0, 0.0
+    for name in SMALL_PARTS:
+        V, F = load(SHARED_MESHES / name)
+        V = (V - V.min(axis=0)) / np.ptp(V, axis=0).max() + [shift, 0.0, 0.0]
+        vertices.append(V)
+        faces.append(F + offset)
+        offset += len(V)
+        shift += 1.5
+    return np.concatenate(vertices), np.concatenate(faces)
+
+
+def measures(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
+             uv_vertex: np.ndarray) -> dict[str, Any]:
+    """Flips, distortion (uv scaled to the 3D area), efficiency and overlap of an atlas."""
+    from solver.metrics import corner_angles
+
+    area3d = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                  axis=1).sum()
+    low = uv.min(axis=0)
+    side = float((uv.max(axis=0) - low).max())
+    unit = (uv - low) / side
+    signed = signed_areas(unit, uv_faces)
+    scaled = unit * np.sqrt(area3d / np.abs(signed).sum())
+    flat3 = np.column_stack([scaled, np.zeros(len(scaled))])
+    angle = np.abs(corner_angles(flat3, uv_faces) - corner_angles(V, F)).max(axis=1)
+    length = np.abs(relative_length_change(V, scaled, uv_faces, uv_vertex))
+    return {"flips": int((signed < 0).sum()), "length": float(length.mean()),
+            "angle": float(angle.mean()), "efficiency": float(np.abs(signed).sum()),
+            "overlap": rasterized_overlap(unit, uv_faces, 2048)}
+
+
+def ours(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
+    """solver.parameterize's atlas."""
+    import solver
+
+    start = time.perf_counter()
+    result = solver.parameterize(V, F)
+    seconds = time.perf_counter() - start
+    found = measures(V, F, result.texcoords, result.uv_faces, result.uv_vertex)
+    return {"charts": result.report.atlas["charts"], **found, "seconds": seconds}
+
+
+def xatlas_atlas(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
+    """xatlas's own atlas (default chart and pack options)."""
+    import xatlas
+
+    start = time.perf_counter()
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(V.astype(np.float32), F.astype(np.uint32))
+    atlas.generate()
+    mapping, faces, uv = atlas.get_mesh(0)
+    seconds = time.perf_counter() - start
+    texels = uv.astype(np.float64) * [atlas.width, atlas.height]
+    found = measures(V, F, texels, faces.astype(np.int64), mapping.astype(np.int64))
+    return {"charts": atlas.chart_count, **found, "seconds": seconds}
+
+
+def cases(extra: Path | None) -> list[tuple[str, Any]]:
+    """(name, loader) of every benchmark mesh."""
+    found: list[tuple[str, Any]] = [
+        (path.name, lambda p=path: load(p)) for path in sorted(SHARED_MESHES.glob("*"))
+        if path.suffix in (".obj", ".off")]
+    found.append(("multi-part (4 shared meshes)", multi_part))
+    if extra is not None:
+        found += [(f"odedstein/{path.name}", lambda p=path: load(p))
+                  for path in sorted(extra.glob("*.obj"))]
+    return found
+
+
+def row(name: str, faces: int, method: str, found: dict[str, Any]) -> str:
+    return (f"| {name} | {faces} | {method} | {found['charts']} | {found['flips']} | "
+            f"{found['length']:.4f} | {found['angle']:.4f} | {found['efficiency']:.3f} | "
+            f"{found['overlap']} | {found['seconds']:.1f} |")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--extra", type=Path, help="folder of the fetched public meshes")
+    parser.add_argument("--only", nargs="*", help="mesh names to run")
+    args = parser.parse_args(argv)
+    print("| mesh | faces | method | charts | flips | mean length change | mean angle change "
+          "(rad) | packing efficiency | overlapping texels | seconds |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, loader in cases(args.extra):
+        if args.only and not any(want in name for want in args.only):
+            continue
+        V, F = loader()
+        for method, run in (("ours", ours), ("xatlas", xatlas_atlas)):
+            try:
+                print(row(name, len(F), method, run(V, F)), flush=True)
+            except Exception as error:  # a benchmark row names the failure
+                print(f"| {name} | {len(F)} | {method} | failed: {error} |||||||", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,10 +1,10 @@
 """Flatten whole models into atlases: ours (solver.parameterize, seams="auto") beside
 xatlas's own atlas (its charting, parameterization and packing) in the same run.
 
-Per mesh and method: charts, flipped faces, mean relative edge-length change and mean
-largest corner-angle change (uv scaled once so its area equals the 3D area: no per-chart
-rescaling), packing efficiency (fraction of the bounding square the charts cover),
-overlapping texels (rasterized at 2048²) and seconds.
+Per mesh and method: charts, flipped faces (against their uv island's majority), mean
+relative edge-length change and mean largest corner-angle change (uv scaled once so its
+area equals the 3D area: no per-chart rescaling), packing efficiency (fraction of the
+bounding square the charts cover), overlapping texels (rasterized at 2048²) and seconds.
 
 Meshes: every mesh in ../shared/meshes, a multi-part model made of the small shared
 meshes side by side, and a public collection fetched from GitHub (odedstein/meshes @
@@ -70,9 +70,24 @@ def measures(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
     flat3 = np.column_stack([scaled, np.zeros(len(scaled))])
     angle = np.abs(corner_angles(flat3, uv_faces) - corner_angles(V, F)).max(axis=1)
     length = np.abs(relative_length_change(V, scaled, uv_faces, uv_vertex))
-    return {"flips": int((signed < 0).sum()), "length": float(length.mean()),
+    return {"flips": flipped_faces(signed, uv_faces), "length": float(length.mean()),
             "angle": float(angle.mean()), "efficiency": float(np.abs(signed).sum()),
             "overlap": rasterized_overlap(unit, uv_faces, 2048)}
+
+
+def flipped_faces(signed: np.ndarray, uv_faces: np.ndarray) -> int:
+    """Faces whose orientation disagrees with the majority of their uv island (xatlas
+    mirrors whole charts, v down, which is no flip)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    m, k = len(uv_faces), int(uv_faces.max()) + 1
+    incidence = sp.coo_array((np.ones(3 * m), (np.repeat(np.arange(m), 3), uv_faces.ravel())),
+                             shape=(m, k)).tocsr()
+    _, island = connected_components(incidence @ incidence.T, directed=False)
+    negative = np.bincount(island, signed < 0)
+    positive = np.bincount(island, signed > 0)
+    return int(np.minimum(negative, positive).sum())
 
 
 def ours(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:

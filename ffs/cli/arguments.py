@@ -117,9 +117,16 @@ def build_parser() -> argparse.ArgumentParser:
     deform.add_argument("--handles", required=True, metavar="FILE", help="JSON: "
                         "[{\"vertex\": i, \"position\": [x, y, z]}, ...] or {\"handles\", "
                         "\"rotations\", \"roi\"}")
-    commands.add_parser("flatten", parents=[common, solve], help="flatten meshes with "
-                        "boundary (uv as z = 0 meshes, or .json/.npz)").add_argument(
-                            "inputs", **meshes)
+    flatten = commands.add_parser(
+        "flatten", parents=[common, solve], help="flatten meshes (seams and a packed atlas "
+        "where one chart does not do): .obj/.glb the mesh with its uv (vt, TEXCOORD_0), "
+        ".ply/.off/.stl the flat layout (z = 0), .json/.npz the arrays")
+    flatten.add_argument("inputs", **meshes)
+    flatten.add_argument("--seams", choices=("auto", "none"), default=None,
+                         help="auto (default): cut into charts where needed; none: one "
+                         "chart per component, closed meshes refused")
+    flatten.add_argument("--flat", action="store_true", help="write the flat layout "
+                         "(u, v, 0) to .obj/.glb too, instead of the mesh with its uv")
     blend = commands.add_parser("blend", parents=[common, solve],
                                 help="blend two meshes with the same faces in form space")
     blend.add_argument("inputs", nargs="+", metavar="MESH", help="A and B")

@@ -118,9 +118,9 @@ def xatlas_atlas(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
 
 def cases(extra: Path | None) -> list[tuple[str, Any]]:
     """(name, loader) of every benchmark mesh."""
-    found: list[tuple[str, Any]] = [
-        (path.name, lambda p=path: load(p)) for path in sorted(SHARED_MESHES.glob("*"))
-        if path.suffix in (".obj", ".off")]
+    shared = sorted((p for p in SHARED_MESHES.glob("*") if p.suffix in (".obj", ".off")),
+                    key=lambda p: p.stat().st_size)                # small meshes first
+    found: list[tuple[str, Any]] = [(path.name, lambda p=path: load(p)) for path in shared]
     found.append(("multi-part (4 shared meshes)", multi_part))
     if extra is not None:
         found += [(f"odedstein/{path.name}", lambda p=path: load(p))

@@ -166,6 +166,44 @@ def rasterized_overlap(texcoords: np.ndarray, faces: np.ndarray, resolution: int
     return int((counts > 1).sum())
 
 
+def boundary_crossings(uv: np.ndarray, faces: np.ndarray, chunk: int = 2_000_000) -> int:
+    """Pairs of boundary edges of the layout ``uv`` (k, 2) over ``faces`` (m, 3) that cross
+    (proper intersections; pairs sharing a vertex are skipped): 0 for a flip-free chart
+    means its layout does not overlap itself (a locally injective map of a disk whose
+    boundary stays simple is injective). Vectorized over edge pairs, ``chunk`` at a time.
+
+    Example:
+        >>> import numpy as np
+        >>> square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=float)
+        >>> boundary_crossings(square, np.array([[0, 1, 2], [0, 2, 3]]))
+        0
+        >>> bow = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=float)
+        >>> boundary_crossings(bow, np.array([[0, 1, 2], [0, 2, 3]]))
+        1
+    """
+    half = np.stack([faces, np.roll(faces, -1, axis=1)], axis=-1).reshape(-1, 2)
+    key = np.sort(half, axis=1)
+    _, first, count = np.unique(key, axis=0, return_index=True, return_counts=True)
+    segments = half[first[count == 1]]                                 # (B, 2)
+    b = len(segments)
+    p, r = uv[segments[:, 0]], uv[segments[:, 1]] - uv[segments[:, 0]]
+    total = 0
+    rows = max(1, chunk // max(b, 1))
+    for start in range(0, b, rows):                 # bounded memory: a loop over chunks
+        i = np.arange(start, min(b, start + rows))[:, None]
+        j = np.arange(b)[None, :]
+        keep = (j > i) & (segments[i, 0] != segments[j, 0]) & (segments[i, 0] != segments[j, 1]) \
+            & (segments[i, 1] != segments[j, 0]) & (segments[i, 1] != segments[j, 1])
+        ii, jj = np.broadcast_to(i, keep.shape)[keep], np.broadcast_to(j, keep.shape)[keep]
+        denominator = r[ii, 0] * r[jj, 1] - r[ii, 1] * r[jj, 0]
+        d = p[jj] - p[ii]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (d[:, 0] * r[jj, 1] - d[:, 1] * r[jj, 0]) / denominator
+            u = (d[:, 0] * r[ii, 1] - d[:, 1] * r[ii, 0]) / denominator
+        total += int(((t > 0) & (t < 1) & (u > 0) & (u < 1)).sum())
+    return total
+
+
 def texel_coverage(texcoords: np.ndarray, faces: np.ndarray, resolution: int,
                    ) -> np.ndarray:
     """(resolution, resolution) int64 how many triangles cover each texel centre."""
@@ -191,5 +229,5 @@ def texel_coverage(texcoords: np.ndarray, faces: np.ndarray, resolution: int,
     return cover.reshape(resolution, resolution)
 
 
-__all__ = ["Packed", "PackingRules", "pack_charts", "packing_efficiency",
+__all__ = ["Packed", "PackingRules", "boundary_crossings", "pack_charts", "packing_efficiency",
            "principal_rotation", "rasterized_overlap", "signed_areas", "texel_coverage"]

@@ -339,7 +339,8 @@ def _flatten_or_none(V: np.ndarray, faces: np.ndarray, opts: ParameterizeOptions
     a single face, or any chart once the time is out, is always kept."""
     topology = build_topology(faces, n_vertices=len(V))
     if len(faces) == 1:
-        layout = triangle_layouts(face_edge_lengths(topology, _lengths(V, topology)))[0]
+        layout = triangle_layouts(face_edge_lengths(topology, _lengths(V, topology)),
+                                  check=False)[0]
         return ChartFlattening(layout, "none", "", 0.0, {"refined": False,
                                                           "reason": "one face"}, [])
     if not is_disk_like(topology):

@@ -24,12 +24,14 @@ class PackingRules:
     """The packer's settings (one home for their values).
 
     Attributes:
-        resolution: texels along the longer side the atlas is aimed at.
-        padding: free texels around every chart (at ``resolution``: 2 / 1024 of the side).
+        resolution: texels along the longer side the atlas is aimed at (2048 packs tighter
+            than 1024: 0.635 against 0.618 of the unit square on the shared bunny's 28
+            charts, 0.4 s against 0.15 s; xatlas's brute-force search reached 0.672 in 49 s).
+        padding: free texels around every chart (at ``resolution``: 2 / 2048 of the side).
         target_efficiency: the coverage assumed when choosing ``texels_per_unit``.
     """
 
-    resolution: int = 1024
+    resolution: int = 2048
     padding: int = 2
     target_efficiency: float = 0.7
 

@@ -135,3 +135,13 @@ def test_warnings_name_a_flattening_past_its_thresholds():
     assert "length-distortion" in codes
     flipped = result.report["flipped_count"] / len(remap[F[keep]])
     assert ("flipped-faces" in codes) == (flipped > 1e-3)
+
+
+def test_face_scan_with_small_holes_flattens_without_flips_or_overlap():
+    """A real scan (the face) with three small holes punched inside, as scans come."""
+    V, F = holed(*load("face.off"), [300, 600, 900])
+    topology = build_topology(F, n_vertices=len(V))
+    assert len(topology.boundary_loops) == 4
+    result = parameterize(V, F)
+    check_atlas(V, F, result)
+    assert result.report["warnings"] == []

@@ -504,7 +504,9 @@ def _single_texcoords(uv: np.ndarray, topology: MeshTopology) -> np.ndarray:
     low = used.min(axis=0)
     side = float((used.max(axis=0) - low).max())
     pad = rules.padding / rules.resolution
-    return (uv - low) / side * (1 - 2 * pad) + pad
+    texcoords = (uv - low) / side * (1 - 2 * pad) + pad
+    texcoords[~topology.is_referenced] = 0.0        # vertices no face uses
+    return texcoords
 
 
 def _assemble(charts: list[ChartLayout], m: int,

@@ -145,3 +145,15 @@ def test_face_scan_with_small_holes_flattens_without_flips_or_overlap():
     result = parameterize(V, F)
     check_atlas(V, F, result)
     assert result.report["warnings"] == []
+
+
+def test_a_spent_time_budget_still_cuts_closed_pieces_and_says_what_is_left():
+    V, F = load("decimated-knight.off")
+    result = parameterize(V, F, max_seconds=0.01)
+    assert result.report["atlas"]["charts"] >= 2      # a closed surface is always cut
+    assert np.array_equal(result.uv_vertex[result.uv_faces], F)
+    flipped = result.report["flipped_count"] / len(F)
+    codes = {w["code"] for w in result.report["warnings"]}
+    assert ("flipped-faces" in codes) == (flipped > 1e-3)
+    mean_change = result.report["length_change_summary"]["mean"]
+    assert ("length-distortion" in codes) == (mean_change > 0.1)

@@ -238,34 +238,43 @@ def flatten_chart(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
         stages.lap("solve")
     flat, _ = problem.unknowns_to_geometry(u)
     stages("solve", 1.0)
-    uv = flat[:, :2]
     # Used vertices lie in z = 0 exactly (see module docstring); report any deviation.
     planarity = float(np.abs(flat[topology.is_referenced, 2]).max())
-    refinement: dict[str, Any] = {"refined": False, "reason": "disabled (refine=false)"}
-    if refine:
-        refiner = Refiner(FormTargets(topology, lengths, np.zeros_like(lengths),
-                                      area_weight=opts.area_weight), dim=2, backend=backend)
-        if refiner.reproduces(uv):
-            refinement = {"refined": False, "reason": "exact: the surface is developable"}
-        else:
-            stages("refine")
-            # Start from local/global steps begun at a Tutte embedding (robust under large
-            # distortion: bumpy-plane 0 flips against 4-146 from the folded linear answer,
-            # docs/refinement.md), or from the linear answer where there is no Tutte
-            # embedding (several components).
-            tutte = tutte_embedding(V, topology, lengths, backend)
-            start, name = uv, "linear answer"
-            if tutte is not None:
-                start = local_global_flattening(topology, lengths, tutte, backend=backend)
-                name = "local/global from Tutte"
-            refiner.expect_refresh(stages.timings.get("factorize", 0.0))
-            fit = refiner.run(start, time_limit=stages.left(opts.max_seconds),
-                              progress=progress)
-            uv, refinement = fit.vertices, dict(fit.report, start=name)
-            stages.lap("refine")
-            stages("refine", 1.0)
-    return ChartFlattening(uv, system.backend, system.analysis, planarity, refinement,
-                           anchored)
+    linear = ChartFlattening(flat[:, :2], system.backend, system.analysis, planarity,
+                             {"refined": False, "reason": "disabled (refine=false)"}, anchored)
+    return refine_chart(V, topology, lengths, opts, stages, linear, progress) if refine \
+        else linear
+
+
+def refine_chart(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
+                 opts: ParameterizeOptions, stages: Stages, linear: ChartFlattening,
+                 progress: Progress | None = None) -> ChartFlattening:
+    """The planar refinement of :func:`flatten_chart`'s linear answer ``linear``."""
+    backend = opts.backend or "auto"
+    uv = linear.uv
+    refiner = Refiner(FormTargets(topology, lengths, np.zeros_like(lengths),
+                                  area_weight=opts.area_weight), dim=2, backend=backend)
+    if refiner.reproduces(uv):
+        refinement = {"refined": False, "reason": "exact: the surface is developable"}
+    else:
+        stages("refine")
+        # Start from local/global steps begun at a Tutte embedding (robust under large
+        # distortion: bumpy-plane 0 flips against 4-146 from the folded linear answer,
+        # docs/refinement.md), or from the linear answer where there is no Tutte
+        # embedding (several components).
+        tutte = tutte_embedding(V, topology, lengths, backend)
+        start, name = uv, "linear answer"
+        if tutte is not None:
+            start = local_global_flattening(topology, lengths, tutte, backend=backend)
+            name = "local/global from Tutte"
+        refiner.expect_refresh(stages.timings.get("factorize", 0.0))
+        fit = refiner.run(start, time_limit=stages.left(opts.max_seconds),
+                          progress=progress)
+        uv, refinement = fit.vertices, dict(fit.report, start=name)
+        stages.lap("refine")
+        stages("refine", 1.0)
+    return ChartFlattening(uv, linear.backend, linear.analysis, linear.planarity, refinement,
+                           linear.anchored)
 
 
 def uv_edges(uv_faces: np.ndarray) -> np.ndarray:
@@ -350,7 +359,8 @@ def _flatten_or_none(V: np.ndarray, faces: np.ndarray, opts: ParameterizeOptions
     quick = flatten_chart(V, topology, lengths, opts, stages, refine=False)
     if not out_of_time and _mean_change(V, quick.uv, faces) > 2 * limit:
         return None
-    full = flatten_chart(V, topology, lengths, opts, stages, refine=opts.refine is not False)
+    full = quick if opts.refine is False else refine_chart(V, topology, lengths, opts, stages,
+                                                            quick)
     if out_of_time:
         return full
     if (signed_areas(full.uv, faces) <= 0).any() or _mean_change(V, full.uv, faces) > limit \

@@ -59,6 +59,17 @@ def _check(V, F, doc):
     return texcoords, uv_faces, uv_vertex
 
 
+def _glb_accessor(data: bytes, name: str) -> np.ndarray:
+    """The float32 attribute ``name`` of a GLB's first primitive, read from its bytes."""
+    length, _ = struct.unpack_from("<II", data, 12)
+    doc = json.loads(data[20:20 + length])
+    accessor = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"][name]]
+    view = doc["bufferViews"][accessor["bufferView"]]
+    start = 20 + length + 8 + view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    width = {"VEC2": 2, "VEC3": 3}[accessor["type"]]
+    return np.frombuffer(data, np.float32, accessor["count"] * width, start).reshape(-1, width)
+
+
 def _glb_attributes(data: bytes) -> dict:
     length, _ = struct.unpack_from("<II", data, 12)
     doc = json.loads(data[20:20 + length])
@@ -70,7 +81,7 @@ def test_sync_flatten_gives_an_atlas_and_a_textured_glb(client, name):
     V, F = CASES[name]()
     response = client.post("/v1/parameterize", json=mesh_json(V, F))
     assert response.status_code == 200, response.text
-    _, _, uv_vertex = _check(V, F, response.json())
+    texcoords, _, uv_vertex = _check(V, F, response.json())
     glb = client.post("/v1/parameterize", json=mesh_json(V, F),
                       headers={"accept": "model/gltf-binary"})
     assert glb.status_code == 200, glb.text
@@ -78,6 +89,12 @@ def test_sync_flatten_gives_an_atlas_and_a_textured_glb(client, name):
     assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
     assert report["info"]["totalVertexCount"] == len(uv_vertex)
     assert "TEXCOORD_0" in _glb_attributes(glb.content)
+    # TEXCOORD_0 is the atlas with glTF's v down; POSITION the file's vertices per uv index.
+    np.testing.assert_allclose(_glb_accessor(glb.content, "TEXCOORD_0"),
+                               np.column_stack([texcoords[:, 0], 1 - texcoords[:, 1]]),
+                               atol=1e-6)
+    np.testing.assert_allclose(_glb_accessor(glb.content, "POSITION"), V[uv_vertex],
+                               atol=1e-5 * np.abs(V).max())
 
 
 def test_flatten_job_reports_progress_per_chart(client):

@@ -563,11 +563,12 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
                          else rules.padding / rules.resolution),
              "padding_texels": rules.padding,
              "atlas_texels": scale.side_texels if scale is not None else rules.resolution,
-             "uv_count": len(uv), "seams": opts.seams}
+             "uv_count": len(uv), "seams": opts.seams,
+             "boundary_crossings": _crossings(uv, uv_faces) if scale is None else 0}
     warnings = flattening_warnings(len(flipped) / max(len(F), 1),
                                    float(np.abs(length_change).mean()) if len(length_change)
                                    else 0.0, float(angle_change.mean()) if len(F) else 0.0,
-                                   efficiency, n_charts)
+                                   efficiency, n_charts, atlas["boundary_crossings"] or 0)
     report = ParameterizeReport(
         flipped_count=len(flipped), area_ratio_summary=summary(ratio - 1.0),
         angle_distortion_summary=summary(angle_change),
@@ -585,8 +586,18 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
                             face_chart=face_chart)
 
 
+def _crossings(uv: np.ndarray, faces: np.ndarray, most: int = 20_000) -> int | None:
+    """Crossing boundary-edge pairs of a one-chart layout (None past ``most`` boundary
+    edges: the test is quadratic in them). An atlas's charts are each checked while cut
+    and packed apart, so an atlas reports 0."""
+    half = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=-1).reshape(-1, 2), 1)
+    _, count = np.unique(half, axis=0, return_counts=True)
+    return None if (count == 1).sum() > most else boundary_crossings(uv, faces)
+
+
 def flattening_warnings(flipped_fraction: float, mean_length_change: float,
                         mean_angle_change: float, packing: float, charts: int,
+                        crossings: int = 0,
                         rules: WarningRules = DEFAULT_RULES) -> list[dict[str, Any]]:
     """The report's ``warnings`` for a flattening (thresholds of
     :class:`solver.warnings.WarningRules`).
@@ -607,6 +618,9 @@ def flattening_warnings(flipped_fraction: float, mean_length_change: float,
         exceeded(1.0 - packing if charts > 1 else 0.0, 1.0 - rules.min_packing_efficiency,
                  "packing-efficiency",
                  "the charts leave {value:.0%} of the unit square empty (limit {limit:.0%})"),
+        exceeded(crossings, rules.max_boundary_crossings, "overlapping-layout",
+                 "{value:.0f} pairs of boundary edges cross in uv: the layout overlaps "
+                 "itself (limit {limit:.0f}; seams='auto' cuts such a mesh into charts)"),
     ])
 
 

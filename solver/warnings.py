@@ -57,6 +57,8 @@ class WarningRules:
             change, radians.
         min_packing_efficiency: the fraction of the unit square an atlas of several
             charts should cover.
+        max_boundary_crossings: pairs of boundary edges of a one-chart flattening that
+            cross (a layout that overlaps itself).
     """
 
     max_flipped_fraction: float = 1e-3
@@ -65,6 +67,7 @@ class WarningRules:
     max_flatten_length_change: float = 0.1
     max_flatten_angle_change: float = 0.2
     min_packing_efficiency: float = 0.4
+    max_boundary_crossings: int = 0
 
 
 DEFAULT_RULES = WarningRules()

@@ -157,3 +157,21 @@ def test_a_spent_time_budget_still_cuts_closed_pieces_and_says_what_is_left():
     assert ("flipped-faces" in codes) == (flipped > 1e-3)
     mean_change = result.report["length_change_summary"]["mean"]
     assert ("length-distortion" in codes) == (mean_change > 0.1)
+
+
+def test_a_one_chart_layout_that_crosses_itself_is_named():
+    from solver.packing import boundary_crossings
+    from solver.parameterize import flattening_warnings
+
+    # A strip wound round past a full turn: no flipped face, its ends overlap.
+    angle = np.linspace(0, 2.24 * np.pi, 30)
+    inner = np.stack([np.cos(angle), np.sin(angle)], 1)
+    uv = np.concatenate([inner, 1.5 * inner])
+    i = np.arange(29)
+    faces = np.concatenate([np.stack([i, i + 30, i + 1], 1), np.stack([i + 1, i + 30, i + 31], 1)])
+    faces = faces[:, ::-1] if signed_areas(uv, faces)[0] < 0 else faces
+    assert (signed_areas(uv, faces) > 0).all()
+    crossings = boundary_crossings(uv, faces)
+    assert crossings > 0 and rasterized_overlap((uv + 3) / 6, faces, 512) > 0
+    codes = [w["code"] for w in flattening_warnings(0.0, 0.0, 0.0, 1.0, 1, crossings)]
+    assert codes == ["overlapping-layout"]

@@ -9,8 +9,8 @@ bounding square the charts cover), overlapping texels (rasterized at 2048²) and
 Meshes: every mesh in ../shared/meshes, a multi-part model made of the small shared
 meshes side by side, and a public collection fetched from GitHub (odedstein/meshes @
 835213277571d625722d25880c9c3010c6f45a5a, ``objects/<name>/<name>.obj``, not committed:
-pass the folder holding them with ``--extra``; OBJ files with ``vt`` are welded by
-position, since trimesh splits their vertices). Run from the repository root::
+pass the folder holding them with ``--extra``; its OBJ files are welded by
+position: trimesh splits their vertices). Run from the repository root::
 
     PYTHONPATH=$PWD python -m bench.flatten --extra /tmp/odedstein [--only bunny.off ...]
 """
@@ -32,12 +32,14 @@ SMALL_PARTS = ("decimated-knight.off", "torus.off", "octopus-low-surface.off", "
 """The shared meshes put side by side into the multi-part model."""
 
 
-def load(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, faces) of a file, welded by position when trimesh split it on ``vt``."""
+def load(path: Path, weld: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of a file; ``weld``: vertices at equal positions merged (the
+    public OBJ files whose faces trimesh splits on ``vt``/``vn``; the shared meshes are
+    read as they are: the beetle has distinct vertices at equal positions)."""
     import trimesh
 
     mesh = trimesh.load(path, process=False, force="mesh")
-    if path.suffix == ".obj" and "vt " in path.read_text(errors="ignore")[:2_000_000]:
+    if weld:
         mesh.merge_vertices(merge_tex=True, merge_norm=True)
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
@@ -123,7 +125,7 @@ def cases(extra: Path | None) -> list[tuple[str, Any]]:
     found: list[tuple[str, Any]] = [(path.name, lambda p=path: load(p)) for path in shared]
     found.append(("multi-part (4 shared meshes)", multi_part))
     if extra is not None:
-        found += [(f"odedstein/{path.name}", lambda p=path: load(p))
+        found += [(f"odedstein/{path.name}", lambda p=path: load(p, weld=True))
                   for path in sorted(extra.glob("*.obj"))]
     return found
 

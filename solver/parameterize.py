@@ -348,8 +348,10 @@ def _flatten_or_none(V: np.ndarray, faces: np.ndarray, opts: ParameterizeOptions
     a single face, or any chart once the time is out, is always kept."""
     topology = build_topology(faces, n_vertices=len(V))
     if len(faces) == 1:
-        layout = triangle_layouts(face_edge_lengths(topology, _lengths(V, topology)),
-                                  check=False)[0]
+        corners = triangle_layouts(face_edge_lengths(topology, _lengths(V, topology)),
+                                   check=False)[0]                    # (3, 2) per corner
+        layout = np.zeros((len(V), 2))
+        layout[faces[0]] = corners                                        # per chart vertex
         return ChartFlattening(layout, "none", "", 0.0, {"refined": False,
                                                           "reason": "one face"}, [])
     if not is_disk_like(topology):

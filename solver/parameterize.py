@@ -46,7 +46,7 @@ from .serialization import JsonDataclass
 from .system import half_cotangents
 from .topology import MeshTopology, build_topology
 from .validation import as_points
-from .warnings import DEFAULT_RULES, WarningRules, as_report, exceeded
+from .warnings import DEFAULT_RULES, AnswerWarning, WarningRules, as_report, exceeded
 
 
 @dataclass
@@ -567,10 +567,13 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
              "atlas_texels": scale.side_texels if scale is not None else rules.resolution,
              "uv_count": len(uv), "seams": opts.seams,
              "boundary_crossings": _crossings(uv, uv_faces) if scale is None else 0}
-    warnings = flattening_warnings(len(flipped) / max(len(F), 1),
-                                   float(np.abs(length_change).mean()) if len(length_change)
-                                   else 0.0, float(angle_change.mean()) if len(F) else 0.0,
-                                   efficiency, n_charts, atlas["boundary_crossings"] or 0)
+    warnings = as_report([
+        exceeded(len(flipped) / max(len(F), 1), DEFAULT_RULES.max_flipped_fraction,
+                 "flipped-faces", "{value:.2%} of the faces are flipped in uv (limit "
+                 "{limit:.2%})"),
+        *atlas_warnings(float(np.abs(length_change).mean()) if len(length_change) else 0.0,
+                        float(angle_change.mean()) if len(F) else 0.0, efficiency, n_charts,
+                        atlas["boundary_crossings"] or 0)])
     report = ParameterizeReport(
         flipped_count=len(flipped), area_ratio_summary=summary(ratio - 1.0),
         angle_distortion_summary=summary(angle_change),
@@ -597,20 +600,20 @@ def _crossings(uv: np.ndarray, faces: np.ndarray, most: int = 20_000) -> int | N
     return None if (count == 1).sum() > most else boundary_crossings(uv, faces)
 
 
-def flattening_warnings(flipped_fraction: float, mean_length_change: float,
-                        mean_angle_change: float, packing: float, charts: int,
-                        crossings: int = 0,
-                        rules: WarningRules = DEFAULT_RULES) -> list[dict[str, Any]]:
-    """The report's ``warnings`` for a flattening (thresholds of
-    :class:`solver.warnings.WarningRules`).
+def atlas_warnings(mean_length_change: float, mean_angle_change: float, packing: float,
+                   charts: int, crossings: int = 0, rules: WarningRules = DEFAULT_RULES,
+                   ) -> list[AnswerWarning | None]:
+    """The flattening rules of an atlas or a chart (thresholds of
+    :class:`solver.warnings.WarningRules`): mean length and angle distortion, packing
+    efficiency (several charts), a one-chart layout that crosses itself. Flipped faces are
+    the caller's rule (:attr:`WarningRules.max_flipped_fraction`).
 
     Example:
-        >>> [w["code"] for w in flattening_warnings(0.2, 0.01, 0.01, 0.8, 1)]
-        ['flipped-faces']
+        >>> found = atlas_warnings(0.2, 0.01, 0.8, 1)
+        >>> [w.code for w in found if w is not None]
+        ['length-distortion']
     """
-    return as_report([
-        exceeded(flipped_fraction, rules.max_flipped_fraction, "flipped-faces",
-                 "{value:.2%} of the faces are flipped in uv (limit {limit:.2%})"),
+    return [
         exceeded(mean_length_change, rules.max_flatten_length_change, "length-distortion",
                  "the uv edge lengths differ from the 3D ones by {value:.1%} on average "
                  "(limit {limit:.1%})"),
@@ -623,10 +626,10 @@ def flattening_warnings(flipped_fraction: float, mean_length_change: float,
         exceeded(crossings, rules.max_boundary_crossings, "overlapping-layout",
                  "{value:.0f} pairs of boundary edges cross in uv: the layout overlaps "
                  "itself (limit {limit:.0f}; seams='auto' cuts such a mesh into charts)"),
-    ])
+    ]
 
 
-__all__ = ["ChartFlattening", "ChartLayout", "Parameterization", "chart_layouts",
-           "flatten_chart", "flattening_warnings", "local_global_flattening",
+__all__ = ["ChartFlattening", "ChartLayout", "Parameterization", "atlas_warnings",
+           "chart_layouts", "flatten_chart", "local_global_flattening",
            "nearest_planar_rotation", "parameterize", "relative_length_change",
            "tutte_embedding", "uv_edges"]

@@ -118,6 +118,46 @@ def xatlas_atlas(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
     return {"charts": atlas.chart_count, **found, "seconds": seconds}
 
 
+def xatlas_charts_ours(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
+    """The alternative charting: xatlas's charts (its uv islands), each flattened by our
+    method (solver.parameterize.flatten_chart, refined) and packed by solver.packing."""
+    import scipy.sparse as sp
+    import xatlas
+    from scipy.sparse.csgraph import connected_components
+
+    from solver.charts import chart_mesh
+    from solver.options import ParameterizeOptions
+    from solver.packing import pack_charts
+    from solver.parameterize import ChartLayout, _assemble, _chart_options, flatten_chart
+    from solver.reports import Stages
+    from solver.topology import build_topology
+
+    start = time.perf_counter()
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(V.astype(np.float32), F.astype(np.uint32))
+    atlas.generate()
+    _, faces, _ = atlas.get_mesh(0)
+    m, k = len(faces), int(faces.max()) + 1
+    incidence = sp.coo_array((np.ones(3 * m), (np.repeat(np.arange(m), 3),
+                                               faces.ravel().astype(np.int64))),
+                             shape=(m, k)).tocsr()
+    count, island = connected_components(incidence @ incidence.T, directed=False)
+    layouts = []
+    for chart in range(count):                                  # a loop over charts
+        piece = chart_mesh(F, np.flatnonzero(island == chart))
+        topology = build_topology(piece.faces, n_vertices=len(piece.vertex_ids))
+        Vc = V[piece.vertex_ids]
+        lengths = np.linalg.norm(Vc[topology.edges[:, 1]] - Vc[topology.edges[:, 0]], axis=1)
+        opts = _chart_options(ParameterizeOptions(), len(piece.face_ids))
+        layouts.append(ChartLayout(piece, flatten_chart(Vc, topology, lengths, opts,
+                                                        Stages(None), refine=True)))
+    layout, uv_faces, uv_vertex, face_chart = _assemble(layouts, m)
+    packed = pack_charts(layout, uv_faces, face_chart)
+    seconds = time.perf_counter() - start
+    found = measures(V, F, packed.texcoords, uv_faces, uv_vertex)
+    return {"charts": count, **found, "seconds": seconds}
+
+
 def cases(extra: Path | None) -> list[tuple[str, Any]]:
     """(name, loader) of every benchmark mesh."""
     shared = sorted((p for p in SHARED_MESHES.glob("*") if p.suffix in (".obj", ".off")),
@@ -140,6 +180,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--extra", type=Path, help="folder of the fetched public meshes")
     parser.add_argument("--only", nargs="*", help="mesh names to run")
+    parser.add_argument("--alternative", action="store_true", help="also xatlas's charts "
+                        "flattened by our method and packed by ours")
     args = parser.parse_args(argv)
     print("| mesh | faces | method | charts | flips | mean length change | mean angle change "
           "(rad) | packing efficiency | overlapping texels | seconds |")
@@ -148,7 +190,10 @@ def main(argv: list[str] | None = None) -> None:
         if args.only and not any(want in name for want in args.only):
             continue
         V, F = loader()
-        for method, run in (("ours", ours), ("xatlas", xatlas_atlas)):
+        methods = [("ours", ours), ("xatlas", xatlas_atlas)]
+        if args.alternative:
+            methods.append(("xatlas charts, our flattening", xatlas_charts_ours))
+        for method, run in methods:
             try:
                 print(row(name, len(F), method, run(V, F)), flush=True)
             except Exception as error:  # a benchmark row names the failure

@@ -333,7 +333,9 @@ class Client:
 
     def parameterize(self, vertices: Any, faces: Any, *, refine: bool | None = None,
                      progress: Progress | None = None, **options: Any) -> Parameterization:
-        """Flatten a mesh with boundary (``POST /v1/parameterize``)."""
+        """Flatten a mesh (``POST /v1/parameterize``): one chart, or charts cut along seams
+        and packed (``result.texcoords``, ``uv_faces``, ``uv_vertex``, ``face_chart``;
+        ``options``: ``seams="auto"|"none"``, ``max_chart_distortion``)."""
         return self.run(self.parameterize_call(vertices, faces, refine=refine, **options),
                         progress)
 

@@ -297,6 +297,18 @@ def write_arrays(path: Path, fmt: str, arrays: dict[str, Any], extra: dict[str, 
         _atomic_write(path, json_text({**arrays, **extra}).encode())
 
 
+def write_textured_mesh(path: Path, fmt: str, vertices: np.ndarray, faces: np.ndarray,
+                        texcoords: np.ndarray, uv_faces: np.ndarray, uv_vertex: np.ndarray,
+                        ) -> None:
+    """Write a mesh with its atlas, atomically: ``obj`` (``v``, ``vt``, ``f v/vt``) or
+    ``glb`` (seam vertices duplicated, ``TEXCOORD_0``); :mod:`solver.uv_files`."""
+    from solver.uv_files import textured_glb, textured_obj
+
+    data = (textured_obj(vertices, faces, texcoords, uv_faces) if fmt == "obj"
+            else textured_glb(vertices, texcoords, uv_faces, uv_vertex))
+    _atomic_write(path, data)
+
+
 def write_mesh(path: Path, fmt: str, vertices: np.ndarray, faces: np.ndarray,
                report: dict[str, Any] | None = None) -> None:
     """Write a mesh, atomically.

@@ -129,7 +129,9 @@ class Local:
         result = solver.parameterize(
             vertices, faces, options=ParameterizeOptions.from_api({**options, "refine": refine}),
             progress=progress)
-        return Parameterization(result.uv, result.flipped_faces, result.report.to_dict())
+        return Parameterization(result.uv, result.flipped_faces, result.report.to_dict(),
+                                result.texcoords, result.uv_faces, result.uv_vertex,
+                                result.face_chart)
 
     def interpolate(self, vertices_a: Any, vertices_b: Any, faces: Any,
                     t: float | Sequence[float], *, refine: bool | None = None,

@@ -137,16 +137,33 @@ Deformation = Mesh
 
 @dataclass
 class Parameterization:
-    """A flattening: uv (n, 2) float64, flipped_faces (k,) int64, the report."""
+    """A flattening: the layout uv (k, 2) float64 over uv_faces (m, 3) int64, flipped_faces
+    (f,) int64, the report; the atlas in the unit square ``texcoords`` (k, 2), the file
+    vertex of each uv ``uv_vertex`` (k,) and the chart of each face ``face_chart`` (m,)
+    (None from a service without them)."""
 
     uv: np.ndarray
     flipped_faces: np.ndarray
     report: dict[str, Any] = field(default_factory=dict)
+    texcoords: np.ndarray | None = None
+    uv_faces: np.ndarray | None = None
+    uv_vertex: np.ndarray | None = None
+    face_chart: np.ndarray | None = None
+
+    @property
+    def charts(self) -> int:
+        """Number of charts (1 without an atlas report)."""
+        return int((self.report.get("atlas") or {}).get("charts", 1))
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any]) -> Parameterization:
+        def optional(key: str, convert: Any, cols: int | None) -> np.ndarray | None:
+            return None if doc.get(key) is None else convert(doc[key], cols)
+
         return cls(_floats(doc["uv"], 2), _ints(doc.get("flipped_faces", []), None),
-                   doc.get("report") or {})
+                   doc.get("report") or {}, optional("texcoords", _floats, 2),
+                   optional("uv_faces", _ints, 3), optional("uv_vertex", _ints, None),
+                   optional("face_chart", _ints, None))
 
     @property
     def warnings(self) -> list[dict[str, Any]]:

@@ -39,6 +39,10 @@ STAGES_LIGHT: tuple[str, ...] = ("validate", "solve", "encode")
 STAGES_ROWS: tuple[str, ...] = ("validate", "rows", "encode")
 """Progress stages of the shape-space operations: ``rows`` goes from 0 to 1 as the rows of
 weights are solved, in order (:func:`solver.blend`)."""
+STAGES_FLATTEN: tuple[str, ...] = ("validate", "assemble", "factorize", "solve", "refine",
+                                   "charts", "pack", "encode")
+"""Progress stages of ``parameterize``: a first single chart, then charts (fraction of the
+faces placed, chart by chart) and their packing where one chart does not do."""
 
 
 @dataclass(frozen=True)
@@ -137,11 +141,16 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "without handles stay where they are.", colors=("distortion",)),
     OperationSpec(
         "parameterize", schemas.ParameterizeRequest, schemas.ParameterizeParams,
-        documents.ParameterizeResponse, "mesh", STAGES_SOLVE, True,
-        tasks.parameterize_task, "Flatten a mesh with boundary",
-        "Planar coordinates by reconstructing with all dihedral angles 0. Closed meshes are "
-        "a 422 (unsupported-topology). glTF output is the flat mesh (u, v, 0). A non-manifold "
-        "mesh is flattened on its manifold cut, uv per file vertex (`report.input.cut`)."),
+        documents.ParameterizeResponse, "mesh", STAGES_FLATTEN, True,
+        tasks.parameterize_task, "Flatten a mesh (seams, charts and an atlas where needed)",
+        "Planar coordinates by reconstructing with all dihedral angles 0, per chart: a mesh "
+        "that does not flatten well as one chart (closed, handles, several parts, too "
+        "distorted) is cut along seams into charts packed into the unit square "
+        "(`texcoords`, `uv_faces`, `uv_vertex`, `face_chart`; `report.atlas`, "
+        "`report.warnings`). With `options.seams` = `none` closed meshes are a 422 "
+        "(unsupported-topology). glTF output is the 3D mesh, seam vertices duplicated, with "
+        "the atlas as TEXCOORD_0. A non-manifold mesh is flattened on its manifold cut "
+        "(`uv_vertex` names the file vertex of each uv index, `report.input.cut`)."),
     OperationSpec(
         "interpolate", schemas.InterpolateRequest, schemas.InterpolateParams,
         documents.InterpolateResponse, "pair", STAGES_LIGHT, True,

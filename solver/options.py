@@ -225,6 +225,18 @@ class ParameterizeOptions(OrthonormalizeOptions):
     area_weight: float = option(
         AREA_WEIGHT, "The planar refinement's weight of the relative signed-area residual "
         "(pushes flipped faces back).", served=False)
+    seams: Literal["auto", "none"] = option(
+        "auto", "auto: cut closed surfaces, handles, several parts and charts that flatten "
+        "too distorted into charts along seams and pack them into the unit square (a mesh "
+        "that flattens well as one chart keeps it); none: one chart per component, closed "
+        "components refused.")
+    max_chart_distortion: float = option(
+        0.05, "The largest mean relative edge-length change a chart may keep (0.05 is 5%); "
+        "a chart above it, or with a flipped face or overlapping itself, is split in two.",
+        gt=0.0, le=10.0)
+    crease_weight: float = option(
+        4.0, "How much more a bent edge costs a seam's growth than a flat one (the dual "
+        "graph's 1 + w (1 - cos dihedral), solver.charts).", served=False)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -223,7 +223,12 @@ class ParameterizeReport(Report):
         timings: seconds per stage.
         warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
         input: what was done to the input (``cut``: a non-manifold mesh's manifold cut,
-            :mod:`solver.manifold`, with the spread of the copies' uv); None: nothing.
+            :mod:`solver.manifold`: a cut vertex is one more uv index); None: nothing.
+        atlas: ``charts``, ``seam_edges``, ``seam_length`` (input units),
+            ``packing_efficiency`` (fraction of the unit square covered), ``padding``
+            (fraction of the side) and ``padding_texels`` at ``atlas_texels``, ``uv_count``,
+            ``boundary_crossings`` (one chart: boundary-edge pairs crossing in uv, None past
+            20 000 boundary edges; an atlas: 0, each chart checked).
     """
 
     flipped_count: int
@@ -241,3 +246,4 @@ class ParameterizeReport(Report):
     timings: Timings
     warnings: list[dict[str, Any]] | None = None
     input: dict[str, Any] | None = None
+    atlas: dict[str, Any] | None = None

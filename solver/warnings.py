@@ -57,12 +57,23 @@ class WarningRules:
         max_flattening_length_error: the largest relative edge-length change of a
             flattening (a fraction): a curved surface cannot flatten without changing
             lengths, so its limit is wider than ``max_length_error``.
+        max_flatten_length_change: a flattening's mean relative edge-length change.
+        max_flatten_angle_change: a flattening's mean (over faces) largest corner-angle
+            change, radians.
+        min_packing_efficiency: the fraction of the unit square an atlas of several
+            charts should cover.
+        max_boundary_crossings: pairs of boundary edges of a one-chart flattening that
+            cross (a layout that overlaps itself).
     """
 
     max_flipped_fraction: float = 1e-3
     max_length_error: float = 0.05
     max_angle_error: float = 0.1
     max_flattening_length_error: float = 0.5
+    max_flatten_length_change: float = 0.1
+    max_flatten_angle_change: float = 0.2
+    min_packing_efficiency: float = 0.4
+    max_boundary_crossings: int = 0
 
 
 DEFAULT_RULES = WarningRules()

@@ -137,9 +137,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "[{\"vertex\": i, \"position\": [x, y, z]}, ...] or {\"handles\", "
                         "\"rotations\", \"roi\"}; or a Botsch-Sorkine NAME.sel (0 fixed, 1 "
                         "free, 2 handle per vertex) with NAME.def (4x4 transform) beside it")
-    commands.add_parser("flatten", parents=[common, solve], help="flatten meshes with "
-                        "boundary (uv as z = 0 meshes, or .json/.npz)").add_argument(
-                            "inputs", **meshes)
+    flatten = commands.add_parser(
+        "flatten", parents=[common, solve], help="flatten meshes (seams and a packed atlas "
+        "where one chart does not do): .obj/.glb the mesh with its uv (vt, TEXCOORD_0), "
+        ".ply/.off/.stl the flat layout (z = 0), .json/.npz the arrays")
+    flatten.add_argument("inputs", **meshes)
+    flatten.add_argument("--seams", choices=("auto", "none"), default=None,
+                         help="auto (default): cut into charts where needed; none: one "
+                         "chart per component, closed meshes refused")
+    flatten.add_argument("--flat", action="store_true", help="write the flat layout "
+                         "(u, v, 0) to .obj/.glb too, instead of the mesh with its uv")
     blend = commands.add_parser("blend", parents=[common, solve],
                                 help="blend, extrapolate or animate 2 to 64 meshes with the "
                                 "same faces in form space")

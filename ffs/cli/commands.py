@@ -167,24 +167,36 @@ def run_deform(backend: Any, item: Item, args: argparse.Namespace, progress: Pro
 
 def run_flatten(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
                 row: Row) -> None:
-    """``ffs flatten``: uv of a mesh with boundary, as a z = 0 mesh or a .json/.npz."""
+    """``ffs flatten``: the atlas of a mesh. OBJ and GLB: the mesh with its uv (``vt`` /
+    ``TEXCOORD_0``; ``--flat``: the flat layout instead); PLY, OFF, STL: the flat layout
+    (u, v, 0) over the uv faces; .json/.npz: the arrays."""
     import numpy as np
 
     from ffs import files
 
     vertices, faces = files.read_mesh(item.inputs[0], args.input_format)
-    result = backend.parameterize(vertices, faces, progress=progress,
+    seams = {"seams": args.seams} if getattr(args, "seams", None) else {}
+    result = backend.parameterize(vertices, faces, progress=progress, **seams,
                                   **_mesh_options(args, orthonormalize_default=True))
     out = Path(item.outputs[0])
     fmt = _output_format(out, args)
+    uv_faces = result.uv_faces if result.uv_faces is not None else np.asarray(faces)
     if fmt in files.DATA_FORMATS:
-        files.write_arrays(out, fmt, {"uv": result.uv, "flipped_faces": result.flipped_faces,
-                                      "faces": np.asarray(faces)}, {"report": result.report})
+        arrays = {"uv": result.uv, "flipped_faces": result.flipped_faces,
+                  "faces": np.asarray(faces)}
+        arrays.update({name: getattr(result, name) for name in
+                       ("texcoords", "uv_faces", "uv_vertex", "face_chart")
+                       if getattr(result, name) is not None})
+        files.write_arrays(out, fmt, arrays, {"report": result.report})
+    elif fmt in ("obj", "glb") and not args.flat and result.texcoords is not None:
+        files.write_textured_mesh(out, fmt, vertices, np.asarray(faces), result.texcoords,
+                                  uv_faces, result.uv_vertex)
     else:
         flat = np.column_stack([result.uv, np.zeros(len(result.uv))])
-        files.write_mesh(out, fmt, flat, np.asarray(faces))
+        files.write_mesh(out, fmt, flat, uv_faces)
     row.faces, row.report = len(faces), result.report
-    row.note = f"{len(result.flipped_faces)} flipped faces"
+    charts = (result.report.get("atlas") or {}).get("charts", 1)
+    row.note = f"{len(result.flipped_faces)} flipped faces, {charts} charts"
     _refinement_columns(row, result.report)
     row.warnings = list(result.report.get("warnings") or [])
 

@@ -270,7 +270,10 @@ class MeshResponse(BaseModel):
 
 
 class ParameterizeResponse(BaseModel):
-    """Planar coordinates per vertex, faces whose orientation flipped, and a report."""
+    """The flat layout ``uv`` over ``uv_faces`` (one uv per file vertex for one chart; a
+    seam vertex once per chart it borders), the atlas in the unit square ``texcoords``,
+    the file vertex of each uv (``uv_vertex``), the chart of each face, faces whose
+    orientation flipped, and a report (``atlas``: charts, seams, packing; ``warnings``)."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"uv": [[0.0, 0.0], [1.058, 0.0], [1.049, 1.04], [0.009, 1.04], [0.529, 0.543]],
@@ -279,6 +282,10 @@ class ParameterizeResponse(BaseModel):
     uv: list[Annotated[list[float], Field(min_length=2, max_length=2)]]
     flipped_faces: list[int]
     report: AnswerReport
+    texcoords: list[Annotated[list[float], Field(min_length=2, max_length=2)]] | None = None
+    uv_faces: list[Tri] | None = None
+    uv_vertex: list[int] | None = None
+    face_chart: list[int] | None = None
 
 
 class InterpolateResponse(BaseModel):

@@ -211,6 +211,8 @@ class TaskResult:
     encoded: dict[str, bytes] = field(default_factory=dict)
     """Bodies of other formats computed with the result (``output.keep``), for results that
     are not one mesh: ``blend``'s animated GLB / glTF (format -> bytes)."""
+    texcoords: np.ndarray | None = None
+    """(n, 2) uv of ``mesh``'s vertices (a flattening's atlas), written as TEXCOORD_0."""
 
 
 @dataclass(frozen=True)

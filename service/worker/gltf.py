@@ -294,8 +294,8 @@ class _BufferBuilder:
         return b"".join(self.parts)
 
 
-def _build(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None, normals: bool
-           ) -> tuple[dict[str, Any], bytes]:
+def _build(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None, normals: bool,
+           texcoords: ArrayLike | None = None) -> tuple[dict[str, Any], bytes]:
     """The glTF JSON document (without ``buffers[0].uri``) and the binary buffer."""
     pos, f, c32, v64 = _check_inputs(vertices, faces, colors)
     n, m = pos.shape[0], f.shape[0]
@@ -310,6 +310,10 @@ def _build(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None, norm
     if c32 is not None:
         attributes["COLOR_0"] = buf.add(c32, component_type=_FLOAT, type_="VEC4",
                                         target=_ARRAY_BUFFER)
+    if texcoords is not None:
+        attributes["TEXCOORD_0"] = buf.add(gltf_texcoords(texcoords, n),
+                                           component_type=_FLOAT, type_="VEC2",
+                                           target=_ARRAY_BUFFER)
     primitive: dict[str, Any] = {"attributes": attributes, "material": 0}
     if m > 0:
         if n <= 0xFFFF:  # max index n - 1 <= 65534: never the restart value 65535
@@ -341,13 +345,30 @@ def _build(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None, norm
     return doc, binary
 
 
+def gltf_texcoords(texcoords: ArrayLike, n: int) -> NDArray[np.float32]:
+    """(n, 2) float32 ``TEXCOORD_0`` from uv with v up (OBJ's, the library's): glTF's
+    texture origin is the image's top-left corner, so v becomes 1 - v.
+
+    Raises:
+        solver.errors.ShapeMismatchError: not (n, 2); NonFiniteValueError: not finite.
+    """
+    t = np.asarray(texcoords, dtype=np.float64)
+    if t.shape != (n, 2):
+        raise ShapeMismatchError(f"expected shape ({n}, 2), got {t.shape}", field="texcoords")
+    bad = ~np.isfinite(t).all(axis=1)
+    if bad.any():
+        raise NonFiniteValueError("non-finite texture coordinate", field="texcoords",
+                                  index=int(np.flatnonzero(bad)[0]))
+    return np.column_stack([t[:, 0], 1.0 - t[:, 1]]).astype(np.float32)
+
+
 def _json_bytes(doc: dict[str, Any]) -> bytes:
     """Compact UTF-8 JSON of a glTF document (no NaN: the inputs were checked finite)."""
     return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
 def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
-                       normals: bool = True) -> bytes:
+                       normals: bool = True, texcoords: ArrayLike | None = None) -> bytes:
     """Encode a triangle mesh as a GLB 2.0 file (media type ``model/gltf-binary``).
 
     Args:
@@ -358,6 +379,8 @@ def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike 
             clipped; written as float32 ``COLOR_0``. :func:`color_ramp` produces suitable
             values.
         normals: Write area-weighted unit vertex normals as ``NORMAL``.
+        texcoords: (n, 2) float uv (v up), or None: written as float32 ``TEXCOORD_0``
+            (:func:`gltf_texcoords`).
 
     Returns:
         12-byte header, a JSON chunk padded with spaces and a BIN chunk padded with zeros,
@@ -369,7 +392,7 @@ def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike 
         solver.errors.NonFiniteValueError: A non-finite coordinate or colour, or a
             coordinate that overflows float32.
     """
-    doc, binary = _build(vertices, faces, colors, normals)
+    doc, binary = _build(vertices, faces, colors, normals, texcoords)
     js = _json_bytes(doc)
     js += b" " * ((-len(js)) % 4)
     bin_chunk = binary + b"\x00" * ((-len(binary)) % 4)
@@ -382,7 +405,7 @@ def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike 
 
 
 def encode_gltf_json(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
-                     normals: bool = True) -> bytes:
+                     normals: bool = True, texcoords: ArrayLike | None = None) -> bytes:
     """Encode a triangle mesh as a self-contained ``.gltf`` (media type ``model/gltf+json``).
 
     Same document as :func:`encode_gltf_binary`; the buffer is embedded as a
@@ -400,14 +423,15 @@ def encode_gltf_json(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | 
     Raises:
         solver.errors.SolverInputError: As :func:`encode_gltf_binary`.
     """
-    doc, binary = _build(vertices, faces, colors, normals)
+    doc, binary = _build(vertices, faces, colors, normals, texcoords)
     doc["buffers"][0]["uri"] = ("data:application/octet-stream;base64,"
                                 + base64.b64encode(binary).decode("ascii"))
     return _json_bytes(doc)
 
 
 def encode_gltf(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
-                normals: bool = True, *, kind: Literal["glb", "gltf"] = "glb") -> bytes:
+                normals: bool = True, *, kind: Literal["glb", "gltf"] = "glb",
+                texcoords: ArrayLike | None = None) -> bytes:
     """Encode with :func:`encode_gltf_binary` (``kind="glb"``) or :func:`encode_gltf_json`
     (``kind="gltf"``); the other arguments are theirs.
 
@@ -415,9 +439,9 @@ def encode_gltf(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None 
         ValueError: Another ``kind``.
     """
     if kind == "glb":
-        return encode_gltf_binary(vertices, faces, colors, normals)
+        return encode_gltf_binary(vertices, faces, colors, normals, texcoords)
     if kind == "gltf":
-        return encode_gltf_json(vertices, faces, colors, normals)
+        return encode_gltf_json(vertices, faces, colors, normals, texcoords)
     raise ValueError(f"unknown glTF kind {kind!r} (expected 'glb' or 'gltf')")
 
 

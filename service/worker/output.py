@@ -65,7 +65,8 @@ def with_colors(body: bytes, colors: np.ndarray) -> bytes:
 
 
 def mesh_bytes(fmt: str, vertices: np.ndarray, faces: np.ndarray,
-               values: np.ndarray | None = None) -> bytes:
+               values: np.ndarray | None = None, texcoords: np.ndarray | None = None,
+               ) -> bytes:
     """A mesh response body.
 
     Args:
@@ -73,6 +74,7 @@ def mesh_bytes(fmt: str, vertices: np.ndarray, faces: np.ndarray,
         vertices: (n, 3) float64.
         faces: (m, 3) int.
         values: (n,) float per-vertex scalars drawn as a colour ramp, or None.
+        texcoords: (n, 2) float uv written as ``TEXCOORD_0``, or None.
 
     Returns:
         The glTF 2.0 asset (:func:`service.worker.gltf.encode_gltf`).
@@ -80,4 +82,5 @@ def mesh_bytes(fmt: str, vertices: np.ndarray, faces: np.ndarray,
     Raises:
         ValueError: ``fmt`` is neither ``glb`` nor ``gltf``.
     """
-    return gltf.encode_gltf(vertices, faces, colors_for(values), kind=fmt)  # type: ignore[arg-type]
+    return gltf.encode_gltf(vertices, faces, colors_for(values), kind=fmt,  # type: ignore[arg-type]
+                            texcoords=texcoords)

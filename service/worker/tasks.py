@@ -104,7 +104,8 @@ def _file_faces(forms: FormsArrays) -> np.ndarray:
 
 def _finish(request: TaskRequest, progress: Progress, document: dict[str, Any],
             mesh: tuple[np.ndarray, np.ndarray] | None = None,
-            colors: dict[str, np.ndarray] | None = None) -> TaskResult:
+            colors: dict[str, np.ndarray] | None = None,
+            texcoords: np.ndarray | None = None) -> TaskResult:
     """The encode stage: the response body in the requested format (+ kept data for jobs)."""
     progress("encode", 0.0)
     out = request.output
@@ -117,10 +118,11 @@ def _finish(request: TaskRequest, progress: Progress, document: dict[str, Any],
     else:
         if mesh is None:
             raise ProblemError("not-acceptable", "this result is not a single mesh")
-        body = output.mesh_bytes(out.format, mesh[0], mesh[1], values)
+        body = output.mesh_bytes(out.format, mesh[0], mesh[1], values, texcoords)
     result = TaskResult(output.MEDIA_TYPES[out.format], body)
     if out.keep:
         result.mesh, result.colors = mesh, colors
+        result.texcoords = texcoords
     progress("encode", 1.0)
     return result
 
@@ -294,16 +296,20 @@ def deform_task(request: TaskRequest, progress: Progress) -> TaskResult:
 
 
 def parameterize_task(request: TaskRequest, progress: Progress) -> TaskResult:
-    """Flatten a mesh with boundary; glTF output is the flat mesh (u, v, 0)."""
+    """Flatten a mesh (charts cut and packed where needed); glTF output is the 3D mesh with
+    its seam vertices duplicated and the atlas as ``TEXCOORD_0``."""
     progress("validate", 0.0)
     vertices, faces, read = _mesh_and_input(request)
     result = solver.parameterize(vertices, faces,
                                  options=request.solve_options(solver.ParameterizeOptions),
                                  progress=progress)
     document = {"uv": result.uv, "flipped_faces": result.flipped_faces,
-                "report": _with_input(result.report.to_dict(), read)}
-    flat = np.column_stack([result.uv, np.zeros(len(result.uv))])
-    return _finish(request, progress, document, (flat, np.asarray(faces)))
+                "report": _with_input(result.report.to_dict(), read), "texcoords": result.texcoords,
+                "uv_faces": result.uv_faces, "uv_vertex": result.uv_vertex,
+                "face_chart": result.face_chart}
+    textured = np.asarray(vertices, dtype=np.float64)[result.uv_vertex]
+    return _finish(request, progress, document, (textured, result.uv_faces),
+                   texcoords=result.texcoords)
 
 
 def interpolate_task(request: TaskRequest, progress: Progress) -> TaskResult:

@@ -132,7 +132,8 @@ def test_flatten_gives_the_librarys_layout(ffs, server, workdir):
     library = solver.parameterize(V, F)
     assert rigid_error(np.column_stack([uv_local, np.zeros(len(V))]),
                        np.column_stack([library.uv, np.zeros(len(V))])) < 1e-6
-    local, remote = run_both(ffs, server, workdir, "flatten", ["face.off"], "face.obj")
+    local, remote = run_both(ffs, server, workdir, "flatten", ["face.off"], "face.obj",
+                             "--flat")
     flat, faces = load_mesh_file(local)
     np.testing.assert_array_equal(faces, F)
     np.testing.assert_array_equal(flat[:, 2], 0.0)

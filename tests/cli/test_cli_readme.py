@@ -47,6 +47,7 @@ def test_readme_command_line_examples_run(tmp_path: Path, server: str):
     assert result.returncode == 0, result.stderr
     assert "Traceback" not in result.stderr
     for name in ("knight-forms.json", "knight.glb", "face-flat.obj", "face-report.json",
+                 "torus-uv.obj",
                  "face-deformed.ply", "blend/face-0.25.ply", "blend/face-0.75.ply",
                  "converted/torus.ply", "forms/face.npz", "rebuilt/decimated-knight.ply",
                  "rebuilt.json"):

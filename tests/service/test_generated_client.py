@@ -108,7 +108,8 @@ def test_every_operation_with_json(gen, client):
 
     flat = gen("api.operations.parameterize").sync(
         client=client, body=m.ParameterizeRequest.from_dict(_example("ParameterizeRequest")))
-    assert isinstance(flat, m.ParameterizeResponse) and len(flat.uv) == 5
+    assert isinstance(flat, m.ParameterizeResponse) and len(flat.uv) == len(flat.uv_vertex)
+    assert sorted(set(flat.uv_vertex)) == [0, 1, 2, 3, 4]  # the pyramid's 5 vertices
 
     example = _example("InterpolateRequest")
     blend = gen("api.operations.interpolate").sync(

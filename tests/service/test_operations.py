@@ -220,16 +220,20 @@ def test_parameterize_equals_library_call(client):
     response = client.post("/v1/parameterize", json=mesh_json(V, F))
     assert response.status_code == 200, response.text
     got = response.json()
-    assert set(got) == {"uv", "flipped_faces", "report"}
+    assert set(got) == {"uv", "flipped_faces", "report", "texcoords", "uv_faces", "uv_vertex",
+                        "face_chart"}
     want = solver.parameterize(V, F)
     np.testing.assert_allclose(got["uv"], want.uv, atol=1e-9)
+    np.testing.assert_allclose(got["texcoords"], want.texcoords, atol=1e-9)
+    assert got["uv_faces"] == F.tolist() and got["uv_vertex"] == list(range(len(V)))
     assert got["flipped_faces"] == want.flipped_faces.tolist()
     assert got["report"]["flipped_count"] == len(want.flipped_faces)
 
 
-def test_parameterize_closed_mesh_is_422(client):
+def test_parameterize_closed_mesh_is_422_without_seams(client):
     V, F = icosphere(1)
-    doc = problem(client.post("/v1/parameterize", json=mesh_json(V, F)), 422,
+    doc = problem(client.post("/v1/parameterize", json={**mesh_json(V, F),
+                                                        "options": {"seams": "none"}}), 422,
                   "unsupported-topology")
     assert doc["errors"][0]["field"] == "faces"
     assert doc["errors"][0]["closed_components"] == [0]
@@ -260,7 +264,8 @@ def test_refine_option_reaches_deform_parameterize_interpolate_and_sessions(clie
 
     def post(path, body, refine):
         options = {} if refine is None else {"refine": refine}
-        response = client.post(path, json={**body, "options": options})
+        response = client.post(path, json={**body, "options": {**body.get("options", {}),
+                                                               **options}})
         assert response.status_code == 200, response.text
         return response.json()
 
@@ -269,7 +274,8 @@ def test_refine_option_reaches_deform_parameterize_interpolate_and_sessions(clie
     assert deform[None]["report"]["refinement"]["refined"] is True
     assert deform[False]["report"]["refinement"]["refined"] is False
     assert not np.allclose(deform[None]["vertices"], deform[False]["vertices"], atol=1e-3)
-    flat = {r: post("/v1/parameterize", mesh_json(V, F), r) for r in (None, False)}
+    flat = {r: post("/v1/parameterize", {**mesh_json(V, F), "options": {"seams": "none"}}, r)
+            for r in (None, False)}
     assert flat[None]["report"]["refinement"]["refined"] is True
     assert not np.allclose(flat[None]["uv"], flat[False]["uv"], atol=1e-3)
     B = V.copy()

@@ -374,32 +374,26 @@ def test_api_errors_are_shown(web, tmp_path):
     assert "415" in toast.inner_text() and "not a supported mesh file" in toast.inner_text()
     assert web.app("app.state.name") == "face.off"  # the open mesh is kept
 
-    # A closed mesh cannot be flattened: the button is off, and the service's answer to the
-    # request anyway (programmatic) is shown.
+    # A closed mesh is flattened into an atlas (tests/web/test_flatten_atlas.py), no error.
     page.select_option("#sample-select", "decimated-knight.off")
     web.wait_for("window.app.state.name === 'decimated-knight.off'")
     web.idle()
-    assert page.locator("#flatten").is_disabled()
-    web.app("app.flatten()")
-    web.wait_for("window.app.state.errors.length >= 2")
-    web.idle()
-    text = page.locator(".toast").first.inner_text()
-    assert "422 Unsupported topology" in text and "no boundary" in text, text
+    assert page.locator("#flatten").is_enabled()
 
     # Forms files: not JSON, not forms, and forms that do not fit their faces.
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     page.set_input_files("#forms-file", str(bad))
-    web.wait_for("window.app.state.errors.length >= 3")
+    web.wait_for("window.app.state.errors.length >= 2")
     assert "Invalid JSON" in page.locator(".toast").first.inner_text()
     bad.write_text(json.dumps({"faces": [[0, 1, 2]]}))
     page.set_input_files("#forms-file", str(bad))
-    web.wait_for("window.app.state.errors.length >= 4")
+    web.wait_for("window.app.state.errors.length >= 3")
     assert "missing edges, lengths, angles" in page.locator(".toast").first.inner_text()
     bad.write_text(json.dumps({"faces": [[0, 1, 2]], "edges": [[0, 1], [0, 2], [2, 1]],
                                "lengths": [1, 1, 1], "angles": [0, 0, 0]}))
     page.set_input_files("#forms-file", str(bad))
-    web.wait_for("window.app.state.errors.length >= 5")
+    web.wait_for("window.app.state.errors.length >= 4")
     web.idle()
     text = page.locator(".toast").first.inner_text()
     assert "422" in text and "edges[2]" in text, text
@@ -407,6 +401,6 @@ def test_api_errors_are_shown(web, tmp_path):
     png = web.screenshot("05-errors")
     assert_not_blank(png, min_colored=0.0)  # exact forms: the knight is plain grey
     shown = web.shown_errors()
-    assert len(shown) == 5 and all(e["title"] and e["detail"] for e in shown)
+    assert len(shown) == 4 and all(e["title"] and e["detail"] for e in shown)
     # (the 415 comes from the page's worker, whose console Playwright's page does not see)
     assert any("422" in e for e in web.errors)

@@ -212,7 +212,7 @@ def _encode(result: TaskResult, fmt: str, values: Any) -> bytes:
     if result.mesh is None:
         raise ProblemError("not-acceptable", "this result is not a single mesh; use "
                            "format=json or Accept: application/json")
-    return mesh_bytes(fmt, result.mesh[0], result.mesh[1], values)
+    return mesh_bytes(fmt, result.mesh[0], result.mesh[1], values, result.texcoords)
 
 
 @router.delete("/jobs/{job_id}", response_model=JobStatus, summary="Cancel or delete a job",

@@ -1,0 +1,182 @@
+"""Charts: seams that cut a mesh into pieces that flatten well, by recursive bisection.
+
+A chart is a set of faces, edge-connected, flattened on its own. The seams are the edges
+between charts. :func:`bisect` splits a chart in two: the two faces farthest apart on the
+dual graph (two Dijkstra sweeps from any face) grow Voronoi regions over the dual graph
+whose edge costs are the distances between face centroids, raised where the surface bends
+(``1 + crease_weight * (1 - cos dihedral)``), so the cut between them tends to run along
+creases and never crosses a flat region it could go around. Graph Voronoi regions are
+connected (a face's predecessor on its shortest path has the same seed), so both halves
+are charts; a chart that is closed or has a handle is always split, so the cuts through the
+homology generators and between holes come from the same recursion (see
+docs/flattening.md for why, against xatlas's charting).
+
+:func:`chart_mesh` extracts a chart as its own mesh, giving a vertex where a chart touches
+itself only at a vertex (two face fans) one copy per fan, so every chart is manifold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components, dijkstra
+
+from .topology import MeshTopology
+
+
+@dataclass(frozen=True)
+class ChartMesh:
+    """One chart as a mesh of its own.
+
+    Attributes:
+        face_ids: (m_c,) int64 indices of its faces in the whole mesh.
+        vertex_ids: (n_c,) int64 mesh vertex of each chart vertex (a mesh vertex where the
+            chart touches itself at a vertex appears once per face fan).
+        faces: (m_c, 3) int64 faces over the chart's vertices, same order as ``face_ids``.
+    """
+
+    face_ids: np.ndarray
+    vertex_ids: np.ndarray
+    faces: np.ndarray
+
+
+@dataclass(frozen=True)
+class DualGraph:
+    """The whole mesh's face adjacency with seam costs.
+
+    Attributes:
+        edge_faces: (I, 2) int64 the two faces of each interior edge.
+        cost: (I,) float64 centroid distance times the crease factor.
+        mesh_edge: (I,) int64 the edge of each entry in ``topology.edges``.
+    """
+
+    edge_faces: np.ndarray
+    cost: np.ndarray
+    mesh_edge: np.ndarray
+
+
+def dual_graph(vertices: np.ndarray, topology: MeshTopology, angles: np.ndarray,
+               crease_weight: float) -> DualGraph:
+    """The dual graph of ``topology`` with costs (module docstring).
+
+    Args:
+        vertices: (n, 3) float64.
+        topology: the mesh.
+        angles: (E,) float64 signed dihedral angles (0 on the boundary).
+        crease_weight: how much more a bent edge costs (0: plain centroid distances).
+    """
+    interior = np.flatnonzero((topology.edge_faces >= 0).all(axis=1))
+    pairs = topology.edge_faces[interior]
+    centroids = vertices[topology.faces].mean(axis=1)
+    distance = np.linalg.norm(centroids[pairs[:, 0]] - centroids[pairs[:, 1]], axis=1)
+    cost = np.maximum(distance, 1e-12) * (1.0 + crease_weight * (1.0 - np.cos(angles[interior])))
+    return DualGraph(pairs, cost, interior)
+
+
+def _local_graph(graph: DualGraph, face_ids: np.ndarray, n_faces: int,
+                 ) -> tuple[sp.csr_array, np.ndarray]:
+    """The dual graph restricted to ``face_ids`` (local indices) and its entries' mask."""
+    local = np.full(n_faces, -1, dtype=np.int64)
+    local[face_ids] = np.arange(len(face_ids))
+    ends = local[graph.edge_faces]
+    keep = (ends >= 0).all(axis=1)
+    a, b = ends[keep, 0], ends[keep, 1]
+    k = len(face_ids)
+    matrix = sp.coo_array((np.concatenate([graph.cost[keep], graph.cost[keep]]),
+                           (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(k, k))
+    return matrix.tocsr(), keep
+
+
+def connected_face_sets(graph: DualGraph, face_ids: np.ndarray, n_faces: int,
+                        ) -> list[np.ndarray]:
+    """The edge-connected components of ``face_ids`` (each (k,) int64, mesh face indices)."""
+    matrix, _ = _local_graph(graph, face_ids, n_faces)
+    count, label = connected_components(matrix, directed=False)
+    order = np.argsort(label, kind="stable")
+    bounds = np.searchsorted(label[order], np.arange(count + 1))
+    return [face_ids[order[bounds[c]:bounds[c + 1]]] for c in range(count)]
+
+
+def bisect(graph: DualGraph, face_ids: np.ndarray, n_faces: int) -> list[np.ndarray]:
+    """Split an edge-connected chart of two or more faces into connected charts.
+
+    The two faces farthest apart (two Dijkstra sweeps) seed graph Voronoi regions; each
+    region is edge-connected. Returns the parts (two, or more if a region is not connected,
+    which only exact ties can cause), each a (k,) int64 array of mesh face indices.
+    """
+    matrix, _ = _local_graph(graph, face_ids, n_faces)
+    first = dijkstra(matrix, directed=False, indices=0)
+    a = int(np.argmax(np.where(np.isfinite(first), first, -1.0)))
+    from_a = dijkstra(matrix, directed=False, indices=a)
+    b = int(np.argmax(np.where(np.isfinite(from_a), from_a, -1.0)))
+    if a == b:
+        b = (a + 1) % len(face_ids)
+    from_b = dijkstra(matrix, directed=False, indices=b)
+    nearer_a = from_a <= from_b
+    parts = []
+    for side in (nearer_a, ~nearer_a):
+        if side.any():
+            parts.extend(connected_face_sets(graph, face_ids[side], n_faces))
+    return parts
+
+
+def chart_mesh(faces: np.ndarray, face_ids: np.ndarray) -> ChartMesh:
+    """The chart ``face_ids`` of the mesh ``faces`` (m, 3) as a manifold mesh of its own.
+
+    Corners of one mesh vertex are joined when their faces share an edge through that
+    vertex (within the chart); each group of corners (a face fan) becomes one chart vertex.
+
+    Example:
+        >>> import numpy as np
+        >>> bowtie = np.array([[0, 1, 2], [0, 3, 4]])       # two fans meet at vertex 0
+        >>> chart = chart_mesh(bowtie, np.array([0, 1]))
+        >>> chart.vertex_ids.tolist(), chart.faces.tolist()
+        ([0, 0, 1, 2, 3, 4], [[0, 2, 3], [1, 4, 5]])
+    """
+    F = faces[face_ids]
+    m = len(F)
+    corner_vertex = F.ravel()                                   # corner 3 t + k
+    tail, head = F.ravel(), np.roll(F, -1, axis=1).ravel()      # half-edge 3 t + k
+    key = np.minimum(tail, head) * (faces.max() + 1) + np.maximum(tail, head)
+    order = np.argsort(key, kind="stable")
+    same = key[order[1:]] == key[order[:-1]]
+    h1, h2 = order[:-1][same], order[1:][same]                  # twin half-edges
+    # h1: a -> b in face t1 (corner h1 at a, corner next(h1) at b); h2: b -> a.
+    nxt = 3 * (np.arange(3 * m) // 3) + (np.arange(3 * m) + 1) % 3
+    join = sp.coo_array((np.ones(2 * len(h1)), (np.concatenate([h1, nxt[h1]]),
+                                                np.concatenate([nxt[h2], h2]))),
+                        shape=(3 * m, 3 * m))
+    _, fan = connected_components(join, directed=False)
+    fan_vertex = np.zeros(fan.max() + 1, dtype=np.int64)
+    fan_vertex[fan] = corner_vertex
+    # Number chart vertices by (mesh vertex, fan) so a chart without pinches keeps the
+    # mesh's vertex order.
+    rank = np.lexsort((np.arange(len(fan_vertex)), fan_vertex))
+    new_index = np.empty_like(rank)
+    new_index[rank] = np.arange(len(rank))
+    return ChartMesh(np.asarray(face_ids, dtype=np.int64), fan_vertex[rank],
+                     new_index[fan].reshape(m, 3))
+
+
+def is_disk_like(topology: MeshTopology) -> bool:
+    """One component with a boundary and genus 0 (a disk, possibly with holes)."""
+    if topology.n_components != 1 or not topology.boundary_loops:
+        return False
+    used = int(topology.is_referenced.sum())
+    euler = used - topology.n_edges + topology.n_faces
+    return euler == 2 - len(topology.boundary_loops)
+
+
+def seam_edges(topology: MeshTopology, face_chart: np.ndarray) -> np.ndarray:
+    """(s,) int64 the interior edges of ``topology`` whose two faces lie in different charts."""
+    ends = topology.edge_faces
+    interior = (ends >= 0).all(axis=1)
+    cut = np.zeros(len(ends), dtype=bool)
+    cut[interior] = face_chart[ends[interior, 0]] != face_chart[ends[interior, 1]]
+    return np.flatnonzero(cut)
+
+
+__all__ = ["ChartMesh", "DualGraph", "bisect", "chart_mesh", "connected_face_sets",
+           "dual_graph", "is_disk_like", "seam_edges"]

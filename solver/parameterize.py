@@ -50,10 +50,7 @@ from .topology import MeshTopology, build_topology
 from .validation import as_points
 from .warnings import (
     DEFAULT_RULES,
-    AnswerWarning,
-    WarningRules,
     as_report,
-    exceeded,
     flattening_warnings,
 )
 
@@ -581,13 +578,11 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
              "atlas_texels": scale.side_texels if scale is not None else rules.resolution,
              "uv_count": len(uv), "seams": opts.seams,
              "boundary_crossings": _crossings(uv, uv_faces) if scale is None else 0}
-    warnings = as_report([
-        *flattening_warnings(len(flipped), len(F),
-                             float(np.abs(length_change).max(initial=0.0)),
-                             flattening.refinement),
-        *atlas_warnings(float(np.abs(length_change).mean()) if len(length_change) else 0.0,
-                        float(angle_change.mean()) if len(F) else 0.0, efficiency, n_charts,
-                        atlas["boundary_crossings"] or 0)])
+    warnings = as_report(flattening_warnings(
+        len(flipped), len(F),
+        float(np.abs(length_change).mean()) if len(length_change) else 0.0,
+        float(angle_change.mean()) if len(F) else 0.0, flattening.refinement,
+        packing=efficiency, charts=n_charts, crossings=atlas["boundary_crossings"] or 0))
     report = ParameterizeReport(
         flipped_count=len(flipped), area_ratio_summary=summary(ratio - 1.0),
         angle_distortion_summary=summary(angle_change),
@@ -614,35 +609,6 @@ def _crossings(uv: np.ndarray, faces: np.ndarray, most: int = 20_000) -> int | N
     return None if (count == 1).sum() > most else boundary_crossings(uv, faces)
 
 
-def atlas_warnings(mean_length_change: float, mean_angle_change: float, packing: float,
-                   charts: int, crossings: int = 0, rules: WarningRules = DEFAULT_RULES,
-                   ) -> list[AnswerWarning | None]:
-    """The flattening rules of an atlas or a chart (thresholds of
-    :class:`solver.warnings.WarningRules`): mean length and angle distortion, packing
-    efficiency (several charts), a one-chart layout that crosses itself. Flipped faces are
-    the caller's rule (:attr:`WarningRules.max_flipped_fraction`).
-
-    Example:
-        >>> found = atlas_warnings(0.2, 0.01, 0.8, 1)
-        >>> [w.code for w in found if w is not None]
-        ['length-distortion']
-    """
-    return [
-        exceeded(mean_length_change, rules.max_flatten_length_change, "length-distortion",
-                 "the uv edge lengths differ from the 3D ones by {value:.1%} on average "
-                 "(limit {limit:.1%})"),
-        exceeded(mean_angle_change, rules.max_flatten_angle_change, "angle-distortion",
-                 "the uv corner angles differ from the 3D ones by {value:.3f} rad on "
-                 "average (largest per face; limit {limit:.3f} rad)"),
-        exceeded(1.0 - packing if charts > 1 else 0.0, 1.0 - rules.min_packing_efficiency,
-                 "packing-efficiency",
-                 "the charts leave {value:.0%} of the unit square empty (limit {limit:.0%})"),
-        exceeded(crossings, rules.max_boundary_crossings, "overlapping-layout",
-                 "{value:.0f} pairs of boundary edges cross in uv: the layout overlaps "
-                 "itself (limit {limit:.0f}; seams='auto' cuts such a mesh into charts)"),
-    ]
-
-
 def _on_file_vertices(flat: Parameterization, cut: ManifoldCut) -> Parameterization:
     """A flattening of a non-manifold mesh's manifold cut, told in the file's vertices: the
     uv indices stay (a cut vertex is one more uv index, as a seam vertex is) and
@@ -653,7 +619,7 @@ def _on_file_vertices(flat: Parameterization, cut: ManifoldCut) -> Parameterizat
     return flat
 
 
-__all__ = ["ChartFlattening", "ChartLayout", "Parameterization", "atlas_warnings",
+__all__ = ["ChartFlattening", "ChartLayout", "Parameterization",
            "chart_layouts", "flatten_chart", "local_global_flattening",
            "nearest_planar_rotation", "parameterize", "relative_length_change",
            "tutte_embedding", "uv_edges"]

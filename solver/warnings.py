@@ -54,9 +54,6 @@ class WarningRules:
         max_length_error: the largest relative edge-length error left (a fraction:
             0.05 is 5%) of a reconstruction, deformation or flattening.
         max_angle_error: the largest dihedral-angle error left, radians.
-        max_flattening_length_error: the largest relative edge-length change of a
-            flattening (a fraction): a curved surface cannot flatten without changing
-            lengths, so its limit is wider than ``max_length_error``.
         max_flatten_length_change: a flattening's mean relative edge-length change.
         max_flatten_angle_change: a flattening's mean (over faces) largest corner-angle
             change, radians.
@@ -69,7 +66,6 @@ class WarningRules:
     max_flipped_fraction: float = 1e-3
     max_length_error: float = 0.05
     max_angle_error: float = 0.1
-    max_flattening_length_error: float = 0.5
     max_flatten_length_change: float = 0.1
     max_flatten_angle_change: float = 0.2
     min_packing_efficiency: float = 0.4
@@ -155,13 +151,33 @@ def refinement_warnings(refinement: Mapping[str, Any] | None,
     return [*residual_warnings(length, angle, rules), time_limit_warning(refinement)]
 
 
-def flattening_warnings(flipped_count: int, face_count: int, length_error: float,
-                        refinement: Mapping[str, Any] | None,
+def flattening_warnings(flipped_count: int, face_count: int, mean_length_change: float,
+                        mean_angle_change: float, refinement: Mapping[str, Any] | None, *,
+                        packing: float = 1.0, charts: int = 1, crossings: int = 0,
                         rules: WarningRules = DEFAULT_RULES) -> list[AnswerWarning | None]:
-    """The warnings of a flattening: flipped faces (as a fraction of ``face_count``), the
-    largest relative edge-length change of the uv layout, a time limit with no progress."""
+    """The warnings of a flattening (one chart or an atlas): flipped faces (a fraction of
+    ``face_count``), the mean relative edge-length change and the mean (over faces) largest
+    corner-angle change of the layout, the packing efficiency of several charts, a one-chart
+    layout whose boundary crosses itself, and a time limit with no progress.
+
+    Example:
+        >>> found = flattening_warnings(0, 10, 0.2, 0.01, None)
+        >>> [w.code for w in found if w is not None]
+        ['length-distortion']
+    """
     fraction = flipped_count / face_count if face_count else 0.0
-    return [exceeded(fraction, rules.max_flipped_fraction, "flipped-faces", FLIPPED_MESSAGE),
-            *residual_warnings(length_error, None, rules,
-                               length_limit=rules.max_flattening_length_error),
-            time_limit_warning(refinement or {})]
+    return [
+        exceeded(fraction, rules.max_flipped_fraction, "flipped-faces", FLIPPED_MESSAGE),
+        exceeded(mean_length_change, rules.max_flatten_length_change, "length-distortion",
+                 "the uv edge lengths differ from the 3D ones by {value:.1%} on average "
+                 "(limit {limit:.1%})"),
+        exceeded(mean_angle_change, rules.max_flatten_angle_change, "angle-distortion",
+                 "the uv corner angles differ from the 3D ones by {value:.3f} rad on "
+                 "average (largest per face; limit {limit:.3f} rad)"),
+        exceeded(1.0 - packing if charts > 1 else 0.0, 1.0 - rules.min_packing_efficiency,
+                 "packing-efficiency",
+                 "the charts leave {value:.0%} of the unit square empty (limit {limit:.0%})"),
+        exceeded(crossings, rules.max_boundary_crossings, "overlapping-layout",
+                 "{value:.0f} pairs of boundary edges cross in uv: the layout overlaps "
+                 "itself (limit {limit:.0f}; seams='auto' cuts such a mesh into charts)"),
+        time_limit_warning(refinement or {})]

@@ -229,7 +229,8 @@ class AnswerWarningDocument(BaseModel):
                     "length (limit 5%)"}]})
 
     code: str = Field(description="The rule: flipped-faces, length-error, angle-error, "
-                      "time-limit-no-progress, ...")
+                      "length-distortion, angle-distortion, packing-efficiency, "
+                      "overlapping-layout, time-limit-no-progress (docs/service.md)")
     message: str = Field(description="One sentence for people, with units.")
     value: float = Field(description="What was measured, in the unit of `limit`.")
     limit: float = Field(description="The documented threshold it is past.")

@@ -161,7 +161,7 @@ def test_a_spent_time_budget_still_cuts_closed_pieces_and_says_what_is_left():
 
 def test_a_one_chart_layout_that_crosses_itself_is_named():
     from solver.packing import boundary_crossings
-    from solver.parameterize import atlas_warnings
+    from solver.warnings import flattening_warnings
 
     # A strip wound round past a full turn: no flipped face, its ends overlap.
     angle = np.linspace(0, 2.24 * np.pi, 30)
@@ -173,7 +173,8 @@ def test_a_one_chart_layout_that_crosses_itself_is_named():
     assert (signed_areas(uv, faces) > 0).all()
     crossings = boundary_crossings(uv, faces)
     assert crossings > 0 and rasterized_overlap((uv + 3) / 6, faces, 512) > 0
-    codes = [w.code for w in atlas_warnings(0.0, 0.0, 1.0, 1, crossings) if w is not None]
+    found = flattening_warnings(0, 1, 0.0, 0.0, None, crossings=crossings)
+    codes = [w.code for w in found if w is not None]
     assert codes == ["overlapping-layout"]
 
 

@@ -103,15 +103,17 @@ def test_flattening_warnings_measure_flips_and_lengths() -> None:
     uv = flat.uv
     e1, e2 = uv[faces[:, 1]] - uv[faces[:, 0]], uv[faces[:, 2]] - uv[faces[:, 0]]
     flips = int(((e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) < 0).sum())
-    uv3 = np.column_stack([uv, np.zeros(len(uv))])
-    length = _max_length_error(uv3, vertices, faces)
-    strict = WarningRules(max_flipped_fraction=-1.0, max_flattening_length_error=length / 2)
+    edges = solver.fundamental_forms(vertices, faces).edges
+    change = np.abs(np.linalg.norm(uv[edges[:, 1]] - uv[edges[:, 0]], axis=1)
+                    / np.linalg.norm(vertices[edges[:, 1]] - vertices[edges[:, 0]], axis=1) - 1)
+    mean = float(change.mean())
+    strict = WarningRules(max_flipped_fraction=-1.0, max_flatten_length_change=mean / 2)
     found = {w.code: w for w in flattening_warnings(
-        flips, len(faces), length, flat.report["refinement"], strict) if w}
+        flips, len(faces), mean, 0.0, flat.report["refinement"], rules=strict) if w}
     assert found["flipped-faces"].value == flips / len(faces)
-    assert found["length-error"].value == pytest.approx(length)
-    # The defaults: 0.32 of a face is within the flattening limit (0.5), no flips.
-    assert length < DEFAULT_RULES.max_flattening_length_error and flips == 0
+    assert found["length-distortion"].value == pytest.approx(mean)
+    # The defaults: the face's mean length change is within the flattening limit, no flips.
+    assert mean < DEFAULT_RULES.max_flatten_length_change and flips == 0
     assert flat.report["warnings"] == []
 
 

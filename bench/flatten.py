@@ -27,6 +27,7 @@ import numpy as np
 from bench.common import SHARED_MESHES
 from solver.packing import rasterized_overlap, signed_areas
 from solver.parameterize import relative_length_change
+from tests.helpers.meshes import side_by_side
 
 SMALL_PARTS = ("decimated-knight.off", "torus.off", "octopus-low-surface.off", "face.off")
 """The shared meshes put side by side into the multi-part model."""
@@ -46,15 +47,7 @@ def load(path: Path, weld: bool = False) -> tuple[np.ndarray, np.ndarray]:
 
 def multi_part() -> tuple[np.ndarray, np.ndarray]:
     """The :data:`SMALL_PARTS` meshes side by side (one model of 4 parts)."""
-    vertices, faces, offset, shift = [], [], 0, 0.0
-    for name in SMALL_PARTS:
-        V, F = load(SHARED_MESHES / name)
-        V = (V - V.min(axis=0)) / np.ptp(V, axis=0).max() + [shift, 0.0, 0.0]
-        vertices.append(V)
-        faces.append(F + offset)
-        offset += len(V)
-        shift += 1.5
-    return np.concatenate(vertices), np.concatenate(faces)
+    return side_by_side(*(load(SHARED_MESHES / name) for name in SMALL_PARTS))
 
 
 def measures(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,

@@ -367,6 +367,31 @@ def _json_bytes(doc: dict[str, Any]) -> bytes:
     return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
+def _container(doc: dict[str, Any], binary: bytes, kind: str) -> bytes:
+    """The file of a glTF document and its one buffer: ``glb`` (12-byte header, a JSON
+    chunk padded with spaces, a BIN chunk padded with zeros, every chunk length a multiple
+    of 4) or ``gltf`` (JSON, the buffer embedded as a base64 data URI).
+
+    Raises:
+        ValueError: Another ``kind``.
+    """
+    if kind == "gltf":
+        doc["buffers"][0]["uri"] = ("data:application/octet-stream;base64,"
+                                    + base64.b64encode(binary).decode("ascii"))
+        return _json_bytes(doc)
+    if kind != "glb":
+        raise ValueError(f"unknown glTF kind {kind!r} (expected 'glb' or 'gltf')")
+    js = _json_bytes(doc)
+    js += b" " * ((-len(js)) % 4)
+    bin_chunk = binary + b"\x00" * ((-len(binary)) % 4)
+    total = 12 + 8 + len(js) + 8 + len(bin_chunk)
+    return b"".join([
+        struct.pack("<III", _GLB_MAGIC, _GLB_VERSION, total),
+        struct.pack("<II", len(js), _CHUNK_JSON), js,
+        struct.pack("<II", len(bin_chunk), _CHUNK_BIN), bin_chunk,
+    ])
+
+
 def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
                        normals: bool = True, texcoords: ArrayLike | None = None) -> bytes:
     """Encode a triangle mesh as a GLB 2.0 file (media type ``model/gltf-binary``).
@@ -393,15 +418,7 @@ def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike 
             coordinate that overflows float32.
     """
     doc, binary = _build(vertices, faces, colors, normals, texcoords)
-    js = _json_bytes(doc)
-    js += b" " * ((-len(js)) % 4)
-    bin_chunk = binary + b"\x00" * ((-len(binary)) % 4)
-    total = 12 + 8 + len(js) + 8 + len(bin_chunk)
-    return b"".join([
-        struct.pack("<III", _GLB_MAGIC, _GLB_VERSION, total),
-        struct.pack("<II", len(js), _CHUNK_JSON), js,
-        struct.pack("<II", len(bin_chunk), _CHUNK_BIN), bin_chunk,
-    ])
+    return _container(doc, binary, "glb")
 
 
 def encode_gltf_json(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
@@ -424,9 +441,7 @@ def encode_gltf_json(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | 
         solver.errors.SolverInputError: As :func:`encode_gltf_binary`.
     """
     doc, binary = _build(vertices, faces, colors, normals, texcoords)
-    doc["buffers"][0]["uri"] = ("data:application/octet-stream;base64,"
-                                + base64.b64encode(binary).decode("ascii"))
-    return _json_bytes(doc)
+    return _container(doc, binary, "gltf")
 
 
 def encode_gltf(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
@@ -552,18 +567,4 @@ def encode_gltf_animation(rows: ArrayLike, faces: ArrayLike, *, base: ArrayLike 
     _add_morph_animation(doc, buf, v64, f64, r, t, normals)
     binary = buf.tobytes()
     doc["buffers"] = [{"byteLength": len(binary)}]
-    if kind == "gltf":
-        doc["buffers"][0]["uri"] = ("data:application/octet-stream;base64,"
-                                    + base64.b64encode(binary).decode("ascii"))
-        return _json_bytes(doc)
-    if kind != "glb":
-        raise ValueError(f"unknown glTF kind {kind!r} (expected 'glb' or 'gltf')")
-    js = _json_bytes(doc)
-    js += b" " * ((-len(js)) % 4)
-    bin_chunk = binary + b"\x00" * ((-len(binary)) % 4)
-    total = 12 + 8 + len(js) + 8 + len(bin_chunk)
-    return b"".join([
-        struct.pack("<III", _GLB_MAGIC, _GLB_VERSION, total),
-        struct.pack("<II", len(js), _CHUNK_JSON), js,
-        struct.pack("<II", len(bin_chunk), _CHUNK_BIN), bin_chunk,
-    ])
+    return _container(doc, binary, kind)

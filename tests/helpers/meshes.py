@@ -164,6 +164,20 @@ def double_torus(jitter: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     return voxel_surface(mask, jitter=jitter)
 
 
+def side_by_side(*meshes: tuple[np.ndarray, np.ndarray], gap: float = 1.5,
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """One multi-part model of ``meshes`` ((V, F) pairs): each scaled to unit size and set
+    ``gap`` apart along +x, faces renumbered."""
+    vertices, faces, offset, shift = [], [], 0, 0.0
+    for V, F in meshes:
+        V = (np.asarray(V, dtype=np.float64) - np.min(V, axis=0)) / np.ptp(V, axis=0).max()
+        vertices.append(V + np.array([shift, 0.0, 0.0]))
+        faces.append(np.asarray(F) + offset)
+        offset += len(V)
+        shift += gap
+    return np.concatenate(vertices), np.concatenate(faces)
+
+
 def rigid_alignment_error(X: np.ndarray, Y: np.ndarray) -> float:
     """max |R X + t - Y| over vertices after the best rotation + translation (no scaling),
     divided by the bounding-box diagonal of Y."""

@@ -13,19 +13,8 @@ import pytest
 
 from tests.helpers.atlas import genus_two, overlapping_pixels
 from tests.helpers.gltf_validator import validate_gltf
-from tests.helpers.meshes import icosphere, load
+from tests.helpers.meshes import icosphere, load, side_by_side
 from tests.helpers.service import mesh_json
-
-
-def _side_by_side(*meshes):
-    vertices, faces, offset, shift = [], [], 0, 0.0
-    for V, F in meshes:
-        V = (V - V.min(axis=0)) / np.ptp(V, axis=0).max() + [shift, 0, 0]
-        vertices.append(V)
-        faces.append(F + offset)
-        offset += len(V)
-        shift += 1.5
-    return np.concatenate(vertices), np.concatenate(faces)
 
 
 def _holed(V, F, centres):
@@ -39,7 +28,7 @@ def _holed(V, F, centres):
 CASES = {
     "knight (closed genus 0)": lambda: load("decimated-knight.off"),
     "slab (genus 2)": genus_two,
-    "multi-part": lambda: _side_by_side(icosphere(2), load("torus.off")),
+    "multi-part": lambda: side_by_side(icosphere(2), load("torus.off")),
     "face scan with holes": lambda: _holed(*load("face.off"), [300, 600, 900]),
 }
 

@@ -10,7 +10,7 @@ from solver.forms import fundamental_forms
 from solver.packing import rasterized_overlap, signed_areas
 from solver.topology import build_topology
 from tests.helpers.atlas import euler_genus, genus_two, overlapping_pixels
-from tests.helpers.meshes import icosphere, load
+from tests.helpers.meshes import icosphere, load, side_by_side
 
 
 def holed(V, F, centres):
@@ -23,15 +23,6 @@ def holed(V, F, centres):
     return V[used], remap[keep]
 
 
-def side_by_side(*meshes):
-    vertices, faces, offset, shift = [], [], 0, 0.0
-    for V, F in meshes:
-        V = (V - V.min(axis=0)) / np.ptp(V, axis=0).max() + [shift, 0, 0]
-        vertices.append(V)
-        faces.append(F + offset)
-        offset += len(V)
-        shift += 1.5
-    return np.concatenate(vertices), np.concatenate(faces)
 
 
 CASES = {

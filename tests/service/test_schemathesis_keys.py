@@ -91,7 +91,8 @@ def test_nothing_ran_without_a_key(keyed_fuzz_server):
 
 
 def test_stateful_links_with_a_key(keyed_schema):
-    run_stateful(keyed_schema, STEPS)
+    run_stateful(keyed_schema, STEPS, lambda steps: steps_starting(
+        "POST /v1/sessions 201", steps) >= 1 and steps_starting("POST /v1/jobs 202", steps) >= 1)
 
     def steps(prefix: str) -> int:
         return steps_starting(prefix, STEPS)

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 import solver
+from solver.packing import signed_areas
 from tests.cli.test_cli_commands import run_both
 from tests.helpers.atlas import genus_two, overlapping_pixels
 from tests.helpers.gltf_validator import validate_gltf
-from tests.helpers.meshes import load
+from tests.helpers.meshes import holed, load
 
 
 def _obj_atlas(path):
@@ -29,34 +30,11 @@ def _obj_atlas(path):
     return v, vt, corners[:, :, 0] - 1, corners[:, :, 1] - 1
 
 
-def _signed(uv, faces):
-    e1, e2 = uv[faces[:, 1]] - uv[faces[:, 0]], uv[faces[:, 2]] - uv[faces[:, 0]]
-    return e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-
-
-def _holed_octopus():
-    V, F = load("octopus-low-surface.off")
-    keep = F[~np.isin(F, [5, 100, 300]).any(axis=1)]
-    used = np.unique(keep)
-    remap = np.full(len(V), -1)
-    remap[used] = np.arange(len(used))
-    return V[used], remap[keep]
-
-
-def _holed_face():
-    V, F = load("face.off")
-    keep = F[~np.isin(F, [300, 600, 900]).any(axis=1)]
-    used = np.unique(keep)
-    remap = np.full(len(V), -1)
-    remap[used] = np.arange(len(used))
-    return V[used], remap[keep]
-
-
 @pytest.mark.parametrize("name, make", [
     ("torus", lambda: load("torus.off")),
     ("genus2", genus_two),
-    ("octopus-holes", _holed_octopus),
-    ("face-scan-holes", _holed_face),
+    ("octopus-holes", lambda: holed(*load("octopus-low-surface.off"), [5, 100, 300])),
+    ("face-scan-holes", lambda: holed(*load("face.off"), [300, 600, 900])),
 ])
 def test_flatten_writes_uv_obj_and_glb(ffs, server, workdir, name, make):
     V, F = make()
@@ -68,7 +46,7 @@ def test_flatten_writes_uv_obj_and_glb(ffs, server, workdir, name, make):
     charts = solver.parameterize(V, F).report.atlas["charts"]
     assert (len(vt) > len(V)) == (charts > 1)    # seam vertices: one vt per chart
     assert (vt >= 0).all() and (vt <= 1).all()
-    assert (_signed(vt, f_vt) > 0).all()
+    assert (signed_areas(vt, f_vt) > 0).all()
     chart = np.asarray(solver.parameterize(V, F).face_chart)
     assert name == "face-scan-holes" or charts >= 2
     assert overlapping_pixels(vt, f_vt, chart) == 0
@@ -97,7 +75,7 @@ def test_multi_part_model_and_npz_arrays(ffs, server, workdir):
         arrays = np.load(path)
         assert np.array_equal(arrays["uv_vertex"][arrays["uv_faces"]], F)
         assert len(arrays["flipped_faces"]) == 0
-        assert (_signed(arrays["texcoords"], arrays["uv_faces"]) > 0).all()
+        assert (signed_areas(arrays["texcoords"], arrays["uv_faces"]) > 0).all()
         assert overlapping_pixels(arrays["texcoords"], arrays["uv_faces"],
                                   arrays["face_chart"]) == 0
         # every part has charts of its own: no chart spans two parts

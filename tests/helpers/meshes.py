@@ -164,6 +164,16 @@ def double_torus(jitter: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     return voxel_surface(mask, jitter=jitter)
 
 
+def holed(V: np.ndarray, F: np.ndarray, centres: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(V, F)`` without the faces around the vertices ``centres`` (small holes), the
+    vertices no face uses dropped and the faces renumbered."""
+    keep = F[~np.isin(F, centres).any(axis=1)]
+    used = np.unique(keep)
+    remap = np.full(len(V), -1)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[keep]
+
+
 def side_by_side(*meshes: tuple[np.ndarray, np.ndarray], gap: float = 1.5,
                  ) -> tuple[np.ndarray, np.ndarray]:
     """One multi-part model of ``meshes`` ((V, F) pairs): each scaled to unit size and set

@@ -13,23 +13,14 @@ import pytest
 
 from tests.helpers.atlas import genus_two, overlapping_pixels
 from tests.helpers.gltf_validator import validate_gltf
-from tests.helpers.meshes import icosphere, load, side_by_side
+from tests.helpers.meshes import holed, icosphere, load, side_by_side
 from tests.helpers.service import mesh_json
-
-
-def _holed(V, F, centres):
-    keep = F[~np.isin(F, centres).any(axis=1)]
-    used = np.unique(keep)
-    remap = np.full(len(V), -1)
-    remap[used] = np.arange(len(used))
-    return V[used], remap[keep]
-
 
 CASES = {
     "knight (closed genus 0)": lambda: load("decimated-knight.off"),
     "slab (genus 2)": genus_two,
     "multi-part": lambda: side_by_side(icosphere(2), load("torus.off")),
-    "face scan with holes": lambda: _holed(*load("face.off"), [300, 600, 900]),
+    "face scan with holes": lambda: holed(*load("face.off"), [300, 600, 900]),
 }
 
 

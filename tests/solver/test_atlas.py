@@ -10,20 +10,7 @@ from solver.forms import fundamental_forms
 from solver.packing import rasterized_overlap, signed_areas
 from solver.topology import build_topology
 from tests.helpers.atlas import euler_genus, genus_two, overlapping_pixels
-from tests.helpers.meshes import icosphere, load, side_by_side
-
-
-def holed(V, F, centres):
-    """``F`` without the faces around the vertices ``centres`` (small holes)."""
-    drop = np.isin(F, centres).any(axis=1)
-    keep = F[~drop]
-    used = np.unique(keep)
-    remap = np.full(len(V), -1)
-    remap[used] = np.arange(len(used))
-    return V[used], remap[keep]
-
-
-
+from tests.helpers.meshes import holed, icosphere, load, side_by_side
 
 CASES = {
     "sphere (genus 0)": lambda: icosphere(3),

@@ -27,6 +27,17 @@ from service.backends.dask.registry import SESSION_PREFIX
 from service.backends.dask.worker import SessionActor
 from service.backends.loops import sweep_forever
 
+WATCH_SECONDS = 1.0
+"""How often a pending actor call looks at the registry for its session's burial."""
+
+
+class _BuriedError(Exception):
+    """The registry buried the session while one of its actor calls was pending."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
 
 class DaskSessions:
     """The :class:`~service.backends.contracts.SessionBackend` with each session a Dask
@@ -250,8 +261,11 @@ class DaskSessions:
                     rotations: np.ndarray | None, fmt: str) -> DragAnswer:
         actor = await self._actor(session_id)
         try:
-            status, body, timings, *drag = await asyncio.wait_for(
-                actor.solve(positions, rotations, fmt), self.policy.solve_timeout)
+            status, body, timings, *drag = await self._watched(
+                session_id, actor.solve(positions, rotations, fmt), self.policy.solve_timeout)
+        except _BuriedError as gone:
+            await self._release(session_id)
+            raise errors.SessionGoneError(session_id, gone.reason) from None
         except TimeoutError:
             await self._bury(session_id, f"a solve took longer than "
                                          f"{self.policy.solve_timeout:g} s "
@@ -273,6 +287,28 @@ class DaskSessions:
         self._touch(session_id)
         return DragAnswer(body, timings, drag[0], drag[1])
 
+    async def _watched(self, session_id: str, call: Any, timeout: float) -> Any:
+        """Await an actor ``call`` for at most ``timeout`` seconds while watching the
+        registry: when the session is buried meanwhile (its worker left the cluster, which
+        the scheduler's ``remove_worker`` hook records), raise :class:`_BuriedError` at once
+        instead of waiting for a connection to a dead worker to time out."""
+        task = asyncio.ensure_future(call)
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError
+                done, _ = await asyncio.wait({task}, timeout=min(WATCH_SECONDS, left))
+                if done:
+                    return task.result()
+                record = await self.connection.call("session_get", session_id)
+                if record is not None and record["state"] == "gone":
+                    raise _BuriedError(record["reason"])
+        finally:
+            if not task.done():
+                task.cancel()
+
     async def refined(self, session_id: str, drag: int, wait: float) -> Any:
         """Polls the actor (every 10 ms) until the drag's refinement is settled or ``wait``
         seconds passed."""
@@ -280,9 +316,12 @@ class DaskSessions:
         deadline = time.monotonic() + wait
         while True:
             try:
-                status, value = await asyncio.wait_for(actor.refined(drag), 10.0)
+                status, value = await self._watched(session_id, actor.refined(drag), 10.0)
             except TimeoutError:  # the worker's actor thread is busy: still refining
                 status, value = "refining", None
+            except _BuriedError as gone:
+                await self._release(session_id)
+                raise errors.SessionGoneError(session_id, gone.reason) from None
             except Exception as exc:
                 reason = await self._bury(session_id, _actor_failure(exc))
                 raise errors.SessionGoneError(session_id, reason) from None

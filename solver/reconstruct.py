@@ -635,7 +635,7 @@ def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
         if refiner.energy(guess) < refiner.energy(start):
             start, label = guess, "initial guess"
     refiner.expect_refresh(stages.timings.get("factorize", 0.0))
-    fit = refiner.run(start, time_limit=stages.left(opts.max_seconds), progress=progress)
+    fit = refiner.run(start, time_limit=stages.budget(opts.max_seconds), progress=progress)
     refinement = dict(fit.report, start=label)
     vertices = fit.vertices
     if not refinement.get("converged"):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import solver
-from service.api.task import encode_margin
+from service.api.budgets import TIME_POLICY
 from tests.helpers.meshes import load
 from tests.helpers.servers import uvicorn_server
 from tests.helpers.service import forms_json, problem
@@ -42,7 +42,7 @@ def _timeout_for_budget(budget: float) -> float:
     ``budget`` seconds."""
     timeout = budget
     for _ in range(50):
-        timeout = budget + encode_margin(timeout)
+        timeout = budget + TIME_POLICY.encode_margin(timeout)
     return timeout
 
 

@@ -370,7 +370,8 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     left, right = dual_links[generators].T
     angles = np.zeros(0)
     if len(generators):  # genus 0 without holes has none: skip the frame integration
-        frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask))
+        frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask),
+                              cotree.levels)
         hol = frames[left] @ terms.rotations[generators] @ np.swapaxes(frames[right], 1, 2)
         angles = rotation_angle(hol)
     rotation_loops = [
@@ -456,7 +457,8 @@ def integrate_along_forests(terms: EnergyTerms, forests: IntegrationForests,
     topo = terms.topology
     inner = terms.interior_edges
     dual, rest, tree = forests.dual, forests.rest, forests.primal
-    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)))
+    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)),
+                          dual.levels)
     edge_vectors = _edge_vectors(terms, frames)
     link = tree.parent_link
     has_parent = link >= 0
@@ -465,7 +467,7 @@ def integrate_along_forests(terms: EnergyTerms, forests: IntegrationForests,
     # Step from parent to node along edge e_up: +d if the edge runs parent -> node.
     sign = np.where(topo.edges[e_up, 1] == np.flatnonzero(has_parent), 1.0, -1.0)
     steps[has_parent] = sign[:, None] * edge_vectors[e_up]
-    return frames, edge_vectors, accumulate_sums(tree.parent, steps)
+    return frames, edge_vectors, accumulate_sums(tree.parent, steps, tree.levels)
 
 
 def _links_to_inner(forest: Any, mask: np.ndarray) -> np.ndarray:
@@ -479,7 +481,7 @@ def _links_to_inner(forest: Any, mask: np.ndarray) -> np.ndarray:
 
 
 def _tree_frames(terms: EnergyTerms, parent: np.ndarray, parent_inner: np.ndarray,
-                 ) -> np.ndarray:
+                 levels: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Frames (m, 3, 3) integrated from each root face (identity) along a dual tree."""
     topo = terms.topology
     local = np.broadcast_to(np.eye(3), (topo.n_faces, 3, 3)).copy()
@@ -489,7 +491,7 @@ def _tree_frames(terms: EnergyTerms, parent: np.ndarray, parent_inner: np.ndarra
     # f_child = f_parent R_{parent -> child}; R_LR is stored, R_RL = R_LR^T.
     parent_is_left = topo.edge_faces[terms.interior_edges[q], 0] == parent[has]
     local[has] = np.where(parent_is_left[:, None, None], R, np.swapaxes(R, 1, 2))
-    return accumulate_products(parent, local)
+    return accumulate_products(parent, local, levels)
 
 
 def _edge_vectors(terms: EnergyTerms, frames: np.ndarray) -> np.ndarray:

@@ -207,10 +207,15 @@ def least_squares_rows(terms: EnergyTerms, frame_weight: float) -> tuple[sp.csr_
     frame_vals = np.concatenate([
         np.ones((k, 3, 1)), -np.swapaxes(terms.rotations, 1, 2)], axis=2).reshape(3 * k, 4)
 
-    rows = np.repeat(np.arange(H + 3 * k), 4)
-    cols = np.concatenate([edge_cols.ravel(), frame_cols.ravel()])
+    # Every row has exactly four distinct columns: the CSR arrays are written directly
+    # (no COO triplets, no sort of 4 (3 m + 3 k) entries).
+    n_rows, n_cols = H + 3 * k, n + 3 * m
+    index = np.int32 if max(n_cols, 4 * n_rows + 1) < np.iinfo(np.int32).max else np.int64
+    cols = np.concatenate([edge_cols.ravel(), frame_cols.ravel()]).astype(index)
     vals = np.concatenate([edge_vals.ravel(), frame_vals.ravel()])
-    A = sp.csr_matrix((vals, (rows, cols)), shape=(H + 3 * k, n + 3 * m))
+    indptr = np.arange(0, 4 * n_rows + 1, 4, dtype=index)
+    A = sp.csr_matrix((vals, cols, indptr), shape=(n_rows, n_cols))
+    A.sort_indices()
     weights = np.concatenate([terms.edge_weights.ravel(),
                               frame_weight * np.repeat(terms.frame_weights, 3)])
     kind = np.concatenate([np.zeros(H, dtype=np.int8), np.ones(3 * k, dtype=np.int8)])

@@ -54,7 +54,9 @@ def limited_key(tmp_path_factory) -> tuple[Path, str, str]:
 @pytest.fixture(scope="module")
 def server(limited_key) -> Iterator[str]:
     env = {"FFS_WORKERS": "1", "FFS_API_KEYS": json.dumps(KEYS), "FFS_ADMIN_KEYS": "ops",
-           "FFS_API_KEYS_FILE": str(limited_key[0])}
+           "FFS_API_KEYS_FILE": str(limited_key[0]),
+           "FFS_MAX_FACES": "500000"}  # the keys' default face quota below (it follows
+    # from the machine's memory when unset)
     with uvicorn_process(env, log_level="info") as (base, _):
         yield base
 

@@ -322,11 +322,15 @@ def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
     successor = np.where(on_interior[topo.halfedge_origin], successor, corners)
     count = np.bincount(topo.halfedge_origin, minlength=topo.n_vertices)[interior]
     _, rank = cycle_ranks(successor, int(count.max()))
-    # Corners of interior vertices sorted by (vertex, ring position).
+    # Corners of interior vertices sorted by (vertex, ring position): a counting sort, each
+    # corner at its vertex's start plus its rank (no O(H log H) sort).
     chosen = corners[on_interior[topo.halfedge_origin]]
-    order = chosen[np.lexsort((rank[chosen], topo.halfedge_origin[chosen]))]
-    step = halfedge_transitions(terms)[previous_halfedge(order)]  # transition of each step
     start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    slot = np.full(topo.n_vertices, -1, dtype=np.int64)
+    slot[interior] = start
+    order = np.empty(len(chosen), dtype=np.int64)
+    order[slot[topo.halfedge_origin[chosen]] + rank[chosen]] = chosen
+    step = halfedge_transitions(terms)[previous_halfedge(order)]  # transition of each step
     result = step[start].copy()
     for r in range(1, int(count.max())):  # one vectorized step per ring position
         active = np.flatnonzero(count > r)

@@ -81,3 +81,28 @@ def test_a_request_that_cannot_fit_is_413_naming_the_memory():
         assert done.status_code == 200, done.text
         assert np.asarray(done.json()["vertices"]).shape == small_V.shape
         assert app.get("/readyz").status_code == 200
+
+
+def test_the_client_sees_the_limits_and_the_413():
+    """A real uvicorn: ``ffs.Client.size_limits`` (``GET /v1/me``) shows each operation's
+    largest mesh, and a mesh over it raises the 413 naming the memory."""
+    from ffs import Client
+    from ffs.errors import PayloadTooLargeError
+    from tests.helpers.servers import uvicorn_process
+
+    memory = 250 * 2**20
+    V, F = side_by_side(icosphere(4), icosphere(4))        # 10 240 faces
+    with uvicorn_process({"FFS_WORKERS": "1", "FFS_MAX_REQUEST_MEMORY": str(memory)}) as (
+            base, _), Client(base) as client:
+        sizes = client.size_limits()
+        assert sizes["max_request_memory"] == memory
+        assert sizes["max_faces"] == faces_within(memory, solves=False)
+        by_operation = sizes["max_faces_by_operation"]
+        assert by_operation["forms"] == by_operation["integrability"] == sizes["max_faces"]
+        for name in ("reconstruct", "deform", "parameterize", "sessions"):
+            assert by_operation[name] == faces_within(memory, solves=True) < len(F)
+        forms = client.fundamental_forms(V, F)
+        assert len(forms.faces) == len(F)
+        with pytest.raises(PayloadTooLargeError, match="FFS_MAX_REQUEST_MEMORY") as caught:
+            client.reconstruct(forms)
+        assert caught.value.kind == "mesh-too-large"

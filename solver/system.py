@@ -379,7 +379,7 @@ def normal_matrix(A: sp.csr_matrix, weights: np.ndarray) -> sp.csc_matrix:
 
 
 def energies(A: sp.csr_matrix, weights: np.ndarray, kind: np.ndarray,
-             u: np.ndarray) -> dict[str, float]:
+             u: np.ndarray, residual: np.ndarray | None = None) -> dict[str, float]:
     """The edge and frame parts of Eq. (5), summed over coordinates.
 
     Args:
@@ -387,9 +387,26 @@ def energies(A: sp.csr_matrix, weights: np.ndarray, kind: np.ndarray,
         weights: (rows,) float64 row weights.
         kind: (rows,) int8 row kind (0 edge, 1 frame).
         u: (N, 3) float64 unknowns.
+        residual: optional (rows, 3) ``A @ u`` when the caller has it already.
 
     Returns:
         ``{"edge": E_x, "frame": w E_f}`` floats.
     """
-    r2 = weights * ((A @ u) ** 2).sum(axis=1)
+    r = A @ u if residual is None else residual
+    r2 = np.square(r[:, 0])                   # column by column: no (rows, 3) temporaries
+    for c in range(1, r.shape[1]):
+        r2 += np.square(r[:, c])
+    r2 *= weights
     return {"edge": float(r2[kind == 0].sum()), "frame": float(r2[kind == 1].sum())}
+
+
+def max_weighted_residual(weights: np.ndarray, residual: np.ndarray) -> float:
+    """``max |sqrt(weights) * residual|`` over rows and columns of a (rows, 3) ``A @ u``
+    (column by column, without (rows, 3) temporaries); 0 for no rows."""
+    if not len(residual):
+        return 0.0
+    worst = np.abs(residual[:, 0])
+    for c in range(1, residual.shape[1]):
+        np.maximum(worst, np.abs(residual[:, c]), out=worst)
+    worst *= np.sqrt(weights)
+    return float(worst.max())

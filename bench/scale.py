@@ -4,10 +4,11 @@ A shared scan (``nefertiti.obj``, 99 938 faces, closed genus 0) is subdivided 4:
 midpoints (trimesh) 0, 1 and 2 times (100K, 400K, 1.6M faces; ``--levels 3`` adds 6.4M).
 Its forms, exact and with every dihedral angle + N(0, 1e-3) rad, are cached under
 ``/tmp/ffs-scale`` (never in git). Each case runs in a fresh child process that reports its
-wall time per stage (``report["timings"]``), the peak RSS of the whole process (getrusage
-``ru_maxrss``) and the peak RSS reached during each stage (a sampling thread reading
-``/proc/self/status`` every 5 ms, attributed to the stage the progress callback last
-named), the solve path and the refinement's factorization and iteration counts.
+wall time per stage (``report["timings"]``) and its CPU time (user + system, less
+sensitive to the load of a shared machine than the wall time), the peak RSS of the whole
+process (getrusage ``ru_maxrss``) and the peak RSS reached during each stage (a sampling
+thread reading ``/proc/self/status`` every 5 ms, attributed to the stage the progress
+callback last named), the solve path and the refinement's factorization and iteration counts.
 
 Cases:
 
@@ -117,14 +118,16 @@ def run_case(level: int, case: str) -> dict:
     n_vertices = len(data["vertices"])
     del data
     options = {"refine": False} if case == "linear" else {}
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     result = reconstruct(faces, edges, lengths, angles, n_vertices=n_vertices,
                          progress=memory, **options)
     wall = time.perf_counter() - start
+    cpu = time.process_time() - cpu
     report = result.report
     refinement = report["refinement"] or {}
     return {
         "level": level, "case": case, "faces": len(faces), "seconds": wall,
+        "cpu_seconds": cpu,
         "timings": {k: round(v, 3) for k, v in report["timings"].items()},
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "stage_peak_mb": memory.stop(), "solve_path": report["solve_path"],
@@ -152,17 +155,18 @@ def child(level: int, case: str, max_gb: float | None) -> dict:
 
 def markdown(rows: list[dict]) -> str:
     """The tables of bench/README.md: one row per case, then the fitted exponents."""
-    lines = ["| faces | case | path | seconds | faces/s | peak MB | factorizations | "
+    lines = ["| faces | case | path | seconds | CPU s | faces/s | peak MB | factorizations | "
              "iterations | stages (s) | stage peaks (MB) |",
-             "|---:|---|---|---:|---:|---:|---:|---:|---|---|"]
+             "|---:|---|---|---:|---:|---:|---:|---:|---:|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| level {r['level']} | {r['case']} | {r['error']} | | | | | | | |")
+            lines.append(f"| level {r['level']} | {r['case']} | {r['error']} | | | | | | | | |")
             continue
         stages = ", ".join(f"{k} {v:.2f}" for k, v in r["timings"].items())
         peaks = ", ".join(f"{k} {v}" for k, v in r["stage_peak_mb"].items())
         lines.append(
             f"| {r['faces']} | {r['case']} | {r['solve_path']} | {r['seconds']:.2f} | "
+            f"{r.get('cpu_seconds', float('nan')):.2f} | "
             f"{r['faces'] / r['seconds']:,.0f} | {r['peak_mb']:.0f} | "
             f"{r['factorizations'] if r['factorizations'] is not None else '-'} | "
             f"{r['iterations'] if r['iterations'] is not None else '-'} | {stages} | {peaks} |")

@@ -416,6 +416,14 @@ class Client:
         return self.run(self.transfer_call(source, source_deformed, target, faces,
                                            refine=refine, **options), progress)
 
+    def size_limits(self) -> dict[str, Any]:
+        """How large a request the service admits for this client (``GET /v1/me``):
+        ``max_faces``, ``max_vertices``, ``max_body_bytes``, ``max_request_memory`` and
+        ``max_faces_by_operation`` (each operation's largest mesh, the key's quota
+        included); a larger one is answered 413 (:class:`ffs.errors.PayloadTooLargeError`)."""
+        limits: dict[str, Any] = self.request("GET", "/v1/me").json()["size_limits"]
+        return limits
+
     def mesh_call(self, vertices: Any, faces: Any) -> Call:
         return Call("mesh", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
                     {}, Mesh.from_dict)

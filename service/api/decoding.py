@@ -458,7 +458,12 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
     if n_vertices > limits.max_vertices:
         errors.append(element_error(field, f"{n_vertices} vertices exceed the limit of "
                                            f"{limits.max_vertices}"))
-    if n_faces > limits.max_faces:
+    if n_faces > limits.max_faces and limits.max_memory is not None:
+        errors.append(element_error(field, (
+            f"{n_faces} faces exceed the {limits.max_faces} faces this operation can take "
+            f"in the {limits.max_memory / 2**30:.1f} GiB one request may use "
+            "(FFS_MAX_REQUEST_MEMORY)")))
+    elif n_faces > limits.max_faces:
         errors.append(element_error(field, f"{n_faces} faces exceed the limit of "
                                            f"{limits.max_faces}"))
     if errors:

@@ -112,6 +112,9 @@ class Limits:
     max_vertices: int
     max_faces: int
     max_blend_steps: int = 64
+    max_memory: int | None = None
+    """FFS_MAX_REQUEST_MEMORY when it, not FFS_MAX_FACES, sets ``max_faces`` (the most
+    faces the operation's predicted peak fits in; named by the 413)."""
 
 
 @dataclass(frozen=True)

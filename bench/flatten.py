@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from bench.common import SHARED_MESHES
+from solver.chart_flattening import relative_length_change
 from solver.packing import rasterized_overlap, signed_areas
-from solver.parameterize import relative_length_change
 from tests.helpers.meshes import side_by_side
 
 SMALL_PARTS = ("decimated-knight.off", "torus.off", "octopus-low-surface.off", "face.off")
@@ -113,15 +113,16 @@ def xatlas_atlas(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
 
 def xatlas_charts_ours(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
     """The alternative charting: xatlas's charts (its uv islands), each flattened by our
-    method (solver.parameterize.flatten_chart, refined) and packed by solver.packing."""
+    method (solver.chart_flattening.flatten_chart, refined) and packed by solver.packing."""
     import scipy.sparse as sp
     import xatlas
     from scipy.sparse.csgraph import connected_components
 
+    from solver.atlas import ChartLayout, assemble, chart_options
+    from solver.chart_flattening import flatten_chart
     from solver.charts import chart_mesh
     from solver.options import ParameterizeOptions
     from solver.packing import pack_charts
-    from solver.parameterize import ChartLayout, _assemble, _chart_options, flatten_chart
     from solver.reports import Stages
     from solver.topology import build_topology
 
@@ -141,10 +142,10 @@ def xatlas_charts_ours(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
         topology = build_topology(piece.faces, n_vertices=len(piece.vertex_ids))
         Vc = V[piece.vertex_ids]
         lengths = np.linalg.norm(Vc[topology.edges[:, 1]] - Vc[topology.edges[:, 0]], axis=1)
-        opts = _chart_options(ParameterizeOptions(), len(piece.face_ids))
+        opts = chart_options(ParameterizeOptions(), len(piece.face_ids))
         layouts.append(ChartLayout(piece, flatten_chart(Vc, topology, lengths, opts,
                                                         Stages(None), refine=True)))
-    layout, uv_faces, uv_vertex, face_chart = _assemble(layouts, m)
+    layout, uv_faces, uv_vertex, face_chart = assemble(layouts, m)
     packed = pack_charts(layout, uv_faces, face_chart)
     seconds = time.perf_counter() - start
     found = measures(V, F, packed.texcoords, uv_faces, uv_vertex)

@@ -13,10 +13,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from .chart_flattening import ChartFlattening, flatten_chart, refine_chart, relative_length_change
-from .charts import ChartMesh, bisect, chart_mesh, connected_face_sets, dual_graph, is_disk_like
+from .charts import (
+    ChartMesh,
+    bisect,
+    chart_mesh,
+    connected_face_sets,
+    dual_graph,
+    is_disk_like,
+    labelled_face_sets,
+    xatlas_charts,
+)
 from .frames import face_edge_lengths, triangle_layouts
 from .options import ParameterizeOptions
-from .packing import boundary_crossings, signed_areas
+from .packing import boundary_crossings, positive_loops, signed_areas
 from .reconstruct import Progress
 from .reports import Stages
 from .topology import MeshTopology, build_topology
@@ -32,10 +41,13 @@ class ChartLayout:
 
 def chart_layouts(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
                   opts: ParameterizeOptions, stages: Stages,
-                  progress: Progress | None = None) -> list[ChartLayout]:
+                  progress: Progress | None = None, *, seeds: str = "xatlas",
+                  ) -> list[ChartLayout]:
     """Cut the mesh into charts and flatten each (the seams of :mod:`solver.charts`).
 
-    Starting from the edge-connected components, a chart is bisected while it is closed
+    Starting from ``seeds`` (``"xatlas"``: xatlas's charts, :func:`solver.charts.xatlas_charts`,
+    each edge-connected piece one chart; ``"components"``: the edge-connected components,
+    the bisection alone), a chart is bisected while it is closed
     or has a handle, while its linear flattening's mean relative length change is above
     twice ``opts.max_chart_distortion``, or while its refined flattening is above it, has
     a flipped face or overlaps itself. A loop over charts; each chart's work is vectorized.
@@ -44,7 +56,10 @@ def chart_layouts(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
     faces = topology.faces
     m = len(faces)
     graph = dual_graph(V, topology, angles, opts.crease_weight)
-    queue = connected_face_sets(graph, np.arange(m), m)
+    if seeds == "xatlas":
+        queue = labelled_face_sets(graph, xatlas_charts(V, faces))
+    else:
+        queue = connected_face_sets(graph, np.arange(m), m)
     quiet = Stages(None)
     done: list[ChartLayout] = []
     placed = 0
@@ -94,7 +109,7 @@ def _flatten_or_none(V: np.ndarray, faces: np.ndarray, opts: ParameterizeOptions
     if out_of_time:
         return full
     if (signed_areas(full.uv, faces) <= 0).any() or mean_length_change(V, full.uv, faces) > limit \
-            or _overlaps_itself(full.uv, faces):
+            or overlaps_itself(full.uv, faces, topology.boundary_loops):
         return None
     return full
 
@@ -116,10 +131,14 @@ def mean_length_change(V: np.ndarray, uv: np.ndarray, faces: np.ndarray) -> floa
     return float(np.abs(relative_length_change(V, uv, faces, identity)).mean())
 
 
-def _overlaps_itself(uv: np.ndarray, faces: np.ndarray) -> bool:
-    """Whether a chart's layout overlaps itself: a flipped face, or boundary edges that
-    cross (:func:`solver.packing.boundary_crossings`)."""
-    return bool((signed_areas(uv, faces) <= 0).any()) or boundary_crossings(uv, faces) > 0
+def overlaps_itself(uv: np.ndarray, faces: np.ndarray, loops: list[np.ndarray]) -> bool:
+    """Whether a chart's layout ``uv`` (n, 2) over ``faces`` (m, 3) with boundary ``loops``
+    covers some point twice: a flipped face, boundary edges that cross
+    (:func:`solver.packing.boundary_crossings`), or a hole laid out inside out (more than
+    one counter-clockwise loop, :func:`solver.packing.positive_loops`). Without any of
+    these the layout is injective."""
+    return bool((signed_areas(uv, faces) <= 0).any()) or positive_loops(uv, loops) > 1 \
+        or boundary_crossings(uv, faces) > 0
 
 
 SMALL_CHART_FACES = 20_000

@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .atlas import assemble, chart_layouts, mean_length_change
+from .atlas import assemble, chart_layouts, mean_length_change, overlaps_itself
 from .chart_flattening import ChartFlattening, flatten_chart, relative_length_change
 from .charts import is_disk_like, seam_edges
 from .errors import TopologyError
@@ -36,7 +36,6 @@ from .serialization import JsonDataclass
 from .topology import MeshTopology, build_topology
 from .validation import as_points
 from .warnings import (
-    DEFAULT_RULES,
     as_report,
     flattening_warnings,
 )
@@ -175,19 +174,16 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
 
 def _keeps_single_chart(V: np.ndarray, uv: np.ndarray, topology: MeshTopology,
                         opts: ParameterizeOptions) -> bool:
-    """Whether today's single chart stands: a disk-like mesh whose flattening has at most
-    :attr:`WarningRules.max_flipped_fraction` flipped faces (a local fold, which also
-    overlaps locally; without flips, no overlap at all) and a mean relative length change
-    of at most twice ``max_chart_distortion`` (the bumpy plane's 0.055 stays one chart)."""
+    """Whether today's single chart stands: a disk-like mesh whose flattening covers no
+    point twice (no flipped face, no boundary crossing, no hole inside out:
+    :func:`solver.atlas.overlaps_itself`) with a mean relative length change of at most
+    twice ``max_chart_distortion`` (the bumpy plane's 0.052 stays one chart)."""
     F = topology.faces
     if not is_disk_like(topology):
         return False
-    flipped = int((signed_areas(uv, F) < 0).sum())
-    if flipped > DEFAULT_RULES.max_flipped_fraction * len(F):
-        return False
     if mean_length_change(V, uv, F) > 2 * opts.max_chart_distortion:
         return False
-    return flipped > 0 or boundary_crossings(uv, F) == 0
+    return not overlaps_itself(uv, F, topology.boundary_loops)
 
 
 def _single_texcoords(uv: np.ndarray, topology: MeshTopology) -> np.ndarray:

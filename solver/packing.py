@@ -29,15 +29,11 @@ class PackingRules:
             charts, 0.4 s against 0.15 s; xatlas's brute-force search reached 0.672 in 49 s).
         padding: free texels around every chart (at ``resolution``: 2 / 2048 of the side).
         target_efficiency: the coverage assumed when choosing ``texels_per_unit``.
-        square_gains: after the free-size packing reaches efficiency e, square pages of
-            ``resolution`` texels are tried at e times each gain, densest first; the first
-            that holds every chart on one page is kept.
     """
 
     resolution: int = 2048
     padding: int = 2
     target_efficiency: float = 0.7
-    square_gains: tuple[float, ...] = (1.25, 1.15, 1.08)
 
 
 @dataclass(frozen=True)
@@ -94,58 +90,32 @@ def pack_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray,
     Returns:
         :class:`Packed`.
     """
+    import xatlas
 
     rules = rules or PackingRules()
     uv = np.asarray(uv, dtype=np.float64)
     turned = _turn_charts(uv, faces, face_chart)
     area = float(np.abs(signed_areas(turned, faces)).sum())
-    tpu = rules.resolution * np.sqrt(rules.target_efficiency / area)
-    texcoords, side = _xatlas_pack(turned, faces, face_chart, rules.padding, tpu, 0)
-    # A square page of ``resolution`` texels filled tighter than the free-size atlas (whose
-    # longer side bounds the unit square): the first of a few denser targets that fits on
-    # one page wins (the torus: 0.338 -> 0.36x of the square).
-    found = packing_efficiency(texcoords, faces)
-    for gain in rules.square_gains:
-        dense = rules.resolution * np.sqrt(found * gain / area)
-        square, count = _xatlas_pack(turned, faces, face_chart, rules.padding, dense,
-                                     rules.resolution)
-        if count == 1:
-            texcoords, side, tpu = square, rules.resolution, dense
-            break
-    # Exact shapes: map each chart back by the similarity xatlas applied (translation and
-    # the one scale), so float32 rounding never reaches the layout.
-    scale = 1.0 / (tpu / side)
-    texcoords = _exact_translation(turned, texcoords, faces, face_chart, scale)
-    return Packed(texcoords, scale, int(side), rules.padding / side,
-                  packing_efficiency(texcoords, faces))
-
-
-def _xatlas_pack(turned: np.ndarray, faces: np.ndarray, face_chart: np.ndarray,
-                 padding: int, texels_per_unit: float, resolution: int,
-                 ) -> tuple[np.ndarray, int]:
-    """xatlas's placement of the charts (k, 2) in the unit square (float32 rounding) and
-    the atlas's side in texels (``resolution`` 0: the smallest atlas; else a square page
-    of that side, and the side is the number of pages when the charts need more)."""
-    import xatlas
-
     options = xatlas.PackOptions()
-    options.padding = padding
+    options.padding = rules.padding
     options.rotate_charts = False
     options.rotate_charts_to_axis = False
-    options.texels_per_unit = float(texels_per_unit)
-    options.resolution = int(resolution)
+    options.texels_per_unit = rules.resolution * np.sqrt(rules.target_efficiency / area)
     atlas = xatlas.Atlas()
     atlas.add_uv_mesh(turned.astype(np.float32), faces.astype(np.uint32),
                       face_chart.astype(np.uint32)[:, None])
     atlas.generate(pack_options=options)
-    if resolution and atlas.atlas_count != 1:
-        return turned, atlas.atlas_count
     mapping, _, out_uv = atlas.get_mesh(0)
     side = max(atlas.width, atlas.height)
-    texcoords = np.zeros_like(turned)
-    texcoords[mapping.astype(np.int64)] = out_uv.astype(np.float64) \
-        * [atlas.width, atlas.height] / side
-    return texcoords, (1 if resolution else int(side))
+    texels = out_uv.astype(np.float64) * [atlas.width, atlas.height]
+    texcoords = np.zeros_like(uv)
+    texcoords[mapping.astype(np.int64)] = texels / side
+    # Exact shapes: map each chart back by the similarity xatlas applied (translation and
+    # the one scale), so float32 rounding never reaches the layout.
+    scale = 1.0 / (options.texels_per_unit / side)
+    texcoords = _exact_translation(turned, texcoords, faces, face_chart, scale)
+    return Packed(texcoords, scale, int(side), rules.padding / side,
+                  packing_efficiency(texcoords, faces))
 
 
 def _turn_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray) -> np.ndarray:

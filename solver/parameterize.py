@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .atlas import assemble, chart_layouts, mean_length_change, overlaps_itself
+from .atlas import ChartLayout, assemble, chart_layouts, mean_length_change, overlaps_itself
 from .chart_flattening import ChartFlattening, flatten_chart, relative_length_change
 from .charts import is_disk_like, seam_edges
 from .errors import TopologyError
@@ -36,6 +36,7 @@ from .serialization import JsonDataclass
 from .topology import MeshTopology, build_topology
 from .validation import as_points
 from .warnings import (
+    DEFAULT_RULES,
     as_report,
     flattening_warnings,
 )
@@ -155,11 +156,8 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
             return _result(V, F, single.uv, F, identity, np.zeros(len(F), dtype=np.int64),
                            _single_texcoords(single.uv, topology), single, opts, stages,
                            forms, topology, scale=None)
-    charts = chart_layouts(V, topology, forms.angles, opts, stages, progress)
-    stages("pack")
-    layout, uv_faces, uv_vertex, face_chart = assemble(charts, len(F))
-    packed = pack_charts(layout, uv_faces, face_chart)
-    stages.lap("pack")
+    charts, packed, (_, uv_faces, uv_vertex, face_chart) = _packed_atlas(
+        V, topology, forms.angles, opts, stages, progress)
     last = max(charts, key=lambda chart: len(chart.mesh.face_ids)).flattening
     summary_refinement = with_outcome({
         "refined": any(c.flattening.refinement.get("refined") for c in charts),
@@ -170,6 +168,35 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
                                summary_refinement, [])
     return _result(V, F, combined.uv, uv_faces, uv_vertex, face_chart, packed.texcoords,
                    combined, opts, stages, forms, topology, scale=packed)
+
+
+def _packed_atlas(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
+                  opts: ParameterizeOptions, stages: Stages, progress: Progress | None,
+                  ) -> tuple[list[ChartLayout], Packed, tuple[np.ndarray, ...]]:
+    """Charts seeded by xatlas's charting, packed; when they pack below
+    :attr:`WarningRules.min_packing_efficiency` (the torus: 0.34) and time is left, the
+    charts of the bisection alone (``seeds="components"``) are packed too and the atlas
+    that packs better is kept. Returns the charts, the packing and :func:`assemble`'s
+    arrays."""
+    best = None
+    for seeds in ("xatlas", "components"):
+        if best is not None and (best[1].efficiency >= DEFAULT_RULES.min_packing_efficiency
+                                 or _out_of_time(stages, opts)):
+            break
+        charts = chart_layouts(V, topology, angles, opts, stages, progress, seeds=seeds)
+        stages("pack")
+        arrays = assemble(charts, len(topology.faces))
+        packed = pack_charts(arrays[0], arrays[1], arrays[3])
+        stages.lap("pack")
+        if best is None or packed.efficiency > best[1].efficiency:
+            best = (charts, packed, arrays)
+    assert best is not None
+    return best
+
+
+def _out_of_time(stages: Stages, opts: ParameterizeOptions) -> bool:
+    left = stages.left(opts.max_seconds)
+    return left is not None and left <= 0
 
 
 def _keeps_single_chart(V: np.ndarray, uv: np.ndarray, topology: MeshTopology,

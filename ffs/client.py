@@ -15,7 +15,7 @@ service::
   int64, ...). Options are the HTTP options (``refine``, ``frame_weight``,
   ``orthonormalize``, ``weighting``, ``solver``, ...; docs/service.md) and are sent only
   when given, so the service's defaults apply.
-* Bodies are ``application/vnd.ffs.arrays`` (:mod:`ffs.arrays`) unless ``binary=False``
+* Bodies are ``application/vnd.ffs.arrays`` (:mod:`ffs_wire.arrays`) unless ``binary=False``
   (JSON); answers are JSON, whose float64 values round-trip exactly.
 * ``progress=callback`` (or :meth:`Client.submit`) runs the operation as a job: the
   callback gets ``(stage, fraction)`` as the service reports them; jobs have no
@@ -43,7 +43,6 @@ import httpx
 import numpy as np
 
 from ffs import __version__
-from ffs.arrays import BINARY_MEDIA_TYPE, binary_body, json_default
 from ffs.errors import (
     FFSError,
     GoneError,
@@ -55,6 +54,7 @@ from ffs.errors import (
     problem_error,
 )
 from ffs.results import Blend, Forms, Integrability, Mesh, Parameterization, ShapeBlend
+from ffs_wire.arrays import BINARY_MEDIA_TYPE, binary_body, json_default
 
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: the service's stage names (validate, assemble, factorize,

@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from ffs.arrays import json_default
 from ffs.results import Forms
+from ffs_wire.arrays import json_default
 
 MESH_FORMATS = ("obj", "off", "ply", "stl", "glb", "gltf")
 """Mesh file formats read (written: all but gltf)."""

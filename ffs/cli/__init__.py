@@ -4,7 +4,7 @@ Commands: ``forms`` (edge lengths and dihedral angles), ``check`` (integrability
 ``reconstruct`` (a mesh from forms), ``deform`` (handles), ``flatten`` (parameterize),
 ``blend`` (blend or extrapolate 2 to 64 meshes, one file per row or one animated GLB),
 ``mean`` (their form-space mean), ``transfer`` (a deformation applied to another mesh),
-``convert`` (read, check, write), ``serve`` (the service, ``python -m service``).
+``convert`` (read, check, write), ``serve`` (runs the service, ``python -m service``).
 
 * In-process through :mod:`solver` by default; ``--server URL`` (or ``FFS_SERVER``) runs the
   same work on a service through :class:`ffs.client.Client` (as jobs: stage progress, no
@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -56,16 +57,21 @@ def _set_threads(args: argparse.Namespace) -> None:
 
 
 def serve(args: argparse.Namespace) -> int:
-    """``ffs serve``: run the service (``python -m service``) with ``--host``/``--port``/
-    ``--workers`` as its environment variables."""
+    """``ffs serve``: run the service as a program (``python -m service``, which this
+    process becomes: signals reach uvicorn directly) with ``--host``/``--port``/
+    ``--workers`` as its environment variables. The command line never imports the service."""
+    env = dict(os.environ)
     for name, value in (("FFS_HOST", args.host), ("FFS_PORT", args.port),
                         ("FFS_WORKERS", args.workers)):
         if value is not None:
-            os.environ[name] = str(value)
-    from service.__main__ import main as serve_main
-
-    serve_main()
-    return EXIT_OK
+            env[name] = str(value)
+    command = [sys.executable, "-m", "service"]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    if os.name == "nt":  # no exec on Windows: a child, its exit code ours
+        return subprocess.call(command, env=env)
+    os.execve(sys.executable, command, env)
+    return EXIT_OK  # not reached
 
 
 def _blend_rows(args: argparse.Namespace) -> list[float]:

@@ -11,7 +11,7 @@ from typing import Any, Final
 import numpy as np
 import orjson
 
-from ffs.arrays import json_default
+from ffs_wire.arrays import json_default
 from service.worker import gltf
 
 MEDIA_TYPES: Final[dict[str, str]] = {**gltf.MEDIA_TYPES, "f32": "application/octet-stream"}
@@ -28,7 +28,7 @@ def json_bytes(document: Any) -> bytes:
 
     Returns:
         UTF-8 JSON by orjson (numpy arrays natively; non-contiguous or exotic ones, and
-        what orjson cannot encode, through :func:`ffs.arrays.json_default`).
+        what orjson cannot encode, through :func:`ffs_wire.arrays.json_default`).
     """
     return orjson.dumps(document, option=_OPTIONS, default=json_default)
 

@@ -255,6 +255,38 @@ def read_json(path: str | os.PathLike[str]) -> Any:
         raise InputFileError(path, f"cannot read it as JSON: {exc}") from None
 
 
+def read_cotangent(path: str | os.PathLike[str]) -> np.ndarray:
+    """The cotangent of ``ffs vjp --cotangent``: (n, 3) or (k, n, 3) float64 from a .npy,
+    an .npz (array ``cotangent``, or its only array) or a .json (the array, or an object
+    with ``cotangent``).
+
+    Raises:
+        InputFileError: Missing, unreadable, not numbers, or not (n, 3) / (k, n, 3).
+    """
+    path = Path(path)
+    fmt = path.suffix.lstrip(".").lower()
+    try:
+        if fmt == "npy":
+            value: Any = np.load(path, allow_pickle=False)
+        elif fmt == "npz":
+            fields = _read_fields(path, fmt)
+            value = fields.get("cotangent", next(iter(fields.values())) if len(fields) == 1
+                               else None)
+        else:
+            value = read_json(path)
+            value = value.get("cotangent") if isinstance(value, dict) else value
+        array = np.asarray(value, dtype=np.float64)
+    except FileNotFoundError:
+        raise InputFileError(path, "no such file") from None
+    except (OSError, TypeError, ValueError) as exc:
+        raise InputFileError(path, f"not an array of numbers ({exc})",
+                             field="cotangent") from None
+    if array.ndim not in (2, 3) or array.shape[-1] != 3:
+        raise InputFileError(path, f"expected shape (n, 3) or (k, n, 3), got "
+                             f"{list(array.shape)}", field="cotangent")
+    return array
+
+
 # ----------------------------------------------------------------------------- writing
 
 

@@ -1,11 +1,13 @@
 """``ffs``: the command line. ``ffs <command> <inputs...> -o <output> [options]``.
 
 Commands: ``forms`` (edge lengths and dihedral angles), ``check`` (integrability),
-``reconstruct`` (a mesh from forms), ``deform`` (handles), ``flatten`` (parameterize),
+``reconstruct`` (a mesh from forms), ``vjp`` (its gradients for a cotangent of the
+vertices), ``deform`` (handles), ``flatten`` (parameterize),
 ``blend`` (blend or extrapolate 2 to 64 meshes, one file per row or one animated GLB),
 ``mean`` (their form-space mean), ``transfer`` (a deformation applied to another mesh),
 ``convert`` (read, check, write), ``serve`` (runs the service, ``python -m service``).
 
+* The commands and the operations each runs: :data:`ffs.operations.COMMANDS`.
 * In-process through :mod:`solver` by default; ``--server URL`` (or ``FFS_SERVER``) runs the
   same work on a service through :class:`ffs.client.Client` (as jobs: stage progress, no
   request timeout).

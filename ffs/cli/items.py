@@ -9,13 +9,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-DEFAULT_EXTENSIONS = {"forms": ".json", "check": ".json", "reconstruct": ".obj"}
+DEFAULT_EXTENSIONS = {"forms": ".json", "check": ".json", "reconstruct": ".obj",
+                      "vjp": ".npz"}
 """Output extension when ``-o`` is a folder (others: the input's, if writable, else .obj)."""
 
 
 MESH_OUTPUTS = ("obj", "off", "ply", "stl", "glb", "json", "npz")
 """What a mesh result is written as (``--format`` or the extension)."""
-OUTPUT_FORMATS = {"forms": ("json", "npz"), "check": ("json",)}
+OUTPUT_FORMATS = {"forms": ("json", "npz"), "check": ("json",), "vjp": ("json", "npz")}
 """Command -> the formats its outputs may have (the others: :data:`MESH_OUTPUTS`)."""
 
 

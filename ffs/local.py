@@ -209,8 +209,7 @@ class Local:
                    times: Sequence[float] | None = None, kind: str = "glb",
                    refine: bool | None = None, progress: Progress | None = None,
                    **options: Any) -> bytes:
-        # The service's one glTF writer, pure numpy (the in-process backend only).
-        from service.worker.gltf import encode_gltf_animation
+        from solver.gltf import encode_gltf_animation
 
         result = self._blend(shapes, faces, weights, t, refine, progress, options)
         return encode_gltf_animation(result.vertices, result.faces,

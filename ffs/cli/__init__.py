@@ -120,6 +120,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         rows = _blend_rows(args) if args.command == "blend" else None
         items = plan_items(args.command, args.inputs, args.output, rows)
+        args.jobs = min(args.jobs, len(items))
+        _set_threads(args)  # before the format check imports the library (numpy, MKL)
         check_output_formats(args.command, items, args.format)
     except UsageError as exc:
         print(f"ffs {args.command}: error: {exc}", file=sys.stderr)
@@ -128,8 +130,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("ffs blend: error: blend takes no --orthonormalize (a blend is reconstructed "
               "from blended forms)", file=sys.stderr)
         return EXIT_USAGE
-    args.jobs = min(args.jobs, len(items))
-    _set_threads(args)
     started = time.perf_counter()
     try:
         rows = run_batch(args.command, args, items)

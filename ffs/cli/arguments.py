@@ -51,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     io.add_argument("-o", "--output", help="output file, template ({stem}, {name}, {parent}, "
                     "{index}, {t}) or folder")
     io.add_argument("--format", help="output format instead of the extension: obj, off, ply, "
-                    "stl, glb, json, npz")
+                    "stl, glb, gltf, json, npz")
     io.add_argument("--input-format", help="input mesh format instead of the extension")
     io.add_argument("--report", metavar="FILE", help="write every file's full report (JSON)")
     run = common.add_argument_group("running")

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ffs.cli.failures import RunFailedError
-from ffs.cli.items import MESH_OUTPUTS, Item, Row
+from ffs.cli.items import Item, Row, mesh_outputs
 from ffs.operations import COMMANDS
 
 Progress = Callable[[str, float], None]
@@ -49,6 +49,15 @@ def _mesh_options(args: argparse.Namespace, *, orthonormalize_default: bool = Fa
     return {k: v for k, v in options.items() if v is not None}
 
 
+def _reconstruct_options(args: argparse.Namespace) -> dict[str, Any]:
+    """:func:`_mesh_options` and the integrability options of ``reconstruct`` and ``vjp``."""
+    options = _mesh_options(args)
+    options.update({k: v for k, v in {"tolerance": args.tolerance,
+                                      "require_integrable": args.require_integrable or None
+                                      }.items() if v is not None})
+    return options
+
+
 def _output_format(path: Path, args: argparse.Namespace,
                    allowed: Sequence[str] | None = None) -> str:
     """The format ``path`` is written in: ``--format`` or its extension.
@@ -60,7 +69,7 @@ def _output_format(path: Path, args: argparse.Namespace,
     from ffs import files
 
     fmt = (args.format or path.suffix.lstrip(".")).lower()
-    writable = allowed or MESH_OUTPUTS
+    writable = allowed or mesh_outputs()
     if fmt not in writable:
         raise files.InputFileError(path, f"cannot write {fmt or '(no extension)'!r} here; "
                                    f"use one of {', '.join(writable)} (or --format)")
@@ -135,10 +144,7 @@ def run_reconstruct(backend: Any, item: Item, args: argparse.Namespace, progress
     from ffs import files
 
     forms = _forms_of(backend, item.inputs[0], args, progress)
-    options = _mesh_options(args)
-    options.update({k: v for k, v in {"tolerance": args.tolerance,
-                                      "require_integrable": args.require_integrable or None
-                                      }.items() if v is not None})
+    options = _reconstruct_options(args)
     constraints = files.read_json(args.constraints) if args.constraints else None
     reference = files.read_mesh(args.align_to)[0] if args.align_to else None
     if reference is not None:
@@ -160,10 +166,7 @@ def run_vjp(backend: Any, item: Item, args: argparse.Namespace, progress: Progre
     from ffs import files
 
     forms = _forms_of(backend, item.inputs[0], args, progress)
-    options = _mesh_options(args)
-    options.update({k: v for k, v in {"tolerance": args.tolerance,
-                                      "require_integrable": args.require_integrable or None
-                                      }.items() if v is not None})
+    options = _reconstruct_options(args)
     constraints = files.read_json(args.constraints) if args.constraints else None
     result = backend.reconstruct_vjp(forms, cotangent=files.read_cotangent(args.cotangent),
                                      constraints=constraints, progress=progress, **options)

@@ -255,12 +255,9 @@ class Client:
     # ------------------------------------------------------ operations (requests)
     # One ``<method>_call`` per operation of :data:`ffs.operations.OPERATIONS`: its
     # arguments -> the request; ``Client.<method>(..., progress=None)`` runs it (made from
-    # the table below the class, with this docstring and signature).
-
-    def fundamental_forms_call(self, vertices: Any, faces: Any) -> Call:
-        """Edge lengths and signed dihedral angles of a mesh (``POST /v1/forms``)."""
-        return Call("forms", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
-                    {})
+    # the table below the class, with this docstring and signature). Written here for the
+    # operations that need more than their arrays and options; :func:`table_call` makes
+    # the others' from their row.
 
     def check_integrability_call(self, faces: Any, edges: Any = None, lengths: Any = None,
                                  angles: Any = None, *, tol: float | None = None) -> Call:
@@ -326,15 +323,6 @@ class Client:
         return Call("deform", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
                     params)
 
-    def parameterize_call(self, vertices: Any, faces: Any, *, refine: bool | None = None,
-                          **options: Any) -> Call:
-        """Flatten a mesh (``POST /v1/parameterize``): one chart, or charts cut along seams
-        and packed (``result.texcoords``, ``uv_faces``, ``uv_vertex``, ``face_chart``;
-        ``options``: ``seams="auto"|"none"``, ``max_chart_distortion``)."""
-        return Call("parameterize", {"vertices": np.asarray(vertices),
-                                     "faces": np.asarray(faces)},
-                    {"options": _options(refine, options)})
-
     def interpolate_call(self, vertices_a: Any, vertices_b: Any, faces: Any,
                          t: float | Sequence[float], *, refine: bool | None = None,
                          **options: Any) -> Call:
@@ -360,22 +348,6 @@ class Client:
             params["t"] = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
         return Call("blend", {"shapes": np.asarray(shapes, dtype=np.float64),
                               "faces": np.asarray(faces)}, params)
-
-    def transfer_call(self, source: Any, source_deformed: Any, target: Any, faces: Any, *,
-                      refine: bool | None = None, **options: Any) -> Call:
-        """``target`` deformed as ``source`` was into ``source_deformed`` (``POST
-        /v1/transfer``; three embeddings of ``faces``)."""
-        return Call("transfer", {"source": np.asarray(source),
-                                 "source_deformed": np.asarray(source_deformed),
-                                 "target": np.asarray(target), "faces": np.asarray(faces)},
-                    {"options": _options(refine, options)})
-
-    def mesh_call(self, vertices: Any, faces: Any) -> Call:
-        """A mesh checked like every operation checks it (``POST /v1/mesh``), its report."""
-        return Call("mesh", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
-                    {})
-
-    # ------------------------------------------------ built on the operations
 
     def blend_gltf(self, shapes: Any, faces: Any, weights: Any = None, *,
                    t: float | Sequence[float] | None = None,
@@ -557,6 +529,32 @@ class Job:
             self.cancel()
 
 
+def table_call(operation: Operation) -> Callable[..., Call]:
+    """``Client.<method>_call`` of an operation that takes only its arrays (positional, in
+    the row's order) and, where it has options, ``refine`` and the solver options."""
+    P = inspect.Parameter
+    parameters = [P("self", P.POSITIONAL_OR_KEYWORD),
+                  *(P(name, P.POSITIONAL_OR_KEYWORD, annotation="Any")
+                    for name in operation.arrays)]
+    if operation.options:
+        parameters += [P("refine", P.KEYWORD_ONLY, default=None, annotation="bool | None"),
+                       P("options", P.VAR_KEYWORD, annotation="Any")]
+    signature = inspect.Signature(parameters, return_annotation="Call")
+
+    def build(*args: Any, **kwargs: Any) -> Call:
+        given = signature.bind(*args, **kwargs).arguments
+        arrays = {name: np.asarray(given[name]) for name in operation.arrays}
+        params = ({"options": _options(given.get("refine"), given.get("options", {}))}
+                  if operation.options else {})
+        return Call(operation.name, arrays, params)
+
+    build.__name__ = f"{operation.method}_call"
+    build.__qualname__ = f"Client.{build.__name__}"
+    build.__doc__ = operation.summary
+    build.__signature__ = signature  # type: ignore[attr-defined]
+    return build
+
+
 def _operation_method(operation: Operation) -> Callable[..., Any]:
     """``Client.<method>``: the request of ``<method>_call`` run synchronously, or as a job
     with ``progress`` (:meth:`Client.run`); its docstring and signature (plus ``progress``)."""
@@ -579,4 +577,6 @@ def _operation_method(operation: Operation) -> Callable[..., Any]:
 
 
 for _operation in OPERATIONS.values():
+    if _operation.arrays:
+        setattr(Client, f"{_operation.method}_call", table_call(_operation))
     setattr(Client, _operation.method, _operation_method(_operation))

@@ -4,7 +4,8 @@ and :class:`~ffs.local.Local` method that runs it, its result type (:mod:`ffs.re
 the ``ffs`` commands that use it; and the table of the ``ffs`` commands.
 
 What is derived from it: the client's operation methods (each ``<method>(...,
-progress=None)`` runs its hand-written ``<method>_call`` builder, :mod:`ffs.client`), the
+progress=None)`` runs its ``<method>_call`` builder, :mod:`ffs.client`: made from the row for
+an operation that takes only arrays and options, hand-written otherwise), the
 operations :meth:`~ffs.client.Client.submit` takes, each call's result decoder, the
 command line's subcommands (:func:`ffs.cli.arguments.build_parser`) and their runners
 (:data:`ffs.cli.commands.RUNNERS`). ``tests/client/test_operation_table.py`` fails when an
@@ -32,11 +33,20 @@ class Operation:
             (named like the library's function); ``<method>_call`` builds its request.
         result: the name of its result type in :mod:`ffs.results`, whose ``from_dict``
             decodes the service's JSON answer.
+        arrays: for an operation that takes only its large arrays (positional, in this
+            order) and, with ``options``, the solver options: their names; its request is
+            then built from this row (:func:`ffs.client.table_call`). Empty: the client
+            writes ``<method>_call`` by hand (constraints, handles, weights, ...).
+        options: it takes ``refine`` and the solver options (``{"options": {...}}``).
+        summary: the method's docstring, for a request built from this row.
     """
 
     name: str
     method: str
     result: str
+    arrays: tuple[str, ...] = ()
+    options: bool = True
+    summary: str = ""
 
     @property
     def decode(self) -> Callable[[dict[str, Any]], Any]:
@@ -47,16 +57,25 @@ class Operation:
 
 
 OPERATIONS: dict[str, Operation] = {op.name: op for op in (
-    Operation("forms", "fundamental_forms", "Forms"),
+    Operation("forms", "fundamental_forms", "Forms", ("vertices", "faces"), False,
+              "Edge lengths and signed dihedral angles of a mesh (``POST /v1/forms``)."),
     Operation("integrability", "check_integrability", "Integrability"),
     Operation("reconstruct", "reconstruct", "Mesh"),
     Operation("reconstruct/vjp", "reconstruct_vjp", "VjpResult"),
     Operation("deform", "deform", "Mesh"),
-    Operation("parameterize", "parameterize", "Parameterization"),
+    Operation("parameterize", "parameterize", "Parameterization", ("vertices", "faces"), True,
+              "Flatten a mesh (``POST /v1/parameterize``): one chart, or charts cut along "
+              "seams and packed (``result.texcoords``, ``uv_faces``, ``uv_vertex``, "
+              "``face_chart``; ``options``: ``seams=\"auto\"|\"none\"``, "
+              "``max_chart_distortion``)."),
     Operation("interpolate", "interpolate", "Blend"),
     Operation("blend", "blend", "ShapeBlend"),
-    Operation("transfer", "transfer", "Mesh"),
-    Operation("mesh", "mesh", "Mesh"),
+    Operation("transfer", "transfer", "Mesh", ("source", "source_deformed", "target", "faces"),
+              True, "``target`` deformed as ``source`` was into ``source_deformed`` (``POST "
+              "/v1/transfer``; three embeddings of ``faces``)."),
+    Operation("mesh", "mesh", "Mesh", ("vertices", "faces"), False,
+              "A mesh checked like every operation checks it (``POST /v1/mesh``), its "
+              "report."),
 )}
 """Every operation of the service, by its name, in the registry's order."""
 

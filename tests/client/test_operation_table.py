@@ -58,3 +58,27 @@ def test_every_command_has_a_parser_and_a_runner():
 
 def test_submit_takes_every_operation():
     assert set(Client.CALLS) == set(SERVICE_OPERATIONS)
+
+
+@pytest.mark.parametrize("name", [n for n, op in OPERATIONS.items() if op.arrays])
+def test_requests_made_from_the_table_match_the_service(name):
+    """A request built from its row: the service's arrays, in its order; options only where
+    the service's params have them."""
+    import numpy as np
+
+    operation, spec = OPERATIONS[name], SERVICE_OPERATIONS[name]
+    assert list(operation.arrays) == list(spec.arrays)
+    assert operation.options == ("options" in spec.params.model_fields)
+    client = Client.__new__(Client)  # no connection: only the request is built
+    arrays = [np.full((2, 3), k) for k in range(len(operation.arrays))]
+    call = getattr(client, f"{operation.method}_call")(*arrays)
+    assert call.operation == name and list(call.arrays) == list(spec.arrays)
+    for k, array in enumerate(call.arrays.values()):
+        np.testing.assert_array_equal(array, arrays[k])
+    assert call.params == ({"options": {}} if operation.options else {})
+    if operation.options:
+        call = getattr(client, f"{operation.method}_call")(*arrays, refine=False, seams="none")
+        assert call.params == {"options": {"refine": False, "seams": "none"}}
+    else:
+        with pytest.raises(TypeError):
+            getattr(client, f"{operation.method}_call")(*arrays, refine=False)

@@ -29,7 +29,7 @@ import numpy as np
 import orjson
 from pydantic import BaseModel, ValidationError
 
-from ffs.arrays import (  # binary_body: the reference encoder, re-exported
+from ffs_wire.arrays import (  # binary_body: the reference encoder, re-exported
     BINARY_DTYPES,
     BINARY_MAGIC,
     BINARY_MEDIA_TYPE,
@@ -287,7 +287,7 @@ def _decode(specs: ArraySpecs, params_model: type[BaseModel], sent: dict[str, An
 
 # ------------------------------------------------------------------------- binary bodies
 
-# The media type, framing constants and the encoder are shared with the client (ffs.arrays,
+# The media type, framing constants and the encoder are shared with the client (ffs_wire.arrays,
 # numpy and the standard library only); the reader and its checks are the service's.
 
 

@@ -33,8 +33,8 @@ import scipy.sparse as sp
 
 from bench.common import load_bench_mesh
 from solver import fundamental_forms
+from solver.immersion import ImmersionProblem
 from solver.linalg import pardiso
-from solver.reconstruct import ImmersionProblem
 from solver.topology import build_topology
 
 

@@ -95,7 +95,7 @@ def measure_reconstruct(case: str) -> dict[str, Any]:
     from scipy.sparse.linalg import splu
 
     from solver import fundamental_forms, linalg, reconstruct
-    from solver.reconstruct import ImmersionProblem
+    from solver.immersion import ImmersionProblem
     from solver.system import unknown_groups
     from solver.topology import build_topology
 

@@ -18,8 +18,8 @@ import sys
 from bench.common import load_bench_mesh
 from solver import fundamental_forms, reconstruct
 from solver.forms import validate_forms
+from solver.immersion import ImmersionProblem
 from solver.linalg import SingularSystemError
-from solver.reconstruct import ImmersionProblem
 from tests.helpers.meshes import rigid_alignment_error
 
 MESHES = ["decimated-knight.off", "octopus-low-surface.off", "torus.off", "face.off",

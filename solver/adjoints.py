@@ -16,11 +16,13 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
+from .constraints import Constraints
 from .form_derivatives import face_lengths_vjp, layout_terms_vjp, layouts_vjp
+from .form_energy import FormTargets
 from .frames import face_edge_lengths, layout_frames
+from .immersion import ImmersionProblem
 from .linalg import Factorization, SingularSystemError, factorize
-from .reconstruct import Constraints, ImmersionProblem, Reconstruction
-from .refine import FormTargets
+from .reconstruct import Reconstruction
 from .refined_energy import RefinedEnergy
 from .rotations import nearest_rotation
 from .system import ConstrainedSystem, LinearConstraints

@@ -20,17 +20,20 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .budget import Budget
+from .constraints import Constraints
+from .energy_weights import HARD_FRAME_WEIGHT
 from .errors import ConstraintError
+from .form_energy import FormTargets, Handles
 from .forms import forms_of
 from .frames import layout_frames
+from .immersion import ImmersionProblem
 from .layout_fit import LayoutFit
 from .manifold import ManifoldCut, manifold_topology
 from .metrics import compact, distortion
 from .options import DeformOptions
 from .outcomes import not_refined
-from .reconstruct import Constraints, ImmersionProblem, Progress
-from .refine import HARD_FRAME_WEIGHT, FormTargets, Handles, Refiner
-from .reports import DeformReport, Stages
+from .refine import Refiner
+from .reports import DeformReport, Progress, Stages
 from .rotations import is_rotation, nearest_rotation
 from .serialization import JsonDataclass
 from .system import ConstrainedSystem

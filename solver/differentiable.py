@@ -56,10 +56,12 @@ from numpy.typing import ArrayLike
 
 from .adjoints import FormCotangents, LinearAdjoint, RefinedAdjoint
 from .alignment import kabsch
+from .constraints import Constraints
 from .errors import ConstraintError
 from .forms import validate_forms
+from .immersion import ImmersionProblem
 from .options import ReconstructOptions
-from .reconstruct import Constraints, ImmersionProblem, Reconstruction, reconstruct
+from .reconstruct import Reconstruction, reconstruct
 
 
 class ReconstructionVJP:

@@ -31,9 +31,9 @@ from typing import Any, Literal, Self
 
 import numpy as np
 
+from .energy_weights import ANGLE_WEIGHT, AREA_WEIGHT, DEFORM_ANGLE_WEIGHT
 from .errors import SolverInputError
 from .linalg import BACKENDS
-from .refine import ANGLE_WEIGHT, AREA_WEIGHT, DEFORM_ANGLE_WEIGHT
 from .system import Weighting
 
 FRAME_WEIGHT = 1000.0
@@ -204,7 +204,7 @@ class DeformOptions(OrthonormalizeOptions):
     """Options of :func:`solver.deform` and :class:`solver.Deformer`.
 
     Two defaults differ from the other operations, declared here: ``angle_weight`` is
-    :data:`solver.refine.DEFORM_ANGLE_WEIGHT` (the targets are the rest forms: stiffer
+    :data:`solver.energy_weights.DEFORM_ANGLE_WEIGHT` (the targets are the rest forms: stiffer
     bending, smoother shapes), and a :class:`solver.Deformer` reads ``refine=None`` as off
     (an interactive client answers each drag's linear shape first and refines it after,
     :meth:`solver.Deformer.refine_last`); :func:`solver.deform` reads it as auto.

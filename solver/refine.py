@@ -23,7 +23,7 @@ and the reasons for each choice: ``docs/refinement.md``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -32,23 +32,25 @@ from threadpoolctl import ThreadpoolController
 
 from . import stopping
 from .budget import Budget
-from .form_energy import (  # noqa: F401 - re-exported: the refinement's public names
+from .damping import damped
+from .embedding_geometry import hinge_angles, hinges, signed_areas  # noqa: F401 - re-exported
+from .energy_weights import (  # noqa: F401 - re-exported: the refinement's public names
     ANGLE_WEIGHT,
     AREA_FLOOR,
     AREA_WEIGHT,
     DEFORM_ANGLE_WEIGHT,
-    FORMS_TOLERANCE,
     HARD_FRAME_WEIGHT,
+)
+from .form_energy import (  # noqa: F401 - re-exported: the refinement's public names
+    FORMS_TOLERANCE,
     FormEnergy,
     FormTargets,
     Handles,
     form_residuals,
     form_weights,
-    hinge_angles,
-    hinges,
     reproduces,
-    signed_areas,
 )
+from .iteration_state import IterationState
 from .linalg import SingularSystemError, analyze, factorize, resolve_backend
 from .mixed_precision import ImpreciseSolveError, SinglePrecisionFactor
 from .normal_equations import (  # noqa: F401 - re-exported
@@ -58,7 +60,6 @@ from .normal_equations import (  # noqa: F401 - re-exported
     pattern_cache_info,
 )
 from .outcomes import with_outcome
-from .quasi_newton import QuasiNewtonMemory
 from .rigid_motions import RigidMotions, RigidProjection
 from .steps import DEFAULT_STEP_RULES, StepRules, factor_precision, nielsen_damping
 from .stopping import DEFAULT_STOP_RULES, StopReason, StopRules
@@ -121,7 +122,7 @@ class Refiner:
         self._kept: tuple[Any, sp.csr_array, RigidProjection] | None = None
         self._kept_damping = step_rules.initial_damping
         self._double = False  # a single-precision factor was too inexact: double from now on
-        self._paused: _Iteration | None = None  # a run stopped at its time limit (resume)
+        self._paused: IterationState | None = None  # a run stopped at its time limit (resume)
         self._iteration_seconds: dict[str, float | None] = {"refresh": None, "step": 0.0}
         """Seconds of the last iteration with a factorization and without (the time limit
         stops before an iteration that would end past it); None: no factorization timed or
@@ -177,8 +178,11 @@ class Refiner:
         given = {"max_iterations": max_iterations, "tolerance": tolerance}
         rules = replace(self.stop_rules, **{k: v for k, v in given.items() if v is not None})
         with _BLAS.limit(limits=1, user_api="blas"):
-            state = _Iteration.start(self, np.array(start, dtype=np.float64), keep_factor,
-                                     rules, start_energy)
+            X = np.array(start, dtype=np.float64)
+            energy = self.form_energy.energy(X) if start_energy is None else start_energy
+            state = IterationState.start(X, energy, self.residuals(X), self._kept,
+                                         self._kept_damping, keep_factor, rules,
+                                         self.step_rules)
             state.interactive = keep_factor if interactive is None else interactive
             return self._advance(state, Budget.of(time_limit), progress, clock)
 
@@ -220,7 +224,7 @@ class Refiner:
             state.slices += 1
             return self._advance(state, Budget.of(time_limit), progress, clock)
 
-    def _advance(self, state: _Iteration, budget: Budget, progress: Any,
+    def _advance(self, state: IterationState, budget: Budget, progress: Any,
                  clock: float) -> Refinement:
         """Iterate ``state`` until it stops (:meth:`_iterate`); the :class:`Refinement`."""
         self._paused = None
@@ -235,7 +239,7 @@ class Refiner:
             "angle_weight": self.targets.angle_weight,
             "seconds": time.perf_counter() - clock}))
 
-    def _iterate(self, s: _Iteration, budget: Budget, notify: Any, clock: float) -> None:
+    def _iterate(self, s: IterationState, budget: Budget, notify: Any, clock: float) -> None:
         """The iteration of :meth:`run` and :meth:`resume`, advancing ``s`` in place until
         a rule of :mod:`solver.stopping` stops it or ``budget`` runs out (it stops before an
         iteration or a factorization that the last one of its kind says would end past
@@ -385,7 +389,7 @@ class Refiner:
         if self._iteration_seconds["refresh"] is None and seconds > 0:
             self._iteration_seconds["refresh"] = float(seconds)
 
-    def _fits(self, s: _Iteration, refresh: bool, budget: Budget) -> bool:
+    def _fits(self, s: IterationState, refresh: bool, budget: Budget) -> bool:
         """Whether an iteration (a factorization first where ``refresh``) ends before
         ``budget`` runs out, judged by the last one of its kind (or by
         :meth:`expect_refresh`'s estimate; with neither it starts while time is left)."""
@@ -395,7 +399,7 @@ class Refiner:
         kind = "refresh" if refresh or s.factor is None else "step"
         return left > (self._iteration_seconds[kind] or 0.0)
 
-    def _refresh_stopped(self, s: _Iteration, budget: Budget) -> bool:
+    def _refresh_stopped(self, s: IterationState, budget: Budget) -> bool:
         """Whether the factorization that the iteration of ``s`` needs now would end past
         ``budget``: then the run stops here (``time_limit``), and a resumed run starts
         this iteration again with that factorization."""
@@ -407,57 +411,28 @@ class Refiner:
         return True
 
     def _damped_factor(self, H: sp.csr_array, damping: float, single: bool = False) -> Any:
-        """Factorization of ``H + damping D`` (Levenberg-Marquardt with Marquardt's scaling:
-        ``D`` is the diagonal of H floored at 1e-9 of its median, which is also added, so
-        that H + D is definite). Raises :class:`SingularSystemError` where the backend
-        finds it singular.
-
-        At the vertices of needle edges (:attr:`FormEnergy.needle_vertices`) ``D`` is
-        capped at the median diagonal. Their diagonal is that of the needle's relative
-        length, ~1e8 times the others' on an edge 1e-4 of the mean long, and it is stiff
-        along the needle only: scaled by it, even the first step's damping of 1e-9 held the
-        vertices' other directions back as a damping of 0.1 would, and Gauss-Newton
-        crawled (rocker-arm with 30 such edges, noisy angles: 10 iterations and 4
-        factorizations, stopped 1% above the optimum's energy and 5.1e-5 of the diagonal
-        from the original; 2 and 2 with the cap, at the optimum, 2.3e-5; the held-out
-        mesh's size, stanford-bunny: 11 and 8, 1.4e-4; 2 and 2, 3.3e-5). The floor was
-        1e-9 of the *mean* diagonal, which those edges dominate: it damped every other
-        vertex by ~1e-4 of its diagonal. Flattened faces keep the full scaling: their
-        vertices' large diagonal is their angles', and a step that turns them over is what
-        the damping must hold back (capping it there too stalled rocker-arm's capped faces).
+        """Factorization of ``H`` damped by ``damping`` (:func:`solver.damping.damped`).
+        Raises :class:`SingularSystemError` where the backend finds it singular.
 
         PARDISO orders this matrix itself (no ``groups`` hint): that keeps its two-level
-        factor, which a given ordering turns into the classic one. On the Gauss-Newton
-        matrix its factorizations are 1.1-1.3x and its solves 1.7x faster than with the
-        hint, its analysis (once per pattern, then cached) 1.2x slower (rocker-arm and
-        beetle, two MKL threads: ``python -m bench.gauss_newton_factor``). It factorizes
-        in single precision where ``single`` asks for it and the diagonal allows
-        (:func:`factor_precision`), and in double from the first time single precision
-        finds the matrix not positive definite or one of its solves too inexact
-        (:meth:`_iterate`). Interactive runs (``keep_factor``) factorize in double: their
-        factors serve many solves, each of which single precision makes three times as
-        costly (two back-substitutions and a product), and a session's pattern is analysed
-        ahead of time in one precision (:meth:`prepare`)."""
+        factor (docs/refinement.md). It factorizes in single precision where ``single``
+        asks for it and the diagonal allows (:func:`factor_precision`), and in double from
+        the first time single precision finds the matrix not positive definite or one of
+        its solves too inexact (:meth:`_iterate`). Interactive runs (``keep_factor``)
+        factorize in double: their factors serve many solves, each of which single
+        precision makes three times as costly, and a session's pattern is analysed ahead
+        of time in one precision (:meth:`prepare`)."""
         positions = self.system.diagonal_positions
-        diag = H.data[positions]
-        median = float(np.median(diag))
-        floor = 1e-9 * median
-        scale = np.maximum(diag, floor)
-        needle = self._needle_coordinates
-        scale[needle] = np.minimum(scale[needle], median)
-        values = H.data.copy()
-        values[positions] += damping * scale + floor
-        damped = sp.csr_array((values, H.indices, H.indptr), shape=H.shape)
-        damped.has_canonical_format = True
+        matrix = damped(H, damping, positions, self._needle_coordinates)
         if (single and not self._double and resolve_backend(self.backend) == "pardiso"
-                and factor_precision(values[positions],
+                and factor_precision(matrix.data[positions],
                                      self.step_rules.single_precision_spread) == "single"):
             try:
-                return SinglePrecisionFactor(damped, self.backend,
+                return SinglePrecisionFactor(matrix, self.backend,
                                              self.step_rules.single_precision_error)
             except SingularSystemError:
                 self._double = True
-        return factorize(damped, self.backend, triangle="upper")
+        return factorize(matrix, self.backend, triangle="upper")
 
     def _line_search(self, X: np.ndarray, step: np.ndarray, energy: float, slope: float,
                      ) -> tuple[float, np.ndarray, float] | None:
@@ -475,114 +450,6 @@ class Refiner:
             if np.isfinite(new_energy) and new_energy < energy + armijo * alpha * slope:
                 return alpha, trial, new_energy
         return None
-
-
-@dataclass
-class _Iteration:
-    """Everything :meth:`Refiner._iterate` carries from step to step, so that a run stopped
-    at its time limit resumes exactly where it stopped (:meth:`Refiner.resume`)."""
-
-    X: np.ndarray
-    before: dict[str, Any]
-    energy0: float
-    energy: float
-    keep_factor: bool
-    interactive: bool  # loose convergence on kept factors (Refiner.run's ``interactive``)
-    kept: bool
-    max_frozen: int
-    min_gain: float
-    memory: QuasiNewtonMemory
-    rules: StopRules
-    factor: Any = None
-    model: sp.csr_array | None = None
-    projection: RigidProjection | None = None  # off the rigid motions where factor was built
-    damping: float = DEFAULT_STEP_RULES.initial_damping
-    growth: float = 2.0
-    fresh: bool = False  # whether ``factor`` was computed at the current X
-    factor_gain: float = 0.0  # gain ratio of the last step taken with ``factor``
-    frozen_steps: int = 0
-    iterations: int = 0
-    rejected: int = 0
-    factorizations: int = 0
-    precisions: set[str] = field(default_factory=set)  # of the factorizations
-    solves: int = 0
-    slices: int = 1
-    stop: StopReason | None = None
-    converged: bool = False
-    trace: list[float] = field(default_factory=list)
-    steps: list[float] = field(default_factory=list)
-
-    @classmethod
-    def start(cls, refiner: Refiner, X: np.ndarray, keep_factor: bool, rules: StopRules,
-              energy: float | None = None) -> _Iteration:
-        """The state before the first step from ``X`` (n, dim). With ``keep_factor`` the
-        previous run's factor (and damping) is the first model: consecutive drags of a
-        session are alike; a run that starts from a lightly damped kept factor keeps its
-        factors longer (:attr:`StepRules.kept_steps`)."""
-        energy = refiner.form_energy.energy(X) if energy is None else energy
-        factor, model, projection = (refiner._kept if keep_factor and refiner._kept
-                                     else (None, None, None))
-        steps = refiner.step_rules
-        damping = refiner._kept_damping if factor is not None else steps.initial_damping
-        kept = factor is not None and damping <= steps.kept_damping
-        max_frozen, min_gain = ((steps.kept_steps, steps.kept_gain) if kept
-                                else (steps.max_frozen_steps, steps.frozen_gain))
-        return cls(X=X, before=refiner.residuals(X), energy0=energy, energy=energy,
-                   keep_factor=keep_factor, interactive=keep_factor, kept=kept,
-                   max_frozen=max_frozen,
-                   min_gain=min_gain,
-                   memory=QuasiNewtonMemory(steps.quasi_newton_memory if kept else 0),
-                   rules=rules, factor=factor,
-                   model=model, projection=projection, damping=damping,
-                   factor_gain=1.0 if factor is not None else 0.0, trace=[energy])
-
-    def direction(self, g: np.ndarray, system: GaussNewtonSystem,
-                  ) -> tuple[np.ndarray, float, float]:
-        """The step from here for the gradient ``g`` (n_free * dim,), its slope ``g.step``
-        and the decrease of E its model predicts: the Gauss-Newton step on a fresh factor,
-        else the L-BFGS step with the factor as initial Hessian (whose model along the
-        step predicts ``-slope / 2``). Raises :class:`ImpreciseSolveError` (from
-        :meth:`solve`)."""
-        if self.fresh:
-            step = -self.solve(g)
-            slope = float(np.einsum("i,i->", g, step))  # < 0: H + D is SPD
-            # Gain ratio of the full step: actual decrease over the model's.
-            return step, slope, -slope - 0.5 * system.quadratic_form(self.model, step)
-        step = -self.memory.inverse_hessian(self.solve, g)
-        slope = float(np.einsum("i,i->", g, step))
-        return step, slope, -0.5 * slope
-
-    def solve(self, v: np.ndarray) -> np.ndarray:
-        """``factor^-1 v`` (n_free * dim,) without its rigid motions
-        (:mod:`solver.rigid_motions`: a factor used away from where it was built would
-        otherwise turn the damping's inverse into a huge linearized rotation).
-
-        A single-precision factor (:class:`~solver.mixed_precision.SinglePrecisionFactor`)
-        refines its answer by one more back-substitution, counted in ``solves``, and
-        raises :class:`~solver.mixed_precision.ImpreciseSolveError` where that corrects
-        it by more than :attr:`StepRules.single_precision_error`."""
-        if isinstance(self.factor, SinglePrecisionFactor):
-            self.solves += 1  # its refinement step's back-substitution
-            return self.factor.solve(v, self.projection)
-        x = self.factor.solve(v)
-        return x if self.projection is None else self.projection(x)
-
-    def end(self, reason: StopReason) -> None:
-        """Stop for ``reason`` (converged or not, as the reason says)."""
-        self.stop, self.converged = reason, reason.converged
-
-    def counters(self) -> dict[str, Any]:
-        """The report's fields of the refinement so far."""
-        stop = None if self.stop is None else self.stop.value
-        return {"converged": self.converged, "stop_reason": stop,
-                "iterations": self.iterations, "rejected_steps": self.rejected,
-                "factorizations": self.factorizations,
-                "precision": ("mixed" if len(self.precisions) > 1
-                              else next(iter(self.precisions), "double")),
-                "solves": self.solves,
-                "slices": self.slices, "energy_before": self.energy0,
-                "energy_after": self.energy, "energy_trace": list(self.trace),
-                "step_trace": list(self.steps), "before": self.before}
 
 
 _BLAS = ThreadpoolController()

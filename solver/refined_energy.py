@@ -18,8 +18,8 @@ exact Hessian (assembled as a sparse matrix in 3x3 vertex blocks) and ``lambda^T
 d targets`` for a batch of vectors ``lambda``.
 
 The dihedral angle's Hessian is the directional derivative of the Bridson et al. gradient
-of :func:`solver.form_energy.hinge_angles`, written out in forward mode (12 directions per hinge,
-one vectorized pass each). Everything here is a pure function of the positions and the
+of :func:`solver.embedding_geometry.hinge_angles`, written out in forward mode (12 directions
+per hinge, one vectorized pass each). Everything here is a pure function of the positions and the
 targets: a test checks that :meth:`RefinedEnergy.energy` equals
 :meth:`solver.refine.Refiner.energy`, so a change of the refinement's energy fails it.
 """
@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .form_energy import DEGENERATE, FormTargets, Handles, cap_faces, hinge_angles, hinges
+from .embedding_geometry import hinge_angles, hinges
+from .form_energy import DEGENERATE, FormTargets, Handles, cap_faces
 from .metrics import wrap_angle
 
 
@@ -54,7 +55,7 @@ class MixedCotangents:
 def hinge_gradient_derivative(X: np.ndarray, hinge: np.ndarray, V: np.ndarray,
                               floor: float = 0.0) -> np.ndarray:
     """Directional derivative (k, 4, 3) of the dihedral gradients of
-    :func:`solver.form_energy.hinge_angles` (k hinges [i, j, a, b] of ``X`` (n, 3)) along the
+    :func:`solver.embedding_geometry.hinge_angles` (k hinges [i, j, a, b] of ``X`` (n, 3)) along the
     displacements ``V`` (k, 4, 3) of the hinges' vertices: ``Hess(theta) V`` per hinge.
     (Faces below ``floor`` have a clamped ``|N|^2`` whose derivative is taken as 0.)"""
     xi, xj, xa, xb = (X[hinge[:, c]] for c in range(4))

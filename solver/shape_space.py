@@ -36,14 +36,14 @@ from numpy.typing import ArrayLike
 
 from .budget import Budget
 from .errors import ShapeMismatchError, TriangleInequalityError
-from .form_energy import form_residuals
+from .form_energy import FormTargets, form_residuals
 from .forms import Forms, fundamental_forms
 from .frames import face_edge_lengths, triangle_inequality_violations
 from .metrics import wrap_angle
 from .options import BlendOptions, ReconstructOptions
 from .placement import align_components
 from .reconstruct import reconstruct
-from .refine import FormTargets, Refiner
+from .refine import Refiner
 from .reports import Progress, Stages
 from .topology import MeshTopology, build_topology
 from .validation import as_points

@@ -14,8 +14,8 @@ import trimesh
 from scipy.sparse.linalg import spsolve
 
 from solver import Deformer, fundamental_forms, linalg, reconstruct
+from solver.immersion import ImmersionProblem
 from solver.linalg import SingularSystemError, analysis_cache_info, factorize
-from solver.reconstruct import ImmersionProblem
 from solver.topology import build_topology
 
 pytestmark = pytest.mark.skipif("pardiso" not in linalg.available_backends(),

@@ -12,7 +12,7 @@ import scipy.sparse as sp
 import trimesh
 
 from solver import fundamental_forms, linalg
-from solver.reconstruct import ImmersionProblem
+from solver.immersion import ImmersionProblem
 from solver.system import unknown_groups
 from solver.topology import build_topology
 

@@ -10,7 +10,7 @@ import pytest
 from solver import blend, fundamental_forms, interpolate, mean, rigid_alignment, transfer
 from solver.errors import ShapeMismatchError, TriangleInequalityError
 from solver.metrics import wrap_angle
-from solver.shape_space import _stacked, shape_set
+from solver.shape_space import _stacked, path_extrapolation, shape_set
 from tests.helpers import DATA
 from tests.helpers.botsch_sorkine import load_case
 from tests.helpers.meshes import icosphere, load, random_rotation, rigid_alignment_error
@@ -211,6 +211,51 @@ def test_a_sequence_keeps_its_factor_and_matches_independent_rows(knight):
             assert ours <= 1.05 * report["form_error"][kind]["mean"] + 1e-9
     assert np.abs(seq.vertices[-1] - P).max() < 1e-8
     assert np.abs(seq.vertices[0] - V).max() < 1e-8
+
+
+@pytest.mark.parametrize("ts", [(0.0, 0.1, 0.2, 0.3), (0.2, 0.35, 0.45, 0.6),
+                                (1.0, 0.9, 0.75, 0.6)])
+def test_path_extrapolation_is_exact_on_a_quadratic_path_of_rows(ts):
+    """The coefficients extrapolate any quadratic of the rows' arc length exactly
+    (unevenly spaced rows included), along a straight and a bent path of 3 shapes."""
+    rng = np.random.default_rng(7)
+    a, b, c = rng.normal(size=(3, 5))
+    for path in (lambda t: np.array([1 - t, t, 0.0]),
+                 lambda t: np.array([1 - t - 0.3 * t * t, t, 0.3 * t * t])):
+        rows = [path(t) for t in ts]
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(rows, axis=0), axis=1))])
+        values = a + b * s[:, None] + c * s[:, None] ** 2
+        coefficients = path_extrapolation(rows)
+        assert len(coefficients) == 3
+        assert np.abs(coefficients @ values[:3] - values[3]).max() < 1e-9
+
+
+def test_path_extrapolation_needs_a_smooth_path_of_rows():
+    rows = [np.array([1 - t, t]) for t in (0.0, 0.1, 0.2, 0.3)]
+    assert len(path_extrapolation(rows[:3])) == 2  # two previous rows: the secant
+    assert path_extrapolation(rows[:2]) is None
+    back = [np.array([1 - t, t]) for t in (0.0, 0.1, 0.2, 0.1)]
+    assert path_extrapolation(back) is None  # a turn back
+    jump = [np.array([1 - t, t]) for t in (0.0, 0.1, 0.2, 0.8)]
+    assert path_extrapolation(jump) is None  # a step 6x the last
+    repeat = [np.array([1 - t, t]) for t in (0.0, 0.1, 0.2, 0.2)]
+    assert path_extrapolation(repeat) is None
+    uneven = [np.array([1 - t, t]) for t in (0.0, 0.5, 0.6, 0.7)]
+    assert len(path_extrapolation(uneven)) == 2  # the last two steps alone are alike
+
+
+def test_sequence_rows_start_from_the_extrapolated_answers(knight):
+    """On a smooth path, rows from the fourth on start from the quadratic extrapolation of
+    the previous answers, and most then converge on one step (no factorization)."""
+    V, F = knight
+    P = bent_pose(V, F, 0.8)
+    t = np.linspace(0.0, 0.9, 20)
+    seq = blend([V, P], np.stack([1 - t, t], axis=1), F)
+    starts = [r["refinement"].get("start") for r in seq.reports]
+    assert starts[2] == "secant of the previous rows"
+    assert set(starts[3:]) == {"quadratic extrapolation of the previous rows"}
+    iterations = [r["refinement"]["iterations"] for r in seq.reports[3:]]
+    assert np.mean(iterations) < 2.0, iterations
 
 
 def test_interpolate_is_the_two_shape_blend(knight):

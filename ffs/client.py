@@ -379,6 +379,24 @@ class Client:
         return self.run(self.blend_call(shapes, faces, weights, t=t, refine=refine,
                                         **options), progress)
 
+    def blend_files(self, paths: Sequence[str | os.PathLike[str]], weights: Any = None, *,
+                    t: float | Sequence[float] | None = None, refine: bool | None = None,
+                    **options: Any) -> ShapeBlend:
+        """Blend K mesh files of one connectivity (OBJ, PLY, OFF, STL, GLB), uploaded as
+        they are (``POST /v1/blend``, one ``shapes`` part per file, in order): rows of
+        ``weights`` (T, K), or ``t`` for two files. Its :attr:`ShapeBlend.warnings` name
+        the rows past the documented thresholds."""
+        params: dict[str, Any] = {"options": _options(refine, options)}
+        if weights is not None:
+            params["weights"] = np.asarray(weights, dtype=np.float64).reshape(
+                -1, len(paths)).tolist()
+        if t is not None:
+            params["t"] = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
+        files = [("shapes", (Path(p).name, Path(p).read_bytes())) for p in paths]
+        response = self.request("POST", "/v1/blend", headers={"Accept": "application/json"},
+                                files=files, data={k: json.dumps(v) for k, v in params.items()})
+        return ShapeBlend.from_dict(response.json())
+
     def blend_gltf(self, shapes: Any, faces: Any, weights: Any = None, *,
                    t: float | Sequence[float] | None = None,
                    times: Sequence[float] | None = None, kind: str = "glb",

@@ -46,6 +46,7 @@ from .refine import FormTargets, Refiner
 from .reports import Progress, Stages
 from .topology import MeshTopology, build_topology
 from .validation import as_points
+from .warnings import AnswerWarning, as_report, residual_warnings, time_limit_warning
 
 WEIGHT_SUM_TOLERANCE = 1e-9
 """Largest ``|sum_k w_k - 1|`` of a row of weights (affine combinations only)."""
@@ -211,7 +212,7 @@ class Blend:
             face: :meth:`ShapeSet.arithmetic_lengths`), ``refinement``
             (:class:`solver.refine.Refinement`'s report, its ``start``), ``form_error``
             (:func:`solver.form_energy.form_residuals` of the answer against the row's
-            blended forms) and ``seconds``.
+            blended forms), ``warnings`` (:func:`row_warnings`) and ``seconds``.
         timings: stage -> seconds (``validate``, ``rows``).
     """
 
@@ -220,6 +221,24 @@ class Blend:
     weights: np.ndarray
     reports: list[dict[str, Any]] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def warnings(self) -> list[dict[str, Any]]:
+        """Every row's ``warnings``, each with its ``row`` (index into the rows)."""
+        return [{**found, "row": report["row"]} for report in self.reports
+                for found in report.get("warnings", [])]
+
+
+def row_warnings(report: dict[str, Any]) -> list[AnswerWarning | None]:
+    """The warnings of one row's report (:mod:`solver.warnings`, the thresholds every
+    operation uses): the largest length and dihedral-angle errors its answer leaves against
+    the row's blended forms (``form_error``; blended forms of different poses do not
+    integrate, so a row past them is a blend the shapes cannot make nearly isometrically,
+    e.g. an extrapolation too far), and a time limit that ran out before any progress."""
+    residual = report["form_error"]
+    return [*residual_warnings(residual["length_error"]["max"],
+                               residual["angle_error"]["max"]),
+            time_limit_warning(report["refinement"])]
 
 
 class _Rows:
@@ -427,6 +446,7 @@ def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
         budget = None if left is None else max(left, 0.0) / (len(W) - k)
         clock = time.perf_counter()
         out[k], report = rows.solve(k, row, lengths[0], angles[0], budget)
+        report["warnings"] = as_report(row_warnings(report))
         report["seconds"] = time.perf_counter() - clock
         reports.append(report)
         stages("rows", (k + 1) / len(W))

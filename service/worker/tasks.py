@@ -386,7 +386,7 @@ def blend_task(request: TaskRequest, progress: Progress) -> TaskResult:
                           options=request.solve_options(solver.BlendOptions),
                           progress=progress)
     document = {"weights": result.weights, "vertices": result.vertices, "faces": result.faces,
-                "reports": result.reports}
+                "reports": result.reports, "warnings": result.warnings}
     out = request.output
     formats = ("glb", "gltf") if out.keep else (out.format,) if out.format != "json" else ()
     encoded = {}

@@ -40,6 +40,15 @@ def test_blend_json_is_the_library_answer(client, poses):
     assert [r["path"] for r in doc["reports"]] == ["reconstruct", "sequence", "sequence",
                                                    "reconstruct"]
     assert all(r["form_error"]["length_error"]["mean"] < 0.02 for r in doc["reports"])
+    assert doc["warnings"] == expected.warnings == []
+    tall = client.post("/v1/blend", json=body([V, V * [1, 1, 3.0]], F, t=[0.5])).json()
+    truth = solver.blend([V, V * [1, 1, 3.0]], [[0.5, 0.5]], F).warnings
+    assert [(w["code"], w["message"], w["row"]) for w in tall["warnings"]] == [
+        (w["code"], w["message"], w["row"]) for w in truth]
+    assert [w["value"] for w in tall["warnings"]] == pytest.approx([w["value"] for w in truth])
+    assert {w["code"] for w in tall["warnings"]} >= {"angle-error"}
+    assert tall["reports"][0]["warnings"] == [{k: v for k, v in w.items() if k != "row"}
+                                              for w in tall["warnings"]]
 
 
 def test_blend_t_is_interpolate(client, poses):

@@ -258,6 +258,48 @@ def test_sequence_rows_start_from_the_extrapolated_answers(knight):
     assert np.mean(iterations) < 2.0, iterations
 
 
+def test_rows_carry_warnings_past_the_documented_thresholds(knight):
+    """A blend of two poses leaves small errors (no warning); one of a mesh and its copy
+    stretched 3x along z leaves a dihedral error past WarningRules.max_angle_error, which
+    the row's warning reports as measured independently from the answer and the blended
+    forms (geometric mean of the lengths, mean of the angles)."""
+    from solver.form_energy import form_residuals
+    from solver.topology import build_topology
+    from solver.warnings import DEFAULT_RULES
+
+    V, F = knight
+    calm = blend([V, bent_pose(V, F, 0.8)], [[0.5, 0.5], [-0.2, 1.2]], F)
+    assert calm.warnings == [] and all(r["warnings"] == [] for r in calm.reports)
+    S = V * [1.0, 1.0, 3.0]
+    out = blend([V, S], [[0.5, 0.5], [1.0, 0.0]], F)
+    a, b = fundamental_forms(V, F), fundamental_forms(S, F)
+    lengths = np.sqrt(a.lengths * b.lengths)
+    angles = wrap_angle(a.angles + 0.5 * wrap_angle(b.angles - a.angles))
+    truth = form_residuals(out.vertices[0], build_topology(F, len(V)), lengths, angles)
+    found = {w["code"]: w for w in out.reports[0]["warnings"]}
+    assert truth["angle_error"]["max"] > DEFAULT_RULES.max_angle_error
+    assert found["angle-error"]["value"] == pytest.approx(truth["angle_error"]["max"],
+                                                          rel=1e-9)
+    assert found["angle-error"]["limit"] == DEFAULT_RULES.max_angle_error
+    assert ("length-error" in found) == (truth["length_error"]["max"]
+                                         > DEFAULT_RULES.max_length_error)
+    assert out.reports[1]["warnings"] == []  # the given shape itself
+    assert [w["row"] for w in out.warnings] == [0] * len(found)
+
+
+def test_a_row_whose_time_ran_out_before_any_progress_warns(knight):
+    V, F = knight
+    P = bent_pose(V, F, 0.8)
+    t = np.linspace(0.05, 0.95, 30)
+    out = blend([V, P], np.stack([1 - t, t], axis=1), F, max_seconds=0.02)
+    stuck = [r["row"] for r in out.reports
+             if r["refinement"].get("stop_reason") == "time_limit"
+             and r["refinement"].get("outcome") == "not-refined"]
+    assert stuck, [r["refinement"].get("stop_reason") for r in out.reports]
+    warned = [w["row"] for w in out.warnings if w["code"] == "time-limit-no-progress"]
+    assert warned == stuck
+
+
 def test_interpolate_is_the_two_shape_blend(knight):
     V, F = knight
     P = bent_pose(V, F, 0.3)

@@ -338,7 +338,7 @@ class _Rows:
             return start, {"refined": False, "reason": "exact: the start has the forms",
                            "start": label}
         fit = refiner.run(start, keep_factor=True, interactive=False, time_limit=budget,
-                         start_energy=energy)
+                          start_energy=energy)
         self.refiner = refiner
         return fit.vertices, dict(fit.report, start=label)
 

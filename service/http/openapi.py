@@ -175,7 +175,8 @@ def multipart_schema(spec: OperationSpec) -> dict[str, Any]:
     properties: dict[str, Any] = {name: file_schema(spec) for name in spec.files}
     properties.update(form_properties(spec))
     required = [*spec.files, *(n for n, f in params.model_fields.items() if f.is_required())]
-    example = {name: f"<{name}.off>" for name in spec.files}
+    example: dict[str, Any] = {name: ([f"<{name}-0.off>", f"<{name}-1.off>"] if spec.file_list
+                                      else f"<{name}.off>") for name in spec.files}
     example.update(_example(params) or {})  # the values themselves
     return {"type": "object", "properties": properties, "required": required,
             "additionalProperties": False, "examples": [example]}

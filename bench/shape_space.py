@@ -116,10 +116,10 @@ def measure(name: str, rows: int, independent: int) -> dict:
     }
 
 
-def table(results: list[dict], command: str) -> str:
+def table(results: list[dict], command: str, started: str) -> str:
     lines = [
         SECTION, "",
-        f"`{command}` (load averages before the run: {load_averages()}; 2 cores shared with "
+        f"`{command}` (load averages before the run: {started}; 2 cores shared with "
         "other developers' runs, so the rates are lower bounds of an idle machine's). A "
         "row blend from a mesh to its pose bent by 0.6 rad (tests/helpers/poses.py), t = 0 "
         "... 1. *Sequence*: `solver.blend` (one analysis, each row from its neighbour, "
@@ -161,12 +161,12 @@ def main() -> None:
     command = "python -m bench.shape_space " + " ".join(
         ["--meshes", *args.meshes, "--rows", str(args.rows),
          "--independent", str(args.independent)])
-    results = []
+    started, results = load_averages(), []
     for name in args.meshes:
         result = measure(name, args.rows, args.independent)
         print(result, flush=True)
         results.append(result)
-    text = table(results, command)
+    text = table(results, command, started)
     print(text)
     if args.write:
         write_section(REPO / "bench" / "README.md", SECTION, text)

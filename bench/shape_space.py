@@ -10,6 +10,11 @@ blend from the rest shape to the pose (t = 0 .. 1) is solved twice in the same r
   surface from the better of the layout fit and the vertex blend), on every row, or on
   ``--independent`` rows spread over the sequence (the rate is then per row measured).
 
+Since the machine is shared, each mesh's row also records the 1-minute load average before
+and after its runs and the seconds of a fixed *reference* computation timed in the same run
+just before it (the median of three Eq. 5 reconstructions of bunny.off from its own forms,
+no refinement): rows/s x reference seconds is a rate that varies less with the load.
+
 Quality per row: the mean relative length error and the mean dihedral-angle error of each
 answer against its row's blended forms (what the row asks for), for the sequence, the
 independent answer and the vertex blend ``(1 - t) A + t B``; the table gives the worst
@@ -24,6 +29,7 @@ ratio sequence / independent over the rows compared, and the mean errors.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -45,8 +51,24 @@ def errors(X: np.ndarray, topology, lengths: np.ndarray, angles: np.ndarray) -> 
     return r["length_error"]["mean"], r["angle_error"]["mean"]
 
 
+def reference_seconds() -> float:
+    """Median seconds of three Eq. 5 reconstructions of bunny.off from its own forms."""
+    from solver import fundamental_forms, reconstruct
+
+    V, F = load_bench_mesh("bunny.off")
+    forms = fundamental_forms(V, F)
+    times = []
+    for _ in range(3):
+        clock = time.perf_counter()
+        reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles, refine=False)
+        times.append(time.perf_counter() - clock)
+    return float(np.median(times))
+
+
 def measure(name: str, rows: int, independent: int) -> dict:
     V, F = load_bench_mesh(name)
+    load_before = os.getloadavg()[0]
+    reference = reference_seconds()
     clock = time.perf_counter()
     P = bent_pose(V, F, 0.6)
     pose_seconds = time.perf_counter() - clock
@@ -77,6 +99,7 @@ def measure(name: str, rows: int, independent: int) -> dict:
     paths = [r["path"] for r in sequence.reports]
     return {
         "mesh": name, "faces": len(F), "rows": rows, "independent_rows": len(picked),
+        "load": [load_before, os.getloadavg()[0]], "reference_seconds": reference,
         "pose_seconds": pose_seconds,
         "sequence_rows_per_second": rows / sequence_seconds,
         "independent_rows_per_second": len(picked) / alone_seconds,
@@ -93,10 +116,10 @@ def measure(name: str, rows: int, independent: int) -> dict:
     }
 
 
-def table(results: list[dict], command: str) -> str:
+def table(results: list[dict], command: str, started: str) -> str:
     lines = [
         SECTION, "",
-        f"`{command}` (load averages before the run: {load_averages()}; 2 cores shared with "
+        f"`{command}` (load averages before the run: {started}; 2 cores shared with "
         "other developers' runs, so the rates are lower bounds of an idle machine's). A "
         "row blend from a mesh to its pose bent by 0.6 rad (tests/helpers/poses.py), t = 0 "
         "... 1. *Sequence*: `solver.blend` (one analysis, each row from its neighbour, "
@@ -105,15 +128,18 @@ def table(results: list[dict], command: str) -> str:
         "blended forms, averaged over the rows compared (sequence / independent / vertex "
         "blend); *worst ratio*: the largest of sequence / independent over those rows "
         "(length or angle).", "",
-        "| mesh | faces | rows | sequence rows/s | independent rows/s (rows timed) | "
-        "speed-up | factorizations in the sequence | iterations per row | worst ratio | "
+        "| mesh | faces | rows | load before / after | reference s | sequence rows/s | "
+        "rows/s x reference s | independent rows/s (rows timed) | speed-up | "
+        "factorizations in the sequence | iterations per row | worst ratio | "
         "length error seq / ind / vertex | angle error seq / ind / vertex |",
-        "|---|---|---|---|---|---|---|---|---|---|---|"]
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         le, ae = r["length_error"], r["angle_error"]
         lines.append(
             f"| {r['mesh']} | {r['faces']} | {r['rows']} | "
+            f"{r['load'][0]:.1f} / {r['load'][1]:.1f} | {r['reference_seconds']:.3f} | "
             f"{r['sequence_rows_per_second']:.1f} | "
+            f"{r['sequence_rows_per_second'] * r['reference_seconds']:.2f} | "
             f"{r['independent_rows_per_second']:.2f} ({r['independent_rows']}) | "
             f"{r['sequence_rows_per_second'] / r['independent_rows_per_second']:.1f}x | "
             f"{r['factorizations']} | {r['iterations']:.1f} | {r['worst_ratio']:.3f} | "
@@ -135,12 +161,12 @@ def main() -> None:
     command = "python -m bench.shape_space " + " ".join(
         ["--meshes", *args.meshes, "--rows", str(args.rows),
          "--independent", str(args.independent)])
-    results = []
+    started, results = load_averages(), []
     for name in args.meshes:
         result = measure(name, args.rows, args.independent)
         print(result, flush=True)
         results.append(result)
-    text = table(results, command)
+    text = table(results, command, started)
     print(text)
     if args.write:
         write_section(REPO / "bench" / "README.md", SECTION, text)

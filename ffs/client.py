@@ -57,7 +57,7 @@ from ffs.errors import (
     problem_error,
 )
 from ffs.operations import OPERATIONS, Operation
-from ffs.results import Forms, Mesh
+from ffs.results import Forms, Mesh, ShapeBlend
 from ffs.sessions import Session
 from ffs_wire.arrays import BINARY_MEDIA_TYPE, binary_body, json_default
 
@@ -348,6 +348,24 @@ class Client:
             params["t"] = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
         return Call("blend", {"shapes": np.asarray(shapes, dtype=np.float64),
                               "faces": np.asarray(faces)}, params)
+
+    def blend_files(self, paths: Sequence[str | os.PathLike[str]], weights: Any = None, *,
+                    t: float | Sequence[float] | None = None, refine: bool | None = None,
+                    **options: Any) -> ShapeBlend:
+        """Blend K mesh files of one connectivity (OBJ, PLY, OFF, STL, GLB), uploaded as
+        they are (``POST /v1/blend``, one ``shapes`` part per file, in order): rows of
+        ``weights`` (T, K), or ``t`` for two files. Its :attr:`ShapeBlend.warnings` name
+        the rows past the documented thresholds."""
+        params: dict[str, Any] = {"options": _options(refine, options)}
+        if weights is not None:
+            params["weights"] = np.asarray(weights, dtype=np.float64).reshape(
+                -1, len(paths)).tolist()
+        if t is not None:
+            params["t"] = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
+        files = [("shapes", (Path(p).name, Path(p).read_bytes())) for p in paths]
+        response = self.request("POST", "/v1/blend", headers={"Accept": "application/json"},
+                                files=files, data={k: json.dumps(v) for k, v in params.items()})
+        return ShapeBlend.from_dict(response.json())
 
     def blend_gltf(self, shapes: Any, faces: Any, weights: Any = None, *,
                    t: float | Sequence[float] | None = None,

@@ -205,6 +205,12 @@ class ShapeBlend:
         vertices = np.asarray(doc["vertices"], dtype=np.float64).reshape(len(weights), -1, 3)
         return cls(weights, vertices, _ints(doc["faces"]), list(doc.get("reports") or []))
 
+    @property
+    def warnings(self) -> list[dict[str, Any]]:
+        """Every row's ``warnings`` (as :attr:`Mesh.warnings`), each with its ``row``."""
+        return [{**found, "row": report.get("row", k)}
+                for k, report in enumerate(self.reports)
+                for found in report.get("warnings") or []]
 
 @dataclass
 class VjpResult:

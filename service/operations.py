@@ -58,6 +58,8 @@ class OperationSpec:
             ``forms``: faces, edges, lengths, angles, ``pair``: two embeddings of one
             connectivity); :attr:`arrays` are those arrays.
         files: upload field names of the multipart form.
+        file_list: the one name in ``files`` is given once per mesh (1 to
+            :data:`service.api.decoding.MAX_SHAPES` parts, in order: ``blend``'s ``shapes``).
         stages: progress stages, in order.
         mesh_result: the result is one mesh (glTF can be negotiated).
         colors: vertex colour fields it can add (``?color=``).
@@ -77,6 +79,7 @@ class OperationSpec:
     description: str
     colors: tuple[str, ...] = ()
     files: tuple[str, ...] = ("file",)
+    file_list: bool = False
 
     @property
     def solves(self) -> bool:
@@ -175,7 +178,9 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "from its neighbour's answer with a kept factorization (`options.sequence`); a job "
         "reports progress per row. GLB / glTF output is one animated file: the first shape "
         "as the mesh, each row a morph target, and an animation playing them at `times`. "
-        "Uploads use `file_a` and `file_b` (two shapes).", files=("file_a", "file_b")),
+        "Uploads give one `shapes` part per mesh file, in order (2 to 64 files of the same "
+        "faces). Rows x vertices are bounded by FFS_MAX_BLEND_VERTICES (413 "
+        "`blend-too-large`).", files=("shapes",), file_list=True),
     OperationSpec(
         "transfer", schemas.TransferRequest, schemas.TransferParams,
         documents.TransferResponse, "transfer", STAGES_ROWS, True, tasks.transfer_task,

@@ -146,9 +146,16 @@ class Settings(BaseSettings):
         60.0, "Seconds a client may take to send a request body; then 408 "
                                 "and the connection is closed (slow or stalled uploads).")
     max_blend_steps: int = Field(
-        64, ge=1, le=100_000,
-        description="Most blend values `t` of one interpolate request (each is a solve of the "
-                    "whole mesh; 422 beyond).")
+        1024, ge=1, le=100_000,
+        description="Most rows of one blend or interpolate request (`weights` rows or `t` "
+                    "values; 422 beyond), checked before any mesh is read. What a request "
+                    "may ask for is bounded by size: FFS_MAX_BLEND_VERTICES.")
+    max_blend_vertices: int = Field(
+        4_000_000, ge=1,
+        description="Most rows x vertices of one blend or interpolate request (413 "
+                    "blend-too-large beyond): the answer holds rows x vertices x 3 float64 "
+                    "(96 MB at the default) and each row is a solve of the whole mesh, so "
+                    "100 rows of a 40,000-vertex mesh pass and 1,000 of it do not.")
     send_timeout: float = seconds(
         30.0, "Seconds a client may leave a response unread (the send "
                                 "buffer full) before the connection is aborted and the "

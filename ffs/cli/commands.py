@@ -323,6 +323,8 @@ def run_shape_blend(backend: Any, item: Item, args: argparse.Namespace, progress
     row.length_error = worst["form_error"]["length_error"]["max"]
     row.angle_error = worst["form_error"]["angle_error"]["max"]
     row.note = f"{len(result.vertices)} rows"
+    row.warnings = [{**found, "message": f"row {found['row']}: {found['message']}"}
+                    for found in result.warnings]
 
 
 def run_mean(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,

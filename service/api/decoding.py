@@ -470,33 +470,68 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
         raise ProblemError("mesh-too-large", errors[0]["reason"], errors=errors)
 
 
-def check_work(params: Mapping[str, Any], limits: Limits, prefix: tuple[Any, ...] = ()
-               ) -> None:
+def blend_rows(params: Mapping[str, Any]) -> tuple[int, str]:
+    """The rows a blend or interpolate request asks for and the field that sets them:
+    ``weights`` (its rows), else ``t`` (its values; one for a number), else 1."""
+    if isinstance(params.get("weights"), list):
+        weights = params["weights"]
+        nested = bool(weights) and isinstance(weights[0], list)
+        return (len(weights) if nested else 1), "weights"
+    t = params.get("t")
+    return (len(t) if isinstance(t, list) else 1), "t"
+
+
+def check_work(params: Mapping[str, Any], limits: Limits, prefix: tuple[Any, ...] = (),
+               n_vertices: int | None = None) -> None:
     """Bound the work a small body can ask for.
 
     Args:
         params: The dumped params.
-        limits: FFS_MAX_BLEND_STEPS.
+        limits: FFS_MAX_BLEND_STEPS and FFS_MAX_BLEND_VERTICES.
         prefix: Where the params sit in the body.
+        n_vertices: The mesh's vertex count where it is known (arrays decoded, files read).
 
     Raises:
-        ProblemError: 422 ``validation-error`` for more than ``FFS_MAX_BLEND_STEPS`` blend
-            values in ``t`` (each one is a solve of the whole mesh).
+        ProblemError: 422 ``validation-error`` for more than ``FFS_MAX_BLEND_STEPS`` rows
+            (blend values in ``t``, rows of ``weights``), checked before any mesh is read;
+            413 ``blend-too-large`` for rows x ``n_vertices`` beyond
+            ``FFS_MAX_BLEND_VERTICES`` (each row is a solve of the whole mesh, and the
+            answer holds rows x vertices x 3 numbers).
     """
-    t = params.get("t")
-    if not isinstance(t, list) and isinstance(params.get("weights"), list):
-        t, name = params["weights"], "weights"  # blend: rows of weights are its blends
-    else:
-        name = "t"
-    if isinstance(t, list) and len(t) > limits.max_blend_steps:
-        field = ".".join(map(str, (*prefix, name)))
+    rows, name = blend_rows(params)
+    field = ".".join(map(str, (*prefix, name)))
+    pointer = "/" + "/".join(map(str, (*prefix, name)))
+    if rows > limits.max_blend_steps:
         raise ProblemError(
-            "validation-error", f"{field}: {len(t)} blend values; at most "
+            "validation-error", f"{field}: {rows} blend values; at most "
             f"{limits.max_blend_steps} are allowed (FFS_MAX_BLEND_STEPS): send the others in "
             "further requests",
             errors=[element_error(field, f"at most {limits.max_blend_steps} values",
-                                  type="too_long",
-                                  pointer="/" + "/".join(map(str, (*prefix, name))))])
+                                  type="too_long", pointer=pointer)])
+    blends = "t" in params or "weights" in params  # interpolate, blend
+    if blends and n_vertices is not None and rows * n_vertices > limits.max_blend_vertices:
+        most = max(limits.max_blend_vertices // max(n_vertices, 1), 0)
+        raise ProblemError(
+            "blend-too-large", f"{field}: {rows} rows of a {n_vertices}-vertex mesh are "
+            f"{rows * n_vertices} row vertices, beyond {limits.max_blend_vertices} "
+            f"(FFS_MAX_BLEND_VERTICES): send at most {most} rows per request",
+            errors=[element_error(field, f"at most {most} rows of this mesh",
+                                  pointer=pointer)])
+
+
+def _vertex_count(kind: str, arrays: Mapping[str, np.ndarray]) -> tuple[int, str]:
+    """The vertex count of decoded arrays of a source kind and the field it is checked on."""
+    faces = arrays["faces"]
+    if kind == "forms":
+        return (int(faces.max()) + 1 if faces.size else 0), "faces"
+    if kind == "pair":
+        return max(len(arrays["vertices_a"]), len(arrays["vertices_b"])), "vertices_a"
+    if kind == "shapes":
+        return arrays["shapes"].shape[1], "shapes"
+    if kind == "transfer":
+        return max(len(arrays[name]) for name in ("source", "source_deformed", "target")), \
+            "source"
+    return len(arrays["vertices"]), "vertices"
 
 
 def array_source(kind: str, arrays: Mapping[str, np.ndarray], limits: Limits
@@ -511,20 +546,8 @@ def array_source(kind: str, arrays: Mapping[str, np.ndarray], limits: Limits
     Returns:
         The source of that kind.
     """
-    faces = arrays["faces"]
-    if kind == "forms":
-        n_vertices, field = (int(faces.max()) + 1 if faces.size else 0), "faces"
-    elif kind == "pair":
-        n_vertices = max(len(arrays["vertices_a"]), len(arrays["vertices_b"]))
-        field = "vertices_a"
-    elif kind == "shapes":
-        n_vertices, field = arrays["shapes"].shape[1], "shapes"
-    elif kind == "transfer":
-        n_vertices = max(len(arrays[name]) for name in ("source", "source_deformed", "target"))
-        field = "source"
-    else:
-        n_vertices, field = len(arrays["vertices"]), "vertices"
-    check_limits(n_vertices, len(faces), limits, field)
+    n_vertices, field = _vertex_count(kind, arrays)
+    check_limits(n_vertices, len(arrays["faces"]), limits, field)
     return ARRAY_SOURCES[kind](**arrays)
 
 
@@ -544,7 +567,9 @@ def decode_document(spec: BodySpec, doc: Any, limits: Limits, prefix: tuple[Any,
     arrays, params = decode_json(spec.arrays, spec.params, doc, prefix)
     dumped = params.model_dump()
     check_work(dumped, limits, prefix)
-    return array_source(spec.source, arrays, limits), dumped
+    source = array_source(spec.source, arrays, limits)
+    check_work(dumped, limits, prefix, _vertex_count(spec.source, arrays)[0])
+    return source, dumped
 
 
 def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
@@ -568,5 +593,6 @@ def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
         free_later(doc)  # freed once the answer is sent
     params = model.model_dump()
     check_work(params, request.limits)
-    return replace(request, source=array_source(spec.source, arrays, request.limits),
-                   params=params)
+    source = array_source(spec.source, arrays, request.limits)
+    check_work(params, request.limits, n_vertices=_vertex_count(spec.source, arrays)[0])
+    return replace(request, source=source, params=params)

@@ -316,7 +316,12 @@ class BlendResponse(BaseModel):
     faces: list[Tri]
     reports: list[dict[str, Any]] = Field(
         description="Per row: `row`, `path` (`reconstruct` or `sequence`), `refinement`, "
-        "`form_error` (length and angle errors against the blended forms), `seconds`.")
+        "`form_error` (length and angle errors against the blended forms), `warnings` "
+        "(thresholds the row's answer is past), `seconds`.")
+    warnings: list[dict[str, Any]] = Field(
+        default_factory=list, description="Every row's warnings (`code`, `message`, "
+        "`value`, `limit`), each with its `row`; [] when every row is within the documented "
+        "thresholds (docs/service.md#warnings).")
 
 
 class TransferResponse(BaseModel):
@@ -327,7 +332,8 @@ class TransferResponse(BaseModel):
 
     vertices: list[Vec3]
     faces: list[Tri]
-    report: dict[str, Any] = Field(description="`refinement` and `form_error` of the answer.")
+    report: dict[str, Any] = Field(description="`refinement`, `form_error` and `warnings` "
+                                   "(thresholds the answer is past) of the answer.")
 
 
 class ProblemItem(BaseModel):

@@ -56,6 +56,9 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
     "mesh-too-large": (413, "Mesh too large",
                        "The mesh exceeds FFS_MAX_VERTICES or FFS_MAX_FACES, or its operation's "
                        "predicted peak memory exceeds FFS_MAX_REQUEST_MEMORY."),
+    "blend-too-large": (413, "Blend too large",
+                        "Rows x vertices of the blend exceed FFS_MAX_BLEND_VERTICES: send "
+                        "fewer rows per request (or a coarser mesh)."),
     "not-acceptable": (406, "Not acceptable",
                        "None of the media types in Accept can be produced for this result."),
     "unsupported-color": (422, "Colour field not available",

@@ -317,7 +317,8 @@ class InterpolateParams(ApiModel):
 
     t: Real | Annotated[list[Real], Field(min_length=1, fail_fast=True)] = Field(
         description="Blend value(s); 0 gives A, 1 gives B. A list holds at least one and at "
-                    "most FFS_MAX_BLEND_STEPS (default 64) values.")
+                    "most FFS_MAX_BLEND_STEPS (default 1024) values, and values x vertices "
+                    "at most FFS_MAX_BLEND_VERTICES (default 4,000,000; 413 beyond).")
     options: InterpolateOptions = Field(default_factory=InterpolateOptions)
 
 
@@ -336,8 +337,9 @@ class BlendParams(ApiModel):
     weights: Annotated[list[Annotated[list[Real], Field(min_length=1)]],
                        Field(min_length=1, fail_fast=True)] | None = Field(
         None, description="(T, K) rows of affine weights, one per shape (each row sums to "
-        "1; negative weights extrapolate); at most FFS_MAX_BLEND_STEPS (default 64) rows. "
-        "Give `weights` or `t`.")
+        "1; negative weights extrapolate); at most FFS_MAX_BLEND_STEPS (default 1024) rows, "
+        "and rows x vertices at most FFS_MAX_BLEND_VERTICES (default 4,000,000: 100 rows of "
+        "a 40,000-vertex mesh; 413 `blend-too-large` beyond). Give `weights` or `t`.")
     t: Real | Annotated[list[Real], Field(min_length=1, fail_fast=True)] | None = Field(
         None, description="Two shapes only: blend value(s), the rows (1 - t, t); 0 gives the "
         "first shape, 1 the second, 1.5 extrapolates.")

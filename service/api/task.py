@@ -107,11 +107,12 @@ ARRAY_SOURCES: dict[str, type] = {"mesh": MeshArrays, "forms": FormsArrays, "pai
 @dataclass(frozen=True)
 class Limits:
     """Size limits of one request (``FFS_MAX_VERTICES``, ``FFS_MAX_FACES``,
-    ``FFS_MAX_BLEND_STEPS``)."""
+    ``FFS_MAX_BLEND_STEPS``, ``FFS_MAX_BLEND_VERTICES``: rows x vertices of a blend)."""
 
     max_vertices: int
     max_faces: int
-    max_blend_steps: int = 64
+    max_blend_steps: int = 1024
+    max_blend_vertices: int = 4_000_000
     max_memory: int | None = None
     """FFS_MAX_REQUEST_MEMORY when it, not FFS_MAX_FACES, sets ``max_faces`` (the most
     faces the operation's predicted peak fits in; named by the 413)."""

@@ -27,7 +27,7 @@ from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import Request
 
-from service.api.decoding import BINARY_MEDIA_TYPE
+from service.api.decoding import BINARY_MEDIA_TYPE, MAX_SHAPES
 from service.api.problems import (
     ProblemError,
     element_error,
@@ -164,11 +164,12 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
 
     Returns:
         ``(fields, files)``: the JSON-decoded form fields (a field given once per item is
-        a list) and the uploaded files by field name.
+        a list) and the uploaded files by field name (a list where the field is repeated:
+        the operation decides whether it may be, :func:`service.http.payloads.form_request`).
 
     Raises:
-        ProblemError: 400 ``malformed-request`` for a body that is cut, not multipart or
-            repeats a file field; the problems of :func:`read_body`.
+        ProblemError: 400 ``malformed-request`` for a body that is cut or not multipart;
+            the problems of :func:`read_body`.
     """
     body = await read_body(request, settings)
     sent = False
@@ -183,7 +184,7 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
     _check_closed(request, body)
     replay = Request(request.scope, receive)
     try:
-        form = await replay.form(max_files=4, max_fields=64,
+        form = await replay.form(max_files=MAX_SHAPES + 4, max_fields=64,
                                  max_part_size=settings.max_body_bytes)
     except StarletteHTTPException as exc:
         raise ProblemError("malformed-request", f"cannot read the multipart body: {exc.detail}"
@@ -192,14 +193,17 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
         raise ProblemError("malformed-request", "cannot read the multipart body: it is not "
                            "well-formed multipart/form-data") from None
     fields: dict[str, Any] = {}
-    files: dict[str, UploadFile] = {}
+    files: dict[str, UploadFile | list[UploadFile]] = {}
     repeated: set[str] = set()
     for key, value in form.multi_items():
-        if key in files:
+        is_file = isinstance(value, UploadFile)
+        if key in (fields if is_file else files):  # a field both a file and a value
             raise ProblemError("malformed-request", f"form field {key!r} is given twice",
                                errors=[element_error(key, "repeated")])
-        if isinstance(value, UploadFile):
-            files[key] = value
+        if is_file:
+            previous = files.get(key)
+            files[key] = (value if previous is None else
+                          [*(previous if isinstance(previous, list) else [previous]), value])
         elif key in fields:  # one part per item: how generated clients send an array
             if key not in repeated:
                 fields[key] = [fields[key]]

@@ -15,7 +15,7 @@ from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel
 from pydantic.json_schema import models_json_schema
 
-from service.api.decoding import BINARY_DTYPES, BINARY_MEDIA_TYPE
+from service.api.decoding import BINARY_DTYPES, BINARY_MEDIA_TYPE, MAX_SHAPES
 from service.api.documents import Problem
 from service.api.schemas import JobRequest, SessionDrag, SessionRequest
 from service.http.problems import PROBLEM_MEDIA_TYPE
@@ -150,6 +150,18 @@ def form_properties(spec: OperationSpec) -> dict[str, Any]:
             for name, info in spec.params.model_fields.items()}
 
 
+def file_schema(spec: OperationSpec) -> dict[str, Any]:
+    """The schema of an operation's upload field: one binary part, or (``file_list``) one
+    part per mesh, in order."""
+    one = {"type": "string", "format": "binary", "description": FILE_DESCRIPTION}
+    if not spec.file_list:
+        return one
+    return {"type": "array", "items": {"type": "string", "format": "binary"},
+            "minItems": 1, "maxItems": MAX_SHAPES,
+            "description": FILE_DESCRIPTION + " One part per mesh, in order (the same "
+                           "faces in each)."}
+
+
 def multipart_schema(spec: OperationSpec) -> dict[str, Any]:
     """The schema of an operation's multipart form.
 
@@ -160,12 +172,11 @@ def multipart_schema(spec: OperationSpec) -> dict[str, Any]:
         The mesh file(s) plus the parameter fields, each with its real schema.
     """
     params = spec.params
-    properties: dict[str, Any] = {name: {"type": "string", "format": "binary",
-                                         "description": FILE_DESCRIPTION}
-                                  for name in spec.files}
+    properties: dict[str, Any] = {name: file_schema(spec) for name in spec.files}
     properties.update(form_properties(spec))
     required = [*spec.files, *(n for n, f in params.model_fields.items() if f.is_required())]
-    example = {name: f"<{name}.off>" for name in spec.files}
+    example: dict[str, Any] = {name: ([f"<{name}-0.off>", f"<{name}-1.off>"] if spec.file_list
+                                      else f"<{name}.off>") for name in spec.files}
     example.update(_example(params) or {})  # the values themselves
     return {"type": "object", "properties": properties, "required": required,
             "additionalProperties": False, "examples": [example]}
@@ -194,8 +205,9 @@ def form_encoding(properties: dict[str, Any]) -> dict[str, Any]:
         An entry per field that is not a scalar: sent as JSON (for an array: each part).
     """
     return {name: {"contentType": "application/json"} for name, schema in properties.items()
-            if schema.get("format") != "binary" and (not _is_scalar(schema)
-                                                     or "contentSchema" in schema)}
+            if schema.get("format") != "binary"
+            and (schema.get("items") or {}).get("format") != "binary"
+            and (not _is_scalar(schema) or "contentSchema" in schema)}
 
 
 def operation_body(spec: OperationSpec) -> dict[str, Any]:
@@ -275,14 +287,14 @@ def jobs_body() -> dict[str, Any]:
                          "description": "Where to POST the finished job's status, signed "
                                         "(services with API keys; FFS_WEBHOOK_HOSTS)."},
         "file": {"type": "string", "format": "binary",
-                 "description": FILE_DESCRIPTION + " `file_a` and `file_b` for interpolate "
-                 "and blend; `file_source`, `file_source_deformed` and `file_target` for "
-                 "transfer."},
+                 "description": FILE_DESCRIPTION + " `file_a` and `file_b` for interpolate; "
+                 "one `shapes` part per mesh for blend; `file_source`, "
+                 "`file_source_deformed` and `file_target` for transfer."},
         "file_a": {"type": "string", "format": "binary"},
         "file_b": {"type": "string", "format": "binary"},
-        **{name: {"type": "string", "format": "binary"}
+        **{name: {k: v for k, v in file_schema(spec).items() if k != "description"}
            for spec in OPERATIONS.values() for name in spec.files
-           if name not in ("file", "file_a", "file_b")},  # transfer's three files
+           if name not in ("file", "file_a", "file_b")},  # blend's shapes, transfer's files
         **job_form_properties(),
     }
     upload = {"type": "object", "required": ["operation"], "properties": properties,

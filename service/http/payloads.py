@@ -21,6 +21,7 @@ from starlette.requests import Request
 
 from service.api.decoding import (
     BINARY_MEDIA_TYPE,
+    MAX_SHAPES,
     MESH_ARRAYS,
     check_limits,
     check_work,
@@ -63,6 +64,7 @@ def limits(settings: Settings, operation: str | None = None) -> Limits:
             FFS_MAX_REQUEST_MEMORY.
         operation: the operation (a key of :data:`service.operations.OPERATIONS`), or None
             for a session (which factorizes).
+            FFS_MAX_BLEND_VERTICES.
 
     Returns:
         The limits: at most FFS_MAX_FACES faces, and at most the faces whose predicted peak
@@ -72,8 +74,9 @@ def limits(settings: Settings, operation: str | None = None) -> Limits:
     fit = faces_within(settings.max_request_memory, solves=spec is None or spec.solves)
     if fit < settings.max_faces:
         return Limits(settings.max_vertices, fit, settings.max_blend_steps,
-                      settings.max_request_memory)
-    return Limits(settings.max_vertices, settings.max_faces, settings.max_blend_steps)
+                      settings.max_blend_vertices, settings.max_request_memory)
+    return Limits(settings.max_vertices, settings.max_faces, settings.max_blend_steps,
+                  settings.max_blend_vertices)
 
 
 def size_limits(settings: Settings) -> dict[str, Any]:
@@ -117,14 +120,16 @@ async def operation_request(request: Request, spec: OperationSpec, settings: Set
 
 
 async def form_request(spec: OperationSpec, fields: dict[str, Any],
-                       files: dict[str, UploadFile], settings: Settings,
+                       files: dict[str, UploadFile | list[UploadFile]], settings: Settings,
                        output: Output) -> TaskRequest:
     """The task of a multipart upload.
 
     Args:
         spec: The operation.
         fields: The JSON-decoded form fields, validated here against its params.
-        files: The uploaded mesh file(s), read by the worker.
+        files: The uploaded mesh file(s), read by the worker; a list where a field was
+            repeated, which only an operation's ``file_list`` field may be (``blend``'s
+            ``shapes``: one part per mesh, in order).
         settings: The limits and the solver backend.
         output: The negotiated result format.
 
@@ -132,7 +137,8 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
         The task.
 
     Raises:
-        ProblemError: 422 for a missing or unexpected file or an invalid field; the
+        ProblemError: 422 for a missing or unexpected file or an invalid field, 400
+            ``malformed-request`` for a repeated file field that is not a list; the
             problems of :func:`service.http.bodies.upload`.
     """
     missing = [n for n in spec.files if n not in files]
@@ -146,8 +152,23 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
                            errors=errors)
     params = validate_object(spec.params, as_arrays(spec.params, fields))
     check_work(params.model_dump(), limits(settings, spec.name))
-    uploads = [await upload(files[n], n) for n in spec.files]
-    source = tuple(uploads) if len(uploads) > 1 else uploads[0]
+    parts: list[tuple[UploadFile, str]] = []
+    for name in spec.files:
+        given = files[name]
+        if isinstance(given, list) and not spec.file_list:
+            raise ProblemError("malformed-request", f"form field {name!r} is given twice",
+                               errors=[element_error(name, "repeated")])
+        if spec.file_list:
+            listed = given if isinstance(given, list) else [given]
+            if len(listed) > MAX_SHAPES:
+                raise ProblemError("validation-error", f"{name}: {len(listed)} files; at most "
+                                   f"{MAX_SHAPES} are allowed", errors=[element_error(
+                                       name, f"at most {MAX_SHAPES} files", type="too_long")])
+            parts += [(file, f"{name}[{k}]") for k, file in enumerate(listed)]
+        else:
+            parts.append((given, name))
+    uploads = [await upload(file, field) for file, field in parts]
+    source = tuple(uploads) if spec.file_list or len(uploads) > 1 else uploads[0]
     return TaskRequest(spec.name, source, params.model_dump(), limits(settings, spec.name),
                        settings.solver_backend, output)
 

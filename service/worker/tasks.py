@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 import solver
-from service.api.decoding import check_limits
+from service.api.decoding import check_limits, check_work
 from service.api.problems import ProblemError, element_error
 from service.api.task import (
     FormsArrays,
@@ -324,6 +324,7 @@ def interpolate_task(request: TaskRequest, progress: Progress) -> TaskResult:
         if faces_b.shape != faces.shape or not np.array_equal(faces, faces_b):
             raise ProblemError("shape-mismatch", "file_b must have the same faces as file_a",
                                errors=[element_error("file_b", "faces differ from file_a's")])
+        check_work(params, request.limits, n_vertices=len(vertices_a))
     else:
         assert isinstance(source, MeshPair)
         vertices_a, vertices_b, faces = source.vertices_a, source.vertices_b, source.faces
@@ -375,8 +376,9 @@ def blend_task(request: TaskRequest, progress: Progress) -> TaskResult:
     params = request.params
     progress("validate", 0.0)
     source = request.source
-    if isinstance(source, tuple):  # uploads
+    if isinstance(source, tuple):  # uploads: one `shapes` part per mesh
         shapes, faces = _same_faces(source, request)
+        check_work(params, request.limits, n_vertices=len(shapes[0]))
     else:
         assert isinstance(source, MeshStack)
         shapes, faces = list(source.shapes), source.faces
@@ -385,7 +387,7 @@ def blend_task(request: TaskRequest, progress: Progress) -> TaskResult:
                           options=request.solve_options(solver.BlendOptions),
                           progress=progress)
     document = {"weights": result.weights, "vertices": result.vertices, "faces": result.faces,
-                "reports": result.reports}
+                "reports": result.reports, "warnings": result.warnings}
     out = request.output
     formats = ("glb", "gltf") if out.keep else (out.format,) if out.format != "json" else ()
     encoded = {}

@@ -78,3 +78,24 @@ def test_mean_and_transfer(ffs, server, workdir):
                              "moved.obj")
     for path in (local, remote):
         assert rigid_error(load_mesh_file(path)[0], P) < 1e-8
+
+
+def test_blend_rows_past_the_thresholds_warn_and_strict_exits_1(ffs, server, workdir):
+    """A blend of a mesh and its copy stretched 3x along z leaves a dihedral error past the
+    documented limit in the middle row: WARN in the summary, the row named on stderr, exit
+    1 with --strict; locally and on the service, with the library's warning."""
+    V, _, _, F = poses(workdir)
+    (workdir / "tall.obj").write_bytes(solver.io.save_mesh(V * [1.0, 1.0, 3.0], F, "obj"))
+    (workdir / "w.json").write_text("[[1.0, 0.0], [0.5, 0.5]]")
+    truth = solver.blend([V, V * [1.0, 1.0, 3.0]], [[1.0, 0.0], [0.5, 0.5]], F).warnings
+    assert {w["code"] for w in truth} >= {"angle-error"} and {w["row"] for w in truth} == {1}
+    for where in ([], ["--server", server]):
+        run = ffs("blend", "decimated-knight.off", "tall.obj", "--weights", "w.json",
+                  "-o", "rows.json", *where)
+        assert run.returncode == 0, run.stderr
+        assert "WARN angle-error" in run.stdout, run.stdout
+        angle = {w["code"]: w for w in truth}["angle-error"]
+        assert f"warning: row 1: {angle['message']}" in run.stderr, run.stderr
+        strict = ffs("blend", "decimated-knight.off", "tall.obj", "--weights", "w.json",
+                     "-o", "rows.json", "--strict", *where)
+        assert strict.returncode == 1, strict.stdout + strict.stderr

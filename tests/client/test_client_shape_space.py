@@ -57,3 +57,27 @@ def test_blend_as_a_job_reports_rows_and_bad_rows_raise(server, poses):
         with pytest.raises(ffs.InvalidInputError) as error:
             client.blend([V, P], F, [[0.5, 0.5], [0.7, 0.7]])
         assert "weights" in str(error.value) and "1.4" in str(error.value)
+
+
+def test_blend_of_k_uploaded_files_and_its_row_warnings(server, poses, tmp_path):
+    """blend_files uploads the files as they are (three formats), answers as the library
+    does, and exposes each row's warnings with its row (a blend with a copy stretched 3x
+    along z leaves a dihedral error past the limit; the given shape itself none)."""
+    V, P, Q, F = poses
+    paths = []
+    for name, X in (("a.off", V), ("b.obj", P), ("c.ply", Q)):
+        (tmp_path / name).write_bytes(solver.io.save_mesh(X, F, name[-3:]))
+        paths.append(tmp_path / name)
+    weights = [[0.2, 0.5, 0.3], [-0.2, 0.6, 0.6]]
+    with ffs.Client(server) as client:
+        rows = client.blend_files(paths, weights)
+        np.testing.assert_allclose(rows.vertices, solver.blend([V, P, Q], weights, F).vertices,
+                                   atol=1e-5)  # PLY holds float32
+        assert rows.warnings == []
+        (tmp_path / "tall.off").write_bytes(solver.io.save_mesh(V * [1, 1, 3.0], F, "off"))
+        rows = client.blend_files([paths[0], tmp_path / "tall.off"], [[0.5, 0.5], [0, 1]])
+        truth = solver.blend([V, V * [1, 1, 3.0]], [[0.5, 0.5], [0, 1]], F).warnings
+        assert [(w["row"], w["code"]) for w in rows.warnings] == [
+            (w["row"], w["code"]) for w in truth]
+        assert "angle-error" in {w["code"] for w in rows.warnings}
+        assert {w["row"] for w in rows.warnings} == {0}

@@ -40,6 +40,15 @@ def test_blend_json_is_the_library_answer(client, poses):
     assert [r["path"] for r in doc["reports"]] == ["reconstruct", "sequence", "sequence",
                                                    "reconstruct"]
     assert all(r["form_error"]["length_error"]["mean"] < 0.02 for r in doc["reports"])
+    assert doc["warnings"] == expected.warnings == []
+    tall = client.post("/v1/blend", json=body([V, V * [1, 1, 3.0]], F, t=[0.5])).json()
+    truth = solver.blend([V, V * [1, 1, 3.0]], [[0.5, 0.5]], F).warnings
+    assert [(w["code"], w["message"], w["row"]) for w in tall["warnings"]] == [
+        (w["code"], w["message"], w["row"]) for w in truth]
+    assert [w["value"] for w in tall["warnings"]] == pytest.approx([w["value"] for w in truth])
+    assert {w["code"] for w in tall["warnings"]} >= {"angle-error"}
+    assert tall["reports"][0]["warnings"] == [{k: v for k, v in w.items() if k != "row"}
+                                              for w in tall["warnings"]]
 
 
 def test_blend_t_is_interpolate(client, poses):
@@ -71,8 +80,8 @@ def test_blend_as_glb_is_an_animation_the_validator_accepts(client, poses):
     ({}, "validation-error", None),
     ({"weights": [[1.0, 0.0]], "t": 0.5}, "validation-error", None),
     ({"weights": [[np.nan, 1.0]]}, "validation-error", "weights"),
-    ({"t": np.linspace(0, 1, 65).tolist()}, "validation-error", "t"),
-    ({"weights": [[0.5, 0.5]] * 65}, "validation-error", "weights"),
+    ({"t": np.linspace(0, 1, 1025).tolist()}, "validation-error", "t"),  # FFS_MAX_BLEND_STEPS
+    ({"weights": [[0.5, 0.5]] * 1025}, "validation-error", "weights"),
 ])
 def test_blend_refuses_bad_weights(client, poses, change, kind, field):
     V, P, _, F = poses
@@ -119,14 +128,63 @@ def test_blend_job_reports_progress_per_row_and_its_glb(client, poses):
     assert validate_gltf(glb.content, "glb")["issues"]["numErrors"] == 0
 
 
-def test_blend_uploads(client, poses):
-    V, P, _, F = poses
-    files = {"file_a": ("a.off", save_mesh(V, F, "off")),
-             "file_b": ("b.off", save_mesh(P, F, "off"))}
-    response = client.post("/v1/blend", files=files, data={"t": "[0.5]"})
+def test_blend_uploads_k_files_as_shapes_parts(client, poses):
+    """Three meshes uploaded as three `shapes` parts (formats mixed) blend as the same
+    shapes sent as arrays; two with `t` are interpolate."""
+    V, P, Q, F = poses
+    weights = [[0.2, 0.5, 0.3], [-0.2, 0.6, 0.6]]
+    files = [("shapes", ("a.off", save_mesh(V, F, "off"))),
+             ("shapes", ("b.obj", save_mesh(P, F, "obj"))),
+             ("shapes", ("c.ply", save_mesh(Q, F, "ply")))]
+    response = client.post("/v1/blend", files=files, data={"weights": json.dumps(weights)})
+    assert response.status_code == 200, response.text
+    np.testing.assert_allclose(response.json()["vertices"],
+                               solver.blend([V, P, Q], weights, F).vertices, atol=1e-6)
+    response = client.post("/v1/blend", files=files[:2], data={"t": "[0.5]"})
     assert response.status_code == 200, response.text
     np.testing.assert_allclose(response.json()["vertices"][0],
                                solver.interpolate(V, P, F, 0.5), atol=1e-6)
+
+
+def test_blend_uploads_name_the_part_at_fault(client, poses):
+    V, P, _, F = poses
+    other = save_mesh(P, F[:, ::-1], "off")  # the faces of the second part differ
+    files = [("shapes", ("a.off", save_mesh(V, F, "off"))), ("shapes", ("b.off", other))]
+    doc = problem(client.post("/v1/blend", files=files, data={"t": "[0.5]"}), 422,
+                  "shape-mismatch")
+    assert doc["errors"][0]["field"] == "shapes[1]"
+    doc = problem(client.post("/v1/blend", files=[("file_a", ("a.off", other))],
+                              data={"t": "0.5"}), 422, "validation-error")
+    assert {e["field"] for e in doc["errors"]} == {"shapes", "file_a"}
+    files = [("file", ("a.off", other)), ("file", ("b.off", other))]
+    problem(client.post("/v1/forms", files=files), 400, "malformed-request")
+
+
+def test_rows_are_bounded_by_rows_times_vertices():
+    """FFS_MAX_BLEND_VERTICES bounds rows x vertices (413 blend-too-large naming the most
+    rows that pass), for arrays, uploads and jobs; the rows that fit are answered."""
+    from tests.helpers.servers import running_app
+
+    V, F = load("decimated-knight.off")
+    P = bent_pose(V, F, 0.3)
+    most = 3
+    with running_app(workers=1, max_blend_vertices=most * len(V)) as c:
+        t = np.linspace(0.0, 1.0, most + 1).tolist()
+        files = [("shapes", ("a.off", save_mesh(V, F, "off"))),
+                 ("shapes", ("b.off", save_mesh(P, F, "off")))]
+        answers = [c.post("/v1/blend", json=body([V, P], F, t=t)),
+                   c.post("/v1/blend", files=files, data={"t": json.dumps(t)}),
+                   c.post("/v1/interpolate", json={"vertices_a": V.tolist(),
+                                                   "vertices_b": P.tolist(),
+                                                   "faces": F.tolist(), "t": t})]
+        for response in answers:
+            doc = problem(response, 413, "blend-too-large")
+            assert f"at most {most} rows" in doc["detail"], doc
+            assert "FFS_MAX_BLEND_VERTICES" in doc["detail"]
+        job = c.post("/v1/jobs", json={"operation": "blend", "input": body([V, P], F, t=t)})
+        assert problem(job, 413, "blend-too-large")["errors"][0]["field"] == "input.t"
+        fits = c.post("/v1/blend", json=body([V, P], F, t=t[:most]))
+        assert fits.status_code == 200 and len(fits.json()["vertices"]) == most
 
 
 def test_transfer_to_the_source_itself_and_by_upload(client, poses):

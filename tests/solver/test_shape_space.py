@@ -10,7 +10,7 @@ import pytest
 from solver import blend, fundamental_forms, interpolate, mean, rigid_alignment, transfer
 from solver.errors import ShapeMismatchError, TriangleInequalityError
 from solver.metrics import wrap_angle
-from solver.shape_space import _stacked, shape_set
+from solver.shape_space import _stacked, path_extrapolation, shape_set
 from tests.helpers import DATA
 from tests.helpers.botsch_sorkine import load_case
 from tests.helpers.meshes import icosphere, load, random_rotation, rigid_alignment_error
@@ -211,6 +211,93 @@ def test_a_sequence_keeps_its_factor_and_matches_independent_rows(knight):
             assert ours <= 1.05 * report["form_error"][kind]["mean"] + 1e-9
     assert np.abs(seq.vertices[-1] - P).max() < 1e-8
     assert np.abs(seq.vertices[0] - V).max() < 1e-8
+
+
+@pytest.mark.parametrize("ts", [(0.0, 0.1, 0.2, 0.3), (0.2, 0.35, 0.45, 0.6),
+                                (1.0, 0.9, 0.75, 0.6)])
+def test_path_extrapolation_is_exact_on_a_quadratic_path_of_rows(ts):
+    """The coefficients extrapolate any quadratic of the rows' arc length exactly
+    (unevenly spaced rows included), along a straight and a bent path of 3 shapes."""
+    rng = np.random.default_rng(7)
+    a, b, c = rng.normal(size=(3, 5))
+    for path in (lambda t: np.array([1 - t, t, 0.0]),
+                 lambda t: np.array([1 - t - 0.3 * t * t, t, 0.3 * t * t])):
+        rows = [path(t) for t in ts]
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(rows, axis=0), axis=1))])
+        values = a + b * s[:, None] + c * s[:, None] ** 2
+        coefficients = path_extrapolation(rows)
+        assert len(coefficients) == 3
+        assert np.abs(coefficients @ values[:3] - values[3]).max() < 1e-9
+
+
+def test_path_extrapolation_needs_a_smooth_path_of_rows():
+    rows = [np.array([1 - t, t]) for t in (0.0, 0.1, 0.2, 0.3)]
+    assert len(path_extrapolation(rows[:3])) == 2  # two previous rows: the secant
+    assert path_extrapolation(rows[:2]) is None
+    back = [np.array([1 - t, t]) for t in (0.0, 0.1, 0.2, 0.1)]
+    assert path_extrapolation(back) is None  # a turn back
+    jump = [np.array([1 - t, t]) for t in (0.0, 0.1, 0.2, 0.8)]
+    assert path_extrapolation(jump) is None  # a step 6x the last
+    repeat = [np.array([1 - t, t]) for t in (0.0, 0.1, 0.2, 0.2)]
+    assert path_extrapolation(repeat) is None
+    uneven = [np.array([1 - t, t]) for t in (0.0, 0.5, 0.6, 0.7)]
+    assert len(path_extrapolation(uneven)) == 2  # the last two steps alone are alike
+
+
+def test_sequence_rows_start_from_the_extrapolated_answers(knight):
+    """On a smooth path, rows from the fourth on start from the quadratic extrapolation of
+    the previous answers, and most then converge on one step (no factorization)."""
+    V, F = knight
+    P = bent_pose(V, F, 0.8)
+    t = np.linspace(0.0, 0.9, 20)
+    seq = blend([V, P], np.stack([1 - t, t], axis=1), F)
+    starts = [r["refinement"].get("start") for r in seq.reports]
+    assert starts[2] == "secant of the previous rows"
+    assert set(starts[3:]) == {"quadratic extrapolation of the previous rows"}
+    iterations = [r["refinement"]["iterations"] for r in seq.reports[3:]]
+    assert np.mean(iterations) < 2.0, iterations
+
+
+def test_rows_carry_warnings_past_the_documented_thresholds(knight):
+    """A blend of two poses leaves small errors (no warning); one of a mesh and its copy
+    stretched 3x along z leaves a dihedral error past WarningRules.max_angle_error, which
+    the row's warning reports as measured independently from the answer and the blended
+    forms (geometric mean of the lengths, mean of the angles)."""
+    from solver.form_energy import form_residuals
+    from solver.topology import build_topology
+    from solver.warnings import DEFAULT_RULES
+
+    V, F = knight
+    calm = blend([V, bent_pose(V, F, 0.8)], [[0.5, 0.5], [-0.2, 1.2]], F)
+    assert calm.warnings == [] and all(r["warnings"] == [] for r in calm.reports)
+    S = V * [1.0, 1.0, 3.0]
+    out = blend([V, S], [[0.5, 0.5], [1.0, 0.0]], F)
+    a, b = fundamental_forms(V, F), fundamental_forms(S, F)
+    lengths = np.sqrt(a.lengths * b.lengths)
+    angles = wrap_angle(a.angles + 0.5 * wrap_angle(b.angles - a.angles))
+    truth = form_residuals(out.vertices[0], build_topology(F, len(V)), lengths, angles)
+    found = {w["code"]: w for w in out.reports[0]["warnings"]}
+    assert truth["angle_error"]["max"] > DEFAULT_RULES.max_angle_error
+    assert found["angle-error"]["value"] == pytest.approx(truth["angle_error"]["max"],
+                                                          rel=1e-9)
+    assert found["angle-error"]["limit"] == DEFAULT_RULES.max_angle_error
+    assert ("length-error" in found) == (truth["length_error"]["max"]
+                                         > DEFAULT_RULES.max_length_error)
+    assert out.reports[1]["warnings"] == []  # the given shape itself
+    assert [w["row"] for w in out.warnings] == [0] * len(found)
+
+
+def test_a_row_whose_time_ran_out_before_any_progress_warns(knight):
+    V, F = knight
+    P = bent_pose(V, F, 0.8)
+    t = np.linspace(0.05, 0.95, 30)
+    out = blend([V, P], np.stack([1 - t, t], axis=1), F, max_seconds=0.02)
+    stuck = [r["row"] for r in out.reports
+             if r["refinement"].get("stop_reason") == "time_limit"
+             and r["refinement"].get("outcome") == "not-refined"]
+    assert stuck, [r["refinement"].get("stop_reason") for r in out.reports]
+    warned = [w["row"] for w in out.warnings if w["code"] == "time-limit-no-progress"]
+    assert warned == stuck
 
 
 def test_interpolate_is_the_two_shape_blend(knight):

@@ -99,7 +99,7 @@ def test_the_client_sees_the_limits_and_the_413():
         assert sizes["max_faces"] == faces_within(memory, solves=False)
         by_operation = sizes["max_faces_by_operation"]
         assert by_operation["forms"] == by_operation["integrability"] == sizes["max_faces"]
-        for name in ("reconstruct", "deform", "parameterize", "sessions"):
+        for name in ("reconstruct", "deform", "parameterize", "interpolate", "sessions"):
             assert by_operation[name] == faces_within(memory, solves=True) < len(F)
         forms = client.fundamental_forms(V, F)
         assert len(forms.faces) == len(F)

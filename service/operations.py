@@ -36,6 +36,9 @@ STAGES_SOLVE: tuple[str, ...] = ("validate", "assemble", "factorize", "solve", "
 """Progress stages of the operations that factorize and refine."""
 STAGES_LIGHT: tuple[str, ...] = ("validate", "solve", "encode")
 """Progress stages of the operations that only compute."""
+COMPUTE_ONLY: frozenset[str] = frozenset({"forms", "integrability", "mesh"})
+"""The operations that factorize nothing (their memory grows like the mesh's arrays);
+``interpolate`` has light stages but reconstructs each blend."""
 STAGES_ROWS: tuple[str, ...] = ("validate", "rows", "encode")
 """Progress stages of the shape-space operations: ``rows`` goes from 0 to 1 as the rows of
 weights are solved, in order (:func:`solver.blend`)."""
@@ -84,8 +87,8 @@ class OperationSpec:
     @property
     def solves(self) -> bool:
         """Whether it factorizes (its requests' memory: :func:`service.backends.admission.
-        request_cost`)."""
-        return self.stages != STAGES_LIGHT
+        request_cost`): every operation but :data:`COMPUTE_ONLY`."""
+        return self.name not in COMPUTE_ONLY
 
     @property
     def arrays(self) -> ArraySpecs:

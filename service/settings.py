@@ -33,13 +33,15 @@ def _default_workers() -> int:
 
 
 def _default_request_memory(data: dict[str, Any]) -> int:
-    """FFS_MAX_REQUEST_MEMORY's default: the machine's share of one worker."""
-    from service.backends.admission import request_memory_budget
+    """FFS_MAX_REQUEST_MEMORY's default: one worker's share of this machine, or with Dask
+    the memory of a cluster worker."""
+    from service.backends.admission import DASK_REQUEST_MEMORY, request_memory_budget
     from service.memory import machine_memory
 
-    budget = request_memory_budget(machine_memory(), data.get("max_session_memory", 0),
-                                   data.get("workers") or _default_workers())
-    return max(budget, 64 * 1024**2)
+    if data.get("executor") == "dask":
+        return DASK_REQUEST_MEMORY
+    return request_memory_budget(machine_memory(), data.get("max_session_memory", 0),
+                                 data.get("workers") or _default_workers())
 
 
 def _default_max_faces(data: dict[str, Any]) -> int:
@@ -166,7 +168,8 @@ class Settings(BaseSettings):
     max_request_memory: int = Field(
         default_factory=lambda data: _default_request_memory(data), ge=64 * 1024**2,
         description="Bytes one request may use in its worker (default: 80 % of the "
-                    "machine's memory less FFS_MAX_SESSION_MEMORY, divided by FFS_WORKERS); "
+                    "machine's memory less FFS_MAX_SESSION_MEMORY (at most half of it), "
+                    "divided by FFS_WORKERS, at least 1 GiB; 4 GiB with FFS_EXECUTOR=dask); "
                     "each operation's largest mesh follows from its predicted peak memory "
                     "(413 beyond).")
     max_faces: int = Field(

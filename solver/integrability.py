@@ -338,6 +338,34 @@ def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
     return result
 
 
+def homology_rank(topology: MeshTopology) -> np.ndarray:
+    """The number of independent loops (generators of the first homology) of each component
+    with faces: ``2 g + b - 1`` with ``b > 0`` boundary loops, ``2 g`` when closed; i.e.
+    ``1 - chi`` or ``2 - chi`` from the Euler characteristic chi.
+
+    Args:
+        topology: a validated (manifold) mesh.
+
+    Returns:
+        (C,) int64, 0 for components without faces.
+
+    Example:
+        A closed tetrahedron has none:
+
+        >>> from solver.topology import build_topology
+        >>> homology_rank(build_topology([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])).tolist()
+        [0]
+    """
+    C = topology.n_components
+    v = np.bincount(topology.vertex_component[topology.is_referenced], minlength=C)
+    e = np.bincount(topology.vertex_component[topology.edges[:, 0]], minlength=C)
+    f = np.bincount(topology.face_component, minlength=C)
+    b = np.bincount(topology.boundary_loop_component, minlength=C)
+    chi = v - e + f
+    rank = np.where(b > 0, 1 - chi, 2 - chi)
+    return np.where(f > 0, rank, 0).astype(np.int64)
+
+
 def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
                     length_unit: float = 1.0) -> tuple[list[HolonomyLoop], list[HolonomyLoop]]:
     """Rotation holonomy of the dual generators and translation holonomy of the primal ones.
@@ -354,6 +382,8 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
         (2 g + b - 1 dual loops; the primal loops of the edges in neither forest).
     """
     topo = terms.topology
+    if not len(topo.boundary_loops) and not homology_rank(topo).any():
+        return [], []  # closed, genus 0: no loop of either kind (no forest to build)
     n, m = topo.n_vertices, topo.n_faces
     inner = terms.interior_edges
     dual_links = topo.edge_faces[inner]

@@ -105,11 +105,19 @@ def request_cost(solves: bool) -> RequestCost:
     return SOLVE_COST if solves else LIGHT_COST
 
 
+DASK_REQUEST_MEMORY = 4 * 1024**3
+"""FFS_MAX_REQUEST_MEMORY's default with ``FFS_EXECUTOR=dask``: requests run on the cluster's
+workers, not on this machine (``docker-compose.yml`` gives each ``--memory-limit 4GiB``)."""
+MIN_REQUEST_MEMORY = 1024**3
+"""The least FFS_MAX_REQUEST_MEMORY defaults to (about 80K faces for a reconstruction)."""
+
+
 def request_memory_budget(machine_memory: int, session_memory: int, workers: int) -> int:
     """Bytes one request may use: :data:`MEMORY_HEADROOM` of the machine's memory less the
-    sessions' (``FFS_MAX_SESSION_MEMORY``), shared by ``workers`` solving at once."""
-    room = MEMORY_HEADROOM * (machine_memory - session_memory)
-    return int(max(room, 0) / max(workers, 1))
+    sessions' (``FFS_MAX_SESSION_MEMORY``; at most half of it is set aside for them), shared
+    by ``workers`` solving at once; at least :data:`MIN_REQUEST_MEMORY`."""
+    room = MEMORY_HEADROOM * max(machine_memory - session_memory, machine_memory / 2)
+    return max(int(room / max(workers, 1)), MIN_REQUEST_MEMORY)
 
 
 def faces_within(memory: int, solves: bool) -> int:

@@ -53,6 +53,12 @@ def test_defaults_follow_from_the_request_memory():
     # The default request memory is the workers' share of what the sessions leave.
     assert request_memory_budget(24 * GIB, 4 * GIB, 2) == int(0.8 * 20 * GIB / 2)
     assert Settings(workers=1).max_request_memory > Settings(workers=4).max_request_memory
+    # Sessions never take more than half, and a request always has at least 1 GiB.
+    assert request_memory_budget(8 * GIB, 6 * GIB, 1) == int(0.8 * 4 * GIB)
+    assert request_memory_budget(2 * GIB, 4 * GIB, 8) == GIB
+    # With Dask the requests run on the cluster's workers (4 GiB each in docker-compose.yml).
+    dask = Settings(executor="dask", dask_scheduler_address="tcp://scheduler:8786")
+    assert dask.max_request_memory == 4 * GIB
 
 
 def test_a_request_that_cannot_fit_is_413_naming_the_memory():
@@ -99,7 +105,7 @@ def test_the_client_sees_the_limits_and_the_413():
         assert sizes["max_faces"] == faces_within(memory, solves=False)
         by_operation = sizes["max_faces_by_operation"]
         assert by_operation["forms"] == by_operation["integrability"] == sizes["max_faces"]
-        for name in ("reconstruct", "deform", "parameterize", "sessions"):
+        for name in ("reconstruct", "deform", "parameterize", "interpolate", "sessions"):
             assert by_operation[name] == faces_within(memory, solves=True) < len(F)
         forms = client.fundamental_forms(V, F)
         assert len(forms.faces) == len(F)

@@ -137,3 +137,34 @@ def test_report_round_trips_through_json():
     again = IntegrabilityReport.from_dict(data)
     assert again.genus == 1 and np.array_equal(again.vertex_defect, report.vertex_defect)
     assert again.rotation_holonomy[0].kind == "rotation"
+
+
+@pytest.mark.parametrize(("name", "expected"), [
+    ("sphere", [0]), ("disk", [0]), ("torus", [2]), ("double torus", [4]),
+    ("disk with two holes", [2]), ("torus, sphere and disk", [2, 0, 0])])
+def test_homology_rank_counts_the_independent_loops(name, expected):
+    """2g + b - 1 loops (2g when closed), by the meshes' known genus and holes; and the
+    global holonomy reports that many rotation loops."""
+    from solver.integrability import global_holonomy, homology_rank
+    from solver.system import energy_terms
+    from solver.topology import build_topology
+    from tests.helpers.meshes import (
+        bumpy_grid_with_holes,
+        double_torus,
+        grid,
+        icosphere,
+        side_by_side,
+        torus_grid,
+    )
+
+    V, F = {"sphere": lambda: icosphere(2), "disk": lambda: grid(5, 4),
+            "torus": lambda: torus_grid(8, 6), "double torus": double_torus,
+            "disk with two holes": bumpy_grid_with_holes,
+            "torus, sphere and disk": lambda: side_by_side(torus_grid(8, 6), icosphere(2),
+                                                            grid(4, 4))}[name]()
+    topology = build_topology(F, len(V))
+    assert homology_rank(topology).tolist() == expected
+    forms = fundamental_forms(V, F)
+    rotations, _ = global_holonomy(energy_terms(topology, forms.lengths, forms.angles),
+                                   1e-6, 1.0)
+    assert len(rotations) == sum(expected)

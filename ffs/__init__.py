@@ -17,7 +17,7 @@ except metadata.PackageNotFoundError:  # a source tree that was not installed
     __version__ = "0+unknown"
 
 _EXPORTS = {
-    "Client": "ffs.client", "Job": "ffs.client", "JobProgress": "ffs.client",
+    "Client": "ffs.client", "Job": "ffs.jobs", "JobProgress": "ffs.jobs",
     "Session": "ffs.client",
     "Blend": "ffs.results", "Forms": "ffs.results", "Integrability": "ffs.results",
     "Mesh": "ffs.results", "Parameterization": "ffs.results",

@@ -31,7 +31,6 @@ service::
 
 from __future__ import annotations
 
-import contextlib
 import inspect
 import json
 import os
@@ -48,14 +47,12 @@ import numpy as np
 from ffs import __version__
 from ffs.errors import (
     FFSError,
-    GoneError,
-    JobCancelledError,
-    NotFoundError,
     ProblemError,
     RequestTimeoutError,
     ServiceUnreachableError,
     problem_error,
 )
+from ffs.jobs import Job
 from ffs.operations import OPERATIONS, Operation
 from ffs.results import Forms, Mesh, ShapeBlend
 from ffs.sessions import Session
@@ -327,7 +324,7 @@ class Client:
                          t: float | Sequence[float], *, refine: bool | None = None,
                          **options: Any) -> Call:
         """Blend two embeddings of ``faces`` in form space (``POST /v1/interpolate``)."""
-        t_value = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
+        t_value = _t_values(t)
         return Call("interpolate", {"vertices_a": np.asarray(vertices_a),
                                     "vertices_b": np.asarray(vertices_b),
                                     "faces": np.asarray(faces)},
@@ -340,12 +337,7 @@ class Client:
         shape per row of affine ``weights`` (T, K), or per ``t`` for two shapes; ``options``:
         sequence, align, solver, max_seconds. With ``progress`` it runs as a job and
         reports the rows as they are solved (stage ``rows``)."""
-        params: dict[str, Any] = {"options": _options(refine, options)}
-        if weights is not None:
-            params["weights"] = np.asarray(weights, dtype=np.float64).reshape(
-                -1, len(shapes)).tolist()
-        if t is not None:
-            params["t"] = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
+        params = _blend_params(len(shapes), weights, t, _options(refine, options))
         return Call("blend", {"shapes": np.asarray(shapes, dtype=np.float64),
                               "faces": np.asarray(faces)}, params)
 
@@ -356,12 +348,7 @@ class Client:
         they are (``POST /v1/blend``, one ``shapes`` part per file, in order): rows of
         ``weights`` (T, K), or ``t`` for two files. Its :attr:`ShapeBlend.warnings` name
         the rows past the documented thresholds."""
-        params: dict[str, Any] = {"options": _options(refine, options)}
-        if weights is not None:
-            params["weights"] = np.asarray(weights, dtype=np.float64).reshape(
-                -1, len(paths)).tolist()
-        if t is not None:
-            params["t"] = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
+        params = _blend_params(len(paths), weights, t, _options(refine, options))
         files = [("shapes", (Path(p).name, Path(p).read_bytes())) for p in paths]
         response = self.request("POST", "/v1/blend", headers={"Accept": "application/json"},
                                 files=files, data={k: json.dumps(v) for k, v in params.items()})
@@ -465,96 +452,6 @@ class Client:
         return session
 
 
-@dataclass(frozen=True)
-class JobProgress:
-    """A job's state: ``status`` (queued, running, succeeded, failed, cancelled), the
-    current ``stage``, the overall ``fraction`` and each stage's fraction."""
-
-    status: str
-    stage: str | None
-    fraction: float
-    stages: dict[str, float]
-
-    @property
-    def done(self) -> bool:
-        return self.status in ("succeeded", "failed", "cancelled")
-
-
-class Job:
-    """A job on the service (:meth:`Client.submit`)."""
-
-    POLL_FIRST = 0.02
-    POLL_MAX = 0.5
-
-    def __init__(self, client: Client, job_id: str, operation: str,
-                 decode: Callable[[dict[str, Any]], Any], document: dict[str, Any] | None
-                 ) -> None:
-        self.client = client
-        self.id = job_id
-        self.operation = operation
-        self._decode = decode
-        self.document = document or {}
-        self.path = f"/v1/jobs/{job_id}"
-
-    def __repr__(self) -> str:
-        return f"Job({self.id!r}, {self.operation!r})"
-
-    def status(self) -> dict[str, Any]:
-        """The job document (``GET /v1/jobs/{id}``)."""
-        self.document = dict(self.client.request("GET", self.path).json())
-        return self.document
-
-    def progress(self) -> JobProgress:
-        """The job's status and progress now."""
-        doc = self.status()
-        progress = doc.get("progress") or {}
-        return JobProgress(str(doc["status"]), progress.get("stage"),
-                           float(progress.get("fraction") or 0.0),
-                           dict(progress.get("stages") or {}))
-
-    def wait(self, timeout: float | None = None, on_progress: Progress | None = None
-             ) -> JobProgress:
-        """Poll until the job finished (at most ``timeout`` seconds: then
-        :class:`~ffs.errors.RequestTimeoutError`), calling ``on_progress(stage, fraction)``."""
-        deadline = None if timeout is None else time.monotonic() + timeout
-        interval = self.POLL_FIRST
-        while True:
-            state = self.progress()
-            if on_progress is not None:
-                stage = state.stage or state.status
-                on_progress("queued" if state.status == "queued" else stage,
-                            state.stages.get(stage, 0.0))
-            if state.done:
-                return state
-            if deadline is not None and time.monotonic() > deadline:
-                raise RequestTimeoutError(f"job {self.id} still {state.status} after {timeout:g} s")
-            time.sleep(interval)
-            interval = min(self.POLL_MAX, interval * 1.5)
-
-    def result(self, timeout: float | None = None, on_progress: Progress | None = None) -> Any:
-        """Wait, then the result (the operation's result type). A failed job raises the
-        typed error of its problem document; a cancelled one :class:`JobCancelledError`."""
-        state = self.wait(timeout, on_progress)
-        if state.status == "cancelled":
-            raise JobCancelledError(f"job {self.id} was cancelled")
-        if state.status == "failed":
-            error = self.document.get("error") or {"title": "Job failed", "status": 500}
-            raise problem_error(error, int(error.get("status") or 500))
-        response = self.client.request("GET", f"{self.path}/result",
-                                       headers={"Accept": "application/json"})
-        return self._decode(response.json())
-
-    def cancel(self) -> None:
-        """Cancel a queued or running job (a finished one is deleted with its result)."""
-        self.client.request("DELETE", self.path)
-
-    def discard(self) -> None:
-        """Delete the job and its result on the service (or cancel it); a job already gone
-        is fine."""
-        with contextlib.suppress(NotFoundError, GoneError, ServiceUnreachableError):
-            self.cancel()
-
-
 def table_call(operation: Operation) -> Callable[..., Call]:
     """``Client.<method>_call`` of an operation that takes only its arrays (positional, in
     the row's order) and, where it has options, ``refine`` and the solver options."""
@@ -606,3 +503,20 @@ for _operation in OPERATIONS.values():
     if _operation.arrays:
         setattr(Client, f"{_operation.method}_call", table_call(_operation))
     setattr(Client, _operation.method, _operation_method(_operation))
+
+
+def _t_values(t: float | Sequence[float]) -> float | list[float]:
+    """A blend's ``t``: one number or a list of them (JSON-ready)."""
+    return float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
+
+
+def _blend_params(count: int, weights: Any, t: float | Sequence[float] | None,
+                  options: dict[str, Any]) -> dict[str, Any]:
+    """The parameters of ``POST /v1/blend`` for ``count`` shapes: rows of ``weights``
+    (T, count) or ``t`` values, and the options."""
+    params: dict[str, Any] = {"options": options}
+    if weights is not None:
+        params["weights"] = np.asarray(weights, dtype=np.float64).reshape(-1, count).tolist()
+    if t is not None:
+        params["t"] = _t_values(t)
+    return params

@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from .metrics import summary, wrap_angle
+from .ties import needle_ties, no_ties
 from .topology import MeshTopology
 
 ANGLE_WEIGHT = 0.005
@@ -465,11 +466,25 @@ class FormEnergy:
         self.n = topo.n_vertices
         self.scale = float(np.mean(targets.lengths))
         self.groups: list[ResidualGroup] = []
+        self.free = np.ones(self.n, dtype=bool)
+        self.free[handles.fixed] = False
+        self.free &= topo.is_referenced
+        self.held = np.zeros(self.n, dtype=bool)
+        self.held[handles.fixed] = True
+        self.held[handles.soft_vertices] = True
+        self.held[topo.faces[handles.frame_faces].ravel()] = True
+        self.ties = (needle_ties(topo, targets.lengths, self.held) if dim == 3
+                     else no_ties())
+        self.free[self.ties.vertices] = False
+        self.tie_offsets: np.ndarray | None = None
         if targets.weighting == "area":
             length_weights, hinge_weights = form_weights(topo, targets.lengths)
         else:
             length_weights = hinge_weights = np.ones(topo.n_edges)
-        self._add_lengths(topo.edges, targets.lengths, length_weights)
+        # An edge within a tie cluster keeps its length by the tie: it leaves the energy
+        # (its residual, constant in every step, would only add rounding to the matrix).
+        rigid = self.ties.rigid_edges(topo.edges, self.n)
+        self._add_lengths(topo.edges, targets.lengths, np.where(rigid, 0.0, length_weights))
         self.hinges = hinges(topo) if dim == 3 else None
         self.caps = cap_faces(topo, targets.lengths) if dim == 3 else None
         if dim == 3 and targets.angle_weight > 0:
@@ -486,13 +501,22 @@ class FormEnergy:
             self._add_soft_positions(handles)
         if len(handles.frame_faces):
             self._add_frames(topo.faces, handles)
-        self.free = np.ones(self.n, dtype=bool)
-        self.free[handles.fixed] = False
-        self.free &= topo.is_referenced
-        self.held = np.zeros(self.n, dtype=bool)
-        self.held[handles.fixed] = True
-        self.held[handles.soft_vertices] = True
-        self.held[topo.faces[handles.frame_faces].ravel()] = True
+
+    def tie(self, X: np.ndarray) -> None:
+        """Set the offsets of the tied vertices (:mod:`solver.ties`) from start positions
+        ``X`` (n, dim) and place them there (in place): a run's first call."""
+        if len(self.ties):
+            self.tie_offsets = self.ties.offsets(X)
+            self.ties.place(X, self.tie_offsets)
+
+    def place_tied(self, X: np.ndarray) -> np.ndarray:
+        """``X`` (n, dim) with its tied vertices at their masters plus their offsets (in
+        place; :meth:`tie` first, else the offsets of ``X`` itself)."""
+        if len(self.ties):
+            if self.tie_offsets is None:
+                self.tie(X)
+            self.ties.place(X, self.tie_offsets)
+        return X
 
     def set_handle_targets(self, soft_positions: np.ndarray | None = None,
                            frame_edges: np.ndarray | None = None) -> None:
@@ -504,7 +528,9 @@ class FormEnergy:
             self.frame_edges = np.asarray(frame_edges, dtype=np.float64)
 
     def energy(self, X: np.ndarray) -> float:
-        """E (see the module docstring) of positions ``X`` (n, dim)."""
+        """E (see the module docstring) of positions ``X`` (n, dim); its tied vertices are
+        placed first (:meth:`place_tied`, in place)."""
+        self.place_tied(X)
         return 0.5 * sum(square_sum(g.evaluate(X, False)[0]) for g in self.groups)
 
     # -- residual groups (each returns weighted residuals and their gradients)
@@ -529,7 +555,7 @@ class FormEnergy:
         def curvature(X: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             # r ∇²r = w² (l/L - 1) / (L l) (I - u u^T) across a stretched edge (l from r);
             # kept where it is at least STRETCH_CURVATURE x a mean edge's 1 / s^2.
-            length = L * (1.0 + r / w)
+            length = L * (1.0 + r / np.where(w > 0, w, 1.0))  # (w = 0: a tie's edge)
             c = np.maximum(r, 0.0) * w / (L * np.maximum(length, L))
             rows = np.flatnonzero(c >= stiff)
             d = X[edges[rows, 1]] - X[edges[rows, 0]]

@@ -26,7 +26,7 @@ from .charts import (
     seam_edges,
 )
 from .errors import TopologyError
-from .forms import fundamental_forms
+from .forms import fundamental_forms, zero_area_faces
 from .frames import face_edge_lengths, triangle_areas, triangle_layouts
 from .linalg import factorize
 from .manifold import ManifoldCut, manifold_topology
@@ -148,14 +148,17 @@ def local_global_flattening(topology: MeshTopology, lengths: np.ndarray, uv: np.
 
     Each face's layout (from ``lengths``) is fitted by a rotation (local step); then every
     vertex is placed by one prefactorized cotangent-Laplacian solve (global step; weights
-    clamped to at least 1e-3 of their mean so the matrix stays positive definite, one vertex
-    pinned). A robust start for the planar refinement where the linear answer folds.
+    clamped to at least 1e-3 of their mean so the matrix stays positive definite and to at
+    most 1e4 times their median, which only the cotangents of faces of (nearly) zero area
+    reach; one vertex pinned). A robust start for the planar refinement where the linear
+    answer folds.
     Returns (n, 2) float64.
     """
     F = topology.faces
     n = topology.n_vertices
     layouts = triangle_layouts(face_edge_lengths(topology, lengths), check=False)  # (m, 3, 2)
     w = np.abs(half_cotangents(face_edge_lengths(topology, lengths)))     # (m, 3), edge k
+    w = np.minimum(w, 1e4 * np.median(w))  # zero-area faces: huge, not dominant, weights
     w = np.maximum(w, 1e-3 * w.mean())
     tail, head = F, np.roll(F, -1, axis=1)                                 # half-edge k
     rest = np.roll(layouts, -1, axis=1) - layouts                          # (m, 3, 2)
@@ -371,8 +374,8 @@ def _flatten_or_none(V: np.ndarray, faces: np.ndarray, opts: ParameterizeOptions
                                                             quick)
     if out_of_time:
         return full
-    if (signed_areas(full.uv, faces) <= 0).any() or _mean_change(V, full.uv, faces) > limit \
-            or _overlaps_itself(full.uv, faces):
+    if _folded(V, full.uv, faces).any() or _mean_change(V, full.uv, faces) > limit \
+            or _overlaps_itself(V, full.uv, faces):
         return None
     return full
 
@@ -394,10 +397,22 @@ def _mean_change(V: np.ndarray, uv: np.ndarray, faces: np.ndarray) -> float:
     return float(np.abs(relative_length_change(V, uv, faces, identity)).mean())
 
 
-def _overlaps_itself(uv: np.ndarray, faces: np.ndarray) -> bool:
-    """Whether a chart's layout overlaps itself: a flipped face, or boundary edges that
-    cross (:func:`solver.packing.boundary_crossings`)."""
-    return bool((signed_areas(uv, faces) <= 0).any()) or boundary_crossings(uv, faces) > 0
+def _folded(V: np.ndarray, uv: np.ndarray, faces: np.ndarray, strict: bool = False,
+            ) -> np.ndarray:
+    """(m,) bool, the faces flipped in ``uv`` (signed area <= 0; < 0 with ``strict``),
+    except faces of zero area in ``V`` (collinear corners, issue 40): flat in 3D, their uv
+    area is 0 up to rounding, of either sign, and says nothing about a fold."""
+    area = signed_areas(uv, faces)
+    folded = area < 0 if strict else area <= 0
+    if folded.any():
+        folded[zero_area_faces(V, faces)] = False
+    return folded
+
+
+def _overlaps_itself(V: np.ndarray, uv: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether a chart's layout overlaps itself: a flipped face (:func:`_folded`), or
+    boundary edges that cross (:func:`solver.packing.boundary_crossings`)."""
+    return bool(_folded(V, uv, faces).any()) or boundary_crossings(uv, faces) > 0
 
 
 SMALL_CHART_FACES = 20_000
@@ -512,7 +527,7 @@ def _keeps_single_chart(V: np.ndarray, uv: np.ndarray, topology: MeshTopology,
     F = topology.faces
     if not is_disk_like(topology):
         return False
-    flipped = int((signed_areas(uv, F) < 0).sum())
+    flipped = int(_folded(V, uv, F, strict=True).sum())
     if flipped > DEFAULT_RULES.max_flipped_fraction * len(F):
         return False
     if _mean_change(V, uv, F) > 2 * opts.max_chart_distortion:
@@ -556,8 +571,11 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
     signed_area = signed_areas(uv, uv_faces)
     area3d = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
                                   axis=1)
-    flipped = np.flatnonzero(signed_area < 0)
-    ratio = signed_area / area3d
+    folded = signed_area < 0
+    folded[zero_area_faces(V, F)] = False  # flat in 3D: no fold (see _folded)
+    flipped = np.flatnonzero(folded)
+    # A face of zero area (issue 40) has no area ratio: counted as 1 (unchanged).
+    ratio = np.divide(signed_area, area3d, out=np.ones_like(signed_area), where=area3d > 0)
     flat3 = np.concatenate([uv, np.zeros((len(uv), 1))], axis=1)
     angle_change = np.abs(corner_angles(flat3, uv_faces) - corner_angles(V, F)).max(axis=1)
     if uv_faces is F:
@@ -594,6 +612,8 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
         anchored_components=flattening.anchored, backend=flattening.backend,
         analysis=flattening.analysis, timings=stages.timings, atlas=atlas,
         warnings=warnings)
+    if forms.zero_area_faces is not None:  # collinear corners (issue 40): counted
+        report.input = {"zero_area_faces": len(forms.zero_area_faces)}
     return Parameterization(uv=uv, flipped_faces=flipped, area_ratio=ratio,
                             angle_distortion=angle_change, report=report,
                             texcoords=texcoords, uv_faces=uv_faces, uv_vertex=uv_vertex,
@@ -615,7 +635,7 @@ def _on_file_vertices(flat: Parameterization, cut: ManifoldCut) -> Parameterizat
     ``uv_vertex`` names the file vertex of each (``report["input"]["cut"]``)."""
     if flat.uv_vertex is not None:
         flat.uv_vertex = cut.vertex_map[flat.uv_vertex]
-    flat.report.input = {"cut": cut.report()}
+    flat.report.input = {**(flat.report.input or {}), "cut": cut.report()}
     return flat
 
 

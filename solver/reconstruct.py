@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 from .constraints import Constraints
 from .errors import ConstraintError, TriangleInequalityError
 from .form_energy import well_shaped_errors
-from .forms import validate_forms, wrapped_angle_count
+from .forms import flat_faces, validate_forms, wrapped_angle_count
 from .frames import (
     face_edge_lengths,
     layout_frames,
@@ -586,6 +586,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         stages("refine", 1.0)
 
     input_report: dict[str, Any] = {"wrapped_angles": wrapped_angle_count(angles),
+                                     "zero_area_faces": len(flat_faces(topology, L)),
                                      "placement": "none"}
     laid_out = np.array([a["component"] for a in anchored], dtype=np.int64)
     if place is None and len(laid_out) > 1:
@@ -638,15 +639,14 @@ def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
     fit = refiner.run(start, time_limit=stages.left(opts.max_seconds), progress=progress)
     refinement = dict(fit.report, start=label)
     vertices = fit.vertices
-    if not refinement.get("converged"):
-        # A refinement that stopped short never leaves the well-shaped elements worse off
-        # than its start (slivers and needles: issue 40).
-        before = well_shaped_errors(start, topology, problem.lengths, problem.angles)
-        after = well_shaped_errors(vertices, topology, problem.lengths, problem.angles)
-        refinement["well_shaped_error"] = {"start": before, "refined": after}
-        if after > before:
-            vertices, refinement["returned"] = start, "start: the refined shape's errors on " \
-                "well-shaped elements were larger"
+    # The errors on the well-shaped elements, reported for every refinement (slivers and
+    # needles: issue 40); one that stopped short never leaves them worse than its start.
+    before = well_shaped_errors(start, topology, problem.lengths, problem.angles)
+    after = well_shaped_errors(vertices, topology, problem.lengths, problem.angles)
+    refinement["well_shaped_error"] = {"start": before, "refined": after}
+    if not refinement.get("converged") and after > before:
+        vertices, refinement["returned"] = start, "start: the refined shape's errors on " \
+            "well-shaped elements were larger"
     return problem.place_anchored(vertices, anchored), refinement
 
 

@@ -73,14 +73,51 @@ def rigid_alignment(vertices: ArrayLike, reference: ArrayLike, *,
         raise ShapeMismatchError(
             f"the reference has {len(target)} vertices, the answer {len(moving)}: align to a "
             "mesh with the same vertices (the mesh the forms came from)", field=field)
-    moving_center, target_center = moving.mean(axis=0), target.mean(axis=0)
-    covariance = (target - target_center).T @ (moving - moving_center)
-    u, _, vt = np.linalg.svd(covariance)
-    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
-    rotation = u @ flip @ vt
-    translation = target_center - rotation @ moving_center
+    rotations, moving_center, target_center = kabsch(moving, target)
+    rotation = rotations[0]
+    translation = target_center[0] - rotation @ moving_center[0]
     aligned = moving @ rotation.T + translation
     distance = np.linalg.norm(aligned - target, axis=1)
     return Alignment(aligned, rotation, translation,
                      float(np.sqrt(np.mean(distance ** 2))) if len(distance) else 0.0,
                      float(distance.max(initial=0.0)))
+
+
+def kabsch(source: np.ndarray, target: np.ndarray, group: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The proper rotations that best map each group of ``source`` onto ``target`` (Kabsch).
+
+    For every group ``g``, ``R_g`` minimizes ``sum_{v in g} |R_g (x_v - c_g) - (y_v - d_g)|^2``
+    over rotations (det +1, no reflection), ``c_g`` and ``d_g`` the groups' centroids.
+
+    Args:
+        source, target: (n, 3) float64, vertex for vertex.
+        group: (n,) int64 group of each point (e.g. its connected component); ``None``: one
+            group.
+
+    Returns:
+        ``(rotations, source_centers, target_centers)``: (k, 3, 3), (k, 3), (k, 3) float64,
+        ``k`` the number of groups; ``x -> R_g (x - c_g) + d_g`` is the fit of group ``g``.
+
+    Example:
+        >>> import numpy as np
+        >>> X = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> R = np.array([[0., -1, 0], [1, 0, 0], [0, 0, 1]])
+        >>> rotations, _, _ = kabsch(X, X @ R.T + 2.0)
+        >>> bool(np.allclose(rotations[0], R))
+        True
+    """
+    c = (np.zeros(len(source), dtype=np.int64) if group is None
+         else np.asarray(group, dtype=np.int64))
+    k = int(c.max(initial=0)) + 1
+    counts = np.maximum(np.bincount(c, minlength=k), 1).astype(np.float64)[:, None]
+    source_centers = np.stack([np.bincount(c, source[:, d], k) for d in range(3)], 1) / counts
+    target_centers = np.stack([np.bincount(c, target[:, d], k) for d in range(3)], 1) / counts
+    covariance = np.zeros((k, 3, 3))
+    np.add.at(covariance, c, (target - target_centers[c])[:, :, None]
+              * (source - source_centers[c])[:, None, :])
+    u, _, vt = np.linalg.svd(covariance)
+    sign = np.sign(np.linalg.det(u @ vt))
+    sign[sign == 0] = 1.0
+    u[:, :, 2] *= sign[:, None]
+    return u @ vt, source_centers, target_centers

@@ -55,6 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .adjoints import FormCotangents, LinearAdjoint, RefinedAdjoint
+from .alignment import kabsch
 from .errors import ConstraintError
 from .forms import validate_forms
 from .options import ReconstructOptions
@@ -224,10 +225,8 @@ def aligned_distance(vertices: ArrayLike, target: ArrayLike) -> tuple[float, np.
     """
     X = np.asarray(vertices, dtype=np.float64)
     Y = np.asarray(target, dtype=np.float64)
-    x0, y0 = X.mean(axis=0), Y.mean(axis=0)
-    U, _, Vt = np.linalg.svd((X - x0).T @ (Y - y0))
-    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
-    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T                     # R (x - x0) ~ y - y0
+    rotations, centers, target_centers = kabsch(X, Y)
+    R, x0, y0 = rotations[0], centers[0], target_centers[0]      # R (x - x0) ~ y - y0
     residual = (X - x0) @ R.T + y0 - Y
     norm = len(X) * float(np.mean(np.sum((Y - y0) ** 2, axis=1)))
     return float(np.sum(residual**2)) / norm, 2.0 * residual @ R / norm

@@ -20,14 +20,13 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from .stopping import StopReason
+
 OUTCOMES = ("converged", "partial", "not-refined")
 """The values of a refinement report's ``outcome``."""
 
-STOP_WORDS = {"time_limit": "time limit", "max_iterations": "iteration budget",
-              "stalled": "stalled (no further progress)", "stationary": "stationary",
-              "converged": "converged", "exact": "exact",
-              "no_free_vertices": "no free vertices"}
-"""``stop_reason`` -> the words the outcome uses."""
+STOP_WORDS = {reason.value: reason.words for reason in StopReason}
+"""``stop_reason`` -> the words the outcome uses (:attr:`StopReason.words`)."""
 
 
 def refinement_outcome(report: Mapping[str, Any]) -> str:

@@ -34,6 +34,7 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike
 from scipy.sparse.csgraph import connected_components
 
+from .alignment import kabsch
 from .errors import ConstraintError
 from .rotations import nearest_rotation
 from .serialization import JsonDataclass
@@ -212,19 +213,9 @@ def align_components(source: np.ndarray, target: np.ndarray,
         True
     """
     c = np.asarray(vertex_component, dtype=np.int64)
-    k = int(c.max(initial=-1)) + 1
-    counts = np.maximum(np.bincount(c, minlength=k), 1).astype(np.float64)[:, None]
-    cs = np.stack([np.bincount(c, source[:, d], k) for d in range(3)], axis=1) / counts
-    ct = np.stack([np.bincount(c, target[:, d], k) for d in range(3)], axis=1) / counts
-    xs, yt = source - cs[c], target - ct[c]
-    H = np.zeros((k, 3, 3))
-    np.add.at(H, c, xs[:, :, None] * yt[:, None, :])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d[d == 0] = 1.0
-    U[:, :, 2] *= d[:, None]
-    R = np.swapaxes(U @ Vt, 1, 2)  # x -> R x maps source onto target
-    return np.einsum("kij,kj->ki", R[c], xs) + ct[c]
+    rotations, source_centers, target_centers = kabsch(source, target, c)
+    return (np.einsum("vij,vj->vi", rotations[c], source - source_centers[c])
+            + target_centers[c])
 
 
 def side_by_side(vertices: np.ndarray, vertex_component: np.ndarray,

@@ -23,13 +23,14 @@ and the reasons for each choice: ``docs/refinement.md``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 from threadpoolctl import ThreadpoolController
 
+from . import stopping
 from .form_energy import (  # noqa: F401 - re-exported: the refinement's public names
     ANGLE_WEIGHT,
     AREA_FLOOR,
@@ -58,85 +59,9 @@ from .normal_equations import (  # noqa: F401 - re-exported
 from .outcomes import with_outcome
 from .quasi_newton import QuasiNewtonMemory
 from .rigid_motions import RigidMotions, RigidProjection
+from .steps import DEFAULT_STEP_RULES, StepRules, factor_precision, nielsen_damping
+from .stopping import DEFAULT_STOP_RULES, StopReason, StopRules
 
-MAX_ITERATIONS = 50
-TOLERANCE = 1e-4
-"""Stop after a full Gauss-Newton step that moved no vertex by more than this fraction of
-the mean target edge length (an energy criterion fails here: where the forms conflict, E
-stays large at the optimum, so its relative decrease says little about the positions)."""
-ENERGY_TOLERANCE = 1e-3
-"""... or lowered E by less than this fraction of E (the slow tail of Gauss-Newton where
-large residuals remain, e.g. strong deformations: measured to change the result's mean
-length and angle errors in the fourth digit)."""
-STALL_STEPS = 5
-"""A run whose last this many steps together lowered E by at most :data:`ENERGY_TOLERANCE`
-of it stops, not converged (``stop_reason: "stalled"``): it crawls on steps the damping has
-shortened to nothing, which then can no longer prove convergence (a knight with 5 faces
-flattened to 1e-6 of their width and 10 needle edges: the damping grew to 20, and 25 more
-iterations lowered E by 0.2% before the iteration budget ran out)."""
-EXACT_ENERGY = 1e-24  # E below this: the forms are met to round-off
-STEP_FRACTIONS = (1.0, 0.5, 0.25, 0.1)  # of a Gauss-Newton step tried before more damping
-ARMIJO = 1e-4  # sufficient decrease: E(x + a d) < E(x) + ARMIJO a g.d
-MAX_FROZEN_STEPS = 6  # steps on one factorization before it is rebuilt at the current X
-FROZEN_GAIN = 0.5  # rebuild earlier when a step lowers E by less than this x its prediction
-FROZEN_REACH = 0.5  # ... or moved a vertex by more than this many mean edge lengths
-QUASI_NEWTON_REACH = 1e-2
-"""A refinement that is not interactive ends on a step of a factor built elsewhere (frozen
-Gauss-Newton or L-BFGS) only if that step moved no vertex by more than this fraction of the
-mean target edge length: where the valley of E is flat, its decrease is below
-:data:`ENERGY_TOLERANCE` long before the positions settle (angles x 0.8 on the bunny: the
-answer was 5.5e-4 of its size from the exact optimum without this, 6e-5 with it;
-``python -m bench.refinement --sections optimum``)."""
-REFUSED_PREDICTION = 2.0
-"""A kept factor's step that is refused after gaining at most :data:`ENERGY_TOLERANCE` of E
-at the best length tried still ends a run that is not interactive (converged) where the
-factor predicted at most this many times :data:`ENERGY_TOLERANCE` of E: the model of a
-nearby point overestimates what is left, and its best direction finds none of it
-(nefertiti, noisy angles, min angle 0.06°: its prediction was 1.02e-3 of E and its step
-gained nothing; 1 factorization instead of 2, 1.5e-5 of the size from the exact optimum
-instead of 2.6e-7, the same 3.4e-5 from the original mesh). Not in a session's drags: their
-kept factors come from other shapes (a pause's refinement stopped at a mean length change
-of 0.0183 instead of 0.0158 with it)."""
-SMALL_FROZEN_STEPS = 2
-"""A factor takes at most this many further steps after a small, well-predicted one of its
-own that moved more than :data:`QUASI_NEWTON_REACH` before a fresh factorization confirms
-convergence (cactus x 0.8: two such steps of 1.1e-2 and 1.2e-2 of an edge, then one of
-1.6e-3 that converged; 2 factorizations instead of 3). Fewer than :data:`STALL_STEPS`:
-steps continued this way cannot end a run as stalled."""
-KEPT_STEPS = 20
-"""A run that starts from a kept factor (``keep_factor``: a session's drags after the
-first) keeps it for up to this many quasi-Newton steps, rebuilding it only when a step
-lowers E by less than :data:`KEPT_GAIN` x its prediction, and not after long steps: a
-drag's factor comes from the previous drag's shape, and L-BFGS absorbs the difference
-(rocker-arm, drags 2-5: no factorization instead of 17, and a lower final energy;
-docs/refinement.md). Runs that factorize first (one-shot deformations, a session's first
-drag) keep the stricter rules above, measured better there (the Botsch-Sorkine cases)."""
-KEPT_GAIN = 0.05
-KEPT_DAMPING = 1e-3
-"""... provided the kept factor's relative damping is at most this: a heavily damped factor
-(a hard previous drag ends at lambda ~ 1-10) takes short, well-predicted steps that would
-keep it for ever while E falls by 1-3% a step (icosphere, 4 handles: 50 iterations, not
-converged)."""
-QUASI_NEWTON_MEMORY = 8
-"""(s, y) pairs of L-BFGS since the factor was built, in runs that start from a kept factor
-(elsewhere the steps between factorizations are plain frozen Gauss-Newton steps: L-BFGS
-cost the cylinder of the Botsch-Sorkine cases 13 factorizations instead of 10)."""
-INITIAL_DAMPING = 1e-9
-"""lambda of the first step, relative to diag(J^T J): a plain Gauss-Newton step. A larger
-start (1e-4 before) holds back the soft bending modes, whose curvature is far below the
-stretching diagonal: each step then closed only a small fraction of their gap, and the
-refinement crawled through a long tail of iterations (rocker-arm, noisy angles: 16
-iterations and 4 factorizations against 2 and 1 to a lower energy; docs/refinement.md)."""
-MIN_DAMPING = 1e-12  # the Nielsen update never lowers lambda below this
-REFUSED_DAMPING = 1e-4  # at least this lambda after a fresh step that no backtracking saved
-MAX_DAMPING = 1e12  # relative damping at which a step is declared impossible
-SINGLE_PRECISION_SPREAD = 1e4
-"""Largest spread (largest over median entry) of the damped Gauss-Newton matrix's diagonal
-that is factorized in single precision (:func:`factor_precision`)."""
-SINGLE_PRECISION_ERROR = 0.1
-"""Largest relative correction of a single-precision factor's solve by its refinement step
-before the refinement factorizes in double precision instead (the beetle's soft rims:
-0.12-0.58; rocker-arm, the bunny: ~1e-3; armadillo, nefertiti: 2-4e-2)."""
 
 @dataclass
 class Refinement:
@@ -171,14 +96,18 @@ class Refiner:
         handles: optional :class:`Handles`; their target values may change per :meth:`run`.
         dim: 3, or 2 for a planar fit (parameterization).
         backend: sparse factorization backend (:func:`solver.linalg.factorize`).
+        stop_rules: when a run stops (:class:`~solver.stopping.StopRules`).
+        step_rules: how it steps (:class:`~solver.steps.StepRules`).
     """
 
     def __init__(self, targets: FormTargets, handles: Handles | None = None, dim: int = 3,
-                 backend: str = "auto") -> None:
+                 backend: str = "auto", *, stop_rules: StopRules = DEFAULT_STOP_RULES,
+                 step_rules: StepRules = DEFAULT_STEP_RULES) -> None:
         handles = handles or Handles(soft_positions=np.zeros((0, dim)),
                                      frame_edges=np.zeros((0, 2, dim)))
         self.targets = targets
         self.backend = backend
+        self.stop_rules, self.step_rules = stop_rules, step_rules
         self.form_energy = FormEnergy(targets, handles, dim)
         self.system = GaussNewtonSystem(self.form_energy)
         energy = self.form_energy
@@ -189,7 +118,7 @@ class Refiner:
         # The factor, its matrix and the projection off its rigid motions that the previous
         # keep_factor run ended with (see run(keep_factor=True)).
         self._kept: tuple[Any, sp.csr_array, RigidProjection] | None = None
-        self._kept_damping = INITIAL_DAMPING
+        self._kept_damping = step_rules.initial_damping
         self._double = False  # a single-precision factor was too inexact: double from now on
         self._paused: _Iteration | None = None  # a run stopped at its time limit (resume)
         self._iteration_seconds: dict[str, float | None] = {"refresh": None, "step": 0.0}
@@ -219,8 +148,8 @@ class Refiner:
                               self.form_energy.hinges)
 
     def run(self, start: np.ndarray, *, soft_positions: np.ndarray | None = None,
-            frame_edges: np.ndarray | None = None, max_iterations: int = MAX_ITERATIONS,
-            tolerance: float = TOLERANCE, time_limit: float | None = None,
+            frame_edges: np.ndarray | None = None, max_iterations: int | None = None,
+            tolerance: float | None = None, time_limit: float | None = None,
             keep_factor: bool = False, progress: Any = None,
             start_energy: float | None = None, interactive: bool | None = None,
             ) -> Refinement:
@@ -238,13 +167,16 @@ class Refiner:
         (a session's drags); ``keep_factor=True, interactive=False`` keeps factors from run
         to run but converges as a one-shot refinement does (the rows of a blend sequence,
         :func:`solver.blend`, whose answers are compared with independent ones). See
-        :func:`refine` for the rest.
+        :func:`refine` for the rest (``max_iterations`` and ``tolerance`` replace those of
+        this refiner's :class:`~solver.stopping.StopRules`).
         """
         clock = time.perf_counter()
         self.set_handle_targets(soft_positions, frame_edges)
+        given = {"max_iterations": max_iterations, "tolerance": tolerance}
+        rules = replace(self.stop_rules, **{k: v for k, v in given.items() if v is not None})
         with _BLAS.limit(limits=1, user_api="blas"):
             state = _Iteration.start(self, np.array(start, dtype=np.float64), keep_factor,
-                                     max_iterations, tolerance, start_energy)
+                                     rules, start_energy)
             state.interactive = keep_factor if interactive is None else interactive
             return self._advance(state, time_limit, progress, clock)
 
@@ -290,7 +222,7 @@ class Refiner:
         """Iterate ``state`` until it stops (:meth:`_iterate`); the :class:`Refinement`."""
         self._paused = None
         self._iterate(state, time_limit, _iteration_notifier(progress, time_limit), clock)
-        if state.stop == "time_limit":
+        if state.stop == StopReason.TIME_LIMIT:
             self._paused = state
         if state.keep_factor and state.factor is not None:
             self._kept = (state.factor, state.model, state.projection)
@@ -303,24 +235,29 @@ class Refiner:
     def _iterate(self, s: _Iteration, time_limit: float | None, notify: Any,
                  clock: float) -> None:
         """The iteration of :meth:`run` and :meth:`resume`, advancing ``s`` in place until
-        it converges, runs out of iterations or reaches ``time_limit`` (it stops before an
-        iteration or a factorization that the last one of its kind says would end past it)."""
-        system = self.system
-        s.stop = "max_iterations"
-        while s.iterations < s.max_iterations and system.n_free and not s.converged:
+        a rule of :mod:`solver.stopping` stops it or it reaches ``time_limit`` (it stops
+        before an iteration or a factorization that the last one of its kind says would end
+        past it)."""
+        system, rules, steps = self.system, s.rules, self.step_rules
+        s.stop = None
+        while not s.converged:
+            reason = stopping.out_of_budget(rules, s.iterations, system.n_free)
+            if reason is not None:
+                s.end(reason)
+                break
             refresh = s.factor is None or s.frozen_steps >= s.max_frozen
             if not self._fits(s, refresh, time_limit, clock):
-                s.stop = "time_limit"
+                s.end(StopReason.TIME_LIMIT)
                 break
             began, factorizations = time.perf_counter(), s.factorizations
             s.iterations += 1
             energy, H, g = system.normal_equations(s.X, matrix=refresh)
             s.memory.observe(g)
-            if energy <= EXACT_ENERGY:
-                s.stop, s.converged = "exact", True
+            if stopping.exact(rules, energy):
+                s.end(StopReason.EXACT)
                 break
             accepted = False
-            while not accepted and s.damping <= MAX_DAMPING:
+            while not accepted and not stopping.stationary(rules, s.damping):
                 if refresh:
                     s.factor = None  # frees its analysis for the cache: the next one reuses it
                     try:
@@ -358,35 +295,24 @@ class Refiner:
                 found = self._line_search(s.X, step, energy, slope) if slope < 0 else None
                 gained = energy - found[2] if found is not None else 0.0
                 if (found is not None and not s.fresh and not s.interactive
-                        and gained < FROZEN_GAIN * predicted):
+                        and gained < steps.frozen_gain * predicted):
                     # A step of a factor built elsewhere that lowers E by less than half its
-                    # prediction went astray: a fresh step from here does better (angles
-                    # x 0.8: one taken with gain 0.14 left the next fresh step 2e-4 of E
-                    # short, and the answer 10x further from the optimum).
+                    # prediction went astray: a fresh step from here does better.
                     found = None
                 accepted = found is not None
-                # The factor of a nearby point, whose last step it predicted well, expects
-                # less than ENERGY_TOLERANCE of E from here (a Newton-decrement test): what
-                # is left is below the convergence test, confirmed without a fresh
-                # factorization (x 0.8 forms: one factorization fewer).
                 moved = float(np.abs(step).max(initial=0.0)) / system.energy.scale
-                # So does one whose step, refused, gained at most that much at its best
-                # length while the factor predicted at most REFUSED_PREDICTION times it (not
-                # in a session's drags, whose kept factors come from other shapes).
-                negligible = (not s.fresh and _trusted(s)
-                              and (s.interactive or moved <= QUASI_NEWTON_REACH)
-                              and (predicted <= ENERGY_TOLERANCE * energy
-                                   or (found is None and not s.interactive
-                                       and gained <= ENERGY_TOLERANCE * energy
-                                       and predicted <= REFUSED_PREDICTION
-                                       * ENERGY_TOLERANCE * energy)))
+                negligible = stopping.negligible(
+                    rules, fresh=s.fresh,
+                    trusted=stopping.trusted(rules, s.damping, s.factor_gain),
+                    interactive=s.interactive, moved=moved, predicted=predicted,
+                    energy=energy, refused=found is None, gained=gained)
                 if found is None:
                     s.rejected += 1
                     if negligible:
-                        s.stop, s.converged = "converged", True
+                        s.end(StopReason.CONVERGED)
                         break
                     if s.fresh:
-                        s.damping = max(s.damping * s.growth, REFUSED_DAMPING)
+                        s.damping = max(s.damping * s.growth, steps.refused_damping)
                         s.growth *= 2.0
                     if self._refresh_stopped(s, time_limit, clock):
                         break
@@ -397,59 +323,39 @@ class Refiner:
                 alpha, trial, new_energy = found
                 s.memory.moved(alpha * step, g, system, s.model)
                 gain = (energy - new_energy) / predicted if predicted > 0 else 0.0
-                # A full Gauss-Newton step (fresh matrix, little damping) that barely lowers
-                # E: converged. A quasi-Newton, shortened or heavily damped step says nothing.
-                full = s.fresh and alpha == 1.0 and s.damping <= 1.0
                 decrease, s.X, s.energy = energy - new_energy, trial, new_energy
                 energy = new_energy
                 s.trace.append(energy)
                 s.steps.append(moved)
                 notify(s.iterations, s.factorizations, energy, time.perf_counter() - clock)
-                # ... unless E still falls fast (Gauss-Newton's quadratic convergence where the
-                # forms are met): then a few more steps are cheap and reach round-off.
-                slowing = decrease <= 0.5 * (energy + decrease)
-                small = moved <= s.tolerance or decrease <= ENERGY_TOLERANCE * energy
-                if (full and small and slowing) or negligible or energy <= EXACT_ENERGY:
-                    s.stop, s.converged = "converged", True
-                elif small and slowing and not s.fresh:
-                    # A small full step on a kept factor whose model just predicted the
-                    # decrease well (gain near 1) is as good as a fresh one: that factor is
-                    # the Gauss-Newton matrix of a nearby point. Interactive runs
-                    # (keep_factor) accept it outright; others only where it also moved
-                    # little (a small decrease of E on a flat valley floor can leave the
-                    # answer 1e-3 of its size from the optimum). A well-predicted step that
-                    # moved more takes the next step on the same factor (cactus x 0.8: 2
-                    # factorizations instead of 3); any other is confirmed by a fresh one.
-                    well = alpha == 1.0 and _trusted(s, gain)
-                    if s.interactive or (well and moved <= QUASI_NEWTON_REACH):
-                        s.stop, s.converged = "converged", True
-                    elif not well or s.frozen_steps > SMALL_FROZEN_STEPS:
-                        s.frozen_steps = s.max_frozen
+                verdict = stopping.after_step(
+                    rules, fresh=s.fresh, interactive=s.interactive, alpha=alpha,
+                    damping=s.damping, gain=gain, moved=moved, decrease=decrease,
+                    energy=energy, negligible=negligible, frozen_steps=s.frozen_steps)
+                if verdict == stopping.CONFIRM:
+                    s.frozen_steps = s.max_frozen
+                elif verdict is not None:
+                    s.end(verdict)
                 if s.fresh:  # Levenberg-Marquardt's damping update (Nielsen)
-                    s.damping = max(MIN_DAMPING, s.damping * (
-                        max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3) if alpha == 1.0
-                        else 10.0))
+                    s.damping = nielsen_damping(steps, s.damping, gain, alpha)
                     s.growth = 2.0
                 # The next steps reuse this factor (quasi-Newton, one back-substitution each)
-                # while they lower E about as predicted; otherwise it is rebuilt at the new X.
+                # while they lower E about as predicted; otherwise it is rebuilt at the new X,
+                # as it is (unless it was kept) after a long step.
                 s.fresh, s.factor_gain = False, gain
                 s.frozen_steps += 1
-                # ... nor, unless it was kept, after a long step: a model built before a
-                # move of more than FROZEN_REACH edge lengths was refused in every measured
-                # case (x0.8 forms, strong deformations).
-                if gain < s.min_gain or (moved > FROZEN_REACH and not s.kept):
+                if gain < s.min_gain or (moved > steps.frozen_reach and not s.kept):
                     s.frozen_steps = s.max_frozen
-            if s.stop == "time_limit":
+            if s.stop == StopReason.TIME_LIMIT:
                 break
             kind = "refresh" if s.factorizations > factorizations else "step"
             self._iteration_seconds[kind] = time.perf_counter() - began
-            if not accepted and not s.converged:  # no step lowers E: stationary
-                s.stop, s.converged = "stationary", True
-            elif not s.converged and _stalled(s.trace):
-                s.stop = "stalled"
-                break
-        if not system.n_free:
-            s.stop, s.converged = "no_free_vertices", True
+            if not s.converged:
+                reason = stopping.after_iteration(rules, accepted, s.trace)
+                if reason is not None:
+                    s.end(reason)
+                    if reason == StopReason.STALLED:
+                        break
 
     def prepare(self) -> None:
         """Have the factorization backend analyse the Gauss-Newton matrix's pattern now
@@ -495,7 +401,8 @@ class Refiner:
         this iteration again with that factorization."""
         if self._fits(s, True, time_limit, clock):
             return False
-        s.frozen_steps, s.stop = s.max_frozen, "time_limit"
+        s.frozen_steps = s.max_frozen
+        s.end(StopReason.TIME_LIMIT)
         s.iterations -= 1
         return True
 
@@ -543,9 +450,11 @@ class Refiner:
         damped = sp.csr_array((values, H.indices, H.indptr), shape=H.shape)
         damped.has_canonical_format = True
         if (single and not self._double and resolve_backend(self.backend) == "pardiso"
-                and factor_precision(values[positions]) == "single"):
+                and factor_precision(values[positions],
+                                     self.step_rules.single_precision_spread) == "single"):
             try:
-                return SinglePrecisionFactor(damped, self.backend, SINGLE_PRECISION_ERROR)
+                return SinglePrecisionFactor(damped, self.backend,
+                                             self.step_rules.single_precision_error)
             except SingularSystemError:
                 self._double = True
         return factorize(damped, self.backend, triangle="upper")
@@ -554,14 +463,16 @@ class Refiner:
                      ) -> tuple[float, np.ndarray, float] | None:
         """Backtracking along ``step`` (n_free * dim,) from ``X`` (n, dim) at energy
         ``energy`` with directional derivative ``slope`` < 0: the first of
-        :data:`STEP_FRACTIONS` that decreases E sufficiently (Armijo), as ``(fraction, new
-        positions, new E)``, or None. It costs energies, never factorizations."""
+        :attr:`StepRules.step_fractions` that decreases E sufficiently (Armijo), as
+        ``(fraction, new positions, new E)``, or None. It costs energies, never
+        factorizations."""
         free, dim = self.form_energy.free, self.form_energy.dim
-        for alpha in STEP_FRACTIONS:
+        armijo = self.step_rules.armijo
+        for alpha in self.step_rules.step_fractions:
             trial = X.copy()
             trial[free] += alpha * step.reshape(-1, dim)
             new_energy = self.form_energy.energy(trial)
-            if np.isfinite(new_energy) and new_energy < energy + ARMIJO * alpha * slope:
+            if np.isfinite(new_energy) and new_energy < energy + armijo * alpha * slope:
                 return alpha, trial, new_energy
         return None
 
@@ -581,12 +492,11 @@ class _Iteration:
     max_frozen: int
     min_gain: float
     memory: QuasiNewtonMemory
-    max_iterations: int
-    tolerance: float
+    rules: StopRules
     factor: Any = None
     model: sp.csr_array | None = None
     projection: RigidProjection | None = None  # off the rigid motions where factor was built
-    damping: float = INITIAL_DAMPING
+    damping: float = DEFAULT_STEP_RULES.initial_damping
     growth: float = 2.0
     fresh: bool = False  # whether ``factor`` was computed at the current X
     factor_gain: float = 0.0  # gain ratio of the last step taken with ``factor``
@@ -597,31 +507,32 @@ class _Iteration:
     precisions: set[str] = field(default_factory=set)  # of the factorizations
     solves: int = 0
     slices: int = 1
-    stop: str = "max_iterations"
+    stop: StopReason | None = None
     converged: bool = False
     trace: list[float] = field(default_factory=list)
     steps: list[float] = field(default_factory=list)
 
     @classmethod
-    def start(cls, refiner: Refiner, X: np.ndarray, keep_factor: bool, max_iterations: int,
-              tolerance: float, energy: float | None = None) -> _Iteration:
+    def start(cls, refiner: Refiner, X: np.ndarray, keep_factor: bool, rules: StopRules,
+              energy: float | None = None) -> _Iteration:
         """The state before the first step from ``X`` (n, dim). With ``keep_factor`` the
         previous run's factor (and damping) is the first model: consecutive drags of a
         session are alike; a run that starts from a lightly damped kept factor keeps its
-        factors longer (see :data:`KEPT_STEPS`)."""
+        factors longer (:attr:`StepRules.kept_steps`)."""
         energy = refiner.form_energy.energy(X) if energy is None else energy
         factor, model, projection = (refiner._kept if keep_factor and refiner._kept
                                      else (None, None, None))
-        damping = refiner._kept_damping if factor is not None else INITIAL_DAMPING
-        kept = factor is not None and damping <= KEPT_DAMPING
-        max_frozen, min_gain = (KEPT_STEPS, KEPT_GAIN) if kept else (MAX_FROZEN_STEPS,
-                                                                     FROZEN_GAIN)
+        steps = refiner.step_rules
+        damping = refiner._kept_damping if factor is not None else steps.initial_damping
+        kept = factor is not None and damping <= steps.kept_damping
+        max_frozen, min_gain = ((steps.kept_steps, steps.kept_gain) if kept
+                                else (steps.max_frozen_steps, steps.frozen_gain))
         return cls(X=X, before=refiner.residuals(X), energy0=energy, energy=energy,
                    keep_factor=keep_factor, interactive=keep_factor, kept=kept,
                    max_frozen=max_frozen,
                    min_gain=min_gain,
-                   memory=QuasiNewtonMemory(QUASI_NEWTON_MEMORY if kept else 0),
-                   max_iterations=max_iterations, tolerance=tolerance, factor=factor,
+                   memory=QuasiNewtonMemory(steps.quasi_newton_memory if kept else 0),
+                   rules=rules, factor=factor,
                    model=model, projection=projection, damping=damping,
                    factor_gain=1.0 if factor is not None else 0.0, trace=[energy])
 
@@ -649,16 +560,21 @@ class _Iteration:
         A single-precision factor (:class:`~solver.mixed_precision.SinglePrecisionFactor`)
         refines its answer by one more back-substitution, counted in ``solves``, and
         raises :class:`~solver.mixed_precision.ImpreciseSolveError` where that corrects
-        it by more than :data:`SINGLE_PRECISION_ERROR`."""
+        it by more than :attr:`StepRules.single_precision_error`."""
         if isinstance(self.factor, SinglePrecisionFactor):
             self.solves += 1  # its refinement step's back-substitution
             return self.factor.solve(v, self.projection)
         x = self.factor.solve(v)
         return x if self.projection is None else self.projection(x)
 
+    def end(self, reason: StopReason) -> None:
+        """Stop for ``reason`` (converged or not, as the reason says)."""
+        self.stop, self.converged = reason, reason.converged
+
     def counters(self) -> dict[str, Any]:
         """The report's fields of the refinement so far."""
-        return {"converged": self.converged, "stop_reason": self.stop,
+        stop = None if self.stop is None else self.stop.value
+        return {"converged": self.converged, "stop_reason": stop,
                 "iterations": self.iterations, "rejected_steps": self.rejected,
                 "factorizations": self.factorizations,
                 "precision": ("mixed" if len(self.precisions) > 1
@@ -667,48 +583,6 @@ class _Iteration:
                 "slices": self.slices, "energy_before": self.energy0,
                 "energy_after": self.energy, "energy_trace": list(self.trace),
                 "step_trace": list(self.steps), "before": self.before}
-
-
-def factor_precision(diagonal: np.ndarray) -> str:
-    """The precision to factorize a damped Gauss-Newton matrix in, from its diagonal.
-
-    Single precision nearly halves the factorization's time (:mod:`solver.mixed_precision`),
-    and with one refinement step per solve the steps are those of double precision (x 0.8
-    and noisy forms take the same steps to the same energies). Needle edges and flattened
-    faces make entries of the diagonal 1e8 times the others (the stiffness of a residual
-    grows as the inverse square of the edge's length or the face's width), beyond what
-    float32 resolves: a refinement factorized in single precision there converged to a 25%
-    higher energy. The diagonal's spread separates the two: 12-200 on every bench mesh,
-    1.5e8 and more with needle edges (:data:`SINGLE_PRECISION_SPREAD`). Soft modes that
-    the diagonal does not show are caught by the solves themselves
-    (:data:`SINGLE_PRECISION_ERROR`).
-
-    Args:
-        diagonal: (N,) float64 diagonal of the damped matrix (positive).
-
-    Returns:
-        ``"single"`` or ``"double"``.
-    """
-    if not len(diagonal):
-        return "double"
-    spread = float(diagonal.max()) / float(np.median(diagonal))
-    return "single" if spread <= SINGLE_PRECISION_SPREAD else "double"
-
-
-def _stalled(trace: list[float]) -> bool:
-    """Whether the last :data:`STALL_STEPS` steps together lowered E by at most
-    :data:`ENERGY_TOLERANCE` of it: less than one step of a converging run may, and the
-    damping has grown past where a step counts as a Gauss-Newton step."""
-    return (len(trace) > STALL_STEPS
-            and trace[-1 - STALL_STEPS] - trace[-1] <= ENERGY_TOLERANCE * trace[-1])
-
-
-def _trusted(s: _Iteration, gain: float | None = None) -> bool:
-    """Whether the factor of ``s`` is a good model here: lightly damped, and its last step
-    (or the step just taken, whose gain ratio is ``gain``) lowered E about as it predicted
-    (gain ratio within 0.25 of 1)."""
-    gain = s.factor_gain if gain is None else gain
-    return s.damping <= 1.0 and abs(gain - 1.0) <= 0.25
 
 
 _BLAS = ThreadpoolController()
@@ -740,9 +614,10 @@ def _iteration_notifier(progress: Any, time_limit: float | None) -> Any:
 
 
 def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None = None, *,
-           max_iterations: int = MAX_ITERATIONS, tolerance: float = TOLERANCE,
+           max_iterations: int | None = None, tolerance: float | None = None,
            time_limit: float | None = None, backend: str = "auto",
-           progress: Any = None) -> Refinement:
+           progress: Any = None, stop_rules: StopRules = DEFAULT_STOP_RULES,
+           step_rules: StepRules = DEFAULT_STEP_RULES) -> Refinement:
     """Vertex positions whose fundamental forms are nearest to ``targets`` (Levenberg-Marquardt).
 
     Args:
@@ -751,9 +626,9 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
         targets: :class:`FormTargets` (lengths, angles, weights).
         handles: optional :class:`Handles`.
         max_iterations: Gauss-Newton matrices built (each one factorization, plus one per
-            rejected step).
+            rejected step); None: ``stop_rules.max_iterations``.
         tolerance: stop after a full Gauss-Newton step that moved no vertex by more than
-            ``tolerance`` times the mean target edge length.
+            ``tolerance`` times the mean target edge length; None: ``stop_rules.tolerance``.
         time_limit: optional wall-clock budget in seconds: the refinement stops before an
             iteration (or a factorization) that, timed like the last one of its kind by
             this :class:`Refiner`, would end past it (the first factorization of a run
@@ -764,6 +639,8 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
             ``progress("refine", fraction)`` after every accepted step; if it also has a
             method ``iteration(detail)``, that gets ``{"iteration", "factorizations",
             "energy", "seconds"}`` of each step (the service's job progress shows them).
+        stop_rules: :class:`~solver.stopping.StopRules` (when it stops).
+        step_rules: :class:`~solver.steps.StepRules` (how it steps).
     Returns:
         :class:`Refinement`. Its energy is never above the start's: a step is accepted
         only when it lowers E. ``report["converged"]`` is False when the iteration or time
@@ -782,6 +659,7 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
         True
     """
     dim = np.shape(vertices)[1]
-    return Refiner(targets, handles, dim, backend).run(
+    return Refiner(targets, handles, dim, backend, stop_rules=stop_rules,
+                   step_rules=step_rules).run(
         vertices, max_iterations=max_iterations, tolerance=tolerance, time_limit=time_limit,
         progress=progress)

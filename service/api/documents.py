@@ -13,8 +13,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.api.schemas import (
     EXAMPLE_FORMS,
     EXAMPLE_MESH,
+    STOP_REASONS_TEXT,
     JobState,
     Operation,
+    StopReasonName,
     Tri,
     Vec3,
 )
@@ -76,11 +78,9 @@ class SessionRefinement(BaseModel):
          "start": "previous drag"}]})
 
     converged: bool
-    stop_reason: str = Field(description="converged, exact, stationary, time_limit (the "
-                                         "drag's budget: options.max_seconds or "
-                                         "FFS_SESSION_SOLVE_TIMEOUT), max_iterations, "
-                                         "stalled (5 steps lowered E by less than 0.1%), "
-                                         "...")
+    stop_reason: StopReasonName = Field(description=(
+        f"Why it stopped. {STOP_REASONS_TEXT} A drag's time budget is "
+        "options.max_seconds or FFS_SESSION_SOLVE_TIMEOUT."))
     iterations: int
     factorizations: int
     slices: int = Field(description="Slices it ran in (FFS_SESSION_REFINE_SLICE each).")

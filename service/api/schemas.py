@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from solver import options as solver_options
 from solver.options import MAX_WEIGHT
+from solver.stopping import StopReason, describe_stop_reasons
 
 # ---------------------------------------------------------------------------- examples
 
@@ -40,6 +41,10 @@ Operation = Literal["reconstruct", "deform", "parameterize", "integrability", "f
                     "interpolate", "mesh", "reconstruct/vjp", "blend", "transfer"]
 ColorField = Literal["defect", "distortion"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+StopReasonName = Literal[*(reason.value for reason in StopReason)]  # type: ignore[valid-type]
+"""A refinement report's ``stop_reason`` (:class:`solver.stopping.StopReason`)."""
+STOP_REASONS_TEXT = describe_stop_reasons()
+"""Every stop reason and its meaning, in words."""
 
 MAX_MAGNITUDE = 1e60
 """Largest accepted |coordinate| or length (Heron's formula takes 4th powers of lengths)."""

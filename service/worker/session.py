@@ -136,7 +136,9 @@ class SessionState:
         every refinement progresses); the refined shape once it
         converged, stopped otherwise, or spent :attr:`refine_seconds` or the refinement's
         iteration limit in all; None while it goes on (call again)."""
-        from solver.refine import MAX_ITERATIONS
+        from solver.stopping import DEFAULT_STOP_RULES
+
+        max_iterations = DEFAULT_STOP_RULES.max_iterations
 
         pending = self.pending
         if pending is None:
@@ -158,9 +160,9 @@ class SessionState:
         stop = report.get("stop_reason") if report.get("refined") else "exact"
         converged = bool(report.get("converged")) or stop == "exact"
         if stop == "time_limit" and pending.seconds < self.refine_seconds \
-                and pending.iterations < MAX_ITERATIONS:
+                and pending.iterations < max_iterations:
             return None
-        if stop == "time_limit" and pending.iterations >= MAX_ITERATIONS:
+        if stop == "time_limit" and pending.iterations >= max_iterations:
             stop = "max_iterations"
         self.pending = None
         summary = {"converged": converged, "stop_reason": stop,

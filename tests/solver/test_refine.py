@@ -31,6 +31,7 @@ from solver.refine import (
     refine,
     signed_areas,
 )
+from solver.steps import DEFAULT_STEP_RULES, StepRules
 from solver.topology import build_topology
 from tests.helpers.libigl_reference import arap_deformation, arap_parameterization, flipped_faces
 from tests.helpers.meshes import (
@@ -175,9 +176,9 @@ def test_well_predicted_steps_of_a_kept_factor_finish_without_refactorizing():
                     reason="../shared/meshes is not present")
 def test_a_refused_step_of_a_factor_that_expects_little_ends_the_run():
     """Noisy angles on nefertiti (100K faces, min angle 0.06°): after one Gauss-Newton
-    factorization the kept factor predicts 1.02e-3 of E (just over ENERGY_TOLERANCE) and
+    factorization the kept factor predicts 1.02e-3 of E (just over StopRules.energy_tolerance) and
     its step gains nothing at any length: the run ends there, converged, instead of
-    factorizing again to confirm (solver.refine.REFUSED_PREDICTION), as near the mesh the
+    factorizing again to confirm (StopRules.refused_prediction), as near the mesh the
     forms came from as the confirmed answer (3.4e-5 of the diagonal)."""
     V, F = load(SHARED / "nefertiti.obj")
     forms = with_noisy_angles(fundamental_forms(V, F))
@@ -412,7 +413,7 @@ def test_deformer_refines_each_drag_on_request():
 
 def test_session_drags_on_a_kept_factor_beat_arap_and_match_a_fresh_refinement():
     """A session's drags after the first start from the previous drag's factor and take
-    quasi-Newton steps on it (solver.refine.KEPT_STEPS): the last shape of a drag sequence
+    quasi-Newton steps on it (solver.steps.StepRules.kept_steps): the last shape of a drag sequence
     is better than libigl's ARAP with 10 iterations per drag run on the same drags here,
     and its energy is within a few percent of a refinement that starts afresh."""
     igl = pytest.importorskip("igl")
@@ -544,16 +545,26 @@ def torus_x08():
     return forms
 
 
+DOUBLE_ONLY = StepRules(single_precision_spread=0.0)
+"""Every factor in double precision: no diagonal spreads by at most 0."""
+
+
+def refine_with(forms, step_rules=DEFAULT_STEP_RULES):
+    """:func:`reconstruct`'s refinement of ``forms``, from its start (the answer of a time
+    limit that stops it before its first iteration), with ``step_rules``."""
+    start = solve(forms, max_seconds=1e-9).vertices
+    targets = FormTargets(build_topology(forms.faces), forms.lengths, forms.angles)
+    return Refiner(targets, step_rules=step_rules).run(start)
+
+
 @needs_pardiso
-def test_single_precision_factors_reach_the_double_precision_answer(monkeypatch):
+def test_single_precision_factors_reach_the_double_precision_answer():
     """Angles x 0.8 on the torus, factorized in single precision (one step of iterative
     refinement per solve): the same steps and the same answer, to 1e-6 of the diagonal, as
     the refinement factorized in double precision."""
     forms = torus_x08()
-    single = solve(forms)
-    monkeypatch.setattr(refine_module, "SINGLE_PRECISION_SPREAD", 0.0)  # double only
-    double = solve(forms)
-    s, d = single.report["refinement"], double.report["refinement"]
+    single, double = refine_with(forms), refine_with(forms, DOUBLE_ONLY)
+    s, d = single.report, double.report
     assert (s["precision"], d["precision"]) == ("single", "double")
     assert s["converged"] and d["converged"]
     assert (s["iterations"], s["factorizations"]) == (d["iterations"], d["factorizations"])
@@ -562,17 +573,15 @@ def test_single_precision_factors_reach_the_double_precision_answer(monkeypatch)
 
 
 @needs_pardiso
-def test_an_imprecise_single_precision_factor_is_redone_in_double(monkeypatch):
+def test_an_imprecise_single_precision_factor_is_redone_in_double():
     """A single-precision solve whose refinement step corrects it by more than
-    SINGLE_PRECISION_ERROR (forced here: 0) makes the refinement factorize in double
+    ``StepRules.single_precision_error`` (0 here) makes the refinement factorize in double
     precision there, and every later time: the answer is the double-precision one, at one
     extra factorization, and the report says the precision was mixed."""
     forms = torus_x08()
-    monkeypatch.setattr(refine_module, "SINGLE_PRECISION_ERROR", 0.0)
-    redone = solve(forms)
-    monkeypatch.setattr(refine_module, "SINGLE_PRECISION_SPREAD", 0.0)
-    double = solve(forms)
-    r, d = redone.report["refinement"], double.report["refinement"]
+    redone = refine_with(forms, StepRules(single_precision_error=0.0))
+    double = refine_with(forms, DOUBLE_ONLY)
+    r, d = redone.report, double.report
     assert r["precision"] == "mixed" and r["converged"]
     assert r["factorizations"] == d["factorizations"] + 1
     assert rigid_alignment_error(redone.vertices, double.vertices) < 1e-12
@@ -594,11 +603,9 @@ def test_a_single_precision_factor_that_is_not_definite_is_redone_in_double(monk
             super().__init__(*args, **kw)
 
     monkeypatch.setattr(refine_module, "SinglePrecisionFactor", Counted)
-    redone = solve(forms)
-    monkeypatch.setattr(refine_module, "SINGLE_PRECISION_SPREAD", 0.0)
-    double = solve(forms)
+    redone, double = refine_with(forms), refine_with(forms, DOUBLE_ONLY)
     assert len(attempts) == 1  # the first refusal sets the refiner to double
-    r, d = redone.report["refinement"], double.report["refinement"]
+    r, d = redone.report, double.report
     assert r["precision"] == "double"  # the refused float32 factor is not counted
     assert r["factorizations"] == d["factorizations"]
     assert rigid_alignment_error(redone.vertices, double.vertices) < 1e-12

@@ -503,19 +503,28 @@ class FormEnergy:
             self._add_frames(topo.faces, handles)
 
     def tie(self, X: np.ndarray) -> None:
-        """Set the offsets of the tied vertices (:mod:`solver.ties`) from start positions
-        ``X`` (n, dim) and place them there (in place): a run's first call."""
+        """Set the offsets of the tied vertices (:mod:`solver.ties`) from a run's start
+        positions ``X`` (n, dim) and place them there (in place)."""
         if len(self.ties):
             self.tie_offsets = self.ties.offsets(X)
             self.ties.place(X, self.tie_offsets)
 
-    def place_tied(self, X: np.ndarray) -> np.ndarray:
-        """``X`` (n, dim) with its tied vertices at their masters plus their offsets (in
-        place; :meth:`tie` first, else the offsets of ``X`` itself)."""
-        if len(self.ties):
-            if self.tie_offsets is None:
-                self.tie(X)
+    def place_tied(self, X: np.ndarray) -> None:
+        """Put the tied vertices of ``X`` (n, dim) at their masters plus the offsets of the
+        last :meth:`tie` (in place: a step moves the masters only)."""
+        if len(self.ties) and self.tie_offsets is not None:
             self.ties.place(X, self.tie_offsets)
+
+    def placed(self, X: np.ndarray, own: bool = False) -> np.ndarray:
+        """``X`` (n, dim), or a copy with its tied vertices placed: at the offsets of the
+        last :meth:`tie`, or with ``own`` (or before any) at those ``X`` itself gives (its
+        needles put on their target lengths, as a run starting at ``X`` does)."""
+        if not len(self.ties):
+            return X
+        offsets = self.ties.offsets(X) if own or self.tie_offsets is None \
+            else self.tie_offsets
+        X = X.copy()
+        self.ties.place(X, offsets)
         return X
 
     def set_handle_targets(self, soft_positions: np.ndarray | None = None,
@@ -528,9 +537,9 @@ class FormEnergy:
             self.frame_edges = np.asarray(frame_edges, dtype=np.float64)
 
     def energy(self, X: np.ndarray) -> float:
-        """E (see the module docstring) of positions ``X`` (n, dim); its tied vertices are
-        placed first (:meth:`place_tied`, in place)."""
-        self.place_tied(X)
+        """E (see the module docstring) of positions ``X`` (n, dim), its tied vertices
+        placed (:meth:`placed`; ``X`` is not changed)."""
+        X = self.placed(X)
         return 0.5 * sum(square_sum(g.evaluate(X, False)[0]) for g in self.groups)
 
     # -- residual groups (each returns weighted residuals and their gradients)

@@ -229,7 +229,7 @@ class GaussNewtonSystem:
         Curvature`; canonical CSR, every diagonal entry stored; None unless ``matrix``),
         J^T r (n_free * dim,))."""
         dim = self.dim
-        self.energy.place_tied(X)
+        X = self.energy.placed(X)  # tied vertices where their masters put them
         values = np.zeros(self.nnz) if matrix else None
         gradient = np.zeros(self.n_free * dim)
         energy = 0.0

@@ -133,8 +133,10 @@ class Refiner:
         self.form_energy.set_handle_targets(soft_positions, frame_edges)
 
     def energy(self, vertices: np.ndarray) -> float:
-        """E of (n, dim) positions (fixed vertices as given)."""
-        return self.form_energy.energy(np.asarray(vertices, dtype=np.float64))
+        """E of (n, dim) positions (fixed vertices as given; tied vertices, the endpoints of
+        needles, where a run started there puts them: :mod:`solver.ties`)."""
+        energy = self.form_energy
+        return energy.energy(energy.placed(np.asarray(vertices, dtype=np.float64), own=True))
 
     def reproduces(self, vertices: np.ndarray) -> bool:
         """Whether ``vertices`` already have the target forms (:func:`reproduces`)."""
@@ -471,6 +473,7 @@ class Refiner:
         for alpha in self.step_rules.step_fractions:
             trial = X.copy()
             trial[free] += alpha * step.reshape(-1, dim)
+            self.form_energy.place_tied(trial)  # tied vertices follow their masters
             new_energy = self.form_energy.energy(trial)
             if np.isfinite(new_energy) and new_energy < energy + armijo * alpha * slope:
                 return alpha, trial, new_energy
@@ -518,7 +521,9 @@ class _Iteration:
         """The state before the first step from ``X`` (n, dim). With ``keep_factor`` the
         previous run's factor (and damping) is the first model: consecutive drags of a
         session are alike; a run that starts from a lightly damped kept factor keeps its
-        factors longer (:attr:`StepRules.kept_steps`)."""
+        factors longer (:attr:`StepRules.kept_steps`). The tied vertices of ``X`` are put
+        on their needles' target lengths (:meth:`FormEnergy.tie`, in place)."""
+        refiner.form_energy.tie(X)
         energy = refiner.form_energy.energy(X) if energy is None else energy
         factor, model, projection = (refiner._kept if keep_factor and refiner._kept
                                      else (None, None, None))

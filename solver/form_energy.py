@@ -364,10 +364,11 @@ def form_residuals(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
 
 
 def well_shaped_errors(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
-                       angles: np.ndarray) -> float:
+                       angles: np.ndarray, energy: FormEnergy | None = None) -> float:
     """The largest form error of ``X`` (n, 3) on the well-shaped elements: the largest
     relative length error plus the largest dihedral-angle error (rad) over the edges of no
-    cap face (:func:`cap_faces`: needles, slivers, near-zero-area faces).
+    cap face (:func:`cap_faces`: needles, slivers, near-zero-area faces). ``energy``: the
+    :class:`FormEnergy` of these targets, whose caps and hinges are reused when given.
 
     Example:
         >>> import numpy as np
@@ -379,10 +380,11 @@ def well_shaped_errors(X: np.ndarray, topology: MeshTopology, lengths: np.ndarra
         ...                                                                np.zeros(5)) > 0.09
         (0.0, True)
     """
-    keep = ~cap_faces(topology, lengths).is_cap_edge
+    known = energy is not None and energy.caps is not None
+    keep = ~(energy.caps if known else cap_faces(topology, lengths)).is_cap_edge
     _, current = edge_vectors(X, topology.edges)
     length_error = np.abs(current[keep] / lengths[keep] - 1.0).max(initial=0.0)
-    inner, hinge = hinges(topology)
+    inner, hinge = energy.hinges if known else hinges(topology)
     theta, _ = hinge_angles(X, hinge, gradients=False)
     angle_error = np.abs(wrap_angle(theta - angles[inner]))[keep[inner]].max(initial=0.0)
     return float(length_error + angle_error)

@@ -69,10 +69,12 @@ COPY --from=deps /opt/ffs /opt/ffs
 WORKDIR /app
 COPY solver/ solver/
 COPY service/ service/
-# ffs/: the command line and client; the service imports its binary body encoder (ffs/arrays.py).
+# ffs_wire/: the binary body format the service shares with the client; ffs/: the command
+# line and client (`ffs serve` runs this service as `python -m service`).
+COPY ffs_wire/ ffs_wire/
 COPY ffs/ ffs/
 COPY --from=web /src/service/static/vendor/ service/static/vendor/
-RUN python -m compileall -q solver service ffs
+RUN python -m compileall -q solver service ffs_wire ffs
 
 USER 10001:10001
 # 8000: the API; 8786/8787: the Dask scheduler and its dashboard (docker-compose.yml).

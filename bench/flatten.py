@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from bench.common import SHARED_MESHES
+from solver.chart_flattening import relative_length_change
 from solver.packing import rasterized_overlap, signed_areas
-from solver.parameterize import relative_length_change
 from tests.helpers.meshes import side_by_side
 
 SMALL_PARTS = ("decimated-knight.off", "torus.off", "octopus-low-surface.off", "face.off")
@@ -111,44 +111,59 @@ def xatlas_atlas(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
     return {"charts": atlas.chart_count, **found, "seconds": seconds}
 
 
-def xatlas_charts_ours(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
-    """The alternative charting: xatlas's charts (its uv islands), each flattened by our
-    method (solver.parameterize.flatten_chart, refined) and packed by solver.packing."""
-    import scipy.sparse as sp
-    import xatlas
-    from scipy.sparse.csgraph import connected_components
+def bisection_only(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
+    """The previous charting: recursive bisection from the connected components
+    (solver.atlas.chart_layouts with ``seeds="components"``), same checks, same packer."""
+    return _charted(V, F, "components")
 
-    from solver.charts import chart_mesh
+
+def _charted(V: np.ndarray, F: np.ndarray, seeds: str) -> dict[str, Any]:
+    from solver.atlas import assemble, chart_layouts
+    from solver.forms import fundamental_forms
     from solver.options import ParameterizeOptions
     from solver.packing import pack_charts
-    from solver.parameterize import ChartLayout, _assemble, _chart_options, flatten_chart
     from solver.reports import Stages
     from solver.topology import build_topology
 
     start = time.perf_counter()
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(V.astype(np.float32), F.astype(np.uint32))
-    atlas.generate()
-    _, faces, _ = atlas.get_mesh(0)
-    m, k = len(faces), int(faces.max()) + 1
-    incidence = sp.coo_array((np.ones(3 * m), (np.repeat(np.arange(m), 3),
-                                               faces.ravel().astype(np.int64))),
-                             shape=(m, k)).tocsr()
-    count, island = connected_components(incidence @ incidence.T, directed=False)
-    layouts = []
-    for chart in range(count):                                  # a loop over charts
-        piece = chart_mesh(F, np.flatnonzero(island == chart))
-        topology = build_topology(piece.faces, n_vertices=len(piece.vertex_ids))
-        Vc = V[piece.vertex_ids]
-        lengths = np.linalg.norm(Vc[topology.edges[:, 1]] - Vc[topology.edges[:, 0]], axis=1)
-        opts = _chart_options(ParameterizeOptions(), len(piece.face_ids))
-        layouts.append(ChartLayout(piece, flatten_chart(Vc, topology, lengths, opts,
-                                                        Stages(None), refine=True)))
-    layout, uv_faces, uv_vertex, face_chart = _assemble(layouts, m)
+    topology = build_topology(F, n_vertices=len(V))
+    angles = fundamental_forms(V, F).angles
+    charts = chart_layouts(V, topology, angles, ParameterizeOptions(), Stages(None),
+                           seeds=seeds)
+    layout, uv_faces, uv_vertex, face_chart = assemble(charts, len(F))
     packed = pack_charts(layout, uv_faces, face_chart)
     seconds = time.perf_counter() - start
     found = measures(V, F, packed.texcoords, uv_faces, uv_vertex)
-    return {"charts": count, **found, "seconds": seconds}
+    return {"charts": len(charts), **found, "seconds": seconds}
+
+
+def xatlas_charts_unchecked(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
+    """xatlas's charts each flattened by our method (refined) and packed by ours, with
+    none of our checks (a chart that folds or overlaps itself is kept)."""
+    from solver.atlas import ChartLayout, assemble, chart_options
+    from solver.chart_flattening import flatten_chart
+    from solver.charts import chart_mesh, xatlas_charts
+    from solver.options import ParameterizeOptions
+    from solver.packing import pack_charts
+    from solver.reports import Stages
+    from solver.topology import build_topology
+
+    start = time.perf_counter()
+    label = xatlas_charts(V, F)
+    layouts = []
+    for chart in np.unique(label):                              # a loop over charts
+        piece = chart_mesh(F, np.flatnonzero(label == chart))
+        topology = build_topology(piece.faces, n_vertices=len(piece.vertex_ids))
+        Vc = V[piece.vertex_ids]
+        lengths = np.linalg.norm(Vc[topology.edges[:, 1]] - Vc[topology.edges[:, 0]], axis=1)
+        opts = chart_options(ParameterizeOptions(), len(piece.face_ids))
+        layouts.append(ChartLayout(piece, flatten_chart(Vc, topology, lengths, opts,
+                                                        Stages(None), refine=True)))
+    layout, uv_faces, uv_vertex, face_chart = assemble(layouts, len(F))
+    packed = pack_charts(layout, uv_faces, face_chart)
+    seconds = time.perf_counter() - start
+    found = measures(V, F, packed.texcoords, uv_faces, uv_vertex)
+    return {"charts": len(layouts), **found, "seconds": seconds}
 
 
 def cases(extra: Path | None) -> list[tuple[str, Any]]:
@@ -173,8 +188,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--extra", type=Path, help="folder of the fetched public meshes")
     parser.add_argument("--only", nargs="*", help="mesh names to run")
-    parser.add_argument("--alternative", action="store_true", help="also xatlas's charts "
-                        "flattened by our method and packed by ours")
+    parser.add_argument("--alternative", action="store_true", help="also the bisection "
+                        "alone and xatlas's charts flattened by ours without our checks")
     args = parser.parse_args(argv)
     print("| mesh | faces | method | charts | flips | mean length change | mean angle change "
           "(rad) | packing efficiency | overlapping texels | seconds |")
@@ -185,7 +200,8 @@ def main(argv: list[str] | None = None) -> None:
         V, F = loader()
         methods = [("ours", ours), ("xatlas", xatlas_atlas)]
         if args.alternative:
-            methods.append(("xatlas charts, our flattening", xatlas_charts_ours))
+            methods += [("bisection only", bisection_only),
+                        ("xatlas charts, our flattening, no checks", xatlas_charts_unchecked)]
         for method, run in methods:
             try:
                 print(row(name, len(F), method, run(V, F)), flush=True)

@@ -10,12 +10,14 @@ service::
         forms = client.fundamental_forms(vertices, faces)
         mesh = client.reconstruct(forms.faces, forms.edges, forms.lengths, forms.angles)
 
-* One method per operation, named like the library's function (:mod:`solver`), taking the
-  same arrays and returning :mod:`ffs.results` (vertices (n, 3) float64, faces (m, 3)
-  int64, ...). Options are the HTTP options (``refine``, ``frame_weight``,
+* One method per operation of the service, named like the library's function
+  (:mod:`solver`), taking the same arrays and returning :mod:`ffs.results` (vertices (n, 3)
+  float64, faces (m, 3) int64, ...): the table :data:`ffs.operations.OPERATIONS` names
+  them; each ``<method>_call`` builds the request (written here), ``<method>`` runs it
+  (made from the table). Options are the HTTP options (``refine``, ``frame_weight``,
   ``orthonormalize``, ``weighting``, ``solver``, ...; docs/service.md) and are sent only
   when given, so the service's defaults apply.
-* Bodies are ``application/vnd.ffs.arrays`` (:mod:`ffs.arrays`) unless ``binary=False``
+* Bodies are ``application/vnd.ffs.arrays`` (:mod:`ffs_wire.arrays`) unless ``binary=False``
   (JSON); answers are JSON, whose float64 values round-trip exactly.
 * ``progress=callback`` (or :meth:`Client.submit`) runs the operation as a job: the
   callback gets ``(stage, fraction)`` as the service reports them; jobs have no
@@ -30,6 +32,7 @@ service::
 from __future__ import annotations
 
 import contextlib
+import inspect
 import json
 import os
 import random
@@ -43,7 +46,6 @@ import httpx
 import numpy as np
 
 from ffs import __version__
-from ffs.arrays import BINARY_MEDIA_TYPE, binary_body, json_default
 from ffs.errors import (
     FFSError,
     GoneError,
@@ -54,7 +56,10 @@ from ffs.errors import (
     ServiceUnreachableError,
     problem_error,
 )
-from ffs.results import Blend, Forms, Integrability, Mesh, Parameterization, ShapeBlend
+from ffs.operations import OPERATIONS, Operation
+from ffs.results import Forms, Mesh
+from ffs.sessions import Session
+from ffs_wire.arrays import BINARY_MEDIA_TYPE, binary_body, json_default
 
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: the service's stage names (validate, assemble, factorize,
@@ -69,12 +74,17 @@ TOKEN_ENV = "FFS_TOKEN"
 
 @dataclass(frozen=True)
 class Call:
-    """One operation request: its name, large arrays, other fields and result decoder."""
+    """One operation request: its name (:data:`ffs.operations.OPERATIONS`), large arrays
+    and other fields."""
 
     operation: str
     arrays: dict[str, np.ndarray]
     params: dict[str, Any]
-    decode: Callable[[dict[str, Any]], Any]
+
+    @property
+    def decode(self) -> Callable[[dict[str, Any]], Any]:
+        """The decoder of the operation's JSON answer (its result type's ``from_dict``)."""
+        return OPERATIONS[self.operation].decode
 
     def json_body(self) -> dict[str, Any]:
         """The JSON body of the synchronous endpoint (the ``input`` of a job)."""
@@ -242,61 +252,61 @@ class Client:
         except ProblemError as exc:  # 503 while starting: the document says why
             return exc.document
 
-    def fundamental_forms_call(self, vertices: Any, faces: Any) -> Call:
-        return Call("forms", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
-                    {}, Forms.from_dict)
-
-    def fundamental_forms(self, vertices: Any, faces: Any, *,
-                          progress: Progress | None = None) -> Forms:
-        """Edge lengths and signed dihedral angles of a mesh (``POST /v1/forms``)."""
-        return self.run(self.fundamental_forms_call(vertices, faces), progress)
+    # ------------------------------------------------------ operations (requests)
+    # One ``<method>_call`` per operation of :data:`ffs.operations.OPERATIONS`: its
+    # arguments -> the request; ``Client.<method>(..., progress=None)`` runs it (made from
+    # the table below the class, with this docstring and signature). Written here for the
+    # operations that need more than their arrays and options; :func:`table_call` makes
+    # the others' from their row.
 
     def check_integrability_call(self, faces: Any, edges: Any = None, lengths: Any = None,
                                  angles: Any = None, *, tol: float | None = None) -> Call:
-        params = {} if tol is None else {"tolerance": tol}
-        params.update(_forms_params(faces, edges))
-        return Call("integrability", _forms_arrays(faces, edges, lengths, angles), params,
-                    Integrability.from_dict)
-
-    def check_integrability(self, faces: Any, edges: Any = None, lengths: Any = None,
-                            angles: Any = None, *, tol: float | None = None,
-                            progress: Progress | None = None) -> Integrability:
         """The integrability report of forms (``POST /v1/integrability``); ``faces`` may be
         a :class:`~ffs.results.Forms` alone."""
-        return self.run(self.check_integrability_call(faces, edges, lengths, angles, tol=tol),
-                        progress)
+        params = {} if tol is None else {"tolerance": tol}
+        params.update(_forms_params(faces, edges))
+        return Call("integrability", _forms_arrays(faces, edges, lengths, angles), params)
 
     def reconstruct_call(self, faces: Any, edges: Any = None, lengths: Any = None,
                          angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
                          refine: bool | None = None, align_to: Any = None,
                          **options: Any) -> Call:
-        params: dict[str, Any] = {"options": _options(refine, options)}
-        if constraints:
-            params["constraints"] = dict(constraints)
-        if align_to is not None:
-            params["align_to"] = np.asarray(align_to, dtype=np.float64).reshape(-1, 3).tolist()
-        params.update(_forms_params(faces, edges))
-        return Call("reconstruct", _forms_arrays(faces, edges, lengths, angles), params,
-                    Mesh.from_dict)
-
-    def reconstruct(self, faces: Any, edges: Any = None, lengths: Any = None,
-                    angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
-                    refine: bool | None = None, progress: Progress | None = None,
-                    align_to: Any = None, **options: Any) -> Mesh:
         """Vertex positions from forms (``POST /v1/reconstruct``). ``constraints`` is the
         API's ``{"positions": [{"vertex", "position", "weight"?}], "frames": [...]}``;
         ``align_to``: (n, 3) vertices of a reference to move the answer onto rigidly
         (``report["alignment"]`` has the residual); ``options``: frame_weight,
         orthonormalize, orthonormal_weight, weighting, solver, tolerance,
         require_integrable, exact_shortcut."""
-        return self.run(self.reconstruct_call(faces, edges, lengths, angles,
-                                              constraints=constraints, refine=refine,
-                                              align_to=align_to, **options), progress)
+        params: dict[str, Any] = {"options": _options(refine, options)}
+        if constraints:
+            params["constraints"] = dict(constraints)
+        if align_to is not None:
+            params["align_to"] = np.asarray(align_to, dtype=np.float64).reshape(-1, 3).tolist()
+        params.update(_forms_params(faces, edges))
+        return Call("reconstruct", _forms_arrays(faces, edges, lengths, angles), params)
+
+    def reconstruct_vjp_call(self, faces: Any, edges: Any = None, lengths: Any = None,
+                             angles: Any = None, *, cotangent: Any,
+                             constraints: Mapping[str, Any] | None = None,
+                             refine: bool | None = None, **options: Any) -> Call:
+        """A reconstruction and the cotangents of its inputs (``POST
+        /v1/reconstruct/vjp``; :func:`solver.reconstruct_vjp`): ``cotangent`` (n, 3) or
+        (k, n, 3), the gradient of a loss with respect to the vertices, pulled back to the
+        lengths, angles and constraint targets (:class:`~ffs.results.VjpResult`). The
+        arguments and options of :meth:`reconstruct` (``refine=False``: the linear answer
+        is differentiated)."""
+        call = self.reconstruct_call(faces, edges, lengths, angles, constraints=constraints,
+                                     refine=refine, **options)
+        cotangent = np.asarray(cotangent, dtype=np.float64).tolist()
+        return Call("reconstruct/vjp", call.arrays, {**call.params, "cotangent": cotangent})
 
     def deform_call(self, vertices: Any, faces: Any, handles: Sequence[int] | np.ndarray,
                     handle_positions: Any, *, rotation_handles: Sequence[Any] | None = None,
                     handle_rotations: Any = None, roi: Any = None, refine: bool | None = None,
                     **options: Any) -> Call:
+        """Move ``handles`` (h,) to ``handle_positions`` (h, 3) (``POST /v1/deform``), with
+        optional rotation groups (face lists) and their (g, 3, 3) rotations, and a region
+        of interest; ``options``: frame_weight, orthonormalize, weighting, solver."""
         targets = np.asarray(handle_positions, dtype=np.float64).reshape(-1, 3)
         params: dict[str, Any] = {
             "handles": [{"vertex": int(v), "position": p}
@@ -311,73 +321,33 @@ class Client:
         if roi is not None:
             params["roi"] = np.asarray(roi).ravel().tolist()
         return Call("deform", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
-                    params, Mesh.from_dict)
-
-    def deform(self, vertices: Any, faces: Any, handles: Sequence[int] | np.ndarray,
-               handle_positions: Any, *, rotation_handles: Sequence[Any] | None = None,
-               handle_rotations: Any = None, roi: Any = None, refine: bool | None = None,
-               progress: Progress | None = None, **options: Any) -> Mesh:
-        """Move ``handles`` (h,) to ``handle_positions`` (h, 3) (``POST /v1/deform``), with
-        optional rotation groups (face lists) and their (g, 3, 3) rotations, and a region
-        of interest; ``options``: frame_weight, orthonormalize, weighting, solver."""
-        return self.run(self.deform_call(vertices, faces, handles, handle_positions,
-                                         rotation_handles=rotation_handles,
-                                         handle_rotations=handle_rotations, roi=roi,
-                                         refine=refine, **options), progress)
-
-    def parameterize_call(self, vertices: Any, faces: Any, *, refine: bool | None = None,
-                          **options: Any) -> Call:
-        return Call("parameterize", {"vertices": np.asarray(vertices),
-                                     "faces": np.asarray(faces)},
-                    {"options": _options(refine, options)}, Parameterization.from_dict)
-
-    def parameterize(self, vertices: Any, faces: Any, *, refine: bool | None = None,
-                     progress: Progress | None = None, **options: Any) -> Parameterization:
-        """Flatten a mesh (``POST /v1/parameterize``): one chart, or charts cut along seams
-        and packed (``result.texcoords``, ``uv_faces``, ``uv_vertex``, ``face_chart``;
-        ``options``: ``seams="auto"|"none"``, ``max_chart_distortion``)."""
-        return self.run(self.parameterize_call(vertices, faces, refine=refine, **options),
-                        progress)
+                    params)
 
     def interpolate_call(self, vertices_a: Any, vertices_b: Any, faces: Any,
                          t: float | Sequence[float], *, refine: bool | None = None,
                          **options: Any) -> Call:
+        """Blend two embeddings of ``faces`` in form space (``POST /v1/interpolate``)."""
         t_value = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
         return Call("interpolate", {"vertices_a": np.asarray(vertices_a),
                                     "vertices_b": np.asarray(vertices_b),
                                     "faces": np.asarray(faces)},
-                    {"t": t_value, "options": _options(refine, options)}, Blend.from_dict)
-
-    def interpolate(self, vertices_a: Any, vertices_b: Any, faces: Any,
-                    t: float | Sequence[float], *, refine: bool | None = None,
-                    progress: Progress | None = None, **options: Any) -> Blend:
-        """Blend two embeddings of ``faces`` in form space (``POST /v1/interpolate``)."""
-        return self.run(self.interpolate_call(vertices_a, vertices_b, faces, t, refine=refine,
-                                              **options), progress)
+                    {"t": t_value, "options": _options(refine, options)})
 
     def blend_call(self, shapes: Any, faces: Any, weights: Any = None, *,
-                   t: float | Sequence[float] | None = None, times: Sequence[float] | None = None,
+                   t: float | Sequence[float] | None = None,
                    refine: bool | None = None, **options: Any) -> Call:
+        """Blend K embeddings (K, n, 3) of ``faces`` in form space (``POST /v1/blend``): one
+        shape per row of affine ``weights`` (T, K), or per ``t`` for two shapes; ``options``:
+        sequence, align, solver, max_seconds. With ``progress`` it runs as a job and
+        reports the rows as they are solved (stage ``rows``)."""
         params: dict[str, Any] = {"options": _options(refine, options)}
         if weights is not None:
             params["weights"] = np.asarray(weights, dtype=np.float64).reshape(
                 -1, len(shapes)).tolist()
         if t is not None:
             params["t"] = float(t) if np.ndim(t) == 0 else [float(x) for x in np.ravel(t)]
-        if times is not None:
-            params["times"] = [float(x) for x in times]
         return Call("blend", {"shapes": np.asarray(shapes, dtype=np.float64),
-                              "faces": np.asarray(faces)}, params, ShapeBlend.from_dict)
-
-    def blend(self, shapes: Any, faces: Any, weights: Any = None, *,
-              t: float | Sequence[float] | None = None, refine: bool | None = None,
-              progress: Progress | None = None, **options: Any) -> ShapeBlend:
-        """Blend K embeddings (K, n, 3) of ``faces`` in form space (``POST /v1/blend``): one
-        shape per row of affine ``weights`` (T, K), or per ``t`` for two shapes; ``options``:
-        sequence, align, solver, max_seconds. With ``progress`` it runs as a job and
-        reports the rows as they are solved (stage ``rows``)."""
-        return self.run(self.blend_call(shapes, faces, weights, t=t, refine=refine,
-                                        **options), progress)
+                              "faces": np.asarray(faces)}, params)
 
     def blend_gltf(self, shapes: Any, faces: Any, weights: Any = None, *,
                    t: float | Sequence[float] | None = None,
@@ -386,10 +356,12 @@ class Client:
         """The blend as one animated glTF file (``kind`` ``glb`` or ``gltf``): the first
         shape as the mesh, each row a morph target, an animation playing them at ``times``
         (default 24 rows per second)."""
-        call = self.blend_call(shapes, faces, weights, t=t, times=times, refine=refine,
-                               **options)
+        call = self.blend_call(shapes, faces, weights, t=t, refine=refine, **options)
+        body = call.json_body()
+        if times is not None:
+            body["times"] = [float(x) for x in times]
         media = {"glb": "model/gltf-binary", "gltf": "model/gltf+json"}[kind]
-        return self._post_json("/v1/blend", call.json_body(),
+        return self._post_json("/v1/blend", body,
                                headers={"Accept": media}).content
 
     def mean(self, shapes: Any, faces: Any, *, refine: bool | None = None,
@@ -401,28 +373,13 @@ class Client:
                             progress=progress, **{"align": True, **options})
         return Mesh(result.vertices[0], result.faces, result.reports[0])
 
-    def transfer_call(self, source: Any, source_deformed: Any, target: Any, faces: Any, *,
-                      refine: bool | None = None, **options: Any) -> Call:
-        return Call("transfer", {"source": np.asarray(source),
-                                 "source_deformed": np.asarray(source_deformed),
-                                 "target": np.asarray(target), "faces": np.asarray(faces)},
-                    {"options": _options(refine, options)}, Mesh.from_dict)
-
-    def transfer(self, source: Any, source_deformed: Any, target: Any, faces: Any, *,
-                 refine: bool | None = None, progress: Progress | None = None,
-                 **options: Any) -> Mesh:
-        """``target`` deformed as ``source`` was into ``source_deformed`` (``POST
-        /v1/transfer``; three embeddings of ``faces``)."""
-        return self.run(self.transfer_call(source, source_deformed, target, faces,
-                                           refine=refine, **options), progress)
-
-    def mesh_call(self, vertices: Any, faces: Any) -> Call:
-        return Call("mesh", {"vertices": np.asarray(vertices), "faces": np.asarray(faces)},
-                    {}, Mesh.from_dict)
-
-    def mesh(self, vertices: Any, faces: Any, *, progress: Progress | None = None) -> Mesh:
-        """A mesh checked like every operation checks it (``POST /v1/mesh``), its report."""
-        return self.run(self.mesh_call(vertices, faces), progress)
+    def size_limits(self) -> dict[str, Any]:
+        """How large a request the service admits for this client (``GET /v1/me``):
+        ``max_faces``, ``max_vertices``, ``max_body_bytes``, ``max_request_memory`` and
+        ``max_faces_by_operation`` (each operation's largest mesh, the key's quota
+        included); a larger one is answered 413 (:class:`ffs.errors.PayloadTooLargeError`)."""
+        limits: dict[str, Any] = self.request("GET", "/v1/me").json()["size_limits"]
+        return limits
 
     def load_mesh(self, path: str | os.PathLike[str]) -> Mesh:
         """A mesh file (OBJ, PLY, OFF, STL, GLB) uploaded and read by the service."""
@@ -433,22 +390,16 @@ class Client:
 
     # ---------------------------------------------------------------------- jobs
 
-    CALLS = ("forms", "integrability", "reconstruct", "deform", "parameterize",
-             "interpolate", "mesh", "blend", "transfer")
+    CALLS = tuple(OPERATIONS)
     """Operations :meth:`submit` takes (the job API's names)."""
 
     def submit(self, operation: str, *args: Any, **kwargs: Any) -> Job:
         """Queue ``operation`` (a name of :data:`CALLS`, with the arguments of its method:
         ``submit("reconstruct", forms, refine=True)``) as a job."""
-        builders = {"forms": self.fundamental_forms_call,
-                    "integrability": self.check_integrability_call,
-                    "reconstruct": self.reconstruct_call, "deform": self.deform_call,
-                    "parameterize": self.parameterize_call,
-                    "interpolate": self.interpolate_call, "mesh": self.mesh_call,
-                    "blend": self.blend_call, "transfer": self.transfer_call}
-        if operation not in builders:
-            raise ValueError(f"unknown operation {operation!r}; one of {', '.join(builders)}")
-        return self.submit_call(builders[operation](*args, **kwargs))
+        if operation not in OPERATIONS:
+            raise ValueError(f"unknown operation {operation!r}; one of {', '.join(OPERATIONS)}")
+        build = getattr(self, f"{OPERATIONS[operation].method}_call")
+        return self.submit_call(build(*args, **kwargs))
 
     def submit_call(self, call: Call) -> Job:
         """Queue a :class:`Call` as a job (``POST /v1/jobs``, JSON)."""
@@ -586,99 +537,54 @@ class Job:
             self.cancel()
 
 
-class Session:
-    """A deformation session (:meth:`Client.session`); a context manager that closes it.
+def table_call(operation: Operation) -> Callable[..., Call]:
+    """``Client.<method>_call`` of an operation that takes only its arrays (positional, in
+    the row's order) and, where it has options, ``refine`` and the solver options."""
+    P = inspect.Parameter
+    parameters = [P("self", P.POSITIONAL_OR_KEYWORD),
+                  *(P(name, P.POSITIONAL_OR_KEYWORD, annotation="Any")
+                    for name in operation.arrays)]
+    if operation.options:
+        parameters += [P("refine", P.KEYWORD_ONLY, default=None, annotation="bool | None"),
+                       P("options", P.VAR_KEYWORD, annotation="Any")]
+    signature = inspect.Signature(parameters, return_annotation="Call")
 
-    Attributes: ``id``, ``info`` (the session document), ``handles`` (the handle vertices
-    in the order :meth:`drag` takes their targets), ``transport`` (``"ws"`` or ``"http"``).
-    """
+    def build(*args: Any, **kwargs: Any) -> Call:
+        given = signature.bind(*args, **kwargs).arguments
+        arrays = {name: np.asarray(given[name]) for name in operation.arrays}
+        params = ({"options": _options(given.get("refine"), given.get("options", {}))}
+                  if operation.options else {})
+        return Call(operation.name, arrays, params)
 
-    def __init__(self, client: Client, info: dict[str, Any]) -> None:
-        self.client = client
-        self.info = info
-        self.id = str(info["id"])
-        self.handles = list(info.get("handles", []))
-        self.n_vertices = int(info.get("n_vertices", 0))
-        self.links = dict(info.get("links") or {})
-        self.transport = "http"
-        self._socket: Any = None
-        self._closing = contextlib.ExitStack()  # the socket's context (websockets >= 17.1)
-        self._seq = 0
+    build.__name__ = f"{operation.method}_call"
+    build.__qualname__ = f"Client.{build.__name__}"
+    build.__doc__ = operation.summary
+    build.__signature__ = signature  # type: ignore[attr-defined]
+    return build
 
-    def __enter__(self) -> Session:
-        return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+def _operation_method(operation: Operation) -> Callable[..., Any]:
+    """``Client.<method>``: the request of ``<method>_call`` run synchronously, or as a job
+    with ``progress`` (:meth:`Client.run`); its docstring and signature (plus ``progress``)."""
+    build = getattr(Client, f"{operation.method}_call")
 
-    def connect(self) -> None:
-        """Open the session's WebSocket (``links.ws``)."""
-        from websockets.sync.client import connect
+    def method(self: Client, *args: Any, progress: Progress | None = None,
+               **kwargs: Any) -> Any:
+        return self.run(build(self, *args, **kwargs), progress)
 
-        base = self.client.url.replace("https://", "wss://", 1).replace("http://", "ws://", 1)
-        path = self.links.get("ws") or f"/v1/sessions/{self.id}/ws"
-        try:
-            self._socket = self._closing.enter_context(connect(
-                base + path, open_timeout=self.client.timeout, max_size=None,
-                compression=None, additional_headers=self.client.auth_headers() or None))
-        except Exception as exc:  # handshake refused, proxy without WebSockets...
-            raise ServiceUnreachableError(f"cannot open the session's WebSocket: {exc}") from None
-        self.transport = "ws"
+    signature = inspect.signature(build)
+    parameters = list(signature.parameters.values())
+    at = len(parameters) - (parameters[-1].kind is inspect.Parameter.VAR_KEYWORD)
+    parameters.insert(at, inspect.Parameter("progress", inspect.Parameter.KEYWORD_ONLY,
+                                            default=None, annotation="Progress | None"))
+    method.__name__, method.__qualname__ = operation.method, f"Client.{operation.method}"
+    method.__doc__ = build.__doc__
+    method.__signature__ = signature.replace(  # type: ignore[attr-defined]
+        parameters=parameters, return_annotation=operation.result)
+    return method
 
-    def drag(self, handle_positions: Any, handle_rotations: Any = None) -> np.ndarray:
-        """The deformed vertices (n, 3) float64 for handle targets (h, 3) and optional
-        rotations (g, 3, 3). Over the WebSocket the values are float32 rounded; over HTTP
-        they are the solver's float64."""
-        positions = np.asarray(handle_positions, dtype=np.float64).reshape(-1, 3)
-        rotations = (None if handle_rotations is None else
-                     np.asarray(handle_rotations, dtype=np.float64).reshape(-1, 3, 3))
-        if self._socket is not None:
-            return self._drag_ws(positions, rotations)
-        body: dict[str, Any] = {"handle_positions": positions.tolist()}
-        if rotations is not None:
-            body["handle_rotations"] = rotations.tolist()
-        path = self.links.get("solve") or f"/v1/sessions/{self.id}/solve"
-        response = self.client._post_json(path, body, headers={"Accept": "application/json"})
-        return np.asarray(response.json()["vertices"], dtype=np.float64).reshape(-1, 3)
 
-    def _drag_ws(self, positions: np.ndarray, rotations: np.ndarray | None) -> np.ndarray:
-        from websockets.exceptions import ConnectionClosed
-
-        values = [positions.ravel()] + ([] if rotations is None else [rotations.ravel()])
-        self._seq += 1
-        try:
-            self._socket.send(np.concatenate(values).astype("<f4").tobytes())
-            while True:
-                message = self._socket.recv(timeout=self.client.timeout)
-                if isinstance(message, str):
-                    doc = json.loads(message)
-                    if doc.get("seq") in (None, self._seq):
-                        raise problem_error(doc, int(doc.get("status") or 500))
-                    continue
-                seq, n = np.frombuffer(message, "<u4", count=2).tolist()
-                if seq == self._seq:
-                    return np.frombuffer(message, "<f4", offset=8, count=3 * n).reshape(
-                        n, 3).astype(np.float64)
-        except TimeoutError:
-            raise RequestTimeoutError(f"no answer to drag {self._seq} within "
-                                 f"{self.client.timeout:g} s") from None
-        except ConnectionClosed as exc:
-            self._socket = None
-            self._closing.close()
-            status = 404 if exc.rcvd and exc.rcvd.code == 4404 else 410
-            raise problem_error({"title": "Session gone", "status": status, "detail":
-                                 f"the session's WebSocket closed ({exc})",
-                                 "kind": "not-found" if status == 404 else "session-gone"},
-                                status) from None
-
-    def state(self) -> dict[str, Any]:
-        """The session document now (``expires_in``, ``solves``, ``memory_bytes``...)."""
-        self.info = dict(self.client.request("GET", f"/v1/sessions/{self.id}").json())
-        return self.info
-
-    def close(self) -> None:
-        """Close the WebSocket and delete the session (an expired one is fine)."""
-        self._socket = None
-        self._closing.close()
-        with contextlib.suppress(NotFoundError, GoneError, ServiceUnreachableError):
-            self.client.request("DELETE", f"/v1/sessions/{self.id}")
+for _operation in OPERATIONS.values():
+    if _operation.arrays:
+        setattr(Client, f"{_operation.method}_call", table_call(_operation))
+    setattr(Client, _operation.method, _operation_method(_operation))

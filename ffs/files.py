@@ -1,8 +1,9 @@
 """Files of the command line: meshes, forms, handles and results, by extension.
 
-* Meshes: OBJ, PLY, OFF, STL, GLB/glTF through :mod:`solver.io` (file vertex order kept;
-  OBJ/OFF/PLY are written with full float64 precision, STL and GLB in float32), or ``.json``
-  / ``.npz`` holding ``vertices`` and ``faces`` (the API's mesh document).
+* Meshes: the library's formats (:data:`solver.formats.FORMATS`: OBJ, PLY, OFF, STL,
+  GLB/glTF; file vertex order kept; OBJ/OFF/PLY are written with full float64 precision,
+  STL and glTF in float32) through :mod:`solver.io`, or ``.json`` / ``.npz`` holding
+  ``vertices`` and ``faces`` (the API's mesh document).
 * Forms: ``.json`` with the fields of the API's forms response (``faces``, ``edges``,
   ``lengths``, ``angles``, and the optional ``vertex_map`` of a non-manifold mesh and
   ``placement`` of its components) or ``.npz`` with the same names (the placement as
@@ -26,11 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from ffs.arrays import json_default
 from ffs.results import Forms
+from ffs_wire.arrays import json_default
+from solver.formats import LOAD_FORMATS as MESH_FORMATS
 
-MESH_FORMATS = ("obj", "off", "ply", "stl", "glb", "gltf")
-"""Mesh file formats read (written: all but gltf)."""
 DATA_FORMATS = ("json", "npz")
 """Formats of arrays by name: forms, meshes as documents, reports."""
 
@@ -255,6 +255,38 @@ def read_json(path: str | os.PathLike[str]) -> Any:
         raise InputFileError(path, f"cannot read it as JSON: {exc}") from None
 
 
+def read_cotangent(path: str | os.PathLike[str]) -> np.ndarray:
+    """The cotangent of ``ffs vjp --cotangent``: (n, 3) or (k, n, 3) float64 from a .npy,
+    an .npz (array ``cotangent``, or its only array) or a .json (the array, or an object
+    with ``cotangent``).
+
+    Raises:
+        InputFileError: Missing, unreadable, not numbers, or not (n, 3) / (k, n, 3).
+    """
+    path = Path(path)
+    fmt = path.suffix.lstrip(".").lower()
+    try:
+        if fmt == "npy":
+            value: Any = np.load(path, allow_pickle=False)
+        elif fmt == "npz":
+            fields = _read_fields(path, fmt)
+            value = fields.get("cotangent", next(iter(fields.values())) if len(fields) == 1
+                               else None)
+        else:
+            value = read_json(path)
+            value = value.get("cotangent") if isinstance(value, dict) else value
+        array = np.asarray(value, dtype=np.float64)
+    except FileNotFoundError:
+        raise InputFileError(path, "no such file") from None
+    except (OSError, TypeError, ValueError) as exc:
+        raise InputFileError(path, f"not an array of numbers ({exc})",
+                             field="cotangent") from None
+    if array.ndim not in (2, 3) or array.shape[-1] != 3:
+        raise InputFileError(path, f"expected shape (n, 3) or (k, n, 3), got "
+                             f"{list(array.shape)}", field="cotangent")
+    return array
+
+
 # ----------------------------------------------------------------------------- writing
 
 
@@ -315,21 +347,16 @@ def write_mesh(path: Path, fmt: str, vertices: np.ndarray, faces: np.ndarray,
 
     Args:
         path: The output file.
-        fmt: ``obj``, ``off``, ``ply``, ``stl``, ``glb``, or ``json``/``npz`` (a document
-            with ``vertices``, ``faces`` and ``report``).
+        fmt: a mesh format the library writes (:data:`solver.formats.SAVE_FORMATS`), or
+            ``json``/``npz`` (a document with ``vertices``, ``faces`` and ``report``).
         vertices: (n, 3) float64 (written in float32 to STL and GLB).
         faces: (m, 3) int.
         report: The ``report`` field of a document.
-
-    Raises:
-        InputFileError: ``gltf`` (read, not written).
     """
     if fmt in DATA_FORMATS:
         write_arrays(path, fmt, {"vertices": vertices, "faces": faces},
                      {"report": report or {}})
         return
-    if fmt == "gltf":
-        raise InputFileError(path, "glTF is read, not written; write .glb")
     from solver.io import save_mesh
 
     _atomic_write(path, save_mesh(vertices, faces, fmt))

@@ -1,7 +1,8 @@
 """The operations in this process through :mod:`solver`, with the client's signatures.
 
-:class:`Local` has the methods of :class:`ffs.client.Client` (same arguments, the HTTP
-option names, the same :mod:`ffs.results`) and calls the library the way the service's
+:class:`Local` has the methods of :class:`ffs.client.Client` (one per operation of
+:data:`ffs.operations.OPERATIONS`; same arguments, the HTTP option names, the same
+:mod:`ffs.results`) and calls the library the way the service's
 workers do (``service/worker/tasks.py``: the same options and defaults), so that
 ``ffs <command>`` gives the same vertices in-process and with ``--server`` (bit for bit with
 the same BLAS thread count; other thread counts change the round-off of refined answers).
@@ -15,7 +16,15 @@ from typing import Any
 import numpy as np
 
 import solver
-from ffs.results import Blend, Forms, Integrability, Mesh, Parameterization, ShapeBlend
+from ffs.results import (
+    Blend,
+    Forms,
+    Integrability,
+    Mesh,
+    Parameterization,
+    ShapeBlend,
+    VjpResult,
+)
 from solver.errors import SolverInputError
 from solver.options import (
     BlendOptions,
@@ -41,6 +50,13 @@ def _forms(faces: Any, edges: Any, lengths: Any, angles: Any) -> Forms:
     if isinstance(faces, Forms) and edges is None:
         return faces
     return Forms(np.asarray(faces), np.asarray(edges), np.asarray(lengths), np.asarray(angles))
+
+
+def _constraints(document: Mapping[str, Any] | None) -> solver.Constraints:
+    """The library's constraints of the API's ``{"positions": [...], "frames": [...]}``."""
+    document = document or {}
+    return solver.Constraints.from_records(document.get("positions") or [],
+                                           document.get("frames") or [])
 
 
 def integrability_report(report: solver.IntegrabilityReport) -> Integrability:
@@ -69,6 +85,24 @@ class Local:
                                             n_vertices=n_vertices, vertex_map=forms.vertex_map)
         return integrability_report(report)
 
+    def _checked_first(self, forms: Forms, solve: ReconstructOptions,
+                       options: Mapping[str, Any]) -> solver.IntegrabilityReport | None:
+        """With ``require_integrable``: the integrability report (raising
+        :class:`NotIntegrableError` for forms that fail it), else None."""
+        if not options.get("require_integrable"):
+            return None
+        tolerance = solve.integrability_tol
+        report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
+                                            forms.angles, tol=tolerance,
+                                            vertex_map=forms.vertex_map)
+        if not report.integrable:
+            worst = [int(v) for v in report.worst_vertices]
+            raise NotIntegrableError(
+                f"the forms are not integrable: max defect {report.max_defect:.3g} "
+                f"rad (tolerance {tolerance:g} rad); worst vertices {worst}",
+                field="vertices", index=worst[0] if worst else None)
+        return report
+
     def reconstruct(self, faces: Any, edges: Any = None, lengths: Any = None,
                     angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
                     refine: bool | None = None, progress: Progress | None = None,
@@ -76,23 +110,10 @@ class Local:
         forms = _forms(faces, edges, lengths, angles)
         solve = ReconstructOptions.from_api({**options, "refine": refine},
                                             ignore=("require_integrable",))
-        tolerance = solve.integrability_tol
-        report_first = None
-        if options.get("require_integrable"):
-            report_first = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
-                                                      forms.angles, tol=tolerance,
-                                                      vertex_map=forms.vertex_map)
-            if not report_first.integrable:
-                worst = [int(v) for v in report_first.worst_vertices]
-                raise NotIntegrableError(
-                    f"the forms are not integrable: max defect {report_first.max_defect:.3g} "
-                    f"rad (tolerance {tolerance:g} rad); worst vertices {worst}",
-                    field="vertices", index=worst[0] if worst else None)
-        constraints = constraints or {}
+        report_first = self._checked_first(forms, solve, options)
         result = solver.reconstruct(
             forms.faces, forms.edges, forms.lengths, forms.angles,
-            constraints=solver.Constraints.from_records(constraints.get("positions") or [],
-                                                        constraints.get("frames") or []),
+            constraints=_constraints(constraints),
             options=solve.replace(check_integrability=report_first is None
                                   or report_first.integrable),
             progress=progress, vertex_map=forms.vertex_map, placement=forms.placement)
@@ -107,6 +128,27 @@ class Local:
             alignment = solver.rigid_alignment(vertices, align_to)
             vertices, report["alignment"] = alignment.vertices, alignment.report()
         return Mesh(vertices, faces, report)
+
+    def reconstruct_vjp(self, faces: Any, edges: Any = None, lengths: Any = None,
+                        angles: Any = None, *, cotangent: Any,
+                        constraints: Mapping[str, Any] | None = None,
+                        refine: bool | None = None, progress: Progress | None = None,
+                        **options: Any) -> VjpResult:
+        forms = _forms(faces, edges, lengths, angles)
+        if forms.vertex_map is not None:
+            raise SolverInputError("vertex_map: the gradients of a non-manifold mesh's forms "
+                                   "are not supported; use the forms of a manifold mesh",
+                                   field="vertex_map")
+        solve = ReconstructOptions.from_api({**options, "refine": refine},
+                                            ignore=("require_integrable",))
+        self._checked_first(forms, solve, options)
+        result, vjp = solver.reconstruct_vjp(
+            forms.faces, forms.edges, forms.lengths, forms.angles, options=solve,
+            constraints=_constraints(constraints), progress=progress)
+        grads = vjp.cotangents(np.asarray(cotangent, dtype=np.float64))
+        return VjpResult(result.vertices, np.asarray(forms.faces, dtype=np.int64),
+                         grads.lengths, grads.angles, grads.positions, grads.frames,
+                         to_jsonable(result.report.to_dict()))
 
     def deform(self, vertices: Any, faces: Any, handles: Sequence[int] | np.ndarray,
                handle_positions: Any, *, rotation_handles: Sequence[Any] | None = None,
@@ -167,8 +209,7 @@ class Local:
                    times: Sequence[float] | None = None, kind: str = "glb",
                    refine: bool | None = None, progress: Progress | None = None,
                    **options: Any) -> bytes:
-        # The service's one glTF writer, pure numpy (the in-process backend only).
-        from service.worker.gltf import encode_gltf_animation
+        from solver.gltf import encode_gltf_animation
 
         result = self._blend(shapes, faces, weights, t, refine, progress, options)
         return encode_gltf_animation(result.vertices, result.faces,

@@ -204,3 +204,38 @@ class ShapeBlend:
         weights = np.asarray(doc["weights"], dtype=np.float64)
         vertices = np.asarray(doc["vertices"], dtype=np.float64).reshape(len(weights), -1, 3)
         return cls(weights, vertices, _ints(doc["faces"]), list(doc.get("reports") or []))
+
+
+@dataclass
+class VjpResult:
+    """A reconstruction and the cotangents of its inputs (``POST /v1/reconstruct/vjp``;
+    the library's :class:`solver.adjoints.FormCotangents`): ``vertices`` (n, 3),
+    ``faces`` (m, 3), ``grad_lengths`` and ``grad_angles`` (E,) float64 (or (k, E) for k
+    cotangents at once), ``grad_positions`` (p, 3) and ``grad_frames`` (q, 3, 3) of the
+    constraint targets in the order they were given (leading k likewise), the report
+    (``report["vjp"]``: which answer was differentiated)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    grad_lengths: np.ndarray
+    grad_angles: np.ndarray
+    grad_positions: np.ndarray
+    grad_frames: np.ndarray
+    report: dict[str, Any] = field(default_factory=dict)
+
+    GRADIENTS = ("grad_lengths", "grad_angles", "grad_positions", "grad_frames")
+    """The cotangent arrays, by name."""
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any]) -> VjpResult:
+        lengths = np.asarray(doc["grad_lengths"], dtype=np.float64)
+        batch = lengths.shape[:-1]  # (k,) for k cotangents at once, else ()
+        positions = np.asarray(doc["grad_positions"], dtype=np.float64).reshape(*batch, -1, 3)
+        frames = np.asarray(doc["grad_frames"], dtype=np.float64).reshape(*batch, -1, 3, 3)
+        return cls(_floats(doc["vertices"]), _ints(doc["faces"]), lengths,
+                   np.asarray(doc["grad_angles"], dtype=np.float64), positions, frames,
+                   doc.get("report") or {})
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The cotangents by name (for a .json or .npz file)."""
+        return {name: getattr(self, name) for name in self.GRADIENTS}

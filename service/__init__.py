@@ -14,8 +14,8 @@ are met (see docs/service.md, docs/distributed.md):
    implementations, local processes and a Dask cluster.
 4. :mod:`service.worker` — in the worker process: the raw body decoded
    (:mod:`service.api.decoding`), the task run (:mod:`~service.worker.tasks`, calling
-   :mod:`solver`), the result encoded (:mod:`~service.worker.output`, glTF in
-   :mod:`~service.worker.gltf`).
+   :mod:`solver`), the result encoded (:mod:`~service.worker.output`, glTF by the
+   library's writer :mod:`solver.gltf`).
 5. Back up: a :class:`~service.api.task.TaskResult` or a failure dict, turned into the
    response by the route.
 

@@ -139,3 +139,24 @@ def process_memory() -> int:
             return int(proc.memory_info().rss)
     except Exception:
         return 0
+
+
+def machine_memory() -> int:
+    """Bytes of memory this process's machine (or container) has: the physical memory, or
+    the cgroup's limit where one is lower (cgroup v2 ``memory.max``, v1
+    ``memory.limit_in_bytes``); 0 when unknown."""
+    import os
+
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        total = 0
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            with open(path) as fh:
+                text = fh.read().strip()
+        except OSError:
+            continue
+        if text.isdigit() and 0 < int(text) < (total or int(text) + 1):
+            total = int(text)
+    return int(total)

@@ -79,6 +79,12 @@ class OperationSpec:
     files: tuple[str, ...] = ("file",)
 
     @property
+    def solves(self) -> bool:
+        """Whether it factorizes (its requests' memory: :func:`service.backends.admission.
+        request_cost`)."""
+        return self.stages != STAGES_LIGHT
+
+    @property
     def arrays(self) -> ArraySpecs:
         """The large arrays of the body (the ``source``'s)."""
         return ARRAYS_OF[self.source]

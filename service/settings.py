@@ -32,6 +32,30 @@ def _default_workers() -> int:
     return max(1, os.cpu_count() or 1)
 
 
+def _default_request_memory(data: dict[str, Any]) -> int:
+    """FFS_MAX_REQUEST_MEMORY's default: the machine's share of one worker."""
+    from service.backends.admission import request_memory_budget
+    from service.memory import machine_memory
+
+    budget = request_memory_budget(machine_memory(), data.get("max_session_memory", 0),
+                                   data.get("workers") or _default_workers())
+    return max(budget, 64 * 1024**2)
+
+
+def _default_max_faces(data: dict[str, Any]) -> int:
+    """FFS_MAX_FACES's default: what the lightest operations fit in a request's memory."""
+    from service.backends.admission import faces_within
+
+    return max(1, faces_within(data.get("max_request_memory", 64 * 1024**2), solves=False))
+
+
+def _default_body_bytes(data: dict[str, Any]) -> int:
+    """FFS_MAX_BODY_BYTES's default: a JSON body of FFS_MAX_FACES faces, at least 64 MiB."""
+    from service.backends.admission import BODY_BYTES_PER_FACE
+
+    return max(64 * 1024**2, BODY_BYTES_PER_FACE * data.get("max_faces", 0))
+
+
 class Settings(BaseSettings):
     """Runtime configuration of the HTTP service (see the module docstring)."""
 
@@ -114,8 +138,6 @@ class Settings(BaseSettings):
               "ends before its first iteration doubles the next): a new drag waits at most "
               "one slice.", le=60)
 
-    max_body_bytes: int = Field(
-        64 * 1024 * 1024, ge=1024, description="Largest request body (413 beyond).")
     header_timeout: float = seconds(
         10.0, "Seconds a client may take to send a request's headers; then "
                                 "408 and the connection is closed (`python -m service`, or "
@@ -134,10 +156,24 @@ class Settings(BaseSettings):
     shutdown_timeout: float = Field(
         5.0, ge=0, description="Seconds `python -m service` waits, after SIGTERM, for open "
                                "requests to finish before it cancels them and stops.")
-    max_vertices: int = Field(
-        250_000, ge=3, description="Largest vertex count of a mesh (413 beyond).")
+    max_request_memory: int = Field(
+        default_factory=lambda data: _default_request_memory(data), ge=64 * 1024**2,
+        description="Bytes one request may use in its worker (default: 80 % of the "
+                    "machine's memory less FFS_MAX_SESSION_MEMORY, divided by FFS_WORKERS); "
+                    "each operation's largest mesh follows from its predicted peak memory "
+                    "(413 beyond).")
     max_faces: int = Field(
-        500_000, ge=1, description="Largest face count of a mesh (413 beyond).")
+        default_factory=lambda data: _default_max_faces(data), ge=1,
+        description="Largest face count of a mesh (413 beyond; default: the most faces an "
+                    "operation that factorizes nothing fits in FFS_MAX_REQUEST_MEMORY).")
+    max_vertices: int = Field(
+        default_factory=lambda data: max(3, 3 * data.get("max_faces", 500_000) // 5), ge=3,
+        description="Largest vertex count of a mesh (413 beyond; default: 0.6 x "
+                    "FFS_MAX_FACES).")
+    max_body_bytes: int = Field(
+        default_factory=lambda data: _default_body_bytes(data), ge=1024,
+        description="Largest request body (413 beyond; default: room for a JSON body of "
+                    "FFS_MAX_FACES faces, at least 64 MiB).")
 
     solver_backend: Backend = Field(
         "auto", description="Default sparse factorization backend (`auto`, `pardiso`, "

@@ -178,5 +178,44 @@ def seam_edges(topology: MeshTopology, face_chart: np.ndarray) -> np.ndarray:
     return np.flatnonzero(cut)
 
 
+def xatlas_charts(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """xatlas's charting of the mesh (its default ``ChartOptions``: charts grown from seed
+    faces by normal deviation, roundness, straightness and seam costs; ``xatlas`` on PyPI).
+
+    Args:
+        vertices: (n, 3) float64; faces: (m, 3) int64.
+
+    Returns:
+        (m,) int64 the xatlas chart of each face; faces xatlas leaves out (degenerate
+        ones) get one label past the last chart, so callers split labels into
+        edge-connected sets (:func:`connected_face_sets`).
+    """
+    import xatlas
+
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(np.asarray(vertices, dtype=np.float32), np.asarray(faces, dtype=np.uint32))
+    pack = xatlas.PackOptions()
+    pack.resolution = 256                  # the placement is not used: keep it cheap
+    atlas.generate(pack_options=pack)
+    count = atlas.get_mesh_chart_count(0)
+    label = np.full(len(faces), count, dtype=np.int64)
+    for chart in range(count):             # a loop over charts
+        label[np.asarray(atlas.get_mesh_chart(0, chart).faces, dtype=np.int64)] = chart
+    return label
+
+
+def labelled_face_sets(graph: DualGraph, label: np.ndarray) -> list[np.ndarray]:
+    """The edge-connected face sets of equal ``label`` (m,): each (k,) int64 mesh faces."""
+    m = len(label)
+    keep = label[graph.edge_faces[:, 0]] == label[graph.edge_faces[:, 1]]
+    a, b = graph.edge_faces[keep, 0], graph.edge_faces[keep, 1]
+    matrix = sp.coo_array((np.ones(len(a)), (a, b)), shape=(m, m))
+    count, component = connected_components(matrix, directed=False)
+    order = np.argsort(component, kind="stable")
+    bounds = np.searchsorted(component[order], np.arange(count + 1))
+    return [order[bounds[c]:bounds[c + 1]] for c in range(count)]
+
+
 __all__ = ["ChartMesh", "DualGraph", "bisect", "chart_mesh", "connected_face_sets",
-           "dual_graph", "is_disk_like", "seam_edges"]
+           "dual_graph", "is_disk_like", "labelled_face_sets", "seam_edges",
+           "xatlas_charts"]

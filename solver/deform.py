@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import threading
-import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -20,6 +19,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .budget import Budget
 from .errors import ConstraintError
 from .forms import forms_of, zero_area_faces
 from .frames import layout_frames
@@ -401,7 +401,7 @@ class Deformer:
                 refinement gets what the linear answer leaves (see :meth:`refine_last`).
             progress: optional callback for the refinement's steps (see there).
         """
-        started = time.perf_counter()
+        budget = Budget.of(max_seconds)
         refine = self.refine if refine is None else bool(refine)
         P = (self.file_rest[self.file_handles] if handle_positions is None
              else as_points(handle_positions, "handle_positions"))
@@ -433,7 +433,7 @@ class Deformer:
                       "frames": frames, "best": None, "report": None}
         self.last_report = not_refined("disabled (refine=false)")
         if refine:
-            return self.refine_last(_seconds_left(max_seconds, started), progress)
+            return self.refine_last(budget, progress)
         return self._embed(local)
 
     def expect_refresh(self, seconds: float) -> None:
@@ -443,14 +443,15 @@ class Deformer:
         frame budget shorter than a factorization still gets its first."""
         self._refinement().expect_refresh(seconds)
 
-    def refine_last(self, max_seconds: float | None = None,
+    def refine_last(self, max_seconds: Budget | float | None = None,
                     progress: Progress | None = None) -> np.ndarray:
         """The refined shape (n, 3) for the handle targets of the last :meth:`solve`.
 
         The first call after a solve starts from the better (lower energy) of the layout
         fit of that solve's rotations and the previous drag's refined shape moved by what
         the linear answer moved; a call after a refinement that stopped early (its budget
-        ``max_seconds``, which counts the choice of the start too, ran out:
+        ``max_seconds``, a :class:`~solver.budget.Budget` or seconds from now, which counts
+        the choice of the start too, ran out:
         ``last_report["stop_reason"] == "time_limit"``) continues from where it stopped, so
         an interactive client can answer the linear shape at once and refine in slices
         while the user pauses. A converged refinement is
@@ -458,7 +459,7 @@ class Deformer:
         ``progress("refine", fraction)`` after each step, and ``progress.iteration(detail)``
         where it has that method (:meth:`solver.refine.Refiner.run`).
         """
-        started = time.perf_counter()
+        budget = Budget.of(max_seconds)
         if self._last is None:
             raise ConstraintError("nothing to refine: call solve first", field="handles")
         last = self._last
@@ -472,7 +473,7 @@ class Deformer:
             return self._embed(local)
         if last["best"] is not None and refiner.can_resume:
             # The previous slice of this drag stopped at its budget: continue it exactly.
-            fit = refiner.resume(max_seconds, progress)
+            fit = refiner.resume(budget, progress)
             label = last["report"].get("start")
         else:
             soft = None if np.isinf(self._handle_weight) else last["P"]
@@ -493,7 +494,7 @@ class Deformer:
             else:
                 energy = None
             fit = refiner.run(start, keep_factor=True,
-                              time_limit=_seconds_left(max_seconds, started),
+                              time_limit=budget,
                               progress=progress, start_energy=energy)
         self.last_report = dict(fit.report, start=label)
         last["best"], last["report"] = fit.vertices, self.last_report
@@ -510,14 +511,6 @@ class Deformer:
             return out
         out, self.last_spread = self.cut.to_file(out)
         return out
-
-
-def _seconds_left(max_seconds: float | None, started: float) -> float | None:
-    """What is left (>= 0) of a budget of ``max_seconds`` begun at ``started``
-    (``time.perf_counter()``); None: no budget."""
-    if max_seconds is None:
-        return None
-    return max(0.0, max_seconds - (time.perf_counter() - started))
 
 
 def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
@@ -566,7 +559,7 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
     if deformer.refine:
         stages("refine")
         deformer.expect_refresh(deformer.setup_timings.get("factorize", 0.0))
-        result = deformer.refine_last(stages.left(opts.max_seconds), progress)
+        result = deformer.refine_last(stages.budget(opts.max_seconds), progress)
         stages.lap("refine")
     # The last stage that ran is complete.
     stages("refine" if deformer.last_report.get("refined") else "solve", 1.0)

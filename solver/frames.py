@@ -13,13 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import TriangleInequalityError
-from .rotations import (
-    quaternion_multiply,
-    quaternion_x,
-    quaternion_z,
-    rotation_x,
-    rotation_z,
-)
 from .topology import MeshTopology
 
 TRIANGLE_SLACK = 1e-12
@@ -220,7 +213,19 @@ def transition_rotations(transition: np.ndarray) -> np.ndarray:
         (k, 3, 3) float64 rotation matrices.
     """
     theta_left, phi, theta_right = transition.T
-    return rotation_z(theta_left) @ rotation_x(phi) @ rotation_z(-theta_right)
+    ca, sa = np.cos(theta_left), np.sin(theta_left)
+    cp, sp = np.cos(phi), np.sin(phi)
+    cb, sb = np.cos(theta_right), np.sin(theta_right)
+    # Written out (one pass over k, no (k, 3, 3) temporaries): M = Rz(a) Rx(phi) has rows
+    # (ca, -sa cp, sa sp), (sa, ca cp, -ca sp), (0, sp, cp); R = M Rz(-b) turns its first
+    # two columns by b.
+    m0 = np.stack([ca, sa, np.zeros_like(ca)], axis=1)        # (k, 3) column 0 of M
+    m1 = np.stack([-sa * cp, ca * cp, sp], axis=1)            # column 1
+    R = np.empty((len(transition), 3, 3))
+    R[:, :, 0] = m0 * cb[:, None] - m1 * sb[:, None]
+    R[:, :, 1] = m0 * sb[:, None] + m1 * cb[:, None]
+    R[:, :, 2] = np.stack([sa * sp, -ca * sp, cp], axis=1)
+    return R
 
 
 def transition_quaternions(transition: np.ndarray) -> np.ndarray:
@@ -233,8 +238,13 @@ def transition_quaternions(transition: np.ndarray) -> np.ndarray:
         (k, 4) float64 unit quaternions (w, x, y, z).
     """
     theta_left, phi, theta_right = transition.T
-    return quaternion_multiply(quaternion_multiply(quaternion_z(theta_left), quaternion_x(phi)),
-                               quaternion_z(-theta_right))
+    ca, sa = np.cos(0.5 * theta_left), np.sin(0.5 * theta_left)
+    cp, sp = np.cos(0.5 * phi), np.sin(0.5 * phi)
+    cb, sb = np.cos(0.5 * theta_right), np.sin(0.5 * theta_right)
+    # qz(a) qx(phi) = (ca cp, ca sp, sa sp, sa cp), then times qz(-b) = (cb, 0, 0, -sb).
+    w, x, y, z = ca * cp, ca * sp, sa * sp, sa * cp
+    return np.stack([w * cb + z * sb, x * cb - y * sb, y * cb + x * sb, z * cb - w * sb],
+                    axis=1)
 
 
 def layout_frames(vertices: np.ndarray, faces: np.ndarray, layouts: np.ndarray) -> np.ndarray:

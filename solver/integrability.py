@@ -322,11 +322,15 @@ def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
     successor = np.where(on_interior[topo.halfedge_origin], successor, corners)
     count = np.bincount(topo.halfedge_origin, minlength=topo.n_vertices)[interior]
     _, rank = cycle_ranks(successor, int(count.max()))
-    # Corners of interior vertices sorted by (vertex, ring position).
+    # Corners of interior vertices sorted by (vertex, ring position): a counting sort, each
+    # corner at its vertex's start plus its rank (no O(H log H) sort).
     chosen = corners[on_interior[topo.halfedge_origin]]
-    order = chosen[np.lexsort((rank[chosen], topo.halfedge_origin[chosen]))]
-    step = halfedge_transitions(terms)[previous_halfedge(order)]  # transition of each step
     start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    slot = np.full(topo.n_vertices, -1, dtype=np.int64)
+    slot[interior] = start
+    order = np.empty(len(chosen), dtype=np.int64)
+    order[slot[topo.halfedge_origin[chosen]] + rank[chosen]] = chosen
+    step = halfedge_transitions(terms)[previous_halfedge(order)]  # transition of each step
     result = step[start].copy()
     for r in range(1, int(count.max())):  # one vectorized step per ring position
         active = np.flatnonzero(count > r)
@@ -370,7 +374,8 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     left, right = dual_links[generators].T
     angles = np.zeros(0)
     if len(generators):  # genus 0 without holes has none: skip the frame integration
-        frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask))
+        frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask),
+                              cotree.levels)
         hol = frames[left] @ terms.rotations[generators] @ np.swapaxes(frames[right], 1, 2)
         angles = rotation_angle(hol)
     rotation_loops = [
@@ -456,7 +461,8 @@ def integrate_along_forests(terms: EnergyTerms, forests: IntegrationForests,
     topo = terms.topology
     inner = terms.interior_edges
     dual, rest, tree = forests.dual, forests.rest, forests.primal
-    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)))
+    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)),
+                          dual.levels)
     edge_vectors = _edge_vectors(terms, frames)
     link = tree.parent_link
     has_parent = link >= 0
@@ -465,7 +471,7 @@ def integrate_along_forests(terms: EnergyTerms, forests: IntegrationForests,
     # Step from parent to node along edge e_up: +d if the edge runs parent -> node.
     sign = np.where(topo.edges[e_up, 1] == np.flatnonzero(has_parent), 1.0, -1.0)
     steps[has_parent] = sign[:, None] * edge_vectors[e_up]
-    return frames, edge_vectors, accumulate_sums(tree.parent, steps)
+    return frames, edge_vectors, accumulate_sums(tree.parent, steps, tree.levels)
 
 
 def _links_to_inner(forest: Any, mask: np.ndarray) -> np.ndarray:
@@ -479,7 +485,7 @@ def _links_to_inner(forest: Any, mask: np.ndarray) -> np.ndarray:
 
 
 def _tree_frames(terms: EnergyTerms, parent: np.ndarray, parent_inner: np.ndarray,
-                 ) -> np.ndarray:
+                 levels: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Frames (m, 3, 3) integrated from each root face (identity) along a dual tree."""
     topo = terms.topology
     local = np.broadcast_to(np.eye(3), (topo.n_faces, 3, 3)).copy()
@@ -489,7 +495,7 @@ def _tree_frames(terms: EnergyTerms, parent: np.ndarray, parent_inner: np.ndarra
     # f_child = f_parent R_{parent -> child}; R_LR is stored, R_RL = R_LR^T.
     parent_is_left = topo.edge_faces[terms.interior_edges[q], 0] == parent[has]
     local[has] = np.where(parent_is_left[:, None, None], R, np.swapaxes(R, 1, 2))
-    return accumulate_products(parent, local)
+    return accumulate_products(parent, local, levels)
 
 
 def _edge_vectors(terms: EnergyTerms, frames: np.ndarray) -> np.ndarray:

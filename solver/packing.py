@@ -62,6 +62,19 @@ def signed_areas(uv: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
+def folded(uv: np.ndarray, faces: np.ndarray, ignore: np.ndarray | None = None,
+           strict: bool = False) -> np.ndarray:
+    """(m,) bool, the ``faces`` (m, 3) flipped over ``uv`` (k, 2): signed area <= 0 (< 0
+    with ``strict``), except the faces ``ignore`` (k,) int64: faces of zero area in 3D
+    (collinear corners, issue 40), whose uv area is 0 up to rounding, of either sign, and
+    says nothing about a fold."""
+    area = signed_areas(uv, faces)
+    out = area < 0 if strict else area <= 0
+    if ignore is not None and len(ignore):
+        out[ignore] = False
+    return out
+
+
 def principal_rotation(points: np.ndarray) -> np.ndarray:
     """(2, 2) rotation (det +1) turning the principal axis of ``points`` (k, 2) onto u."""
     centred = points - points.mean(axis=0)
@@ -206,6 +219,31 @@ def boundary_crossings(uv: np.ndarray, faces: np.ndarray, chunk: int = 2_000_000
     return total
 
 
+def positive_loops(uv: np.ndarray, loops: list[np.ndarray]) -> int:
+    """How many of the vertex ``loops`` (each (k,) int64, in boundary half-edge order) run
+    counter-clockwise in the layout ``uv`` (k, 2) (positive shoelace area).
+
+    A flip-free chart whose boundary edges do not cross (:func:`boundary_crossings`) covers
+    a point as many times as the positive loops around it, less the negative ones; with
+    exactly one positive loop (its outline; every hole negative) it covers no point twice.
+    Two positive loops mean a hole laid out inside out: the faces around it wrap over it
+    (a boundary vertex whose uv angles add up past a full turn), which no boundary edge
+    crossing shows. A loop over loops (a chart has few).
+
+    Example:
+        >>> import numpy as np
+        >>> square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=float)
+        >>> positive_loops(square, [np.array([0, 1, 2, 3]), np.array([3, 2, 1, 0])])
+        1
+    """
+    count = 0
+    for loop in loops:
+        p = uv[loop]
+        q = np.roll(p, -1, axis=0)
+        count += int((p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]).sum() > 0)
+    return count
+
+
 def texel_coverage(texcoords: np.ndarray, faces: np.ndarray, resolution: int,
                    ) -> np.ndarray:
     """(resolution, resolution) int64 how many triangles cover each texel centre."""
@@ -232,4 +270,5 @@ def texel_coverage(texcoords: np.ndarray, faces: np.ndarray, resolution: int,
 
 
 __all__ = ["Packed", "PackingRules", "boundary_crossings", "pack_charts", "packing_efficiency",
-           "principal_rotation", "rasterized_overlap", "signed_areas", "texel_coverage"]
+           "positive_loops", "principal_rotation", "rasterized_overlap", "signed_areas",
+           "texel_coverage"]

@@ -51,6 +51,7 @@ from .system import (
     energy_terms,
     frame_columns,
     least_squares_rows,
+    max_weighted_residual,
     normal_matrix,
     unknown_groups,
 )
@@ -116,6 +117,7 @@ class ImmersionProblem:
                 raise
             raise triangle_inequality_error(topology, lengths, bad) from None
         self.A, self.row_weights, self.row_kind = least_squares_rows(self.terms, frame_weight)
+        self._residual: tuple[np.ndarray, np.ndarray] | None = None  # (u, A @ u), once
 
     @functools.cached_property
     def K(self) -> sp.csc_matrix:  # noqa: N802 - the matrix of the paper
@@ -144,7 +146,10 @@ class ImmersionProblem:
 
     def energies(self, u: np.ndarray) -> dict[str, float]:
         """Residual energy per term (in normalized units) of unknowns u (N, 3)."""
-        return energies(self.A, self.row_weights, self.row_kind, u)
+        kept = self._residual
+        residual = kept[1] if kept is not None and kept[0] is u else None
+        self._residual = None
+        return energies(self.A, self.row_weights, self.row_kind, u, residual)
 
     def linear_constraints(self, constraints: Constraints) -> LinearConstraints:
         """Map validated user constraints to unknown columns (positions scaled)."""
@@ -297,8 +302,11 @@ class ImmersionProblem:
         if not np.isfinite(frames).all() or not np.isfinite(positions).all():
             return None
         u = np.concatenate([positions, np.swapaxes(frames, 1, 2).reshape(-1, 3)])
-        rows = np.sqrt(self.row_weights)[:, None] * (self.A @ u)
-        return u if np.abs(rows).max(initial=0.0) <= tol else None
+        residual = self.A @ u
+        if max_weighted_residual(self.row_weights, residual) > tol:
+            return None
+        self._residual = (u, residual)  # energies(u) reuses it
+        return u
 
     def system(self, constraints: LinearConstraints, backend: str = "auto",
                extra_penalty_columns: np.ndarray | None = None,
@@ -653,7 +661,7 @@ def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
         # exact forms) where the linear answer is nearly exact.
         start, label = vertices, "linear answer"
     refiner.expect_refresh(stages.timings.get("factorize", 0.0))
-    fit = refiner.run(start, time_limit=stages.left(opts.max_seconds), progress=progress)
+    fit = refiner.run(start, time_limit=stages.budget(opts.max_seconds), progress=progress)
     refinement = dict(fit.report, start=label)
     vertices = fit.vertices
     # The errors on the well-shaped elements, reported for every refinement (slivers and

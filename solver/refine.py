@@ -31,6 +31,7 @@ import scipy.sparse as sp
 from threadpoolctl import ThreadpoolController
 
 from . import stopping
+from .budget import Budget
 from .form_energy import (  # noqa: F401 - re-exported: the refinement's public names
     ANGLE_WEIGHT,
     AREA_FLOOR,
@@ -151,7 +152,7 @@ class Refiner:
 
     def run(self, start: np.ndarray, *, soft_positions: np.ndarray | None = None,
             frame_edges: np.ndarray | None = None, max_iterations: int | None = None,
-            tolerance: float | None = None, time_limit: float | None = None,
+            tolerance: float | None = None, time_limit: Budget | float | None = None,
             keep_factor: bool = False, progress: Any = None,
             start_energy: float | None = None, interactive: bool | None = None,
             ) -> Refinement:
@@ -162,7 +163,8 @@ class Refiner:
         previous ``keep_factor`` run ended with and keep this run's for the next (for a
         session's drags, which are alike); convergence may then be declared on a
         quasi-Newton step of that kept factor, without a fresh factorization to confirm it.
-        A run that stops at ``time_limit`` can be continued by :meth:`resume`.
+        ``time_limit``: a :class:`~solver.budget.Budget`, or seconds from now; a run that
+        stops at it can be continued by :meth:`resume`.
         ``start_energy``: :meth:`energy` of ``start`` with these handle targets, when the
         caller has it. ``interactive`` (default: ``keep_factor``): convergence may be
         declared on a step of a kept factor without the checks a one-shot refinement makes
@@ -180,7 +182,7 @@ class Refiner:
             state = _Iteration.start(self, np.array(start, dtype=np.float64), keep_factor,
                                      rules, start_energy)
             state.interactive = keep_factor if interactive is None else interactive
-            return self._advance(state, time_limit, progress, clock)
+            return self._advance(state, Budget.of(time_limit), progress, clock)
 
     def adopt_factor(self, other: Refiner) -> bool:
         """Take the factor (and its damping) that ``other``'s last ``keep_factor`` run kept,
@@ -204,7 +206,8 @@ class Refiner:
         """Whether the last run stopped at its time limit and :meth:`resume` continues it."""
         return self._paused is not None
 
-    def resume(self, time_limit: float | None = None, progress: Any = None) -> Refinement:
+    def resume(self, time_limit: Budget | float | None = None, progress: Any = None,
+               ) -> Refinement:
         """Continue the last :meth:`run` that stopped at its ``time_limit`` for up to
         ``time_limit`` more seconds, exactly as if it had not been interrupted (the same
         damping, factor, quasi-Newton memory and counters): slices of a refinement end
@@ -217,13 +220,13 @@ class Refiner:
         clock = time.perf_counter()
         with _BLAS.limit(limits=1, user_api="blas"):
             state.slices += 1
-            return self._advance(state, time_limit, progress, clock)
+            return self._advance(state, Budget.of(time_limit), progress, clock)
 
-    def _advance(self, state: _Iteration, time_limit: float | None, progress: Any,
+    def _advance(self, state: _Iteration, budget: Budget, progress: Any,
                  clock: float) -> Refinement:
         """Iterate ``state`` until it stops (:meth:`_iterate`); the :class:`Refinement`."""
         self._paused = None
-        self._iterate(state, time_limit, _iteration_notifier(progress, time_limit), clock)
+        self._iterate(state, budget, _iteration_notifier(progress, budget), clock)
         if state.stop == StopReason.TIME_LIMIT:
             self._paused = state
         if state.keep_factor and state.factor is not None:
@@ -234,12 +237,11 @@ class Refiner:
             "angle_weight": self.targets.angle_weight,
             "seconds": time.perf_counter() - clock}))
 
-    def _iterate(self, s: _Iteration, time_limit: float | None, notify: Any,
-                 clock: float) -> None:
+    def _iterate(self, s: _Iteration, budget: Budget, notify: Any, clock: float) -> None:
         """The iteration of :meth:`run` and :meth:`resume`, advancing ``s`` in place until
-        a rule of :mod:`solver.stopping` stops it or it reaches ``time_limit`` (it stops
-        before an iteration or a factorization that the last one of its kind says would end
-        past it)."""
+        a rule of :mod:`solver.stopping` stops it or ``budget`` runs out (it stops before an
+        iteration or a factorization that the last one of its kind says would end past
+        it)."""
         system, rules, steps = self.system, s.rules, self.step_rules
         s.stop = None
         while not s.converged:
@@ -248,7 +250,7 @@ class Refiner:
                 s.end(reason)
                 break
             refresh = s.factor is None or s.frozen_steps >= s.max_frozen
-            if not self._fits(s, refresh, time_limit, clock):
+            if not self._fits(s, refresh, budget):
                 s.end(StopReason.TIME_LIMIT)
                 break
             began, factorizations = time.perf_counter(), s.factorizations
@@ -280,7 +282,7 @@ class Refiner:
                     # is not finite): this refiner factorizes in double from now on, here
                     # first, as after a refused step (its time limit included).
                     self._double = True
-                    if self._refresh_stopped(s, time_limit, clock):
+                    if self._refresh_stopped(s, budget):
                         break
                     if H is None:
                         energy, H, g = system.normal_equations(s.X)
@@ -316,7 +318,7 @@ class Refiner:
                     if s.fresh:
                         s.damping = max(s.damping * s.growth, steps.refused_damping)
                         s.growth *= 2.0
-                    if self._refresh_stopped(s, time_limit, clock):
+                    if self._refresh_stopped(s, budget):
                         break
                     if not s.fresh and H is None:  # a kept factor failed: rebuild it here
                         energy, H, g = system.normal_equations(s.X)
@@ -385,23 +387,21 @@ class Refiner:
         if self._iteration_seconds["refresh"] is None and seconds > 0:
             self._iteration_seconds["refresh"] = float(seconds)
 
-    def _fits(self, s: _Iteration, refresh: bool, time_limit: float | None,
-              clock: float) -> bool:
+    def _fits(self, s: _Iteration, refresh: bool, budget: Budget) -> bool:
         """Whether an iteration (a factorization first where ``refresh``) ends before
-        ``time_limit`` seconds after ``clock``, judged by the last one of its kind (or by
+        ``budget`` runs out, judged by the last one of its kind (or by
         :meth:`expect_refresh`'s estimate; with neither it starts while time is left)."""
-        if time_limit is None:
+        left = budget.left()
+        if left is None:
             return True
-        left = time_limit - (time.perf_counter() - clock)
         kind = "refresh" if refresh or s.factor is None else "step"
         return left > (self._iteration_seconds[kind] or 0.0)
 
-    def _refresh_stopped(self, s: _Iteration, time_limit: float | None,
-                         clock: float) -> bool:
+    def _refresh_stopped(self, s: _Iteration, budget: Budget) -> bool:
         """Whether the factorization that the iteration of ``s`` needs now would end past
-        ``time_limit``: then the run stops here (``time_limit``), and a resumed run starts
+        ``budget``: then the run stops here (``time_limit``), and a resumed run starts
         this iteration again with that factorization."""
-        if self._fits(s, True, time_limit, clock):
+        if self._fits(s, True, budget):
             return False
         s.frozen_steps = s.max_frozen
         s.end(StopReason.TIME_LIMIT)
@@ -596,7 +596,7 @@ machine its threads cost ~20 ms per dot product (docs/refinement.md), so :meth:`
 limits BLAS to one thread while it iterates."""
 
 
-def _iteration_notifier(progress: Any, time_limit: float | None) -> Any:
+def _iteration_notifier(progress: Any, budget: Budget) -> Any:
     """``notify(iteration, factorizations, energy, seconds)`` for :meth:`Refiner.run`:
     calls ``progress("refine", fraction)`` and, when ``progress`` has one,
     ``progress.iteration(detail)``; does nothing without ``progress``."""
@@ -608,8 +608,8 @@ def _iteration_notifier(progress: Any, time_limit: float | None) -> Any:
         # A refinement's length is unknown: most end after 2-5 iterations, so the fraction
         # climbs towards 1 as iterations pass (or as the time budget is spent).
         fraction = iteration / (iteration + 3.0)
-        if time_limit:
-            fraction = max(fraction, seconds / time_limit)
+        if budget.seconds:
+            fraction = max(fraction, budget.spent() / budget.seconds)
         progress("refine", min(fraction, 0.99))
         if detail_hook is not None:
             detail_hook({"iteration": iteration, "factorizations": factorizations,
@@ -620,7 +620,7 @@ def _iteration_notifier(progress: Any, time_limit: float | None) -> Any:
 
 def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None = None, *,
            max_iterations: int | None = None, tolerance: float | None = None,
-           time_limit: float | None = None, backend: str = "auto",
+           time_limit: Budget | float | None = None, backend: str = "auto",
            progress: Any = None, stop_rules: StopRules = DEFAULT_STOP_RULES,
            step_rules: StepRules = DEFAULT_STEP_RULES) -> Refinement:
     """Vertex positions whose fundamental forms are nearest to ``targets`` (Levenberg-Marquardt).
@@ -634,10 +634,11 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
             rejected step); None: ``stop_rules.max_iterations``.
         tolerance: stop after a full Gauss-Newton step that moved no vertex by more than
             ``tolerance`` times the mean target edge length; None: ``stop_rules.tolerance``.
-        time_limit: optional wall-clock budget in seconds: the refinement stops before an
-            iteration (or a factorization) that, timed like the last one of its kind by
-            this :class:`Refiner`, would end past it (the first factorization of a run
-            that has none starts while time is left). It returns the best iterate,
+        time_limit: optional :class:`~solver.budget.Budget` (or seconds from now): the
+            refinement stops before an iteration (or a factorization) that, timed like the
+            last one of its kind by this :class:`Refiner`, would end past it (the first
+            factorization of a run that has none starts while time is left). It returns
+            the best iterate,
             ``converged`` False and ``stop_reason`` ``"time_limit"``.
         backend: sparse factorization backend (:func:`solver.linalg.factorize`).
         progress: optional ``progress(stage, fraction)`` callback, called as

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .budget import Budget
 from .serialization import JsonDataclass, to_jsonable
 
 Progress = Callable[[str, float], None]
@@ -54,10 +55,15 @@ class Stages:
         self.timings[stage] = self.timings.get(stage, 0.0) + now - self._clock
         self._clock = now
 
+    def budget(self, max_seconds: float | None) -> Budget:
+        """The operation's :class:`~solver.budget.Budget` of ``max_seconds`` (None: no
+        limit), counted from its start."""
+        return Budget(max_seconds, self.started)
+
     def left(self, max_seconds: float | None) -> float | None:
-        """Seconds left of a budget of ``max_seconds`` from the start (None: no budget)."""
-        return None if max_seconds is None else max_seconds - (time.perf_counter()
-                                                               - self.started)
+        """Seconds left (at least 0) of a budget of ``max_seconds`` from the start (None: no
+        budget): :meth:`budget`'s :meth:`~solver.budget.Budget.left`."""
+        return self.budget(max_seconds).left()
 
 
 def mesh_summary(vertices: ArrayLike, faces: ArrayLike,

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .budget import Budget
 from .errors import ShapeMismatchError, TriangleInequalityError
 from .form_energy import form_residuals
 from .forms import Forms, fundamental_forms
@@ -227,8 +228,9 @@ class _Rows:
         self.refiner: Refiner | None = None       # the last sequence row's refiner
 
     def solve(self, index: int, row: np.ndarray, lengths: np.ndarray, angles: np.ndarray,
-              budget: float | None) -> tuple[np.ndarray, dict[str, Any]]:
-        """Vertices (n, 3), aligned to the row's vertex blend, and the row's report."""
+              budget: Budget) -> tuple[np.ndarray, dict[str, Any]]:
+        """Vertices (n, 3), aligned to the row's vertex blend, and the row's report, within
+        ``budget``."""
         shapes, topology = self.shapes, self.shapes.topology
         length_blend = "log"
         if _violated(topology, lengths) and row.min() >= 0:
@@ -241,7 +243,7 @@ class _Rows:
             rec = reconstruct(topology.faces, topology.edges, lengths, angles,
                               n_vertices=topology.n_vertices, initial_guess=guess,
                               options=ReconstructOptions.given(self.opts, {
-                                  "check_integrability": False, "max_seconds": budget}))
+                                  "check_integrability": False, "max_seconds": budget.left()}))
             vertices, refinement = rec.vertices, dict(rec.report["refinement"])
             if refinement.get("start") == "initial guess":
                 refinement["start"] = "vertex blend"
@@ -286,7 +288,7 @@ class _Rows:
         return self.opts.refine is not False
 
     def _continue(self, row: np.ndarray, lengths: np.ndarray, angles: np.ndarray,
-                  guess: np.ndarray | None, budget: float | None,
+                  guess: np.ndarray | None, budget: Budget,
                   ) -> tuple[np.ndarray, dict[str, Any]]:
         """The refinement of a row from the best of :meth:`_starts` (lowest energy), with
         the factor the rows before kept."""
@@ -367,12 +369,12 @@ def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
     rows = _Rows(shape_space, opts)
     out = np.empty((len(W), shape_space.topology.n_vertices, 3))
     reports = []
+    budget = stages.budget(opts.max_seconds)
     for k, row in enumerate(W):  # rows in order: each starts from its neighbour's answer
         lengths, angles = shape_space.forms(row[None])
-        left = stages.left(opts.max_seconds)
-        budget = None if left is None else max(left, 0.0) / (len(W) - k)
+        share = budget.share(len(W) - k)
         clock = time.perf_counter()
-        out[k], report = rows.solve(k, row, lengths[0], angles[0], budget)
+        out[k], report = rows.solve(k, row, lengths[0], angles[0], share)
         report["seconds"] = time.perf_counter() - clock
         reports.append(report)
         stages("rows", (k + 1) / len(W))

@@ -91,8 +91,8 @@ def factor_precision(diagonal: np.ndarray,
     edges and flattened faces make entries of the diagonal 1e8 times the others (the
     stiffness of a residual grows as the inverse square of the edge's length or the face's
     width), beyond what float32 resolves; the diagonal's spread separates the two (12-200 on
-    every bench mesh, 1.5e8 and more with untied needle edges, 8.2e3 refused in float32). Soft modes that the diagonal does
-    not show are caught by the solves themselves
+    every bench mesh, 1.5e8 and more with untied needle edges, 8.2e3 refused in float32).
+    Soft modes that the diagonal does not show are caught by the solves themselves
     (:attr:`StepRules.single_precision_error`).
 
     Args:

@@ -200,27 +200,33 @@ def least_squares_rows(terms: EnergyTerms, frame_weight: float) -> tuple[sp.csr_
     topo = terms.topology
     n, m = topo.n_vertices, topo.n_faces
     H = 3 * m
-    frame_col = n + 3 * np.repeat(np.arange(m), 3)          # column of f_T[k, 0] per half-edge
-    a = terms.coefficients.reshape(H, 2)
-    edge_cols = np.stack([topo.halfedge_dest, topo.halfedge_origin, frame_col, frame_col + 1],
-                         axis=1)
-    edge_vals = np.stack([np.ones(H), -np.ones(H), -a[:, 0], -a[:, 1]], axis=1)
-
     k = len(terms.interior_edges)
+    # Every row has exactly four distinct columns: the CSR arrays are written in place, row
+    # by row (no COO triplets, no temporaries of the whole matrix, no sort).
+    n_rows, n_cols = H + 3 * k, n + 3 * m
+    index = np.int32 if max(n_cols, 4 * n_rows + 1) < np.iinfo(np.int32).max else np.int64
+    cols = np.empty((n_rows, 4), dtype=index)
+    vals = np.empty((n_rows, 4))
+    # Edge rows, one per half-edge h of face T: x_dest - x_origin - a1 f_T[0] - a2 f_T[1].
+    cols[:H, 0], cols[:H, 1] = topo.halfedge_dest, topo.halfedge_origin
+    cols[:H, 2] = n + 3 * (np.arange(H, dtype=index) // 3)    # column of f_T[k, 0]
+    cols[:H, 3] = cols[:H, 2] + 1
+    vals[:H, 0], vals[:H, 1] = 1.0, -1.0
+    vals[:H, 2:] = -terms.coefficients.reshape(H, 2)
+    # Frame rows (q, c): f_R[c] - sum_d f_L[d] R[d, c].
     left, right = topo.edge_faces[terms.interior_edges].T
-    c = np.arange(3)
-    # Row (q, c): f_R[c] - sum_d f_L[d] R[d, c].
-    frame_cols = np.concatenate([
-        (n + 3 * right[:, None] + c[None, :])[:, :, None],                       # (k, 3, 1)
-        np.broadcast_to((n + 3 * left[:, None, None] + c[None, None, :]), (k, 3, 3)),
-    ], axis=2).reshape(3 * k, 4)
-    frame_vals = np.concatenate([
-        np.ones((k, 3, 1)), -np.swapaxes(terms.rotations, 1, 2)], axis=2).reshape(3 * k, 4)
-
-    rows = np.repeat(np.arange(H + 3 * k), 4)
-    cols = np.concatenate([edge_cols.ravel(), frame_cols.ravel()])
-    vals = np.concatenate([edge_vals.ravel(), frame_vals.ravel()])
-    A = sp.csr_matrix((vals, (rows, cols)), shape=(H + 3 * k, n + 3 * m))
+    c = np.arange(3, dtype=index)
+    frame_cols = cols[H:].reshape(k, 3, 4)
+    frame_cols[:, :, 0] = (n + 3 * right).astype(index)[:, None] + c[None, :]
+    frame_cols[:, :, 1:] = (n + 3 * left).astype(index)[:, None, None] + c[None, None, :]
+    frame_vals = vals[H:].reshape(k, 3, 4)
+    frame_vals[:, :, 0] = 1.0
+    frame_vals[:, :, 1:] = np.swapaxes(terms.rotations, 1, 2)
+    np.negative(frame_vals[:, :, 1:], out=frame_vals[:, :, 1:])
+    cols, vals = cols.reshape(-1), vals.reshape(-1)
+    indptr = np.arange(0, 4 * n_rows + 1, 4, dtype=index)
+    A = sp.csr_matrix((vals, cols, indptr), shape=(n_rows, n_cols))
+    A.sort_indices()
     weights = np.concatenate([terms.edge_weights.ravel(),
                               frame_weight * np.repeat(terms.frame_weights, 3)])
     kind = np.concatenate([np.zeros(H, dtype=np.int8), np.ones(3 * k, dtype=np.int8)])
@@ -383,7 +389,7 @@ def normal_matrix(A: sp.csr_matrix, weights: np.ndarray) -> sp.csc_matrix:
 
 
 def energies(A: sp.csr_matrix, weights: np.ndarray, kind: np.ndarray,
-             u: np.ndarray) -> dict[str, float]:
+             u: np.ndarray, residual: np.ndarray | None = None) -> dict[str, float]:
     """The edge and frame parts of Eq. (5), summed over coordinates.
 
     Args:
@@ -391,9 +397,26 @@ def energies(A: sp.csr_matrix, weights: np.ndarray, kind: np.ndarray,
         weights: (rows,) float64 row weights.
         kind: (rows,) int8 row kind (0 edge, 1 frame).
         u: (N, 3) float64 unknowns.
+        residual: optional (rows, 3) ``A @ u`` when the caller has it already.
 
     Returns:
         ``{"edge": E_x, "frame": w E_f}`` floats.
     """
-    r2 = weights * ((A @ u) ** 2).sum(axis=1)
+    r = A @ u if residual is None else residual
+    r2 = np.square(r[:, 0])                   # column by column: no (rows, 3) temporaries
+    for c in range(1, r.shape[1]):
+        r2 += np.square(r[:, c])
+    r2 *= weights
     return {"edge": float(r2[kind == 0].sum()), "frame": float(r2[kind == 1].sum())}
+
+
+def max_weighted_residual(weights: np.ndarray, residual: np.ndarray) -> float:
+    """``max |sqrt(weights) * residual|`` over rows and columns of a (rows, 3) ``A @ u``
+    (column by column, without (rows, 3) temporaries); 0 for no rows."""
+    if not len(residual):
+        return 0.0
+    worst = np.abs(residual[:, 0])
+    for c in range(1, residual.shape[1]):
+        np.maximum(worst, np.abs(residual[:, c]), out=worst)
+    worst *= np.sqrt(weights)
+    return float(worst.max())

@@ -259,9 +259,11 @@ def _check_vertex_fans(origin: np.ndarray, twin: np.ndarray, n: int) -> None:
     linked = succ >= 0
     graph = sp.coo_matrix((np.ones(int(linked.sum())), (np.arange(H)[linked], succ[linked])),
                           shape=(H, H))
-    _, fan = connected_components(graph, directed=False)
-    fan_keys = np.unique(origin.astype(np.int64) * H + fan)
-    fans_per_vertex = np.bincount(fan_keys // H, minlength=n)
+    n_fans, fan = connected_components(graph, directed=False)
+    # Corners linked around a vertex share it: each fan has one vertex (no sort needed).
+    fan_vertex = np.empty(n_fans, dtype=np.int64)
+    fan_vertex[fan] = origin
+    fans_per_vertex = np.bincount(fan_vertex, minlength=n)
     if fans_per_vertex.max() > 1:
         v = int(np.flatnonzero(fans_per_vertex > 1)[0])
         raise NonManifoldVertexError(

@@ -2,27 +2,19 @@
 
 OBJ keeps the file's vertices (``v``, in order) and writes one ``vt`` per uv index, faces as
 ``f v/vt``: a seam vertex is one ``v`` with one ``vt`` per chart it borders, the map back to
-the file's vertices being the ``v`` index itself. GLB (via trimesh, as :func:`solver.io.
-save_mesh` writes GLB) has one vertex per uv index (seam vertices duplicated, positions
-``vertices[uv_vertex]``) and the atlas as ``TEXCOORD_0`` (glTF's v runs down the image:
-trimesh writes 1 - v).
+the file's vertices being the ``v`` index itself. GLB (the one glTF writer,
+:mod:`solver.gltf`, as the service's flattening answers) has one vertex per uv index (seam
+vertices duplicated, positions ``vertices[uv_vertex]``) and the atlas as ``TEXCOORD_0``
+(glTF's v runs down the image: written as 1 - v).
 """
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
 
 from .errors import ShapeMismatchError
-
-
-def _rows(array: np.ndarray, fmt: str, prefix: str) -> str:
-    if array.shape[0] == 0:
-        return ""
-    buffer = io.StringIO()
-    np.savetxt(buffer, array, fmt=fmt, delimiter=" ", header="", comments="")
-    return prefix + buffer.getvalue()[:-1].replace("\n", "\n" + prefix) + "\n"
+from .formats import text_rows
+from .gltf import encode_gltf
 
 
 def _check(faces: np.ndarray, texcoords: np.ndarray, uv_faces: np.ndarray) -> None:
@@ -52,21 +44,17 @@ def textured_obj(vertices: np.ndarray, faces: np.ndarray, texcoords: np.ndarray,
     T, U = np.asarray(texcoords, dtype=np.float64), np.asarray(uv_faces, dtype=np.int64)
     _check(F, T, U)
     corners = np.stack([F + 1, U + 1], axis=2).reshape(len(F), 6)
-    return ("# written by fundamental-forms-service (uv atlas)\n" + _rows(V, "%.17g", "v ")
-            + _rows(T, "%.17g", "vt ") + _rows(corners, "%d/%d %d/%d %d/%d", "f ")
+    return ("# written by fundamental-forms-service (uv atlas)\n" + text_rows(V, "%.17g", "v ")
+            + text_rows(T, "%.17g", "vt ") + text_rows(corners, "%d/%d %d/%d %d/%d", "f ")
             ).encode("ascii")
 
 
 def textured_glb(vertices: np.ndarray, texcoords: np.ndarray, uv_faces: np.ndarray,
                  uv_vertex: np.ndarray) -> bytes:
     """GLB: one vertex per uv index at ``vertices[uv_vertex]``, ``TEXCOORD_0`` the atlas."""
-    import trimesh
-
     V = np.asarray(vertices, dtype=np.float64)[np.asarray(uv_vertex, dtype=np.int64)]
-    mesh = trimesh.Trimesh(vertices=V, faces=np.asarray(uv_faces, dtype=np.int64),
-                           process=False)
-    mesh.visual = trimesh.visual.TextureVisuals(uv=np.asarray(texcoords, dtype=np.float64))
-    return bytes(mesh.export(file_type="glb"))
+    return encode_gltf(V, np.asarray(uv_faces, dtype=np.int64), kind="glb",
+                       texcoords=np.asarray(texcoords, dtype=np.float64))
 
 
 __all__ = ["textured_glb", "textured_obj"]

@@ -1,11 +1,13 @@
 """``ffs``: the command line. ``ffs <command> <inputs...> -o <output> [options]``.
 
 Commands: ``forms`` (edge lengths and dihedral angles), ``check`` (integrability),
-``reconstruct`` (a mesh from forms), ``deform`` (handles), ``flatten`` (parameterize),
+``reconstruct`` (a mesh from forms), ``vjp`` (its gradients for a cotangent of the
+vertices), ``deform`` (handles), ``flatten`` (parameterize),
 ``blend`` (blend or extrapolate 2 to 64 meshes, one file per row or one animated GLB),
 ``mean`` (their form-space mean), ``transfer`` (a deformation applied to another mesh),
-``convert`` (read, check, write), ``serve`` (the service, ``python -m service``).
+``convert`` (read, check, write), ``serve`` (runs the service, ``python -m service``).
 
+* The commands and the operations each runs: :data:`ffs.operations.COMMANDS`.
 * In-process through :mod:`solver` by default; ``--server URL`` (or ``FFS_SERVER``) runs the
   same work on a service through :class:`ffs.client.Client` (as jobs: stage progress, no
   request timeout).
@@ -32,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -56,16 +59,21 @@ def _set_threads(args: argparse.Namespace) -> None:
 
 
 def serve(args: argparse.Namespace) -> int:
-    """``ffs serve``: run the service (``python -m service``) with ``--host``/``--port``/
-    ``--workers`` as its environment variables."""
+    """``ffs serve``: run the service as a program (``python -m service``, which this
+    process becomes: signals reach uvicorn directly) with ``--host``/``--port``/
+    ``--workers`` as its environment variables. The command line never imports the service."""
+    env = dict(os.environ)
     for name, value in (("FFS_HOST", args.host), ("FFS_PORT", args.port),
                         ("FFS_WORKERS", args.workers)):
         if value is not None:
-            os.environ[name] = str(value)
-    from service.__main__ import main as serve_main
-
-    serve_main()
-    return EXIT_OK
+            env[name] = str(value)
+    command = [sys.executable, "-m", "service"]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    if os.name == "nt":  # no exec on Windows: a child, its exit code ours
+        return subprocess.call(command, env=env)
+    os.execve(sys.executable, command, env)
+    return EXIT_OK  # not reached
 
 
 def _blend_rows(args: argparse.Namespace) -> list[float]:
@@ -112,6 +120,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         rows = _blend_rows(args) if args.command == "blend" else None
         items = plan_items(args.command, args.inputs, args.output, rows)
+        args.jobs = min(args.jobs, len(items))
+        _set_threads(args)  # before the format check imports the library (numpy, MKL)
         check_output_formats(args.command, items, args.format)
     except UsageError as exc:
         print(f"ffs {args.command}: error: {exc}", file=sys.stderr)
@@ -120,8 +130,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("ffs blend: error: blend takes no --orthonormalize (a blend is reconstructed "
               "from blended forms)", file=sys.stderr)
         return EXIT_USAGE
-    args.jobs = min(args.jobs, len(items))
-    _set_threads(args)
     started = time.perf_counter()
     try:
         rows = run_batch(args.command, args, items)

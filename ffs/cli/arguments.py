@@ -9,6 +9,7 @@ import sys
 from typing import Any
 
 from ffs import __version__
+from ffs.operations import COMMANDS
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 """Exit codes: all done, a file failed, usage, interrupted (Ctrl-C)."""
@@ -50,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     io.add_argument("-o", "--output", help="output file, template ({stem}, {name}, {parent}, "
                     "{index}, {t}) or folder")
     io.add_argument("--format", help="output format instead of the extension: obj, off, ply, "
-                    "stl, glb, json, npz")
+                    "stl, glb, gltf, json, npz")
     io.add_argument("--input-format", help="input mesh format instead of the extension")
     io.add_argument("--report", metavar="FILE", help="write every file's full report (JSON)")
     run = common.add_argument_group("running")
@@ -120,41 +121,48 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"ffs {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="command", required=True,
                                      parser_class=_Parser)
-    meshes = {"nargs": "+", "metavar": "MESH"}
-    commands.add_parser("forms", parents=[common], help="edge lengths and dihedral angles "
-                        "(.json or .npz)").add_argument("inputs", **meshes)
-    check = commands.add_parser("check", parents=[common, tolerance],
-                                help="integrability of forms or meshes")
-    check.add_argument("inputs", nargs="+", metavar="FORMS_OR_MESH")
-    rebuild = commands.add_parser("reconstruct", parents=[common, solve, tolerance],
-                                  help="a mesh from forms (or from a mesh's own forms)")
-    rebuild.add_argument("inputs", nargs="+", metavar="FORMS_OR_MESH")
-    rebuild.add_argument("--constraints", metavar="FILE", help="JSON constraints as the API "
-                         "takes them: {\"positions\": [...], \"frames\": [...]}")
-    rebuild.add_argument("--align-to", metavar="REF", help="move the answer rigidly onto "
-                         "this mesh (same vertices; e.g. the mesh the forms came from) and "
-                         "report the residual")
-    deform = commands.add_parser("deform", parents=[common, solve], help="move handles")
-    deform.add_argument("inputs", **meshes)
-    deform.add_argument("--handles", required=True, metavar="FILE", help="JSON: "
-                        "[{\"vertex\": i, \"position\": [x, y, z]}, ...] or {\"handles\", "
-                        "\"rotations\", \"roi\"}; or a Botsch-Sorkine NAME.sel (0 fixed, 1 "
-                        "free, 2 handle per vertex) with NAME.def (4x4 transform) beside it")
-    flatten = commands.add_parser(
-        "flatten", parents=[common, solve], help="flatten meshes (seams and a packed atlas "
-        "where one chart does not do): .obj/.glb the mesh with its uv (vt, TEXCOORD_0), "
-        ".ply/.off/.stl the flat layout (z = 0), .json/.npz the arrays")
-    flatten.add_argument("inputs", **meshes)
+    groups = {"solve": solve, "tolerance": tolerance}
+    sub: dict[str, argparse.ArgumentParser] = {}
+    for command in COMMANDS.values():  # one subcommand per row of the table
+        sub[command.name] = commands.add_parser(
+            command.name, help=command.help,
+            parents=[common, *(groups[g] for g in command.groups)])
+        sub[command.name].add_argument("inputs", nargs=command.nargs, metavar=command.inputs,
+                                       help=command.inputs_help or None)
+    _command_options(sub)
+    serve = commands.add_parser("serve", help="run the service (python -m service)")
+    serve.add_argument("--host", help="bind address (FFS_HOST, default 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="port (FFS_PORT, default 8000)")
+    serve.add_argument("--workers", type=_positive_int, help="worker processes (FFS_WORKERS)")
+    return parser
+
+
+def _command_options(sub: dict[str, argparse.ArgumentParser]) -> None:
+    """The options one command has (the table's :class:`~ffs.operations.Command` gives
+    each its common ones)."""
+    for name in ("reconstruct", "vjp"):
+        sub[name].add_argument("--constraints", metavar="FILE", help="JSON constraints as "
+                               "the API takes them: {\"positions\": [...], \"frames\": [...]}")
+    sub["reconstruct"].add_argument(
+        "--align-to", metavar="REF", help="move the answer rigidly onto this mesh (same "
+        "vertices; e.g. the mesh the forms came from) and report the residual")
+    sub["vjp"].add_argument("--cotangent", required=True, metavar="FILE",
+                            help="the gradient of a loss with respect to the reconstructed "
+                            "vertices: (n, 3) or (k, n, 3) in .npy, .npz (array "
+                            "\"cotangent\") or .json ([[x, y, z], ...] or {\"cotangent\": "
+                            "...})")
+    sub["deform"].add_argument("--handles", required=True, metavar="FILE", help="JSON: "
+                               "[{\"vertex\": i, \"position\": [x, y, z]}, ...] or "
+                               "{\"handles\", \"rotations\", \"roi\"}; or a Botsch-Sorkine "
+                               "NAME.sel (0 fixed, 1 free, 2 handle per vertex) with NAME.def "
+                               "(4x4 transform) beside it")
+    flatten = sub["flatten"]
     flatten.add_argument("--seams", choices=("auto", "none"), default=None,
                          help="auto (default): cut into charts where needed; none: one "
                          "chart per component, closed meshes refused")
     flatten.add_argument("--flat", action="store_true", help="write the flat layout "
                          "(u, v, 0) to .obj/.glb too, instead of the mesh with its uv")
-    blend = commands.add_parser("blend", parents=[common, solve],
-                                help="blend, extrapolate or animate 2 to 64 meshes with the "
-                                "same faces in form space")
-    blend.add_argument("inputs", nargs="+", metavar="MESH", help="A and B (-t), or K meshes "
-                       "(--weights)")
+    blend = sub["blend"]
     blend.add_argument("-t", "--t", type=float, nargs="+", default=None,
                        help="two meshes: blend value(s): 0 gives A, 1 gives B, 1.5 "
                        "extrapolates (default 0.5)")
@@ -165,18 +173,3 @@ def build_parser() -> argparse.ArgumentParser:
                        help="playback rate of an animated .glb (default 24)")
     blend.add_argument("--independent", action="store_true", help="solve every row on its "
                        "own (default: as a sequence, each row from its neighbour)")
-    mean = commands.add_parser("mean", parents=[common, solve],
-                               help="the form-space mean of meshes with the same faces")
-    mean.add_argument("inputs", nargs="+", metavar="MESH")
-    transfer = commands.add_parser("transfer", parents=[common, solve],
-                                   help="apply the deformation SOURCE -> DEFORMED to TARGET "
-                                   "(same faces)")
-    transfer.add_argument("inputs", nargs=3, metavar="MESH",
-                          help="SOURCE DEFORMED TARGET")
-    commands.add_parser("convert", parents=[common], help="read, check and write meshes "
-                        "(formats from the extensions)").add_argument("inputs", **meshes)
-    serve = commands.add_parser("serve", help="run the service (python -m service)")
-    serve.add_argument("--host", help="bind address (FFS_HOST, default 127.0.0.1)")
-    serve.add_argument("--port", type=int, help="port (FFS_PORT, default 8000)")
-    serve.add_argument("--workers", type=_positive_int, help="worker processes (FFS_WORKERS)")
-    return parser

@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from ffs.cli.failures import RunFailedError
-from ffs.cli.items import MESH_OUTPUTS, Item, Row
+from ffs.cli.items import Item, Row, mesh_outputs
+from ffs.operations import COMMANDS
 
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: a stage's name and how far the item is, 0 to 1."""
@@ -48,6 +49,15 @@ def _mesh_options(args: argparse.Namespace, *, orthonormalize_default: bool = Fa
     return {k: v for k, v in options.items() if v is not None}
 
 
+def _reconstruct_options(args: argparse.Namespace) -> dict[str, Any]:
+    """:func:`_mesh_options` and the integrability options of ``reconstruct`` and ``vjp``."""
+    options = _mesh_options(args)
+    options.update({k: v for k, v in {"tolerance": args.tolerance,
+                                      "require_integrable": args.require_integrable or None
+                                      }.items() if v is not None})
+    return options
+
+
 def _output_format(path: Path, args: argparse.Namespace,
                    allowed: Sequence[str] | None = None) -> str:
     """The format ``path`` is written in: ``--format`` or its extension.
@@ -59,7 +69,7 @@ def _output_format(path: Path, args: argparse.Namespace,
     from ffs import files
 
     fmt = (args.format or path.suffix.lstrip(".")).lower()
-    writable = allowed or MESH_OUTPUTS
+    writable = allowed or mesh_outputs()
     if fmt not in writable:
         raise files.InputFileError(path, f"cannot write {fmt or '(no extension)'!r} here; "
                                    f"use one of {', '.join(writable)} (or --format)")
@@ -134,10 +144,7 @@ def run_reconstruct(backend: Any, item: Item, args: argparse.Namespace, progress
     from ffs import files
 
     forms = _forms_of(backend, item.inputs[0], args, progress)
-    options = _mesh_options(args)
-    options.update({k: v for k, v in {"tolerance": args.tolerance,
-                                      "require_integrable": args.require_integrable or None
-                                      }.items() if v is not None})
+    options = _reconstruct_options(args)
     constraints = files.read_json(args.constraints) if args.constraints else None
     reference = files.read_mesh(args.align_to)[0] if args.align_to else None
     if reference is not None:
@@ -149,6 +156,29 @@ def run_reconstruct(backend: Any, item: Item, args: argparse.Namespace, progress
         row.note = (f"aligned to {Path(args.align_to).name}: residual rms "
                     f"{alignment['residual_rms']:.3g}, max {alignment['residual_max']:.3g} "
                     "(mesh units)")
+
+
+def run_vjp(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
+            row: Row) -> None:
+    """``ffs vjp``: the cotangents of a reconstruction's inputs (lengths, angles, constraint
+    targets) for ``--cotangent``, the gradient of a loss with respect to its vertices, as
+    .json or .npz (with the reconstructed ``vertices`` and ``faces``)."""
+    from ffs import files
+
+    forms = _forms_of(backend, item.inputs[0], args, progress)
+    options = _reconstruct_options(args)
+    constraints = files.read_json(args.constraints) if args.constraints else None
+    result = backend.reconstruct_vjp(forms, cotangent=files.read_cotangent(args.cotangent),
+                                     constraints=constraints, progress=progress, **options)
+    out = Path(item.outputs[0])
+    files.write_arrays(out, _output_format(out, args, ("json", "npz")),
+                       {**result.arrays(), "vertices": result.vertices, "faces": result.faces},
+                       {"report": result.report})
+    row.faces, row.report = len(result.faces), result.report
+    _refinement_columns(row, result.report)
+    mode = (result.report.get("vjp") or {}).get("mode", "")
+    row.note = f"{mode} answer differentiated".strip()
+    row.warnings = list(result.report.get("warnings") or [])
 
 
 def run_deform(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
@@ -329,7 +359,6 @@ def run_convert(backend: Any, item: Item, args: argparse.Namespace, progress: Pr
 
 
 RUNNERS: dict[str, Callable[[Any, Item, argparse.Namespace, Progress, Row], None]] = {
-    "forms": run_forms, "check": run_check, "reconstruct": run_reconstruct,
-    "deform": run_deform, "flatten": run_flatten, "blend": run_blend, "convert": run_convert,
-    "mean": run_mean, "transfer": run_transfer}
-"""Command name -> its runner."""
+    name: globals()[f"run_{name}"] for name in COMMANDS}
+"""Command name -> its runner (``run_<command>``, one per row of
+:data:`ffs.operations.COMMANDS`)."""

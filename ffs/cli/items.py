@@ -9,14 +9,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-DEFAULT_EXTENSIONS = {"forms": ".json", "check": ".json", "reconstruct": ".obj"}
+DEFAULT_EXTENSIONS = {"forms": ".json", "check": ".json", "reconstruct": ".obj",
+                      "vjp": ".npz"}
 """Output extension when ``-o`` is a folder (others: the input's, if writable, else .obj)."""
 
 
-MESH_OUTPUTS = ("obj", "off", "ply", "stl", "glb", "json", "npz")
-"""What a mesh result is written as (``--format`` or the extension)."""
-OUTPUT_FORMATS = {"forms": ("json", "npz"), "check": ("json",)}
-"""Command -> the formats its outputs may have (the others: :data:`MESH_OUTPUTS`)."""
+OUTPUT_FORMATS = {"forms": ("json", "npz"), "check": ("json",), "vjp": ("json", "npz")}
+"""Command -> the formats its outputs may have (the others: :func:`mesh_outputs`)."""
+
+
+def mesh_outputs() -> tuple[str, ...]:
+    """What a mesh result is written as (``--format`` or the extension): the formats the
+    library writes (:data:`solver.formats.SAVE_FORMATS`), ``json`` and ``npz``. Imports the
+    library: call it after the BLAS thread variables are set."""
+    from solver.formats import SAVE_FORMATS
+
+    return (*SAVE_FORMATS, "json", "npz")
 
 
 class UsageError(Exception):
@@ -31,7 +39,7 @@ def output_format(command: str, path: str, override: str | None = None) -> str:
         UsageError: A format the command cannot write (checked before any work).
     """
     fmt = (override or Path(path).suffix.lstrip(".")).lower()
-    writable = OUTPUT_FORMATS.get(command, MESH_OUTPUTS)
+    writable = OUTPUT_FORMATS.get(command) or mesh_outputs()
     if fmt not in writable:
         raise UsageError(f"cannot write {path} as {fmt or '(no extension)'!r}: {command} "
                          f"writes {', '.join(writable)} (the extension, or --format)")

@@ -29,7 +29,7 @@ import numpy as np
 import orjson
 from pydantic import BaseModel, ValidationError
 
-from ffs.arrays import (  # binary_body: the reference encoder, re-exported
+from ffs_wire.arrays import (  # binary_body: the reference encoder, re-exported
     BINARY_DTYPES,
     BINARY_MAGIC,
     BINARY_MEDIA_TYPE,
@@ -287,7 +287,7 @@ def _decode(specs: ArraySpecs, params_model: type[BaseModel], sent: dict[str, An
 
 # ------------------------------------------------------------------------- binary bodies
 
-# The media type, framing constants and the encoder are shared with the client (ffs.arrays,
+# The media type, framing constants and the encoder are shared with the client (ffs_wire.arrays,
 # numpy and the standard library only); the reader and its checks are the service's.
 
 
@@ -458,7 +458,12 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
     if n_vertices > limits.max_vertices:
         errors.append(element_error(field, f"{n_vertices} vertices exceed the limit of "
                                            f"{limits.max_vertices}"))
-    if n_faces > limits.max_faces:
+    if n_faces > limits.max_faces and limits.max_memory is not None:
+        errors.append(element_error(field, (
+            f"{n_faces} faces exceed the {limits.max_faces} faces this operation can take "
+            f"in the {limits.max_memory / 2**30:.1f} GiB one request may use "
+            "(FFS_MAX_REQUEST_MEMORY)")))
+    elif n_faces > limits.max_faces:
         errors.append(element_error(field, f"{n_faces} faces exceed the limit of "
                                            f"{limits.max_faces}"))
     if errors:

@@ -423,18 +423,44 @@ class JobStatus(BaseModel):
     links: dict[str, str]
 
 
+class SizeLimits(BaseModel):
+    """How large a request the service admits (for the caller: its key's face quota
+    included)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"max_vertices": 1888331, "max_faces": 3147219, "max_body_bytes": 314721900,
+         "max_request_memory": 8392486092,
+         "max_faces_by_operation": {"forms": 3147219, "reconstruct": 767192}}]})
+
+    max_vertices: int = Field(description="FFS_MAX_VERTICES (413 beyond).")
+    max_faces: int = Field(description="FFS_MAX_FACES (413 beyond).")
+    max_body_bytes: int = Field(description="FFS_MAX_BODY_BYTES (413 beyond).")
+    max_request_memory: int = Field(description="FFS_MAX_REQUEST_MEMORY: bytes one request "
+                                                "may use in its worker.")
+    max_faces_by_operation: dict[str, int] = Field(
+        description="The most faces each operation takes: at most FFS_MAX_FACES, and at most "
+                    "what its predicted peak memory fits in FFS_MAX_REQUEST_MEMORY "
+                    "(`sessions`: a deformation session).")
+
+
 class Caller(BaseModel):
-    """``GET /v1/me``: whether the service has API keys, and the caller's key."""
+    """``GET /v1/me``: whether the service has API keys, the caller's key, and the size
+    limits of its requests."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"keys": True, "name": "alice", "role": "user",
          "limits": {"requests_per_minute": 600, "concurrent_jobs": 16,
-                    "concurrent_sessions": 4, "max_faces": 500000}}]})
+                    "concurrent_sessions": 4, "max_faces": 500000},
+         "size_limits": {"max_vertices": 300000, "max_faces": 500000,
+                         "max_body_bytes": 67108864, "max_request_memory": 8392486092,
+                         "max_faces_by_operation": {"forms": 500000,
+                                                    "reconstruct": 500000}}}]})
 
     keys: bool = Field(description="Whether the service requires API keys.")
     name: str | None = Field(None, description="The key's name (with keys).")
     role: Literal["user", "admin"] | None = Field(None, description="The key's role.")
     limits: dict[str, int | None] | None = Field(None, description="The key's quotas.")
+    size_limits: SizeLimits | None = Field(None, description="How large a request may be.")
 
 
 class Health(BaseModel):

@@ -54,7 +54,8 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
                      "The body did not arrive within FFS_BODY_TIMEOUT seconds; the connection "
                      "is closed."),
     "mesh-too-large": (413, "Mesh too large",
-                       "The mesh exceeds FFS_MAX_VERTICES or FFS_MAX_FACES."),
+                       "The mesh exceeds FFS_MAX_VERTICES or FFS_MAX_FACES, or its operation's "
+                       "predicted peak memory exceeds FFS_MAX_REQUEST_MEMORY."),
     "not-acceptable": (406, "Not acceptable",
                        "None of the media types in Accept can be produced for this result."),
     "unsupported-color": (422, "Colour field not available",

@@ -10,12 +10,12 @@ through Dask.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, TypeVar
 
 import numpy as np
 
+from service.api.budgets import TIME_POLICY
 from solver.options import DeformOptions, SolveOptions
 
 Format = Literal["json", "glb", "gltf"]
@@ -112,6 +112,9 @@ class Limits:
     max_vertices: int
     max_faces: int
     max_blend_steps: int = 64
+    max_memory: int | None = None
+    """FFS_MAX_REQUEST_MEMORY when it, not FFS_MAX_FACES, sets ``max_faces`` (the most
+    faces the operation's predicted peak fits in; named by the 413)."""
 
 
 @dataclass(frozen=True)
@@ -146,7 +149,8 @@ class TaskRequest:
         task: the worker function to run when it is not the operation's own (test-only
             ``debug.*`` tasks, which report the operation's stages).
         deadline: ``time.time()`` by which the solver must have returned (the request's or
-            job's timeout less :func:`encode_margin`; see :meth:`with_deadline`), or None.
+            job's timeout less the encoding margin of
+            :data:`~service.api.budgets.TIME_POLICY`; see :meth:`with_deadline`), or None.
     """
 
     operation: str
@@ -176,25 +180,16 @@ class TaskRequest:
 
     def with_deadline(self, timeout: float) -> TaskRequest:
         """This request with a deadline ``timeout`` seconds from now, less the margin its
-        answer needs to be encoded and sent (:func:`encode_margin`)."""
-        return replace(self, deadline=time.time() + timeout - encode_margin(timeout))
+        answer needs to be encoded and sent (:meth:`TimePolicy.deadline
+        <service.api.budgets.TimePolicy.deadline>`)."""
+        return replace(self, deadline=TIME_POLICY.deadline(timeout))
 
     def solver_budget(self) -> float | None:
-        """The ``max_seconds`` of the solver call, measured from now: the smaller of an
-        explicit ``options.max_seconds`` and what is left before :attr:`deadline` (at least
-        0: a solver given 0 s still returns its linear answer, reported as
-        ``stop_reason: "time_limit"``); None when there is neither."""
+        """The ``max_seconds`` of the solver call, measured from now
+        (:meth:`TimePolicy.solver_budget <service.api.budgets.TimePolicy.solver_budget>` of
+        ``options.max_seconds`` and :attr:`deadline`); None: no limit."""
         explicit = (self.params.get("options") or {}).get("max_seconds")
-        left = None if self.deadline is None else max(0.0, self.deadline - time.time())
-        budgets = [b for b in (explicit, left) if b is not None]
-        return min(budgets) if budgets else None
-
-
-def encode_margin(timeout: float) -> float:
-    """Seconds of a request's or job's ``timeout`` kept for encoding and sending its answer
-    after the solver returns: 1 s + 5 % of the timeout, at most a quarter of it (120 s ->
-    7 s, 10 s -> 1.5 s, 2 s -> 0.5 s)."""
-    return min(0.25 * timeout, 1.0 + 0.05 * timeout)
+        return TIME_POLICY.solver_budget(explicit, self.deadline).left()
 
 
 @dataclass

@@ -1,5 +1,12 @@
 """Admission shared by the local and the Dask backends: how long to wait for a task slot,
-how much a session may take.
+how much a session may take, and how large a mesh one request may bring.
+
+Request admission: a request's peak memory is predicted from its face count before it is
+accepted (:class:`RequestCost`, fitted to ``bench.scale``); :func:`request_memory_budget`
+is what one worker may use (the machine's memory, less the sessions', shared by the
+workers) and :func:`faces_within` the largest mesh an operation can take in it. The face
+limit of each operation follows (``FFS_MAX_REQUEST_MEMORY``, ``FFS_MAX_FACES``): beyond it
+413 ``mesh-too-large`` names the memory, never an out-of-memory kill of a worker.
 
 Session admission (:func:`admit_session`) is bounded by ``FFS_MAX_SESSIONS``
 (:class:`TooManySessionsError` beyond), ``FFS_MAX_SESSION_MEMORY`` (:class:`SessionMemoryError`
@@ -36,6 +43,79 @@ def estimate_memory(n_vertices: int, n_faces: int) -> int:
         Bytes: :data:`BASE_MEMORY_ESTIMATE` plus :data:`BYTES_PER_FACE_ESTIMATE` per face.
     """
     return int(BASE_MEMORY_ESTIMATE + BYTES_PER_FACE_ESTIMATE * max(n_faces, 1))
+
+
+@dataclass(frozen=True)
+class RequestCost:
+    """A request's predicted peak memory, ``base + bytes_per_face * m * (m / reference)^
+    (exponent - 1)`` bytes for m faces (a power law through measured peaks, the process
+    included), and its predicted time, ``seconds_per_face * m * (m / reference)^
+    (time_exponent - 1)`` (this 2-core machine, idle)."""
+
+    bytes_per_face: float
+    exponent: float
+    seconds_per_face: float
+    time_exponent: float
+    reference: int = 400_000
+    base: int = 200 * 1024**2
+
+    def memory(self, n_faces: int) -> int:
+        """Predicted peak bytes of a request with ``n_faces`` faces."""
+        m = max(n_faces, 1)
+        return int(self.base + self.bytes_per_face * m * (m / self.reference)
+                   ** (self.exponent - 1))
+
+    def seconds(self, n_faces: int) -> float:
+        """Predicted seconds of a request with ``n_faces`` faces."""
+        m = max(n_faces, 1)
+        return self.seconds_per_face * m * (m / self.reference) ** (self.time_exponent - 1)
+
+    def faces_within(self, memory: int) -> int:
+        """The most faces whose predicted peak stays within ``memory`` bytes (0 when even
+        the base does not fit)."""
+        room = memory - self.base
+        if room <= 0:
+            return 0
+        # bytes_per_face * m^exponent / reference^(exponent - 1) = room
+        scale = self.bytes_per_face / self.reference ** (self.exponent - 1)
+        return int((room / scale) ** (1 / self.exponent))
+
+
+SOLVE_COST = RequestCost(bytes_per_face=9_800, exponent=1.13, seconds_per_face=1e-4,
+                         time_exponent=1.65)
+"""Operations that factorize (reconstruct, deform, parameterize, interpolate, blend,
+transfer): the refined reconstruction of noisy forms, the costliest of them (bench.scale,
+nefertiti subdivided: 3.8 GB at 388K faces, 18.1 GB at 1.55M; 38.5 s and 381 s)."""
+LIGHT_COST = RequestCost(bytes_per_face=2_600, exponent=1.0, seconds_per_face=3e-5,
+                         time_exponent=1.0)
+"""Operations that only compute (forms, integrability, mesh): the exact path's peak
+(bench.scale: 1.06 GB at 400K faces, 2.8 GB at 1.6M, 2.5 KB per face with the reading and
+encoding of the arrays)."""
+BODY_BYTES_PER_FACE = 100
+"""Bytes per face of the largest request body FFS_MAX_BODY_BYTES makes room for by default: a
+JSON forms body (faces, edges, lengths, angles: ~90 bytes per face at 17 significant
+digits); a binary body takes ~50, a mesh body ~55 as JSON, a PLY upload ~20."""
+MEMORY_HEADROOM = 0.8
+"""Fraction of the machine's memory (less the sessions') that the workers' requests may
+use together: the HTTP process, the page cache and the allocator keep the rest."""
+
+
+def request_cost(solves: bool) -> RequestCost:
+    """The cost model of an operation that factorizes (``solves``) or only computes."""
+    return SOLVE_COST if solves else LIGHT_COST
+
+
+def request_memory_budget(machine_memory: int, session_memory: int, workers: int) -> int:
+    """Bytes one request may use: :data:`MEMORY_HEADROOM` of the machine's memory less the
+    sessions' (``FFS_MAX_SESSION_MEMORY``), shared by ``workers`` solving at once."""
+    room = MEMORY_HEADROOM * (machine_memory - session_memory)
+    return int(max(room, 0) / max(workers, 1))
+
+
+def faces_within(memory: int, solves: bool) -> int:
+    """The largest face count an operation (``solves``: one that factorizes) can take in
+    ``memory`` bytes (:class:`RequestCost`)."""
+    return request_cost(solves).faces_within(memory)
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,6 @@ from service.api.task import MeshFile
 from service.memory import release_memory
 from service.settings import Settings
 
-FILE_TYPES = ("obj", "ply", "off", "stl", "glb", "gltf")
 THREAD_THRESHOLD = 256 * 1024
 """Bodies larger than this are validated in a worker thread, off the event loop."""
 PROCESS_THRESHOLD = 4 * 1024 * 1024
@@ -287,7 +286,8 @@ async def upload(file: UploadFile, field: str) -> MeshFile:
         ProblemError: 415 ``unsupported-file-type`` for an unknown type, 400
             ``unreadable-file`` for an empty file.
     """
-    from solver.io import UnsupportedFormatError, resolve_format
+    from solver.errors import UnsupportedFormatError
+    from solver.formats import LOAD_FORMATS, resolve_format
 
     name = file.filename or ""
     try:
@@ -296,7 +296,7 @@ async def upload(file: UploadFile, field: str) -> MeshFile:
         raise ProblemError(
             "unsupported-file-type",
             f"{field}: {name or file.content_type!r} is not a supported mesh file; upload "
-            f"one of {', '.join(FILE_TYPES)}",
+            f"one of {', '.join(LOAD_FORMATS)}",
             errors=[element_error(field, exc.reason)]) from None
     data = await file.read()
     if not data:

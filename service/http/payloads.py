@@ -37,6 +37,7 @@ from service.api.task import (
     SessionSpec,
     TaskRequest,
 )
+from service.backends.admission import faces_within
 from service.http.bodies import (
     ParserPool,
     as_arrays,
@@ -54,16 +55,37 @@ from service.operations import OPERATIONS, OperationSpec
 from service.settings import Settings
 
 
-def limits(settings: Settings) -> Limits:
+def limits(settings: Settings, operation: str | None = None) -> Limits:
     """The size and work limits a task carries to its worker.
 
     Args:
-        settings: FFS_MAX_VERTICES, FFS_MAX_FACES and FFS_MAX_BLEND_STEPS.
+        settings: FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BLEND_STEPS and
+            FFS_MAX_REQUEST_MEMORY.
+        operation: the operation (a key of :data:`service.operations.OPERATIONS`), or None
+            for a session (which factorizes).
 
     Returns:
-        The limits.
+        The limits: at most FFS_MAX_FACES faces, and at most the faces whose predicted peak
+        memory (:mod:`service.backends.admission`) fits FFS_MAX_REQUEST_MEMORY.
     """
+    spec = OPERATIONS.get(operation) if operation is not None else None
+    fit = faces_within(settings.max_request_memory, solves=spec is None or spec.solves)
+    if fit < settings.max_faces:
+        return Limits(settings.max_vertices, fit, settings.max_blend_steps,
+                      settings.max_request_memory)
     return Limits(settings.max_vertices, settings.max_faces, settings.max_blend_steps)
+
+
+def size_limits(settings: Settings) -> dict[str, Any]:
+    """The size limits ``GET /v1/me`` shows (:class:`service.api.documents.SizeLimits`):
+    FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BODY_BYTES, FFS_MAX_REQUEST_MEMORY and the
+    faces each operation (and a session) takes (:func:`limits`)."""
+    by_operation = {name: limits(settings, name).max_faces for name in OPERATIONS}
+    by_operation["sessions"] = limits(settings).max_faces
+    return {"max_vertices": settings.max_vertices, "max_faces": settings.max_faces,
+            "max_body_bytes": settings.max_body_bytes,
+            "max_request_memory": settings.max_request_memory,
+            "max_faces_by_operation": by_operation}
 
 
 async def operation_request(request: Request, spec: OperationSpec, settings: Settings,
@@ -89,7 +111,7 @@ async def operation_request(request: Request, spec: OperationSpec, settings: Set
     if is_json(mtype) or mtype == BINARY_MEDIA_TYPE:
         body = await read_body(request, settings)
         kind = "binary" if mtype == BINARY_MEDIA_TYPE else "json"
-        return TaskRequest(spec.name, RawBody(kind, body), limits=limits(settings),
+        return TaskRequest(spec.name, RawBody(kind, body), limits=limits(settings, spec.name),
                            backend=settings.solver_backend, output=output)
     raise unsupported_media_type(mtype)
 
@@ -123,10 +145,10 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
         raise ProblemError("validation-error", errors[0]["field"] + ": " + errors[0]["reason"],
                            errors=errors)
     params = validate_object(spec.params, as_arrays(spec.params, fields))
-    check_work(params.model_dump(), limits(settings))
+    check_work(params.model_dump(), limits(settings, spec.name))
     uploads = [await upload(files[n], n) for n in spec.files]
     source = tuple(uploads) if len(uploads) > 1 else uploads[0]
-    return TaskRequest(spec.name, source, params.model_dump(), limits(settings),
+    return TaskRequest(spec.name, source, params.model_dump(), limits(settings, spec.name),
                        settings.solver_backend, output)
 
 
@@ -164,8 +186,8 @@ def _json_job(body: bytes, settings: Settings) -> tuple[JobRequest, TaskRequest]
     with gc_paused():
         head = validate_object(JobRequest, parse_json(body))
         source, params = decode_document(OPERATIONS[head.operation], head.input,
-                                         limits(settings), prefix=("input",))
-    return head, TaskRequest(head.operation, source, params, limits(settings),
+                                         limits(settings, head.operation), prefix=("input",))
+    return head, TaskRequest(head.operation, source, params, limits(settings, head.operation),
                              settings.solver_backend)
 
 

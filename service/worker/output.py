@@ -1,4 +1,5 @@
-"""Response bodies: JSON via orjson and meshes via :mod:`service.worker.gltf`.
+"""Response bodies: JSON via orjson and meshes via the library's glTF writer
+(:mod:`solver.gltf`).
 
 Used in the worker processes (synchronous requests are encoded where they are solved) and in
 the main process (job results fetched later with another ``Accept`` or ``?color=``).
@@ -11,10 +12,12 @@ from typing import Any, Final
 import numpy as np
 import orjson
 
-from ffs.arrays import json_default
-from service.worker import gltf
+from ffs_wire.arrays import json_default
+from solver import gltf
 
-MEDIA_TYPES: Final[dict[str, str]] = {**gltf.MEDIA_TYPES, "f32": "application/octet-stream"}
+MEDIA_TYPES: Final[dict[str, str]] = {"json": "application/json", "glb": "model/gltf-binary",
+                                      "gltf": "model/gltf+json",
+                                      "f32": "application/octet-stream"}
 """Response format -> media type (``f32``: little-endian float32 vertices, sessions only)."""
 
 _OPTIONS = orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS
@@ -28,7 +31,7 @@ def json_bytes(document: Any) -> bytes:
 
     Returns:
         UTF-8 JSON by orjson (numpy arrays natively; non-contiguous or exotic ones, and
-        what orjson cannot encode, through :func:`ffs.arrays.json_default`).
+        what orjson cannot encode, through :func:`ffs_wire.arrays.json_default`).
     """
     return orjson.dumps(document, option=_OPTIONS, default=json_default)
 
@@ -40,7 +43,7 @@ def colors_for(values: np.ndarray | None) -> np.ndarray | None:
         values: (n,) float per-vertex scalars, or None.
 
     Returns:
-        (n, 4) float32 linear RGBA (:func:`service.worker.gltf.color_ramp`); None for None.
+        (n, 4) float32 linear RGBA (:func:`solver.gltf.color_ramp`); None for None.
     """
     return None if values is None else gltf.color_ramp(np.asarray(values, dtype=np.float64))
 
@@ -77,7 +80,7 @@ def mesh_bytes(fmt: str, vertices: np.ndarray, faces: np.ndarray,
         texcoords: (n, 2) float uv written as ``TEXCOORD_0``, or None.
 
     Returns:
-        The glTF 2.0 asset (:func:`service.worker.gltf.encode_gltf`).
+        The glTF 2.0 asset (:func:`solver.gltf.encode_gltf`).
 
     Raises:
         ValueError: ``fmt`` is neither ``glb`` nor ``gltf``.

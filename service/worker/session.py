@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from service.api.budgets import TIME_POLICY
 from service.api.task import SessionSpec
 from service.worker import output
 
@@ -75,17 +76,19 @@ class _Pending:
 
 class SessionState:
     """A :class:`solver.Deformer` factorized at init, and a first solve at rest that checks
-    the factorization (and warms the backend up). ``refine_seconds``: the most one drag's
-    refinement may take in all (``options.max_seconds``, else the backend's solve timeout)."""
+    the factorization (and warms the backend up). ``solve_timeout``: the backend's
+    (``FFS_SESSION_SOLVE_TIMEOUT``); :attr:`refine_seconds`, the most one drag's refinement
+    may take in all, is :meth:`TimePolicy.drag_budget
+    <service.api.budgets.TimePolicy.drag_budget>` of it and ``options.max_seconds``."""
 
-    def __init__(self, spec: SessionSpec, refine_seconds: float = 30.0) -> None:
+    def __init__(self, spec: SessionSpec, solve_timeout: float) -> None:
         import solver
 
         options = spec.deform_options()
         start = time.perf_counter()
         # A Deformer reads refine=None as off (solver.options.DeformOptions): linear drags.
         self.progressive = options.refine is True
-        self.refine_seconds = float(options.max_seconds or refine_seconds)
+        self.refine_seconds = TIME_POLICY.drag_budget(options.max_seconds, solve_timeout)
         self.deformer = solver.Deformer(  # (a progressive one builds its start-up fit now)
             spec.vertices, spec.faces, spec.handles, rotation_handles=list(spec.rotations) or None,
             roi=spec.roi, options=options)

@@ -31,7 +31,8 @@ from service.api.task import (
     TaskRequest,
     TaskResult,
 )
-from service.worker import gltf, output
+from service.worker import output
+from solver import gltf
 
 Progress = Callable[[str, float], None]
 TaskFn = Callable[[TaskRequest, Progress], TaskResult]

@@ -54,7 +54,9 @@ def limited_key(tmp_path_factory) -> tuple[Path, str, str]:
 @pytest.fixture(scope="module")
 def server(limited_key) -> Iterator[str]:
     env = {"FFS_WORKERS": "1", "FFS_API_KEYS": json.dumps(KEYS), "FFS_ADMIN_KEYS": "ops",
-           "FFS_API_KEYS_FILE": str(limited_key[0])}
+           "FFS_API_KEYS_FILE": str(limited_key[0]),
+           "FFS_MAX_FACES": "500000"}  # the keys' default face quota below (it follows
+    # from the machine's memory when unset)
     with uvicorn_process(env, log_level="info") as (base, _):
         yield base
 
@@ -280,10 +282,20 @@ def test_openapi_declares_the_bearer_scheme(server):
 
 
 def test_me_and_a_refused_upload_is_a_401(server, alice, ops):
-    assert alice.get("/v1/me").json() == {
+    me = alice.get("/v1/me").json()
+    sizes = me.pop("size_limits")
+    assert me == {
         "keys": True, "name": "alice", "role": "user",
         "limits": {"requests_per_minute": 600, "concurrent_jobs": 16,
                    "concurrent_sessions": 4, "max_faces": 500_000}}
+    assert sizes["max_faces"] == 500_000 and sizes["max_vertices"] == 300_000
+    # Each operation takes at most FFS_MAX_FACES, those that factorize what fits the memory.
+    from service.backends.admission import faces_within
+
+    fit = faces_within(sizes["max_request_memory"], solves=True)
+    by_operation = sizes["max_faces_by_operation"]
+    assert by_operation["forms"] == by_operation["mesh"] == 500_000
+    assert by_operation["reconstruct"] == by_operation["sessions"] == min(fit, 500_000)
     assert ops.get("/v1/me").json()["role"] == "admin"
     with _client(server, None) as anonymous:
         problem(anonymous.get("/v1/me"), 401, "unauthorized")

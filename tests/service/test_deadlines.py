@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import solver
-from service.api.task import encode_margin
+from service.api.budgets import TIME_POLICY
 from tests.helpers.meshes import load
 from tests.helpers.servers import uvicorn_server
 from tests.helpers.service import forms_json, problem
@@ -42,7 +42,7 @@ def _timeout_for_budget(budget: float) -> float:
     ``budget`` seconds."""
     timeout = budget
     for _ in range(50):
-        timeout = budget + encode_margin(timeout)
+        timeout = budget + TIME_POLICY.encode_margin(timeout)
     return timeout
 
 
@@ -57,27 +57,47 @@ def _assert_time_limited(doc: dict, forms: dict, unlimited: dict) -> None:
     assert V.shape[0] == int(np.max(forms["faces"])) + 1
 
 
+def _time_limited_answer(forms: dict, budget: float, unlimited: dict, attempts: int = 4
+                         ) -> None:
+    """A server whose FFS_REQUEST_TIMEOUT leaves the solver ``budget`` seconds answers the
+    refinement's best iterate (200, time_limit). The budget is measured in this process, and
+    a shared machine's load can move the server's speed either way: a 504 (the linear answer
+    did not fit) doubles the budget and a converged answer (the server was faster) halves it,
+    on a new server, up to ``attempts`` times; every answer seen is named when none fits."""
+    seen = []
+    for _ in range(attempts):
+        timeout = _timeout_for_budget(budget)
+        with uvicorn_server({"FFS_REQUEST_TIMEOUT": f"{timeout:.3f}"}) as base, \
+                httpx.Client(base_url=base, timeout=timeout + 30) as http:
+            # Warm the worker (its first reconstruct loads what a cold process lacks).
+            http.post("/v1/reconstruct", json={**forms, "options": {"refine": False}})
+            start = time.perf_counter()
+            response = http.post("/v1/reconstruct", json=forms)
+            elapsed = time.perf_counter() - start
+        if response.status_code == 504:
+            seen.append(f"504 with {budget:.3f} s")
+            budget *= 2.0
+            continue
+        assert response.status_code == 200, response.text
+        if response.json()["report"]["refinement"]["converged"]:
+            seen.append(f"converged within {budget:.3f} s")
+            budget /= 2.0
+            continue
+        _assert_time_limited(response.json(), forms, unlimited)
+        assert elapsed < timeout + 1.0
+        return
+    pytest.fail(f"no budget between the linear answer and convergence: {seen}")
+
+
 def test_refinement_past_the_request_deadline_answers_200(cylinder_bent):
     """FFS_REQUEST_TIMEOUT set so that the linear answer fits and the refinement does not:
     the answer is the best iterate, reported, where it used to be a 504."""
     linear_s, unlimited = _timed_library_call(cylinder_bent)
     assert unlimited["converged"] and unlimited["iterations"] >= 3, unlimited
     # The solver's budget: three times the linear answer plus a fifth of the refinement it
-    # needs (the server would have to be several times faster than this process to
-    # converge; with twice and an eighth, a loaded fresh-clone run once spent the whole
-    # 0.37 s budget before the refinement began, and answered 504).
-    timeout = _timeout_for_budget(3 * linear_s + unlimited["seconds"] / 5)
-    with uvicorn_server({"FFS_REQUEST_TIMEOUT": f"{timeout:.3f}"}) as base, \
-            httpx.Client(base_url=base, timeout=timeout + 30) as http:
-        # Warm the worker (its first reconstruct loads what a cold process lacks).
-        http.post("/v1/reconstruct", json={**cylinder_bent, "options": {"refine": False}})
-        start = time.perf_counter()
-        response = http.post("/v1/reconstruct", json=cylinder_bent)
-        elapsed = time.perf_counter() - start
-        assert response.status_code == 200, response.text
-        _assert_time_limited(response.json(), cylinder_bent, unlimited)
-        assert elapsed < timeout + 1.0
-
+    # needs; _time_limited_answer moves it when the server runs at another speed.
+    _time_limited_answer(cylinder_bent, 3 * linear_s + unlimited["seconds"] / 5, unlimited)
+    with uvicorn_server({}) as base, httpx.Client(base_url=base, timeout=60) as http:
         # An explicit, smaller options.max_seconds wins over the request's deadline.
         body = {**cylinder_bent, "options": {"max_seconds": 0.001}}
         response = http.post("/v1/reconstruct", json=body)

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.worker.gltf import (
-    MEDIA_TYPES,
+from service.worker.output import MEDIA_TYPES
+from solver.errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
+from solver.gltf import (
     color_ramp,
     encode_gltf,
     encode_gltf_binary,
     encode_gltf_json,
     vertex_normals,
 )
-from solver.errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
 from tests.helpers.gltf_validator import ensure_validator_installed, issue_codes, validate_gltf
 from tests.helpers.meshes import icosphere
 
@@ -283,7 +283,7 @@ def test_color_ramp() -> None:
 
 def test_media_types() -> None:
     assert MEDIA_TYPES == {"json": "application/json", "glb": "model/gltf-binary",
-                           "gltf": "model/gltf+json"}
+                           "gltf": "model/gltf+json", "f32": "application/octet-stream"}
 
 
 def test_input_errors(sphere: tuple[np.ndarray, np.ndarray]) -> None:
@@ -302,3 +302,24 @@ def test_input_errors(sphere: tuple[np.ndarray, np.ndarray]) -> None:
         encode_gltf_json(bad, f)
     with pytest.raises(NonFiniteValueError):
         encode_gltf_binary(v * 1e300, f)  # overflows float32
+
+
+@pytest.mark.parametrize("kind", ["glb", "gltf"])
+def test_the_librarys_files_are_the_same_writer_and_validator_clean(
+        kind: str, sphere: tuple[np.ndarray, np.ndarray]) -> None:
+    """solver.io.save_mesh and solver.uv_files.textured_glb write through this one writer:
+    the same bytes as encode_gltf, no validator error or warning."""
+    from solver.io import save_mesh
+    from solver.uv_files import textured_glb
+
+    v, f = sphere
+    data = save_mesh(v, f, kind)
+    assert data == encode_gltf(v, f, kind=kind)
+    assert issue_codes(_validate(data, kind), max_severity=1) == []
+    if kind == "glb":  # an atlas: one vertex per uv index, TEXCOORD_0
+        uv = (v[:, :2] - v[:, :2].min(axis=0)) / np.ptp(v[:, :2], axis=0).max()
+        textured = textured_glb(v, uv, f, np.arange(len(v)))
+        assert textured == encode_gltf(v, f, kind="glb", texcoords=uv)
+        doc, _ = _gltf_json(textured, "glb")
+        assert "TEXCOORD_0" in doc["meshes"][0]["primitives"][0]["attributes"]
+        assert issue_codes(_validate(textured, "glb"), max_severity=1) == []

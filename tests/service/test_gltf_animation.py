@@ -1,4 +1,4 @@
-"""Animated glTF of a blend sequence (service.worker.gltf.encode_gltf_animation): validated
+"""Animated glTF of a blend sequence (solver.gltf.encode_gltf_animation): validated
 by the Khronos validator, and its morph targets and keyframes read back from the bytes."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import struct
 import numpy as np
 import pytest
 
-from service.worker.gltf import encode_gltf_animation
 from solver import blend
 from solver.errors import SolverInputError
+from solver.gltf import encode_gltf_animation
 from tests.helpers.gltf_validator import issue_codes, validate_gltf
 from tests.helpers.meshes import load
 from tests.helpers.poses import bent_pose

@@ -266,7 +266,7 @@ def _big_mesh_body(n_faces: int) -> bytes:
 
 def test_main_process_memory_is_given_back_after_large_bodies():
     body = _big_mesh_body(2_000_000)  # ~60 MB: under the body limit, over FFS_MAX_FACES
-    with uvicorn_process() as (base, proc):
+    with uvicorn_process({"FFS_MAX_FACES": "500000"}) as (base, proc):
         httpx.post(base + "/v1/forms", json={"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]],
                                              "faces": [[0, 1, 2]]})
         before = _rss(proc.pid)

@@ -229,19 +229,23 @@ def test_queued_job_cancel_keeps_the_running_worker():
 
 
 def test_job_timeout_ttl_and_store_limit():
-    with running_app(workers=1, job_timeout=0.5, job_ttl=0.5, max_jobs=2) as c:
+    # FFS_JOB_TIMEOUT counts from submission, and the job after the timed-out one waits for
+    # the replacement of the worker that was stopped: 3 s lets a loaded machine start it
+    # (0.5 s did not, at load 16); a TTL of 2 s lets its polls see a finished job.
+    with running_app(workers=1, job_timeout=3.0, job_ttl=2.0, max_jobs=2) as c:
         _, location = submit_debug(c, seconds=30)
         final, _ = wait_job(c, location)
         assert final["status"] == "failed" and final["error"]["kind"] == "timeout"
         ok = c.post("/v1/jobs", json={"operation": "forms",
                                       "input": mesh_json(*icosphere(0))})
         ok_at = ok.headers["location"]
-        assert wait_job(c, ok_at)[0]["status"] == "succeeded"
+        done = wait_job(c, ok_at)[0]
+        assert done["status"] == "succeeded", done
         # The store is full of finished jobs: the oldest one gives way to the new job.
         third = c.post("/v1/jobs", json={"operation": "forms", "input": mesh_json(*icosphere(0))})
         assert third.status_code == 202, third.text
         problem(c.get(location), 404, "not-found")
-        time.sleep(1.2)  # both jobs expire (TTL 0.5 s); the sweeper removes them
+        time.sleep(2.6)  # both jobs expire (TTL 2 s); the sweeper removes them
         problem(c.get(ok_at), 404, "not-found")
         assert c.post("/v1/jobs", json={"operation": "forms",
                                         "input": mesh_json(*icosphere(0))}).status_code == 202

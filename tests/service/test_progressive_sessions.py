@@ -243,7 +243,7 @@ def test_slices_too_short_for_one_iteration_still_converge(sphere):
     V, F = sphere
     spec = SessionSpec(vertices=V, faces=F, handles=np.asarray(HANDLES),
                        options={"refine": True})
-    sliced, whole = (SessionState(spec, refine_seconds=20.0) for _ in range(2))
+    sliced, whole = (SessionState(spec, solve_timeout=20.0) for _ in range(2))
     for lift in (0.3, 0.5):  # the second drag starts from the first's kept factor
         target = _targets(V, [lift])[0]
         sliced.solve(target, None, "f64")

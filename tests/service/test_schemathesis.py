@@ -74,7 +74,7 @@ def _as_array(value: Any, integer: bool, variant: int) -> np.ndarray | None:
 
 def _arrays_body(path: str, value: Any) -> bytes:
     """A generated JSON body (or any generated value) as an ``application/vnd.ffs.arrays``
-    body, encoded here from the layout in docs/service.md (independently of ffs.arrays)."""
+    body, encoded here from the layout in docs/service.md (independently of ffs_wire.arrays)."""
     if isinstance(value, bytes):  # generated as raw bytes: sent as they are
         SENT["raw"] += 1
         return value

@@ -168,3 +168,33 @@ def test_a_tetrahedron_is_cut_down_to_single_faces_without_flips():
     flat = np.linalg.norm(result.uv[head] - result.uv[tail], axis=2)
     rest = np.linalg.norm(V[np.roll(F, -1, axis=1)] - V[F], axis=2)
     np.testing.assert_allclose(flat, rest, rtol=1e-9)
+
+
+def test_a_hole_laid_out_inside_out_counts_as_overlap():
+    """A square ring laid out as it is (one counter-clockwise loop: its outline) does not
+    overlap itself; the same ring with its hole's rim run the other way round (the hole
+    inside out, as a boundary vertex whose angles pass a full turn leaves it) does."""
+    from solver.atlas import overlaps_itself
+    from solver.packing import boundary_crossings, positive_loops
+
+    V = np.array([[0, 0], [3, 0], [3, 3], [0, 3], [1, 1], [2, 1], [2, 2], [1, 2]], float)
+    F = np.array([[0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7],
+                  [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+    loops = build_topology(F, n_vertices=8).boundary_loops
+    assert sorted(len(loop) for loop in loops) == [4, 4]
+    assert positive_loops(V, loops) == 1 and boundary_crossings(V, F) == 0
+    assert not overlaps_itself(V, F, loops)
+    turned = [loop if positive_loops(V, [loop]) else loop[::-1] for loop in loops]
+    assert positive_loops(V, turned) == 2 and overlaps_itself(V, F, turned)
+
+
+def test_xatlas_seeds_cover_every_face_once_in_edge_connected_sets():
+    from solver.charts import labelled_face_sets, xatlas_charts
+
+    for V, F in (load("decimated-knight.off"), load("torus.off"), genus_two()):
+        topology = build_topology(F, n_vertices=len(V))
+        graph = dual_graph(V, topology, fundamental_forms(V, F).angles, 4.0)
+        sets = labelled_face_sets(graph, xatlas_charts(V, F))
+        assert np.array_equal(np.sort(np.concatenate(sets)), np.arange(len(F)))
+        for piece in sets:
+            assert len(connected_face_sets(graph, piece, len(F))) == 1

@@ -327,8 +327,17 @@ def test_unsupported_format(name: str) -> None:
     assert info.value.details["supported"] == list(LOAD_FORMATS)
     with pytest.raises(UnsupportedFormatError):
         save_mesh(np.zeros((3, 3)), [[0, 1, 2]], name)
-    with pytest.raises(UnsupportedFormatError):
-        save_mesh(np.zeros((3, 3)), [[0, 1, 2]], "gltf")  # load-only
+
+
+
+def test_gltf_is_written_by_the_one_writer_and_reads_back() -> None:
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0.25, 0.5, 1]])
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    for fmt in ("glb", "gltf"):
+        data = save_mesh(V, F, fmt)
+        W, G = load_mesh(data, fmt)
+        np.testing.assert_array_equal(G, F)
+        np.testing.assert_array_equal(W, V.astype(np.float32))  # glTF stores float32
 
 
 @pytest.mark.parametrize("given, expected", [

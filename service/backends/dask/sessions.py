@@ -147,9 +147,8 @@ class DaskSessions:
         future = None
         try:
             future = client.submit(SessionActor, spec, self.policy.threads,
-                                   spec.options.get("max_seconds") or policy.solve_timeout,
-                                   policy.refine_slice, actors=True, pure=False,
-                                   key=SESSION_PREFIX + session_id)
+                                   policy.solve_timeout, policy.refine_slice, actors=True,
+                                   pure=False, key=SESSION_PREFIX + session_id)
             try:
                 with client.as_current():  # the actor proxy binds to this app's client
                     actor = await asyncio.wait_for(future, self.policy.setup_timeout)

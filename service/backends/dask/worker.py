@@ -139,8 +139,8 @@ class SessionActor:
     """A session on a Dask worker (an actor: its state stays on that worker). A progressive
     session refines in a thread of its own (:class:`_Refinery`)."""
 
-    def __init__(self, spec: SessionSpec, threads: int = 1, refine_seconds: float = 30.0,
-                 refine_slice: float = 0.05) -> None:
+    def __init__(self, spec: SessionSpec, threads: int, solve_timeout: float,
+                 refine_slice: float) -> None:
         from distributed import get_worker
 
         from service.api.problems import failure_of
@@ -154,7 +154,7 @@ class SessionActor:
         before = process_memory()
         self.refinery: _Refinery | None = None
         try:
-            self.state = SessionState(spec, refine_seconds)
+            self.state = SessionState(spec, solve_timeout)
         except Exception as exc:
             self.error = failure_of(exc)
         else:

@@ -37,8 +37,8 @@ from service.memory import process_memory
 logger = logging.getLogger("service.sessions")
 
 
-def _session_main(conn: Connection, threads: int, refine_seconds: float = 30.0,
-                  refine_slice: float = 0.05) -> None:
+def _session_main(conn: Connection, threads: int, solve_timeout: float,
+                  refine_slice: float) -> None:
     """Entry point of a local session process: build the session, then serve solves;
     between them (no drag waiting on the pipe, none for DRAG_PAUSE after the last one)
     refine the newest drag slice by slice."""
@@ -51,7 +51,7 @@ def _session_main(conn: Connection, threads: int, refine_seconds: float = 30.0,
     try:
         spec = conn.recv()
         try:
-            state = SessionState(spec, refine_seconds)
+            state = SessionState(spec, solve_timeout)
         except Exception as exc:
             conn.send(("error", failure_of(exc)))
             return
@@ -196,8 +196,8 @@ class LocalSessions:
 
     def _spawn(self, session_id: str, spec: SessionSpec) -> WorkerProcess:
         main = functools.partial(
-            _session_main, refine_seconds=spec.options.get("max_seconds")
-            or self.policy.solve_timeout, refine_slice=self.policy.refine_slice)
+            _session_main, solve_timeout=self.policy.solve_timeout,
+            refine_slice=self.policy.refine_slice)
         proc = WorkerProcess.spawn(main, self.policy.threads, f"ffs-session-{session_id[:8]}",
                                    self.start_method)
         try:

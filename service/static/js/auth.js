@@ -59,31 +59,30 @@ export function askForKey(problem) {
   return asking;
 }
 
+/** A new element with these properties. */
+function element(tag, properties) {
+  return Object.assign(document.createElement(tag), properties);
+}
+
 function showDialog(problem) {
   const hadKey = Boolean(apiKey());
   forgetApiKey();
-  const dialog = document.createElement("dialog");
-  dialog.id = "api-key-dialog";
-  dialog.className = "api-key-dialog";
-  const title = document.createElement("h2");
-  title.textContent = "API key required";
-  const text = document.createElement("p");
-  text.textContent = hadKey ? "The service does not know this key. Enter another one."
-    : "This service needs an API key. Ask whoever runs it for one.";
-  text.title = problem?.detail || "";  // the service's own words, on hover
-  const note = document.createElement("p");
-  note.className = "api-key-note";
-  note.textContent = "The key is kept for this tab only and sent to this service alone.";
-  const form = document.createElement("form");
-  form.method = "dialog";
-  const input = document.createElement("input");
-  Object.assign(input, { type: "password", name: "key", autocomplete: "off", required: true,
-    id: "api-key-input", placeholder: "API key" });
+  const dialog = element("dialog", { id: "api-key-dialog", className: "api-key-dialog" });
+  const title = element("h2", { textContent: "API key required" });
+  const text = element("p", { textContent: hadKey
+    ? "The service does not know this key. Enter another one."
+    : "This service needs an API key. Ask whoever runs it for one.",
+  title: problem?.detail || "" });  // the service's own words, on hover
+  const note = element("p", { className: "api-key-note",
+    textContent: "The key is kept for this tab only and sent to this service alone." });
+  const form = element("form", { method: "dialog" });
+  const input = element("input", { type: "password", name: "key", autocomplete: "off",
+    required: true, id: "api-key-input", placeholder: "API key" });
   input.setAttribute("aria-label", "API key");
-  const use = document.createElement("button");
-  Object.assign(use, { type: "submit", value: "use", textContent: "Use key", id: "api-key-use" });
-  const cancel = document.createElement("button");
-  Object.assign(cancel, { type: "button", textContent: "Cancel", id: "api-key-cancel" });
+  const use = element("button", { type: "submit", value: "use", textContent: "Use key",
+    id: "api-key-use" });
+  const cancel = element("button", { type: "button", textContent: "Cancel",
+    id: "api-key-cancel" });
   form.append(input, use, cancel);
   dialog.append(title, text, form, note);
   document.body.append(dialog);

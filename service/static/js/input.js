@@ -6,12 +6,21 @@ import { action } from "./progress.js";
 import { state, store } from "./store.js";
 
 const $ = (id) => document.getElementById(id);
-export const TABS = ["mesh", "deform", "flatten", "forms", "blend"];
+/** The tabs in order, from the one place they are declared: index.html's tab list (a
+ * `role="tab"` button `tab-<name>` per tab, controlling `panel-<name>`; key N picks the Nth). */
+export const tabs = () => [...document.querySelectorAll('[role="tab"]')].map((button) => ({
+  name: button.id.replace(/^tab-/, ""), label: button.firstChild.textContent.trim() }));
 const UP_AXES = ["+y", "+z", "+x", "-y", "-z", "-x"];
 
 function setHelp(open) {
   $("help").hidden = !open;
   if (open) $("help-close").focus();
+}
+
+function kbd(text) {
+  const key = document.createElement("kbd");
+  key.textContent = text;
+  return key;
 }
 
 function toggleCheckbox(id) {
@@ -22,13 +31,16 @@ function toggleCheckbox(id) {
 /** Tabs, the help overlay, selection with the mouse on `view`'s canvas, and the keyboard
  * shortcuts. `actions`: {select, makeHandle, removeHandle, undo, redo, setUp}. */
 export function installInput({ view, actions }) {
+  const names = tabs().map((tab) => tab.name);
   store.subscribe(["tab"], (s) => {
-    for (const tab of TABS) {
+    for (const tab of names) {
       $(`tab-${tab}`).setAttribute("aria-selected", String(tab === s.tab));
       $(`panel-${tab}`).hidden = tab !== s.tab;
     }
   });
-  for (const tab of TABS) $(`tab-${tab}`).addEventListener("click", () => store.set({ tab }));
+  for (const tab of names) $(`tab-${tab}`).addEventListener("click", () => store.set({ tab }));
+  $("help-tab-keys").replaceChildren(kbd("1"), "–", kbd(String(names.length)));
+  $("help-tabs").textContent = `${tabs().map((tab) => tab.label).join(", ")} tab`;
   $("help-open").addEventListener("click", () => setHelp(true));
   $("help-close").addEventListener("click", () => setHelp(false));
   $("help").addEventListener("click", (event) => {
@@ -95,8 +107,8 @@ export function installInput({ view, actions }) {
       action(actions.redo)();
     } else if (ctrl || event.altKey) {
       return;
-    } else if (key >= "1" && key <= String(TABS.length)) {
-      store.set({ tab: TABS[Number(key) - 1] });
+    } else if (key >= "1" && key <= String(names.length)) {
+      store.set({ tab: names[Number(key) - 1] });
     } else if (key === "w" || key === "e") {
       const mode = key === "w" ? "translate" : "rotate";
       document.querySelector(`input[name="gizmo-mode"][value="${mode}"]`).checked = true;

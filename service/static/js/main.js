@@ -1,5 +1,5 @@
-// The page, wired: the state (store.js), the 3D and flat views (viewer.js), the panels
-// (Mesh with its integrability report, Deform, Flatten, Rebuild, Blend), mouse and keyboard
+// The page, wired: the state (store.js), the 3D and flat views (viewer.js), the panels (one
+// per tab of index.html's tab list, the tabs' one declaration), mouse and keyboard
 // (input.js), and the worker that reads meshes (worker-client.js). Everything the page knows
 // comes from the service's public HTTP API. `?sample=<file>` picks the first mesh,
 // `?transport=http|deform` pins the deformation path, and `?test` installs the browser

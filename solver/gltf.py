@@ -1,7 +1,11 @@
-"""Response encoders: triangle meshes as glTF 2.0 (binary ``.glb`` or JSON ``.gltf``).
+"""The one glTF 2.0 writer: triangle meshes as binary ``.glb`` or JSON ``.gltf`` (the
+buffer embedded as a ``data:`` URI), optionally with vertex colours, the atlas as
+``TEXCOORD_0``, or a sequence of shapes as morph targets with an animation.
 
-Pure numpy + stdlib; no FastAPI imports. Every array operation is vectorized (no Python
-loops over vertices or faces).
+Used by the library's file writing (:func:`solver.io.save_mesh`, :mod:`solver.uv_files`),
+the service's response encoders (``service/worker/output.py``) and ``ffs``. Pure numpy +
+stdlib (validator-clean: the tests run the Khronos glTF-Validator). Every array operation is
+vectorized (no Python loops over vertices or faces).
 
 Layout of the produced asset (both encodings carry the same JSON and the same buffer):
 
@@ -31,14 +35,10 @@ from typing import Any, Final, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from solver.errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
+from .errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
 
 __all__ = [
     "GENERATOR",
-    "MEDIA_TYPES",
-    "MEDIA_TYPE_GLB",
-    "MEDIA_TYPE_GLTF",
-    "MEDIA_TYPE_JSON",
     "color_ramp",
     "encode_gltf",
     "encode_gltf_animation",
@@ -47,27 +47,13 @@ __all__ = [
     "vertex_normals",
 ]
 
-MEDIA_TYPE_JSON: Final = "application/json"
-MEDIA_TYPE_GLB: Final = "model/gltf-binary"
-MEDIA_TYPE_GLTF: Final = "model/gltf+json"
-MEDIA_TYPES: Final[dict[str, str]] = {
-    "json": MEDIA_TYPE_JSON,
-    "glb": MEDIA_TYPE_GLB,
-    "gltf": MEDIA_TYPE_GLTF,
-}
-"""Response format name -> media type (``Content-Type``)."""
-
 GENERATOR: Final = "fundamental-forms-service"
 """``asset.generator`` written into every glTF."""
 
-# glTF enums (glTF 2.0 spec, section 5).
-_FLOAT: Final = 5126
-_UNSIGNED_SHORT: Final = 5123
-_UNSIGNED_INT: Final = 5125
-_ARRAY_BUFFER: Final = 34962
-_ELEMENT_ARRAY_BUFFER: Final = 34963
-_MODE_POINTS: Final = 0
-_MODE_TRIANGLES: Final = 4
+# glTF enums (glTF 2.0 spec, section 5): component types, bufferView targets, primitive modes.
+_FLOAT, _UNSIGNED_SHORT, _UNSIGNED_INT = 5126, 5123, 5125
+_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+_MODE_POINTS, _MODE_TRIANGLES = 0, 4
 
 # GLB container (glTF 2.0 spec, section 4.4).
 _GLB_MAGIC: Final = 0x46546C67  # "glTF"

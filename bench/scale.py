@@ -1,0 +1,209 @@
+"""Reconstruction at scan size: exact, linear and default answers from ~100K to 1.6M faces.
+
+A shared scan (``nefertiti.obj``, 99 938 faces, closed genus 0) is subdivided 4:1 by edge
+midpoints (trimesh) 0, 1 and 2 times (100K, 400K, 1.6M faces; ``--levels 3`` adds 6.4M).
+Its forms, exact and with every dihedral angle + N(0, 1e-3) rad, are cached under
+``/tmp/ffs-scale`` (never in git). Each case runs in a fresh child process that reports its
+wall time per stage (``report["timings"]``) and its CPU time (user + system, less
+sensitive to the load of a shared machine than the wall time), the peak RSS of the whole
+process (getrusage ``ru_maxrss``) and the peak RSS reached during each stage (a sampling
+thread reading ``/proc/self/status`` every 5 ms, attributed to the stage the progress
+callback last named), the solve path and the refinement's factorization and iteration counts.
+
+Cases:
+
+* ``exact``: exact forms, default options: the tree integration (no factorization).
+* ``linear``: noisy forms, ``refine=False``: one factorization (plus the orthonormalization).
+* ``default``: noisy forms, default options: the refined (nearest-surface) answer.
+
+Usage (from the repository root)::
+
+    python -m bench.scale                      # levels 0 1 2, every case
+    python -m bench.scale --levels 0 1 --cases exact linear
+    python -m bench.scale --max-gb 10          # address-space limit of each child
+    python -m bench.scale --markdown           # also print the tables for bench/README.md
+
+A child that runs out of its address-space limit is reported as ``out of memory`` (the
+parent survives; the OOM killer is never reached).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import REPO, SHARED_MESHES, load_averages, scaling_exponent
+
+CACHE = Path(os.environ.get("FFS_SCALE_CACHE", "/tmp/ffs-scale"))
+"""Where the subdivided meshes and their forms are cached (outside the repository)."""
+BASE = "nefertiti.obj"
+NOISE = 1e-3
+CASES = ("exact", "linear", "default")
+
+
+def forms_file(level: int) -> Path:
+    """The cached forms of ``BASE`` subdivided ``level`` times (made on first use)."""
+    path = CACHE / f"{Path(BASE).stem}-s{level}.npz"
+    if path.exists():
+        return path
+    import trimesh
+
+    from solver import fundamental_forms
+
+    mesh = trimesh.load(SHARED_MESHES / BASE, process=False)
+    V, F = np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
+    for _ in range(level):
+        V, F = trimesh.remesh.subdivide(V, F)
+    forms = fundamental_forms(V, F)
+    noisy = forms.angles + np.random.default_rng(0).normal(scale=NOISE, size=len(forms.angles))
+    CACHE.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, vertices=V, faces=np.asarray(forms.faces), edges=forms.edges,
+             lengths=forms.lengths, angles=forms.angles, noisy=noisy)
+    tmp.rename(path)
+    return path
+
+
+class StageMemory:
+    """Peak RSS (MB) per stage, sampled by a thread every ``period`` seconds; the stage is
+    the one ``progress`` last named."""
+
+    def __init__(self, period: float = 0.005) -> None:
+        self.stage = "load"
+        self.peak: dict[str, float] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
+        self._thread.start()
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        self._sample()
+        self.stage = stage
+
+    def _sample(self) -> None:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    mb = int(line.split()[1]) / 1024
+                    self.peak[self.stage] = max(self.peak.get(self.stage, 0.0), mb)
+                    return
+
+    def _run(self, period: float) -> None:
+        while not self._stop.wait(period):
+            self._sample()
+
+    def stop(self) -> dict[str, float]:
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+        return {k: round(v) for k, v in self.peak.items()}
+
+
+def run_case(level: int, case: str) -> dict:
+    """One case in this process; returns its measurements (a JSON-able dict)."""
+    from solver import reconstruct
+
+    memory = StageMemory()
+    data = np.load(forms_file(level))
+    faces, edges, lengths = data["faces"], data["edges"], data["lengths"]
+    angles = data["angles"] if case == "exact" else data["noisy"]
+    n_vertices = len(data["vertices"])
+    del data
+    options = {"refine": False} if case == "linear" else {}
+    start, cpu = time.perf_counter(), time.process_time()
+    result = reconstruct(faces, edges, lengths, angles, n_vertices=n_vertices,
+                         progress=memory, **options)
+    wall = time.perf_counter() - start
+    cpu = time.process_time() - cpu
+    report = result.report
+    refinement = report["refinement"] or {}
+    return {
+        "level": level, "case": case, "faces": len(faces), "seconds": wall,
+        "cpu_seconds": cpu,
+        "timings": {k: round(v, 3) for k, v in report["timings"].items()},
+        "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "stage_peak_mb": memory.stop(), "solve_path": report["solve_path"],
+        "factorizations": refinement.get("factorizations"),
+        "iterations": refinement.get("iterations"),
+        "converged": refinement.get("converged"),
+        "refinement": refinement.get("reason") or refinement.get("stopped"),
+    }
+
+
+def child(level: int, case: str, max_gb: float | None) -> dict:
+    """Run one case in a fresh process under an address-space limit of ``max_gb``."""
+    forms_file(level)  # made once, in the parent, outside the measured process
+    cmd = [sys.executable, "-m", "bench.scale", "--child", str(level), case]
+    if max_gb:
+        cmd[:0] = ["prlimit", f"--as={int(max_gb * 2**30)}"]
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=REPO)
+    if proc.returncode != 0:
+        tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
+        oom = "MemoryError" in proc.stderr or "Cannot allocate" in proc.stderr
+        return {"level": level, "case": case, "error": "out of memory" if oom else tail[0]}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def markdown(rows: list[dict]) -> str:
+    """The tables of bench/README.md: one row per case, then the fitted exponents."""
+    lines = ["| faces | case | path | seconds | CPU s | faces/s | peak MB | factorizations | "
+             "iterations | stages (s) | stage peaks (MB) |",
+             "|---:|---|---|---:|---:|---:|---:|---:|---:|---|---|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| level {r['level']} | {r['case']} | {r['error']} | | | | | | | | |")
+            continue
+        stages = ", ".join(f"{k} {v:.2f}" for k, v in r["timings"].items())
+        peaks = ", ".join(f"{k} {v}" for k, v in r["stage_peak_mb"].items())
+        lines.append(
+            f"| {r['faces']} | {r['case']} | {r['solve_path']} | {r['seconds']:.2f} | "
+            f"{r.get('cpu_seconds', float('nan')):.2f} | "
+            f"{r['faces'] / r['seconds']:,.0f} | {r['peak_mb']:.0f} | "
+            f"{r['factorizations'] if r['factorizations'] is not None else '-'} | "
+            f"{r['iterations'] if r['iterations'] is not None else '-'} | {stages} | {peaks} |")
+    lines.append("")
+    for case in CASES:
+        ok = [r for r in rows if r["case"] == case and "error" not in r]
+        if len(ok) >= 2:
+            k_t = scaling_exponent([r["faces"] for r in ok], [r["seconds"] for r in ok])
+            k_m = scaling_exponent([r["faces"] for r in ok], [r["peak_mb"] for r in ok])
+            lines.append(f"- {case}: time ~ faces^{k_t:.2f}, peak RSS ~ faces^{k_m:.2f} "
+                         f"({ok[0]['faces']} to {ok[-1]['faces']} faces)")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--levels", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
+    parser.add_argument("--max-gb", type=float, default=10.0,
+                        help="address-space limit of each child (GB; 0: none)")
+    parser.add_argument("--markdown", action="store_true")
+    parser.add_argument("--child", nargs=2, metavar=("LEVEL", "CASE"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        print(json.dumps(run_case(int(args.child[0]), args.child[1])))
+        return
+    print(f"# load {load_averages()}", flush=True)
+    rows = []
+    for case in args.cases:
+        for level in args.levels:
+            row = child(level, case, args.max_gb)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    print(f"# load {load_averages()}")
+    if args.markdown:
+        print(markdown(rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,9 @@
+"""``ffs_wire``: what travels between the client (:mod:`ffs`) and the service
+(:mod:`service`), in a package of its own so that neither imports the other.
+
+* :mod:`ffs_wire.arrays`: the ``application/vnd.ffs.arrays`` binary body (media type,
+  framing, the reference encoder) and :func:`~ffs_wire.arrays.json_default` (numpy values
+  in every JSON the project writes).
+
+numpy and the standard library only: importing it never imports FastAPI, httpx or the solver.
+"""

@@ -1,0 +1,61 @@
+"""Spanning forests and the products and sums along them, against a plain walk from the roots."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from solver.trees import accumulate_products, accumulate_sums, forest_levels, spanning_forest
+
+
+def _graph(kind: str, k: int, rng: np.random.Generator) -> tuple[int, np.ndarray]:
+    if kind == "path":                       # one long chain: the pointer-doubling branch
+        return k, np.stack([np.arange(k - 1), np.arange(1, k)], 1)
+    if kind == "grid":                       # shallow: the level-by-level branch
+        s = int(np.sqrt(k))
+        idx = np.arange(s * s).reshape(s, s)
+        return s * s, np.concatenate([np.stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()], 1),
+                                      np.stack([idx[:-1].ravel(), idx[1:].ravel()], 1)])
+    return k, rng.integers(0, k, size=(k, 2))  # random: several components, parallel links
+
+
+def _depths(parent: np.ndarray) -> np.ndarray:
+    """Depth of each node by walking up to its root (plain Python, the reference)."""
+    out = np.zeros(len(parent), dtype=np.int64)
+    for v in range(len(parent)):
+        u = v
+        while parent[u] != u:
+            u = parent[u]
+            out[v] += 1
+    return out
+
+
+@pytest.mark.parametrize(("kind", "k"), [("path", 3000), ("grid", 4900), ("random", 2000),
+                                         ("random", 1)])
+def test_products_and_sums_follow_the_forest(kind: str, k: int) -> None:
+    rng = np.random.default_rng(k)
+    n, links = _graph(kind, k, rng)
+    forest = spanning_forest(n, links)
+    parent = forest.parent
+    roots = parent == np.arange(n)
+    local = Rotation.random(n, random_state=3).as_matrix()
+    local[roots] = np.eye(3)
+    steps = rng.normal(size=(n, 3))
+    steps[roots] = 0.0
+    depth = _depths(parent)
+    # Reference: nodes in order of depth, each from its (already done) parent.
+    want_g, want_s = local.copy(), steps.copy()
+    for v in np.argsort(depth, kind="stable"):
+        if not roots[v]:
+            want_g[v] = want_g[parent[v]] @ local[v]
+            want_s[v] = want_s[parent[v]] + steps[v]
+    for levels in (None, forest.levels):
+        np.testing.assert_allclose(accumulate_products(parent, local, levels), want_g,
+                                   atol=1e-12)
+        np.testing.assert_allclose(accumulate_sums(parent, steps, levels), want_s, atol=1e-12)
+    for order, bounds in (forest_levels(parent), forest.levels):
+        assert sorted(order.tolist()) == list(range(n))
+        got = np.empty(n, dtype=np.int64)
+        got[order] = np.repeat(np.arange(len(bounds) - 1), np.diff(bounds))
+        np.testing.assert_array_equal(got, depth)

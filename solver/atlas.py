@@ -23,9 +23,10 @@ from .charts import (
     labelled_face_sets,
     xatlas_charts,
 )
+from .forms import zero_area_faces
 from .frames import face_edge_lengths, triangle_layouts
 from .options import ParameterizeOptions
-from .packing import boundary_crossings, positive_loops, signed_areas
+from .packing import boundary_crossings, folded, positive_loops
 from .reconstruct import Progress
 from .reports import Stages
 from .topology import MeshTopology, build_topology
@@ -108,8 +109,9 @@ def _flatten_or_none(V: np.ndarray, faces: np.ndarray, opts: ParameterizeOptions
                                                             quick)
     if out_of_time:
         return full
-    if (signed_areas(full.uv, faces) <= 0).any() or mean_length_change(V, full.uv, faces) > limit \
-            or overlaps_itself(full.uv, faces, topology.boundary_loops):
+    flat = zero_area_faces(V, faces)
+    if folded(full.uv, faces, flat).any() or mean_length_change(V, full.uv, faces) > limit \
+            or overlaps_itself(full.uv, faces, topology.boundary_loops, flat):
         return None
     return full
 
@@ -131,13 +133,15 @@ def mean_length_change(V: np.ndarray, uv: np.ndarray, faces: np.ndarray) -> floa
     return float(np.abs(relative_length_change(V, uv, faces, identity)).mean())
 
 
-def overlaps_itself(uv: np.ndarray, faces: np.ndarray, loops: list[np.ndarray]) -> bool:
+def overlaps_itself(uv: np.ndarray, faces: np.ndarray, loops: list[np.ndarray],
+                    zero_area: np.ndarray | None = None) -> bool:
     """Whether a chart's layout ``uv`` (n, 2) over ``faces`` (m, 3) with boundary ``loops``
-    covers some point twice: a flipped face, boundary edges that cross
+    covers some point twice: a flipped face (:func:`solver.packing.folded`; ``zero_area``
+    faces, flat in 3D, never count), boundary edges that cross
     (:func:`solver.packing.boundary_crossings`), or a hole laid out inside out (more than
     one counter-clockwise loop, :func:`solver.packing.positive_loops`). Without any of
     these the layout is injective."""
-    return bool((signed_areas(uv, faces) <= 0).any()) or positive_loops(uv, loops) > 1 \
+    return bool(folded(uv, faces, zero_area).any()) or positive_loops(uv, loops) > 1 \
         or boundary_crossings(uv, faces) > 0
 
 

@@ -18,11 +18,12 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from .forms import flat_faces
 from .frames import face_edge_lengths, triangle_areas, triangle_layouts
 from .linalg import factorize
 from .options import ParameterizeOptions
 from .outcomes import not_refined
-from .packing import signed_areas
+from .packing import folded
 from .reconstruct import ImmersionProblem, Progress
 from .refine import FormTargets, Refiner
 from .reports import Stages
@@ -91,6 +92,7 @@ def local_global_flattening(topology: MeshTopology, lengths: np.ndarray, uv: np.
     n = topology.n_vertices
     layouts = triangle_layouts(face_edge_lengths(topology, lengths), check=False)  # (m, 3, 2)
     w = np.abs(half_cotangents(face_edge_lengths(topology, lengths)))     # (m, 3), edge k
+    w = np.minimum(w, 1e4 * np.median(w))  # zero-area faces: huge, not dominant, weights
     w = np.maximum(w, 1e-3 * w.mean())
     tail, head = F, np.roll(F, -1, axis=1)                                 # half-edge k
     rest = np.roll(layouts, -1, axis=1) - layouts                          # (m, 3, 2)
@@ -231,14 +233,15 @@ def _push_flips_back(topology: MeshTopology, lengths: np.ndarray, opts: Paramete
     """``uv`` (n, 2) and its refinement report, continued with a heavier signed-area weight
     (:data:`FLIP_RETRY_AREA_FACTOR`) when it has flipped faces and time is left; the
     continued answer is kept only when it has fewer flipped faces."""
-    flipped = int((signed_areas(uv, topology.faces) < 0).sum())
+    flat = flat_faces(topology, lengths)  # zero area: no flip (solver.packing.folded)
+    flipped = int(folded(uv, topology.faces, flat, strict=True).sum())
     left = stages.left(opts.max_seconds)
     if flipped == 0 or (left is not None and left <= 0):
         return uv, refinement
     weight = opts.area_weight * FLIP_RETRY_AREA_FACTOR
     retry = Refiner(FormTargets(topology, lengths, np.zeros_like(lengths), area_weight=weight),
                     dim=2, backend=opts.backend or "auto").run(uv, time_limit=left)
-    after = int((signed_areas(retry.vertices, topology.faces) < 0).sum())
+    after = int(folded(retry.vertices, topology.faces, flat, strict=True).sum())
     if after >= flipped:
         return uv, refinement
     return retry.vertices, dict(refinement, flip_retry={

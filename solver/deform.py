@@ -24,7 +24,7 @@ from .constraints import Constraints
 from .energy_weights import HARD_FRAME_WEIGHT
 from .errors import ConstraintError
 from .form_energy import FormTargets, Handles
-from .forms import forms_of
+from .forms import forms_of, zero_area_faces
 from .frames import layout_frames
 from .immersion import ImmersionProblem
 from .layout_fit import LayoutFit
@@ -579,4 +579,7 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
         if vertex is not None:
             report.distortion["vertex"] = deformer.cut.to_file(np.asarray(vertex))[0]
         report.input = {"cut": deformer.cut.report(deformer.last_spread)}
+    flat = zero_area_faces(deformer.rest, deformer.faces)
+    if len(flat):  # collinear corners (issue 40): counted
+        report.input = {**(report.input or {}), "zero_area_faces": len(flat)}
     return Deformation(vertices=result, report=report)

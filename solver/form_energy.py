@@ -55,6 +55,7 @@ from .energy_weights import (
     AREA_WEIGHT,
 )
 from .metrics import summary, wrap_angle
+from .ties import needle_ties, no_ties
 from .topology import MeshTopology
 
 FORMS_TOLERANCE = 1e-9
@@ -256,10 +257,11 @@ def form_residuals(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
 
 
 def well_shaped_errors(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
-                       angles: np.ndarray) -> float:
+                       angles: np.ndarray, energy: FormEnergy | None = None) -> float:
     """The largest form error of ``X`` (n, 3) on the well-shaped elements: the largest
     relative length error plus the largest dihedral-angle error (rad) over the edges of no
-    cap face (:func:`cap_faces`: needles, slivers, near-zero-area faces).
+    cap face (:func:`cap_faces`: needles, slivers, near-zero-area faces). ``energy``: the
+    :class:`FormEnergy` of these targets, whose caps and hinges are reused when given.
 
     Example:
         >>> import numpy as np
@@ -271,10 +273,11 @@ def well_shaped_errors(X: np.ndarray, topology: MeshTopology, lengths: np.ndarra
         ...                                                                np.zeros(5)) > 0.09
         (0.0, True)
     """
-    keep = ~cap_faces(topology, lengths).is_cap_edge
+    known = energy is not None and energy.caps is not None
+    keep = ~(energy.caps if known else cap_faces(topology, lengths)).is_cap_edge
     _, current = edge_vectors(X, topology.edges)
     length_error = np.abs(current[keep] / lengths[keep] - 1.0).max(initial=0.0)
-    inner, hinge = hinges(topology)
+    inner, hinge = energy.hinges if known else hinges(topology)
     theta, _ = hinge_angles(X, hinge, gradients=False)
     angle_error = np.abs(wrap_angle(theta - angles[inner]))[keep[inner]].max(initial=0.0)
     return float(length_error + angle_error)
@@ -358,11 +361,25 @@ class FormEnergy:
         self.n = topo.n_vertices
         self.scale = float(np.mean(targets.lengths))
         self.groups: list[ResidualGroup] = []
+        self.free = np.ones(self.n, dtype=bool)
+        self.free[handles.fixed] = False
+        self.free &= topo.is_referenced
+        self.held = np.zeros(self.n, dtype=bool)
+        self.held[handles.fixed] = True
+        self.held[handles.soft_vertices] = True
+        self.held[topo.faces[handles.frame_faces].ravel()] = True
+        self.ties = (needle_ties(topo, targets.lengths, self.held) if dim == 3
+                     else no_ties())
+        self.free[self.ties.vertices] = False
+        self.tie_offsets: np.ndarray | None = None
         if targets.weighting == "area":
             length_weights, hinge_weights = form_weights(topo, targets.lengths)
         else:
             length_weights = hinge_weights = np.ones(topo.n_edges)
-        self._add_lengths(topo.edges, targets.lengths, length_weights)
+        # An edge within a tie cluster keeps its length by the tie: it leaves the energy
+        # (its residual, constant in every step, would only add rounding to the matrix).
+        rigid = self.ties.rigid_edges(topo.edges, self.n)
+        self._add_lengths(topo.edges, targets.lengths, np.where(rigid, 0.0, length_weights))
         self.hinges = hinges(topo) if dim == 3 else None
         self.caps = cap_faces(topo, targets.lengths) if dim == 3 else None
         if dim == 3 and targets.angle_weight > 0:
@@ -379,13 +396,31 @@ class FormEnergy:
             self._add_soft_positions(handles)
         if len(handles.frame_faces):
             self._add_frames(topo.faces, handles)
-        self.free = np.ones(self.n, dtype=bool)
-        self.free[handles.fixed] = False
-        self.free &= topo.is_referenced
-        self.held = np.zeros(self.n, dtype=bool)
-        self.held[handles.fixed] = True
-        self.held[handles.soft_vertices] = True
-        self.held[topo.faces[handles.frame_faces].ravel()] = True
+
+    def tie(self, X: np.ndarray) -> None:
+        """Set the offsets of the tied vertices (:mod:`solver.ties`) from a run's start
+        positions ``X`` (n, dim) and place them there (in place)."""
+        if len(self.ties):
+            self.tie_offsets = self.ties.offsets(X)
+            self.ties.place(X, self.tie_offsets)
+
+    def place_tied(self, X: np.ndarray) -> None:
+        """Put the tied vertices of ``X`` (n, dim) at their masters plus the offsets of the
+        last :meth:`tie` (in place: a step moves the masters only)."""
+        if len(self.ties) and self.tie_offsets is not None:
+            self.ties.place(X, self.tie_offsets)
+
+    def placed(self, X: np.ndarray, own: bool = False) -> np.ndarray:
+        """``X`` (n, dim), or a copy with its tied vertices placed: at the offsets of the
+        last :meth:`tie`, or with ``own`` (or before any) at those ``X`` itself gives (its
+        needles put on their target lengths, as a run starting at ``X`` does)."""
+        if not len(self.ties):
+            return X
+        offsets = self.ties.offsets(X) if own or self.tie_offsets is None \
+            else self.tie_offsets
+        X = X.copy()
+        self.ties.place(X, offsets)
+        return X
 
     def set_handle_targets(self, soft_positions: np.ndarray | None = None,
                            frame_edges: np.ndarray | None = None) -> None:
@@ -397,7 +432,9 @@ class FormEnergy:
             self.frame_edges = np.asarray(frame_edges, dtype=np.float64)
 
     def energy(self, X: np.ndarray) -> float:
-        """E (see the module docstring) of positions ``X`` (n, dim)."""
+        """E (see the module docstring) of positions ``X`` (n, dim), its tied vertices
+        placed (:meth:`placed`; ``X`` is not changed)."""
+        X = self.placed(X)
         return 0.5 * sum(square_sum(g.evaluate(X, False)[0]) for g in self.groups)
 
     # -- residual groups (each returns weighted residuals and their gradients)
@@ -422,7 +459,7 @@ class FormEnergy:
         def curvature(X: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             # r ∇²r = w² (l/L - 1) / (L l) (I - u u^T) across a stretched edge (l from r);
             # kept where it is at least STRETCH_CURVATURE x a mean edge's 1 / s^2.
-            length = L * (1.0 + r / w)
+            length = L * (1.0 + r / np.where(w > 0, w, 1.0))  # (w = 0: a tie's edge)
             c = np.maximum(r, 0.0) * w / (L * np.maximum(length, L))
             rows = np.flatnonzero(c >= stiff)
             d = X[edges[rows, 1]] - X[edges[rows, 0]]

@@ -75,6 +75,9 @@ class Forms(JsonDataclass):
         placement: the rigid placement of each connected component
             (:class:`solver.placement.Placement`), so that :func:`solver.reconstruct` puts
             every part where it was; None when not known.
+        zero_area_faces: None, or the (k,) int64 faces of zero area (collinear corners)
+            whose normal :func:`degenerate_normals` chose (informational: the solvers
+            find such faces from the lengths, :func:`flat_faces`).
     """
 
     faces: np.ndarray
@@ -83,10 +86,11 @@ class Forms(JsonDataclass):
     angles: np.ndarray
     vertex_map: np.ndarray | None = None
     placement: Placement | None = None
+    zero_area_faces: np.ndarray | None = None
 
     _array_fields: ClassVar[dict[str, Any]] = {
         "faces": np.int64, "edges": np.int64, "lengths": np.float64,
-        "angles": np.float64, "vertex_map": np.int64,
+        "angles": np.float64, "vertex_map": np.int64, "zero_area_faces": np.int64,
     }
     _nested_fields: ClassVar[dict[str, Any]] = {"placement": Placement}
 
@@ -152,8 +156,9 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
 
     Raises:
         SolverInputError: a subclass naming the first bad element of a malformed mesh;
-            :class:`~solver.errors.DegenerateFaceError` for a face of zero area (its normal,
-            hence the dihedral angles, is undefined).
+            :class:`~solver.errors.DegenerateFaceError` for a face with two corners at one
+            position. Faces of zero area with distinct corners (collinear) are measured
+            with the normal of :func:`degenerate_normals`.
 
     Example:
         A unit right-angled tetrahedron: six edges, every one convex.
@@ -179,22 +184,97 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
     return forms
 
 
+ZERO_AREA = 1e-15
+"""A face whose area is at most this fraction of the squared longest edge of the mesh has
+zero area (collinear corners): its normal comes from :func:`degenerate_normals`."""
+NORMAL_PASSES = 3
+"""Passes of :func:`degenerate_normals` over chains of zero-area faces (each pass gives a
+normal to the zero-area faces next to one that has one)."""
+
+
+def degenerate_normals(V: np.ndarray, topology: MeshTopology, normals: np.ndarray,
+                       zero: np.ndarray) -> np.ndarray:
+    """Unit normals of the zero-area faces, by one documented rule (issue 40).
+
+    A face whose corners are collinear has no normal of its own; any unit vector
+    perpendicular to its line makes its frame a rotation that carries its (flat) layout
+    onto it, so the forms measured with it are integrable whatever the choice. The rule
+    chooses a least bent one: the sum of the unit normals of its edge neighbours that have
+    one, with the component along the face's longest edge removed, normalized. The face
+    then lies flat between its neighbours: the dihedral angles of its edges split those of
+    the surface around it (0 across an edge to its only neighbour with a normal; an
+    inserted face on an edge splits that edge's angle in two parts that add up to it).
+    Zero-area faces next to zero-area faces get theirs in up to :data:`NORMAL_PASSES`
+    passes; a face with none around (or whose neighbours cancel)
+    gets the unit vector perpendicular to its line nearest to a coordinate axis.
+
+    Args:
+        V: (n, 3) float64 vertices.
+        topology: the mesh's connectivity.
+        normals: (m, 3) float64 unit face normals (:func:`face_normals`; zero rows for
+            zero-area faces).
+        zero: (m,) bool, the zero-area faces.
+
+    Returns:
+        (m, 3) float64 normals, the zero-area faces' rows filled in.
+    """
+    normals = normals.copy()
+    faces = topology.faces
+    d = np.stack([V[faces[:, 1]] - V[faces[:, 0]], V[faces[:, 2]] - V[faces[:, 1]],
+                  V[faces[:, 0]] - V[faces[:, 2]]], axis=1)                # (m, 3, 3)
+    rows = np.flatnonzero(zero)
+    longest = np.linalg.norm(d[rows], axis=2).argmax(axis=1)
+    line = d[rows, longest]
+    line /= np.maximum(np.linalg.norm(line, axis=1), np.finfo(float).tiny)[:, None]
+    halfedge_edge = topology.halfedge_edge.reshape(-1, 3)[rows]           # (k, 3)
+    sides = topology.edge_faces[halfedge_edge]                            # (k, 3, 2)
+    neighbours = np.where(sides == rows[:, None, None], sides[..., ::-1], sides)[..., 0]
+    missing = np.ones(len(rows), dtype=bool)
+    for _ in range(NORMAL_PASSES):  # a few vectorized passes along chains of such faces
+        around = np.where((neighbours >= 0)[..., None], normals[np.maximum(neighbours, 0)],
+                          0.0).sum(axis=1)
+        around -= np.einsum("kj,kj->k", around, line)[:, None] * line
+        size = np.linalg.norm(around, axis=1)
+        found = missing & (size > 1e-8)
+        normals[rows[found]] = around[found] / size[found, None]
+        missing &= ~found
+        if not missing.any():
+            break
+    if missing.any():
+        axis = np.eye(3)[np.abs(line[missing]).argmin(axis=1)]
+        axis -= np.einsum("kj,kj->k", axis, line[missing])[:, None] * line[missing]
+        normals[rows[missing]] = axis / np.linalg.norm(axis, axis=1)[:, None]
+    return normals
+
+
+def zero_area_faces(V: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(k,) int64 the faces of zero area (:data:`ZERO_AREA`) of ``V`` (n, 3), ``faces`` (m, 3)."""
+    _, areas = face_normals(V, faces)
+    lengths = np.linalg.norm(V[faces[:, [1, 2, 0]]] - V[faces], axis=2)
+    return np.flatnonzero(areas <= ZERO_AREA * float(lengths.max(initial=0.0)) ** 2)
+
+
 def forms_of(V: np.ndarray, topology: MeshTopology, allow_degenerate: bool = False) -> Forms:
     """:func:`fundamental_forms` on a topology built already (callers that have one do not
     build it again).
 
+    Faces of zero area (collinear corners) get the normal of :func:`degenerate_normals`, so
+    their edges have dihedral angles and the forms stay integrable.
+
     Args:
         V: (n, 3) float64 validated vertices.
         topology: their mesh's connectivity.
-        allow_degenerate: measure a mesh with zero-area faces anyway (their dihedral angles
-            are 0): for metrics of an answer, never for forms to solve with.
+        allow_degenerate: measure a mesh with faces that collapse to a point or an edge of
+            length 0 anyway (their dihedral angles are 0): for metrics of an answer, never
+            for forms to solve with.
 
     Returns:
         :class:`Forms`.
 
     Raises:
         NonFiniteValueError: a face's area overflows double precision.
-        DegenerateFaceError: a face of zero area.
+        DegenerateFaceError: a face with an edge of length 0 (two corners at one position:
+            no line, hence no normal by any rule), unless ``allow_degenerate``.
     """
     with np.errstate(over="ignore", invalid="ignore"):
         normals, areas = face_normals(V, topology.faces)
@@ -206,19 +286,33 @@ def forms_of(V: np.ndarray, topology: MeshTopology, allow_degenerate: bool = Fal
             "coordinates are too large: the face's area overflows double precision",
             field="faces", index=t)
     scale = float(lengths.max()) ** 2
-    zero = areas <= 1e-15 * scale
-    if zero.any() and not allow_degenerate:
-        t = int(np.flatnonzero(zero)[0])
+    zero = areas <= ZERO_AREA * scale
+    collapsed = zero & (lengths[topology.halfedge_edge].reshape(-1, 3).min(axis=1) <= 0)
+    if collapsed.any() and not allow_degenerate:
+        t = int(np.flatnonzero(collapsed)[0])
         raise DegenerateFaceError(
-            f"face {topology.faces[t].tolist()} has zero area; its normal is undefined",
-            field="faces", index=t)
+            f"face {topology.faces[t].tolist()} has two corners at one position: it has no "
+            "line, hence no normal (weld its vertices)", field="faces", index=t)
+    flagged = None
+    if zero.any() and not collapsed.any():
+        normals = degenerate_normals(V, topology, normals, zero)
+        flagged = np.flatnonzero(zero)
     if allow_degenerate:  # a collapsed face or edge has no angle: 0 (measured, not solved)
         with np.errstate(invalid="ignore", divide="ignore"):
             angles = np.nan_to_num(dihedral_angles(V, topology, normals), nan=0.0)
         return Forms(faces=topology.faces, edges=topology.edges, lengths=lengths,
                      angles=angles)
     return Forms(faces=topology.faces, edges=topology.edges, lengths=lengths,
-                 angles=dihedral_angles(V, topology, normals))
+                 angles=dihedral_angles(V, topology, normals), zero_area_faces=flagged)
+
+
+def flat_faces(topology: MeshTopology, lengths: np.ndarray) -> np.ndarray:
+    """(k,) int64 the faces whose edge ``lengths`` (E,) give zero area (the triangle
+    inequality holds with equality: :data:`solver.frames.COLLINEAR_SLACK`): laid out as
+    segments, their frames are any rotation that carries the segment onto the face."""
+    from .frames import face_edge_lengths, triangle_areas
+
+    return np.flatnonzero(triangle_areas(face_edge_lengths(topology, lengths)) == 0)
 
 
 def wrapped_angle_count(angles: ArrayLike) -> int:

@@ -19,6 +19,13 @@ TRIANGLE_SLACK = 1e-12
 """Relative slack of the triangle inequality (of the longest edge), for rounding."""
 
 
+COLLINEAR_SLACK = 8 * np.finfo(np.float64).eps
+"""Lengths whose triangle inequality holds with equality up to this relative slack (of the
+longest edge: a few roundings) are a zero-area face (collinear corners): its area is 0 and
+its layout a segment. Heron's area would give it a height of ~sqrt(slack) of its longest
+edge instead (1e-8 for a face measured flat), which no embedding of the face has."""
+
+
 def face_edge_lengths(topology: MeshTopology, lengths: np.ndarray) -> np.ndarray:
     """Edge lengths arranged per face.
 
@@ -95,7 +102,8 @@ def triangle_areas(face_lengths: np.ndarray) -> np.ndarray:
         face_lengths: (m, 3) float64.
 
     Returns:
-        (m,) float64 areas, 0 for degenerate (or impossible) triangles.
+        (m,) float64 areas, 0 for degenerate (or impossible) triangles, and for those whose
+        triangle inequality holds with equality within :data:`COLLINEAR_SLACK`.
 
     Example:
         >>> import numpy as np
@@ -106,7 +114,9 @@ def triangle_areas(face_lengths: np.ndarray) -> np.ndarray:
     ordered = np.sort(face_lengths, axis=1)
     scale = np.where(ordered[:, 2] > 0, ordered[:, 2], 1.0)  # avoids overflow of the product
     c, b, a = (ordered / scale[:, None]).T  # a >= b >= c
-    product = (a + (b + c)) * (c - (a - b)) * (c + (a - b)) * (a + (b - c))
+    slack = c - (a - b)
+    product = (a + (b + c)) * slack * (c + (a - b)) * (a + (b - c))
+    product = np.where(slack <= COLLINEAR_SLACK, 0.0, product)
     return 0.25 * np.sqrt(np.maximum(product, 0.0)) * scale**2
 
 
@@ -241,7 +251,11 @@ def layout_frames(vertices: np.ndarray, faces: np.ndarray, layouts: np.ndarray) 
     """3D frames (m, 3, 3) that map each face's layout onto its embedding (Eq. 3).
 
     Columns b1, b2 solve ``[x1 - x0, x2 - x0] = [b1, b2] [p1 - p0, p2 - p0]``; b3 = b1 x b2.
-    For a mesh whose lengths produced ``layouts`` these are rotations (the lift's f).
+    For a mesh whose lengths produced ``layouts`` these are rotations (the lift's f). A
+    zero-area layout (collinear corners) determines b1 only: its b1, b2 are the
+    least-squares (pseudo-inverse) solution, b2 = b3 = 0 for a segment, and the nearest
+    rotation of that frame is any one that carries the segment onto the face (every such
+    rotation does, which is all a layout of zero area asks for).
 
     Args:
         vertices: (n, 3) float64.
@@ -254,5 +268,12 @@ def layout_frames(vertices: np.ndarray, faces: np.ndarray, layouts: np.ndarray) 
     X = np.stack([vertices[faces[:, 1]] - vertices[faces[:, 0]],
                   vertices[faces[:, 2]] - vertices[faces[:, 0]]], axis=2)   # (m, 3, 2)
     P = np.stack([layouts[:, 1] - layouts[:, 0], layouts[:, 2] - layouts[:, 0]], axis=2)
-    B = X @ np.linalg.inv(P)                                                # (m, 3, 2)
+    det = P[:, 0, 0] * P[:, 1, 1] - P[:, 0, 1] * P[:, 1, 0]
+    size = np.einsum("tij,tij->t", P, P)
+    flat = np.abs(det) <= 1e-14 * size
+    inverse = np.empty_like(P)
+    inverse[~flat] = np.linalg.inv(P[~flat])
+    if flat.any():  # zero-area layouts: the least-squares frame (a few faces)
+        inverse[flat] = np.linalg.pinv(P[flat])
+    B = X @ inverse                                                         # (m, 3, 2)
     return np.concatenate([B, np.cross(B[:, :, 0], B[:, :, 1])[:, :, None]], axis=2)

@@ -158,7 +158,9 @@ def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike,
     Returns:
         :func:`forms_distortion`'s entries plus per-face (m,) ``face_angle_change`` (max
         |change| of the three corner angles, radians) and ``area_ratio`` (area / reference
-        area), with their summaries (``area_ratio_summary`` of ``area_ratio - 1``).
+        area; a reference face of zero area counts 1 while it keeps zero area, else its
+        area over the smallest positive reference area), with their summaries
+        (``area_ratio_summary`` of ``area_ratio - 1``).
 
     Raises:
         SolverInputError: a subclass naming the first malformed element of either mesh.
@@ -193,10 +195,16 @@ def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike,
                                  axis=1)
     area1 = 0.5 * np.linalg.norm(np.cross(V1[F[:, 1]] - V1[F[:, 0]], V1[F[:, 2]] - V1[F[:, 0]]),
                                  axis=1)
+    # A rest face of zero area (issue 40) has no area ratio: 1 where it stays of zero area,
+    # the ratio to the smallest positive rest area where it opens.
+    positive = area0[area0 > 0]
+    floor = positive.min() if len(positive) else 1.0
+    opened = np.where(area1 > 0, area1 / floor, 1.0)
+    ratio = np.divide(area1, area0, out=opened, where=area0 > 0)
     report.update({
-        "face_angle_change": corner_change, "area_ratio": area1 / area0,
+        "face_angle_change": corner_change, "area_ratio": ratio,
         "face_angle_summary": summary(corner_change),
-        "area_ratio_summary": summary(area1 / area0 - 1.0),
+        "area_ratio_summary": summary(ratio - 1.0),
     })
     return report
 

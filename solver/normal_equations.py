@@ -88,7 +88,8 @@ class GaussNewtonSystem:
         vertices and each group's vertex rows."""
         digest = hashlib.blake2b(digest_size=16)
         digest.update(repr((self.n, self.dim, len(self.groups))).encode())
-        for array in (topology.faces, self.free, *(g.vertices for g in self.groups)):
+        for array in (topology.faces, self.free, self.energy.ties.vertices,
+                      self.energy.ties.masters, *(g.vertices for g in self.groups)):
             digest.update(repr(array.shape).encode())
             digest.update(np.ascontiguousarray(array).tobytes())
         return digest.digest()
@@ -121,6 +122,8 @@ class GaussNewtonSystem:
         dim = self.dim
         index = np.full(self.n, -1, dtype=np.int64)
         index[self.free] = np.arange(int(self.free.sum()))
+        ties = self.energy.ties  # tied vertices are their master's unknowns (solver.ties)
+        index[ties.vertices] = index[ties.masters]
         self.index = index
         n_free = self.n_free = int(self.free.sum())
         # Block pattern: upper vertex pairs (a <= b) that share a residual, every diagonal.
@@ -226,6 +229,7 @@ class GaussNewtonSystem:
         Curvature`; canonical CSR, every diagonal entry stored; None unless ``matrix``),
         J^T r (n_free * dim,))."""
         dim = self.dim
+        X = self.energy.placed(X)  # tied vertices where their masters put them
         values = np.zeros(self.nnz) if matrix else None
         gradient = np.zeros(self.n_free * dim)
         energy = 0.0

@@ -62,6 +62,19 @@ def signed_areas(uv: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
+def folded(uv: np.ndarray, faces: np.ndarray, ignore: np.ndarray | None = None,
+           strict: bool = False) -> np.ndarray:
+    """(m,) bool, the ``faces`` (m, 3) flipped over ``uv`` (k, 2): signed area <= 0 (< 0
+    with ``strict``), except the faces ``ignore`` (k,) int64: faces of zero area in 3D
+    (collinear corners, issue 40), whose uv area is 0 up to rounding, of either sign, and
+    says nothing about a fold."""
+    area = signed_areas(uv, faces)
+    out = area < 0 if strict else area <= 0
+    if ignore is not None and len(ignore):
+        out[ignore] = False
+    return out
+
+
 def principal_rotation(points: np.ndarray) -> np.ndarray:
     """(2, 2) rotation (det +1) turning the principal axis of ``points`` (k, 2) onto u."""
     centred = points - points.mean(axis=0)

@@ -17,7 +17,7 @@ from .atlas import ChartLayout, assemble, chart_layouts, mean_length_change, ove
 from .chart_flattening import ChartFlattening, flatten_chart, relative_length_change
 from .charts import is_disk_like, seam_edges
 from .errors import TopologyError
-from .forms import fundamental_forms
+from .forms import fundamental_forms, zero_area_faces
 from .manifold import ManifoldCut, manifold_topology
 from .metrics import corner_angles, histogram, summary
 from .options import ParameterizeOptions
@@ -26,6 +26,7 @@ from .packing import (
     Packed,
     PackingRules,
     boundary_crossings,
+    folded,
     pack_charts,
     packing_efficiency,
     signed_areas,
@@ -219,7 +220,7 @@ def _keeps_single_chart(V: np.ndarray, uv: np.ndarray, topology: MeshTopology,
         return False
     if mean_length_change(V, uv, F) > 2 * opts.max_chart_distortion:
         return False
-    return not overlaps_itself(uv, F, topology.boundary_loops)
+    return not overlaps_itself(uv, F, topology.boundary_loops, zero_area_faces(V, F))
 
 
 def _single_texcoords(uv: np.ndarray, topology: MeshTopology) -> np.ndarray:
@@ -243,8 +244,9 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
     signed_area = signed_areas(uv, uv_faces)
     area3d = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
                                   axis=1)
-    flipped = np.flatnonzero(signed_area < 0)
-    ratio = signed_area / area3d
+    flat = zero_area_faces(V, F)  # collinear corners (issue 40): no flip, no area ratio
+    flipped = np.flatnonzero(folded(uv, uv_faces, flat, strict=True))
+    ratio = np.divide(signed_area, area3d, out=np.ones_like(signed_area), where=area3d > 0)
     flat3 = np.concatenate([uv, np.zeros((len(uv), 1))], axis=1)
     angle_change = np.abs(corner_angles(flat3, uv_faces) - corner_angles(V, F)).max(axis=1)
     if uv_faces is F:
@@ -281,6 +283,8 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
         anchored_components=flattening.anchored, backend=flattening.backend,
         analysis=flattening.analysis, timings=stages.timings, atlas=atlas,
         warnings=warnings)
+    if len(flat):  # collinear corners (issue 40): counted
+        report.input = {"zero_area_faces": len(flat)}
     return Parameterization(uv=uv, flipped_faces=flipped, area_ratio=ratio,
                             angle_distortion=angle_change, report=report,
                             texcoords=texcoords, uv_faces=uv_faces, uv_vertex=uv_vertex,
@@ -302,7 +306,7 @@ def _on_file_vertices(flat: Parameterization, cut: ManifoldCut) -> Parameterizat
     ``uv_vertex`` names the file vertex of each (``report["input"]["cut"]``)."""
     if flat.uv_vertex is not None:
         flat.uv_vertex = cut.vertex_map[flat.uv_vertex]
-    flat.report.input = {"cut": cut.report()}
+    flat.report.input = {**(flat.report.input or {}), "cut": cut.report()}
     return flat
 
 

@@ -135,8 +135,10 @@ class Refiner:
         self.form_energy.set_handle_targets(soft_positions, frame_edges)
 
     def energy(self, vertices: np.ndarray) -> float:
-        """E of (n, dim) positions (fixed vertices as given)."""
-        return self.form_energy.energy(np.asarray(vertices, dtype=np.float64))
+        """E of (n, dim) positions (fixed vertices as given; tied vertices, the endpoints of
+        needles, where a run started there puts them: :mod:`solver.ties`)."""
+        energy = self.form_energy
+        return energy.energy(energy.placed(np.asarray(vertices, dtype=np.float64), own=True))
 
     def reproduces(self, vertices: np.ndarray) -> bool:
         """Whether ``vertices`` already have the target forms (:func:`reproduces`)."""
@@ -179,6 +181,7 @@ class Refiner:
         rules = replace(self.stop_rules, **{k: v for k, v in given.items() if v is not None})
         with _BLAS.limit(limits=1, user_api="blas"):
             X = np.array(start, dtype=np.float64)
+            self.form_energy.tie(X)  # needles' tied vertices on their target lengths
             energy = self.form_energy.energy(X) if start_energy is None else start_energy
             state = IterationState.start(X, energy, self.residuals(X), self._kept,
                                          self._kept_damping, keep_factor, rules,
@@ -446,6 +449,7 @@ class Refiner:
         for alpha in self.step_rules.step_fractions:
             trial = X.copy()
             trial[free] += alpha * step.reshape(-1, dim)
+            self.form_energy.place_tied(trial)  # tied vertices follow their masters
             new_energy = self.form_energy.energy(trial)
             if np.isfinite(new_energy) and new_energy < energy + armijo * alpha * slope:
                 return alpha, trial, new_energy

@@ -156,8 +156,9 @@ class ReconstructReport(Report):
         vjp: :func:`solver.reconstruct_vjp`'s preparation (None otherwise).
         warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
         input: what was done to the input to solve it (``wrapped_angles``: angles given
-            outside (-pi, pi] and wrapped; a non-manifold mesh's cut, see
-            :mod:`solver.manifold`).
+            outside (-pi, pi] and wrapped; ``zero_area_faces``: faces whose lengths give
+            zero area, laid out as segments, :func:`solver.forms.flat_faces`; a
+            non-manifold mesh's cut, see :mod:`solver.manifold`).
     """
 
     energy: dict[str, float]
@@ -196,7 +197,9 @@ class DeformReport(Report):
         distortion: :func:`solver.metrics.distortion` against the rest mesh (compact).
         warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
         input: what was done to the input (``cut``: a non-manifold mesh's manifold cut,
-            :mod:`solver.manifold`, with the spread of the copies); None: nothing.
+            :mod:`solver.manifold`, with the spread of the copies; ``zero_area_faces``: rest
+            faces with collinear corners, whose normals follow
+            :func:`solver.forms.degenerate_normals`); None: nothing.
     """
 
     timings: Timings
@@ -229,7 +232,8 @@ class ParameterizeReport(Report):
         timings: seconds per stage.
         warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
         input: what was done to the input (``cut``: a non-manifold mesh's manifold cut,
-            :mod:`solver.manifold`: a cut vertex is one more uv index); None: nothing.
+            :mod:`solver.manifold`: a cut vertex is one more uv index; ``zero_area_faces``:
+            faces with collinear corners); None: nothing.
         atlas: ``charts``, ``seam_edges``, ``seam_length`` (input units),
             ``packing_efficiency`` (fraction of the unit square covered), ``padding``
             (fraction of the side) and ``padding_texels`` at ``atlas_texels``, ``uv_count``,

@@ -47,7 +47,10 @@ class StepRules:
         refused_damping: at least this damping after a fresh step that no backtracking
             saved.
         single_precision_spread: largest spread (largest over median entry) of the damped
-            Gauss-Newton matrix's diagonal that is factorized in single precision.
+            Gauss-Newton matrix's diagonal that is factorized in single precision (1e4
+            before issue 40: the scan-like stand-in of bench.slivers, 2662 tied needles and
+            26 short edges left, spread 8.2e3, had its float32 factor refused by PARDISO,
+            a wasted factorization of 3.2 s of 13.9; clean meshes spread 12-200).
         single_precision_error: largest relative correction of a single-precision solve
             by its refinement step before the refiner factorizes in double precision.
     """
@@ -64,7 +67,7 @@ class StepRules:
     initial_damping: float = 1e-9
     min_damping: float = 1e-12
     refused_damping: float = 1e-4
-    single_precision_spread: float = 1e4
+    single_precision_spread: float = 1e3
     single_precision_error: float = 0.1
 
 
@@ -88,8 +91,8 @@ def factor_precision(diagonal: np.ndarray,
     edges and flattened faces make entries of the diagonal 1e8 times the others (the
     stiffness of a residual grows as the inverse square of the edge's length or the face's
     width), beyond what float32 resolves; the diagonal's spread separates the two (12-200 on
-    every bench mesh, 1.5e8 and more with needle edges). Soft modes that the diagonal does
-    not show are caught by the solves themselves
+    every bench mesh, 1.5e8 and more with untied needle edges, 8.2e3 refused in float32).
+    Soft modes that the diagonal does not show are caught by the solves themselves
     (:attr:`StepRules.single_precision_error`).
 
     Args:

@@ -70,6 +70,11 @@ class EnergyTerms:
         return self.topology.n_vertices + 3 * self.topology.n_faces
 
 
+COTANGENT_AREA_FLOOR = 1e-12
+"""Smallest area of a face, relative to its longest edge squared, in its cotangent weights
+(:func:`half_cotangents`): a zero-area face gets weights of ~1e12, not infinities."""
+
+
 def half_cotangents(face_lengths: np.ndarray) -> np.ndarray:
     """The per-face cotangent weight of each half-edge.
 
@@ -89,6 +94,11 @@ def half_cotangents(face_lengths: np.ndarray) -> np.ndarray:
     """
     l0, l1, l2 = face_lengths.T                     # opposite corners 2, 0, 1
     four_area = 4.0 * triangle_areas(face_lengths)
+    # A zero-area face (collinear corners, issue 40) has cotangents of +-infinity: its area
+    # is floored at COTANGENT_AREA_FLOOR of its longest edge squared (finite, huge weights
+    # that the callers' clamps bound).
+    longest = face_lengths.max(axis=1)
+    four_area = np.maximum(four_area, 4.0 * COTANGENT_AREA_FLOOR * longest**2)
     four_area = np.where(four_area > 0, four_area, np.finfo(float).tiny)
     cot = np.stack([(l1**2 + l2**2 - l0**2), (l2**2 + l0**2 - l1**2),
                     (l0**2 + l1**2 - l2**2)], axis=1) / four_area[:, None]

@@ -114,7 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "files keep the cut's vertex_map and each part's placement, so "
                      "reconstruct puts every part back where it was (without a placement "
                      "parts are laid side by side); angles outside (-pi, pi] are wrapped and "
-                     "counted. See docs/service.md#meshes-as-they-come.")
+                     "counted; a face of zero area (collinear corners) gets its neighbours' "
+                     "mean normal and is counted (report input.zero_area_faces); the "
+                     "endpoints of needle edges move as one in a refinement. "
+                     "See docs/service.md#meshes-as-they-come.")
     parser.add_argument("--version", action="version", version=f"ffs {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="command", required=True,
                                      parser_class=_Parser)

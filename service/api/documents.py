@@ -121,6 +121,12 @@ class FormsResponse(BaseModel):
     placement: dict[str, Any] | None = Field(
         None, description="Each connected component's rigid placement (`faces`, `origins`, "
                           "`frames`): `reconstruct` puts every part back where it was.")
+    zero_area_faces: list[int] | None = Field(
+        None, description="Present when some faces have zero area (collinear corners): "
+                          "those faces. Such a face has no normal of its own; it gets the "
+                          "normalized sum of its neighbours' normals, projected off its line, "
+                          "so the forms stay integrable (docs/service.md, 'Meshes as they "
+                          "come').")
 
 
 class HolonomyLoop(BaseModel):

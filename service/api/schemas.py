@@ -157,6 +157,12 @@ class CutFormsParams(ApiModel):
                     "the cut faces): `vertex_map[c]` is the file vertex of cut vertex c. "
                     "Answers are then per file vertex (the mean of its copies; their spread "
                     "in `report.input.cut`). Omitted: the faces' own vertices.")
+    zero_area_faces: list[Index] | None = Field(
+        None, fail_fast=True,
+        description="Informational, as `POST /v1/forms` answers it: the faces of zero area "
+                    "(collinear corners) whose normal the documented rule chose. Ignored: "
+                    "the solvers find such faces from the lengths "
+                    "(`report.input.zero_area_faces`).")
     placement: PlacementModel | None = Field(
         None, description="Each component's rigid placement (from `POST /v1/forms`): "
                           "`reconstruct` moves every unconstrained component so that its "

@@ -141,6 +141,8 @@ def forms_task(request: TaskRequest, progress: Progress) -> TaskResult:
                 "angles": forms.angles, "placement": forms.placement.to_dict()}
     if forms.vertex_map is not None:
         document["vertex_map"] = forms.vertex_map
+    if forms.zero_area_faces is not None:
+        document["zero_area_faces"] = forms.zero_area_faces
     return _finish(request, progress, document)
 
 

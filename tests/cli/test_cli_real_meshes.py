@@ -1,5 +1,6 @@
 """Meshes as people have them through ``ffs`` (issue 40), in-process and with ``--server``:
-forms -> reconstruct of non-manifold, multi-part, folded and closed meshes gives the file's
+forms -> reconstruct of non-manifold, multi-part, folded, closed and zero-area-face meshes gives
+the file's
 mesh back (one rigid alignment; .json and .npz forms keep the vertex map and placement),
 deform hits its handles, flatten accepts the open ones, quads are triangulated."""
 
@@ -15,7 +16,8 @@ from tests.helpers.meshes import rigid_alignment_error
 from tests.helpers.real_meshes import CASES, HAS_CLOSED_PART, diagonal
 
 NAMES = ["edge-with-3-faces", "edge-with-4-faces", "cones-at-apex", "multi-component",
-         "fin-at-pi", "closed-genus-2", "slivers-1e-4"]
+         "fin-at-pi", "closed-genus-2", "slivers-1e-4", "zero-area-inserted",
+         "zero-area-open"]
 
 
 def _where(server: str, remote: bool) -> list[str]:

@@ -247,6 +247,45 @@ def with_tiny_edges(V: np.ndarray, F: np.ndarray, count: int, ratio: float = 1e-
             np.concatenate([F, np.array(new_faces, dtype=np.int64).reshape(-1, 3)]))
 
 
+def with_zero_area_faces(V: np.ndarray, F: np.ndarray, count: int, seed: int = 0,
+                         at: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh with ``count`` inserted zero-area faces (as T-junction repairs leave them):
+    for interior edges ``[i, j]`` (no two sharing a face), a vertex ``p`` on the segment at
+    ``i + at (j - i)``, the face right of ``i -> j`` split into two at ``p`` and the
+    zero-area face ``(j, i, p)`` (collinear corners) between them and the face left of it.
+    The surface is unchanged; the mesh stays manifold and consistently oriented.
+
+    Returns (vertices (n + count, 3), faces (m + 2 count, 3)).
+    """
+    from solver.topology import build_topology
+
+    topo = build_topology(F, len(V))
+    rng = np.random.default_rng(seed)
+    used = np.zeros(len(F), dtype=bool)
+    chosen = []
+    for e in rng.permutation(topo.interior_edges):  # test data: a short loop is fine
+        left, right = topo.edge_faces[e]
+        if not used[left] and not used[right]:
+            used[[left, right]] = True
+            chosen.append(e)
+            if len(chosen) == count:
+                break
+    V = np.array(V, dtype=np.float64)
+    F = np.array(F, dtype=np.int64)
+    new_vertices, new_faces = [], []
+    for k, e in enumerate(chosen):
+        i, j = topo.edges[e]
+        p = len(V) + k
+        new_vertices.append(V[i] + at * (V[j] - V[i]))
+        right = topo.edge_faces[e, 1]  # the face with the half-edge j -> i
+        turn = next(r for r in range(3) if (F[right][r], F[right][(r + 1) % 3]) == (j, i))
+        _, _, b = np.roll(F[right], -turn)
+        F[right] = (j, p, b)
+        new_faces += [(p, i, b), (j, i, p)]
+    return (np.concatenate([V, np.array(new_vertices).reshape(-1, 3)]),
+            np.concatenate([F, np.array(new_faces, dtype=np.int64).reshape(-1, 3)]))
+
+
 def with_cap_faces(V: np.ndarray, F: np.ndarray, count: int, height: float = 1e-6,
                    seed: int = 3) -> np.ndarray:
     """Vertices of a mesh with up to ``count`` near-zero-area "cap" faces: for faces

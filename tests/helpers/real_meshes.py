@@ -16,7 +16,9 @@ from tests.helpers.meshes import (
     random_rotation,
     torus_grid,
     voxel_surface,
+    with_cap_faces,
     with_tiny_edges,
+    with_zero_area_faces,
 )
 
 
@@ -119,6 +121,29 @@ def slivers(seed: int = 0, ratio: float = 1e-4) -> tuple[np.ndarray, np.ndarray]
     return with_tiny_edges(V, F, count=60, ratio=ratio, seed=seed)
 
 
+def zero_area_inserted() -> tuple[np.ndarray, np.ndarray]:
+    """An icosphere with 12 inserted zero-area faces (a vertex on an edge, T-junction
+    repairs: :func:`tests.helpers.meshes.with_zero_area_faces`)."""
+    V, F = icosphere(3)
+    return with_zero_area_faces(V, F, 12, seed=2)
+
+
+def zero_area_collinear() -> tuple[np.ndarray, np.ndarray]:
+    """A torus whose faces keep their vertices but 6 of them have collinear corners (a
+    corner moved onto the midpoint of the opposite edge: a dent in the surface)."""
+    V, F = torus_grid(24, 12)
+    return with_cap_faces(V, F, 6, height=0.0, seed=5), np.asarray(F)
+
+
+def zero_area_open() -> tuple[np.ndarray, np.ndarray]:
+    """An open sheet with 6 inserted zero-area faces and 4 collinear ones (flattened)."""
+    V, F = grid(10, 8)
+    V = np.asarray(V, dtype=np.float64).copy()
+    V[:, 2] = 0.2 * np.sin(V[:, 0]) * np.cos(V[:, 1])
+    V, F = with_zero_area_faces(V, F, 6, seed=3, at=0.3)
+    return with_cap_faces(V, F, 4, height=0.0, seed=4), F
+
+
 CASES = {
     "edge-with-3-faces": box_with_fin,
     "edge-with-4-faces": boxes_sharing_an_edge,
@@ -129,11 +154,18 @@ CASES = {
     "closed-genus-2": closed_genus2,
     "slivers-1e-4": lambda: slivers(0, 1e-4),
     "slivers-1e-6": lambda: slivers(1, 1e-6),
+    "zero-area-inserted": zero_area_inserted,
+    "zero-area-collinear": zero_area_collinear,
+    "zero-area-open": zero_area_open,
 }
 """Every case by name."""
 
 HAS_CLOSED_PART = {"edge-with-3-faces", "edge-with-4-faces", "cones-at-apex", "multi-component",
-                   "closed-genus-0", "closed-genus-2", "slivers-1e-4", "slivers-1e-6"}
+                   "closed-genus-0", "closed-genus-2", "slivers-1e-4", "slivers-1e-6",
+                   "zero-area-inserted", "zero-area-collinear"}
+
+ZERO_AREA = {"zero-area-inserted", "zero-area-collinear", "zero-area-open"}
+"""Cases with faces of zero area (collinear corners)."""
 """Cases with a closed component (flattened only once closed surfaces can be: issue 41)."""
 
 

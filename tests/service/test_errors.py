@@ -46,7 +46,8 @@ SOLVER_CASES = [
                                                                  5.0)), ("faces", 0)),
     ("edge-mismatch", "integrability", _forms(edges=_with(EXAMPLE_FORMS["edges"], 1, [3, 0])),
      ("edges", 1)),
-    ("degenerate-face", "forms", {"vertices": [[0, 0, 0], [1, 0, 0], [2, 0, 0]],
+    # Collinear corners are measured (issue 40); two corners at one position are not.
+    ("degenerate-face", "forms", {"vertices": [[0, 0, 0], [1, 0, 0], [1, 0, 0]],
                                   "faces": [[0, 1, 2]]}, ("faces", 0)),
     # Meshes are cut into manifold ones (issue 40); forms sent with non-manifold faces and
     # no vertex_map are still refused.

@@ -14,7 +14,7 @@ import pytest
 import solver
 from solver.io import read_mesh, save_mesh
 from tests.helpers.meshes import rigid_alignment_error
-from tests.helpers.real_meshes import CASES, HAS_CLOSED_PART, diagonal
+from tests.helpers.real_meshes import CASES, HAS_CLOSED_PART, ZERO_AREA, diagonal
 
 TIMEOUT = 120.0
 
@@ -45,7 +45,8 @@ def test_upload_forms_reconstruct_is_the_whole_mesh(http, name):
 
 
 @pytest.mark.parametrize("name", ["edge-with-3-faces", "cones-at-apex", "multi-component",
-                                  "fin-at-pi", "slivers-1e-4"])
+                                  "fin-at-pi", "slivers-1e-4", "slivers-1e-6",
+                                  "zero-area-inserted"])
 def test_noisy_forms_converge(http, name):
     V, F = CASES[name]()
     forms = solver.fundamental_forms(V, F)
@@ -63,7 +64,35 @@ def test_noisy_forms_converge(http, name):
     assert response.status_code == 200, response.text
     refinement = response.json()["report"]["refinement"]
     assert interior and refinement["refined"] and refinement["converged"], refinement
+    assert refinement["factorizations"] <= 4
+    if name.startswith("slivers") or name in ZERO_AREA:  # needles, zero-area faces
+        well = refinement["well_shaped_error"]
+        assert well["refined"] <= well["start"] * (1 + 1e-9)
     assert rigid_alignment_error(np.asarray(response.json()["vertices"]), V) < 0.05
+
+
+@pytest.mark.parametrize("name", sorted(ZERO_AREA))
+def test_zero_area_faces_are_answered_and_reported(http, name):
+    """Faces with collinear corners: the forms name them (as an independent cross product
+    finds them), the forms document goes back to reconstruct as it is, and reconstruct,
+    deform and (open meshes) flatten count them in their report."""
+    V, F = CASES[name]()
+    cross = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    flat = np.flatnonzero(np.linalg.norm(cross, axis=1) <= 1e-12 * diagonal(V) ** 2)
+    upload = {"file": (f"{name}.ply", save_mesh(V, F, "ply"))}
+    doc = http.post("/v1/forms", files=upload).json()
+    assert doc["zero_area_faces"] == flat.tolist()
+    rebuilt = http.post("/v1/reconstruct", json=doc)
+    assert rebuilt.status_code == 200, rebuilt.text
+    assert rebuilt.json()["report"]["input"]["zero_area_faces"] == len(flat)
+    handles = [{"vertex": int(v), "position": (V[v] + 0.01).tolist()} for v in F[0]]
+    deformed = http.post("/v1/deform", files=upload, data={"handles": json.dumps(handles)})
+    assert deformed.status_code == 200, deformed.text
+    assert deformed.json()["report"]["input"]["zero_area_faces"] == len(flat)
+    if name not in HAS_CLOSED_PART:
+        flattened = http.post("/v1/parameterize", files=upload)
+        assert flattened.status_code == 200, flattened.text
+        assert flattened.json()["report"]["input"]["zero_area_faces"] == len(flat)
 
 
 @pytest.mark.parametrize("name", list(CASES))

@@ -71,11 +71,20 @@ def test_round_trip_dict():
     assert np.array_equal(again.edges, forms.edges) and np.array_equal(again.angles, forms.angles)
 
 
-def test_zero_area_face_is_degenerate():
-    V = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0.0]])
+def test_zero_area_face_is_measured_by_the_rule():
+    """Collinear corners (issue 40): the face's normal is its neighbour's, projected off
+    its line (solver.forms.degenerate_normals): the edge they share is flat (angle 0)."""
+    V = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0.3]])
+    forms = fundamental_forms(V, [[0, 1, 2], [0, 3, 1]])
+    assert forms.zero_area_faces.tolist() == [0]
+    np.testing.assert_allclose(forms.angles, 0.0, atol=1e-15)
+
+
+def test_face_with_two_corners_at_one_position_is_degenerate():
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [0, 1, 0.0]])
     with pytest.raises(DegenerateFaceError) as err:
         fundamental_forms(V, [[0, 1, 2], [0, 3, 1]])
-    assert err.value.index == 0
+    assert err.value.index == 0 and "one position" in str(err.value)
 
 
 def test_nan_vertex_is_named():

@@ -46,24 +46,39 @@ def check(refiner: Refiner, X: np.ndarray) -> None:
     assert np.abs(gradient - g).max() <= 1e-12 * np.abs(g).max()
 
 
-def test_handles_and_needle_edges():
-    V, F = with_tiny_edges(*load("decimated-knight.off"), count=5)
+@pytest.mark.parametrize("ratio", [0.03, 1e-4])
+def test_handles_and_needle_edges(ratio):
+    """Short edges at 3% of their length keep their curvature (stretched here); needles at
+    1e-4 are tied (solver.ties): a tied vertex's gradients land on its master's unknowns."""
+    knight = load("decimated-knight.off")
+    V, F = with_tiny_edges(*knight, count=5, ratio=ratio)
     forms = fundamental_forms(V, F)
     topology = build_topology(F, len(V))
     rng = np.random.default_rng(0)
     X = V + 1e-2 * forms.lengths.mean() * rng.normal(size=V.shape)
-    tiny = np.flatnonzero(forms.lengths < 1e-3 * forms.lengths.mean())
+    split = np.arange(len(knight[0]), len(V))
+    tiny = np.array([min(np.flatnonzero((topology.edges == p).any(axis=1)),
+                         key=lambda e: forms.lengths[e]) for p in split])
     i, p = topology.edges[tiny].T
-    X[p] = V[p] + 0.5 * (V[p] - V[i])  # stretched needles: their curvature is kept
+    X[p] = V[p] + 0.5 * (V[p] - V[i])  # stretched short edges: their curvature is kept
     handles = Handles(fixed=np.arange(0, 40, 3), soft_vertices=np.array([50, 60]),
                       soft_positions=V[[50, 60]] + 0.01, soft_weights=np.array([2.0, 3.0]),
                       frame_faces=np.array([7, 8]), frame_edges=rng.normal(size=(2, 2, 3)),
                       frame_weights=np.array([1.0, 5.0]))
     refiner = Refiner(FormTargets(topology, forms.lengths, forms.angles, angle_weight=0.3),
                       handles)
+    ties = refiner.form_energy.ties
+    if ratio < 0.01:
+        assert sorted(ties.vertices.tolist()) == split.tolist()  # the later endpoint
+        assert (refiner.system.index[ties.vertices] == refiner.system.index[i]).all()
+        refiner.form_energy.tie(X)  # as a run's start: tied vertices on their needles
+        assert np.allclose(np.linalg.norm(X[p] - X[i], axis=1), forms.lengths[tiny])
+        check(refiner, X)
+        return
+    assert len(ties) == 0
     rows, _ = refiner.form_energy.groups[0].curvature(X, refiner.form_energy.groups[0]
                                                       .evaluate(X, False)[0])
-    assert len(rows)
+    assert sorted(rows.tolist()) == sorted(tiny.tolist())
     check(refiner, X)
 
 

@@ -98,10 +98,16 @@ def test_the_curvature_kept_across_needle_edges_matches_finite_differences():
     mean (solver.form_energy.STRETCH_CURVATURE): on each such edge, the second derivative
     of r^2 / 2 along random directions equals (∇r . d)^2 + d^T (r ∇²r) d; on the other
     edges nothing is kept."""
-    V, F = with_tiny_edges(*load("decimated-knight.off"), count=5)
+    # Edges 3% of their length (not needles: solver.ties ties the endpoints of those).
+    knight = load("decimated-knight.off")
+    V, F = with_tiny_edges(*knight, count=5, ratio=0.03)
     topology = build_topology(F, len(V))
     forms = fundamental_forms(V, F)
-    tiny = np.flatnonzero(forms.lengths < 1e-3 * forms.lengths.mean())
+    # The shortest edge at each split vertex (the later ones) is its tiny edge.
+    tiny = np.array([min(np.flatnonzero((topology.edges == p).any(axis=1)),
+                         key=lambda e: forms.lengths[e]) for p in range(len(knight[0]), len(V))])
+    assert len(tiny) == 5 and Refiner(FormTargets(topology, forms.lengths, forms.angles),
+                                      Handles()).form_energy.ties.vertices.size == 0
     X = V.copy()
     i, p = topology.edges[tiny].T  # the split vertex is the later one
     X[p] += 0.5 * (V[p] - V[i])     # stretch each needle edge by 50%
@@ -182,21 +188,19 @@ def test_a_refused_step_of_a_factor_that_expects_little_ends_the_run():
     assert rigid_alignment_error(result.vertices, V) < 5e-5
 
 
-def test_a_refinement_that_crawls_stops_and_says_so():
+def test_the_knight_that_crawled_converges():
     """A knight with 5 faces flattened to 2e-3 of their width (above CAP_HEIGHT: their
-    angles are kept, and they turn over under steps of their height) and 10 needle edges,
-    noisy angles: the damping grows until steps barely lower E; the refinement stops after
-    5 such steps, not converged (``stalled``), instead of spending its 50 iterations, and
-    its answer is still no worse than its start and near the original."""
+    angles are kept) and 10 needle edges, noisy angles. Before the needles were tied
+    (solver.ties) the damping grew until steps barely lowered E and the refinement stopped
+    ``stalled`` after 12-21 iterations; now it converges in a few factorizations, to a lower
+    energy than its start, near the original."""
     V, F = load("decimated-knight.off")
     V, F = with_tiny_edges(with_cap_faces(V, F, 5, height=2e-3), F, count=10)
     forms = with_noisy_angles(fundamental_forms(V, F), seed=4)
     report = (result := solve(forms)).report["refinement"]
-    assert report["stop_reason"] == "stalled" and not report["converged"], report
-    assert report["iterations"] < 30
+    assert report["converged"] and report["stop_reason"] == "converged", report
+    assert report["factorizations"] <= 4
     assert report["energy_after"] <= report["energy_before"]
-    trace = report["energy_trace"]
-    assert trace[-6] - trace[-1] <= 1e-3 * trace[-1]
     assert rigid_alignment_error(result.vertices, V) < 2e-3
 
 
@@ -521,12 +525,18 @@ def gauss_newton_diagonal(V, F):
     return H.data[refiner.system.diagonal_positions]
 
 
-def test_needle_edges_keep_the_gauss_newton_factor_in_double_precision():
-    """A regular mesh's Gauss-Newton matrix is factorized in single precision; with needle
-    edges (1e-4 of their length) its diagonal spreads over 1e8 and it stays in double."""
+def test_tied_needle_edges_leave_the_gauss_newton_factor_in_single_precision():
+    """A regular mesh's Gauss-Newton matrix is factorized in single precision. Needle edges
+    (1e-4 of their length) spread its diagonal over 1e8 (double precision) unless their
+    endpoints are tied (solver.ties): then their stiffness leaves the matrix, whose
+    diagonal spreads as little as the regular mesh's."""
     V, F = load("torus.off")
-    assert factor_precision(gauss_newton_diagonal(V, F)) == "single"
-    assert factor_precision(gauss_newton_diagonal(*with_tiny_edges(V, F, 10))) == "double"
+    regular = gauss_newton_diagonal(V, F)
+    assert factor_precision(regular) == "single"
+    needles = gauss_newton_diagonal(*with_tiny_edges(V, F, 10))
+    assert factor_precision(needles) == "single"
+    assert needles.max() / np.median(needles) < 2 * regular.max() / np.median(regular)
+    assert factor_precision(np.r_[np.ones(99), 1e8]) == "double"
 
 
 def torus_x08():

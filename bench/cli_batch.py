@@ -34,7 +34,7 @@ import numpy as np
 import solver
 from bench.common import REPO
 from bench.servers import uvicorn
-from solver.io import load_mesh_file, save_mesh
+from solver.mesh.io import load_mesh_file, save_mesh
 from tests.helpers.meshes import grid
 
 

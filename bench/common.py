@@ -45,7 +45,7 @@ def session_mesh() -> tuple[str, np.ndarray, np.ndarray]:
         (its name, vertices (n, 3) float64, faces (m, 3) int64).
     """
     if SESSION_MESH.exists():
-        from solver.io import load_mesh_file
+        from solver.mesh.io import load_mesh_file
 
         V, F = load_mesh_file(SESSION_MESH)
         return SESSION_MESH.name, V, F

@@ -4,7 +4,7 @@ For each OBJ, OFF, PLY, STL, GLB file of DIR (sorted by name; ``--max-faces`` sk
 ones, ``--recursive`` descends) the library is run as ``ffs`` runs it, in the file's vertex
 numbering:
 
-* ``forms``: :func:`solver.io.read_mesh` (polygons triangulated) then
+* ``forms``: :func:`solver.mesh.io.read_mesh` (polygons triangulated) then
   :func:`solver.fundamental_forms` (a non-manifold mesh's cut; parts' placement).
 * ``exact``: :func:`solver.reconstruct` of those forms (vertex map and placement); the
   whole-mesh error after one rigid alignment, in units of the bounding-box diagonal.
@@ -33,9 +33,9 @@ from typing import Any
 import numpy as np
 
 import solver
-from solver.errors import SolverInputError
-from solver.io import LOAD_FORMATS, read_mesh
-from solver.topology import build_topology
+from solver.core.errors import SolverInputError
+from solver.mesh.io import LOAD_FORMATS, read_mesh
+from solver.mesh.topology import build_topology
 
 NOISE = 1e-3
 """Dihedral noise of the noisy round trip, radians."""
@@ -133,7 +133,7 @@ def run_file(path: Path, skip_flatten: bool = False) -> Row:
 
 
 def mesh_files(folder: Path, recursive: bool, max_faces: int | None) -> list[Path]:
-    """The mesh files of ``folder`` by name (those of :data:`solver.io.LOAD_FORMATS`)."""
+    """The mesh files of ``folder`` by name (those of :data:`solver.mesh.io.LOAD_FORMATS`)."""
     pattern = "**/*" if recursive else "*"
     found = [p for p in folder.glob(pattern)
              if p.is_file() and p.suffix.lower().lstrip(".") in LOAD_FORMATS]

@@ -20,7 +20,7 @@ import numpy as np
 
 from bench.common import REPO, SHARED_MESHES
 from solver import deform
-from solver.metrics import distortion
+from solver.mesh.metrics import distortion
 from tests.helpers.botsch_sorkine import DeformationCase, load_case
 
 OUT = REPO / "bench" / "out"
@@ -54,7 +54,7 @@ def render(case: DeformationCase, vertices: np.ndarray, report: dict, title: str
         values = np.abs(report[key])
         per_face = np.zeros(len(case.faces))
         # Face colour: mean |change| of its three edges.
-        from solver.forms import fundamental_forms
+        from solver.mesh.forms import fundamental_forms
         edges = fundamental_forms(case.vertices, case.faces).edges
         lookup = {tuple(e): i for i, e in enumerate(edges.tolist())}
         idx = np.array([[lookup[tuple(sorted((f[a], f[(a + 1) % 3])))] for a in range(3)]

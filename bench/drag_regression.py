@@ -33,7 +33,7 @@ import numpy as np
 
 from bench.common import load_bench_mesh, random_drags, two_handle_regions
 from solver import Deformer, linalg
-from solver.system import unknown_groups
+from solver.linear.system import unknown_groups
 
 DRAGS = 15  # per round, as in the bisection
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from bench.common import SHARED_MESHES
 from solver.chart_flattening import relative_length_change
-from solver.packing import rasterized_overlap, signed_areas
+from solver.mesh.packing import rasterized_overlap, signed_areas
 from tests.helpers.meshes import side_by_side
 
 SMALL_PARTS = ("decimated-knight.off", "torus.off", "octopus-low-surface.off", "face.off")
@@ -53,7 +53,7 @@ def multi_part() -> tuple[np.ndarray, np.ndarray]:
 def measures(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
              uv_vertex: np.ndarray) -> dict[str, Any]:
     """Flips, distortion (uv scaled to the 3D area), efficiency and overlap of an atlas."""
-    from solver.metrics import corner_angles
+    from solver.mesh.metrics import corner_angles
 
     area3d = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
                                   axis=1).sum()
@@ -119,11 +119,11 @@ def bisection_only(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
 
 def _charted(V: np.ndarray, F: np.ndarray, seeds: str) -> dict[str, Any]:
     from solver.atlas import assemble, chart_layouts
-    from solver.forms import fundamental_forms
+    from solver.mesh.forms import fundamental_forms
+    from solver.mesh.packing import pack_charts
+    from solver.mesh.topology import build_topology
     from solver.options import ParameterizeOptions
-    from solver.packing import pack_charts
     from solver.reports import Stages
-    from solver.topology import build_topology
 
     start = time.perf_counter()
     topology = build_topology(F, n_vertices=len(V))
@@ -142,11 +142,11 @@ def xatlas_charts_unchecked(V: np.ndarray, F: np.ndarray) -> dict[str, Any]:
     none of our checks (a chart that folds or overlaps itself is kept)."""
     from solver.atlas import ChartLayout, assemble, chart_options
     from solver.chart_flattening import flatten_chart
-    from solver.charts import chart_mesh, xatlas_charts
+    from solver.mesh.charts import chart_mesh, xatlas_charts
+    from solver.mesh.packing import pack_charts
+    from solver.mesh.topology import build_topology
     from solver.options import ParameterizeOptions
-    from solver.packing import pack_charts
     from solver.reports import Stages
-    from solver.topology import build_topology
 
     start = time.perf_counter()
     label = xatlas_charts(V, F)

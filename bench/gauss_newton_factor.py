@@ -1,6 +1,6 @@
 """PARDISO on the refinement's Gauss-Newton matrix: its own ordering against the ``groups`` hint.
 
-The refinement factorizes ``J^T J + lambda D`` (:mod:`solver.normal_equations`, one 3x3 block
+The refinement factorizes ``J^T J + lambda D`` (:mod:`solver.refine.normal_equations`, one 3x3 block
 per pair of vertices that share a residual) once per fresh Gauss-Newton step and solves
 with it once per step. For one mesh, in one process and interleaved over ``--rounds``
 rounds (so that machine load hits both alike), it times on the same matrix:
@@ -11,12 +11,12 @@ rounds (so that machine load hits both alike), it times on the same matrix:
   :func:`solver.linalg.pardiso.group_ordering`) passed as a user permutation, which makes
   MKL build the classic factor;
 * ``single precision``: PARDISO's ordering, factorized and solved in float32
-  (:mod:`solver.mixed_precision`; a refinement's solve then costs two of these solves and
+  (:mod:`solver.refine.mixed_precision`; a refinement's solve then costs two of these solves and
   a product with the matrix);
 
 the analysis (ordering and symbolic factorization, once per pattern: cached afterwards), the
 numerical factorization and a one-column solve, with nnz(L); and the assembly of the matrix
-and gradient (:meth:`solver.normal_equations.GaussNewtonSystem.normal_equations`), once per
+and gradient (:meth:`solver.refine.normal_equations.GaussNewtonSystem.normal_equations`), once per
 fresh step, and of the gradient alone, once per step.
 
 Over several meshes it also fits the scaling exponents (time ~ faces^k) of the
@@ -37,8 +37,8 @@ import numpy as np
 import solver
 from bench.common import load_bench_mesh, scaling_exponent
 from solver.linalg import pardiso
+from solver.mesh.topology import build_topology
 from solver.refine import DEFORM_ANGLE_WEIGHT, FormTargets, Handles, Refiner
-from solver.topology import build_topology
 
 
 def gauss_newton_matrix(name: str):

@@ -14,7 +14,7 @@ import numpy as np
 
 import solver
 from bench.common import SHARED_MESHES
-from solver.io import load_mesh_file
+from solver.mesh.io import load_mesh_file
 
 
 def main(name: str) -> None:

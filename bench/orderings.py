@@ -35,7 +35,7 @@ from bench.common import load_bench_mesh
 from solver import fundamental_forms
 from solver.immersion import ImmersionProblem
 from solver.linalg import pardiso
-from solver.topology import build_topology
+from solver.mesh.topology import build_topology
 
 
 def system_matrix(case: str) -> tuple[sp.csr_array, int, int]:

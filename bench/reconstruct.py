@@ -96,8 +96,8 @@ def measure_reconstruct(case: str) -> dict[str, Any]:
 
     from solver import fundamental_forms, linalg, reconstruct
     from solver.immersion import ImmersionProblem
-    from solver.system import unknown_groups
-    from solver.topology import build_topology
+    from solver.linear.system import unknown_groups
+    from solver.mesh.topology import build_topology
 
     linalg.clear_analysis_cache()
     V, F = load_bench_mesh(case)

@@ -54,9 +54,9 @@ import numpy as np
 import solver
 from bench.common import SHARED_MESHES, load_bench_mesh, scaling_exponent
 from solver.linalg import clear_analysis_cache
-from solver.metrics import distortion
+from solver.mesh.metrics import distortion
+from solver.mesh.topology import build_topology
 from solver.refine import clear_pattern_cache
-from solver.topology import build_topology
 from tests.helpers.botsch_sorkine import load_case
 from tests.helpers.libigl_reference import arap_deformation, arap_parameterization, flipped_faces
 from tests.helpers.meshes import (

@@ -36,8 +36,8 @@ import numpy as np
 
 from bench.common import REPO, load_averages, load_bench_mesh, write_section
 from solver import blend
-from solver.form_energy import form_residuals
-from solver.topology import build_topology
+from solver.mesh.topology import build_topology
+from solver.refine.form_energy import form_residuals
 from tests.helpers.poses import bent_pose
 
 MESHES = ("bunny.off", "rocker-arm.obj", "bumpy-plane.off")

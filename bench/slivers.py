@@ -23,7 +23,7 @@ Stand-ins, each on several shared meshes (rocker-arm 20K faces, stanford-bunny 6
 For each: the exact forms (does the default answer refine? its time against the linear
 answer's) and the forms with N(0, 1e-3) rad on every interior dihedral angle (converged?
 iterations, factorizations, time x linear, and the largest form error on the well-shaped
-elements, :func:`solver.form_energy.well_shaped_errors`, of the refinement's start and of
+elements, :func:`solver.refine.form_energy.well_shaped_errors`, of the refinement's start and of
 its answer: the answer's must not be larger). Times are wall-clock medians of ``--repeat``
 alternating runs, warm (a first call on the mesh primes the analysis caches).
 The targets: exact forms never refine; noisy forms converge within 2.5x the linear time and
@@ -42,7 +42,7 @@ import numpy as np
 
 import solver
 from bench.common import load_bench_mesh
-from solver.topology import build_topology
+from solver.mesh.topology import build_topology
 from tests.helpers.meshes import with_cap_faces, with_tiny_edges, with_zero_area_faces
 
 MESHES = ("rocker-arm.obj", "stanford-bunny.obj")

@@ -17,9 +17,9 @@ import sys
 
 from bench.common import load_bench_mesh
 from solver import fundamental_forms, reconstruct
-from solver.forms import validate_forms
 from solver.immersion import ImmersionProblem
 from solver.linalg import SingularSystemError
+from solver.mesh.forms import validate_forms
 from tests.helpers.meshes import rigid_alignment_error
 
 MESHES = ["decimated-knight.off", "octopus-low-surface.off", "torus.off", "face.off",
@@ -51,8 +51,8 @@ def main() -> None:
                 error = "refused: " + str(exc).split("=")[1].split(" exceeds")[0].strip()
             cells.append(f"{error} ({w.max() / w.min():.0e})")
             if obtuse is None:
-                from solver.frames import face_edge_lengths
-                from solver.system import half_cotangents
+                from solver.linear.system import half_cotangents
+                from solver.mesh.frames import face_edge_lengths
                 obtuse = int((half_cotangents(face_edge_lengths(topo, L)) < 0).any(1).sum())
         print(f"| {name} | {len(F)} | {obtuse} | " + " | ".join(cells) + " |", flush=True)
 

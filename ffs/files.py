@@ -1,8 +1,8 @@
 """Files of the command line: meshes, forms, handles and results, by extension.
 
-* Meshes: the library's formats (:data:`solver.formats.FORMATS`: OBJ, PLY, OFF, STL,
+* Meshes: the library's formats (:data:`solver.mesh.formats.FORMATS`: OBJ, PLY, OFF, STL,
   GLB/glTF; file vertex order kept; OBJ/OFF/PLY are written with full float64 precision,
-  STL and glTF in float32) through :mod:`solver.io`, or ``.json`` / ``.npz`` holding
+  STL and glTF in float32) through :mod:`solver.mesh.io`, or ``.json`` / ``.npz`` holding
   ``vertices`` and ``faces`` (the API's mesh document).
 * Forms: ``.json`` with the fields of the API's forms response (``faces``, ``edges``,
   ``lengths``, ``angles``, and the optional ``vertex_map`` of a non-manifold mesh and
@@ -29,7 +29,7 @@ import numpy as np
 
 from ffs.results import Forms
 from ffs_wire.arrays import json_default
-from solver.formats import LOAD_FORMATS as MESH_FORMATS
+from solver.mesh.formats import LOAD_FORMATS as MESH_FORMATS
 
 DATA_FORMATS = ("json", "npz")
 """Formats of arrays by name: forms, meshes as documents, reports."""
@@ -123,7 +123,7 @@ def read_mesh(path: str | os.PathLike[str], fmt: str | None = None
         doc = _read_fields(path, fmt)
         return (_array(path, doc, "vertices", np.float64, 3),
                 _array(path, doc, "faces", np.int64, 3))
-    from solver.io import MeshFileError, load_mesh
+    from solver.mesh.io import MeshFileError, load_mesh
 
     try:
         data = path.read_bytes()
@@ -333,8 +333,8 @@ def write_textured_mesh(path: Path, fmt: str, vertices: np.ndarray, faces: np.nd
                         texcoords: np.ndarray, uv_faces: np.ndarray, uv_vertex: np.ndarray,
                         ) -> None:
     """Write a mesh with its atlas, atomically: ``obj`` (``v``, ``vt``, ``f v/vt``) or
-    ``glb`` (seam vertices duplicated, ``TEXCOORD_0``); :mod:`solver.uv_files`."""
-    from solver.uv_files import textured_glb, textured_obj
+    ``glb`` (seam vertices duplicated, ``TEXCOORD_0``); :mod:`solver.mesh.uv_files`."""
+    from solver.mesh.uv_files import textured_glb, textured_obj
 
     data = (textured_obj(vertices, faces, texcoords, uv_faces) if fmt == "obj"
             else textured_glb(vertices, texcoords, uv_faces, uv_vertex))
@@ -347,7 +347,7 @@ def write_mesh(path: Path, fmt: str, vertices: np.ndarray, faces: np.ndarray,
 
     Args:
         path: The output file.
-        fmt: a mesh format the library writes (:data:`solver.formats.SAVE_FORMATS`), or
+        fmt: a mesh format the library writes (:data:`solver.mesh.formats.SAVE_FORMATS`), or
             ``json``/``npz`` (a document with ``vertices``, ``faces`` and ``report``).
         vertices: (n, 3) float64 (written in float32 to STL and GLB).
         faces: (m, 3) int.
@@ -357,6 +357,6 @@ def write_mesh(path: Path, fmt: str, vertices: np.ndarray, faces: np.ndarray,
         write_arrays(path, fmt, {"vertices": vertices, "faces": faces},
                      {"report": report or {}})
         return
-    from solver.io import save_mesh
+    from solver.mesh.io import save_mesh
 
     _atomic_write(path, save_mesh(vertices, faces, fmt))

@@ -25,7 +25,8 @@ from ffs.results import (
     ShapeBlend,
     VjpResult,
 )
-from solver.errors import SolverInputError
+from solver.core.errors import SolverInputError
+from solver.core.serialization import to_jsonable
 from solver.options import (
     BlendOptions,
     DeformOptions,
@@ -34,7 +35,6 @@ from solver.options import (
     ReconstructOptions,
 )
 from solver.reports import mesh_summary
-from solver.serialization import to_jsonable
 
 Progress = Callable[[str, float], None]
 
@@ -209,7 +209,7 @@ class Local:
                    times: Sequence[float] | None = None, kind: str = "glb",
                    refine: bool | None = None, progress: Progress | None = None,
                    **options: Any) -> bytes:
-        from solver.gltf import encode_gltf_animation
+        from solver.mesh.gltf import encode_gltf_animation
 
         result = self._blend(shapes, faces, weights, t, refine, progress, options)
         return encode_gltf_animation(result.vertices, result.faces,

@@ -79,7 +79,7 @@ def read_selection(path: str | os.PathLike[str], vertices: np.ndarray, faces: np
             or 2, no handle vertex, a transform that is not 4x4 affine.
     """
     from ffs.files import InputFileError
-    from solver.rotations import is_rotation, nearest_rotation
+    from solver.mesh.rotations import is_rotation, nearest_rotation
 
     base = Path(path)
     sel_path, def_path = base.with_suffix(".sel"), base.with_suffix(".def")

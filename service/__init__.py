@@ -15,7 +15,7 @@ are met (see docs/service.md, docs/distributed.md):
 4. :mod:`service.worker` — in the worker process: the raw body decoded
    (:mod:`service.api.decoding`), the task run (:mod:`~service.worker.tasks`, calling
    :mod:`solver`), the result encoded (:mod:`~service.worker.output`, glTF by the
-   library's writer :mod:`solver.gltf`).
+   library's writer :mod:`solver.mesh.gltf`).
 5. Back up: a :class:`~service.api.task.TaskResult` or a failure dict, turned into the
    response by the route.
 

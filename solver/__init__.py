@@ -10,16 +10,16 @@ outside; ``edges`` (E, 2) unique pairs i < j sorted lexicographically; ``lengths
 (E,) aligned with ``edges``; dihedral angles in (-pi, pi], positive where convex.
 """
 
-from . import metrics
-from .alignment import Alignment, rigid_alignment
-from .allocator import retain_freed_memory
-from .constraints import Constraints
+from .core.allocator import retain_freed_memory
+from .core.errors import SolverInputError
 from .deform import Deformation, Deformer, deform
 from .differentiable import ReconstructionVJP, reconstruct_vjp
-from .errors import SolverInputError
-from .forms import Forms, fundamental_forms
-from .integrability import IntegrabilityReport, check_integrability
 from .interpolate import interpolate
+from .linear.constraints import Constraints
+from .linear.integrability import IntegrabilityReport, check_integrability
+from .mesh import metrics
+from .mesh.alignment import Alignment, rigid_alignment
+from .mesh.forms import Forms, fundamental_forms
 from .options import (
     BlendOptions,
     DeformOptions,
@@ -32,7 +32,7 @@ from .parameterize import Parameterization, parameterize
 from .reconstruct import Reconstruction, reconstruct
 from .shape_space import Blend, blend, mean, transfer
 
-retain_freed_memory()  # numpy temporaries reuse freed pages (solver/allocator.py)
+retain_freed_memory()  # numpy temporaries reuse freed pages (solver/core/allocator.py)
 
 __all__ = [
     "Alignment",

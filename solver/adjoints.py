@@ -16,16 +16,16 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-from .constraints import Constraints
-from .form_derivatives import face_lengths_vjp, layout_terms_vjp, layouts_vjp
-from .form_energy import FormTargets
-from .frames import face_edge_lengths, layout_frames
 from .immersion import ImmersionProblem
 from .linalg import Factorization, SingularSystemError, factorize
+from .linear.constraints import Constraints
+from .linear.system import ConstrainedSystem, LinearConstraints
+from .mesh.form_derivatives import face_lengths_vjp, layout_terms_vjp, layouts_vjp
+from .mesh.frames import face_edge_lengths, layout_frames
+from .mesh.rotations import nearest_rotation
 from .reconstruct import Reconstruction
-from .refined_energy import RefinedEnergy
-from .rotations import nearest_rotation
-from .system import ConstrainedSystem, LinearConstraints
+from .refine.form_energy import FormTargets
+from .refine.refined_energy import RefinedEnergy
 
 POLISH_TOLERANCE = 1e-9
 """Newton polishing stops after a step below this fraction of the mean edge length."""
@@ -60,7 +60,7 @@ class FormCotangents:
 
 class LinearAdjoint:
     """Adjoint of the constrained system of Eq. (5): ``(K + S) u = rhs`` on the free
-    unknowns, ``u = h`` on the hard ones (:class:`solver.system.ConstrainedSystem`).
+    unknowns, ``u = h`` on the hard ones (:class:`solver.linear.system.ConstrainedSystem`).
 
     Args:
         problem: the reconstruction's system.

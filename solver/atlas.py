@@ -1,6 +1,6 @@
 """Atlas charts: cut a mesh into charts that flatten well and flatten each.
 
-The seams come from :mod:`solver.charts`; each chart is flattened by
+The seams come from :mod:`solver.mesh.charts`; each chart is flattened by
 :func:`solver.chart_flattening.flatten_chart` and kept only when it passes the checks of
 :func:`chart_layouts` (else it is bisected). :func:`assemble` concatenates the accepted
 charts' layouts over uv indices of their own (a seam vertex once per chart).
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .chart_flattening import ChartFlattening, flatten_chart, refine_chart, relative_length_change
-from .charts import (
+from .mesh.charts import (
     ChartMesh,
     bisect,
     chart_mesh,
@@ -23,18 +23,18 @@ from .charts import (
     labelled_face_sets,
     xatlas_charts,
 )
-from .forms import zero_area_faces
-from .frames import face_edge_lengths, triangle_layouts
+from .mesh.forms import zero_area_faces
+from .mesh.frames import face_edge_lengths, triangle_layouts
+from .mesh.packing import boundary_crossings, folded, positive_loops
+from .mesh.topology import MeshTopology, build_topology
 from .options import ParameterizeOptions
-from .packing import boundary_crossings, folded, positive_loops
 from .reconstruct import Progress
 from .reports import Stages
-from .topology import MeshTopology, build_topology
 
 
 @dataclass
 class ChartLayout:
-    """An accepted chart: its mesh (:class:`solver.charts.ChartMesh`) and flattening."""
+    """An accepted chart: its mesh (:class:`solver.mesh.charts.ChartMesh`) and flattening."""
 
     mesh: ChartMesh
     flattening: ChartFlattening
@@ -44,9 +44,10 @@ def chart_layouts(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
                   opts: ParameterizeOptions, stages: Stages,
                   progress: Progress | None = None, *, seeds: str = "xatlas",
                   ) -> list[ChartLayout]:
-    """Cut the mesh into charts and flatten each (the seams of :mod:`solver.charts`).
+    """Cut the mesh into charts and flatten each (the seams of :mod:`solver.mesh.charts`).
 
-    Starting from ``seeds`` (``"xatlas"``: xatlas's charts, :func:`solver.charts.xatlas_charts`,
+    Starting from ``seeds`` (``"xatlas"``: xatlas's charts,
+    :func:`solver.mesh.charts.xatlas_charts`,
     each edge-connected piece one chart; ``"components"``: the edge-connected components,
     the bisection alone), a chart is bisected while it is closed
     or has a handle, while its linear flattening's mean relative length change is above
@@ -136,10 +137,10 @@ def mean_length_change(V: np.ndarray, uv: np.ndarray, faces: np.ndarray) -> floa
 def overlaps_itself(uv: np.ndarray, faces: np.ndarray, loops: list[np.ndarray],
                     zero_area: np.ndarray | None = None) -> bool:
     """Whether a chart's layout ``uv`` (n, 2) over ``faces`` (m, 3) with boundary ``loops``
-    covers some point twice: a flipped face (:func:`solver.packing.folded`; ``zero_area``
+    covers some point twice: a flipped face (:func:`solver.mesh.packing.folded`; ``zero_area``
     faces, flat in 3D, never count), boundary edges that cross
-    (:func:`solver.packing.boundary_crossings`), or a hole laid out inside out (more than
-    one counter-clockwise loop, :func:`solver.packing.positive_loops`). Without any of
+    (:func:`solver.mesh.packing.boundary_crossings`), or a hole laid out inside out (more than
+    one counter-clockwise loop, :func:`solver.mesh.packing.positive_loops`). Without any of
     these the layout is injective."""
     return bool(folded(uv, faces, zero_area).any()) or positive_loops(uv, loops) > 1 \
         or boundary_crossings(uv, faces) > 0

@@ -18,17 +18,17 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from .forms import flat_faces
-from .frames import face_edge_lengths, triangle_areas, triangle_layouts
 from .linalg import factorize
+from .linear.system import half_cotangents
+from .mesh.forms import flat_faces
+from .mesh.frames import face_edge_lengths, triangle_areas, triangle_layouts
+from .mesh.packing import folded
+from .mesh.topology import MeshTopology
 from .options import ParameterizeOptions
-from .outcomes import not_refined
-from .packing import folded
 from .reconstruct import ImmersionProblem, Progress
-from .refine import FormTargets, Refiner
+from .refine.outcomes import not_refined
+from .refine.refiner import FormTargets, Refiner
 from .reports import Stages
-from .system import half_cotangents
-from .topology import MeshTopology
 
 
 def nearest_planar_rotation(frames: np.ndarray) -> np.ndarray:
@@ -233,7 +233,7 @@ def _push_flips_back(topology: MeshTopology, lengths: np.ndarray, opts: Paramete
     """``uv`` (n, 2) and its refinement report, continued with a heavier signed-area weight
     (:data:`FLIP_RETRY_AREA_FACTOR`) when it has flipped faces and time is left; the
     continued answer is kept only when it has fewer flipped faces."""
-    flat = flat_faces(topology, lengths)  # zero area: no flip (solver.packing.folded)
+    flat = flat_faces(topology, lengths)  # zero area: no flip (solver.mesh.packing.folded)
     flipped = int(folded(uv, topology.faces, flat, strict=True).sum())
     left = stages.left(opts.max_seconds)
     if flipped == 0 or (left is not None and left <= 0):

@@ -19,27 +19,27 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .budget import Budget
-from .constraints import Constraints
-from .energy_weights import HARD_FRAME_WEIGHT
-from .errors import ConstraintError
-from .form_energy import FormTargets, Handles
-from .forms import forms_of, zero_area_faces
-from .frames import layout_frames
+from .core.budget import Budget
+from .core.errors import ConstraintError
+from .core.serialization import JsonDataclass
+from .core.validation import as_indices, as_points, require_unique
+from .core.warnings import as_report, refinement_warnings
 from .immersion import ImmersionProblem
-from .layout_fit import LayoutFit
-from .manifold import ManifoldCut, manifold_topology
-from .metrics import compact, distortion
+from .linear.constraints import Constraints
+from .linear.layout_fit import LayoutFit
+from .linear.system import ConstrainedSystem
+from .mesh.forms import forms_of, zero_area_faces
+from .mesh.frames import layout_frames
+from .mesh.manifold import ManifoldCut, manifold_topology
+from .mesh.metrics import compact, distortion
+from .mesh.rotations import is_rotation, nearest_rotation
+from .mesh.topology import MeshTopology, build_topology
 from .options import DeformOptions
-from .outcomes import not_refined
-from .refine import Refiner
+from .refine.energy_weights import HARD_FRAME_WEIGHT
+from .refine.form_energy import FormTargets, Handles
+from .refine.outcomes import not_refined
+from .refine.refiner import Refiner
 from .reports import DeformReport, Progress, Stages
-from .rotations import is_rotation, nearest_rotation
-from .serialization import JsonDataclass
-from .system import ConstrainedSystem
-from .topology import MeshTopology, build_topology
-from .validation import as_indices, as_points, require_unique
-from .warnings import as_report, refinement_warnings
 
 
 @dataclass
@@ -192,7 +192,7 @@ class Deformer:
         in_roi = _roi_mask(roi, n)
         key = None if given is None else _rest_key(self.rest, given, in_roi, opts)
         rest = None if key is None else _REST_CACHE.get(key)
-        # A non-manifold mesh is solved on its manifold cut (solver.manifold): handles and
+        # A non-manifold mesh is solved on its manifold cut (solver.mesh.manifold): handles and
         # the ROI name file vertices (every copy follows), answers are per file vertex.
         cut_topology = None
         if rest is not None:
@@ -453,7 +453,7 @@ class Deformer:
         The first call after a solve starts from the better (lower energy) of the layout
         fit of that solve's rotations and the previous drag's refined shape moved by what
         the linear answer moved; a call after a refinement that stopped early (its budget
-        ``max_seconds``, a :class:`~solver.budget.Budget` or seconds from now, which counts
+        ``max_seconds``, a :class:`~solver.core.budget.Budget` or seconds from now, which counts
         the choice of the start too, ran out:
         ``last_report["stop_reason"] == "time_limit"``) continues from where it stopped, so
         an interactive client can answer the linear shape at once and refine in slices
@@ -537,7 +537,7 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
     Returns:
         :class:`Deformation` whose report holds ``timings`` per stage, the backend, whether
         and how it refined (``refinement``) and the distortion against the rest mesh
-        (:func:`solver.metrics.distortion`, without per-edge arrays).
+        (:func:`solver.mesh.metrics.distortion`, without per-edge arrays).
 
     Example:
         >>> import numpy as np

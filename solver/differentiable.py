@@ -14,13 +14,13 @@ Which map is differentiated:
   :func:`solver.reconstruct.reconstruct`. Adjoint method: ``K lambda = g`` (one
   back-substitution with the factorized ``K``, three columns per cotangent), then
   ``d(lambda^T K u)/d forms`` through the edge coefficients and the transition rotations
-  (:mod:`solver.form_derivatives`). Its gauge is the anchor itself (each component's first
+  (:mod:`solver.mesh.form_derivatives`). Its gauge is the anchor itself (each component's first
   face's first vertex at the origin, that face's frame the identity), differentiated
   exactly. The linear energy is invariant under every linear map of (x, f), so for forms
   that do not integrate another anchor gives another answer (not only a rigid motion of
   this one): the derivative belongs to this anchor.
 * otherwise (``refine=None``, the default, or ``True``) -- the **nearest surface**, the
-  minimizer of the refinement's energy (:mod:`solver.refined_energy`), also where the forms
+  minimizer of the refinement's energy (:mod:`solver.refine.refined_energy`), also where the forms
   integrate (there the linear answer is that minimizer, with energy 0, and any nearby forms
   are refined). Implicit differentiation of ``grad E(x*; targets) = 0`` with the **exact**
   Hessian, assembled and factorized once (a sparse Cholesky of order 3n, the pattern of the
@@ -38,7 +38,7 @@ Which map is differentiated:
   moved), since the implicit function theorem holds at the optimum, not at a point within
   the refinement's looser stopping tolerance.
 
-Not differentiated (a :class:`solver.errors.ConstraintError` says so): cotangent
+Not differentiated (a :class:`solver.core.errors.ConstraintError` says so): cotangent
 weightings, ``layout_angles``, ``orthonormalize=True`` with ``refine=False``, and
 constraints that leave a gauge to the regularization (``report["regularized_components"]``).
 Where constraints leave some rigid motion of a component free in the refined answer (one or
@@ -55,11 +55,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .adjoints import FormCotangents, LinearAdjoint, RefinedAdjoint
-from .alignment import kabsch
-from .constraints import Constraints
-from .errors import ConstraintError
-from .forms import validate_forms
+from .core.errors import ConstraintError
 from .immersion import ImmersionProblem
+from .linear.constraints import Constraints
+from .mesh.alignment import kabsch
+from .mesh.forms import validate_forms
 from .options import ReconstructOptions
 from .reconstruct import Reconstruction, reconstruct
 
@@ -216,7 +216,7 @@ def aligned_distance(vertices: ArrayLike, target: ArrayLike) -> tuple[float, np.
 
         >>> import numpy as np
         >>> from solver.differentiable import aligned_distance
-        >>> from solver.rotations import rotation_z
+        >>> from solver.mesh.rotations import rotation_z
         >>> target = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
         >>> moved = target @ rotation_z(np.array([0.7]))[0].T + 3.0
         >>> loss, gradient = aligned_distance(moved, target)

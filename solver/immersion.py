@@ -15,21 +15,11 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
-from .constraints import Constraints
-from .energy_weights import HARD_FRAME_WEIGHT
-from .errors import ConstraintError, TriangleInequalityError
-from .form_energy import Handles
-from .frames import (
-    face_edge_lengths,
-    layout_frames,
-    triangle_inequality_error,
-    triangle_inequality_violations,
-)
-from .integrability import integrate_along_forests, integration_forests
-from .layout_fit import LayoutFit
-from .options import COTAN_FLOOR, FRAME_WEIGHT
-from .rotations import nearest_rotation
-from .system import (
+from .core.errors import ConstraintError, TriangleInequalityError
+from .linear.constraints import Constraints
+from .linear.integrability import integrate_along_forests, integration_forests
+from .linear.layout_fit import LayoutFit
+from .linear.system import (
     WEIGHTINGS,
     ConstrainedSystem,
     EnergyTerms,
@@ -43,7 +33,17 @@ from .system import (
     normal_matrix,
     unknown_groups,
 )
-from .topology import MeshTopology
+from .mesh.frames import (
+    face_edge_lengths,
+    layout_frames,
+    triangle_inequality_error,
+    triangle_inequality_violations,
+)
+from .mesh.rotations import nearest_rotation
+from .mesh.topology import MeshTopology
+from .options import COTAN_FLOOR, FRAME_WEIGHT
+from .refine.energy_weights import HARD_FRAME_WEIGHT
+from .refine.form_energy import Handles
 
 REGULARIZATION = 1e-6
 EXACT_TOLERANCE = 1e-10  # residual rows (normalized lengths) accepted without a solve
@@ -54,7 +54,7 @@ class ImmersionProblem:
 
     Attributes:
         terms: layouts, coefficients, rotations, weights.
-        A, row_weights, row_kind: the residual operator (see :mod:`solver.system`).
+        A, row_weights, row_kind: the residual operator (see :mod:`solver.linear.system`).
         K: (N, N) normal matrix, N = n + 3 m (assembled lazily).
         length_scale: lengths were divided by it; solutions are multiplied back.
     """
@@ -311,7 +311,7 @@ class ImmersionProblem:
             frame_weights=np.where(frame_hard, HARD_FRAME_WEIGHT, constraints.frame_weights))
 
     def layout_fit(self, constraints: Constraints, backend: str = "auto") -> LayoutFit:
-        """The refinement's start (:class:`solver.layout_fit.LayoutFit`) for validated user
+        """The refinement's start (:class:`solver.linear.layout_fit.LayoutFit`) for validated user
         constraints: hard positions fixed, soft ones pulled with their weights."""
         hard = np.isinf(constraints.position_weights)
         return LayoutFit(self.topology, self.terms.layouts * self.length_scale,

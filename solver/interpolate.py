@@ -7,7 +7,7 @@ blended forms of two poses do not integrate, and the linear answer alone shrinks
 from whichever of the linear answer and the vertex blend ``(1 - t) A + t B`` is nearer to
 them; a list of t is solved as a sequence (:mod:`solver.shape_space`). The result is rigidly
 aligned (rotation + translation, no scale) to the vertex blend so it sits where a user
-expects it. A non-manifold mesh is blended on its manifold cut (:mod:`solver.manifold`).
+expects it. A non-manifold mesh is blended on its manifold cut (:mod:`solver.mesh.manifold`).
 """
 
 from __future__ import annotations
@@ -18,12 +18,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .errors import ShapeMismatchError
-from .manifold import manifold_topology
+from .core.errors import ShapeMismatchError
+from .core.validation import as_points
+from .mesh.manifold import manifold_topology
 from .options import BlendOptions, InterpolateOptions
 from .reports import Progress
 from .shape_space import blend
-from .validation import as_points
 
 __all__ = ["interpolate", "two_shape_weights"]
 
@@ -82,7 +82,7 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
         raise ShapeMismatchError(f"vertices_b has shape {B.shape}, vertices_a {A.shape}",
                                  field="vertices_b")
     cut = manifold_topology(faces, A)[0]
-    if not cut.is_identity:  # a non-manifold mesh: blended on its cut (solver.manifold)
+    if not cut.is_identity:  # a non-manifold mesh: blended on its cut (solver.mesh.manifold)
         blended = interpolate(cut.to_cut(A), cut.to_cut(B), cut.faces, t, options=opts,
                               return_reports=True, progress=progress)
         out = np.asarray(blended[0])

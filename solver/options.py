@@ -31,10 +31,10 @@ from typing import Any, Literal, Self
 
 import numpy as np
 
-from .energy_weights import ANGLE_WEIGHT, AREA_WEIGHT, DEFORM_ANGLE_WEIGHT
-from .errors import SolverInputError
+from .core.errors import SolverInputError
 from .linalg import BACKENDS
-from .system import Weighting
+from .linear.system import Weighting
+from .refine.energy_weights import ANGLE_WEIGHT, AREA_WEIGHT, DEFORM_ANGLE_WEIGHT
 
 FRAME_WEIGHT = 1000.0
 """Default relative weight w of the frame term E_f of Eq. 5 (the paper's value)."""
@@ -204,7 +204,8 @@ class DeformOptions(OrthonormalizeOptions):
     """Options of :func:`solver.deform` and :class:`solver.Deformer`.
 
     Two defaults differ from the other operations, declared here: ``angle_weight`` is
-    :data:`solver.energy_weights.DEFORM_ANGLE_WEIGHT` (the targets are the rest forms: stiffer
+    :data:`solver.refine.energy_weights.DEFORM_ANGLE_WEIGHT` (the targets are the rest forms:
+    stiffer
     bending, smoother shapes), and a :class:`solver.Deformer` reads ``refine=None`` as off
     (an interactive client answers each drag's linear shape first and refines it after,
     :meth:`solver.Deformer.refine_last`); :func:`solver.deform` reads it as auto.
@@ -236,7 +237,7 @@ class ParameterizeOptions(OrthonormalizeOptions):
         gt=0.0, le=10.0)
     crease_weight: float = option(
         4.0, "How much more a bent edge costs a seam's growth than a flat one (the dual "
-        "graph's 1 + w (1 - cos dihedral), solver.charts).", served=False)
+        "graph's 1 + w (1 - cos dihedral), solver.mesh.charts).", served=False)
 
 
 @dataclasses.dataclass(frozen=True)

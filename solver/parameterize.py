@@ -2,7 +2,7 @@
 
 One chart where the mesh flattens well as one (today's layout), else an atlas: charts cut
 along seams (:mod:`solver.atlas`), each flattened by :mod:`solver.chart_flattening`, packed
-into the unit square (:mod:`solver.packing`). This module measures and reports the answer.
+into the unit square (:mod:`solver.mesh.packing`). This module measures and reports the answer.
 """
 
 from __future__ import annotations
@@ -15,14 +15,18 @@ from numpy.typing import ArrayLike
 
 from .atlas import ChartLayout, assemble, chart_layouts, mean_length_change, overlaps_itself
 from .chart_flattening import ChartFlattening, flatten_chart, relative_length_change
-from .charts import is_disk_like, seam_edges
-from .errors import TopologyError
-from .forms import fundamental_forms, zero_area_faces
-from .manifold import ManifoldCut, manifold_topology
-from .metrics import corner_angles, histogram, summary
-from .options import ParameterizeOptions
-from .outcomes import with_outcome
-from .packing import (
+from .core.errors import TopologyError
+from .core.serialization import JsonDataclass
+from .core.validation import as_points
+from .core.warnings import (
+    as_report,
+    flattening_warnings,
+)
+from .mesh.charts import is_disk_like, seam_edges
+from .mesh.forms import fundamental_forms, zero_area_faces
+from .mesh.manifold import ManifoldCut, manifold_topology
+from .mesh.metrics import corner_angles, histogram, summary
+from .mesh.packing import (
     Packed,
     PackingRules,
     boundary_crossings,
@@ -31,15 +35,11 @@ from .packing import (
     packing_efficiency,
     signed_areas,
 )
+from .mesh.topology import MeshTopology, build_topology
+from .options import ParameterizeOptions
 from .reconstruct import Progress
+from .refine.outcomes import with_outcome
 from .reports import ParameterizeReport, Stages
-from .serialization import JsonDataclass
-from .topology import MeshTopology, build_topology
-from .validation import as_points
-from .warnings import (
-    as_report,
-    flattening_warnings,
-)
 
 
 @dataclass
@@ -94,7 +94,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
     and its mean relative length change is at most twice ``max_chart_distortion``.
     Otherwise (closed surfaces, handles, several parts, too much distortion)
     :func:`chart_layouts` cuts it into charts, each flattened by the same method, and
-    :func:`solver.packing.pack_charts` packs them. ``seams="none"``: one chart per
+    :func:`solver.mesh.packing.pack_charts` packs them. ``seams="none"``: one chart per
     component as before (a closed component is refused).
 
     Args:
@@ -131,7 +131,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
     """
     opts = ParameterizeOptions.given(options, overrides)
     cut = manifold_topology(faces, as_points(vertices, "vertices"))[0]
-    if not cut.is_identity:  # a non-manifold mesh: flattened on its cut (solver.manifold)
+    if not cut.is_identity:  # a non-manifold mesh: flattened on its cut (solver.mesh.manifold)
         return _on_file_vertices(parameterize(cut.to_cut(as_points(vertices, "vertices")),
                                               cut.faces, options=opts, progress=progress), cut)
     stages = Stages(progress)
@@ -176,7 +176,7 @@ again by the bisection alone and the atlas that packs better is kept (bench/flat
 the torus 0.338 -> 0.478, the cylinder 0.407 -> 0.557, the beetle 0.356 -> 0.473, the
 koala 0.457 -> 0.619 (odedstein/meshes); every
 other measured atlas covers 0.5 or more). Above
-:attr:`solver.warnings.WarningRules.min_packing_efficiency` (0.4): an atlas is charted
+:attr:`solver.core.warnings.WarningRules.min_packing_efficiency` (0.4): an atlas is charted
 again before it would warn."""
 
 

@@ -15,23 +15,23 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .constraints import Constraints
-from .errors import ConstraintError
-from .form_energy import FormTargets, reproduces, well_shaped_errors
-from .forms import flat_faces, validate_forms, wrapped_angle_count
+from .core.errors import ConstraintError
+from .core.serialization import JsonDataclass
+from .core.validation import as_points
+from .core.warnings import as_report, refinement_warnings
 from .immersion import ImmersionProblem
-from .integrability import integrability_from_terms
 from .linalg import resolve_backend
-from .manifold import ManifoldCut
+from .linear.constraints import Constraints
+from .linear.integrability import integrability_from_terms
+from .mesh.forms import flat_faces, validate_forms, wrapped_angle_count
+from .mesh.manifold import ManifoldCut
+from .mesh.placement import Placement, apply_placement, side_by_side
+from .mesh.rotations import nearest_rotation
 from .options import ReconstructOptions
-from .outcomes import not_refined
-from .placement import Placement, apply_placement, side_by_side
-from .refine import Refiner
+from .refine.form_energy import FormTargets, reproduces, well_shaped_errors
+from .refine.outcomes import not_refined
+from .refine.refiner import Refiner
 from .reports import Progress, ReconstructReport, Stages
-from .rotations import nearest_rotation
-from .serialization import JsonDataclass
-from .validation import as_points
-from .warnings import as_report, refinement_warnings
 
 
 @dataclass
@@ -101,7 +101,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     ``options.exact_shortcut``; otherwise K is factorized. ``options.orthonormalize``
     projects the frames to rotations and solves again with them as soft targets (Sec. 4);
     ``options.refine`` fits the nearest surface when the linear answer does not reproduce
-    the forms (:mod:`solver.refine`, started from :mod:`solver.layout_fit`).
+    the forms (:mod:`solver.refine`, started from :mod:`solver.linear.layout_fit`).
 
     Args:
         faces: (m, 3) int, counter-clockwise.
@@ -124,7 +124,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             non-manifold mesh, :func:`solver.fundamental_forms`): the answer is given per
             file vertex, the mean of its copies, their spread in ``report["input"]["cut"]``
             (``n_vertices`` is then the file's vertex count).
-        placement: the forms' component placement (:class:`solver.placement.Placement` or
+        placement: the forms' component placement (:class:`solver.mesh.placement.Placement` or
             its dict): each component without constraints is moved rigidly so that its
             anchor face has that pose (a multi-part round trip is exact as a whole);
             without it each component is anchored at the origin and the anchored

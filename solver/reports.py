@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .budget import Budget
-from .serialization import JsonDataclass, to_jsonable
+from .core.budget import Budget
+from .core.serialization import JsonDataclass, to_jsonable
 
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: a stage (validate, assemble, factorize, solve, refine)
@@ -56,13 +56,13 @@ class Stages:
         self._clock = now
 
     def budget(self, max_seconds: float | None) -> Budget:
-        """The operation's :class:`~solver.budget.Budget` of ``max_seconds`` (None: no
+        """The operation's :class:`~solver.core.budget.Budget` of ``max_seconds`` (None: no
         limit), counted from its start."""
         return Budget(max_seconds, self.started)
 
     def left(self, max_seconds: float | None) -> float | None:
         """Seconds left (at least 0) of a budget of ``max_seconds`` from the start (None: no
-        budget): :meth:`budget`'s :meth:`~solver.budget.Budget.left`."""
+        budget): :meth:`budget`'s :meth:`~solver.core.budget.Budget.left`."""
         return self.budget(max_seconds).left()
 
 
@@ -83,8 +83,8 @@ def mesh_summary(vertices: ArrayLike, faces: ArrayLike,
         >>> report["n_edges"], report["bounds"]
         (3, [[0.0, 0.0, 0.0], [2.0, 1.0, 0.0]])
     """
-    from .manifold import manifold_topology
-    from .validation import as_points
+    from .core.validation import as_points
+    from .mesh.manifold import manifold_topology
 
     points = as_points(vertices, "vertices")
     cut, topology = manifold_topology(faces, points)  # a non-manifold mesh: as its cut
@@ -125,7 +125,7 @@ class Report(JsonDataclass, Mapping[str, Any]):
         return sum(1 for _ in self)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready data: the present sections (:func:`solver.serialization.to_jsonable`)."""
+        """JSON-ready data: the present sections (:func:`solver.core.serialization.to_jsonable`)."""
         return {name: to_jsonable(getattr(self, name)) for name in self}
 
     @classmethod
@@ -154,11 +154,11 @@ class ReconstructReport(Report):
         isolated_vertices: vertices in no face.
         integrability: the integrability summary (None: not checked).
         vjp: :func:`solver.reconstruct_vjp`'s preparation (None otherwise).
-        warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
+        warnings: thresholds the answer is past (:mod:`solver.core.warnings`; [] when none).
         input: what was done to the input to solve it (``wrapped_angles``: angles given
             outside (-pi, pi] and wrapped; ``zero_area_faces``: faces whose lengths give
-            zero area, laid out as segments, :func:`solver.forms.flat_faces`; a
-            non-manifold mesh's cut, see :mod:`solver.manifold`).
+            zero area, laid out as segments, :func:`solver.mesh.forms.flat_faces`; a
+            non-manifold mesh's cut, see :mod:`solver.mesh.manifold`).
     """
 
     energy: dict[str, float]
@@ -194,12 +194,12 @@ class DeformReport(Report):
         roi_faces: faces of the system (those touching the region of interest).
         orthonormalized: whether the second solve of Sec. 4 ran.
         refinement: whether and how it refined.
-        distortion: :func:`solver.metrics.distortion` against the rest mesh (compact).
-        warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
+        distortion: :func:`solver.mesh.metrics.distortion` against the rest mesh (compact).
+        warnings: thresholds the answer is past (:mod:`solver.core.warnings`; [] when none).
         input: what was done to the input (``cut``: a non-manifold mesh's manifold cut,
-            :mod:`solver.manifold`, with the spread of the copies; ``zero_area_faces``: rest
+            :mod:`solver.mesh.manifold`, with the spread of the copies; ``zero_area_faces``: rest
             faces with collinear corners, whose normals follow
-            :func:`solver.forms.degenerate_normals`); None: nothing.
+            :func:`solver.mesh.forms.degenerate_normals`); None: nothing.
     """
 
     timings: Timings
@@ -221,7 +221,7 @@ class ParameterizeReport(Report):
     Attributes:
         flipped_count: faces whose uv orientation is reversed.
         area_ratio_summary, angle_distortion_summary, length_change_summary: summaries
-            (:func:`solver.metrics.summary`) of uv/3D area - 1, corner-angle change and
+            (:func:`solver.mesh.metrics.summary`) of uv/3D area - 1, corner-angle change and
             relative edge-length change.
         angle_distortion_histogram, length_change_histogram: their histograms.
         planarity_error: max |z| of the linear answer (0 in exact arithmetic).
@@ -230,9 +230,9 @@ class ParameterizeReport(Report):
         anchored_components: ``{"component", "vertex", "face"}`` of each component.
         backend, analysis: the factorization's.
         timings: seconds per stage.
-        warnings: thresholds the answer is past (:mod:`solver.warnings`; [] when none).
+        warnings: thresholds the answer is past (:mod:`solver.core.warnings`; [] when none).
         input: what was done to the input (``cut``: a non-manifold mesh's manifold cut,
-            :mod:`solver.manifold`: a cut vertex is one more uv index; ``zero_area_faces``:
+            :mod:`solver.mesh.manifold`: a cut vertex is one more uv index; ``zero_area_faces``:
             faces with collinear corners); None: nothing.
         atlas: ``charts``, ``seam_edges``, ``seam_length`` (input units),
             ``packing_efficiency`` (fraction of the unit square covered), ``padding``

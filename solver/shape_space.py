@@ -34,20 +34,20 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .budget import Budget
-from .errors import ShapeMismatchError, TriangleInequalityError
-from .form_energy import FormTargets, form_residuals
-from .forms import Forms, fundamental_forms
-from .frames import face_edge_lengths, triangle_inequality_violations
-from .metrics import wrap_angle
+from .core.budget import Budget
+from .core.errors import ShapeMismatchError, TriangleInequalityError
+from .core.validation import as_points
+from .core.warnings import AnswerWarning, as_report, residual_warnings, time_limit_warning
+from .mesh.forms import Forms, fundamental_forms
+from .mesh.frames import face_edge_lengths, triangle_inequality_violations
+from .mesh.metrics import wrap_angle
+from .mesh.placement import align_components
+from .mesh.topology import MeshTopology, build_topology
 from .options import BlendOptions, ReconstructOptions
-from .placement import align_components
 from .reconstruct import reconstruct
-from .refine import Refiner
+from .refine.form_energy import FormTargets, form_residuals
+from .refine.refiner import Refiner
 from .reports import Progress, Stages
-from .topology import MeshTopology, build_topology
-from .validation import as_points
-from .warnings import AnswerWarning, as_report, residual_warnings, time_limit_warning
 
 WEIGHT_SUM_TOLERANCE = 1e-9
 """Largest ``|sum_k w_k - 1|`` of a row of weights (affine combinations only)."""
@@ -103,7 +103,7 @@ class ShapeSet:
 
 def shape_set(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None = None) -> ShapeSet:
     """The :class:`ShapeSet` of ``shapes``: K embeddings (n, 3) of ``faces`` (or a (K, n, 3)
-    array), or K :class:`solver.forms.Forms` of one connectivity (``faces`` then unused).
+    array), or K :class:`solver.mesh.forms.Forms` of one connectivity (``faces`` then unused).
 
     Raises:
         ShapeMismatchError: fewer than one or more than :data:`MAX_SHAPES` shapes, shapes of
@@ -141,7 +141,7 @@ def shape_set(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None = None
 
 def _from_forms(items: list[Forms]) -> ShapeSet:
     """The :class:`ShapeSet` of K forms with one connectivity (no vertices)."""
-    from .forms import validate_forms
+    from .mesh.forms import validate_forms
 
     first = items[0]
     topology, _, _ = validate_forms(first.faces, first.edges, first.lengths, first.angles)
@@ -193,7 +193,7 @@ def affine_weights(weights: ArrayLike, count: int) -> np.ndarray:
 
 def aligned(source: np.ndarray, target: np.ndarray, topology: MeshTopology) -> np.ndarray:
     """``source`` (n, 3) with each connected part moved rigidly onto the same vertices of
-    ``target`` (n, 3) (:func:`solver.placement.align_components`): a multi-part blend keeps
+    ``target`` (n, 3) (:func:`solver.mesh.placement.align_components`): a multi-part blend keeps
     every part where its vertex blend puts it."""
     return align_components(source, target, topology.vertex_component)
 
@@ -212,7 +212,7 @@ class Blend:
             whose log-space lengths violate a triangle inequality of a nearly degenerate
             face: :meth:`ShapeSet.arithmetic_lengths`), ``refinement``
             (:class:`solver.refine.Refinement`'s report, its ``start``), ``form_error``
-            (:func:`solver.form_energy.form_residuals` of the answer against the row's
+            (:func:`solver.refine.form_energy.form_residuals` of the answer against the row's
             blended forms), ``warnings`` (:func:`row_warnings`) and ``seconds``.
         timings: stage -> seconds (``validate``, ``rows``).
     """
@@ -231,7 +231,7 @@ class Blend:
 
 
 def row_warnings(report: dict[str, Any]) -> list[AnswerWarning | None]:
-    """The warnings of one row's report (:mod:`solver.warnings`, the thresholds every
+    """The warnings of one row's report (:mod:`solver.core.warnings`, the thresholds every
     operation uses): the largest length and dihedral-angle errors its answer leaves against
     the row's blended forms (``form_error``; blended forms of different poses do not
     integrate, so a row past them is a blend the shapes cannot make nearly isometrically,
@@ -404,7 +404,7 @@ def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
 
     Args:
         shapes: K embeddings (n, 3) of ``faces`` (or a (K, n, 3) array), or K
-            :class:`solver.forms.Forms` of one connectivity (then the answers are not
+            :class:`solver.mesh.forms.Forms` of one connectivity (then the answers are not
             aligned: they sit where the reconstruction's anchors put them).
         weights: (K,) or (T, K) affine weights (each row sums to 1; negative weights
             extrapolate).

@@ -25,8 +25,8 @@ def _library_errors() -> tuple[Any, Any]:
     """The library's input errors: ``(SolverInputError, MeshFileError)``, or two empty
     tuples (which ``isinstance`` matches with nothing) where only the client is installed."""
     try:
-        from solver.errors import SolverInputError
-        from solver.io import MeshFileError
+        from solver.core.errors import SolverInputError
+        from solver.mesh.io import MeshFileError
     except ImportError:  # pragma: no cover - the client without the library
         return (), ()
     return SolverInputError, MeshFileError

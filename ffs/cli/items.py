@@ -20,9 +20,9 @@ OUTPUT_FORMATS = {"forms": ("json", "npz"), "check": ("json",), "vjp": ("json", 
 
 def mesh_outputs() -> tuple[str, ...]:
     """What a mesh result is written as (``--format`` or the extension): the formats the
-    library writes (:data:`solver.formats.SAVE_FORMATS`), ``json`` and ``npz``. Imports the
+    library writes (:data:`solver.mesh.formats.SAVE_FORMATS`), ``json`` and ``npz``. Imports the
     library: call it after the BLAS thread variables are set."""
-    from solver.formats import SAVE_FORMATS
+    from solver.mesh.formats import SAVE_FORMATS
 
     return (*SAVE_FORMATS, "json", "npz")
 

@@ -3,7 +3,7 @@
 A synchronous request (``FFS_REQUEST_TIMEOUT``) and a job (``FFS_JOB_TIMEOUT``) get a
 wall-clock deadline when they are submitted, less a margin for encoding and sending the
 answer (:meth:`TimePolicy.deadline`); the worker turns it, with an explicit
-``options.max_seconds``, into the solver's :class:`~solver.budget.Budget`
+``options.max_seconds``, into the solver's :class:`~solver.core.budget.Budget`
 (:meth:`TimePolicy.solver_budget`). A progressive session refines each drag for
 ``options.max_seconds``, else ``FFS_SESSION_SOLVE_TIMEOUT`` (:meth:`TimePolicy.drag_budget`).
 
@@ -19,7 +19,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-from solver.budget import Budget
+from solver.core.budget import Budget
 
 
 @dataclass(frozen=True)

@@ -227,7 +227,7 @@ _REPORT_EXAMPLE = {"integrability": {"integrable": True, "max_defect": 5.2e-16,
 
 
 class AnswerWarningDocument(BaseModel):
-    """A threshold the answer is past (``solver.warnings.AnswerWarning``)."""
+    """A threshold the answer is past (``solver.core.warnings.AnswerWarning``)."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"code": "length-error", "value": 1.308, "limit": 0.05,

@@ -11,7 +11,7 @@ and the HTTP edge (:mod:`service.http.problems`) renders it as an RFC 9457 docum
      "errors": [{"field": "faces", "index": 17, "reason": "index 9001 out of range [0, 100)"}]}
 
 Every exception becomes a problem in one place, :func:`problem_of`: a
-:class:`solver.errors.SolverInputError` is the problem of its ``kind`` (422 for the array
+:class:`solver.core.errors.SolverInputError` is the problem of its ``kind`` (422 for the array
 checks, 400 ``unreadable-file``, 415 ``unsupported-file-type``, 422 ``singular-system`` and
 ``invalid-option``) naming its element, anything unexpected a 500 that shows nothing of it.
 A failure leaves a worker process as a plain dict, "a failure": the problem document
@@ -26,7 +26,7 @@ import re
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
-from solver.errors import ERROR_KINDS, SolverInputError
+from solver.core.errors import ERROR_KINDS, SolverInputError
 
 PROBLEM_BASE = "/problems/"
 
@@ -287,9 +287,9 @@ def problem_of(exc: BaseException) -> ProblemError:
 
     Returns:
         ``exc`` itself for a :class:`ProblemError`; for a
-        :class:`~solver.errors.SolverInputError` the problem of its ``kind`` (its status
+        :class:`~solver.core.errors.SolverInputError` the problem of its ``kind`` (its status
         from :data:`PROBLEM_KINDS`) whose ``detail`` is the error's message and whose one
-        ``errors`` item is :meth:`~solver.errors.SolverInputError.element`; 413
+        ``errors`` item is :meth:`~solver.core.errors.SolverInputError.element`; 413
         ``mesh-too-large`` for a :class:`MemoryError`; otherwise a 500 ``internal-error``
         that shows nothing of it (``exc`` is logged here, with its traceback).
     """

@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from solver import options as solver_options
 from solver.options import MAX_WEIGHT
-from solver.stopping import StopReason, describe_stop_reasons
+from solver.refine.stopping import StopReason, describe_stop_reasons
 
 # ---------------------------------------------------------------------------- examples
 
@@ -42,7 +42,7 @@ Operation = Literal["reconstruct", "deform", "parameterize", "integrability", "f
 ColorField = Literal["defect", "distortion"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 StopReasonName = Literal[*(reason.value for reason in StopReason)]  # type: ignore[valid-type]
-"""A refinement report's ``stop_reason`` (:class:`solver.stopping.StopReason`)."""
+"""A refinement report's ``stop_reason`` (:class:`solver.refine.stopping.StopReason`)."""
 STOP_REASONS_TEXT = describe_stop_reasons()
 """Every stop reason and its meaning, in words."""
 
@@ -133,7 +133,7 @@ class MeshParams(ApiModel):
 
 
 class PlacementModel(ApiModel):
-    """The rigid placement of each connected component (``solver.placement``): the pose
+    """The rigid placement of each connected component (``solver.mesh.placement``): the pose
     of its anchor face (its lowest-numbered face) when the forms were computed."""
 
     model_config = _example({"faces": [0], "origins": [[0.0, 0.0, 0.0]],

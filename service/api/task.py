@@ -44,7 +44,7 @@ class FormsArrays:
     vertex_map: np.ndarray | None = None
     """The cut's file vertex of each vertex (forms of a non-manifold mesh), or None."""
     placement: Any = None
-    """The components' placement (:class:`solver.placement.Placement` or its dict), or None."""
+    """The components' placement (:class:`solver.mesh.placement.Placement` or its dict), or None."""
 
 
 @dataclass(frozen=True)

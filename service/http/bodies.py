@@ -290,8 +290,8 @@ async def upload(file: UploadFile, field: str) -> MeshFile:
         ProblemError: 415 ``unsupported-file-type`` for an unknown type, 400
             ``unreadable-file`` for an empty file.
     """
-    from solver.errors import UnsupportedFormatError
-    from solver.formats import LOAD_FORMATS, resolve_format
+    from solver.core.errors import UnsupportedFormatError
+    from solver.mesh.formats import LOAD_FORMATS, resolve_format
 
     name = file.filename or ""
     try:

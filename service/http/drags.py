@@ -63,7 +63,7 @@ def parse_drag_binary(data: bytes, n_handles: int,
     if len(values) == n_pos:
         rotations = None
     elif n_groups and len(values) == n_pos + 9 * n_groups:
-        from solver.rotations import is_rotation, nearest_rotation
+        from solver.mesh.rotations import is_rotation, nearest_rotation
 
         rotations = values[n_pos:].reshape(n_groups, 3, 3)
         _check_finite(rotations.reshape(n_groups, 9), "handle_rotations")

@@ -25,7 +25,7 @@ from starlette.routing import Match
 
 from service.api.problems import ProblemError, from_validation_errors, problem_of
 from service.backends import errors as backend
-from solver.errors import SolverInputError
+from solver.core.errors import SolverInputError
 
 logger = logging.getLogger("service")
 

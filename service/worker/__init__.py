@@ -4,5 +4,5 @@
   dispatch itself is :func:`service.operations.run`);
 * :mod:`~service.worker.tasks`: the operations' task functions, calling :mod:`solver`;
 * :mod:`~service.worker.session`: a deformation session's warm state;
-* :mod:`~service.worker.output`: response bodies (JSON, glTF via :mod:`solver.gltf`).
+* :mod:`~service.worker.output`: response bodies (JSON, glTF via :mod:`solver.mesh.gltf`).
 """

@@ -1,5 +1,5 @@
 """Response bodies: JSON via orjson and meshes via the library's glTF writer
-(:mod:`solver.gltf`).
+(:mod:`solver.mesh.gltf`).
 
 Used in the worker processes (synchronous requests are encoded where they are solved) and in
 the main process (job results fetched later with another ``Accept`` or ``?color=``).
@@ -13,7 +13,7 @@ import numpy as np
 import orjson
 
 from ffs_wire.arrays import json_default
-from solver import gltf
+from solver.mesh import gltf
 
 MEDIA_TYPES: Final[dict[str, str]] = {"json": "application/json", "glb": "model/gltf-binary",
                                       "gltf": "model/gltf+json",
@@ -43,7 +43,7 @@ def colors_for(values: np.ndarray | None) -> np.ndarray | None:
         values: (n,) float per-vertex scalars, or None.
 
     Returns:
-        (n, 4) float32 linear RGBA (:func:`solver.gltf.color_ramp`); None for None.
+        (n, 4) float32 linear RGBA (:func:`solver.mesh.gltf.color_ramp`); None for None.
     """
     return None if values is None else gltf.color_ramp(np.asarray(values, dtype=np.float64))
 
@@ -80,7 +80,7 @@ def mesh_bytes(fmt: str, vertices: np.ndarray, faces: np.ndarray,
         texcoords: (n, 2) float uv written as ``TEXCOORD_0``, or None.
 
     Returns:
-        The glTF 2.0 asset (:func:`solver.gltf.encode_gltf`).
+        The glTF 2.0 asset (:func:`solver.mesh.gltf.encode_gltf`).
 
     Raises:
         ValueError: ``fmt`` is neither ``glb`` nor ``gltf``.

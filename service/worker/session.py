@@ -139,7 +139,7 @@ class SessionState:
         every refinement progresses); the refined shape once it
         converged, stopped otherwise, or spent :attr:`refine_seconds` or the refinement's
         iteration limit in all; None while it goes on (call again)."""
-        from solver.stopping import DEFAULT_STOP_RULES
+        from solver.refine.stopping import DEFAULT_STOP_RULES
 
         max_iterations = DEFAULT_STOP_RULES.max_iterations
 

@@ -4,7 +4,7 @@ Each takes a :class:`service.api.task.TaskRequest` whose source is decoded (nump
 an uploaded file) and a ``progress(stage, fraction)`` callback, calls :mod:`solver`, and
 returns a :class:`service.api.task.TaskResult` with the response body in the requested
 format. Client-caused failures raise :class:`service.api.problems.ProblemError` or the
-solver's :class:`solver.errors.SolverInputError` (a mesh file's names the upload), turned
+solver's :class:`solver.core.errors.SolverInputError` (a mesh file's names the upload), turned
 into the failure the worker sends by :func:`service.api.problems.failure_of`. The registry
 (:data:`service.operations.OPERATIONS`) names the task of each operation.
 """
@@ -32,7 +32,7 @@ from service.api.task import (
     TaskResult,
 )
 from service.worker import output
-from solver import gltf
+from solver.mesh import gltf
 
 Progress = Callable[[str, float], None]
 TaskFn = Callable[[TaskRequest, Progress], TaskResult]
@@ -49,8 +49,8 @@ def _load_file(upload: MeshFile, request: TaskRequest) -> tuple[np.ndarray, np.n
 def _read_file(upload: MeshFile, request: TaskRequest
                ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """An upload's vertices, triangles and the ``input`` report of its reading (polygons
-    triangulated, :func:`solver.io.read_mesh`)."""
-    from solver.io import MeshFileError, read_mesh
+    triangulated, :func:`solver.mesh.io.read_mesh`)."""
+    from solver.mesh.io import MeshFileError, read_mesh
 
     try:
         loaded = read_mesh(upload.data, upload.filename)
@@ -84,7 +84,7 @@ def _with_input(report: dict[str, Any], read: dict[str, Any]) -> dict[str, Any]:
 
 def _forms(request: TaskRequest) -> tuple[FormsArrays, int | None]:
     """Forms from the request (computed from the mesh for a file upload) and n_vertices;
-    a non-manifold mesh's forms carry the cut's ``vertex_map`` (solver.manifold)."""
+    a non-manifold mesh's forms carry the cut's ``vertex_map`` (solver.mesh.manifold)."""
     if isinstance(request.source, FormsArrays):
         params = request.params
         vertex_map = params.get("vertex_map")

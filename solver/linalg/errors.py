@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from ..errors import SolverInputError
+from ..core.errors import SolverInputError
 
 
 class BackendUnavailableError(SolverInputError, ImportError):
     """A known backend whose library cannot be loaded in this environment.
 
-    It is both a :class:`~solver.errors.SolverInputError` (a bad ``backend`` argument, the
+    It is both a :class:`~solver.core.errors.SolverInputError` (a bad ``backend`` argument, the
     ``solver`` option) and an :class:`ImportError` (a missing optional dependency); the
     message names the pip package to install.
     """
@@ -23,7 +23,7 @@ class SingularSystemError(SolverInputError, RuntimeError):
     """The matrix is singular or not positive definite.
 
     Raised when the factorization fails, or when a solve produces a non-finite or
-    inaccurate result. A :class:`~solver.errors.SolverInputError` naming ``constraints``:
+    inaccurate result. A :class:`~solver.core.errors.SolverInputError` naming ``constraints``:
     the constraints given (or their absence) leave the system singular.
     """
 

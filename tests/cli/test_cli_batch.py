@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 import solver
-from solver.io import load_mesh_file, save_mesh
+from solver.mesh.io import load_mesh_file, save_mesh
 from tests.helpers.meshes import grid
 
 N_GOOD = 20

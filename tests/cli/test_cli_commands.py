@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 import solver
-from solver.io import load_mesh_file
+from solver.mesh.io import load_mesh_file
 from tests.helpers import REPO
 from tests.helpers.servers import free_port
 from tests.helpers.service import rigid_error
@@ -144,7 +144,7 @@ def test_blend_writes_one_mesh_per_t(ffs, server, workdir):
     V, F = load_mesh_file(workdir / "decimated-knight.off")
     bent = V.copy()
     bent[:, 2] += 0.1 * np.sin(3 * V[:, 0])
-    (workdir / "bent.obj").write_bytes(solver.io.save_mesh(bent, F, "obj"))
+    (workdir / "bent.obj").write_bytes(solver.mesh.io.save_mesh(bent, F, "obj"))
     local, remote = run_both(ffs, server, workdir, "blend",
                              ["decimated-knight.off", "bent.obj"], "blend-{t}.ply",
                              "-t", "0", "0.5", "1")

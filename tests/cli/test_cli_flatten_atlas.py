@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import solver
-from solver.packing import signed_areas
+from solver.mesh.packing import signed_areas
 from tests.cli.test_cli_commands import run_both
 from tests.helpers.atlas import genus_two, overlapping_pixels
 from tests.helpers.gltf_validator import validate_gltf
@@ -38,7 +38,7 @@ def _obj_atlas(path):
 ])
 def test_flatten_writes_uv_obj_and_glb(ffs, server, workdir, name, make):
     V, F = make()
-    (workdir / f"{name}.obj").write_bytes(solver.io.save_mesh(V, F, "obj"))
+    (workdir / f"{name}.obj").write_bytes(solver.mesh.io.save_mesh(V, F, "obj"))
     local, remote = run_both(ffs, server, workdir, "flatten", [f"{name}.obj"], "out.obj")
     v, vt, f, f_vt = _obj_atlas(local)
     np.testing.assert_allclose(v, V, rtol=0, atol=1e-12)
@@ -69,7 +69,7 @@ def test_multi_part_model_and_npz_arrays(ffs, server, workdir):
         faces.append(F + offset)
         offset += len(V)
     V, F = np.concatenate(vertices), np.concatenate(faces)
-    (workdir / "parts.obj").write_bytes(solver.io.save_mesh(V, F, "obj"))
+    (workdir / "parts.obj").write_bytes(solver.mesh.io.save_mesh(V, F, "obj"))
     local, remote = run_both(ffs, server, workdir, "flatten", ["parts.obj"], "parts.npz")
     for path in (local, remote):
         arrays = np.load(path)

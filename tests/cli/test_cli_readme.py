@@ -52,7 +52,7 @@ def test_readme_command_line_examples_run(tmp_path: Path, server: str):
                  "converted/torus.ply", "forms/face.npz", "rebuilt/decimated-knight.ply",
                  "rebuilt.json"):
         assert (tmp_path / name).stat().st_size > 0, name
-    from solver.io import load_mesh_file
+    from solver.mesh.io import load_mesh_file
 
     V, _ = load_mesh_file(REPO / "tests" / "data" / "face.off")
     W, _ = load_mesh_file(tmp_path / "face-deformed.ply")

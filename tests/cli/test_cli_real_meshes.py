@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from solver.io import load_mesh_file, save_mesh
+from solver.mesh.io import load_mesh_file, save_mesh
 from tests.helpers.meshes import rigid_alignment_error
 from tests.helpers.real_meshes import CASES, HAS_CLOSED_PART, diagonal
 

@@ -8,7 +8,7 @@ import json
 import numpy as np
 
 import solver
-from solver.io import load_mesh_file
+from solver.mesh.io import load_mesh_file
 from tests.cli.test_cli_commands import run_both
 from tests.helpers.gltf_validator import validate_gltf
 from tests.helpers.poses import bent_pose
@@ -20,7 +20,7 @@ def poses(workdir):
     V, F = load_mesh_file(workdir / "decimated-knight.off")
     P, Q = bent_pose(V, F, 0.5), bent_pose(V, F, -0.4, bend_axis=0)
     for name, X in (("p.obj", P), ("q.obj", Q)):
-        (workdir / name).write_bytes(solver.io.save_mesh(X, F, "obj"))
+        (workdir / name).write_bytes(solver.mesh.io.save_mesh(X, F, "obj"))
     return V, P, Q, F
 
 
@@ -85,7 +85,7 @@ def test_blend_rows_past_the_thresholds_warn_and_strict_exits_1(ffs, server, wor
     documented limit in the middle row: WARN in the summary, the row named on stderr, exit
     1 with --strict; locally and on the service, with the library's warning."""
     V, _, _, F = poses(workdir)
-    (workdir / "tall.obj").write_bytes(solver.io.save_mesh(V * [1.0, 1.0, 3.0], F, "obj"))
+    (workdir / "tall.obj").write_bytes(solver.mesh.io.save_mesh(V * [1.0, 1.0, 3.0], F, "obj"))
     (workdir / "w.json").write_text("[[1.0, 0.0], [0.5, 0.5]]")
     truth = solver.blend([V, V * [1.0, 1.0, 3.0]], [[1.0, 0.0], [0.5, 0.5]], F).warnings
     assert {w["code"] for w in truth} >= {"angle-error"} and {w["row"] for w in truth} == {1}

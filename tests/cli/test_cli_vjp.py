@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import solver
-from solver.io import load_mesh_file
+from solver.mesh.io import load_mesh_file
 
 
 def bent_forms(workdir, name: str, factor: float) -> solver.Forms:

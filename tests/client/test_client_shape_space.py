@@ -66,7 +66,7 @@ def test_blend_of_k_uploaded_files_and_its_row_warnings(server, poses, tmp_path)
     V, P, Q, F = poses
     paths = []
     for name, X in (("a.off", V), ("b.obj", P), ("c.ply", Q)):
-        (tmp_path / name).write_bytes(solver.io.save_mesh(X, F, name[-3:]))
+        (tmp_path / name).write_bytes(solver.mesh.io.save_mesh(X, F, name[-3:]))
         paths.append(tmp_path / name)
     weights = [[0.2, 0.5, 0.3], [-0.2, 0.6, 0.6]]
     with ffs.Client(server) as client:
@@ -74,7 +74,7 @@ def test_blend_of_k_uploaded_files_and_its_row_warnings(server, poses, tmp_path)
         np.testing.assert_allclose(rows.vertices, solver.blend([V, P, Q], weights, F).vertices,
                                    atol=1e-5)  # PLY holds float32
         assert rows.warnings == []
-        (tmp_path / "tall.off").write_bytes(solver.io.save_mesh(V * [1, 1, 3.0], F, "off"))
+        (tmp_path / "tall.off").write_bytes(solver.mesh.io.save_mesh(V * [1, 1, 3.0], F, "off"))
         rows = client.blend_files([paths[0], tmp_path / "tall.off"], [[0.5, 0.5], [0, 1]])
         truth = solver.blend([V, V * [1, 1, 3.0]], [[0.5, 0.5], [0, 1]], F).warnings
         assert [(w["row"], w["code"]) for w in rows.warnings] == [

@@ -102,7 +102,7 @@ def test_bad_cotangent_is_the_same_error_here_and_there(server):
     with ffs.Client(server) as client, pytest.raises(ffs.InvalidInputError) as remote:
         client.reconstruct_vjp(forms.faces, forms.edges, forms.lengths, forms.angles,
                                cotangent=bad)
-    with pytest.raises(solver.errors.SolverInputError) as local:
+    with pytest.raises(solver.core.errors.SolverInputError) as local:
         Local().reconstruct_vjp(forms.faces, forms.edges, forms.lengths, forms.angles,
                                 cotangent=bad)
     assert remote.value.pointer.endswith("cotangent") or "cotangent" in str(remote.value)

@@ -217,7 +217,7 @@ def with_tiny_edges(V: np.ndarray, F: np.ndarray, count: int, ratio: float = 1e-
     Returns (vertices (n + count, 3), faces (m + 2 count, 3)). The surface is unchanged, so
     its forms are integrable; only the sampling degenerates (edge-length ratios ~1 / ratio).
     """
-    from solver.topology import build_topology
+    from solver.mesh.topology import build_topology
 
     topo = build_topology(F, len(V))
     rng = np.random.default_rng(seed)
@@ -257,7 +257,7 @@ def with_zero_area_faces(V: np.ndarray, F: np.ndarray, count: int, seed: int = 0
 
     Returns (vertices (n + count, 3), faces (m + 2 count, 3)).
     """
-    from solver.topology import build_topology
+    from solver.mesh.topology import build_topology
 
     topo = build_topology(F, len(V))
     rng = np.random.default_rng(seed)
@@ -314,7 +314,7 @@ def with_noisy_angles(forms, seed: int = 1, sigma: float = 1e-3):
     ``default_rng(seed)`` added to the dihedral angles of the interior edges, in edge order
     (boundary angles stay 0): the noisy forms of the tests and of bench/."""
     import solver
-    from solver.topology import build_topology
+    from solver.mesh.topology import build_topology
 
     inner = build_topology(forms.faces).interior_edges
     angles = np.array(forms.angles, dtype=np.float64)

@@ -13,8 +13,8 @@ import pytest
 import trimesh
 
 from service.worker.output import MEDIA_TYPES
-from solver.errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
-from solver.gltf import (
+from solver.core.errors import IndexOutOfRangeError, NonFiniteValueError, ShapeMismatchError
+from solver.mesh.gltf import (
     color_ramp,
     encode_gltf,
     encode_gltf_binary,
@@ -227,7 +227,7 @@ def test_trimesh_round_trip(sphere: tuple[np.ndarray, np.ndarray], kind: str) ->
 
 
 def test_solver_io_round_trip(sphere: tuple[np.ndarray, np.ndarray]) -> None:
-    from solver.io import load_mesh
+    from solver.mesh.io import load_mesh
 
     v, f = sphere
     v2, f2 = load_mesh(encode_gltf_binary(v, f), "glb")
@@ -307,10 +307,10 @@ def test_input_errors(sphere: tuple[np.ndarray, np.ndarray]) -> None:
 @pytest.mark.parametrize("kind", ["glb", "gltf"])
 def test_the_librarys_files_are_the_same_writer_and_validator_clean(
         kind: str, sphere: tuple[np.ndarray, np.ndarray]) -> None:
-    """solver.io.save_mesh and solver.uv_files.textured_glb write through this one writer:
+    """solver.mesh.io.save_mesh and solver.mesh.uv_files.textured_glb write through this one writer:
     the same bytes as encode_gltf, no validator error or warning."""
-    from solver.io import save_mesh
-    from solver.uv_files import textured_glb
+    from solver.mesh.io import save_mesh
+    from solver.mesh.uv_files import textured_glb
 
     v, f = sphere
     data = save_mesh(v, f, kind)

@@ -9,7 +9,7 @@ import pytest
 
 from service.api.problems import PROBLEM_KINDS, ProblemError, failure_of
 from service.api.schemas import EXAMPLE_FORMS, EXAMPLE_MESH
-from solver.errors import ERROR_KINDS
+from solver.core.errors import ERROR_KINDS
 from tests.helpers.meshes import icosphere
 from tests.helpers.servers import running_app
 from tests.helpers.service import forms_json, mesh_json, problem

@@ -1,4 +1,4 @@
-"""Animated glTF of a blend sequence (solver.gltf.encode_gltf_animation): validated
+"""Animated glTF of a blend sequence (solver.mesh.gltf.encode_gltf_animation): validated
 by the Khronos validator, and its morph targets and keyframes read back from the bytes."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from solver import blend
-from solver.errors import SolverInputError
-from solver.gltf import encode_gltf_animation
+from solver.core.errors import SolverInputError
+from solver.mesh.gltf import encode_gltf_animation
 from tests.helpers.gltf_validator import issue_codes, validate_gltf
 from tests.helpers.meshes import load
 from tests.helpers.poses import bent_pose

@@ -18,7 +18,7 @@ import orjson
 import pytest
 
 from service.api.decoding import BINARY_MAGIC, BINARY_MEDIA_TYPE, binary_body
-from solver.io import save_mesh
+from solver.mesh.io import save_mesh
 from tests.helpers.meshes import bumpy_grid
 from tests.helpers.servers import uvicorn_server
 from tests.helpers.service import metric_value, problem

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import solver
-from solver.io import read_mesh, save_mesh
+from solver.mesh.io import read_mesh, save_mesh
 from tests.helpers.meshes import rigid_alignment_error
 from tests.helpers.real_meshes import CASES, HAS_CLOSED_PART, ZERO_AREA, diagonal
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import solver
-from solver.io import save_mesh
+from solver.mesh.io import save_mesh
 from tests.helpers.gltf_validator import issue_codes, validate_gltf
 from tests.helpers.meshes import load
 from tests.helpers.poses import bent_pose

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import solver
-from solver.io import load_mesh, save_mesh
+from solver.mesh.io import load_mesh, save_mesh
 from tests.helpers import DATA
 from tests.helpers.meshes import bumpy_grid
 from tests.helpers.service import problem, rigid_error

@@ -206,7 +206,7 @@ def test_callbacks_outside_the_allowed_hosts_are_refused_at_submission(http, rec
     assert doc["errors"][0]["field"] == "callback_url" and "callback_url" in doc["detail"]
     assert len(http.get("/v1/jobs").json()) == before  # no job was created
     V, F = icosphere(1)  # the form field of an upload too
-    from solver.io import save_mesh
+    from solver.mesh.io import save_mesh
 
     upload = http.post("/v1/jobs", data={"operation": "forms", "callback_url": body[
         "callback_url"]}, files={"file": ("m.off", save_mesh(V, F, "off"))})

@@ -16,7 +16,7 @@ from scipy.sparse.linalg import spsolve
 from solver import Deformer, fundamental_forms, linalg, reconstruct
 from solver.immersion import ImmersionProblem
 from solver.linalg import SingularSystemError, analysis_cache_info, factorize
-from solver.topology import build_topology
+from solver.mesh.topology import build_topology
 
 pytestmark = pytest.mark.skipif("pardiso" not in linalg.available_backends(),
                                 reason="PARDISO (pypardiso / mkl) not installed")

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from solver import parameterize
-from solver.charts import bisect, chart_mesh, connected_face_sets, dual_graph, is_disk_like
-from solver.forms import fundamental_forms
-from solver.packing import rasterized_overlap, signed_areas
-from solver.topology import build_topology
+from solver.mesh.charts import bisect, chart_mesh, connected_face_sets, dual_graph, is_disk_like
+from solver.mesh.forms import fundamental_forms
+from solver.mesh.packing import rasterized_overlap, signed_areas
+from solver.mesh.topology import build_topology
 from tests.helpers.atlas import euler_genus, genus_two, overlapping_pixels
 from tests.helpers.meshes import holed, icosphere, load, side_by_side
 
@@ -138,8 +138,8 @@ def test_a_spent_time_budget_still_cuts_closed_pieces_and_says_what_is_left():
 
 
 def test_a_one_chart_layout_that_crosses_itself_is_named():
-    from solver.packing import boundary_crossings
-    from solver.warnings import flattening_warnings
+    from solver.core.warnings import flattening_warnings
+    from solver.mesh.packing import boundary_crossings
 
     # A strip wound round past a full turn: no flipped face, its ends overlap.
     angle = np.linspace(0, 2.24 * np.pi, 30)
@@ -175,7 +175,7 @@ def test_a_hole_laid_out_inside_out_counts_as_overlap():
     overlap itself; the same ring with its hole's rim run the other way round (the hole
     inside out, as a boundary vertex whose angles pass a full turn leaves it) does."""
     from solver.atlas import overlaps_itself
-    from solver.packing import boundary_crossings, positive_loops
+    from solver.mesh.packing import boundary_crossings, positive_loops
 
     V = np.array([[0, 0], [3, 0], [3, 3], [0, 3], [1, 1], [2, 1], [2, 2], [1, 2]], float)
     F = np.array([[0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7],
@@ -189,7 +189,7 @@ def test_a_hole_laid_out_inside_out_counts_as_overlap():
 
 
 def test_xatlas_seeds_cover_every_face_once_in_edge_connected_sets():
-    from solver.charts import labelled_face_sets, xatlas_charts
+    from solver.mesh.charts import labelled_face_sets, xatlas_charts
 
     for V, F in (load("decimated-knight.off"), load("torus.off"), genus_two()):
         topology = build_topology(F, n_vertices=len(V))

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from solver import Deformer, deform, fundamental_forms
-from solver.errors import ConstraintError, IndexOutOfRangeError, NonFiniteValueError
-from solver.metrics import distortion
+from solver.core.errors import ConstraintError, IndexOutOfRangeError, NonFiniteValueError
+from solver.mesh.metrics import distortion
 from tests.helpers import DATA
 from tests.helpers.botsch_sorkine import load_case
 from tests.helpers.meshes import grid, load, random_rotation, rigid_alignment_error

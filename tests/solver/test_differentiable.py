@@ -9,13 +9,13 @@ import pytest
 import scipy.linalg
 
 from solver import Constraints, fundamental_forms, reconstruct
+from solver.core.errors import ConstraintError
 from solver.differentiable import aligned_distance, reconstruct_vjp
-from solver.errors import ConstraintError
-from solver.frames import face_edge_lengths, layout_frames, triangle_layouts
+from solver.mesh.frames import face_edge_lengths, layout_frames, triangle_layouts
+from solver.mesh.rotations import nearest_rotation
+from solver.mesh.topology import build_topology
 from solver.refine import FormTargets, Handles, Refiner
-from solver.refined_energy import RefinedEnergy
-from solver.rotations import nearest_rotation
-from solver.topology import build_topology
+from solver.refine.refined_energy import RefinedEnergy
 from tests.helpers.meshes import grid, load, with_cap_faces
 
 STEPS = (1e-5, 1e-6)
@@ -249,7 +249,7 @@ def test_cap_faces_mixed_derivatives_match_finite_differences(monkeypatch):
     gradient, on a knight with 5 faces flattened to 1e-3 of their width and caps up to
     1e-2 (a flat face's height moves with the square root of its lengths' excess: at the
     default threshold, a difference step of 1e-7 would turn caps into faces)."""
-    monkeypatch.setattr("solver.form_energy.CAP_HEIGHT", 1e-2)
+    monkeypatch.setattr("solver.refine.form_energy.CAP_HEIGHT", 1e-2)
     V, F = load("decimated-knight.off")
     V = with_cap_faces(V, F, 5, height=1e-3)
     forms = fundamental_forms(V, F)

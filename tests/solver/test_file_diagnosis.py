@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from solver.errors import MeshFileError
-from solver.io import load_mesh
+from solver.core.errors import MeshFileError
+from solver.mesh.io import load_mesh
 from tests.helpers import DATA
 
 GOOD = (DATA / "torus.off").read_bytes()

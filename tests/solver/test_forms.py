@@ -2,14 +2,14 @@ import numpy as np
 import pytest
 
 from solver import fundamental_forms
-from solver.errors import (
+from solver.core.errors import (
     DegenerateFaceError,
     EdgeMismatchError,
     NonFiniteValueError,
     NonPositiveLengthError,
     ShapeMismatchError,
 )
-from solver.forms import validate_forms
+from solver.mesh.forms import validate_forms
 from tests.helpers.meshes import icosphere, load, random_rotation
 
 
@@ -73,7 +73,7 @@ def test_round_trip_dict():
 
 def test_zero_area_face_is_measured_by_the_rule():
     """Collinear corners (issue 40): the face's normal is its neighbour's, projected off
-    its line (solver.forms.degenerate_normals): the edge they share is flat (angle 0)."""
+    its line (solver.mesh.forms.degenerate_normals): the edge they share is flat (angle 0)."""
     V = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0.3]])
     forms = fundamental_forms(V, [[0, 1, 2], [0, 3, 1]])
     assert forms.zero_area_faces.tolist() == [0]

@@ -13,8 +13,8 @@ import trimesh
 
 from solver import fundamental_forms, linalg
 from solver.immersion import ImmersionProblem
-from solver.system import unknown_groups
-from solver.topology import build_topology
+from solver.linear.system import unknown_groups
+from solver.mesh.topology import build_topology
 
 pytestmark = pytest.mark.skipif("pardiso" not in linalg.available_backends(),
                                 reason="PARDISO not installed")

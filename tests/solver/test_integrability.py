@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from solver import check_integrability, fundamental_forms
-from solver.integrability import IntegrabilityReport
+from solver.linear.integrability import IntegrabilityReport
 from tests.helpers.meshes import (
     bumpy_grid_with_holes,
     double_torus,
@@ -145,9 +145,9 @@ def test_report_round_trips_through_json():
 def test_homology_rank_counts_the_independent_loops(name, expected):
     """2g + b - 1 loops (2g when closed), by the meshes' known genus and holes; and the
     global holonomy reports that many rotation loops."""
-    from solver.integrability import global_holonomy, homology_rank
-    from solver.system import energy_terms
-    from solver.topology import build_topology
+    from solver.linear.integrability import global_holonomy, homology_rank
+    from solver.linear.system import energy_terms
+    from solver.mesh.topology import build_topology
     from tests.helpers.meshes import (
         bumpy_grid_with_holes,
         double_torus,

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from solver import fundamental_forms, interpolate
-from solver.errors import ShapeMismatchError
-from solver.metrics import distortion, histogram, summary, wrap_angle
+from solver.core.errors import ShapeMismatchError
+from solver.mesh.metrics import distortion, histogram, summary, wrap_angle
 from tests.helpers.meshes import icosphere, load
 
 

@@ -1,4 +1,4 @@
-"""solver.io: mesh files in, mesh files out, with the file's vertex order and count kept."""
+"""solver.mesh.io: mesh files in, mesh files out, with the file's vertex order and count kept."""
 
 from __future__ import annotations
 
@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from solver.errors import (
+from solver.core.errors import (
     IndexOutOfRangeError,
     NonFiniteValueError,
     ShapeMismatchError,
     SolverInputError,
 )
-from solver.io import (
+from solver.mesh.io import (
     LOAD_FORMATS,
     SAVE_FORMATS,
     MeshFileError,
@@ -377,7 +377,7 @@ def test_load_mesh_file(tmp_path: Path, permuted: tuple[np.ndarray, np.ndarray])
 def test_off_polygons_fan_triangulated_like_obj_and_ply() -> None:
     """Issue 40: the same quads in OFF, OBJ and PLY give the same triangles, in file order,
     and read_mesh says which file face each comes from; counts glued to the header too."""
-    from solver.io import read_mesh
+    from solver.mesh.io import read_mesh
 
     off = b"OFF8 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 0 0\n2 1 0\n3 2 0\n3 3 0\n" \
           b"5 1 4 5 6 2 255 0 0\n4 0 1 2 3\n"

@@ -1,11 +1,11 @@
-"""solver.mixed_precision: a float32 factor whose solves are refined in float64."""
+"""solver.refine.mixed_precision: a float32 factor whose solves are refined in float64."""
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
 from solver import linalg
-from solver.mixed_precision import ImpreciseSolveError, SinglePrecisionFactor
+from solver.refine.mixed_precision import ImpreciseSolveError, SinglePrecisionFactor
 
 pytestmark = pytest.mark.skipif("pardiso" not in linalg.available_backends(),
                                 reason="single precision needs PARDISO")

@@ -1,4 +1,4 @@
-"""solver.normal_equations: the Gauss-Newton matrix and gradient assembled in their fixed
+"""solver.refine.normal_equations: the Gauss-Newton matrix and gradient assembled in their fixed
 pattern equal J^T J (plus the kept curvature) and J^T r built densely from the residuals'
 gradients, with fixed vertices, soft and orientation handles, needle edges and degenerate
 hinges (two slots on one vertex)."""
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from solver import fundamental_forms
+from solver.mesh.topology import build_topology
 from solver.refine import FormTargets, Handles, Refiner
-from solver.topology import build_topology
 from tests.helpers.meshes import load, with_tiny_edges
 
 
@@ -49,7 +49,7 @@ def check(refiner: Refiner, X: np.ndarray) -> None:
 @pytest.mark.parametrize("ratio", [0.03, 1e-4])
 def test_handles_and_needle_edges(ratio):
     """Short edges at 3% of their length keep their curvature (stretched here); needles at
-    1e-4 are tied (solver.ties): a tied vertex's gradients land on its master's unknowns."""
+    1e-4 are tied (solver.refine.ties): a tied vertex's gradients land on its master's unknowns."""
     knight = load("decimated-knight.off")
     V, F = with_tiny_edges(*knight, count=5, ratio=ratio)
     forms = fundamental_forms(V, F)

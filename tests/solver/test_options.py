@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import solver
-from solver.errors import SolverInputError
+from solver.core.errors import SolverInputError
 from solver.options import (
     DeformOptions,
     InterpolateOptions,

@@ -1,6 +1,6 @@
 """Honest outcomes (issue 43): a refinement report says whether it converged, stopped partly
 (and why, after how many iterations) or did not refine; answers past the documented
-thresholds of :class:`solver.warnings.WarningRules` carry ``warnings`` whose values are the
+thresholds of :class:`solver.core.warnings.WarningRules` carry ``warnings`` whose values are the
 errors measured independently on the returned shapes."""
 
 from __future__ import annotations
@@ -10,10 +10,15 @@ import pytest
 import trimesh
 
 import solver
-from solver.outcomes import not_refined, outcome_text, refinement_outcome
+from solver.core.warnings import (
+    DEFAULT_RULES,
+    WarningRules,
+    flattening_warnings,
+    refinement_warnings,
+)
+from solver.mesh.topology import build_topology
 from solver.refine import FormTargets, refine
-from solver.topology import build_topology
-from solver.warnings import DEFAULT_RULES, WarningRules, flattening_warnings, refinement_warnings
+from solver.refine.outcomes import not_refined, outcome_text, refinement_outcome
 from tests.helpers import REPO
 
 DATA = REPO / "tests" / "data"

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from solver import parameterize
-from solver.errors import TopologyError
-from solver.metrics import corner_angles
+from solver.core.errors import TopologyError
+from solver.mesh.metrics import corner_angles
 from tests.helpers.meshes import bumpy_grid_with_holes, grid, icosphere, load
 
 

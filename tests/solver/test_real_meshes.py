@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import solver
-from solver.manifold import cut_to_manifold
-from solver.topology import build_topology
+from solver.mesh.manifold import cut_to_manifold
+from solver.mesh.topology import build_topology
 from tests.helpers.meshes import rigid_alignment_error
 from tests.helpers.real_meshes import CASES, HAS_CLOSED_PART, ZERO_AREA, diagonal
 
@@ -217,7 +217,7 @@ def test_without_placement_parts_are_side_by_side():
 
 def test_self_touching_faces_are_detached():
     """Two tetrahedra on one triangle, both listing it with the same orientation (each base
-    edge has four faces and the fans join around the corners: rule 3 of solver.manifold):
+    edge has four faces and the fans join around the corners: rule 3 of solver.mesh.manifold):
     the round trip still gives the file's mesh."""
     V = np.array([[1, 0, 0], [-0.5, 0.8660254, 0], [-0.5, -0.8660254, 0], [0, 0, 1],
                   [0, 0, -1.0]])
@@ -258,7 +258,7 @@ def test_refinement_is_no_worse_on_well_shaped_elements(name):
     """Noisy angles on needles (1e-4, 1e-6) and zero-area faces: the refinement converges
     and its errors on the well-shaped elements (edges of no cap face) are at most its
     start's; the reported value is the answer's, measured again here."""
-    from solver.form_energy import well_shaped_errors
+    from solver.refine.form_energy import well_shaped_errors
 
     V, F = CASES[name]()
     forms = _noisy(solver.fundamental_forms(V, F), length_sigma=0.0)
@@ -294,7 +294,7 @@ def test_zero_area_faces_are_measured_and_reported(name):
 
 
 def test_an_inserted_zero_area_face_splits_the_dihedral_angle():
-    """The rule of solver.forms.degenerate_normals on a face (j, i, p) inserted on edge
+    """The rule of solver.mesh.forms.degenerate_normals on a face (j, i, p) inserted on edge
     [i, j] (p on the segment): its normal is perpendicular to the segment, so the dihedral
     angles across [i, j] and across [i, p] are rotations about one axis and add up to the
     angle the edge had before the insertion; the rule's normal (the mean of the

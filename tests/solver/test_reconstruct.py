@@ -3,10 +3,10 @@ import pytest
 import trimesh
 
 from solver import Constraints, fundamental_forms, reconstruct
-from solver.errors import ConstraintError, TriangleInequalityError
-from solver.frames import face_edge_lengths, layout_frames, triangle_layouts
+from solver.core.errors import ConstraintError, TriangleInequalityError
 from solver.linalg import available_backends
-from solver.topology import build_topology
+from solver.mesh.frames import face_edge_lengths, layout_frames, triangle_layouts
+from solver.mesh.topology import build_topology
 from tests.helpers.meshes import (
     SHARED,
     bumpy_grid_with_holes,

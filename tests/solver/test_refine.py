@@ -20,7 +20,8 @@ from solver import (
     reconstruct,
 )
 from solver.differentiable import reconstruct_vjp
-from solver.metrics import distortion
+from solver.mesh.metrics import distortion
+from solver.mesh.topology import build_topology
 from solver.refine import (
     FormTargets,
     Handles,
@@ -31,8 +32,7 @@ from solver.refine import (
     refine,
     signed_areas,
 )
-from solver.steps import DEFAULT_STEP_RULES, StepRules
-from solver.topology import build_topology
+from solver.refine.steps import DEFAULT_STEP_RULES, StepRules
 from tests.helpers.libigl_reference import arap_deformation, arap_parameterization, flipped_faces
 from tests.helpers.meshes import (
     SHARED,
@@ -95,10 +95,10 @@ def test_signed_area_gradients_match_finite_differences():
 
 def test_the_curvature_kept_across_needle_edges_matches_finite_differences():
     """The Gauss-Newton matrix keeps ``r ∇²r`` across stretched edges far shorter than the
-    mean (solver.form_energy.STRETCH_CURVATURE): on each such edge, the second derivative
+    mean (solver.refine.form_energy.STRETCH_CURVATURE): on each such edge, the second derivative
     of r^2 / 2 along random directions equals (∇r . d)^2 + d^T (r ∇²r) d; on the other
     edges nothing is kept."""
-    # Edges 3% of their length (not needles: solver.ties ties the endpoints of those).
+    # Edges 3% of their length (not needles: solver.refine.ties ties the endpoints of those).
     knight = load("decimated-knight.off")
     V, F = with_tiny_edges(*knight, count=5, ratio=0.03)
     topology = build_topology(F, len(V))
@@ -191,7 +191,7 @@ def test_a_refused_step_of_a_factor_that_expects_little_ends_the_run():
 def test_the_knight_that_crawled_converges():
     """A knight with 5 faces flattened to 2e-3 of their width (above CAP_HEIGHT: their
     angles are kept) and 10 needle edges, noisy angles. Before the needles were tied
-    (solver.ties) the damping grew until steps barely lowered E and the refinement stopped
+    (solver.refine.ties) the damping grew until steps barely lowered E and the refinement stopped
     ``stalled`` after 12-21 iterations; now it converges in a few factorizations, to a lower
     energy than its start, near the original."""
     V, F = load("decimated-knight.off")
@@ -413,7 +413,8 @@ def test_deformer_refines_each_drag_on_request():
 
 def test_session_drags_on_a_kept_factor_beat_arap_and_match_a_fresh_refinement():
     """A session's drags after the first start from the previous drag's factor and take
-    quasi-Newton steps on it (solver.steps.StepRules.kept_steps): the last shape of a drag sequence
+    quasi-Newton steps on it (solver.refine.steps.StepRules.kept_steps): the last shape of a drag
+    sequence
     is better than libigl's ARAP with 10 iterations per drag run on the same drags here,
     and its energy is within a few percent of a refinement that starts afresh."""
     igl = pytest.importorskip("igl")
@@ -528,7 +529,7 @@ def gauss_newton_diagonal(V, F):
 def test_tied_needle_edges_leave_the_gauss_newton_factor_in_single_precision():
     """A regular mesh's Gauss-Newton matrix is factorized in single precision. Needle edges
     (1e-4 of their length) spread its diagonal over 1e8 (double precision) unless their
-    endpoints are tied (solver.ties): then their stiffness leaves the matrix, whose
+    endpoints are tied (solver.refine.ties): then their stiffness leaves the matrix, whose
     diagonal spreads as little as the regular mesh's."""
     V, F = load("torus.off")
     regular = gauss_newton_diagonal(V, F)

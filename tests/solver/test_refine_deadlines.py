@@ -4,8 +4,8 @@ to end past the limit, returns its best iterate, and reports why."""
 import numpy as np
 
 from solver import fundamental_forms, reconstruct
+from solver.mesh.topology import build_topology
 from solver.refine import FormTargets, Handles, Refiner
-from solver.topology import build_topology
 from tests.helpers.meshes import load
 
 

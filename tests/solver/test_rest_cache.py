@@ -87,7 +87,7 @@ def test_the_cache_is_bounded_least_recently_used_first():
 
 
 def test_faces_as_given_key_the_cache_and_invalid_faces_are_never_kept():
-    from solver.errors import SolverInputError
+    from solver.core.errors import SolverInputError
 
     V, F = _mesh()
     handles = np.array([0, 5, 17])

@@ -1,13 +1,13 @@
-"""solver.rigid_motions: the projection off the free rigid motions, and why the refinement
+"""solver.mesh.rigid_motions: the projection off the free rigid motions, and why the refinement
 needs it (a factor used away from where it was built)."""
 
 import numpy as np
 import pytest
 
 from solver import fundamental_forms
+from solver.mesh.rigid_motions import RigidMotions
+from solver.mesh.topology import build_topology
 from solver.refine import FormTargets, Handles, Refiner
-from solver.rigid_motions import RigidMotions
-from solver.topology import build_topology
 from tests.helpers.meshes import icosphere, load
 
 

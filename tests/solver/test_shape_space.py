@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from solver import blend, fundamental_forms, interpolate, mean, rigid_alignment, transfer
-from solver.errors import ShapeMismatchError, TriangleInequalityError
-from solver.metrics import wrap_angle
+from solver.core.errors import ShapeMismatchError, TriangleInequalityError
+from solver.mesh.metrics import wrap_angle
 from solver.shape_space import _stacked, path_extrapolation, shape_set
 from tests.helpers import DATA
 from tests.helpers.botsch_sorkine import load_case
@@ -263,9 +263,9 @@ def test_rows_carry_warnings_past_the_documented_thresholds(knight):
     stretched 3x along z leaves a dihedral error past WarningRules.max_angle_error, which
     the row's warning reports as measured independently from the answer and the blended
     forms (geometric mean of the lengths, mean of the angles)."""
-    from solver.form_energy import form_residuals
-    from solver.topology import build_topology
-    from solver.warnings import DEFAULT_RULES
+    from solver.core.warnings import DEFAULT_RULES
+    from solver.mesh.topology import build_topology
+    from solver.refine.form_energy import form_residuals
 
     V, F = knight
     calm = blend([V, bent_pose(V, F, 0.8)], [[0.5, 0.5], [-0.2, 1.2]], F)

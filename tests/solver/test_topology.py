@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from solver.errors import (
+from solver.core.errors import (
     DegenerateFaceError,
     InconsistentOrientationError,
     IndexOutOfRangeError,
@@ -9,7 +9,7 @@ from solver.errors import (
     NonManifoldVertexError,
     ShapeMismatchError,
 )
-from solver.topology import build_topology, cycle_ranks
+from solver.mesh.topology import build_topology, cycle_ranks
 from tests.helpers.meshes import (
     bumpy_grid_with_holes,
     double_torus,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from solver.trees import accumulate_products, accumulate_sums, forest_levels, spanning_forest
+from solver.mesh.trees import accumulate_products, accumulate_sums, forest_levels, spanning_forest
 
 
 def _graph(kind: str, k: int, rng: np.random.Generator) -> tuple[int, np.ndarray]:

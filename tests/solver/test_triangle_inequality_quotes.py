@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from solver import fundamental_forms, reconstruct
-from solver.errors import TriangleInequalityError
+from solver.core.errors import TriangleInequalityError
 from tests.helpers.meshes import icosphere
 
 NUMBER = r"-?\d+(?:\.\d+)?(?:e[-+]?\d+)?"

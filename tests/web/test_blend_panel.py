@@ -8,7 +8,7 @@ from __future__ import annotations
 import httpx
 import numpy as np
 
-from solver.io import load_mesh_file, save_mesh
+from solver.mesh.io import load_mesh_file, save_mesh
 from tests.helpers import DATA
 from tests.helpers.poses import bent_pose
 from tests.helpers.web import assert_not_blank

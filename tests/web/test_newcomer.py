@@ -105,8 +105,8 @@ def test_rebuild_panel_shows_the_answers_warnings(web) -> None:
     import numpy as np
 
     import solver
-    from solver.metrics import wrap_angle
-    from solver.topology import build_topology
+    from solver.mesh.metrics import wrap_angle
+    from solver.mesh.topology import build_topology
 
     page = web.open()
     _bend_forms(web, page)

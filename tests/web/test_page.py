@@ -188,9 +188,9 @@ def test_deform_with_mouse_and_gizmo(web):
 
     # Distortion: colour map, numbers equal to the library's metrics, histogram drawn.
     assert web.app("app.state.colorMode") == "distortion"
-    import solver.metrics
+    import solver.mesh.metrics
 
-    want = solver.metrics.distortion(rest, _vertices(web), np.asarray(
+    want = solver.mesh.metrics.distortion(rest, _vertices(web), np.asarray(
         web.app("Array.from(app.state.faces)")).reshape(-1, 3))
     summary = web.app("app.state.distortion.lengthSummary")
     for key in ("mean", "rms", "max", "p95"):

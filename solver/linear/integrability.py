@@ -1,0 +1,562 @@
+"""The discrete integrability condition (Sec. 2.3): local (Eq. 4) and global holonomy.
+
+Local: around every interior vertex, the transition rotations of the counter-clockwise loop of
+faces multiply to the identity. The rotation angle of that product is the vertex defect; it
+splits into a twist about the normal (Gauss's equation: intrinsic vs. extrinsic curvature) and
+a tilt of the normal (the Codazzi equations).
+
+Global: on a surface with handles or holes, loops that do not bound a disk need checking too
+(the paper's global theorem). Tree-cotree decompositions give a homology basis:
+
+* rotation holonomy along dual generator loops: a primal spanning tree (with all boundary
+  vertices joined to one virtual root) and a dual spanning tree of the remaining interior
+  edges; each interior edge in neither tree closes one dual loop (2 g + b - 1 of them);
+* translation holonomy along primal generator loops: a dual spanning tree first, then a
+  primal spanning tree of the remaining edges; each edge in neither closes one primal loop.
+  Frames follow the transition rotations along the dual tree ("following the rotated
+  frames"); the translation accumulated around the loop must vanish.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ..core.serialization import JsonDataclass
+from ..mesh.forms import validate_forms, wrapped_angle_count
+from ..mesh.frames import face_edge_lengths, transition_quaternions, triangle_inequality_violations
+from ..mesh.manifold import ManifoldCut
+from ..mesh.rotations import (
+    quaternion_angles,
+    quaternion_conjugate,
+    quaternion_multiply,
+    rotation_angle,
+)
+from ..mesh.topology import MeshTopology, corner_successor, cycle_ranks, previous_halfedge
+from ..mesh.trees import accumulate_products, accumulate_sums, spanning_forest
+from .system import EnergyTerms, energy_terms
+
+WORST_COUNT = 10
+"""How many of the largest vertex defects a report lists (``worst_vertices``)."""
+
+
+@dataclass
+class HolonomyLoop(JsonDataclass):
+    """One homology generator and the holonomy measured along it.
+
+    Attributes:
+        kind: "rotation" (a dual loop of faces) or "translation" (a primal loop of edges).
+        component: connected component of the loop.
+        edge: [i, j], the edge that closes the loop (in neither spanning tree).
+        edge_index: row of that edge in the sorted edge list.
+        faces: the faces on either side of that edge (-1 for none).
+        angle: rotation angle (radians) of the accumulated rotation (rotation loops).
+        translation: [x, y, z] accumulated translation in the root face's frame
+            (translation loops; its length is ``magnitude``).
+        magnitude: ``angle`` for rotation loops, the length of ``translation`` divided by the
+            mean edge length for translation loops.
+        passes: magnitude <= tolerance.
+    """
+
+    kind: str
+    component: int
+    edge: list[int]
+    faces: list[int]
+    edge_index: int = -1
+    angle: float = 0.0
+    translation: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    magnitude: float = 0.0
+    passes: bool = True
+
+
+@dataclass
+class IntegrabilityReport(JsonDataclass):
+    """Result of :func:`check_integrability` (n vertices).
+
+    Attributes:
+        integrable: every check passes (local, triangle inequality, global).
+        max_defect: largest vertex defect or global rotation holonomy (radians), or relative
+            translation holonomy.
+        tolerance: the tolerance used.
+        vertex_defect: (n,) rotation angle of the holonomy around each interior vertex (Eq. 4);
+            0 on boundary and isolated vertices.
+        gauss_defect: (n,) signed rotation of that holonomy about the normal (Gauss part).
+        codazzi_defect: (n,) tilt of the normal by that holonomy (Codazzi part).
+        failing_vertices: vertices whose defect exceeds the tolerance.
+        worst_vertices: up to 10 vertices with the largest defects, largest first.
+        triangle_violations: faces whose lengths violate the triangle inequality.
+        components: per component: vertices, edges, faces, boundary_loops,
+            euler_characteristic, genus, closed.
+        n_components, euler_characteristic, genus: totals over components with faces.
+        boundary_loops: vertex loops of the boundary, in boundary order.
+        isolated_vertices: vertices that no face uses.
+        rotation_holonomy, translation_holonomy: the global generator loops.
+        local_integrable, global_integrable: the two halves of ``integrable``.
+        wrapped_angles: angles given outside (-pi, pi] and wrapped into it (an angle is
+            periodic; :func:`solver.mesh.forms.wrap_angles`).
+    """
+
+    integrable: bool
+    max_defect: float
+    tolerance: float
+    vertex_defect: np.ndarray
+    gauss_defect: np.ndarray
+    codazzi_defect: np.ndarray
+    failing_vertices: np.ndarray
+    worst_vertices: np.ndarray
+    triangle_violations: np.ndarray
+    components: list[dict[str, Any]]
+    n_components: int
+    euler_characteristic: int
+    genus: int
+    boundary_loops: list[np.ndarray]
+    isolated_vertices: np.ndarray
+    rotation_holonomy: list[HolonomyLoop]
+    translation_holonomy: list[HolonomyLoop]
+    local_integrable: bool
+    global_integrable: bool
+    wrapped_angles: int = 0
+
+    _array_fields: ClassVar[dict[str, Any]] = {
+        "vertex_defect": np.float64, "gauss_defect": np.float64, "codazzi_defect": np.float64,
+        "failing_vertices": np.int64, "worst_vertices": np.int64,
+        "triangle_violations": np.int64, "isolated_vertices": np.int64,
+    }
+    _nested_fields: ClassVar[dict[str, Any]] = {
+        "rotation_holonomy": HolonomyLoop, "translation_holonomy": HolonomyLoop,
+    }
+
+    def summary(self) -> dict[str, Any]:
+        """The short form used in reconstruction reports.
+
+        Returns:
+            JSON-ready dict without per-vertex arrays: the verdicts, ``max_defect``,
+            ``tolerance``, the worst vertices with their defects, the count of failing
+            vertices, triangle violations, genus, component count and the global loops.
+        """
+        return {
+            "integrable": self.integrable, "local_integrable": self.local_integrable,
+            "global_integrable": self.global_integrable, "max_defect": self.max_defect,
+            "tolerance": self.tolerance,
+            "worst_vertices": [{"vertex": int(v), "defect": float(self.vertex_defect[v])}
+                               for v in self.worst_vertices],
+            "failing_vertex_count": len(self.failing_vertices),
+            "triangle_violations": self.triangle_violations.tolist(),
+            "genus": self.genus, "n_components": self.n_components,
+            "rotation_holonomy": [g.to_dict() for g in self.rotation_holonomy],
+            "translation_holonomy": [g.to_dict() for g in self.translation_holonomy],
+        }
+
+
+def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
+                        angles: ArrayLike, tol: float = 1e-8,
+                        n_vertices: int | None = None,
+                        vertex_map: ArrayLike | None = None) -> IntegrabilityReport:
+    """Check whether edge lengths and dihedral angles come from an immersion.
+
+    Args:
+        faces: (m, 3) int, counter-clockwise.
+        edges: (E, 2) int, the faces' edges (i < j, sorted).
+        lengths: (E,) positive edge lengths.
+        angles: (E,) signed dihedral angles in (-pi, pi].
+        tol: tolerance on defects (radians) and on translation holonomy (relative to the mean
+            edge length).
+        n_vertices: vertex count (default ``faces.max() + 1``; the file's with
+            ``vertex_map``).
+        vertex_map: the forms' (n_cut,) file vertex of each vertex of ``faces`` (forms of a
+            non-manifold mesh, :mod:`solver.mesh.manifold`): the per-vertex defects are then given
+            per file vertex (the copy of largest defect).
+
+    Returns:
+        :class:`IntegrabilityReport`. Faces violating the triangle inequality are listed in
+        ``triangle_violations`` and their vertices are excluded from the rotation check.
+
+    Raises:
+        SolverInputError: a subclass naming the first malformed element
+            (:func:`solver.mesh.forms.validate_forms`).
+
+    Example:
+        The forms of an embedded mesh integrate; bending one edge breaks Eq. (4) at its
+        two end vertices:
+
+        >>> import numpy as np
+        >>> from solver import fundamental_forms
+        >>> from solver.linear.integrability import check_integrability
+        >>> corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> forms = fundamental_forms(corners, [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        >>> report = check_integrability(forms.faces, forms.edges, forms.lengths, forms.angles)
+        >>> report.integrable, report.genus, report.max_defect < 1e-12
+        (True, 0, True)
+        >>> bent = forms.angles + np.array([0.1, 0, 0, 0, 0, 0])
+        >>> check_integrability(forms.faces, forms.edges, forms.lengths, bent
+        ...                     ).failing_vertices.tolist()
+        [0, 1]
+    """
+    cut = None
+    if vertex_map is not None:
+        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices)
+        n_vertices = cut.n_vertices
+    topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
+    violations = triangle_inequality_violations(face_edge_lengths(topology, L))
+    terms = energy_terms(topology, L, A, check=False)
+    report = integrability_from_terms(terms, tol, mean_length=float(L.mean()),
+                                      violations=violations)
+    report.wrapped_angles = wrapped_angle_count(angles)
+    if cut is not None and not cut.is_identity:
+        report.vertex_defect, report.gauss_defect, report.codazzi_defect = (
+            cut.largest_to_file(values) for values in
+            (report.vertex_defect, report.gauss_defect, report.codazzi_defect))
+        report.failing_vertices = np.flatnonzero(report.vertex_defect > tol)
+        worst = np.argsort(-report.vertex_defect, kind="stable")[:WORST_COUNT]
+        report.worst_vertices = worst[report.vertex_defect[worst] > 0]
+        report.isolated_vertices = np.setdiff1d(np.arange(cut.n_file_vertices),
+                                                cut.vertex_map[topology.faces.ravel()])
+    return report
+
+
+def integrability_from_terms(terms: EnergyTerms, tol: float, mean_length: float,
+                             violations: np.ndarray | None = None,
+                             length_unit: float = 1.0) -> IntegrabilityReport:
+    """:func:`check_integrability` on precomputed layouts and transition rotations.
+
+    Args:
+        terms: the forms' layouts and transition rotations
+            (:func:`solver.linear.system.energy_terms`).
+        tol: tolerance on defects (radians) and relative translation holonomy.
+        mean_length: the mean edge length in the units of ``terms``.
+        violations: (k,) int64 faces that violate the triangle inequality: their vertices
+            are excluded from the vertex check (their defect is reported as 0), and the
+            report is then not integrable.
+        length_unit: converts the units of ``terms`` back to the caller's (translations are
+            reported in the caller's units).
+
+    Returns:
+        :class:`IntegrabilityReport`.
+    """
+    violations = np.zeros(0, np.int64) if violations is None else violations
+    topo = terms.topology
+    holonomy = vertex_holonomy(terms)
+    interior = _interior_vertices(topo)
+    defect = np.zeros(topo.n_vertices)
+    gauss = np.zeros(topo.n_vertices)
+    codazzi = np.zeros(topo.n_vertices)
+    defect[interior], gauss[interior], codazzi[interior] = quaternion_angles(holonomy)
+    for values in (defect, gauss, codazzi):
+        values[topo.faces[violations].ravel()] = 0.0
+
+    rotation_loops, translation_loops = global_holonomy(terms, tol, mean_length, length_unit)
+    global_ok = all(g.passes for g in rotation_loops + translation_loops)
+    global_max = max([g.magnitude for g in rotation_loops + translation_loops], default=0.0)
+    local_max = float(defect.max()) if len(defect) else 0.0
+    local_ok = local_max <= tol
+    return _assemble_report(topo, defect, gauss, codazzi, violations, tol,
+                            rotation_loops, translation_loops, local_ok, global_ok,
+                            max(local_max, global_max))
+
+
+def _interior_vertices(topology: MeshTopology) -> np.ndarray:
+    """(k,) int64 vertices used by faces and not on the boundary."""
+    return np.flatnonzero(topology.is_referenced & ~topology.is_boundary_vertex)
+
+
+def halfedge_transitions(terms: EnergyTerms) -> np.ndarray:
+    """The transition rotation across each half-edge, from its face to the twin's face.
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
+
+    Returns:
+        (H, 4) float64 unit quaternions, the identity on boundary half-edges.
+    """
+    topo = terms.topology
+    q = np.zeros((3 * topo.n_faces, 4))
+    q[:, 0] = 1.0
+    fwd, bwd = topo.edge_halfedges[terms.interior_edges].T
+    q_lr = transition_quaternions(terms.transition)
+    q[fwd] = q_lr
+    q[bwd] = quaternion_conjugate(q_lr)  # R_RL = R_LR^T
+    return q
+
+
+def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
+    """The transition rotations multiplied around each interior vertex (Eq. 4).
+
+    The loop starts at one face of the vertex and goes counter-clockwise; the product is
+    expressed in that face's frame (its z axis is the normal). The corners of every
+    interior vertex are put in ring order (pointer doubling over the corner successor
+    permutation), then multiplied rank by rank for all vertices at once: O(H) quaternion
+    products in all, in as many vectorized steps as the largest valence.
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
+
+    Returns:
+        (k, 4) float64 unit quaternions, one per interior vertex in increasing vertex
+        order; +-(1, 0, 0, 0) where the forms integrate.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import fundamental_forms
+        >>> from solver.linear.integrability import vertex_holonomy
+        >>> from solver.linear.system import energy_terms
+        >>> from solver.mesh.topology import build_topology
+        >>> corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> topology = build_topology([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        >>> forms = fundamental_forms(corners, topology.faces)
+        >>> holonomy = vertex_holonomy(energy_terms(topology, forms.lengths, forms.angles))
+        >>> holonomy.shape, bool(np.allclose(np.abs(holonomy[:, 0]), 1.0))
+        ((4, 4), True)
+    """
+    topo = terms.topology
+    interior = _interior_vertices(topo)
+    if not len(interior):
+        return np.zeros((0, 4))
+    H = 3 * topo.n_faces
+    corners = np.arange(H)
+    on_interior = np.zeros(topo.n_vertices, dtype=bool)
+    on_interior[interior] = True
+    successor = corner_successor(topo.halfedge_twin)
+    successor = np.where(on_interior[topo.halfedge_origin], successor, corners)
+    count = np.bincount(topo.halfedge_origin, minlength=topo.n_vertices)[interior]
+    _, rank = cycle_ranks(successor, int(count.max()))
+    # Corners of interior vertices sorted by (vertex, ring position): a counting sort, each
+    # corner at its vertex's start plus its rank (no O(H log H) sort).
+    chosen = corners[on_interior[topo.halfedge_origin]]
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    slot = np.full(topo.n_vertices, -1, dtype=np.int64)
+    slot[interior] = start
+    order = np.empty(len(chosen), dtype=np.int64)
+    order[slot[topo.halfedge_origin[chosen]] + rank[chosen]] = chosen
+    step = halfedge_transitions(terms)[previous_halfedge(order)]  # transition of each step
+    result = step[start].copy()
+    for r in range(1, int(count.max())):  # one vectorized step per ring position
+        active = np.flatnonzero(count > r)
+        result[active] = quaternion_multiply(result[active], step[start[active] + r])
+    return result
+
+
+def homology_rank(topology: MeshTopology) -> np.ndarray:
+    """The number of independent loops (generators of the first homology) of each component
+    with faces: ``2 g + b - 1`` with ``b > 0`` boundary loops, ``2 g`` when closed; i.e.
+    ``1 - chi`` or ``2 - chi`` from the Euler characteristic chi.
+
+    Args:
+        topology: a validated (manifold) mesh.
+
+    Returns:
+        (C,) int64, 0 for components without faces.
+
+    Example:
+        A closed tetrahedron has none:
+
+        >>> from solver.mesh.topology import build_topology
+        >>> homology_rank(build_topology([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])).tolist()
+        [0]
+    """
+    C = topology.n_components
+    v = np.bincount(topology.vertex_component[topology.is_referenced], minlength=C)
+    e = np.bincount(topology.vertex_component[topology.edges[:, 0]], minlength=C)
+    f = np.bincount(topology.face_component, minlength=C)
+    b = np.bincount(topology.boundary_loop_component, minlength=C)
+    chi = v - e + f
+    rank = np.where(b > 0, 1 - chi, 2 - chi)
+    return np.where(f > 0, rank, 0).astype(np.int64)
+
+
+def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
+                    length_unit: float = 1.0) -> tuple[list[HolonomyLoop], list[HolonomyLoop]]:
+    """Rotation holonomy of the dual generators and translation holonomy of the primal ones.
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
+        tol: tolerance of each loop's magnitude.
+        mean_length: mean edge length in the units of ``terms`` (translations are divided
+            by it).
+        length_unit: converts the units of ``terms`` back to the caller's.
+
+    Returns:
+        ``(rotation_loops, translation_loops)``: one :class:`HolonomyLoop` per generator
+        (2 g + b - 1 dual loops; the primal loops of the edges in neither forest).
+    """
+    topo = terms.topology
+    if not len(topo.boundary_loops) and not homology_rank(topo).any():
+        return [], []  # closed, genus 0: no loop of either kind (no forest to build)
+    n, m = topo.n_vertices, topo.n_faces
+    inner = terms.interior_edges
+    dual_links = topo.edge_faces[inner]
+    edge_is_inner = np.zeros(topo.n_edges, dtype=bool)
+    edge_is_inner[inner] = True
+
+    # Rotation generators: primal tree (boundary joined to a virtual vertex n) then cotree.
+    boundary_vertices = np.flatnonzero(topo.is_boundary_vertex)
+    virtual = np.stack([np.full(len(boundary_vertices), n), boundary_vertices], axis=1)
+    primal = spanning_forest(n + 1, np.concatenate([topo.edges, virtual]),
+                             roots=np.array([n]) if len(boundary_vertices) else None)
+    primal_tree_edges = primal.in_tree[: topo.n_edges]
+    cotree_mask = ~primal_tree_edges[inner]
+    cotree = spanning_forest(m, dual_links[cotree_mask])
+    in_cotree = np.zeros(len(inner), dtype=bool)
+    in_cotree[np.flatnonzero(cotree_mask)[cotree.in_tree]] = True
+    generators = np.flatnonzero(~in_cotree & ~primal_tree_edges[inner])
+    left, right = dual_links[generators].T
+    angles = np.zeros(0)
+    if len(generators):  # genus 0 without holes has none: skip the frame integration
+        frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask),
+                              cotree.levels)
+        hol = frames[left] @ terms.rotations[generators] @ np.swapaxes(frames[right], 1, 2)
+        angles = rotation_angle(hol)
+    rotation_loops = [
+        HolonomyLoop(kind="rotation", component=int(topo.face_component[lf]),
+                     edge=topo.edges[inner[g]].tolist(), faces=[int(lf), int(rf)],
+                     edge_index=int(inner[g]),
+                     angle=float(a), magnitude=float(a), passes=bool(a <= tol))
+        for g, lf, rf, a in zip(generators, left, right, angles, strict=True)]
+
+    # Translation generators: dual tree first, then a primal tree of the remaining edges.
+    forests = integration_forests(terms)
+    rest, tree = forests.rest, forests.primal
+    if tree.in_tree.all():
+        return rotation_loops, []
+    frames, edge_vectors, positions = integrate_along_forests(terms, forests)
+    closing = rest[~tree.in_tree]
+    i, j = topo.edges[closing].T
+    gaps = positions[i] + edge_vectors[closing] - positions[j]
+    sizes = np.linalg.norm(gaps, axis=1) / mean_length
+    translation_loops = [
+        HolonomyLoop(kind="translation", component=int(topo.vertex_component[a]),
+                     edge=[int(a), int(b)], faces=topo.edge_faces[e].tolist(),
+                     edge_index=int(e),
+                     translation=(gap * length_unit).tolist(), magnitude=float(s),
+                     passes=bool(s <= tol))
+        for e, a, b, gap, s in zip(closing, i, j, gaps, sizes, strict=True)]
+    return rotation_loops, translation_loops
+
+
+@dataclass(frozen=True)
+class IntegrationForests:
+    """The paths along which frames and then positions are integrated (Sec. 2.3's proof).
+
+    Attributes:
+        dual: :class:`solver.mesh.trees.SpanningForest` of the faces, across interior edges.
+        rest: (r,) int64 edges the dual forest does not cross.
+        primal: :class:`solver.mesh.trees.SpanningForest` of the vertices along ``rest``.
+    """
+
+    dual: Any
+    rest: np.ndarray
+    primal: Any
+
+
+def integration_forests(terms: EnergyTerms, root_faces: np.ndarray | None = None,
+                        root_vertices: np.ndarray | None = None) -> IntegrationForests:
+    """Spanning forests for :func:`integrate_along_forests`, grown from the given roots.
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
+        root_faces: optional (r,) int64 preferred roots of the dual forest.
+        root_vertices: optional (s,) int64 preferred roots of the primal forest.
+
+    Returns:
+        :class:`IntegrationForests`.
+    """
+    topo = terms.topology
+    inner = terms.interior_edges
+    dual = spanning_forest(topo.n_faces, topo.edge_faces[inner], roots=root_faces)
+    crossed = np.zeros(topo.n_edges, dtype=bool)
+    crossed[inner[dual.in_tree]] = True
+    rest = np.flatnonzero(~crossed)
+    primal = spanning_forest(topo.n_vertices, topo.edges[rest], roots=root_vertices)
+    return IntegrationForests(dual=dual, rest=rest, primal=primal)
+
+
+def integrate_along_forests(terms: EnergyTerms, forests: IntegrationForests,
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frames (m, 3, 3), edge vectors (E, 3) and positions (n, 3) integrated from the roots.
+
+    Frames follow ``f_child = f_parent R`` (Eq. 2) from the identity at each dual root;
+    each edge vector is ``f_T (a1, a2, 0)`` (Eq. 3) from one face containing it; positions
+    add edge vectors along the primal forest from the origin at each primal root. For
+    integrable forms this is the immersion itself (up to rounding).
+
+    Args:
+        terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
+        forests: the paths (:func:`integration_forests`).
+
+    Returns:
+        ``(frames, edge_vectors, positions)``: (m, 3, 3), (E, 3) and (n, 3) float64.
+    """
+    topo = terms.topology
+    inner = terms.interior_edges
+    dual, rest, tree = forests.dual, forests.rest, forests.primal
+    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)),
+                          dual.levels)
+    edge_vectors = _edge_vectors(terms, frames)
+    link = tree.parent_link
+    has_parent = link >= 0
+    steps = np.zeros((topo.n_vertices, 3))
+    e_up = rest[link[has_parent]]
+    # Step from parent to node along edge e_up: +d if the edge runs parent -> node.
+    sign = np.where(topo.edges[e_up, 1] == np.flatnonzero(has_parent), 1.0, -1.0)
+    steps[has_parent] = sign[:, None] * edge_vectors[e_up]
+    return frames, edge_vectors, accumulate_sums(tree.parent, steps, tree.levels)
+
+
+def _links_to_inner(forest: Any, mask: np.ndarray) -> np.ndarray:
+    """Map each face's parent link (an index into the masked link list) to interior-edge
+    positions (index into ``terms.interior_edges``); -1 at roots."""
+    positions = np.flatnonzero(mask)
+    out = np.full(len(forest.parent_link), -1, dtype=np.int64)
+    has = forest.parent_link >= 0
+    out[has] = positions[forest.parent_link[has]]
+    return out
+
+
+def _tree_frames(terms: EnergyTerms, parent: np.ndarray, parent_inner: np.ndarray,
+                 levels: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Frames (m, 3, 3) integrated from each root face (identity) along a dual tree."""
+    topo = terms.topology
+    local = np.broadcast_to(np.eye(3), (topo.n_faces, 3, 3)).copy()
+    has = parent_inner >= 0
+    q = parent_inner[has]
+    R = terms.rotations[q]
+    # f_child = f_parent R_{parent -> child}; R_LR is stored, R_RL = R_LR^T.
+    parent_is_left = topo.edge_faces[terms.interior_edges[q], 0] == parent[has]
+    local[has] = np.where(parent_is_left[:, None, None], R, np.swapaxes(R, 1, 2))
+    return accumulate_products(parent, local, levels)
+
+
+def _edge_vectors(terms: EnergyTerms, frames: np.ndarray) -> np.ndarray:
+    """(E, 3) vector of each edge i -> j, ``f_T (a1, a2, 0)`` from a face containing it."""
+    topo = terms.topology
+    a = terms.coefficients.reshape(-1, 2)
+    fwd, bwd = topo.edge_halfedges.T
+    use_fwd = fwd >= 0
+    h = np.where(use_fwd, fwd, bwd)
+    vec = np.einsum("eij,ej->ei", frames[h // 3][:, :, :2], a[h])
+    return np.where(use_fwd[:, None], vec, -vec)
+
+
+def _assemble_report(topo: MeshTopology, defect: np.ndarray, gauss: np.ndarray,
+                     codazzi: np.ndarray, violations: np.ndarray, tol: float,
+                     rotation_loops: list[HolonomyLoop], translation_loops: list[HolonomyLoop],
+                     local_ok: bool, global_ok: bool, max_defect: float,
+                     ) -> IntegrabilityReport:
+    """The :class:`IntegrabilityReport` of measured defects and loops."""
+    components = topo.component_summary()
+    worst = np.argsort(-defect, kind="stable")[:WORST_COUNT]
+    worst = worst[defect[worst] > 0]
+    return IntegrabilityReport(
+        integrable=bool(local_ok and global_ok and len(violations) == 0),
+        max_defect=float(max_defect), tolerance=float(tol), vertex_defect=defect,
+        gauss_defect=gauss, codazzi_defect=codazzi,
+        failing_vertices=np.flatnonzero(defect > tol), worst_vertices=worst,
+        triangle_violations=violations, components=components,
+        n_components=len(components),
+        euler_characteristic=int(sum(c["euler_characteristic"] for c in components)),
+        genus=int(sum(c["genus"] for c in components)), boundary_loops=topo.boundary_loops,
+        isolated_vertices=topo.isolated_vertices, rotation_holonomy=rotation_loops,
+        translation_holonomy=translation_loops, local_integrable=bool(local_ok),
+        global_integrable=bool(global_ok))

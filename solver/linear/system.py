@@ -1,0 +1,422 @@
+"""Assembly of the immersion energy of Eq. (5) and its constrained linear system.
+
+Unknowns, per coordinate k in {x, y, z}: the vertex coordinates ``x[:, k]`` (n) and row k of
+every face frame ``f_t[k, :]`` (3 m), stacked as ``u = [x_k ; f_0[k, :] ; f_1[k, :] ; ...]``.
+Both terms of Eq. (5) are row-wise in ``f`` -- ``||f_j - f_i R_ij||_F^2`` sums the squared rows
+and ``x_n - x_m - f_T (a1, a2, 0)`` couples coordinate k of x with row k of f_T only -- so the
+3 |V| + 9 |F| system splits into three identical systems of size |V| + 3 |F| with one
+shared matrix ``K = A^T W A`` and three right-hand sides. ``K`` is factorized once.
+
+Rows of ``A`` (per coordinate):
+* edge rows (Eq. 3), one per half-edge h = (m -> n) of face T:
+  ``x_n - x_m - a^1 f_T[k, 0] - a^2 f_T[k, 1]`` with weight ``w_{e,T}``;
+* frame rows (Eq. 2), three per interior edge (L, R), one per frame column c:
+  ``f_R[k, c] - sum_d f_L[k, d] R_LR[d, c]`` with weight ``frame_weight / w_e``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..linalg import Factorization, factorize
+from ..mesh.frames import (
+    edge_coefficients,
+    face_edge_lengths,
+    transition_angles,
+    transition_rotations,
+    triangle_areas,
+    triangle_layouts,
+)
+from ..mesh.topology import MeshTopology
+
+Weighting = Literal["uniform", "cotan", "cotan_clamped"]
+WEIGHTINGS: tuple[str, ...] = ("uniform", "cotan", "cotan_clamped")
+"""The weightings of Eq. (5) :func:`energy_weights` knows."""
+CLAMP_RANGE = (0.05, 5.0)
+"""Bounds of the half-cotangent ``w_{e,T}`` under ``"cotan_clamped"``."""
+
+
+@dataclass
+class EnergyTerms:
+    """Everything Eq. (5) needs, derived from the forms (no embedding required).
+
+    Attributes:
+        topology: the mesh connectivity.
+        layouts: (m, 3, 2) 2D corner positions per face.
+        coefficients: (m, 3, 2) ``a`` of each half-edge in its face's frame.
+        interior_edges: (k,) int64 edges with two faces.
+        transition: (k, 3) angles (theta_L, phi, theta_R) of their transition rotations.
+        rotations: (k, 3, 3) transition rotations ``R_LR`` of those edges.
+        edge_weights: (m, 3) weight of each half-edge row.
+        frame_weights: (k,) weight of each interior edge's frame rows (before frame_weight).
+    """
+
+    topology: MeshTopology
+    layouts: np.ndarray
+    coefficients: np.ndarray
+    interior_edges: np.ndarray
+    transition: np.ndarray
+    rotations: np.ndarray
+    edge_weights: np.ndarray
+    frame_weights: np.ndarray
+
+    @property
+    def n_unknowns(self) -> int:
+        """Unknowns per coordinate: n + 3 m."""
+        return self.topology.n_vertices + 3 * self.topology.n_faces
+
+
+COTANGENT_AREA_FLOOR = 1e-12
+"""Smallest area of a face, relative to its longest edge squared, in its cotangent weights
+(:func:`half_cotangents`): a zero-area face gets weights of ~1e12, not infinities."""
+
+
+def half_cotangents(face_lengths: np.ndarray) -> np.ndarray:
+    """The per-face cotangent weight of each half-edge.
+
+    Args:
+        face_lengths: (m, 3) float64 (:func:`solver.mesh.frames.face_edge_lengths`).
+
+    Returns:
+        (m, 3) float64 ``cot(angle opposite half-edge k) / 2``.
+
+    Example:
+        The 3-4-5 triangle: the right angle faces the hypotenuse (half-edge 2).
+
+        >>> import numpy as np
+        >>> from solver.linear.system import half_cotangents
+        >>> half_cotangents(np.array([[3.0, 4.0, 5.0]])).round(12).tolist()
+        [[0.666666666667, 0.375, 0.0]]
+    """
+    l0, l1, l2 = face_lengths.T                     # opposite corners 2, 0, 1
+    four_area = 4.0 * triangle_areas(face_lengths)
+    # A zero-area face (collinear corners, issue 40) has cotangents of +-infinity: its area
+    # is floored at COTANGENT_AREA_FLOOR of its longest edge squared (finite, huge weights
+    # that the callers' clamps bound).
+    longest = face_lengths.max(axis=1)
+    four_area = np.maximum(four_area, 4.0 * COTANGENT_AREA_FLOOR * longest**2)
+    four_area = np.where(four_area > 0, four_area, np.finfo(float).tiny)
+    cot = np.stack([(l1**2 + l2**2 - l0**2), (l2**2 + l0**2 - l1**2),
+                    (l0**2 + l1**2 - l2**2)], axis=1) / four_area[:, None]
+    return 0.5 * cot
+
+
+def energy_weights(topology: MeshTopology, face_lengths: np.ndarray,
+                   interior_edges: np.ndarray, weighting: Weighting,
+                   cotan_floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """The weights of the two terms of Eq. (5).
+
+    * ``"cotan"`` -- the paper literally: ``w_{e,T}`` = half cotangent (floored at
+      ``cotan_floor``), E_f weighted by ``1 / w_e`` with ``w_e`` the edge's cotangent weight
+      floored at ``cotan_floor``. Ill-conditioned on meshes with obtuse triangles.
+    * ``"cotan_clamped"`` -- the same Hodge-star weights with ``w_{e,T}`` clamped to
+      :data:`CLAMP_RANGE` so that ``1 / w_e`` stays bounded.
+    * ``"uniform"`` -- all weights 1 (the default: exact and well-conditioned).
+
+    Args:
+        topology: the mesh's connectivity.
+        face_lengths: (m, 3) float64.
+        interior_edges: (k,) int64.
+        weighting: one of :data:`WEIGHTINGS`.
+        cotan_floor: lower bound of the cotangent weights under ``"cotan"``.
+
+    Returns:
+        ``(edge_weights, frame_weights)``: (m, 3) float64 per half-edge of E_x and (k,)
+        float64 per interior edge of E_f.
+
+    Raises:
+        ValueError: an unknown weighting.
+    """
+    m = topology.n_faces
+    if weighting == "uniform":
+        return np.ones((m, 3)), np.ones(len(interior_edges))
+    half_cot = half_cotangents(face_lengths)
+    if weighting == "cotan":
+        w_half = np.maximum(half_cot, cotan_floor)
+        w_edge_raw = np.bincount(topology.halfedge_edge, weights=half_cot.ravel(),
+                                 minlength=topology.n_edges)
+        w_edge = np.maximum(w_edge_raw, cotan_floor)
+    elif weighting == "cotan_clamped":
+        w_half = np.clip(half_cot, *CLAMP_RANGE)
+        w_edge = np.bincount(topology.halfedge_edge, weights=w_half.ravel(),
+                             minlength=topology.n_edges)
+    else:
+        raise ValueError(f"unknown weighting {weighting!r}; expected one of {WEIGHTINGS}")
+    return w_half, 1.0 / w_edge[interior_edges]
+
+
+def energy_terms(topology: MeshTopology, lengths: np.ndarray, angles: np.ndarray, *,
+                 weighting: Weighting = "uniform", cotan_floor: float = 1e-11,
+                 layout_angles: np.ndarray | None = None, check: bool = True) -> EnergyTerms:
+    """Layouts, edge coefficients, transition rotations and weights from the forms.
+
+    Args:
+        topology: the mesh's connectivity.
+        lengths: (E,) float64 edge lengths.
+        angles: (E,) float64 dihedral angles.
+        weighting: see :func:`energy_weights`.
+        cotan_floor: see :func:`energy_weights`.
+        layout_angles: optional (m,) float64 rotation of each face's 2D frame.
+        check: False lays faces that violate the triangle inequality out flat instead of
+            raising (used by the integrability report, which lists them).
+
+    Returns:
+        The :class:`EnergyTerms`.
+
+    Raises:
+        TriangleInequalityError: with ``check``, naming the first impossible face.
+    """
+    face_lengths = face_edge_lengths(topology, lengths)
+    layouts = triangle_layouts(face_lengths, layout_angles, check=check)
+    coefficients = edge_coefficients(layouts)
+    inner, transition = transition_angles(topology, coefficients, angles)
+    rotations = transition_rotations(transition)
+    w_edge, w_frame = energy_weights(topology, face_lengths, inner, weighting, cotan_floor)
+    return EnergyTerms(topology=topology, layouts=layouts, coefficients=coefficients,
+                       interior_edges=inner, transition=transition, rotations=rotations,
+                       edge_weights=w_edge,
+                       frame_weights=w_frame)
+
+
+def least_squares_rows(terms: EnergyTerms, frame_weight: float) -> tuple[sp.csr_matrix,
+                                                                          np.ndarray,
+                                                                          np.ndarray]:
+    """The least-squares rows of Eq. (5), one coordinate's worth.
+
+    The energy of one coordinate is ``sum(weights * (A @ u)**2)`` (Eq. 5 without the 1/2).
+
+    Args:
+        terms: the forms' :class:`EnergyTerms`.
+        frame_weight: the weight of E_f relative to E_x.
+
+    Returns:
+        ``(A, weights, kind)``: the (rows, N) CSR residual operator, (rows,) float64 row
+        weights and (rows,) int8 row kind (0 edge, 1 frame).
+    """
+    topo = terms.topology
+    n, m = topo.n_vertices, topo.n_faces
+    H = 3 * m
+    k = len(terms.interior_edges)
+    # Every row has exactly four distinct columns: the CSR arrays are written in place, row
+    # by row (no COO triplets, no temporaries of the whole matrix, no sort).
+    n_rows, n_cols = H + 3 * k, n + 3 * m
+    index = np.int32 if max(n_cols, 4 * n_rows + 1) < np.iinfo(np.int32).max else np.int64
+    cols = np.empty((n_rows, 4), dtype=index)
+    vals = np.empty((n_rows, 4))
+    # Edge rows, one per half-edge h of face T: x_dest - x_origin - a1 f_T[0] - a2 f_T[1].
+    cols[:H, 0], cols[:H, 1] = topo.halfedge_dest, topo.halfedge_origin
+    cols[:H, 2] = n + 3 * (np.arange(H, dtype=index) // 3)    # column of f_T[k, 0]
+    cols[:H, 3] = cols[:H, 2] + 1
+    vals[:H, 0], vals[:H, 1] = 1.0, -1.0
+    vals[:H, 2:] = -terms.coefficients.reshape(H, 2)
+    # Frame rows (q, c): f_R[c] - sum_d f_L[d] R[d, c].
+    left, right = topo.edge_faces[terms.interior_edges].T
+    c = np.arange(3, dtype=index)
+    frame_cols = cols[H:].reshape(k, 3, 4)
+    frame_cols[:, :, 0] = (n + 3 * right).astype(index)[:, None] + c[None, :]
+    frame_cols[:, :, 1:] = (n + 3 * left).astype(index)[:, None, None] + c[None, None, :]
+    frame_vals = vals[H:].reshape(k, 3, 4)
+    frame_vals[:, :, 0] = 1.0
+    frame_vals[:, :, 1:] = np.swapaxes(terms.rotations, 1, 2)
+    np.negative(frame_vals[:, :, 1:], out=frame_vals[:, :, 1:])
+    cols, vals = cols.reshape(-1), vals.reshape(-1)
+    indptr = np.arange(0, 4 * n_rows + 1, 4, dtype=index)
+    A = sp.csr_matrix((vals, cols, indptr), shape=(n_rows, n_cols))
+    A.sort_indices()
+    weights = np.concatenate([terms.edge_weights.ravel(),
+                              frame_weight * np.repeat(terms.frame_weights, 3)])
+    kind = np.concatenate([np.zeros(H, dtype=np.int8), np.ones(3 * k, dtype=np.int8)])
+    return A, weights, kind
+
+
+def unknown_groups(n_vertices: int, n_faces: int) -> np.ndarray:
+    """The ordering hint of :func:`solver.linalg.factorize` for this system's unknowns.
+
+    Args:
+        n_vertices: n.
+        n_faces: m.
+
+    Returns:
+        (n + 3 m,) int64: one group per vertex and one per face (its three frame unknowns
+        couple with the same others).
+
+    Example:
+        >>> from solver.linear.system import unknown_groups
+        >>> unknown_groups(2, 2).tolist()
+        [0, 1, 2, 2, 2, 3, 3, 3]
+    """
+    return np.concatenate([np.arange(n_vertices),
+                           n_vertices + np.repeat(np.arange(n_faces), 3)])
+
+
+def frame_columns(n_vertices: int, faces: np.ndarray) -> np.ndarray:
+    """Unknown indices of the frame rows of some faces.
+
+    Args:
+        n_vertices: n.
+        faces: (k,) int64 face indices.
+
+    Returns:
+        (k, 3) int64 unknowns ``f_t[k, 0..2]`` of each face.
+    """
+    return n_vertices + 3 * np.asarray(faces)[:, None] + np.arange(3)[None, :]
+
+
+@dataclass
+class LinearConstraints:
+    """Constraints in unknown space: hard values are eliminated, soft ones are penalties.
+
+    Attributes:
+        hard_columns: (h,) int64 unknowns fixed exactly.
+        hard_values: (h, 3) float64 their values, one column per coordinate.
+        soft_columns: (s,) int64 unknowns pulled towards soft_values with soft_weights.
+        soft_values: (s, 3) float64.
+        soft_weights: (s,) float64 > 0.
+    """
+
+    hard_columns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    hard_values: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    soft_columns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    soft_values: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    soft_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def extended(self, other: LinearConstraints) -> LinearConstraints:
+        """Union of two constraint sets (``other`` appended)."""
+        return LinearConstraints(
+            np.concatenate([self.hard_columns, other.hard_columns]),
+            np.concatenate([self.hard_values, other.hard_values]),
+            np.concatenate([self.soft_columns, other.soft_columns]),
+            np.concatenate([self.soft_values, other.soft_values]),
+            np.concatenate([self.soft_weights, other.soft_weights]))
+
+
+class ConstrainedSystem:
+    """``K`` with hard unknowns eliminated and soft penalties added, factorized once.
+
+    Hard unknowns are eliminated symmetrically in place: their rows and columns are
+    cleared except for the diagonal, and their coupling to the free unknowns moves to the
+    right-hand side. The factorized matrix keeps its size N, so no index remapping or
+    sub-matrix copy is needed. The cleared entries stay stored as explicit zeros, so the
+    sparsity pattern is that of ``K`` whatever the constraint set: a new handle set on the
+    same mesh reuses the analysis of the previous one (:mod:`solver.linalg` caches it per
+    pattern; ``analysis`` says whether it did). ``solve(hard_values, soft_values)`` only
+    back-substitutes, so handle drags reuse the factorization (the paper's
+    prefactorization, Sec. 5). The constrained unknowns and soft weights are fixed at
+    construction; their target values may change per solve.
+
+    Args:
+        K: (N, N) sparse ``A^T W A``.
+        hard_columns: (h,) int64 unknowns fixed exactly.
+        soft_columns: (s,) int64 unknowns pulled towards targets.
+        soft_weights: (s,) float64 > 0 their penalty weights.
+        backend: sparse factorization backend (:func:`solver.linalg.factorize`).
+        groups: optional (N,) int64 ordering hint (:func:`unknown_groups`).
+
+    Raises:
+        SingularSystemError: the constrained matrix is singular.
+        BackendUnavailableError: the backend is not installed.
+    """
+
+    def __init__(self, K: sp.spmatrix, hard_columns: np.ndarray, soft_columns: np.ndarray,
+                 soft_weights: np.ndarray, backend: str = "auto",
+                 groups: np.ndarray | None = None) -> None:
+        N = K.shape[0]
+        self.size = N
+        self.hard_columns = np.asarray(hard_columns, dtype=np.int64)
+        self.soft_columns = np.asarray(soft_columns, dtype=np.int64)
+        self.soft_weights = np.asarray(soft_weights, dtype=np.float64)
+        hard = np.zeros(N, dtype=bool)
+        hard[self.hard_columns] = True
+        # Penalties of soft constraints, and 1 on hard diagonals (unused vertices have none).
+        diagonal = np.bincount(self.soft_columns, weights=self.soft_weights,
+                               minlength=N).astype(np.float64) + hard
+        K = (sp.csr_matrix(K) + sp.diags(diagonal)).tocsr()
+        K.sum_duplicates()
+        self.K_hard_rows = K[self.hard_columns]            # (h, N): coupling to the rhs
+        rows = np.repeat(np.arange(N), np.diff(K.indptr))
+        cols = K.indices
+        keep = (~hard[rows] & ~hard[cols]) | ((rows == cols) & hard[rows])
+        # Explicit zeros kept on purpose (see the class docstring).
+        reduced = sp.csr_matrix((K.data * keep, cols, K.indptr), shape=K.shape)
+        self.hard_diagonal = reduced.diagonal()[self.hard_columns]
+        self.factor: Factorization = factorize(reduced, backend, assume_symmetric=True,
+                                               groups=groups)
+
+    @property
+    def backend(self) -> str:
+        """The backend that factorized the system."""
+        return self.factor.backend
+
+    @property
+    def analysis(self) -> str:
+        """``"cached"`` or ``"computed"``: see :class:`solver.linalg.Factorization`."""
+        return self.factor.analysis
+
+    def solve(self, hard_values: np.ndarray, soft_values: np.ndarray) -> np.ndarray:
+        """Solve for new constraint targets (back-substitution only).
+
+        Args:
+            hard_values: (h, 3) float64 values of the hard unknowns.
+            soft_values: (s, 3) float64 targets of the soft unknowns.
+
+        Returns:
+            (N, 3) float64 unknowns, one column per coordinate.
+        """
+        rhs = np.zeros((self.size, 3))
+        np.add.at(rhs, self.soft_columns, self.soft_weights[:, None] * soft_values)
+        rhs -= self.K_hard_rows.T @ hard_values
+        rhs[self.hard_columns] = self.hard_diagonal[:, None] * hard_values
+        u = self.factor.solve(rhs)
+        u[self.hard_columns] = hard_values
+        return u
+
+
+def normal_matrix(A: sp.csr_matrix, weights: np.ndarray) -> sp.csc_matrix:
+    """The normal matrix of the least-squares rows.
+
+    Args:
+        A: (rows, N) sparse residual operator.
+        weights: (rows,) float64 row weights.
+
+    Returns:
+        (N, N) CSC ``K = A^T diag(weights) A`` (symmetric positive semi-definite).
+    """
+    return (A.T @ sp.diags(weights) @ A).tocsc()
+
+
+def energies(A: sp.csr_matrix, weights: np.ndarray, kind: np.ndarray,
+             u: np.ndarray, residual: np.ndarray | None = None) -> dict[str, float]:
+    """The edge and frame parts of Eq. (5), summed over coordinates.
+
+    Args:
+        A: (rows, N) sparse residual operator.
+        weights: (rows,) float64 row weights.
+        kind: (rows,) int8 row kind (0 edge, 1 frame).
+        u: (N, 3) float64 unknowns.
+        residual: optional (rows, 3) ``A @ u`` when the caller has it already.
+
+    Returns:
+        ``{"edge": E_x, "frame": w E_f}`` floats.
+    """
+    r = A @ u if residual is None else residual
+    r2 = np.square(r[:, 0])                   # column by column: no (rows, 3) temporaries
+    for c in range(1, r.shape[1]):
+        r2 += np.square(r[:, c])
+    r2 *= weights
+    return {"edge": float(r2[kind == 0].sum()), "frame": float(r2[kind == 1].sum())}
+
+
+def max_weighted_residual(weights: np.ndarray, residual: np.ndarray) -> float:
+    """``max |sqrt(weights) * residual|`` over rows and columns of a (rows, 3) ``A @ u``
+    (column by column, without (rows, 3) temporaries); 0 for no rows."""
+    if not len(residual):
+        return 0.0
+    worst = np.abs(residual[:, 0])
+    for c in range(1, residual.shape[1]):
+        np.maximum(worst, np.abs(residual[:, c]), out=worst)
+    worst *= np.sqrt(weights)
+    return float(worst.max())

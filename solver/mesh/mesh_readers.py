@@ -1,0 +1,336 @@
+"""The mesh file parsers behind :mod:`solver.mesh.formats`' readers: OBJ and OFF parsed here,
+PLY, STL, GLB and glTF through trimesh (no processing, the file's vertex order kept), and
+what they share (text decoding, fan triangulation of polygons, STL's merge of identical
+corners). The rules per format are :mod:`solver.mesh.io`'s docstring; every parser returns
+``(vertices, faces, face_polygon)``: (n, 3) float, (m, 3) int triangles and the file face
+of each triangle (None: one file face per triangle).
+"""
+
+from __future__ import annotations
+
+import io
+import re
+from typing import Any, Final
+
+import numpy as np
+
+from ..core.errors import MeshFileError
+from .file_diagnosis import off_problem
+
+_OBJ_REF_TAIL: Final = re.compile(r"/\S*")
+"""The ``/vt/vn`` tail of an OBJ face entry."""
+
+
+def off_short(data: bytes, vertices: np.ndarray, faces: np.ndarray) -> str | None:
+    """The OFF record at fault when the parser read fewer vertices or faces than the file's
+    header announces (trimesh drops a truncated last face silently); None otherwise."""
+    header = re.match(rb"\s*\w*OFF\s+(\d+)\s+(\d+)", data)
+    if header is None:
+        return None
+    if len(vertices) >= int(header[1]) and len(faces) >= int(header[2]):
+        return None
+    return off_problem(data)
+
+
+def text_as_utf8(data: bytes, fmt: str) -> bytes:
+    """The file with its text (all of OFF and ASCII STL, the PLY header) as UTF-8.
+
+    Text mesh files are ASCII apart from comments and names, which are often Latin-1; trimesh
+    decodes text as UTF-8 (and would reach for an optional charset detector otherwise). Bytes
+    that are not UTF-8 are read as Latin-1, which maps every byte to one character, so the
+    numbers are untouched. Binary parts (binary STL, a binary PLY body) are left as they are.
+    """
+    if fmt == "ply":
+        end = data.find(b"end_header")
+        return data if end < 0 else _latin1_to_utf8(data[:end]) + data[end:]
+    if fmt == "off" or (fmt == "stl" and not _is_binary_stl(data)):
+        return _latin1_to_utf8(data)
+    return data
+
+
+def _latin1_to_utf8(text: bytes) -> bytes:
+    try:
+        text.decode("utf-8")
+    except UnicodeDecodeError:
+        return text.decode("latin-1").encode("utf-8")
+    return text
+
+
+def _is_binary_stl(data: bytes) -> bool:
+    """A binary STL: an 80-byte header, a uint32 count n, then exactly n 50-byte records."""
+    if len(data) < 84:
+        return False
+    count = int(np.frombuffer(data, dtype="<u4", count=1, offset=80)[0])
+    return len(data) == 84 + 50 * count
+
+
+def parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions from every ``v`` line, triangles from the ``v`` index of every ``f`` entry.
+
+    Args:
+        data: The OBJ file.
+
+    Returns:
+        (n, 3) float64 vertices in ``v``-line order, (m, 3) int64 faces (0-based; each
+        k-gon fan-triangulated, :func:`fan_triangulate`) and (m,) int64 the ``f`` record
+        of each triangle.
+    """
+    text = data.decode("utf-8", errors="replace")
+    text = text.replace("\r\n", "\n").replace("\r", "\n").replace("\\\n", " ")
+    lines = [ln.split("#", 1)[0].strip() for ln in text.split("\n")]
+    # Only whitespace-separated "v" / "f" records count ("vt", "vn", "vp", "fo"... do not).
+    v_lines = [ln for ln in lines if ln[:2] in ("v ", "v\t")]
+    if not v_lines:
+        raise MeshFileError("no vertices ('v' lines) found")
+    is_v = np.array([ln[:2] in ("v ", "v\t") for ln in lines], dtype=bool)
+    is_f = np.array([ln[:2] in ("f ", "f\t") for ln in lines], dtype=bool)
+    coords = [ln.split()[1:4] for ln in v_lines]
+    if min(map(len, coords)) < 3:
+        i = next(k for k, c in enumerate(coords) if len(c) < 3)
+        lineno = int(np.flatnonzero(is_v)[i]) + 1
+        raise MeshFileError(f"line {lineno}: vertex needs 3 coordinates",
+                            details={"line": lineno})
+    try:
+        vertices = np.array(coords, dtype=np.float64)
+    except ValueError as exc:
+        raise MeshFileError(f"bad vertex coordinate ({exc})") from exc
+
+    f_rows = np.flatnonzero(is_f)
+    if f_rows.size == 0:
+        return vertices, np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
+    # "f 1/2/3 4//5 6" -> "1 4 6": keep each entry's leading v index.
+    f_text = _OBJ_REF_TAIL.sub("", "\n".join([lines[r][2:] for r in f_rows]))
+    counts = np.fromiter(map(len, map(str.split, f_text.split("\n"))), dtype=np.int64,
+                         count=f_rows.size)
+    tokens = f_text.split()
+    try:
+        ids = np.array(tokens, dtype=np.int64)
+    except ValueError as exc:
+        raise MeshFileError(f"bad face index ({exc})") from exc
+    except OverflowError:
+        raise _huge_index(tokens, np.repeat(f_rows, counts)) from None
+    if counts.min() < 3:
+        lineno = int(f_rows[np.argmax(counts < 3)]) + 1
+        raise MeshFileError(f"line {lineno}: face with fewer than 3 vertices",
+                            details={"line": lineno})
+    # 1-based; negative indices count back from the last vertex defined before the face line.
+    nv_before = np.cumsum(is_v)[f_rows]  # vertices defined up to each face line
+    nv_tok = np.repeat(nv_before, counts)
+    idx = np.where(ids > 0, ids - 1, np.where(ids < 0, nv_tok + ids, -1))
+    bad = (idx < 0) | (idx >= nv_tok)
+    if bad.any():
+        lineno = int(np.repeat(f_rows, counts)[np.argmax(bad)]) + 1
+        raise MeshFileError(f"line {lineno}: face references a vertex not defined before it",
+                            details={"line": lineno})
+    triangles, face_polygon = fan_triangulate(counts)
+    return vertices, idx[triangles], face_polygon
+
+
+def fan_triangulate(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fan triangulation of polygons stored back to back, vectorized.
+
+    Polygon j with k_j corners at token offsets ``o .. o + k_j - 1`` gives the triangles
+    ``(o, o + t, o + t + 1)`` for t = 1 .. k_j - 2 (a triangle stays itself).
+
+    Args:
+        counts: (p,) int64 corners of each polygon, each >= 3.
+
+    Returns:
+        ``(triangles, polygon)``: (m, 3) int64 token offsets and (m,) int64 the polygon of
+        each triangle, m = sum(counts - 2).
+
+    Example:
+        >>> import numpy as np
+        >>> triangles, polygon = fan_triangulate(np.array([4, 3]))
+        >>> triangles.tolist(), polygon.tolist()
+        ([[0, 1, 2], [0, 2, 3], [4, 5, 6]], [0, 0, 1])
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    ntri = counts - 2
+    first = np.repeat(starts, ntri)
+    t = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
+    polygon = np.repeat(np.arange(len(counts), dtype=np.int64), ntri)
+    return np.stack([first, first + t, first + t + 1], axis=1), polygon
+
+
+def _huge_index(tokens: list[str], token_rows: np.ndarray) -> MeshFileError:
+    """The error for a face index beyond int64, naming its line and quoting the index.
+
+    Args:
+        tokens: The face entries' vertex indices, as written.
+        token_rows: The line index of each token.
+
+    Returns:
+        The error to raise.
+    """
+    long = np.flatnonzero(np.fromiter(map(len, tokens), np.intp, len(tokens)) >= 19)
+    limit = np.iinfo(np.int64)
+    k = next(int(k) for k in long if not limit.min <= int(tokens[k]) <= limit.max)
+    lineno = int(token_rows[k]) + 1
+    return MeshFileError(f"line {lineno}: face index {tokens[k]} is far beyond the vertices "
+                         "of the file", details={"line": lineno, "value": tokens[k]})
+
+
+def load_trimesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """PLY/STL/GLB/glTF through trimesh without any processing or reordering; a PLY's
+    polygon faces are triangulated here (:func:`_ply_polygons`)."""
+    import trimesh  # deferred: heavy import, and only needed for these formats
+
+    loaded = trimesh.load(io.BytesIO(data), file_type=fmt, process=False,
+                          maintain_order=True)
+    if isinstance(loaded, trimesh.Scene):
+        return (*_single_scene_mesh(loaded, fmt), None)
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise MeshFileError(f"no triangle faces (file holds a {type(loaded).__name__})",
+                            file_type=fmt)
+    if fmt == "ply":
+        polygons = _ply_polygons(loaded.metadata)
+        if polygons is not None:
+            return (np.asarray(loaded.vertices), *polygons)
+    return np.asarray(loaded.vertices), np.asarray(loaded.faces), None
+
+
+def _ply_polygons(metadata: dict[str, Any]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The PLY file's own face list, fan-triangulated (:func:`fan_triangulate`), or None
+    when the file has no face list or only triangles (trimesh's faces are then the file's).
+
+    trimesh triangulates polygons itself, but reorders the faces (triangles first) and
+    splits quads differently from larger polygons; the raw list it keeps is used instead.
+    """
+    face = (metadata.get("_ply_raw") or {}).get("face") or {}
+    data = face.get("data")
+    if data is None:
+        return None
+    names = data.dtype.names or () if isinstance(data, np.ndarray) else tuple(data)
+    lists = [data[name] for name in ("vertex_indices", "vertex_index") if name in names]
+    if not lists:
+        return None
+    raw = lists[0]
+    if isinstance(raw, np.ndarray) and raw.dtype.names:  # binary: (count, indices) records
+        raw = raw[raw.dtype.names[-1]]
+    if isinstance(raw, np.ndarray) and raw.dtype != object:
+        rows = raw.reshape(len(raw), -1)
+        if rows.shape[1] == 3:
+            return None
+        counts = np.full(len(rows), rows.shape[1], dtype=np.int64)
+        tokens = rows.ravel()
+    else:
+        polygons = [np.asarray(row).ravel() for row in raw]
+        counts = np.fromiter(map(len, polygons), dtype=np.int64, count=len(polygons))
+        if (counts == 3).all():
+            return None
+        tokens = np.concatenate(polygons) if polygons else np.zeros(0, dtype=np.int64)
+    if len(counts) and counts.min() < 3:
+        k = int(np.argmax(counts < 3))
+        raise MeshFileError(f"face {k} has fewer than 3 vertices", index=k)
+    triangles, polygon = fan_triangulate(counts)
+    return tokens.astype(np.int64)[triangles], polygon
+
+
+def parse_off(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An OFF file (``OFF``, ``COFF``, ``NOFF``, ``CNOFF``... text header).
+
+    Vertex records keep their first three numbers (colours and normals are ignored); a face
+    record ``k i0 ... ik-1 [colour]`` is fan-triangulated (:func:`fan_triangulate`).
+
+    Args:
+        data: The OFF file, UTF-8.
+
+    Returns:
+        (n, 3) float64 vertices, (m, 3) int64 triangles and (m,) int64 the face record of
+        each triangle.
+    """
+    text = data.decode("utf-8", errors="replace")
+    lines = [ln.split("#", 1)[0].split() for ln in text.replace("\r", "\n").split("\n")]
+    lines = [ln for ln in lines if ln]
+    if not lines or not re.match(r"^[A-Za-z]*OFF", lines[0][0]):
+        raise MeshFileError("not an OFF file: the first line must be OFF")
+    glued = re.match(r"^([A-Za-z]*OFF)(\S+)$", lines[0][0])  # "OFF8 6 12": counts glued on
+    header = [glued.group(1), glued.group(2), *lines[0][1:]] if glued else lines[0]
+    if any(word.upper() == "BINARY" for word in header[1:]):
+        raise MeshFileError("binary OFF is not supported; save the mesh as text OFF")
+    rest = lines[1:]
+    counts_line = header[1:] if len(header) >= 3 else (rest.pop(0) if rest else [])
+    try:
+        n_vertices, n_faces = int(counts_line[0]), int(counts_line[1])
+    except (IndexError, ValueError):
+        raise MeshFileError("the OFF header needs the vertex and face counts") from None
+    if len(rest) < n_vertices + n_faces:
+        raise MeshFileError(f"the header announces {n_vertices} vertices and {n_faces} faces "
+                            f"but the file has {len(rest)} records")
+    try:
+        vertices = np.array([ln[:3] for ln in rest[:n_vertices]], dtype=np.float64)
+    except ValueError as exc:
+        raise MeshFileError(f"bad vertex coordinate ({exc})") from exc
+    if vertices.ndim != 2 or (n_vertices and vertices.shape[1] != 3):
+        raise MeshFileError("a vertex record needs 3 coordinates")
+    records = rest[n_vertices:n_vertices + n_faces]
+    try:
+        corners = np.array([int(ln[0]) for ln in records], dtype=np.int64)
+        short = [k for k, ln in enumerate(records) if len(ln) < corners[k] + 1]
+        if short:
+            raise MeshFileError(f"face {short[0]} lists fewer indices than its count",
+                                index=short[0])
+        tokens = np.array([i for ln, k in zip(records, corners, strict=True)
+                           for i in ln[1:k + 1]], dtype=np.int64)
+    except ValueError as exc:
+        raise MeshFileError(f"bad face record ({exc})") from exc
+    if len(corners) and corners.min() < 3:
+        k = int(np.argmax(corners < 3))
+        raise MeshFileError(f"face {k} has fewer than 3 vertices", index=k)
+    triangles, polygon = fan_triangulate(corners)
+    return vertices.reshape(-1, 3), tokens[triangles].reshape(-1, 3), polygon
+
+
+def _single_scene_mesh(scene: Any, fmt: str) -> tuple[np.ndarray, np.ndarray]:
+    """The triangle meshes of a scene (glTF, multi-solid STL), each instance with its node
+    transform applied, concatenated in the scene graph's node order (each primitive's
+    vertices in its own order). The parts keep their places: the forms carry each
+    component's placement (:mod:`solver.mesh.placement`)."""
+    import trimesh
+
+    meshes = {name: g for name, g in scene.geometry.items() if isinstance(g, trimesh.Trimesh)}
+    if not meshes:
+        raise MeshFileError("no triangle mesh found in the data", file_type=fmt)
+    instances = [node for node in scene.graph.nodes_geometry
+                 if scene.graph[node][1] in meshes] or [None]
+    vertices, faces, offset = [], [], 0
+    for node in instances:
+        if node is None:  # no node: the one mesh as stored
+            name, transform = next(iter(meshes)), np.eye(4)
+        else:
+            transform, name = scene.graph[node]
+        mesh = meshes[name]
+        part = np.asarray(mesh.vertices, dtype=np.float64)
+        transform = np.asarray(transform, dtype=np.float64)
+        if not np.array_equal(transform, np.eye(4)):
+            homog = np.hstack([part, np.ones((part.shape[0], 1))]) @ transform.T
+            part = homog[:, :3] / homog[:, 3:4]
+        vertices.append(part)
+        faces.append(np.asarray(mesh.faces, dtype=np.int64) + offset)
+        offset += len(part)
+    return np.concatenate(vertices), np.concatenate(faces)
+
+
+def merge_identical(vertices: np.ndarray, faces: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Merge bit-identical positions; new vertices numbered by first occurrence.
+
+    Args:
+        vertices: (k, 3) float positions.
+        faces: (m, 3) int indices into ``vertices``.
+
+    Returns:
+        (n, 3) float64 unique positions and (m, 3) int64 faces into them.
+    """
+    v = np.asarray(vertices, dtype=np.float64) + 0.0  # + 0.0 turns -0.0 into 0.0
+    if v.shape[0] == 0:
+        return v.reshape(0, 3), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    _, first, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(first, kind="stable")  # unique rows in order of first occurrence
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    new_index = rank[inverse]  # old vertex -> merged vertex
+    return v[first[order]], new_index[np.asarray(faces, dtype=np.int64)]

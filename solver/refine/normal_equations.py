@@ -1,0 +1,350 @@
+"""The Gauss-Newton matrix of the refinement's energy in its fixed block sparsity pattern.
+
+For the residuals of :class:`solver.refine.form_energy.FormEnergy` (``r = J`` of the free
+coordinates, in groups of a fixed number of vertices per residual), ``J^T J`` has a 3x3 block
+(``dim`` x ``dim``) between every two vertices that share a residual, and that pattern never
+changes between iterations. :class:`GaussNewtonSystem` computes it once (where every product
+of two gradient slots lands in the values of the upper-triangle CSR matrix that
+:func:`solver.linalg.factorize` reads with ``triangle="upper"``), then assembles ``J^T J``
+and ``J^T r`` at any positions with one ``bincount`` per group: no sparse matrix product, no
+format conversion. Patterns are kept per process (:data:`PATTERN_CACHE_BYTES`), so a mesh
+seen before skips the set-up.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..mesh.topology import MeshTopology
+from .form_energy import FormEnergy, ResidualGroup, square_sum
+
+
+@dataclass
+class _GroupScatter:
+    """Where a :class:`solver.refine.form_energy.ResidualGroup`'s products land.
+
+    ``gradient_index``: positions in ``J^T r`` of the kept gradient entries,
+    ``gradient_select``: the kept entries (None: all). ``J^T J``'s upper triangle: the
+    products ``G_k[r] G_l[c]`` of the slot pairs k <= l, where each lands in the matrix's
+    values (``*_scatter``), and which are gathered first (``*_gather``, None: all, in order);
+    ``twice``: the diagonal entries of degenerate hinges (two slots on one vertex).
+    """
+
+    gradient_index: np.ndarray | None = None
+    gradient_select: np.ndarray | None = None
+    diag_r: np.ndarray | None = None     # diagonal blocks: entries (r, c), r <= c
+    diag_c: np.ndarray | None = None
+    diag_scatter: np.ndarray | None = None
+    diag_gather: np.ndarray | None = None
+    pair_k: np.ndarray | None = None     # off-diagonal blocks: slot pairs k < l
+    pair_l: np.ndarray | None = None
+    scatter: np.ndarray | None = None
+    gather: np.ndarray | None = None
+    twice: tuple[np.ndarray, np.ndarray] | None = None
+
+
+class GaussNewtonSystem:
+    """``J^T J`` (upper triangle) and ``J^T r`` of a :class:`FormEnergy` over its free
+    coordinates.
+
+    Args:
+        energy: the :class:`solver.refine.form_energy.FormEnergy` (its groups and free vertices
+            fix the pattern).
+
+    Attributes:
+        n_free: number of free vertices; the unknowns are their ``dim`` coordinates,
+            vertex-major (``n_free * dim``).
+        index: (n,) int64 position of each vertex among the free ones (-1: fixed).
+        diagonal_positions: (n_free * dim,) positions of the diagonal in the CSR values.
+    """
+
+    def __init__(self, energy: FormEnergy) -> None:
+        self.energy = energy
+        self.dim, self.n, self.free = energy.dim, energy.n, energy.free
+        self.groups: list[ResidualGroup] = energy.groups
+        self.scatters = [_GroupScatter() for _ in self.groups]
+        key = self._pattern_key(energy.topology)
+        cached = _PATTERNS.get(key)
+        if cached is None:
+            self._build_pattern()
+            _PATTERNS.put(key, self._pattern_state())
+        else:
+            self._restore_pattern(cached)
+
+    _OBJECTIVE_FIELDS = ("index", "n_free", "indptr", "indices", "nnz",
+                         "diagonal_positions")
+    _GROUP_FIELDS = ("gradient_index", "gradient_select", "diag_r", "diag_c", "diag_scatter",
+                     "diag_gather", "pair_k", "pair_l", "scatter", "gather", "twice")
+
+    def _pattern_key(self, topology: MeshTopology) -> bytes:
+        """Digest of everything :meth:`_build_pattern` depends on: the faces, the free
+        vertices and each group's vertex rows."""
+        digest = hashlib.blake2b(digest_size=16)
+        digest.update(repr((self.n, self.dim, len(self.groups))).encode())
+        for array in (topology.faces, self.free, self.energy.ties.vertices,
+                      self.energy.ties.masters, *(g.vertices for g in self.groups)):
+            digest.update(repr(array.shape).encode())
+            digest.update(np.ascontiguousarray(array).tobytes())
+        return digest.digest()
+
+    def _pattern_state(self) -> dict[str, Any]:
+        """The arrays :meth:`_build_pattern` made (shared, never written to afterwards)."""
+        return {"objective": {f: getattr(self, f) for f in self._OBJECTIVE_FIELDS},
+                "groups": [{f: getattr(g, f) for f in self._GROUP_FIELDS}
+                           for g in self.scatters]}
+
+    def _restore_pattern(self, state: dict[str, Any]) -> None:
+        for name, value in state["objective"].items():
+            setattr(self, name, value)
+        for g, fields in zip(self.scatters, state["groups"], strict=True):
+            for name, value in fields.items():
+                setattr(g, name, value)
+
+    def _build_pattern(self) -> None:
+        """The scalar CSR pattern of the upper triangle of ``J^T J`` over the free
+        coordinates (every diagonal entry stored, for the damping) and, per group, where
+        each product of its residuals' gradients lands.
+
+        ``J^T J = sum_rows sum_(k, l) G_k G_l^T`` over a row's vertex slots; only slot pairs
+        k <= l are multiplied (their product, or its transpose when vertex l comes first,
+        is an upper block; the lower triangle of a diagonal block is dropped), then
+        scattered with one ``bincount`` per group straight into the values of the matrix
+        that the factorization reads (:func:`solver.linalg.factorize` with
+        ``triangle="upper"``): no sparse product, no format conversion.
+        """
+        dim = self.dim
+        index = np.full(self.n, -1, dtype=np.int64)
+        index[self.free] = np.arange(int(self.free.sum()))
+        ties = self.energy.ties  # tied vertices are their master's unknowns (solver.refine.ties)
+        index[ties.vertices] = index[ties.masters]
+        self.index = index
+        n_free = self.n_free = int(self.free.sum())
+        # Block pattern: upper vertex pairs (a <= b) that share a residual, every diagonal.
+        parts = [np.arange(n_free, dtype=np.int64) * (n_free + 1)]
+        for g in self.groups:
+            local = index[g.vertices]
+            q = local.shape[1]
+            if g.hinge:  # its other pairs are edges, present in the length group
+                g_k, g_l = np.array([2]), np.array([3])
+            else:
+                g_k, g_l = np.triu_indices(q, 1)
+            a, b = local[:, g_k], local[:, g_l]
+            lo, hi = np.minimum(a, b), np.maximum(a, b)
+            parts.append(np.where(lo >= 0, lo * n_free + hi, -1).ravel())
+        pattern = np.unique(np.concatenate(parts))
+        pattern = pattern[pattern >= 0]
+        block_rows, block_cols = np.divmod(pattern, max(n_free, 1))
+        block_indptr = np.searchsorted(block_rows, np.arange(n_free + 1))
+        # Scalar CSR of the upper triangle: row dim*a + r holds the diagonal block's entries
+        # c >= r, then dim entries for each upper block (a, b > a), in column order.
+        blocks_in_row = np.diff(block_indptr)                       # diagonal included
+        r = np.arange(dim)
+        row_length = (dim - r)[None, :] + dim * (blocks_in_row[:, None] - 1)  # (n_free, dim)
+        indptr = np.zeros(n_free * dim + 1, dtype=np.int64)
+        np.cumsum(row_length.ravel(), out=indptr[1:])
+        self.indptr = indptr.astype(np.int32)
+        # Column of every stored entry, block by block.
+        diag_cols = np.concatenate([np.arange(c, dim) for c in range(dim)])  # per row r
+        rank = np.arange(len(pattern)) - block_indptr[block_rows]     # 0 = diagonal block
+        indices = np.empty(indptr[-1], dtype=np.int64)
+        diag_rows = np.repeat(np.arange(dim), dim - np.arange(dim))
+        start = indptr[:-1].reshape(n_free, dim)
+        # Diagonal blocks.
+        pos = start[:, diag_rows] + (diag_cols - diag_rows)[None, :]
+        indices[pos.ravel()] = (np.arange(n_free)[:, None] * dim + diag_cols[None, :]).ravel()
+        self.diagonal_positions = start.ravel()  # row dim*a + r starts at its entry (r, r)
+        # Off-diagonal blocks.
+        off = rank > 0
+        a, b, k = block_rows[off], block_cols[off], rank[off]
+        rr, cc = np.meshgrid(r, r, indexing="ij")
+        pos = (start[a][:, rr] + (dim - rr) + dim * (k[:, None, None] - 1) + cc)
+        indices[pos.ravel()] = (b[:, None, None] * dim + cc).ravel()
+        self.indices = indices.astype(np.int32)
+        self.nnz = int(indptr[-1])
+
+        upper_r, upper_c = np.triu_indices(dim)                       # diagonal blocks
+        if not n_free:  # every vertex fixed: nothing is gathered (keep the indexing valid)
+            start = np.zeros((1, dim), dtype=np.int64)
+        for group, g in zip(self.groups, self.scatters, strict=True):
+            local = index[group.vertices]
+            q = local.shape[1]
+            slots = (local[:, :, None] * dim + np.arange(dim)).ravel()
+            # Where each (row, vertex, coordinate) gradient entry lands in J^T r.
+            g.gradient_select = None if (local >= 0).all() else np.flatnonzero(slots >= 0)
+            g.gradient_index = slots if g.gradient_select is None else slots[g.gradient_select]
+            # Diagonal blocks: G_k[r] G_k[c] for r <= c, at (dim a + r, dim a + c).
+            g.diag_r, g.diag_c = upper_r, upper_c
+            diag = start[np.maximum(local, 0)][:, :, upper_r] + (upper_c - upper_r)
+            diag_keep = np.repeat(local >= 0, len(upper_r))
+            # Off-diagonal pairs k < l: P[r, c] = G_k[r] G_l[c] lands at block (a, b) entry
+            # (r, c) when a < b, at block (b, a) entry (c, r) when a > b.
+            g.pair_k, g.pair_l = np.triu_indices(q, 1)
+            a, b = local[:, g.pair_k], local[:, g.pair_l]
+            lo, hi = np.minimum(a, b), np.maximum(a, b)
+            valid = lo >= 0
+            block = np.searchsorted(pattern, np.where(valid, lo * n_free + hi, 0))
+            shift = dim * (block - block_indptr[np.maximum(lo, 0)] - 1)  # (rows, pairs)
+            first = start[np.maximum(lo, 0)]                               # (rows, pairs, dim)
+            forward = first[:, :, :, None] + (dim - rr) + cc               # [.., r, c]
+            backward = np.swapaxes(forward, 2, 3)                          # rows of b first
+            off = np.where((a > b)[:, :, None, None], backward, forward) + shift[:, :, None,
+                                                                                 None]
+            off_keep = np.repeat(valid.ravel(), dim * dim)
+            # Two slots of one vertex (only in degenerate hinges): fold the pair's product
+            # and its transpose onto the diagonal block's upper triangle.
+            same = (a == b) & valid
+            if same.any():
+                base = first[same]                                          # (s, dim)
+                lo_rc, hi_rc = np.minimum(rr, cc), np.maximum(rr, cc)
+                off[same] = base[:, lo_rc] + (hi_rc - lo_rc)
+            g.diag_scatter, g.diag_gather = self._scatter(diag.ravel(), diag_keep)
+            # The off-diagonal products are computed rows last (see normal_equations).
+            off_keep = np.moveaxis(off_keep.reshape(off.shape), 0, -1).ravel()
+            off = np.moveaxis(off, 0, -1).ravel()                      # (pairs, dim, dim, rows)
+            g.scatter, g.gather = self._scatter(off, off_keep)
+            g.twice = None
+            if same.any():  # the diagonal entries of P + P^T count twice
+                twice = np.moveaxis(same[:, :, None, None] & (rr == cc), 0, -1).ravel()
+                g.twice = (np.flatnonzero(twice), off[twice])
+
+    def _scatter(self, dest: np.ndarray, keep: np.ndarray,
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+        """(positions of the kept products in the matrix values, int32 where they fit;
+        indices of the kept products, None when all are kept)."""
+        gather = None if keep.all() else np.flatnonzero(keep)
+        dest = dest if gather is None else dest[gather]
+        return (dest.astype(np.int32) if self.nnz < 2**31 else dest), gather
+
+    def normal_equations(self, X: np.ndarray, matrix: bool = True,
+                         ) -> tuple[float, sp.csr_array | None, np.ndarray]:
+        """(E, the upper triangle of the Gauss-Newton matrix over the free coordinates
+        (``J^T J`` plus the curvature terms its groups keep, :data:`~solver.refine.form_energy.
+        Curvature`; canonical CSR, every diagonal entry stored; None unless ``matrix``),
+        J^T r (n_free * dim,))."""
+        dim = self.dim
+        X = self.energy.placed(X)  # tied vertices where their masters put them
+        values = np.zeros(self.nnz) if matrix else None
+        gradient = np.zeros(self.n_free * dim)
+        energy = 0.0
+        for group, g in zip(self.groups, self.scatters, strict=True):
+            r, G = group.evaluate(X)
+            energy += 0.5 * square_sum(r)
+            contrib = (r[:, None, None] * G).ravel()            # (rows * q * dim,)
+            if g.gradient_select is not None:
+                contrib = contrib[g.gradient_select]
+            gradient += np.bincount(g.gradient_index, contrib, minlength=len(gradient))
+            if values is not None:
+                diag = G[:, :, g.diag_r] * G[:, :, g.diag_c]        # (rows, q, entries)
+                off = _pair_products(G, g.pair_k, g.pair_l)         # (pairs, dim, dim, rows)
+                if group.curvature is not None:  # r ∇²r kept where it is not small
+                    rows, M = group.curvature(X, r)
+                    diag[rows] += M[:, None, g.diag_r, g.diag_c]
+                    off[0][:, :, rows] -= M.transpose(1, 2, 0)
+                diag, off = diag.ravel(), off.ravel()
+                values += np.bincount(g.diag_scatter, diag if g.diag_gather is None
+                                      else diag[g.diag_gather], minlength=len(values))
+                values += np.bincount(g.scatter, off if g.gather is None else off[g.gather],
+                                      minlength=len(values))
+                if g.twice is not None:
+                    values += np.bincount(g.twice[1], off[g.twice[0]], minlength=len(values))
+        if values is None:
+            return energy, None, gradient
+        n = self.n_free * dim
+        H = sp.csr_array((values, self.indices, self.indptr), shape=(n, n))
+        H.has_canonical_format = True
+        return energy, H, gradient
+
+    def quadratic_form(self, upper: sp.csr_array, x: np.ndarray) -> float:
+        """``x^T H x`` for the symmetric H whose upper triangle is ``upper`` (a matrix of
+        :meth:`normal_equations`' pattern)."""
+        diagonal = upper.data[self.diagonal_positions]
+        return float(2.0 * np.einsum("i,i->", x, upper @ x)
+                     - np.einsum("i,i->", x, diagonal * x))
+
+
+def _pair_products(G: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Outer products ``G[row, first] G[row, second]^T`` of gradient slots (G: (rows, q, dim))
+    for slot pairs, as (pairs, dim, dim, rows): computed rows last, on contiguous
+    rows, they cost a quarter of the rows-first broadcast (30K hinges: 2.4 against 10 ms)."""
+    Gt = np.ascontiguousarray(np.moveaxis(G, 0, -1))                # (q, dim, rows)
+    A, B = Gt[first], Gt[second]
+    out = np.empty((len(first), G.shape[2], G.shape[2], G.shape[0]))
+    for r in range(G.shape[2]):  # the dim rows of each block
+        np.multiply(A[:, r, None, :], B, out=out[:, r])
+    return out
+
+
+PATTERN_CACHE_BYTES = 256 * 2**20
+"""Bytes of Gauss-Newton patterns (the index arrays of :meth:`GaussNewtonSystem._build_pattern`,
+about 1.5 KB per face) a process keeps, most recent first: a new refinement of a mesh it
+has seen (another request, another blend value of :func:`solver.interpolate`, a new
+handle set of the same sizes) skips the set-up (~0.1 s at 20K faces). 0 disables it."""
+
+
+class _PatternCache:
+    """LRU of Gauss-Newton patterns within :data:`PATTERN_CACHE_BYTES`."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._entries: OrderedDict[bytes, tuple[dict[str, Any], int]] = OrderedDict()
+        self.counts = {"computed": 0, "cached": 0}
+
+    def get(self, key: bytes) -> dict[str, Any] | None:
+        with self._lock:
+            entry = self._entries.get(key)
+            self.counts["computed" if entry is None else "cached"] += 1
+            if entry is None:
+                return None
+            self._entries.move_to_end(key)
+            return entry[0]
+
+    def put(self, key: bytes, state: dict[str, Any]) -> None:
+        size = _state_bytes(state)
+        with self._lock:
+            if size > PATTERN_CACHE_BYTES:
+                return
+            self._entries[key] = (state, size)
+            while sum(n for _, n in self._entries.values()) > PATTERN_CACHE_BYTES:
+                self._entries.popitem(last=False)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+            self.counts = dict.fromkeys(self.counts, 0)
+
+    def info(self) -> dict[str, int]:
+        with self._lock:
+            return {"entries": len(self._entries),
+                    "bytes": sum(n for _, n in self._entries.values()), **self.counts}
+
+
+def _state_bytes(state: Any) -> int:
+    """Bytes of the numpy arrays in a nested pattern state."""
+    if isinstance(state, np.ndarray):
+        return state.nbytes
+    if isinstance(state, dict):
+        return sum(_state_bytes(v) for v in state.values())
+    if isinstance(state, list | tuple):
+        return sum(_state_bytes(v) for v in state)
+    return 0
+
+
+_PATTERNS = _PatternCache()
+
+
+def pattern_cache_info() -> dict[str, int]:
+    """``entries`` and ``bytes`` kept, and how many refinements ``computed`` or reused
+    (``cached``) their Gauss-Newton pattern."""
+    return _PATTERNS.info()
+
+
+def clear_pattern_cache() -> None:
+    """Forget every kept pattern and reset :func:`pattern_cache_info`'s counters."""
+    _PATTERNS.clear()

@@ -1,7 +1,7 @@
 """How the refinement steps: line search, damping, factor reuse and precision, as data.
 
 :class:`StepRules` holds the thresholds of :class:`solver.refine.Refiner`'s steps that are
-not about stopping (those are :mod:`solver.refine.stopping`): which step lengths the line search
+not about stopping (those are :mod:`solver.stopping`): which step lengths the line search
 tries, how Levenberg-Marquardt's damping moves, how long a factorization is kept for
 quasi-Newton steps, and when a factor is computed in single precision. Why each has its
 value (measurements): ``docs/refinement.md``.
@@ -21,54 +21,45 @@ import numpy as np
 
 @dataclass(frozen=True)
 class StepRules:
-    """The thresholds of the refinement's steps.
-
-    Attributes:
-        step_fractions: fractions of a step the line search tries, longest first, before
-            the damping grows.
-        armijo: sufficient decrease: ``E(x + a d) < E(x) + armijo a g.d``.
-        max_frozen_steps: steps on one factorization before it is rebuilt at the current
-            positions.
-        frozen_gain: a factor is rebuilt earlier when a step lowers E by less than this
-            times its prediction; outside interactive runs such a step of a factor built
-            elsewhere is refused.
-        frozen_reach: ... or when a step moved a vertex by more than this many mean edge
-            lengths (not for a kept factor).
-        kept_steps: quasi-Newton steps on a factor kept from the previous run (a session's
-            drags), when its damping is at most ``kept_damping``.
-        kept_gain: ``frozen_gain`` for such a kept factor.
-        kept_damping: largest relative damping of a kept factor that is kept for
-            ``kept_steps``.
-        quasi_newton_memory: L-BFGS (s, y) pairs since the factor was built, in runs that
-            start from a kept factor (elsewhere the steps between factorizations are
-            frozen Gauss-Newton steps).
-        initial_damping: the first step's damping, relative to diag(J^T J).
-        min_damping: the Nielsen update never lowers the damping below this.
-        refused_damping: at least this damping after a fresh step that no backtracking
-            saved.
-        single_precision_spread: largest spread (largest over median entry) of the damped
-            Gauss-Newton matrix's diagonal that is factorized in single precision (1e4
-            before issue 40: the scan-like stand-in of bench.slivers, 2662 tied needles and
-            26 short edges left, spread 8.2e3, had its float32 factor refused by PARDISO,
-            a wasted factorization of 3.2 s of 13.9; clean meshes spread 12-200).
-        single_precision_error: largest relative correction of a single-precision solve
-            by its refinement step before the refiner factorizes in double precision.
-    """
+    """The thresholds of the refinement's steps."""
 
     step_fractions: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1)
+    """Fractions of a step the line search tries, longest first, before the damping grows."""
     armijo: float = 1e-4
+    """Sufficient decrease: ``E(x + a d) < E(x) + armijo a g.d``."""
     max_frozen_steps: int = 6
+    """Steps on one factorization before it is rebuilt at the current positions."""
     frozen_gain: float = 0.5
+    """A factor is rebuilt earlier when a step lowers E by less than this times its prediction;
+    outside interactive runs such a step of a factor built elsewhere is refused."""
     frozen_reach: float = 0.5
+    """... or when a step moved a vertex by more than this many mean edge lengths (not for a
+    kept factor)."""
     kept_steps: int = 20
+    """Quasi-Newton steps on a factor kept from the previous run (a session's drags), when its
+    damping is at most ``kept_damping``."""
     kept_gain: float = 0.05
+    """``frozen_gain`` for such a kept factor."""
     kept_damping: float = 1e-3
+    """Largest relative damping of a kept factor that is kept for ``kept_steps``."""
     quasi_newton_memory: int = 8
+    """L-BFGS (s, y) pairs since the factor was built, in runs that start from a kept factor
+    (elsewhere the steps between factorizations are frozen Gauss-Newton steps)."""
     initial_damping: float = 1e-9
+    """The first step's damping, relative to diag(J^T J)."""
     min_damping: float = 1e-12
+    """The Nielsen update never lowers the damping below this."""
     refused_damping: float = 1e-4
+    """At least this damping after a fresh step that no backtracking saved."""
     single_precision_spread: float = 1e3
+    """Largest spread (largest over median entry) of the damped Gauss-Newton matrix's diagonal
+    that is factorized in single precision (1e4 before issue 40: the scan-like stand-in of
+    bench.slivers, 2662 tied needles and 26 short edges left, spread 8.2e3, had its float32
+    factor refused by PARDISO, a wasted factorization of 3.2 s of 13.9; clean meshes spread
+    12-200)."""
     single_precision_error: float = 0.1
+    """Largest relative correction of a single-precision solve by its refinement step before
+    the refiner factorizes in double precision."""
 
 
 DEFAULT_STEP_RULES = StepRules()
@@ -86,13 +77,13 @@ def factor_precision(diagonal: np.ndarray,
                      spread: float = DEFAULT_STEP_RULES.single_precision_spread) -> str:
     """The precision to factorize a damped Gauss-Newton matrix in, from its diagonal.
 
-    Single precision nearly halves the factorization's time (:mod:`solver.refine.mixed_precision`),
+    Single precision nearly halves the factorization's time (:mod:`solver.mixed_precision`),
     and with one refinement step per solve the steps are those of double precision. Needle
     edges and flattened faces make entries of the diagonal 1e8 times the others (the
     stiffness of a residual grows as the inverse square of the edge's length or the face's
     width), beyond what float32 resolves; the diagonal's spread separates the two (12-200 on
-    every bench mesh, 1.5e8 and more with untied needle edges, 8.2e3 refused in float32).
-    Soft modes that the diagonal does not show are caught by the solves themselves
+    every bench mesh, 1.5e8 and more with needle edges). Soft modes that the diagonal does
+    not show are caught by the solves themselves
     (:attr:`StepRules.single_precision_error`).
 
     Args:

@@ -24,47 +24,43 @@ from typing import Literal
 
 @dataclass(frozen=True)
 class StopRules:
-    """The thresholds of the refinement's stopping rules (:mod:`solver.refine.stopping`).
-
-    Attributes:
-        max_iterations: iterations (each at most one Gauss-Newton matrix and its
-            factorizations) after which a run stops unconverged.
-        tolerance: a full Gauss-Newton step that moved no vertex by more than this fraction
-            of the mean target edge length is small (:func:`small_step`).
-        energy_tolerance: ... as is one that lowered E by at most this fraction of E.
-        stall_steps: a run whose last this many steps together lowered E by at most
-            ``energy_tolerance`` of it stops as stalled (:func:`stalled`).
-        exact_energy: E at or below this: the forms are met to round-off.
-        max_damping: relative damping past which no step is possible (stationary).
-        light_damping: largest relative damping at which a step counts as a Gauss-Newton
-            step, and a factor's model is trusted (:func:`trusted`).
-        trusted_gain: a factor is trusted where its last step's gain ratio (actual over
-            predicted decrease) is within this of 1.
-        slowing: a step is slowing where it lowered E by at most this fraction of E before
-            it (quadratic convergence near round-off is not slowing).
-        quasi_newton_reach: a run that is not interactive ends on a step of a factor built
-            elsewhere only if that step moved no vertex by more than this fraction of the
-            mean target edge length.
-        refused_prediction: a refused step of a trusted factor that gained at most
-            ``energy_tolerance`` of E ends a run that is not interactive where the factor
-            predicted at most this many times ``energy_tolerance`` of E.
-        small_frozen_steps: further steps a factor may take after a small, well-predicted
-            step of its own that moved more than ``quasi_newton_reach`` before a fresh
-            factorization must confirm convergence (fewer than ``stall_steps``).
-    """
+    """The thresholds of the refinement's stopping rules (:mod:`solver.stopping`)."""
 
     max_iterations: int = 50
+    """Iterations (each at most one Gauss-Newton matrix and its factorizations) after which a
+    run stops unconverged."""
     tolerance: float = 1e-4
+    """A full Gauss-Newton step that moved no vertex by more than this fraction of the mean
+    target edge length is small (:func:`small_step`)."""
     energy_tolerance: float = 1e-3
+    """... as is one that lowered E by at most this fraction of E."""
     stall_steps: int = 5
+    """A run whose last this many steps together lowered E by at most ``energy_tolerance`` of
+    it stops as stalled (:func:`stalled`)."""
     exact_energy: float = 1e-24
+    """E at or below this: the forms are met to round-off."""
     max_damping: float = 1e12
+    """Relative damping past which no step is possible (stationary)."""
     light_damping: float = 1.0
+    """Largest relative damping at which a step counts as a Gauss-Newton step, and a factor's
+    model is trusted (:func:`trusted`)."""
     trusted_gain: float = 0.25
+    """A factor is trusted where its last step's gain ratio (actual over predicted decrease) is
+    within this of 1."""
     slowing: float = 0.5
+    """A step is slowing where it lowered E by at most this fraction of E before it (quadratic
+    convergence near round-off is not slowing)."""
     quasi_newton_reach: float = 1e-2
+    """A run that is not interactive ends on a step of a factor built elsewhere only if that
+    step moved no vertex by more than this fraction of the mean target edge length."""
     refused_prediction: float = 2.0
+    """A refused step of a trusted factor that gained at most ``energy_tolerance`` of E ends a
+    run that is not interactive where the factor predicted at most this many times
+    ``energy_tolerance`` of E."""
     small_frozen_steps: int = 2
+    """Further steps a factor may take after a small, well-predicted step of its own that moved
+    more than ``quasi_newton_reach`` before a fresh factorization must confirm convergence
+    (fewer than ``stall_steps``)."""
 
 
 DEFAULT_STOP_RULES = StopRules()

@@ -198,3 +198,22 @@ def test_xatlas_seeds_cover_every_face_once_in_edge_connected_sets():
         assert np.array_equal(np.sort(np.concatenate(sets)), np.arange(len(F)))
         for piece in sets:
             assert len(connected_face_sets(graph, piece, len(F))) == 1
+
+
+@pytest.mark.parametrize("unit", [1e-6, 1.0, 1e4])
+def test_packing_places_every_chart_whatever_the_mesh_units(unit):
+    """The same charts in micrometres, metres or tens of kilometres pack the same way: no
+    chart is left unplaced by xatlas's float32 area threshold (the 69K-face scan's one-face
+    charts once piled up at the atlas's corner), none overlaps, shapes are kept."""
+    from solver.packing import pack_charts
+
+    V, F = load("decimated-knight.off")
+    result = parameterize(V, F)
+    packed = pack_charts(result.uv * unit, result.uv_faces, result.face_chart)
+    assert rasterized_overlap(packed.texcoords, result.uv_faces, 2048) == 0
+    assert packed.texcoords.min() >= 0.0 and packed.texcoords.max() <= 1.0
+    tail, head = result.uv_faces, np.roll(result.uv_faces, -1, axis=1)
+    placed = packed.texcoords * packed.scale / unit
+    np.testing.assert_allclose(np.linalg.norm(placed[head] - placed[tail], axis=2),
+                               np.linalg.norm(result.uv[head] - result.uv[tail], axis=2),
+                               rtol=1e-6)

@@ -205,7 +205,7 @@ def test_packing_places_every_chart_whatever_the_mesh_units(unit):
     """The same charts in micrometres, metres or tens of kilometres pack the same way: no
     chart is left unplaced by xatlas's float32 area threshold (the 69K-face scan's one-face
     charts once piled up at the atlas's corner), none overlaps, shapes are kept."""
-    from solver.packing import pack_charts
+    from solver.mesh.packing import pack_charts
 
     V, F = load("decimated-knight.off")
     result = parameterize(V, F)

@@ -190,7 +190,7 @@ class TaskRequest:
         (:meth:`TimePolicy.solver_budget <service.api.budgets.TimePolicy.solver_budget>` of
         ``options.max_seconds`` and :attr:`deadline`); None: no limit."""
         explicit = (self.params.get("options") or {}).get("max_seconds")
-        return TIME_POLICY.solver_budget(explicit, self.deadline).left()
+        return TIME_POLICY.solver_budget(explicit, self.deadline).seconds  # from now
 
 
 @dataclass

@@ -8,7 +8,7 @@ same test; parameterization with libigl's ARAP parameterization.
 import numpy as np
 import pytest
 
-import solver.refine as refine_module
+import solver.refine.refiner as refine_module
 from solver import (
     Constraints,
     Deformer,

@@ -55,7 +55,14 @@ def test_blend_panel_extrapolates_and_plays_the_glb(web, tmp_path):
         web.frame()
     assert not web.app("app.state.blendPlaying") and frame > 5
     rows_out = np.asarray(sequence["vertices"])
-    assert np.abs(samples[-1] - rows_out[-1]).max() < 1e-4 * scale   # ends on the last row
+    # Ends on the last row. The page's GLB is another request than `sequence`: each row is
+    # the nearest surface only to the refinement's tolerance, and the worker processes'
+    # kept factors and caches differ between requests (6e-4 of the size apart, measured),
+    # so the last frame is compared with the rows' spacing, not with round-off.
+    distances = np.abs(samples[-1][None] - rows_out).max(axis=(1, 2))
+    spacing = np.abs(rows_out[-1] - rows_out[-2]).max()
+    assert np.argmin(distances) == len(rows_out) - 1 and distances[-1] < 0.1 * spacing, (
+        distances[-3:], spacing)
     # in between it passed through the sequence: each sample is near a cross-fade of rows
     middle = samples[len(samples) // 2]
     nearest = np.abs(rows_out - middle).max(axis=(1, 2)).min()

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import trimesh
 
 from tests.helpers import DATA, REPO
+
+if TYPE_CHECKING:
+    from solver.mesh.topology import MeshTopology
 
 SHARED = REPO.parent / "shared" / "meshes"
 """The larger shared meshes beside the repository (may be absent)."""
@@ -208,6 +213,22 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
+def _separate_interior_edges(topo: MeshTopology, n_faces: int, count: int, seed: int) -> list[int]:
+    """Up to ``count`` interior edge ids of ``topo``, no two sharing a face, in a random
+    order drawn from ``seed`` (the edges the mesh degraders below split)."""
+    rng = np.random.default_rng(seed)
+    used = np.zeros(n_faces, dtype=bool)
+    chosen = []
+    for e in rng.permutation(topo.interior_edges):  # test data: a short loop is fine
+        left, right = topo.edge_faces[e]
+        if not used[left] and not used[right]:
+            used[[left, right]] = True
+            chosen.append(e)
+            if len(chosen) == count:
+                break
+    return chosen
+
+
 def with_tiny_edges(V: np.ndarray, F: np.ndarray, count: int, ratio: float = 1e-4,
                     seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """A very irregular version of a closed mesh: ``count`` interior edges ``[i, j]`` (no two
@@ -220,16 +241,7 @@ def with_tiny_edges(V: np.ndarray, F: np.ndarray, count: int, ratio: float = 1e-
     from solver.mesh.topology import build_topology
 
     topo = build_topology(F, len(V))
-    rng = np.random.default_rng(seed)
-    used = np.zeros(len(F), dtype=bool)
-    chosen = []
-    for e in rng.permutation(topo.interior_edges):  # test data: a short loop is fine
-        left, right = topo.edge_faces[e]
-        if not used[left] and not used[right]:
-            used[[left, right]] = True
-            chosen.append(e)
-            if len(chosen) == count:
-                break
+    chosen = _separate_interior_edges(topo, len(F), count, seed)
     V = np.array(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64)
     new_vertices, new_faces = [], []
@@ -260,16 +272,7 @@ def with_zero_area_faces(V: np.ndarray, F: np.ndarray, count: int, seed: int = 0
     from solver.mesh.topology import build_topology
 
     topo = build_topology(F, len(V))
-    rng = np.random.default_rng(seed)
-    used = np.zeros(len(F), dtype=bool)
-    chosen = []
-    for e in rng.permutation(topo.interior_edges):  # test data: a short loop is fine
-        left, right = topo.edge_faces[e]
-        if not used[left] and not used[right]:
-            used[[left, right]] = True
-            chosen.append(e)
-            if len(chosen) == count:
-                break
+    chosen = _separate_interior_edges(topo, len(F), count, seed)
     V = np.array(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64)
     new_vertices, new_faces = [], []

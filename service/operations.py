@@ -5,7 +5,9 @@ model of its non-array fields, its large arrays and what they form, its upload f
 what it answers (response model, whether the result is a mesh, which vertex colours it can
 add), how it reports progress (stages) and which worker function computes it. The routes,
 the request parsing, the OpenAPI document, the jobs and the workers all read
-:data:`OPERATIONS`; adding an operation means a spec here and its task function.
+:data:`OPERATIONS`; adding an operation means a spec here and its task function (its
+models ``schemas.<Stem>Request`` / ``<Stem>Params`` and ``tasks.<name>_task`` are found by
+the operation's name).
 :func:`run` is how every worker runs one.
 """
 

@@ -13,6 +13,10 @@ pass the folder holding them with ``--extra``; its OBJ files are welded by
 position: trimesh splits their vertices). Run from the repository root::
 
     PYTHONPATH=$PWD python -m bench.flatten --extra /tmp/odedstein [--only bunny.off ...]
+
+``--alternative`` adds two chartings with the same flattening, packer and measures: the
+bisection alone (``chart_layouts(seeds="components")``, the previous seams) and xatlas's
+charts flattened by our method without our checks (the alternative the issue names).
 """
 
 from __future__ import annotations

@@ -47,12 +47,12 @@ def chart_layouts(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
     """Cut the mesh into charts and flatten each (the seams of :mod:`solver.mesh.charts`).
 
     Starting from ``seeds`` (``"xatlas"``: xatlas's charts,
-    :func:`solver.mesh.charts.xatlas_charts`,
-    each edge-connected piece one chart; ``"components"``: the edge-connected components,
-    the bisection alone), a chart is bisected while it is closed
-    or has a handle, while its linear flattening's mean relative length change is above
-    twice ``opts.max_chart_distortion``, or while its refined flattening is above it, has
-    a flipped face or overlaps itself. A loop over charts; each chart's work is vectorized.
+    :func:`solver.mesh.charts.xatlas_charts`, each edge-connected piece one chart;
+    ``"components"``: the edge-connected components, the bisection alone), a chart is
+    bisected while it is closed or has a handle, while its linear flattening's mean
+    relative length change is above twice ``opts.max_chart_distortion``, or while its
+    refined flattening is above it, has a flipped face or overlaps itself
+    (:func:`overlaps_itself`). A loop over charts; each chart's work is vectorized.
     ``progress("charts", fraction of faces placed)``.
     """
     faces = topology.faces

@@ -1,15 +1,18 @@
-"""Charts: seams that cut a mesh into pieces that flatten well, by recursive bisection.
+"""Charts: seams that cut a mesh into pieces that flatten well.
 
 A chart is a set of faces, edge-connected, flattened on its own. The seams are the edges
-between charts. :func:`bisect` splits a chart in two: the two faces farthest apart on the
-dual graph (two Dijkstra sweeps from any face) grow Voronoi regions over the dual graph
-whose edge costs are the distances between face centroids, raised where the surface bends
+between charts. :func:`xatlas_charts` gives xatlas's charting (normal deviation, roundness,
+straightness, seam costs), the start of :func:`solver.atlas.chart_layouts`;
+:func:`labelled_face_sets` turns its labels into edge-connected charts. :func:`bisect`
+splits a chart that fails the checks in two: the two faces farthest apart on the dual graph
+(two Dijkstra sweeps from any face) grow Voronoi regions over the dual graph whose edge
+costs are the distances between face centroids, raised where the surface bends
 (``1 + crease_weight * (1 - cos dihedral)``), so the cut between them tends to run along
 creases and never crosses a flat region it could go around. Graph Voronoi regions are
 connected (a face's predecessor on its shortest path has the same seed), so both halves
 are charts; a chart that is closed or has a handle is always split, so the cuts through the
-homology generators and between holes come from the same recursion (see
-docs/flattening.md for why, against xatlas's charting).
+homology generators and between holes come from the same recursion (docs/flattening.md
+compares the chartings in numbers).
 
 :func:`chart_mesh` extracts a chart as its own mesh, giving a vertex where a chart touches
 itself only at a vertex (two face fans) one copy per fan, so every chart is manifold.

@@ -113,9 +113,13 @@ def pack_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray,
     options.padding = rules.padding
     options.rotate_charts = False
     options.rotate_charts_to_axis = False
-    options.texels_per_unit = rules.resolution * np.sqrt(rules.target_efficiency / area)
+    texels_per_unit = rules.resolution * np.sqrt(rules.target_efficiency / area)
+    # Handed over in texels (texels_per_unit 1): in the mesh's units a chart of a few texels
+    # can fall under xatlas's float32 area threshold, and xatlas then leaves it unplaced
+    # (the 69K-face scan: charts of one or two faces piled at the corner).
+    options.texels_per_unit = 1.0
     atlas = xatlas.Atlas()
-    atlas.add_uv_mesh(turned.astype(np.float32), faces.astype(np.uint32),
+    atlas.add_uv_mesh((turned * texels_per_unit).astype(np.float32), faces.astype(np.uint32),
                       face_chart.astype(np.uint32)[:, None])
     atlas.generate(pack_options=options)
     mapping, _, out_uv = atlas.get_mesh(0)
@@ -125,7 +129,7 @@ def pack_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray,
     texcoords[mapping.astype(np.int64)] = texels / side
     # Exact shapes: map each chart back by the similarity xatlas applied (translation and
     # the one scale), so float32 rounding never reaches the layout.
-    scale = 1.0 / (options.texels_per_unit / side)
+    scale = 1.0 / (texels_per_unit / side)
     texcoords = _exact_translation(turned, texcoords, faces, face_chart, scale)
     return Packed(texcoords, scale, int(side), rules.padding / side,
                   packing_efficiency(texcoords, faces))

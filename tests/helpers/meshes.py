@@ -169,6 +169,17 @@ def double_torus(jitter: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     return voxel_surface(mask, jitter=jitter)
 
 
+def sphere_cap(subdivisions: int = 3, below: float = -0.6) -> tuple[np.ndarray, np.ndarray]:
+    """An icosphere's faces whose centroid is above z = ``below``, vertices renumbered: a
+    strongly curved disk (a sphere with a hole at its south pole)."""
+    V, F = icosphere(subdivisions)
+    keep = V[F].mean(axis=1)[:, 2] > below
+    used = np.unique(F[keep])
+    remap = np.full(len(V), -1)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[F[keep]]
+
+
 def holed(V: np.ndarray, F: np.ndarray, centres: list[int]) -> tuple[np.ndarray, np.ndarray]:
     """``(V, F)`` without the faces around the vertices ``centres`` (small holes), the
     vertices no face uses dropped and the faces renumbered."""

@@ -1,9 +1,11 @@
 """What several benchmark scripts share: where the meshes are, how a benchmark mesh, its
-handles and its drags are made, the machine's load, and a markdown section rewritten in place.
+handles and its drags are made, the machine's load, a markdown section rewritten in place, and
+the command line of the scripts that time a few meshes over rounds.
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 from pathlib import Path
 
@@ -100,3 +102,14 @@ def write_section(path: Path, heading: str, text: str,
         end = old.find("\n## ", start + len(heading))
         new = old[:start] + text + (old[end + 1:] if end >= 0 else "")
     path.write_text(new.rstrip("\n") + "\n")
+
+
+def meshes_and_rounds(doc: str, meshes: list[str], rounds: int,
+                      name: str = "meshes") -> argparse.Namespace:
+    """Parse the command line ``[MESH ...] [--rounds N]`` of a script timing a few meshes
+    (default ``meshes``) over ``rounds`` rounds; ``doc`` is the script's docstring (its first
+    line describes it) and ``name`` the attribute the mesh names land in."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument(name, nargs="*", default=meshes)
+    parser.add_argument("--rounds", type=int, default=rounds)
+    return parser.parse_args()

@@ -28,14 +28,13 @@ floor under its own exponent.
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 
 import numpy as np
 
 import solver
-from bench.common import load_bench_mesh, scaling_exponent
+from bench.common import load_bench_mesh, meshes_and_rounds, scaling_exponent
 from solver.linalg import pardiso
 from solver.mesh.topology import build_topology
 from solver.refine import DEFORM_ANGLE_WEIGHT, FormTargets, Handles, Refiner
@@ -99,10 +98,7 @@ def one_round(values, ia, ja, g, groups, solves: int = 9) -> dict[str, list[floa
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("meshes", nargs="*", default=["rocker-arm.obj", "beetle.off"])
-    parser.add_argument("--rounds", type=int, default=5)
-    args = parser.parse_args()
+    args = meshes_and_rounds(__doc__, ["rocker-arm.obj", "beetle.off"], rounds=5)
     print(f"load average {os.getloadavg()[0]:.1f}; MKL threads "
           f"{os.environ.get('MKL_NUM_THREADS', 'default')}\n")
     print("| mesh | faces | unknowns | variant | analysis ms | factorization ms "

@@ -23,7 +23,6 @@ Reports nnz(L) (fill) and the 3-RHS solve's relative residual of each variant.
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 from typing import Any
@@ -31,7 +30,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from bench.common import load_bench_mesh
+from bench.common import load_bench_mesh, meshes_and_rounds
 from solver import fundamental_forms
 from solver.immersion import ImmersionProblem
 from solver.linalg import pardiso
@@ -147,10 +146,8 @@ def one_round(matrix: sp.csr_array, n: int, m: int) -> dict[str, dict[str, Any]]
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("cases", nargs="*", default=["rocker-arm.obj", "armadillo.obj"])
-    parser.add_argument("--rounds", type=int, default=3)
-    args = parser.parse_args()
+    args = meshes_and_rounds(__doc__, ["rocker-arm.obj", "armadillo.obj"], rounds=3,
+                             name="cases")
     for case in args.cases:
         matrix, n, m = system_matrix(case)
         print(f"\n{case}: N = {matrix.shape[0]}, nnz = {matrix.nnz}; "

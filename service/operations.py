@@ -5,7 +5,9 @@ model of its non-array fields, its large arrays and what they form, its upload f
 what it answers (response model, whether the result is a mesh, which vertex colours it can
 add), how it reports progress (stages) and which worker function computes it. The routes,
 the request parsing, the OpenAPI document, the jobs and the workers all read
-:data:`OPERATIONS`; adding an operation means a spec here and its task function.
+:data:`OPERATIONS`; adding an operation means a spec here and its task function (its
+models ``schemas.<Stem>Request`` / ``<Stem>Params`` and ``tasks.<name>_task`` are found by
+the operation's name).
 :func:`run` is how every worker runs one.
 """
 
@@ -100,10 +102,24 @@ ARRAYS_OF: dict[str, ArraySpecs] = {"mesh": MESH_ARRAYS, "forms": FORMS_ARRAYS,
                                     "pair": PAIR_ARRAYS, "shapes": STACK_ARRAYS,
                                     "transfer": TRANSFER_ARRAYS}
 
+def _operation(name: str, response: type[BaseModel],
+               source: Literal["mesh", "forms", "pair", "shapes", "transfer"],
+               stages: tuple[str, ...], mesh_result: bool, summary: str, description: str,
+               **more: Any) -> OperationSpec:
+    """The spec of operation ``name``, whose request and params models and worker task are
+    named after it: ``reconstruct/vjp`` -> ``schemas.ReconstructVjpRequest``,
+    ``schemas.ReconstructVjpParams``, ``tasks.reconstruct_vjp_task`` (a missing one fails
+    the import). ``more``: the optional :class:`OperationSpec` fields."""
+    stem = "".join(part.capitalize() for part in name.replace("_", "/").split("/"))
+    return OperationSpec(name, getattr(schemas, f"{stem}Request"),
+                         getattr(schemas, f"{stem}Params"), response, source, stages,
+                         mesh_result, getattr(tasks, f"{name.replace('/', '_')}_task"),
+                         summary, description, **more)
+
+
 OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
-    OperationSpec(
-        "forms", schemas.FormsRequest, schemas.FormsParams, documents.FormsResponse,
-        "mesh", STAGES_LIGHT, False, tasks.forms_task,
+    _operation(
+        "forms", documents.FormsResponse, "mesh", STAGES_LIGHT, False,
         "Fundamental forms of a mesh",
         "Edge lengths and signed dihedral angles of a mesh. The result is a valid body for "
         "/v1/integrability and /v1/reconstruct. Meshes as they come: polygons are "
@@ -112,17 +128,15 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "forms carry `vertex_map` (the file vertex of each cut vertex); `placement` holds "
         "each connected part's pose, so /v1/reconstruct puts every part back in place "
         "(docs/service.md, Meshes as they come)."),
-    OperationSpec(
-        "integrability", schemas.IntegrabilityRequest, schemas.IntegrabilityParams,
-        documents.IntegrabilityResponse, "forms", STAGES_LIGHT, False,
-        tasks.integrability_task, "Integrability report",
+    _operation(
+        "integrability", documents.IntegrabilityResponse, "forms", STAGES_LIGHT, False,
+        "Integrability report",
         "Checks whether lengths and angles come from a surface: per-vertex holonomy defects "
         "(Gauss and Codazzi parts), triangle inequality, topology and the global holonomy "
         "along homology generators. A mesh file upload is checked through its own forms."),
-    OperationSpec(
-        "reconstruct", schemas.ReconstructRequest, schemas.ReconstructParams,
-        documents.MeshResponse, "forms", STAGES_SOLVE, True,
-        tasks.reconstruct_task, "Reconstruct a mesh from its forms",
+    _operation(
+        "reconstruct", documents.MeshResponse, "forms", STAGES_SOLVE, True,
+        "Reconstruct a mesh from its forms",
         "One sparse linear solve (Eq. 5) with optional position and frame constraints. The "
         "integrability condition is always checked first and summarized in "
         "`report.integrability`; with `options.require_integrable` a failed check is a 422 "
@@ -132,29 +146,26 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "unconstrained part is put where it was, without it the parts are laid side by side. "
         "Angles outside (-pi, pi] are wrapped (`report.input.wrapped_angles`).",
         colors=("defect",)),
-    OperationSpec(
-        "reconstruct/vjp", schemas.ReconstructVjpRequest, schemas.ReconstructVjpParams,
-        schemas.ReconstructVjpResponse, "forms", STAGES_SOLVE, False,
-        tasks.reconstruct_vjp_task, "Gradients of a reconstruction (vector-Jacobian product)",
+    _operation(
+        "reconstruct/vjp", schemas.ReconstructVjpResponse, "forms", STAGES_SOLVE, False,
+        "Gradients of a reconstruction (vector-Jacobian product)",
         "Reconstructs like /v1/reconstruct and pulls the `cotangent` of the vertices (the "
         "gradient of a loss with respect to them) back to the lengths, angles and "
         "constraint targets: the service as a remote differentiable layer. With "
         "`options.refine: false` the linear answer is differentiated (adjoint method), "
         "otherwise the refined one (implicit differentiation at its optimum, exact "
         "Hessian); the gauge is the anchor of the answer (docs/differentiable.md)."),
-    OperationSpec(
-        "deform", schemas.DeformRequest, schemas.DeformParams, documents.MeshResponse,
-        "mesh", STAGES_SOLVE, True, tasks.deform_task,
+    _operation(
+        "deform", documents.MeshResponse, "mesh", STAGES_SOLVE, True,
         "Deform a mesh with handles",
         "Moves handle vertices (and optionally rotates groups of face frames) while "
         "preserving the fundamental forms as well as possible; `report.distortion` measures "
         "the change. A non-manifold mesh is deformed on its manifold cut (every copy of a "
         "handle vertex follows it) and answered per file vertex (`report.input.cut`); parts "
         "without handles stay where they are.", colors=("distortion",)),
-    OperationSpec(
-        "parameterize", schemas.ParameterizeRequest, schemas.ParameterizeParams,
-        documents.ParameterizeResponse, "mesh", STAGES_FLATTEN, True,
-        tasks.parameterize_task, "Flatten a mesh (seams, charts and an atlas where needed)",
+    _operation(
+        "parameterize", documents.ParameterizeResponse, "mesh", STAGES_FLATTEN, True,
+        "Flatten a mesh (seams, charts and an atlas where needed)",
         "Planar coordinates by reconstructing with all dihedral angles 0, per chart: a mesh "
         "that does not flatten well as one chart (closed, handles, several parts, too "
         "distorted) is cut along seams into charts packed into the unit square "
@@ -163,16 +174,14 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "(unsupported-topology). glTF output is the 3D mesh, seam vertices duplicated, with "
         "the atlas as TEXCOORD_0. A non-manifold mesh is flattened on its manifold cut "
         "(`uv_vertex` names the file vertex of each uv index, `report.input.cut`)."),
-    OperationSpec(
-        "interpolate", schemas.InterpolateRequest, schemas.InterpolateParams,
-        documents.InterpolateResponse, "pair", STAGES_LIGHT, True,
-        tasks.interpolate_task, "Interpolate two meshes in form space",
+    _operation(
+        "interpolate", documents.InterpolateResponse, "pair", STAGES_LIGHT, True,
+        "Interpolate two meshes in form space",
         "Blends lengths and dihedral angles of two embeddings of the same faces and "
         "reconstructs for each t. glTF output needs a single t. Uploads use `file_a` and "
         "`file_b`.", files=("file_a", "file_b")),
-    OperationSpec(
-        "blend", schemas.BlendRequest, schemas.BlendParams, documents.BlendResponse,
-        "shapes", STAGES_ROWS, True, tasks.blend_task,
+    _operation(
+        "blend", documents.BlendResponse, "shapes", STAGES_ROWS, True,
         "Blend, average or extrapolate K meshes in form space",
         "K embeddings of the same faces (`shapes`) and rows of affine `weights` (or `t` for "
         "two shapes): lengths blend in log space, dihedral angles linearly (unwrapped "
@@ -184,18 +193,17 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "Uploads give one `shapes` part per mesh file, in order (2 to 64 files of the same "
         "faces). Rows x vertices are bounded by FFS_MAX_BLEND_VERTICES (413 "
         "`blend-too-large`).", files=("shapes",), file_list=True),
-    OperationSpec(
-        "transfer", schemas.TransferRequest, schemas.TransferParams,
-        documents.TransferResponse, "transfer", STAGES_ROWS, True, tasks.transfer_task,
+    _operation(
+        "transfer", documents.TransferResponse, "transfer", STAGES_ROWS, True,
         "Transfer a deformation to another mesh of the same connectivity",
         "The target's forms plus the source's change (lengths stretched by the source's "
         "ratios, dihedral angles bent by its change), then the nearest surface, aligned to "
         "the vertex transfer `target + source_deformed - source`. Uploads use "
         "`file_source`, `file_source_deformed` and `file_target`.",
         files=("file_source", "file_source_deformed", "file_target")),
-    OperationSpec(
-        "mesh", schemas.MeshRequest, schemas.MeshParams, documents.MeshResponse,
-        "mesh", STAGES_LIGHT, True, tasks.mesh_task, "Read or convert a mesh",
+    _operation(
+        "mesh", documents.MeshResponse, "mesh", STAGES_LIGHT, True,
+        "Read or convert a mesh",
         "Reads a mesh file (OBJ, PLY, OFF, STL, GLB) or a JSON mesh, checks its connectivity "
         "like the other operations do (a non-manifold mesh's cut in `report.input.cut`, "
         "triangulated polygons in `report.input`), and returns it in the negotiated format: JSON "

@@ -479,10 +479,8 @@ def mean(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None = None, *,
         True
     """
     items = list(shapes)
-    overrides = {"align": True, **overrides}
-    result = blend(items, np.full(len(items), 1.0 / max(len(items), 1)), faces,
-                   options=options, progress=progress, **overrides)
-    return (result.vertices[0], result.reports[0]) if return_report else result.vertices[0]
+    return _one_row(items, np.full(len(items), 1.0 / max(len(items), 1)), faces, options,
+                    progress, return_report, {"align": True, **overrides})
 
 
 def transfer(source: Any, source_deformed: Any, target: Any, faces: ArrayLike | None = None,
@@ -498,8 +496,7 @@ def transfer(source: Any, source_deformed: Any, target: Any, faces: ArrayLike | 
 
     Args:
         source, source_deformed, target: embeddings (n, 3) of ``faces`` (or forms).
-        faces, options, progress, overrides: as for :func:`blend`.
-        return_report: also return the row's report.
+        faces, options, progress, overrides, return_report: as for :func:`mean`.
 
     Example:
         >>> import numpy as np
@@ -510,6 +507,15 @@ def transfer(source: Any, source_deformed: Any, target: Any, faces: ArrayLike | 
         >>> bool(np.allclose(transfer(V, tall, V, F), tall))
         True
     """
-    result = blend([target, source, source_deformed], [1.0, -1.0, 1.0], faces,
-                   options=options, progress=progress, **overrides)
+    return _one_row([target, source, source_deformed], [1.0, -1.0, 1.0], faces, options,
+                    progress, return_report, overrides)
+
+
+def _one_row(shapes: list[Any], weights: ArrayLike, faces: ArrayLike | None,
+             options: BlendOptions | None, progress: Progress | None, return_report: bool,
+             overrides: dict[str, Any]) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
+    """The one-row :func:`blend` of ``shapes`` by ``weights`` (K,): its vertices (n, 3)
+    float64, with its report when ``return_report`` (what :func:`mean` and
+    :func:`transfer` answer)."""
+    result = blend(shapes, weights, faces, options=options, progress=progress, **overrides)
     return (result.vertices[0], result.reports[0]) if return_report else result.vertices[0]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,6 +145,26 @@ def _by_levels(parent: np.ndarray, n_levels: int) -> bool:
     return n_levels <= max(64, LEVELS_PER_NODE * len(parent))
 
 
+def _accumulate(parent: np.ndarray, local: np.ndarray,
+                levels: tuple[np.ndarray, np.ndarray] | None,
+                combine: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """Root-to-node folds ``A[v] = combine(A[parent[v]], local[v])`` of an associative
+    ``combine`` (``np.matmul``, ``np.add``) on (k, ...) float64 ``local``: level by level
+    from the roots on shallow forests, by pointer doubling on deep ones."""
+    order, bounds = forest_levels(parent) if levels is None else levels
+    acc = local.copy()
+    if _by_levels(parent, len(bounds) - 2):
+        for d in range(1, len(bounds) - 1):
+            nodes = order[bounds[d]:bounds[d + 1]]
+            acc[nodes] = combine(acc[parent[nodes]], acc[nodes])
+        return acc
+    anc = np.asarray(parent, dtype=np.int64).copy()
+    while not np.array_equal(anc[anc], anc):
+        acc = combine(acc[anc], acc)
+        anc = anc[anc]
+    return acc
+
+
 def accumulate_products(parent: np.ndarray, local: np.ndarray,
                         levels: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Root-to-node matrix products ``G[v] = G[parent[v]] @ local[v]``, G[root] = local[root].
@@ -165,18 +186,7 @@ def accumulate_products(parent: np.ndarray, local: np.ndarray,
         >>> accumulate_products(np.array([0, 0, 1, 0]), local).ravel().tolist()
         [1.0, 2.0, 6.0, 5.0]
     """
-    order, bounds = forest_levels(parent) if levels is None else levels
-    acc = local.copy()
-    if _by_levels(parent, len(bounds) - 2):
-        for d in range(1, len(bounds) - 1):
-            nodes = order[bounds[d]:bounds[d + 1]]
-            acc[nodes] = acc[parent[nodes]] @ acc[nodes]
-        return acc
-    anc = np.asarray(parent, dtype=np.int64).copy()
-    while not np.array_equal(anc[anc], anc):
-        acc = acc[anc] @ acc
-        anc = anc[anc]
-    return acc
+    return _accumulate(parent, local, levels, np.matmul)
 
 
 def accumulate_sums(parent: np.ndarray, local: np.ndarray,
@@ -198,15 +208,4 @@ def accumulate_sums(parent: np.ndarray, local: np.ndarray,
         >>> accumulate_sums(np.array([0, 0, 1, 2]), np.array([0.0, 1.0, 2.0, 4.0])).tolist()
         [0.0, 1.0, 3.0, 7.0]
     """
-    order, bounds = forest_levels(parent) if levels is None else levels
-    acc = local.copy()
-    if _by_levels(parent, len(bounds) - 2):
-        for d in range(1, len(bounds) - 1):
-            nodes = order[bounds[d]:bounds[d + 1]]
-            acc[nodes] += acc[parent[nodes]]
-        return acc
-    anc = np.asarray(parent, dtype=np.int64).copy()
-    while not np.array_equal(anc[anc], anc):
-        acc = acc[anc] + acc
-        anc = anc[anc]
-    return acc
+    return _accumulate(parent, local, levels, np.add)

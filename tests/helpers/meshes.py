@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import trimesh
 
 from tests.helpers import DATA, REPO
+
+if TYPE_CHECKING:
+    from solver.mesh.topology import MeshTopology
 
 SHARED = REPO.parent / "shared" / "meshes"
 """The larger shared meshes beside the repository (may be absent)."""
@@ -219,6 +224,37 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
+def _separate_interior_edges(topo: MeshTopology, n_faces: int, count: int, seed: int) -> list[int]:
+    """Up to ``count`` interior edge ids of ``topo``, no two sharing a face, in a random
+    order drawn from ``seed`` (the edges the mesh degraders below split)."""
+    rng = np.random.default_rng(seed)
+    used = np.zeros(n_faces, dtype=bool)
+    chosen = []
+    for e in rng.permutation(topo.interior_edges):  # test data: a short loop is fine
+        left, right = topo.edge_faces[e]
+        if not used[left] and not used[right]:
+            used[[left, right]] = True
+            chosen.append(e)
+            if len(chosen) == count:
+                break
+    return chosen
+
+
+def _edge_points(V: np.ndarray, F: np.ndarray, count: int, seed: int, at: float,
+                 ) -> tuple[MeshTopology, np.ndarray, np.ndarray, list[int], np.ndarray]:
+    """What the edge splitters below start from: the topology of ``F``, float64 and int64
+    copies of ``V`` and ``F``, the chosen edges (:func:`_separate_interior_edges`) and the
+    points (len(chosen), 3) at ``i + at (j - i)`` on each edge ``[i, j]``."""
+    from solver.mesh.topology import build_topology
+
+    topo = build_topology(F, len(V))
+    chosen = _separate_interior_edges(topo, len(F), count, seed)
+    V = np.array(V, dtype=np.float64)
+    F = np.array(F, dtype=np.int64)
+    i, j = topo.edges[np.asarray(chosen, dtype=np.int64)].reshape(-1, 2).T
+    return topo, V, F, chosen, V[i] + at * (V[j] - V[i])
+
+
 def with_tiny_edges(V: np.ndarray, F: np.ndarray, count: int, ratio: float = 1e-4,
                     seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """A very irregular version of a closed mesh: ``count`` interior edges ``[i, j]`` (no two
@@ -228,33 +264,18 @@ def with_tiny_edges(V: np.ndarray, F: np.ndarray, count: int, ratio: float = 1e-
     Returns (vertices (n + count, 3), faces (m + 2 count, 3)). The surface is unchanged, so
     its forms are integrable; only the sampling degenerates (edge-length ratios ~1 / ratio).
     """
-    from solver.mesh.topology import build_topology
-
-    topo = build_topology(F, len(V))
-    rng = np.random.default_rng(seed)
-    used = np.zeros(len(F), dtype=bool)
-    chosen = []
-    for e in rng.permutation(topo.interior_edges):  # test data: a short loop is fine
-        left, right = topo.edge_faces[e]
-        if not used[left] and not used[right]:
-            used[[left, right]] = True
-            chosen.append(e)
-            if len(chosen) == count:
-                break
-    V = np.array(V, dtype=np.float64)
-    F = np.array(F, dtype=np.int64)
-    new_vertices, new_faces = [], []
+    topo, V, F, chosen, points = _edge_points(V, F, count, seed, ratio)
+    new_faces = []
     for k, e in enumerate(chosen):
         i, j = topo.edges[e]
         p = len(V) + k
-        new_vertices.append(V[i] + ratio * (V[j] - V[i]))
         for t in topo.edge_faces[e]:
             # Rotate the face so that it reads (u, w, tip) with u -> w one of i -> j, j -> i.
             turn = next(r for r in range(3) if {F[t][r], F[t][(r + 1) % 3]} == {i, j})
             u, w, tip = np.roll(F[t], -turn)
             F[t] = (u, p, tip)
             new_faces.append((p, w, tip))
-    return (np.concatenate([V, np.array(new_vertices).reshape(-1, 3)]),
+    return (np.concatenate([V, points]),
             np.concatenate([F, np.array(new_faces, dtype=np.int64).reshape(-1, 3)]))
 
 
@@ -268,32 +289,17 @@ def with_zero_area_faces(V: np.ndarray, F: np.ndarray, count: int, seed: int = 0
 
     Returns (vertices (n + count, 3), faces (m + 2 count, 3)).
     """
-    from solver.mesh.topology import build_topology
-
-    topo = build_topology(F, len(V))
-    rng = np.random.default_rng(seed)
-    used = np.zeros(len(F), dtype=bool)
-    chosen = []
-    for e in rng.permutation(topo.interior_edges):  # test data: a short loop is fine
-        left, right = topo.edge_faces[e]
-        if not used[left] and not used[right]:
-            used[[left, right]] = True
-            chosen.append(e)
-            if len(chosen) == count:
-                break
-    V = np.array(V, dtype=np.float64)
-    F = np.array(F, dtype=np.int64)
-    new_vertices, new_faces = [], []
+    topo, V, F, chosen, points = _edge_points(V, F, count, seed, at)
+    new_faces = []
     for k, e in enumerate(chosen):
         i, j = topo.edges[e]
         p = len(V) + k
-        new_vertices.append(V[i] + at * (V[j] - V[i]))
         right = topo.edge_faces[e, 1]  # the face with the half-edge j -> i
         turn = next(r for r in range(3) if (F[right][r], F[right][(r + 1) % 3]) == (j, i))
         _, _, b = np.roll(F[right], -turn)
         F[right] = (j, p, b)
         new_faces += [(p, i, b), (j, i, p)]
-    return (np.concatenate([V, np.array(new_vertices).reshape(-1, 3)]),
+    return (np.concatenate([V, points]),
             np.concatenate([F, np.array(new_faces, dtype=np.int64).reshape(-1, 3)]))
 
 

@@ -11,7 +11,7 @@ import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import * as api from "./api.js";
 import { fmt, pct, setStats } from "./format.js";
 import { rows3 } from "./mesh.js";
-import { action, withProgress } from "./progress.js";
+import { action, onFileChosen, withProgress } from "./progress.js";
 import { state, store } from "./store.js";
 
 const $ = (id) => document.getElementById(id);
@@ -218,11 +218,7 @@ export function installBlendPanel({ view }) {
   $("blend-shapes").addEventListener("input", drawWeights);
   $("blend-shapes").addEventListener("change", action(apply));
   $("blend-add").addEventListener("click", () => addOnScreen());
-  $("blend-file").addEventListener("change", (event) => {
-    const file = event.target.files[0];
-    event.target.value = "";
-    if (file) action(addFile)(file);
-  });
+  onFileChosen($("blend-file"), addFile);
   $("blend-apply").addEventListener("click", action(apply));
   $("blend-play").addEventListener("click", action(play));
   $("blend-download").addEventListener("click", action(download));

@@ -10,7 +10,7 @@ import { handleSetDocument, HandleFileError, handlesFromDocument } from "./handl
 import { bake, handleTargets, newHandle, setupFor } from "./handles.js";
 import { createHistory } from "./history.js";
 import { distortion, forms as meshForms, histogram } from "./mesh.js";
-import { action, track, withProgress } from "./progress.js";
+import { action, onFileChosen, track, withProgress } from "./progress.js";
 import { state, store } from "./store.js";
 import { showError } from "./toasts.js";
 
@@ -259,11 +259,7 @@ export function installDeformPanel({ view, pinned }) {
   $("reset-shape").addEventListener("click", action(resetShape));
   $("remove-handles").addEventListener("click", action(removeHandles));
   $("export-handles").addEventListener("click", () => exportHandles());
-  $("handles-file").addEventListener("change", (event) => {
-    const file = event.target.files[0];
-    event.target.value = "";
-    if (file) action(importHandlesFile)(file);
-  });
+  onFileChosen($("handles-file"), importHandlesFile);
   $("undo").addEventListener("click", action(history.undo));
   $("redo").addEventListener("click", action(history.redo));
   $("deform-refine").checked = state.refineDrags;

@@ -5,7 +5,7 @@
 import * as api from "./api.js";
 import { fmt, num, setStats } from "./format.js";
 import { bounds, prepareMesh } from "./mesh.js";
-import { action, withProgress } from "./progress.js";
+import { action, onFileChosen, withProgress } from "./progress.js";
 import { state, store } from "./store.js";
 import { status } from "./toasts.js";
 import { axisVector } from "./viewer.js";
@@ -150,11 +150,7 @@ export function installMeshPanel({ view, inWorker, analyze }) {
   $("sample-select").addEventListener("change", (event) => {
     if (event.target.value) action(loadSample)(event.target.value);
   });
-  $("mesh-file").addEventListener("change", (event) => {
-    const file = event.target.files[0];
-    event.target.value = "";
-    if (file) action(openUpload)(file);
-  });
+  onFileChosen($("mesh-file"), openUpload);
   $("download-glb").addEventListener("click", action(downloadGlb));
   $("wireframe").addEventListener("change", (event) => view.setWireframe(event.target.checked));
   $("grid-toggle").addEventListener("change", (event) => view.setHelpers(event.target.checked));

@@ -30,6 +30,16 @@ export function action(fn) {
   return (...args) => track(Promise.resolve().then(() => fn(...args))).catch(showError);
 }
 
+/** On each `change` of the file input `input`, the chosen file goes to `action(fn)`; the
+ * input is cleared first, so that choosing the same file again is a change too. */
+export function onFileChosen(input, fn) {
+  input.addEventListener("change", (event) => {
+    const file = event.target.files[0];
+    event.target.value = "";
+    if (file) action(fn)(file);
+  });
+}
+
 let controller = null;
 
 function start(label, { cancellable = false } = {}) {

@@ -7,7 +7,7 @@ import { showAnswerWarnings } from "./answer-warnings.js";
 import * as api from "./api.js";
 import { badge, deg, fmt, loopsText, maxOf, num, pct, setStats } from "./format.js";
 import { flatten3, forms as meshForms, rigidAlign } from "./mesh.js";
-import { action, jobProgress, withProgress } from "./progress.js";
+import { action, jobProgress, onFileChosen, withProgress } from "./progress.js";
 import { state, store } from "./store.js";
 
 const $ = (id) => document.getElementById(id);
@@ -198,11 +198,7 @@ export function installRebuildPanel({ view, openMesh, analyze }) {
 
   store.subscribe(["reconstruction"], drawReconstruction);
   store.subscribe(["forms"], (s) => { $("bend-forms").disabled = !s.forms; });
-  $("forms-file").addEventListener("change", (event) => {
-    const file = event.target.files[0];
-    event.target.value = "";
-    if (file) action(openFormsFile)(file);
-  });
+  onFileChosen($("forms-file"), openFormsFile);
   $("bend-forms").addEventListener("click", action(bendForms));
   for (const input of document.querySelectorAll('input[name="answer"]')) {
     input.addEventListener("change", action(() => showAnswer(input.value)));

@@ -165,8 +165,8 @@ def test_job_fairness_on_the_wire():
     from tests.helpers.meshes import icosphere
     from tests.helpers.service import forms_json
 
-    slow = {"operation": "reconstruct",  # ~1 s each on one worker: unfinished for a while
-            "input": {**forms_json(*icosphere(5)), "options": {"exact_shortcut": False}}}
+    slow = {"operation": "reconstruct",  # ~2.5 s each on one worker: unfinished for a while
+            "input": {**forms_json(*icosphere(6)), "options": {"exact_shortcut": False}}}
     env = {"FFS_WORKERS": "1", "FFS_MAX_JOBS": "4", "FFS_MAX_CLIENT_JOBS": "2"}
     with uvicorn_server(env) as url, _client_at(url, "127.0.0.1") as a, \
             _client_at(url, "127.0.0.2") as b:

@@ -72,8 +72,8 @@ def test_sync_timeout_is_504_and_frees_the_worker():
 
 def test_sync_request_whose_worker_dies_is_500_and_the_pool_recovers(client):
     executor = client.app.state.services.backend.executor
-    V, F = icosphere(5)
-    body = {**forms_json(V, F), "options": {"exact_shortcut": False}}  # ~1 s: factorize
+    V, F = icosphere(6)  # ~2.5 s: factorize (icosphere(5) takes 0.6 s on a quiet machine)
+    body = {**forms_json(V, F), "options": {"exact_shortcut": False}}
     result = {}
 
     def call():
@@ -86,7 +86,7 @@ def test_sync_request_whose_worker_dies_is_500_and_the_pool_recovers(client):
         time.sleep(0.002)
     busy = [w.pid for w in list(executor._workers.values()) if w.task is not None]
     assert busy, "the request never reached a worker"
-    time.sleep(0.3)  # let it start solving (about 1 s of work)
+    time.sleep(0.3)  # let it start solving (about 2.5 s of work)
     os.kill(busy[0], signal.SIGKILL)
     thread.join(60)
     doc = problem(result["response"], 500, "worker-died")

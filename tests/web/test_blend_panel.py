@@ -54,6 +54,9 @@ def test_blend_panel_extrapolates_and_plays_the_glb(web, tmp_path):
             break
         web.frame()
     assert not web.app("app.state.blendPlaying") and frame > 5
+    # The page ticks on its own animation frames: a frame may land between the sample and the
+    # `blendPlaying` check above, so the final frame is sampled once playing has stopped.
+    samples.append(np.asarray(web.app("app.blend.shown()")).reshape(-1, 3))
     rows_out = np.asarray(sequence["vertices"])
     # Ends on the last row. The page's GLB is another request than `sequence`: each row is
     # the nearest surface only to the refinement's tolerance, and the worker processes'

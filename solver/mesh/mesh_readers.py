@@ -16,6 +16,7 @@ import numpy as np
 
 from ..core.errors import MeshFileError
 from .file_diagnosis import off_problem
+from .strips import strip_triangles
 
 _OBJ_REF_TAIL: Final = re.compile(r"/\S*")
 """The ``/vt/vn`` tail of an OBJ face entry."""
@@ -181,6 +182,10 @@ def load_trimesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray, np.ndar
                           maintain_order=True)
     if isinstance(loaded, trimesh.Scene):
         return (*_single_scene_mesh(loaded, fmt), None)
+    if fmt == "ply" and isinstance(loaded, trimesh.PointCloud):
+        strips = _ply_strips(loaded.metadata)
+        if strips is not None:
+            return (np.asarray(loaded.vertices), *strips)
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshFileError(f"no triangle faces (file holds a {type(loaded).__name__})",
                             file_type=fmt)
@@ -189,6 +194,35 @@ def load_trimesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray, np.ndar
         if polygons is not None:
             return (np.asarray(loaded.vertices), *polygons)
     return np.asarray(loaded.vertices), np.asarray(loaded.faces), None
+
+
+def _ply_strips(metadata: dict[str, Any]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The triangles of a PLY file's ``tristrips`` element (:func:`strip_triangles`: ``-1``
+    restarts a strip, every second triangle flipped, the joins' repeated-index triangles
+    dropped) and the strip each comes from, or None when the file has no strips."""
+    element = (metadata.get("_ply_raw") or {}).get("tristrips") or {}
+    data = element.get("data")
+    if data is None:
+        return None
+    names = data.dtype.names or () if isinstance(data, np.ndarray) else tuple(data)
+    if "vertex_indices" not in names:
+        return None
+    rows = data["vertex_indices"]  # ASCII: a dict of lists; binary: a record array
+    if not isinstance(rows, np.ndarray):
+        rows = np.asarray(rows, dtype=object) if len({len(r) for r in rows}) > 1 \
+            else np.asarray(rows)
+    if rows.dtype.names:  # binary: (count, indices) records
+        rows = rows[rows.dtype.names[-1]]
+    if rows.dtype != object:  # records of one length: one block
+        block = np.asarray(rows, dtype=np.int64).reshape(len(rows), -1)
+        indices = np.hstack([block, np.full((len(block), 1), -1)]).ravel()
+    else:  # records of different lengths (ASCII): one array per record, each ended by -1
+        indices = np.concatenate([np.append(np.asarray(row, dtype=np.int64).ravel(), -1)
+                                  for row in rows] or [np.zeros(0, dtype=np.int64)])
+    triangles, strip = strip_triangles(indices)
+    if not len(triangles):
+        raise MeshFileError("its triangle strips hold no triangle", file_type="ply")
+    return triangles, strip
 
 
 def _ply_polygons(metadata: dict[str, Any]) -> tuple[np.ndarray, np.ndarray] | None:

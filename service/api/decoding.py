@@ -95,7 +95,7 @@ _JSON_TYPES = {dict: "an object", list: "a list", str: "a string", bool: "a bool
                type(None): "null", int: "an integer", float: "a number"}
 
 
-def parse_json(body: bytes) -> Any:
+def parse_json(body: bytes | bytearray) -> Any:
     """The parsed JSON body.
 
     ``NaN``, ``Infinity`` and overflowing numbers such as ``1e400`` (which Python's ``json``
@@ -111,7 +111,7 @@ def parse_json(body: bytes) -> Any:
     Raises:
         ProblemError: 400 ``malformed-json`` when it is empty or not JSON.
     """
-    if not body.strip():
+    if not body or body.isspace():  # strip() would copy a bytearray
         raise ProblemError("malformed-json", "the body is empty; send a JSON object")
     try:
         return orjson.loads(body)

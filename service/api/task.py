@@ -91,7 +91,7 @@ class RawBody:
     validates itself, so that the main process never holds the parsed arrays."""
 
     kind: Literal["json", "binary"]
-    body: bytes
+    body: bytes | bytearray
 
 
 MeshFiles = tuple[MeshFile, ...]

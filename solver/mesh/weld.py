@@ -127,10 +127,11 @@ def _representatives(F: np.ndarray, V: np.ndarray, n: int) -> np.ndarray:
     """(n,) int64 the lowest vertex of each group joined by zero-length edges (rules 1, 2)."""
     a = F.ravel()
     b = F[:, [1, 2, 0]].ravel()
-    with np.errstate(over="ignore", invalid="ignore"):
-        used = V[np.unique(a)]
-        diagonal = float(np.linalg.norm(used.max(axis=0) - used.min(axis=0)))
-        length = np.linalg.norm(V[b] - V[a], axis=1)
+    used = V[np.unique(a)]
+    size = float(np.abs(used).max(initial=0.0))
+    scaled = V / size if size > 0 else V  # huge coordinates: no overflow to inf
+    diagonal = float(np.linalg.norm(np.ptp(scaled[np.unique(a)], axis=0)))
+    length = np.linalg.norm(scaled[b] - scaled[a], axis=1)
     short = (length <= WELD_TOLERANCE * diagonal) & (a != b)
     target = np.arange(n, dtype=np.int64)
     if not short.any():

@@ -91,3 +91,35 @@ def test_conflicting_targets_on_welded_copies_are_a_422(http):
     assert response.status_code == 200, response.text
     moved = np.asarray(response.json()["vertices"])
     np.testing.assert_allclose(moved[:2], [same[0]["position"]] * 2, atol=1e-9)
+
+
+def test_session_drags_a_welded_mesh_per_file_vertex(http):
+    """A deform session on the capsule: a drag of handles on two pole copies (one target)
+    answers every file vertex, the copies at one position, equal to /v1/deform's answer."""
+    V, F, _, _ = CASES["latlong-capsule"]()
+    handles = [0, 1, len(V) - 1]
+    targets = [(V[0] + [0.0, 0.0, -0.2]).tolist()] * 2 + [V[-1].tolist()]
+    created = http.post("/v1/sessions", json={
+        "vertices": V.tolist(), "faces": F.tolist(),
+        "handles": [{"vertex": h} for h in handles]})
+    assert created.status_code == 201, created.text
+    location = created.headers["location"]
+    try:
+        solved = http.post(f"{location}/solve", json={"handle_positions": targets})
+        assert solved.status_code == 200, solved.text
+        dragged = np.asarray(solved.json()["vertices"])
+        assert dragged.shape == V.shape
+        np.testing.assert_allclose(dragged[handles], targets, atol=1e-9)
+        columns = 20  # every copy of the south pole moved with its handle
+        np.testing.assert_allclose(dragged[:columns + 1], [targets[0]] * (columns + 1),
+                                   atol=1e-9)
+        spec = [{"vertex": h, "position": p} for h, p in zip(handles, targets, strict=True)]
+        once = http.post("/v1/deform", json={"vertices": V.tolist(), "faces": F.tolist(),
+                                              "handles": spec, "options": {"refine": False}})
+        assert once.status_code == 200, once.text
+        np.testing.assert_allclose(dragged, once.json()["vertices"], atol=1e-6)
+        clash = http.post(f"{location}/solve", json={"handle_positions": [
+            targets[0], V[1].tolist(), targets[2]]})
+        assert clash.status_code == 422, clash.text
+    finally:
+        http.delete(location)

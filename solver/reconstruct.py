@@ -9,7 +9,7 @@ the same pieces.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -168,6 +168,14 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     place = Placement.coerce(placement, topology.n_faces)
     user = (constraints or Constraints()).validated(topology.n_vertices, topology.n_faces)
+    if cut is not None and cut.weld_map is not None and len(user.position_vertices):
+        # A constraint on a welded vertex holds its representative (one unknown): two on
+        # one group are a repeated vertex (ConstraintError).
+        held = user.position_vertices
+        below = held < cut.n_file_vertices
+        held = np.where(below, cut.weld_map[np.minimum(held, cut.n_file_vertices - 1)], held)
+        user = replace(user, position_vertices=held).validated(topology.n_vertices,
+                                                               topology.n_faces)
     stages.lap("validate")
     stages("assemble")
     problem = ImmersionProblem(topology, L, A, frame_weight=opts.frame_weight,

@@ -194,3 +194,19 @@ def test_huge_coordinates_do_not_weld_everything():
     V, F, _, _ = CASES["duplicated-corner"]()
     weld = weld_vertices(F, V * 1e300)
     assert len(weld.welded_vertices) == 1 and len(weld.dropped_faces) == 2
+
+
+def test_a_constraint_on_a_welded_vertex_holds_the_welded_vertex():
+    V, F, _, _ = CASES["duplicated-corner"]()
+    forms = solver.fundamental_forms(V, F)
+    copy = int(np.flatnonzero(forms.weld_map != np.arange(len(V)))[0])
+    far = int(np.argmax(np.linalg.norm(V - V[copy], axis=1)))
+    lifted = V[[copy, far]] + [0.0, 0.0, 0.3]
+    held = solver.Constraints(position_vertices=np.array([copy, far]), positions=lifted)
+    result = _rebuilt(forms, len(V), constraints=held, refine=False)
+    np.testing.assert_allclose(result.vertices[[copy, forms.weld_map[copy], far]],
+                               lifted[[0, 0, 1]], atol=1e-12)
+    twice = solver.Constraints(position_vertices=np.array([copy, forms.weld_map[copy]]),
+                               positions=V[[copy, copy]])
+    with pytest.raises(ConstraintError):
+        _rebuilt(forms, len(V), constraints=twice)

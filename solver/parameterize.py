@@ -294,10 +294,11 @@ def _crossings(uv: np.ndarray, faces: np.ndarray, most: int = 20_000) -> int | N
 def _on_file_vertices(flat: Parameterization, cut: ManifoldCut) -> Parameterization:
     """A flattening of a non-manifold mesh's manifold cut, told in the file's vertices: the
     uv indices stay (a cut vertex is one more uv index, as a seam vertex is) and
-    ``uv_vertex`` names the file vertex of each (``report["input"]["cut"]``)."""
+    ``uv_vertex`` names the file vertex of each (``report["input"]["cut"]``; a welded
+    mesh's ``uv_vertex`` names representatives, ``report["input"]["weld"]``)."""
     if flat.uv_vertex is not None:
         flat.uv_vertex = cut.vertex_map[flat.uv_vertex]
-    flat.report.input = {**(flat.report.input or {}), "cut": cut.report()}
+    flat.report.input = {**(flat.report.input or {}), **cut.sections()}
     return flat
 
 

@@ -9,7 +9,7 @@ the same pieces.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -92,6 +92,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                 initial_guess: ArrayLike | None = None, progress: Progress | None = None,
                 vertex_map: ArrayLike | None = None,
                 placement: Placement | dict[str, Any] | None = None,
+                weld_map: ArrayLike | None = None,
                 **overrides: Any) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
 
@@ -124,6 +125,10 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             non-manifold mesh, :func:`solver.fundamental_forms`): the answer is given per
             file vertex, the mean of its copies, their spread in ``report["input"]["cut"]``
             (``n_vertices`` is then the file's vertex count).
+        weld_map: the forms' (n,) file vertex each file vertex was welded into (forms of a
+            mesh with zero-length edges, :mod:`solver.mesh.weld`; with ``vertex_map``): a
+            welded vertex gets its representative's position, ``report["input"]["weld"]``
+            counts them.
         placement: the forms' component placement (:class:`solver.mesh.placement.Placement` or
             its dict): each component without constraints is moved rigidly so that its
             anchor face has that pose (a multi-part round trip is exact as a whole);
@@ -155,12 +160,22 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     stages("validate")
     backend = resolve_backend(opts.backend or "auto")  # refused even when nothing factorizes
     cut = None
+    if weld_map is not None and vertex_map is None:
+        raise ConstraintError("weld_map needs the forms' vertex_map", field="weld_map")
     if vertex_map is not None:
-        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices)
+        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices, weld_map)
         n_vertices = cut.n_vertices
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     place = Placement.coerce(placement, topology.n_faces)
     user = (constraints or Constraints()).validated(topology.n_vertices, topology.n_faces)
+    if cut is not None and cut.weld_map is not None and len(user.position_vertices):
+        # A constraint on a welded vertex holds its representative (one unknown): two on
+        # one group are a repeated vertex (ConstraintError).
+        held = user.position_vertices
+        below = held < cut.n_file_vertices
+        held = np.where(below, cut.weld_map[np.minimum(held, cut.n_file_vertices - 1)], held)
+        user = replace(user, position_vertices=held).validated(topology.n_vertices,
+                                                               topology.n_faces)
     stages.lap("validate")
     stages("assemble")
     problem = ImmersionProblem(topology, L, A, frame_weight=opts.frame_weight,
@@ -278,9 +293,15 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         vertices, frames = apply_placement(vertices, topology.faces, place.subset(moving),
                                            frames=frames)
         input_report["placement"] = f"{int(moving.sum())} of {len(moving)} components placed"
+    isolated = topology.isolated_vertices
     if cut is not None:
         vertices, spread = cut.to_file(vertices)
-        input_report["cut"] = cut.report(spread)
+        input_report.update(cut.sections(spread) or {"cut": cut.report(spread)})
+        if cut.weld_map is not None:  # a welded vertex is no face's, yet not isolated
+            below = isolated < cut.n_file_vertices
+            welded = np.zeros(len(isolated), dtype=bool)
+            welded[below] = cut.weld_map[isolated[below]] != isolated[below]
+            isolated = isolated[~welded]
     report = ReconstructReport(
         energy=energy, first_solve_energy=first_energy,
         frame_orthonormality_error=orthonormality, orthonormalized=bool(opts.orthonormalize),
@@ -288,7 +309,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         n_unknowns=problem.n_unknowns, frame_weight=problem.frame_weight,
         weighting=problem.weighting, length_scale=problem.length_scale,
         regularized_components=regularized, anchored_components=anchored,
-        isolated_vertices=topology.isolated_vertices.tolist(), integrability=integrability,
+        isolated_vertices=isolated.tolist(), integrability=integrability,
         warnings=as_report(refinement_warnings(refinement)), input=input_report)
     return Reconstruction(vertices=vertices, frames=frames, report=report)
 

@@ -95,7 +95,7 @@ def mesh_summary(vertices: ArrayLike, faces: ArrayLike,
         "bounds": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
         "mean_edge_length": float(lengths.mean()) if len(lengths) else 0.0}
     if not cut.is_identity:
-        report["input"] = {"cut": cut.report()}
+        report["input"] = cut.sections()
     return points, cut.vertex_map[topology.faces], report
 
 

@@ -115,7 +115,11 @@ def build_parser() -> argparse.ArgumentParser:
                      "reconstruct puts every part back where it was (without a placement "
                      "parts are laid side by side); angles outside (-pi, pi] are wrapped and "
                      "counted; a face of zero area (collinear corners) gets its neighbours' "
-                     "mean normal and is counted (report input.zero_area_faces); the "
+                     "mean normal and is counted (report input.zero_area_faces); vertices "
+                     "joined by an edge of length ~0 (1e-12 of the diagonal) are welded into "
+                     "the lowest index and the faces that collapse (or repeat an index) are "
+                     "dropped, answers keep the file's numbering (report input.weld; forms "
+                     "files keep weld_map and dropped_faces); the "
                      "endpoints of needle edges move as one in a refinement. "
                      "See docs/service.md#meshes-as-they-come.")
     parser.add_argument("--version", action="version", version=f"ffs {__version__}")

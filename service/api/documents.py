@@ -118,6 +118,13 @@ class FormsResponse(BaseModel):
         None, description="Present for a non-manifold mesh, whose forms are those of its "
                           "manifold cut (`faces` are the cut faces): the file vertex of each "
                           "cut vertex. Send it back with the forms.")
+    weld_map: list[int] | None = Field(
+        None, description="Present when vertices joined by zero-length edges were welded: "
+                          "the file vertex each file vertex was welded into (itself unless "
+                          "welded). Send it back with the forms and `vertex_map`.")
+    dropped_faces: list[int] | None = Field(
+        None, description="Present when faces repeat a vertex once welded: those file faces, "
+                          "left out of `faces` (informational).")
     placement: dict[str, Any] | None = Field(
         None, description="Each connected component's rigid placement (`faces`, `origins`, "
                           "`frames`): `reconstruct` puts every part back where it was.")

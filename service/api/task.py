@@ -45,6 +45,8 @@ class FormsArrays:
     """The cut's file vertex of each vertex (forms of a non-manifold mesh), or None."""
     placement: Any = None
     """The components' placement (:class:`solver.mesh.placement.Placement` or its dict), or None."""
+    weld_map: np.ndarray | None = None
+    """The file vertex each file vertex was welded into (solver.mesh.weld), or None."""
 
 
 @dataclass(frozen=True)

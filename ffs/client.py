@@ -67,6 +67,9 @@ SERVER_ENV = "FFS_SERVER"
 """Environment variable naming the service when ``Client()`` is given no URL."""
 TOKEN_ENV = "FFS_TOKEN"
 """The API key a :class:`Client` sends when it is given none (services with keys)."""
+USE_A_JOB = "use-a-job"
+"""The problem kind of a request too large to answer synchronously: :meth:`Client.run`
+submits it as a job instead."""
 
 
 @dataclass(frozen=True)
@@ -223,13 +226,27 @@ class Client:
                                      **kwargs.pop("headers", {})}, **kwargs)
 
     def run(self, call: Call, progress: Progress | None = None) -> Any:
-        """Run one :class:`Call`: synchronously, or as a job when ``progress`` is given."""
+        """Run one :class:`Call`: synchronously, or as a job when ``progress`` is given or
+        when the service answers that the request is too large to answer synchronously
+        (413 ``use-a-job``: its answer is predicted to take longer than the service's
+        ``FFS_REQUEST_TIMEOUT``)."""
         if progress is not None:
-            job = self.submit_call(call)
-            try:
-                return job.result(on_progress=progress)
-            finally:
-                job.discard()
+            return self._run_as_job(call, progress)
+        try:
+            return self._run_synchronously(call)
+        except ProblemError as exc:
+            if exc.kind != USE_A_JOB:
+                raise
+        return self._run_as_job(call, None)
+
+    def _run_as_job(self, call: Call, progress: Progress | None) -> Any:
+        job = self.submit_call(call)
+        try:
+            return job.result(on_progress=progress)
+        finally:
+            job.discard()
+
+    def _run_synchronously(self, call: Call) -> Any:
         if self.binary:
             response = self.request("POST", f"/v1/{call.operation}",
                                     content=binary_body(call.params, call.arrays),

@@ -452,7 +452,8 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
         field: The input the mesh came in (named by the problem).
 
     Raises:
-        ProblemError: 413 ``mesh-too-large`` beyond either limit.
+        ProblemError: 413 ``mesh-too-large`` beyond either limit; 413 ``use-a-job`` for a
+            synchronous request beyond ``limits.max_sync_faces``.
     """
     errors = []
     if n_vertices > limits.max_vertices:
@@ -468,6 +469,30 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
                                            f"{limits.max_faces}"))
     if errors:
         raise ProblemError("mesh-too-large", errors[0]["reason"], errors=errors)
+    if limits.max_sync_faces is not None and n_faces > limits.max_sync_faces:
+        raise too_slow_for_sync(n_faces, limits, field)
+
+
+def too_slow_for_sync(n_faces: int, limits: Limits, field: str) -> ProblemError:
+    """The 413 ``use-a-job`` problem of a synchronous request predicted to miss its deadline.
+
+    Args:
+        n_faces: The mesh's face count.
+        limits: Its ``max_sync_faces`` and ``sync_seconds``.
+        field: The input the mesh came in.
+
+    Returns:
+        The problem: its ``detail`` says how to submit the request as a job; ``job`` is the
+        path to submit it to.
+    """
+    reason = (f"{n_faces} faces exceed the {limits.max_sync_faces} faces whose answer is "
+              f"predicted within the {limits.sync_seconds or 0:.0f} s a synchronous request "
+              "has (FFS_REQUEST_TIMEOUT)")
+    return ProblemError(
+        "use-a-job", reason + "; submit it as a job: POST /v1/jobs with {\"operation\": "
+        "<this endpoint's operation>, \"input\": <this body>} (or this multipart upload "
+        "with an \"operation\" field), then GET its Location until it is done",
+        errors=[element_error(field, reason)], job="/v1/jobs")
 
 
 def blend_rows(params: Mapping[str, Any]) -> tuple[int, str]:

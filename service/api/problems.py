@@ -56,6 +56,10 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
     "mesh-too-large": (413, "Mesh too large",
                        "The mesh exceeds FFS_MAX_VERTICES or FFS_MAX_FACES, or its operation's "
                        "predicted peak memory exceeds FFS_MAX_REQUEST_MEMORY."),
+    "use-a-job": (413, "Too large for a synchronous request",
+                  "The mesh's answer is predicted to take longer than FFS_REQUEST_TIMEOUT "
+                  "allows a synchronous request: submit the same input as a job "
+                  "(POST /v1/jobs), which has FFS_JOB_TIMEOUT."),
     "blend-too-large": (413, "Blend too large",
                         "Rows x vertices of the blend exceed FFS_MAX_BLEND_VERTICES: send "
                         "fewer rows per request (or a coarser mesh)."),

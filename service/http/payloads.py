@@ -93,14 +93,17 @@ def sync_limits(settings: Settings, operation: str) -> Limits:
 
 def size_limits(settings: Settings) -> dict[str, Any]:
     """The size limits ``GET /v1/me`` shows (:class:`service.api.documents.SizeLimits`):
-    FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BODY_BYTES, FFS_MAX_REQUEST_MEMORY and the
-    faces each operation (and a session) takes (:func:`limits`)."""
+    FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BODY_BYTES, FFS_MAX_REQUEST_MEMORY, the
+    faces each operation (and a session) takes (:func:`limits`) and the faces each takes
+    synchronously (:func:`sync_limits`)."""
     by_operation = {name: limits(settings, name).max_faces for name in OPERATIONS}
     by_operation["sessions"] = limits(settings).max_faces
     return {"max_vertices": settings.max_vertices, "max_faces": settings.max_faces,
             "max_body_bytes": settings.max_body_bytes,
             "max_request_memory": settings.max_request_memory,
-            "max_faces_by_operation": by_operation}
+            "max_faces_by_operation": by_operation,
+            "max_sync_faces_by_operation": {name: sync_limits(settings, name).max_sync_faces
+                                            for name in OPERATIONS}}
 
 
 async def operation_request(request: Request, spec: OperationSpec, settings: Settings,

@@ -36,7 +36,7 @@ from ffs_wire.arrays import (  # binary_body: the reference encoder, re-exported
     binary_body,  # noqa: F401
     padded,
 )
-from service.api.problems import ProblemError, element_error, from_validation_errors
+from service.api.problems import ProblemError, element_error, from_validation_errors, use_a_job
 from service.api.schemas import MAX_INDEX, MAX_MAGNITUDE
 from service.api.task import (
     ARRAY_SOURCES,
@@ -452,8 +452,7 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
         field: The input the mesh came in (named by the problem).
 
     Raises:
-        ProblemError: 413 ``mesh-too-large`` beyond either limit; 413 ``use-a-job`` for a
-            synchronous request beyond ``limits.max_sync_faces``.
+        ProblemError: 413 ``mesh-too-large`` beyond a limit, ``use-a-job`` beyond max_sync_faces.
     """
     errors = []
     if n_vertices > limits.max_vertices:
@@ -470,29 +469,7 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
     if errors:
         raise ProblemError("mesh-too-large", errors[0]["reason"], errors=errors)
     if limits.max_sync_faces is not None and n_faces > limits.max_sync_faces:
-        raise too_slow_for_sync(n_faces, limits, field)
-
-
-def too_slow_for_sync(n_faces: int, limits: Limits, field: str) -> ProblemError:
-    """The 413 ``use-a-job`` problem of a synchronous request predicted to miss its deadline.
-
-    Args:
-        n_faces: The mesh's face count.
-        limits: Its ``max_sync_faces`` and ``sync_seconds``.
-        field: The input the mesh came in.
-
-    Returns:
-        The problem: its ``detail`` says how to submit the request as a job; ``job`` is the
-        path to submit it to.
-    """
-    reason = (f"{n_faces} faces exceed the {limits.max_sync_faces} faces whose answer is "
-              f"predicted within the {limits.sync_seconds or 0:.0f} s a synchronous request "
-              "has (FFS_REQUEST_TIMEOUT)")
-    return ProblemError(
-        "use-a-job", reason + "; submit it as a job: POST /v1/jobs with {\"operation\": "
-        "<this endpoint's operation>, \"input\": <this body>} (or this multipart upload "
-        "with an \"operation\" field), then GET its Location until it is done",
-        errors=[element_error(field, reason)], job="/v1/jobs")
+        raise use_a_job(n_faces, limits.max_sync_faces, limits.sync_seconds or 0.0, field)
 
 
 def blend_rows(params: Mapping[str, Any]) -> tuple[int, str]:

@@ -308,6 +308,28 @@ def problem_of(exc: BaseException) -> ProblemError:
     return ProblemError("internal-error", INTERNAL_DETAIL, status=500)
 
 
+def use_a_job(n_faces: int, max_sync_faces: int, seconds: float, field: str) -> ProblemError:
+    """The 413 ``use-a-job`` problem of a synchronous request predicted to miss its deadline.
+
+    Args:
+        n_faces: The mesh's face count.
+        max_sync_faces: The most faces whose answer is predicted within ``seconds``.
+        seconds: What FFS_REQUEST_TIMEOUT leaves the solver.
+        field: The input the mesh came in.
+
+    Returns:
+        The problem: its ``detail`` says how to submit the request as a job; ``job`` is the
+        path to submit it to.
+    """
+    reason = (f"{n_faces} faces exceed the {max_sync_faces} faces whose answer is predicted "
+              f"within the {seconds:.0f} s a synchronous request has (FFS_REQUEST_TIMEOUT)")
+    return ProblemError(
+        "use-a-job", reason + "; submit it as a job: POST /v1/jobs with {\"operation\": "
+        "<this endpoint's operation>, \"input\": <this body>} (or this multipart upload "
+        "with an \"operation\" field), then GET its Location until it is done",
+        errors=[element_error(field, reason)], job="/v1/jobs")
+
+
 def failure_of(exc: BaseException) -> dict[str, Any]:
     """The failure dict a worker sends for an exception (picklable, JSON-ready).
 

@@ -118,6 +118,13 @@ class Limits:
     max_memory: int | None = None
     """FFS_MAX_REQUEST_MEMORY when it, not FFS_MAX_FACES, sets ``max_faces`` (the most
     faces the operation's predicted peak fits in; named by the 413)."""
+    max_sync_faces: int | None = None
+    """A synchronous request's most faces: those whose first answer is predicted within
+    ``sync_seconds`` (:func:`service.backends.admission.sync_faces_within`); None for a job
+    or a session."""
+    sync_seconds: float | None = None
+    """The seconds a synchronous request's solver has (FFS_REQUEST_TIMEOUT less the margin
+    for encoding the answer)."""
 
 
 @dataclass(frozen=True)

@@ -20,8 +20,13 @@ answer against its row's blended forms (what the row asks for), for the sequence
 independent answer and the vertex blend ``(1 - t) A + t B``; the table gives the worst
 ratio sequence / independent over the rows compared, and the mean errors.
 
+With ``--baseline REV`` the sequence is also solved by the solver of git revision ``REV``
+(:func:`bench.baseline.solver_at`), ``--pairs`` times each, alternating which goes first:
+the table then gives both rates (medians) and the median of the pairs' ratios, a comparison
+under the same load.
+
     python -m bench.shape_space [--meshes bunny.off rocker-arm.obj bumpy-plane.off]
-        [--rows 100] [--independent 100] [--write]
+        [--rows 100] [--independent 100] [--baseline REV [--pairs 3]] [--write]
 
 ``--write`` replaces the section "Shape space: blend sequences" of bench/README.md.
 """
@@ -65,18 +70,44 @@ def reference_seconds() -> float:
     return float(np.median(times))
 
 
-def measure(name: str, rows: int, independent: int) -> dict:
+def timed(function, *args) -> tuple[float, object]:
+    """(seconds, result) of ``function(*args)``."""
+    clock = time.perf_counter()
+    result = function(*args)
+    return time.perf_counter() - clock, result
+
+
+def paired(shapes: list[np.ndarray], weights: np.ndarray, faces: np.ndarray, baseline,
+           pairs: int) -> tuple[list[float], list[float], object]:
+    """Seconds of ``pairs`` sequences by this solver and by ``baseline``'s ``blend``,
+    alternating which goes first, and this solver's first result."""
+    ours, theirs, result = [], [], None
+    for k in range(pairs):
+        order = [(ours, blend), (theirs, baseline.blend)]
+        for times, function in order if k % 2 == 0 else order[::-1]:
+            seconds, out = timed(function, shapes, weights, faces)
+            times.append(seconds)
+            if function is blend and result is None:
+                result = out
+    return ours, theirs, result
+
+
+def measure(name: str, rows: int, independent: int, baseline=None, pairs: int = 1) -> dict:
     V, F = load_bench_mesh(name)
     load_before = os.getloadavg()[0]
     reference = reference_seconds()
-    clock = time.perf_counter()
-    P = bent_pose(V, F, 0.6)
-    pose_seconds = time.perf_counter() - clock
+    pose_seconds, P = timed(bent_pose, V, F, 0.6)
     t = np.linspace(0.0, 1.0, rows)
     weights = np.stack([1 - t, t], axis=1)
-    clock = time.perf_counter()
-    sequence = blend([V, P], weights, F)
-    sequence_seconds = time.perf_counter() - clock
+    compared = {}
+    if baseline is None:
+        sequence_seconds, sequence = timed(blend, [V, P], weights, F)
+    else:
+        ours, theirs, sequence = paired([V, P], weights, F, baseline, pairs)
+        sequence_seconds = float(np.median(ours))
+        compared = {"baseline_rows_per_second": rows / float(np.median(theirs)),
+                    "pair_ratios": [b / a for a, b in zip(ours, theirs, strict=True)],
+                    "seconds": ours, "baseline_seconds": theirs}
     picked = np.unique(np.linspace(0, rows - 1, min(independent, rows)).round().astype(int))
     clock = time.perf_counter()
     alone = blend([V, P], weights[picked], F, sequence=False)
@@ -113,10 +144,16 @@ def measure(name: str, rows: int, independent: int) -> dict:
                                                                      vtx_err)],
         "angle_error": [float(np.mean([e[1] for e in x])) for x in (seq_err, ind_err,
                                                                     vtx_err)],
+        **compared,
     }
 
 
-def table(results: list[dict], command: str, started: str) -> str:
+def table(results: list[dict], command: str, started: str, baseline: str | None = None,
+          ) -> str:
+    paired_text = "" if baseline is None else (
+        f" *Baseline*: the sequence solved by the solver of commit {baseline} in the same "
+        "process, alternating with this one (bench/baseline.py); rates are medians, *x "
+        "baseline* the median of the pairs' ratios.")
     lines = [
         SECTION, "",
         f"`{command}` (load averages before the run: {started}; 2 cores shared with "
@@ -127,7 +164,7 @@ def table(results: list[dict], command: str, started: str) -> str:
         "mean |l / L - 1| and mean |angle error| (rad) of each answer against its row's "
         "blended forms, averaged over the rows compared (sequence / independent / vertex "
         "blend); *worst ratio*: the largest of sequence / independent over those rows "
-        "(length or angle).", "",
+        "(length or angle)." + paired_text, "",
         "| mesh | faces | rows | load before / after | reference s | sequence rows/s | "
         "rows/s x reference s | independent rows/s (rows timed) | speed-up | "
         "factorizations in the sequence | iterations per row | worst ratio | "
@@ -138,7 +175,7 @@ def table(results: list[dict], command: str, started: str) -> str:
         lines.append(
             f"| {r['mesh']} | {r['faces']} | {r['rows']} | "
             f"{r['load'][0]:.1f} / {r['load'][1]:.1f} | {r['reference_seconds']:.3f} | "
-            f"{r['sequence_rows_per_second']:.1f} | "
+            f"{r['sequence_rows_per_second']:.1f}{_versus(r)} | "
             f"{r['sequence_rows_per_second'] * r['reference_seconds']:.2f} | "
             f"{r['independent_rows_per_second']:.2f} ({r['independent_rows']}) | "
             f"{r['sequence_rows_per_second'] / r['independent_rows_per_second']:.1f}x | "
@@ -148,6 +185,14 @@ def table(results: list[dict], command: str, started: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _versus(result: dict) -> str:
+    """`` (baseline B, x R)`` where the result has a paired baseline, else empty."""
+    if "baseline_rows_per_second" not in result:
+        return ""
+    return (f" (baseline {result['baseline_rows_per_second']:.1f}, "
+            f"x {float(np.median(result['pair_ratios'])):.2f})")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -155,18 +200,30 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=100)
     parser.add_argument("--independent", type=int, default=100,
                         help="independent rows timed and compared (spread over the rows)")
+    parser.add_argument("--baseline", help="a git revision whose solver is timed on the "
+                        "same sequences, alternately, in this process")
+    parser.add_argument("--pairs", type=int, default=3,
+                        help="sequences timed per solver with --baseline")
     parser.add_argument("--write", action="store_true",
                         help="replace the section of bench/README.md")
     args = parser.parse_args()
     command = "python -m bench.shape_space " + " ".join(
         ["--meshes", *args.meshes, "--rows", str(args.rows),
-         "--independent", str(args.independent)])
+         "--independent", str(args.independent)]
+        + ([] if args.baseline is None else ["--baseline", args.baseline,
+                                             "--pairs", str(args.pairs)]))
+    baseline = None
+    if args.baseline is not None:
+        from bench.baseline import solver_at
+
+        baseline = solver_at(args.baseline)
     started, results = load_averages(), []
     for name in args.meshes:
-        result = measure(name, args.rows, args.independent)
+        result = measure(name, args.rows, args.independent, baseline, args.pairs)
         print(result, flush=True)
         results.append(result)
-    text = table(results, command, started)
+    text = table(results, command, started,
+                 None if baseline is None else baseline.__name__.removeprefix("solver_"))
     print(text)
     if args.write:
         write_section(REPO / "bench" / "README.md", SECTION, text)

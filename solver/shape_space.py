@@ -259,9 +259,15 @@ class _Rows:
         ``budget``."""
         shapes, topology = self.shapes, self.shapes.topology
         length_blend = "log"
-        if _violated(topology, lengths) and row.min() >= 0:
+        bad = _violations(topology, lengths)
+        if len(bad) and row.min() >= 0:
             lengths, length_blend = shapes.arithmetic_lengths(row), "arithmetic"
-        _check_triangles(topology, lengths, index)
+            bad = _violations(topology, lengths)
+        if len(bad):
+            raise TriangleInequalityError(
+                f"the blended lengths of weights[{index}] violate the triangle inequality at "
+                f"face {int(bad[0])} ({len(bad)} faces): extrapolate less", field="weights",
+                index=index)
         guess = shapes.vertex_blend(row)
         one_hot = np.count_nonzero(row) == 1
         if not self.answers or one_hot or not self.opts.sequence or not self._refines():
@@ -328,21 +334,35 @@ class _Rows:
                   ) -> tuple[np.ndarray, dict[str, Any]]:
         """The refinement of a row from the best of :meth:`_starts` (lowest energy), with
         the factor the rows before kept."""
-        targets = FormTargets(self.shapes.topology, lengths, angles,
-                              angle_weight=self.opts.angle_weight)
-        refiner = Refiner(targets, backend=self.opts.backend or "auto")
-        if self.refiner is not None:
-            refiner.adopt_factor(self.refiner)
-        scored = [(refiner.energy(start), k, label, start)
-                  for k, (label, start) in enumerate(self._starts(row, guess))]
-        energy, _, label, start = min(scored)
+        refiner = self._refiner(FormTargets(self.shapes.topology, lengths, angles,
+                                            angle_weight=self.opts.angle_weight))
+        starts = self._starts(row, guess)
+        energy = None  # one start: the run measures it (with its report) in one pass
+        if len(starts) > 1:
+            energy, _, label, start = min((refiner.energy(start), k, label, start)
+                                          for k, (label, start) in enumerate(starts))
+        else:
+            (label, start), = starts
         if refiner.reproduces(start):
             return start, {"refined": False, "reason": "exact: the start has the forms",
                            "start": label}
         fit = refiner.run(start, keep_factor=True, interactive=False, time_limit=budget,
                           start_energy=energy)
-        self.refiner = refiner
         return fit.vertices, dict(fit.report, start=label)
+
+    def _refiner(self, targets: FormTargets) -> Refiner:
+        """The sequence's refiner with the row's ``targets``: the previous rows' with its
+        targets replaced in place (:meth:`Refiner.retarget`: its residual groups, pattern,
+        rigid motions and kept factor stay), or, the first time or where the targets'
+        structure changed (other cap faces or needle ties), a new one that adopts the
+        previous one's factor where the patterns agree."""
+        refiner = self.refiner
+        if refiner is None or not refiner.retarget(targets):
+            refiner = Refiner(targets, backend=self.opts.backend or "auto")
+            if self.refiner is not None:
+                refiner.adopt_factor(self.refiner)
+            self.refiner = refiner
+        return refiner
 
 
 def path_extrapolation(rows: Sequence[np.ndarray]) -> np.ndarray | None:
@@ -382,19 +402,9 @@ def path_extrapolation(rows: Sequence[np.ndarray]) -> np.ndarray | None:
                      for i in range(len(known))])
 
 
-def _violated(topology: MeshTopology, lengths: np.ndarray) -> bool:
-    """Whether lengths (E,) violate the triangle inequality at some face."""
-    return bool(len(triangle_inequality_violations(face_edge_lengths(topology, lengths))))
-
-
-def _check_triangles(topology: MeshTopology, lengths: np.ndarray, row: int) -> None:
-    """Raise :class:`TriangleInequalityError` naming the row and face where the blended
-    lengths (E,) make no triangle (an extrapolation too far)."""
-    bad = triangle_inequality_violations(face_edge_lengths(topology, lengths))
-    if len(bad):
-        raise TriangleInequalityError(
-            f"the blended lengths of weights[{row}] violate the triangle inequality at face "
-            f"{int(bad[0])} ({len(bad)} faces): extrapolate less", field="weights", index=row)
+def _violations(topology: MeshTopology, lengths: np.ndarray) -> np.ndarray:
+    """The faces (k,) int64 where lengths (E,) violate the triangle inequality."""
+    return triangle_inequality_violations(face_edge_lengths(topology, lengths))
 
 
 def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,

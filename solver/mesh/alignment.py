@@ -110,12 +110,20 @@ def kabsch(source: np.ndarray, target: np.ndarray, group: np.ndarray | None = No
     c = (np.zeros(len(source), dtype=np.int64) if group is None
          else np.asarray(group, dtype=np.int64))
     k = int(c.max(initial=0)) + 1
-    counts = np.maximum(np.bincount(c, minlength=k), 1).astype(np.float64)[:, None]
-    source_centers = np.stack([np.bincount(c, source[:, d], k) for d in range(3)], 1) / counts
-    target_centers = np.stack([np.bincount(c, target[:, d], k) for d in range(3)], 1) / counts
-    covariance = np.zeros((k, 3, 3))
-    np.add.at(covariance, c, (target - target_centers[c])[:, :, None]
-              * (source - source_centers[c])[:, None, :])
+    if k == 1 and len(source):  # one group: no per-point gathers
+        source_centers, target_centers = source.mean(axis=0)[None], target.mean(axis=0)[None]
+        covariance = np.einsum("vi,vj->ij", target - target_centers,
+                               source - source_centers)[None]
+    else:
+        counts = np.maximum(np.bincount(c, minlength=k), 1).astype(np.float64)[:, None]
+        source_centers = np.stack([np.bincount(c, source[:, d], k) for d in range(3)],
+                                  1) / counts
+        target_centers = np.stack([np.bincount(c, target[:, d], k) for d in range(3)],
+                                  1) / counts
+        products = ((target - target_centers[c])[:, :, None]
+                    * (source - source_centers[c])[:, None, :]).reshape(-1, 9)
+        covariance = np.bincount((c[:, None] * 9 + np.arange(9)).ravel(), products.ravel(),
+                                 9 * k).reshape(k, 3, 3)
     u, _, vt = np.linalg.svd(covariance)
     sign = np.sign(np.linalg.det(u @ vt))
     sign[sign == 0] = 1.0

@@ -218,6 +218,9 @@ def align_components(source: np.ndarray, target: np.ndarray,
     """
     c = np.asarray(vertex_component, dtype=np.int64)
     rotations, source_centers, target_centers = kabsch(source, target, c)
+    if len(rotations) == 1:  # one part: no per-vertex gather of its rotation
+        return (np.einsum("ij,vj->vi", rotations[0], source - source_centers[0])
+                + target_centers[0])
     return (np.einsum("vij,vj->vi", rotations[c], source - source_centers[c])
             + target_centers[c])
 

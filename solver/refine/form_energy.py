@@ -37,52 +37,35 @@ them.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from ..mesh.embedding_geometry import (
-    edge_vectors,
-    hinge_angles,
-    hinges,
-    signed_areas,
-)
+from ..mesh.embedding_geometry import edge_vectors, hinge_angles, hinges
 from ..mesh.metrics import summary, wrap_angle
 from ..mesh.topology import MeshTopology
-from .energy_weights import (
-    ANGLE_WEIGHT,
-    AREA_FLOOR,
-    AREA_WEIGHT,
+from .energy_weights import ANGLE_WEIGHT, AREA_WEIGHT
+from .residual_groups import (  # noqa: F401 - re-exported: the energy's public names
+    DEGENERATE,
+    NEEDLE_STIFFNESS,
+    STRETCH_CURVATURE,
+    AreaResiduals,
+    CapResiduals,
+    Curvature,
+    Evaluate,
+    FrameResiduals,
+    HingeResiduals,
+    LengthResiduals,
+    ResidualGroup,
+    SoftPositionResiduals,
+    square_sum,
 )
-from .ties import needle_ties, no_ties
+from .ties import Ties, needle_ties, no_ties
 
 FORMS_TOLERANCE = 1e-9
 """Largest relative length error and angle error (rad) of an embedding that "has" the forms:
 then there is nothing to refine."""
-DEGENERATE = 1e-12  # floor of |N|^2 / s^4 for the dihedral gradient of collapsed faces
-NEEDLE_STIFFNESS = 1e4
-"""Stiffness of a needle edge's relative length over a mean edge's (``(s / L)^2``): the
-refinement's damping does not scale with the diagonal of its vertices
-(:meth:`solver.refine.Refiner._damped_factor`). Edges 1e-4 of the mean long (the held-out
-irregular mesh of issue 19 and bench.refinement's irregular cases) are 1e8 times as stiff;
-the face of the tests has edges 0.04 of the mean long (600 times), where capping the
-damping cost a session's kept-factor drags 30% in energy."""
-STRETCH_CURVATURE = 100.0
-"""Gauss-Newton drops ``r ∇²r`` from the Hessian of a residual's ``r^2 / 2`` as small beside
-``∇r ∇r^T``. Across a stretched edge (``r > 0``) that term, ``r / (L l) (I - u u^T)``, is
-the edge's only stiffness, and on an edge far shorter than the mesh's mean it is not small:
-without it the vertex of a needle edge swings across the edge between iterations, and
-the models of the iterations after are refused or crawl (rocker-arm with 30 edges split to
-1e-4 of their length, noisy angles: 7 factorizations, 4 with it, ``python -m
-bench.refinement --sections time``; the torus with 20 of tests/solver/test_refine.py: 8
-and 4). The refinement keeps it where it is at least this many times a mean edge's
-stiffness ``1 / s^2``: in practice needle edges only, as a 100-fold smaller ratio also
-changed the planar refinement of the beetle, whose stretched edges are long (16 -> 29
-iterations with this constant at 1; ``python -m bench.refinement --sections
-parameterize``). Never where ``r < 0``: that part is negative and would make the matrix
-indefinite."""
 CAP_HEIGHT = 1e-3
 """A face whose target height is under this fraction of its longest edge is a cap
 (:func:`cap_faces`): its apex is held on its base by a linear residual, and the dihedral
@@ -296,42 +279,14 @@ def reproduces(X: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
                 <= FORMS_TOLERANCE)
 
 
-
-# ------------------------------------------------------------------------ the residuals
-
-Evaluate = Callable[..., tuple[np.ndarray, np.ndarray | None]]
-"""``evaluate(X, grad=True) -> (r (rows,), G (rows, q, dim) or None)``: the weighted
-residuals of a group at positions ``X`` (n, dim) and their gradients with respect to the
-``q`` vertices of each row."""
-
-
-Curvature = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-"""``curvature(X, r) -> (rows (k,) int64, M (k, dim, dim))``: for residuals of two vertices
-that depend on ``x_1 - x_0`` only, the part ``r ∇²r`` of the Hessian of ``r^2 / 2`` that the
-Gauss-Newton matrix keeps for some rows: ``+M`` on the blocks (0, 0) and (1, 1), ``-M`` on
-(0, 1) (:mod:`solver.refine.normal_equations`)."""
-
-
-@dataclass
-class ResidualGroup:
-    """One kind of residual: ``rows`` residuals, each touching ``q`` vertices.
-
-    Attributes:
-        vertices: (rows, q) int64 the vertices of each residual.
-        evaluate: :data:`Evaluate`.
-        hinge: whether the rows are hinges ``[i, j, a, b]`` (their pairs other than
-            ``(a, b)`` are edges, present in the length group).
-        curvature: optional :data:`Curvature` (q = 2 only).
-    """
-
-    vertices: np.ndarray
-    evaluate: Evaluate
-    hinge: bool = False
-    curvature: Curvature | None = None
-
-
 class FormEnergy:
     """The weighted residuals of :math:`E` for targets and handles, and E itself.
+
+    Built once per connectivity, handles and *structure* of the targets (their needle ties
+    and cap faces, which the target lengths decide); :meth:`retarget` replaces the targets'
+    values (lengths, angles, weights) in place where the structure is the same, so the
+    groups' vertex rows, and the Gauss-Newton pattern built on them, stay
+    (:meth:`solver.refine.Refiner.retarget`).
 
     Args:
         targets: :class:`FormTargets`.
@@ -340,7 +295,8 @@ class FormEnergy:
         dim: 3, or 2 for a planar fit.
 
     Attributes:
-        groups: list of :class:`ResidualGroup`.
+        groups: list of :class:`~solver.refine.residual_groups.ResidualGroup`, the lengths'
+            first.
         free: (n,) bool, the vertices that move (not fixed, referenced by a face).
         held: (n,) bool, the vertices a handle holds (fixed, soft, or in an orientation
             handle's face): E is invariant under the rigid motions of a connected
@@ -348,6 +304,7 @@ class FormEnergy:
         hinges: :func:`hinges` of the topology (dim 3), else None.
         caps: :func:`cap_faces` of the targets (dim 3), else None; where the angles weigh
             (``angle_weight > 0``) their edges' angles are replaced by the apex residual.
+        ties: :class:`~solver.refine.ties.Ties` of the targets' needle edges (dim 3).
         scale: ``s``, the mean target length.
         needle_vertices: (k,) int64 the vertices of needle edges, whose length residual's
             stiffness ``w / L^2`` is at least :data:`NEEDLE_STIFFNESS` times a mean edge's
@@ -356,11 +313,7 @@ class FormEnergy:
 
     def __init__(self, targets: FormTargets, handles: Handles, dim: int) -> None:
         topo = targets.topology
-        self.topology = topo
-        self.dim = dim
-        self.n = topo.n_vertices
-        self.scale = float(np.mean(targets.lengths))
-        self.groups: list[ResidualGroup] = []
+        self.topology, self.dim, self.n = topo, dim, topo.n_vertices
         self.free = np.ones(self.n, dtype=bool)
         self.free[handles.fixed] = False
         self.free &= topo.is_referenced
@@ -368,34 +321,108 @@ class FormEnergy:
         self.held[handles.fixed] = True
         self.held[handles.soft_vertices] = True
         self.held[topo.faces[handles.frame_faces].ravel()] = True
-        self.ties = (needle_ties(topo, targets.lengths, self.held) if dim == 3
-                     else no_ties())
+        self.ties, self.caps = self._structure(targets)
         self.free[self.ties.vertices] = False
         self.tie_offsets: np.ndarray | None = None
+        self.hinges = hinges(topo) if dim == 3 else None
+        self._seen: dict[str, tuple[np.ndarray, list[np.ndarray]]] = {}
+        self._build_groups(targets, handles)
+        self._set_values(targets)
+
+    def _structure(self, targets: FormTargets) -> tuple[Ties, CapFaces | None]:
+        """The needle ties and cap faces (dim 3) that ``targets``' lengths give."""
+        if self.dim != 3:
+            return no_ties(), None
+        topo = targets.topology
+        return needle_ties(topo, targets.lengths, self.held), cap_faces(topo, targets.lengths)
+
+    def _weighs(self, targets: FormTargets) -> tuple[bool, bool]:
+        """Whether the angles and the areas enter E (which groups there are)."""
+        return (self.dim == 3 and targets.angle_weight > 0,
+                self.dim == 2 and targets.area_weight > 0)
+
+    def _build_groups(self, targets: FormTargets, handles: Handles) -> None:
+        """The residual groups' structure (vertex rows): lengths (every edge), hinges and
+        cap faces (dim 3, angles weighed), areas (dim 2), soft and orientation handles."""
+        topo, dim = self.topology, self.dim
+        self.weighs = self._weighs(targets)
+        self.length_group = LengthResiduals(topo.edges)
+        self.groups: list[ResidualGroup] = [self.length_group]
+        self.hinge_group: HingeResiduals | None = None
+        self.cap_group: CapResiduals | None = None
+        self.area_group: AreaResiduals | None = None
+        if self.weighs[0]:
+            inner, hinge = self.hinges
+            self.kept_hinges = ~self.caps.is_cap_edge[inner]
+            self.hinge_group = HingeResiduals(hinge[self.kept_hinges])
+            self.groups.append(self.hinge_group)
+            if len(self.caps.faces):
+                self.cap_group = CapResiduals(self.caps.corners, dim)
+                self.groups.append(self.cap_group)
+        if self.weighs[1]:
+            self.area_group = AreaResiduals(topo.faces)
+            self.groups.append(self.area_group)
+        self.soft_group = self.frame_group = None
+        if len(handles.soft_vertices):
+            self.soft_group = SoftPositionResiduals(handles.soft_vertices,
+                                                    handles.soft_weights,
+                                                    handles.soft_positions, dim)
+            self.groups.append(self.soft_group)
+        if len(handles.frame_faces):
+            self.frame_group = FrameResiduals(topo.faces[handles.frame_faces],
+                                              handles.frame_weights, handles.frame_edges, dim)
+            self.groups.append(self.frame_group)
+
+    def _set_values(self, targets: FormTargets) -> None:
+        """Every group's values from ``targets`` (whose structure is this energy's)."""
+        from ..mesh.frames import face_edge_lengths, triangle_areas
+
+        topo, L = self.topology, targets.lengths
+        self.targets = targets
+        self.scale = scale = float(np.mean(L))
         if targets.weighting == "area":
-            length_weights, hinge_weights = form_weights(topo, targets.lengths)
+            length_weights, hinge_weights = form_weights(topo, L)
         else:
             length_weights = hinge_weights = np.ones(topo.n_edges)
         # An edge within a tie cluster keeps its length by the tie: it leaves the energy
         # (its residual, constant in every step, would only add rounding to the matrix).
         rigid = self.ties.rigid_edges(topo.edges, self.n)
-        self._add_lengths(topo.edges, targets.lengths, np.where(rigid, 0.0, length_weights))
-        self.hinges = hinges(topo) if dim == 3 else None
-        self.caps = cap_faces(topo, targets.lengths) if dim == 3 else None
-        if dim == 3 and targets.angle_weight > 0:
-            inner, hinge = self.hinges
-            kept = ~self.caps.is_cap_edge[inner]
-            inner, hinge = inner[kept], hinge[kept]
-            self._add_hinges(hinge, targets.angles[inner],
-                             targets.angle_weight * hinge_weights[inner])
-            if len(self.caps.faces):
-                self._add_caps(self.caps, length_weights)
-        if dim == 2 and targets.area_weight > 0:
-            self._add_areas(topo, targets.lengths, targets.area_weight)
-        if len(handles.soft_vertices):
-            self._add_soft_positions(handles)
-        if len(handles.frame_faces):
-            self._add_frames(topo.faces, handles)
+        self.length_group.set(L, np.where(rigid, 0.0, length_weights), scale)
+        self.needle_vertices = self.length_group.needle_vertices
+        if self.hinge_group is not None:
+            inner = self.hinges[0][self.kept_hinges]
+            self.hinge_group.set(targets.angles[inner],
+                                 targets.angle_weight * hinge_weights[inner], scale)
+        if self.cap_group is not None:
+            caps = self.caps
+            self.cap_group.set(np.sqrt(length_weights[caps.edges[:, 0]])[:, None]
+                               * caps.coefficients)
+        if self.area_group is not None:
+            self.area_group.set(triangle_areas(face_edge_lengths(topo, L)),
+                                targets.area_weight, scale)
+        for group in (self.soft_group, self.frame_group):
+            if group is not None:
+                group.set(scale)
+        self._seen.clear()
+
+    def retarget(self, targets: FormTargets) -> bool:
+        """Replace the targets' values (lengths, angles, weights) in place. Returns False,
+        changing nothing, where ``targets`` have another structure: another topology,
+        other needle ties or cap faces (:func:`cap_faces`), or angles or areas that weigh
+        where these do not (or the reverse)."""
+        topo = targets.topology
+        if topo is not self.topology and not (
+                topo.n_vertices == self.n and topo.faces.shape == self.topology.faces.shape
+                and np.array_equal(topo.faces, self.topology.faces)):
+            return False
+        if self._weighs(targets) != self.weighs:
+            return False
+        ties, caps = self._structure(targets)
+        if not (_same_ties(ties, self.ties) and _same_caps(caps, self.caps)):
+            return False
+        self.ties, self.caps = ties, caps
+        self._set_values(targets)
+        return True
 
     def tie(self, X: np.ndarray) -> None:
         """Set the offsets of the tied vertices (:mod:`solver.refine.ties`) from a run's start
@@ -426,129 +453,73 @@ class FormEnergy:
                            frame_edges: np.ndarray | None = None) -> None:
         """Replace the soft handle positions (p, dim) and the orientation handles' target
         edge vectors (q, 2, dim) (``None`` keeps the current ones)."""
-        if soft_positions is not None:
-            self.soft_positions = np.asarray(soft_positions, dtype=np.float64)
-        if frame_edges is not None:
-            self.frame_edges = np.asarray(frame_edges, dtype=np.float64)
+        if soft_positions is not None and self.soft_group is not None:
+            self.soft_group.positions = np.asarray(soft_positions, dtype=np.float64)
+            self._seen.clear()
+        if frame_edges is not None and self.frame_group is not None:
+            self.frame_group.frame_edges = np.asarray(frame_edges, dtype=np.float64)
+            self._seen.clear()
 
     def energy(self, X: np.ndarray) -> float:
         """E (see the module docstring) of positions ``X`` (n, dim), its tied vertices
-        placed (:meth:`placed`; ``X`` is not changed)."""
-        X = self.placed(X)
-        return 0.5 * sum(square_sum(g.evaluate(X, False)[0]) for g in self.groups)
+        placed (:meth:`placed`; ``X`` is not changed). The residuals are remembered for
+        :meth:`report` of this ``X`` (the same object, not changed since)."""
+        placed = self.placed(X)
+        residuals = [g.evaluate(placed, False)[0] for g in self.groups]
+        self.remember(X, residuals, "energy")
+        return 0.5 * sum(square_sum(r) for r in residuals)
 
-    # -- residual groups (each returns weighted residuals and their gradients)
+    def remember(self, X: np.ndarray, residuals: list[np.ndarray], slot: str) -> None:
+        """Keep each group's residuals at ``X`` (n, dim) for :meth:`report`: the last of
+        each ``slot`` (``"energy"``: :meth:`energy`'s; ``"point"``: the Gauss-Newton
+        system's, at an iteration's point). Callers never change ``X`` in place
+        afterwards (the refinement's iterates are new arrays)."""
+        self._seen[slot] = (X, residuals)
 
-    def _add_lengths(self, edges: np.ndarray, L: np.ndarray, weights: np.ndarray) -> None:
-        w = np.sqrt(weights)
-        stiff = STRETCH_CURVATURE / self.scale**2
-        needles = weights / L**2 >= NEEDLE_STIFFNESS / self.scale**2
-        self.needle_vertices = np.unique(edges[needles].ravel())
+    def report(self, X: np.ndarray) -> dict[str, Any]:
+        """:func:`form_residuals` of ``X`` (n, dim) against the targets (to round-off), from
+        the residuals :meth:`energy` or the Gauss-Newton system last computed at this very
+        array, else from one evaluation of the groups: no second pass of the forms over the
+        mesh. The edges a tie holds rigid and the hinges of cap faces, which E leaves out,
+        are measured on their own."""
+        residuals = next((seen for at, seen in self._seen.values() if at is X), None)
+        placed = self.placed(X)
+        if residuals is None:
+            residuals = [g.evaluate(placed, False)[0] for g in self.groups]
+        length_error = self.length_group.errors(residuals[0], placed)
+        out: dict[str, Any] = {"length_error": summary(length_error),
+                               "length_ratio": float(np.mean(length_error + 1.0))
+                               if len(length_error) else 1.0}
+        out["angle_error"] = summary(self._angle_errors(placed, residuals))
+        return out
 
-        def evaluate(X: np.ndarray, grad: bool = True):
-            d, length = edge_vectors(X, edges)
-            r = w * (length / L - 1.0)
-            if not grad:
-                return r, None
-            unit = d * (w / (np.where(length > 0, length, 1.0) * L))
-            G = np.empty((len(r), 2, X.shape[1]))
-            G[:, 1] = unit.T
-            np.negative(G[:, 1], out=G[:, 0])
-            return r, G
-
-        def curvature(X: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            # r ∇²r = w² (l/L - 1) / (L l) (I - u u^T) across a stretched edge (l from r);
-            # kept where it is at least STRETCH_CURVATURE x a mean edge's 1 / s^2.
-            length = L * (1.0 + r / np.where(w > 0, w, 1.0))  # (w = 0: a tie's edge)
-            c = np.maximum(r, 0.0) * w / (L * np.maximum(length, L))
-            rows = np.flatnonzero(c >= stiff)
-            d = X[edges[rows, 1]] - X[edges[rows, 0]]
-            u = d / np.linalg.norm(d, axis=1)[:, None]
-            M = np.eye(X.shape[1]) - u[:, :, None] * u[:, None, :]
-            return rows, c[rows, None, None] * M
-
-        self.groups.append(ResidualGroup(edges, evaluate, curvature=curvature))
-
-    def _add_hinges(self, hinge: np.ndarray, target: np.ndarray, weights: np.ndarray) -> None:
-        w = np.sqrt(weights)
-        floor = DEGENERATE * self.scale**4
-
-        def evaluate(X: np.ndarray, grad: bool = True):
-            theta, G = hinge_angles(X, hinge, floor, grad)
-            r = w * wrap_angle(theta - target)
-            return r, (None if G is None else w[:, None, None] * G)
-
-        self.groups.append(ResidualGroup(hinge, evaluate, hinge=True))
-
-    def _add_caps(self, caps: CapFaces, length_weights: np.ndarray) -> None:
-        # x_c - (1 - t) x_a - t x_b over the base's length: one row per coordinate.
-        dim = self.dim
-        coefficients = np.sqrt(length_weights[caps.edges[:, 0]])[:, None] * caps.coefficients
-        G = coefficients[:, None, :, None] * np.eye(dim)[None, :, None, :]  # (k, dim, 3, dim)
-        G = G.reshape(-1, 3, dim)
-
-        def evaluate(X: np.ndarray, grad: bool = True):
-            r = np.einsum("kc,kcd->kd", coefficients, X[caps.corners])
-            return r.ravel(), (G if grad else None)
-
-        self.groups.append(ResidualGroup(np.repeat(caps.corners, dim, axis=0), evaluate))
-
-    def _add_areas(self, topo: MeshTopology, L: np.ndarray, weight: float) -> None:
-        from ..mesh.frames import face_edge_lengths, triangle_areas
-
-        area0 = np.maximum(triangle_areas(face_edge_lengths(topo, L)),
-                           DEGENERATE * self.scale**2)
-        w = np.sqrt(weight * area0 / area0.mean())  # area-weighted like the lengths
-        c = w / area0
-        faces = topo.faces
-
-        def evaluate(X: np.ndarray, grad: bool = True):
-            # One-sided: only faces shrunk below AREA_FLOOR of their area, or flipped, pay;
-            # the others are left to the lengths (a two-sided area term costs length accuracy).
-            area, G = signed_areas(X, faces, grad)
-            r = np.minimum(c * area - AREA_FLOOR * w, 0.0)
-            if G is None:
-                return r, None
-            return r, np.where(r < 0, c, 0.0)[:, None, None] * G
-
-        self.groups.append(ResidualGroup(faces, evaluate))
-
-    def _add_soft_positions(self, h: Handles) -> None:
-        w = np.sqrt(h.soft_weights) / self.scale
-        eye = np.broadcast_to(np.eye(self.dim), (len(w), self.dim, self.dim))
-        G = (w[:, None, None] * eye).reshape(-1, 1, self.dim)
-        self.soft_positions = np.array(h.soft_positions, dtype=np.float64)
-
-        # One residual per coordinate: rows (p * dim,), each touching one vertex.
-        def evaluate(X: np.ndarray, grad: bool = True):
-            r = (w[:, None] * (X[h.soft_vertices] - self.soft_positions)).ravel()
-            return r, (G if grad else None)
-
-        self.groups.append(ResidualGroup(np.repeat(h.soft_vertices[:, None], self.dim, axis=0),
-                                  evaluate))
-
-    def _add_frames(self, faces: np.ndarray, h: Handles) -> None:
-        F = faces[h.frame_faces]
-        pairs = np.concatenate([F[:, [0, 1]], F[:, [0, 2]]])          # (2q, 2)
-        w = np.tile(np.sqrt(h.frame_weights), 2) / self.scale
-        dim = self.dim
-        eye = np.eye(dim)
-        block = np.stack([-eye, eye], axis=0)                           # (2, dim, dim)
-        G = (w[:, None, None, None] * block[None]).transpose(0, 2, 1, 3)  # (2q, dim, 2, dim)
-        G = G.reshape(-1, 2, dim)
-        self.frame_edges = np.array(h.frame_edges, dtype=np.float64)
-
-        def evaluate(X: np.ndarray, grad: bool = True):
-            targets = np.concatenate([self.frame_edges[:, 0], self.frame_edges[:, 1]])
-            d = X[pairs[:, 1]] - X[pairs[:, 0]] - targets
-            return (w[:, None] * d).ravel(), (G if grad else None)
-
-        self.groups.append(ResidualGroup(np.repeat(pairs, dim, axis=0), evaluate))
+    def _angle_errors(self, X: np.ndarray, residuals: list[np.ndarray]) -> np.ndarray:
+        """Dihedral-angle errors (interior edges,) of ``X`` whose residuals are given:
+        from the hinge group's, the hinges E leaves out measured on ``X`` (empty in 2D)."""
+        if self.dim != 3:
+            return np.zeros(0)
+        inner, hinge = self.hinges
+        angles = self.targets.angles
+        if self.hinge_group is None:
+            theta, _ = hinge_angles(X, hinge, gradients=False)
+            return wrap_angle(theta - angles[inner])
+        errors = np.empty(len(inner))
+        kept = self.kept_hinges
+        errors[kept] = self.hinge_group.errors(residuals[1])
+        if not kept.all():
+            theta, _ = hinge_angles(X, hinge[~kept], gradients=False)
+            errors[~kept] = wrap_angle(theta - angles[inner[~kept]])
+        return errors
 
 
-def square_sum(r: np.ndarray) -> float:
-    """``r . r`` of a residual vector, without BLAS: numpy's ``dot`` hands long vectors to
-    a multithreaded BLAS, whose threads cost ~20 ms per call on a loaded machine (measured
-    at load 7-10 on 2 cores: 8 dot products of 30K entries took 170 ms, ``einsum`` 0.2 ms;
-    ``python -m bench.blas_threads``)."""
-    return float(np.einsum("i,i->", r, r))
+def _same_ties(a: Ties, b: Ties) -> bool:
+    """Whether two ties join the same vertices to the same masters by the same edges."""
+    return all(np.array_equal(x, y) for x, y in ((a.vertices, b.vertices),
+                                                 (a.masters, b.masters), (a.edges, b.edges)))
+
+
+def _same_caps(a: CapFaces | None, b: CapFaces | None) -> bool:
+    """Whether two sets of cap faces have the same faces, bases and apexes."""
+    if a is None or b is None:
+        return a is b
+    return np.array_equal(a.faces, b.faces) and np.array_equal(a.corners, b.corners)

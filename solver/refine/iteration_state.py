@@ -29,9 +29,9 @@ class IterationState:
     (:meth:`solver.refine.Refiner.resume`)."""
 
     X: np.ndarray
-    before: dict[str, Any]
-    energy0: float
-    energy: float
+    before: dict[str, Any] | None  # None until the start is measured (:meth:`measured`)
+    energy0: float | None
+    energy: float | None
     keep_factor: bool
     interactive: bool  # loose convergence on kept factors (Refiner.run's ``interactive``)
     kept: bool
@@ -59,11 +59,13 @@ class IterationState:
     steps: list[float] = field(default_factory=list)
 
     @classmethod
-    def start(cls, X: np.ndarray, energy: float, before: dict[str, Any],
+    def start(cls, X: np.ndarray, energy: float | None,
               kept: tuple[Any, sp.csr_array, RigidProjection] | None, kept_damping: float,
               keep_factor: bool, rules: StopRules, steps: StepRules) -> IterationState:
-        """The state before the first step from ``X`` (n, dim) at energy ``energy`` with
-        residuals ``before``. With ``keep_factor`` the previous run's factor, matrix and
+        """The state before the first step from ``X`` (n, dim) at energy ``energy`` (None:
+        not known yet), its residuals not yet measured (:meth:`measured`: the first
+        iteration's evaluation at ``X`` gives both). With ``keep_factor`` the previous run's
+        factor, matrix and
         projection (``kept``) and its damping are the first model: consecutive drags of a
         session are alike; a run that starts from a lightly damped kept factor keeps its
         factors longer (:attr:`StepRules.kept_steps`)."""
@@ -72,13 +74,21 @@ class IterationState:
         kept_long = factor is not None and damping <= steps.kept_damping
         max_frozen, min_gain = ((steps.kept_steps, steps.kept_gain) if kept_long
                                 else (steps.max_frozen_steps, steps.frozen_gain))
-        return cls(X=X, before=before, energy0=energy, energy=energy,
+        return cls(X=X, before=None, energy0=energy, energy=energy,
                    keep_factor=keep_factor, interactive=keep_factor, kept=kept_long,
                    max_frozen=max_frozen, min_gain=min_gain,
                    memory=QuasiNewtonMemory(steps.quasi_newton_memory if kept_long else 0),
                    rules=rules, factor=factor, model=model, projection=projection,
                    damping=damping, factor_gain=1.0 if factor is not None else 0.0,
-                   trace=[energy])
+                   trace=[] if energy is None else [energy])
+
+    def measured(self, energy: float, before: dict[str, Any]) -> None:
+        """The start's energy (unless the caller gave it) and residual summaries
+        (:func:`solver.refine.form_energy.form_residuals`), once measured."""
+        if self.energy0 is None:
+            self.energy0 = self.energy = energy
+            self.trace = [energy]
+        self.before = before
 
     def direction(self, g: np.ndarray, system: GaussNewtonSystem,
                   ) -> tuple[np.ndarray, float, float]:

@@ -23,12 +23,13 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..mesh.topology import MeshTopology
-from .form_energy import FormEnergy, ResidualGroup, square_sum
+from .form_energy import FormEnergy
+from .residual_groups import ResidualGroup, square_sum
 
 
 @dataclass
 class _GroupScatter:
-    """Where a :class:`solver.refine.form_energy.ResidualGroup`'s products land.
+    """Where a :class:`solver.refine.residual_groups.ResidualGroup`'s products land.
 
     ``gradient_index``: positions in ``J^T r`` of the kept gradient entries,
     ``gradient_select``: the kept entries (None: all). ``J^T J``'s upper triangle: the
@@ -225,16 +226,18 @@ class GaussNewtonSystem:
     def normal_equations(self, X: np.ndarray, matrix: bool = True,
                          ) -> tuple[float, sp.csr_array | None, np.ndarray]:
         """(E, the upper triangle of the Gauss-Newton matrix over the free coordinates
-        (``J^T J`` plus the curvature terms its groups keep, :data:`~solver.refine.form_energy.
+        (``J^T J`` plus the curvature terms its groups keep, :data:`~solver.refine.residual_groups.
         Curvature`; canonical CSR, every diagonal entry stored; None unless ``matrix``),
         J^T r (n_free * dim,))."""
         dim = self.dim
-        X = self.energy.placed(X)  # tied vertices where their masters put them
+        given, X = X, self.energy.placed(X)  # tied vertices where their masters put them
         values = np.zeros(self.nnz) if matrix else None
         gradient = np.zeros(self.n_free * dim)
         energy = 0.0
+        residuals = []
         for group, g in zip(self.groups, self.scatters, strict=True):
             r, G = group.evaluate(X)
+            residuals.append(r)
             energy += 0.5 * square_sum(r)
             contrib = (r[:, None, None] * G).ravel()            # (rows * q * dim,)
             if g.gradient_select is not None:
@@ -254,6 +257,7 @@ class GaussNewtonSystem:
                                       minlength=len(values))
                 if g.twice is not None:
                     values += np.bincount(g.twice[1], off[g.twice[0]], minlength=len(values))
+        self.energy.remember(given, residuals, "point")  # for the report at this point
         if values is None:
             return energy, None, gradient
         n = self.n_free * dim

@@ -34,7 +34,7 @@ class QuasiNewtonMemory:
     def __init__(self, size: int) -> None:
         self.size = size
         self.pairs: list[tuple[np.ndarray, np.ndarray, float]] = []
-        self._last: tuple[np.ndarray, np.ndarray, float] | None = None
+        self._last: tuple[np.ndarray, np.ndarray, GaussNewtonSystem, sp.csr_array] | None = None
         self.gamma = 1.0
 
     def clear(self) -> None:
@@ -45,21 +45,23 @@ class QuasiNewtonMemory:
     def moved(self, step: np.ndarray, gradient: np.ndarray, system: GaussNewtonSystem,
               model: sp.csr_array) -> None:
         """A step ``step`` was taken from where the gradient was ``gradient``; ``model`` is
-        the matrix of the factor (for the curvature it gave the step)."""
+        the matrix of the factor (for the curvature it gave the step, computed when the
+        gradient after the step is observed: a run's last step never is)."""
         if self.size:
-            self._last = (step, gradient, system.quadratic_form(model, step))
+            self._last = (step, gradient, system, model)
 
     def observe(self, gradient: np.ndarray) -> None:
         """The gradient after the last step: keep the pair where it has positive curvature."""
         if self._last is None or not self.size:
             return
-        s, before, model = self._last
+        s, before, system, matrix = self._last
         self._last = None
         y = gradient - before
         sy = float(np.einsum("i,i->", s, y))
         if sy > 1e-12 * float(np.sqrt(np.einsum("i,i->", y, y) * np.einsum("i,i->", s, s))):
             self.pairs.append((s, y, 1.0 / sy))
             del self.pairs[:len(self.pairs) - self.size]
+            model = system.quadratic_form(matrix, s)
             if model > 0:  # the curvature along s against the factor's model of it
                 self.gamma = sy / model
 

@@ -114,9 +114,7 @@ class Refiner:
         self.system = GaussNewtonSystem(self.form_energy)
         energy = self.form_energy
         self.rigid_motions = RigidMotions(targets.topology, energy.free, energy.held, dim)
-        index = self.system.index[energy.needle_vertices]
-        index = index[index >= 0]
-        self._needle_coordinates = (index[:, None] * dim + np.arange(dim)).ravel()
+        self._needle_coordinates = self._needles()
         # The factor, its matrix and the projection off its rigid motions that the previous
         # keep_factor run ended with (see run(keep_factor=True)).
         self._kept: tuple[Any, sp.csr_array, RigidProjection] | None = None
@@ -127,6 +125,30 @@ class Refiner:
         """Seconds of the last iteration with a factorization and without (the time limit
         stops before an iteration that would end past it); None: no factorization timed or
         estimated yet (:meth:`expect_refresh`)."""
+
+    def _needles(self) -> np.ndarray:
+        """(k,) int64 the unknowns of the needle edges' free vertices (capped damping:
+        :func:`solver.refine.damping.damped`)."""
+        dim = self.system.dim
+        index = self.system.index[self.form_energy.needle_vertices]
+        index = index[index >= 0]
+        return (index[:, None] * dim + np.arange(dim)).ravel()
+
+    def retarget(self, targets: FormTargets) -> bool:
+        """Replace the target forms (lengths, angles, weights) in place for the next
+        :meth:`run`: the residual groups' structure, the Gauss-Newton pattern, the rigid
+        motions and the kept factor stay, only the values change (the rows of a blend
+        sequence, :func:`solver.blend`). Returns False, changing nothing, where ``targets``
+        have another structure (:meth:`FormEnergy.retarget`: other needle ties or cap
+        faces, another topology): build a new refiner then (:meth:`adopt_factor` passes
+        it the factor where the patterns agree). A run stopped at its time limit can no
+        longer be resumed."""
+        if not self.form_energy.retarget(targets):
+            return False
+        self.targets = targets
+        self._needle_coordinates = self._needles()
+        self._paused = None
+        return True
 
     def set_handle_targets(self, soft_positions: np.ndarray | None = None,
                            frame_edges: np.ndarray | None = None) -> None:
@@ -182,10 +204,10 @@ class Refiner:
         with _BLAS.limit(limits=1, user_api="blas"):
             X = np.array(start, dtype=np.float64)
             self.form_energy.tie(X)  # needles' tied vertices on their target lengths
-            energy = self.form_energy.energy(X) if start_energy is None else start_energy
-            state = IterationState.start(X, energy, self.residuals(X), self._kept,
-                                         self._kept_damping, keep_factor, rules,
-                                         self.step_rules)
+            # The start's energy and residuals come with the first iteration's evaluation
+            # at X (one pass over the mesh, not two): IterationState.measured.
+            state = IterationState.start(X, start_energy, self._kept, self._kept_damping,
+                                         keep_factor, rules, self.step_rules)
             state.interactive = keep_factor if interactive is None else interactive
             return self._advance(state, Budget.of(time_limit), progress, clock)
 
@@ -232,13 +254,15 @@ class Refiner:
         """Iterate ``state`` until it stops (:meth:`_iterate`); the :class:`Refinement`."""
         self._paused = None
         self._iterate(state, budget, _iteration_notifier(progress, budget), clock)
+        if state.before is None:  # stopped before a first evaluation: measure the start
+            state.measured(self.form_energy.energy(state.X), self.form_energy.report(state.X))
         if state.stop == StopReason.TIME_LIMIT:
             self._paused = state
         if state.keep_factor and state.factor is not None:
             self._kept = (state.factor, state.model, state.projection)
             self._kept_damping = state.damping
         return Refinement(vertices=state.X.copy(), report=with_outcome({
-            "refined": True, **state.counters(), "after": self.residuals(state.X),
+            "refined": True, **state.counters(), "after": self.form_energy.report(state.X),
             "angle_weight": self.targets.angle_weight,
             "seconds": time.perf_counter() - clock}))
 
@@ -261,6 +285,8 @@ class Refiner:
             began, factorizations = time.perf_counter(), s.factorizations
             s.iterations += 1
             energy, H, g = system.normal_equations(s.X, matrix=refresh)
+            if s.before is None:  # the start, measured by this evaluation
+                s.measured(energy, self.form_energy.report(s.X))
             s.memory.observe(g)
             if stopping.exact(rules, energy):
                 s.end(StopReason.EXACT)

@@ -112,12 +112,14 @@ def needle_ties(topology: MeshTopology, lengths: np.ndarray, held: np.ndarray) -
         >>> ties.vertices.tolist(), ties.masters.tolist()
         ([2], [1])
     """
-    from ..mesh.frames import face_edge_lengths
-
-    longest = face_edge_lengths(topology, lengths).max(axis=1)                  # (m,)
-    faces = topology.edge_faces
-    around = np.where(faces >= 0, longest[np.maximum(faces, 0)], 0.0).max(axis=1)
-    needle = np.flatnonzero(lengths < TIE_RATIO * around)
+    # Candidates: edges that short beside the longest edge of all; then the longest edge of
+    # their own faces decides (O(candidates), not O(faces): each row of a blend asks).
+    candidates = np.flatnonzero(lengths < TIE_RATIO * lengths.max(initial=0.0))
+    faces = topology.edge_faces[candidates]                                     # (k, 2)
+    face_edges = topology.halfedge_edge.reshape(-1, 3)[np.maximum(faces, 0)]    # (k, 2, 3)
+    around = np.where(faces >= 0, lengths[face_edges].max(axis=2), 0.0).max(axis=1,
+                                                                          initial=0.0)
+    needle = candidates[lengths[candidates] < TIE_RATIO * around]
     if not len(needle):
         return no_ties()
     n = topology.n_vertices

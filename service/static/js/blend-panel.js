@@ -4,10 +4,13 @@
 // weights outside [0, 1] extrapolate), a live blend of the weights (POST /v1/blend), and
 // the sequence from the first shape to those weights played as the service's animated GLB
 // (each row a morph target, an animation), loaded with three.js's GLTFLoader and driven
-// by an AnimationMixer, the view following its morph weights.
+// by an AnimationMixer, the view following its morph weights. A blend's row warnings (the
+// answer's top-level `warnings`, each with its `row`: docs/shape-space.md#command-line-and-
+// client) are listed under its statistics.
 
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+import { showAnswerWarnings } from "./answer-warnings.js";
 import * as api from "./api.js";
 import { fmt, pct, setStats } from "./format.js";
 import { rows3 } from "./mesh.js";
@@ -65,6 +68,13 @@ function drawReport(s) {
     ["Length error vs the blended forms (mean, worst row)", pct(r.length)],
     ["Angle error (mean, worst row)", `${fmt(r.angle)} rad`],
   ] : []);
+  showAnswerWarnings("blend-warnings", r ? rowWarnings(r) : []);
+}
+
+/** A blend's warnings for the list: each names its row where the blend has several. */
+function rowWarnings(report) {
+  return report.warnings.map((w) => (report.rows > 1
+    ? { ...w, message: `Row ${w.row + 1}: ${w.message}` } : w));
 }
 
 /** The Blend panel over the 3D `view`; returns its actions (for the tests). */
@@ -110,10 +120,11 @@ export function installBlendPanel({ view }) {
     view.updatePositions(vertices);
   }
 
-  function summarize(reports) {
+  function summarize(result) {
+    const reports = result.reports;
     const worst = (key) => Math.max(...reports.map((r) => r.form_error[key].mean));
     store.set({ blendReport: { rows: reports.length, length: worst("length_error"),
-      angle: worst("angle_error") } });
+      angle: worst("angle_error"), warnings: result.warnings ?? [] } });
   }
 
   /** The blend of the sliders' weights, shown (one row, synchronous). */
@@ -123,7 +134,7 @@ export function installBlendPanel({ view }) {
       body([weightsOf(state.blendShapes)])));
     const vertices = Float64Array.from(result.vertices[0].flat());
     show(vertices);
-    summarize(result.reports);
+    summarize(result);
     store.set({ blendFrame: -1 });
     return vertices;
   }

@@ -47,7 +47,7 @@ export const INITIAL_STATE = {
   inViewBefore: false,   // the shape was on screen when the step began (history.js)
   // Blend
   blendShapes: [],       // {name, vertices: Float64Array(3n)}: 2 to 4 shapes of the mesh
-  blendReport: null,     // {rows, length, angle}: the worst row's form errors
+  blendReport: null,     // {rows, length, angle, warnings}: the worst row's form errors, the rows' warnings
   blendFrame: -1,        // frames drawn of the playing sequence (-1: a single blend shown)
   blendTime: 0,          // the animation's time (s)
   blendPlaying: false,

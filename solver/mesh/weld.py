@@ -129,8 +129,9 @@ def _representatives(F: np.ndarray, V: np.ndarray, n: int) -> np.ndarray:
     b = F[:, [1, 2, 0]].ravel()
     used = V[np.unique(a)]
     size = float(np.abs(used).max(initial=0.0))
-    scaled = V / size if size > 0 else V  # huge coordinates: no overflow to inf
-    diagonal = float(np.linalg.norm(np.ptp(scaled[np.unique(a)], axis=0)))
+    scale = size if size > 0 else 1.0  # huge coordinates: no overflow to inf
+    diagonal = float(np.linalg.norm(np.ptp(used / scale, axis=0)))
+    scaled = V / scale
     length = np.linalg.norm(scaled[b] - scaled[a], axis=1)
     short = (length <= WELD_TOLERANCE * diagonal) & (a != b)
     target = np.arange(n, dtype=np.int64)

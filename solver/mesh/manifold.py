@@ -20,6 +20,11 @@ libigl's ``cut_to_disk``-style corner unions follow in spirit):
    pair are detached from all their neighbours (each becomes a part of its own), and rule 2
    runs again.
 
+Before the cut, :func:`manifold_topology` welds the vertices joined by zero-length edges and
+drops the faces that collapse (:mod:`solver.mesh.weld`); :class:`ManifoldCut` then also
+carries ``weld_map`` and ``face_map``, and maps answers back through both: it is the one owner
+of "file numbering <-> solve numbering".
+
 So a manifold mesh is its own cut (``vertex_map`` = ``arange(n)``, faces unchanged), the cut
 faces keep the file's face order, and ``vertex_map[c]`` names the file vertex of cut vertex
 ``c``. Answers computed on the cut mesh come back with :meth:`ManifoldCut.to_file`: the mean
@@ -228,7 +233,7 @@ class ManifoldCut:
             position in ``file_vertices`` each comes from (in the order of
             ``file_vertices``, copies by cut index). A welded vertex names its
             representative's copies: two file vertices of one group give the same cut
-            vertices (:meth:`first_of_each`).
+            vertices (:func:`solver.mesh.weld.one_handle_per_vertex` keeps one).
         """
         file_vertices = np.asarray(file_vertices, dtype=np.int64)
         if self.weld_map is not None:

@@ -127,12 +127,14 @@ def _representatives(F: np.ndarray, V: np.ndarray, n: int) -> np.ndarray:
     """(n,) int64 the lowest vertex of each group joined by zero-length edges (rules 1, 2)."""
     a = F.ravel()
     b = F[:, [1, 2, 0]].ravel()
-    used = V[np.unique(a)]
-    size = float(np.abs(used).max(initial=0.0))
-    scaled = V / size if size > 0 else V  # huge coordinates: no overflow to inf
-    diagonal = float(np.linalg.norm(np.ptp(scaled[np.unique(a)], axis=0)))
-    length = np.linalg.norm(scaled[b] - scaled[a], axis=1)
-    short = (length <= WELD_TOLERANCE * diagonal) & (a != b)
+    referenced = np.zeros(n, dtype=bool)
+    referenced[a] = True
+    used = V[:n][referenced]
+    low, high = used.min(axis=0), used.max(axis=0)
+    scale = float(max(np.abs(low).max(), np.abs(high).max())) or 1.0  # no overflow to inf
+    diagonal = float(np.linalg.norm((high - low) / scale))
+    d = (V[b] - V[a]) / scale
+    short = (np.einsum("ij,ij->i", d, d) <= (WELD_TOLERANCE * diagonal) ** 2) & (a != b)
     target = np.arange(n, dtype=np.int64)
     if not short.any():
         return target

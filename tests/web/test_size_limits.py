@@ -30,10 +30,10 @@ def test_the_page_shows_the_limits_and_refuses_a_file_over_them(web, tmp_path):
     assert limits["max_body_bytes"] == BODY_LIMIT
     web.open("sample=decimated-knight.off")
     assert web.app("app.state.sizeLimits") == limits
-    stats = web.page.locator("#mesh-stats").inner_text()
-    assert f"up to {limits['max_faces']:,} faces" in stats
-    assert "files up to 293 KB" in stats                        # 300,000 bytes, rounded up
-    assert "over the limit" not in stats
+    line = web.page.locator("#service-limits")
+    assert f"up to {limits['max_faces']:,} faces" in line.inner_text()
+    assert "files up to 293 KB" in line.inner_text()            # 300,000 bytes, rounded up
+    assert "over the limit" not in line.inner_text()
 
     # A file over the limit: refused on the page, named, with the setting; nothing opened.
     big = tmp_path / "big.off"
@@ -50,6 +50,7 @@ def test_the_page_shows_the_limits_and_refuses_a_file_over_them(web, tmp_path):
     tight = dict(limits, max_faces_by_operation=dict(limits["max_faces_by_operation"],
                                                      reconstruct=500))
     web.app("app.setSizeLimits(arg)", tight)
-    row = web.page.locator("#mesh-stats dd.over-limit")
-    assert row.count() == 1
-    assert "(500 to solve)" in row.inner_text() and "over the limit" in row.inner_text()
+    flagged = web.page.locator("#service-limits.over-limit")
+    assert flagged.count() == 1
+    assert "(500 to solve)" in flagged.inner_text()
+    assert "over the limit" in flagged.inner_text()

@@ -35,17 +35,20 @@ const MB = 1024 * 1024;
 const bytesText = (b) => (b >= MB ? `${(b / MB).toFixed(b >= 10 * MB ? 0 : 1)} MB`
   : `${Math.ceil(b / 1024)} KB`);
 
-/** The service's limits for this mesh: "up to N faces (M to solve)", flagged when the
- * mesh on screen is over the limit of the operations that solve. */
-function limitsRow(limits, m) {
-  if (!limits) return null;
+/** The service's limits under the panel: "up to N faces (M to solve)", flagged when the
+ * mesh on screen (m faces) is over the limit of the operations that solve. */
+function drawLimits(s) {
+  const line = $("service-limits"), limits = s.sizeLimits;
+  line.hidden = !limits;
+  if (!limits) return;
+  const m = s.faces ? s.faces.length / 3 : 0;
   const solve = limits.max_faces_by_operation?.reconstruct ?? limits.max_faces;
-  const text = `up to ${limits.max_faces.toLocaleString("en")} faces`
+  const text = `Service: up to ${limits.max_faces.toLocaleString("en")} faces`
     + (solve < limits.max_faces ? ` (${solve.toLocaleString("en")} to solve)` : "")
-    + ` · files up to ${bytesText(limits.max_body_bytes)}`;
+    + `, files up to ${bytesText(limits.max_body_bytes)}`;
   const over = m > solve;
-  return ["Service", num(over ? `${text}: this mesh is over the limit to solve` : text),
-    over ? "over-limit" : ""];
+  line.textContent = over ? `${text}. This mesh is over the limit to solve.` : `${text}.`;
+  line.classList.toggle("over-limit", over);
 }
 
 /** A file over the service's body limit is refused here, before it is sent. */
@@ -71,8 +74,7 @@ function drawMesh(s) {
       : " (closed)"}`)],
     ["Size", num(max.map((x, k) => fmt(x - min[k])).join(" × "))],
     ["Mean edge", num(fmt(s.meanEdge))],
-    limitsRow(s.sizeLimits, m),
-  ].filter(Boolean));
+  ]);
 }
 
 /** The sample menu names the mesh on screen ("Choose a sample…" for any other mesh), also
@@ -172,7 +174,8 @@ export function installMeshPanel({ view, inWorker, analyze }) {
   }
 
   store.subscribe(["up"], (s) => { $("up-axis").value = s.up; });
-  store.subscribe(["topo", "sizeLimits"], drawMesh);
+  store.subscribe(["topo"], drawMesh);
+  store.subscribe(["topo", "sizeLimits"], drawLimits);
   store.subscribe(["name", "topo", "handles", "lastSolveMs", "up", "upSource"], drawStatus);
   $("sample-select").addEventListener("change", (event) => {
     if (event.target.value) action(loadSample)(event.target.value);

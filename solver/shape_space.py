@@ -18,17 +18,14 @@ target's forms plus the source's change, ``log L_B' = log L_B + log L_A' - log L
 A sequence of rows (``options.sequence``, the default) is solved as a session's drags are
 (:class:`solver.deform.Deformer`): the rows run in order, a row whose weights are one-hot
 (a given shape) and the first row are reconstructed on their own (Eq. 5, then refined),
-every other row starts from the extrapolation of the previous answers
-(:func:`path_extrapolation`) and is refined by one :class:`solver.refine.Refiner` for the
-whole sequence, whose targets each row swaps in place (:meth:`solver.refine.Refiner.retarget`:
-the residual groups, the Gauss-Newton pattern, the rigid motions and the factor kept by
-the rows before stay; :meth:`solver.refine.Refiner.run` with ``keep_factor``).
+every other row starts from the better of its neighbour's answer and its vertex blend, and
+keeps the Gauss-Newton factor of the rows before (:meth:`solver.refine.Refiner.run` with
+``keep_factor``; its symbolic analysis is computed once and cached per pattern).
 ``sequence=False`` reconstructs every row on its own.
 """
 
 from __future__ import annotations
 
-import contextlib
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -36,7 +33,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from threadpoolctl import threadpool_limits
 
 from .core.budget import Budget
 from .core.errors import ShapeMismatchError, TriangleInequalityError
@@ -64,15 +60,6 @@ SMOOTH_TURN = 0.9
 as a smooth path (:func:`path_extrapolation`)."""
 SMOOTH_SPACING = 2.0
 """Largest ratio of consecutive steps' lengths in weight space on a smooth path."""
-SEQUENCE_THREADS = 1
-"""Threads of the native libraries (MKL's PARDISO and its OpenMP, BLAS) while the rows of
-a sequence are solved (every row of it, so that its answers do not depend on which
-thread count analysed a pattern first): a row's factorizations and back-substitutions are
-small (rocker-arm, 20K faces: 30K unknowns, 13 ms a back-substitution), and on the 2
-shared cores of the development machine PARDISO's two threads waited for each other: 100
-rows of rocker-arm ran at 10.1-11.8 rows/s with one thread against 6.3-6.7 with two,
-alternated in one process at a load average of 4.8 (0.98-1.74 times at 11-12). None: the
-libraries' defaults."""
 
 
 @dataclass(frozen=True)
@@ -415,18 +402,6 @@ def path_extrapolation(rows: Sequence[np.ndarray]) -> np.ndarray | None:
                      for i in range(len(known))])
 
 
-def _native_threads(opts: BlendOptions) -> Any:
-    """The context a sequence's rows run in: the native libraries limited to
-    :data:`SEQUENCE_THREADS` (loaded first, so that MKL is limited too), or nothing for
-    independent rows."""
-    if SEQUENCE_THREADS is None or not opts.sequence:
-        return contextlib.nullcontext()
-    from .linalg import available_backends
-
-    available_backends()  # loads the optional libraries (cached): their threads are limited
-    return threadpool_limits(limits=SEQUENCE_THREADS)
-
-
 def _violations(topology: MeshTopology, lengths: np.ndarray) -> np.ndarray:
     """The faces (k,) int64 where lengths (E,) violate the triangle inequality."""
     return triangle_inequality_violations(face_edge_lengths(topology, lengths))
@@ -478,16 +453,15 @@ def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
     out = np.empty((len(W), shape_space.topology.n_vertices, 3))
     reports = []
     budget = stages.budget(opts.max_seconds)
-    with _native_threads(opts):
-        for k, row in enumerate(W):  # rows in order: each starts from its neighbour's answer
-            lengths, angles = shape_space.forms(row[None])
-            share = budget.share(len(W) - k)
-            clock = time.perf_counter()
-            out[k], report = rows.solve(k, row, lengths[0], angles[0], share)
-            report["warnings"] = as_report(row_warnings(report))
-            report["seconds"] = time.perf_counter() - clock
-            reports.append(report)
-            stages("rows", (k + 1) / len(W))
+    for k, row in enumerate(W):  # rows in order: each starts from its neighbour's answer
+        lengths, angles = shape_space.forms(row[None])
+        share = budget.share(len(W) - k)
+        clock = time.perf_counter()
+        out[k], report = rows.solve(k, row, lengths[0], angles[0], share)
+        report["warnings"] = as_report(row_warnings(report))
+        report["seconds"] = time.perf_counter() - clock
+        reports.append(report)
+        stages("rows", (k + 1) / len(W))
     stages.lap("rows")
     return Blend(vertices=out, faces=shape_space.topology.faces, weights=W, reports=reports,
                  timings=stages.timings)

@@ -6,7 +6,8 @@ numbering:
 
 * ``forms``: :func:`solver.mesh.io.read_mesh` (polygons triangulated) then
   :func:`solver.fundamental_forms` (a non-manifold mesh's cut; parts' placement).
-* ``exact``: :func:`solver.reconstruct` of those forms (vertex map and placement); the
+* ``exact``: :func:`solver.reconstruct` of those forms (vertex map, weld map and
+  placement; "welded / dropped": vertices joined by zero-length edges, faces dropped); the
   whole-mesh error after one rigid alignment, in units of the bounding-box diagonal.
 * ``noisy``: the same with N(0, 1e-3) rad on every interior dihedral angle (seed 0): the
   whole-mesh error, whether the refinement converged, its iterations and factorizations,
@@ -85,7 +86,7 @@ def _reconstruct(forms: solver.Forms, angles: np.ndarray, n: int, **options: Any
                  ) -> solver.Reconstruction:
     return solver.reconstruct(forms.faces, forms.edges, forms.lengths, angles,
                               vertex_map=forms.vertex_map, placement=forms.placement,
-                              n_vertices=n, **options)
+                              weld_map=forms.weld_map, n_vertices=n, **options)
 
 
 def run_file(path: Path, skip_flatten: bool = False) -> Row:
@@ -103,6 +104,9 @@ def run_file(path: Path, skip_flatten: bool = False) -> Row:
     row.values["cut"] = (0 if forms.vertex_map is None
                          else len(forms.vertex_map) - len(V))
     row.values["parts"] = len(forms.placement.faces)
+    row.values["welded"] = (0 if forms.weld_map is None
+                            else int((forms.weld_map != np.arange(len(V))).sum()))
+    row.values["dropped"] = 0 if forms.dropped_faces is None else len(forms.dropped_faces)
     exact = _timed(row, "exact", lambda: _reconstruct(forms, forms.angles, len(V)))
     if exact is not None:
         row.values["exact_error"] = rigid_error(exact.vertices[used], V[used])
@@ -148,10 +152,10 @@ def _cell(row: Row, stage: str, value: str = "") -> str:
 
 def print_table(rows: list[Row]) -> None:
     """The markdown table and the score per operation."""
-    print("| file | faces | cut vertices | parts | forms | exact error | noisy error | "
-          "converged | iterations / factorizations | noisy s (x linear) | deform miss | "
-          "flatten |")
-    print("|---|---:|---:|---:|---|---:|---:|---|---:|---:|---:|---|")
+    print("| file | faces | cut vertices | welded / dropped | parts | forms | exact error | "
+          "noisy error | converged | iterations / factorizations | noisy s (x linear) | "
+          "deform miss | flatten |")
+    print("|---|---:|---:|---:|---:|---|---:|---:|---|---:|---:|---:|---|")
     for r in rows:
         v = r.values
         noisy = (f"{r.seconds['noisy']:.2f} ({v['x_linear']:.1f}x)" if "x_linear" in v
@@ -160,7 +164,9 @@ def print_table(rows: list[Row]) -> None:
         exact = f"{v.get('exact_error', 0):.1e}"
         noisy_error = f"{v.get('noisy_error', 0):.1e}"
         miss = f"{v.get('handle_miss', 0):.1e}"
-        print(f"| {r.name} | {r.faces} | {v.get('cut', '-')} | {v.get('parts', '-')} | "
+        welded = (f"{v['welded']} / {v['dropped']}" if "welded" in v else "-")
+        print(f"| {r.name} | {r.faces} | {v.get('cut', '-')} | {welded} | "
+              f"{v.get('parts', '-')} | "
               f"{_cell(r, 'forms', forms_s) if r.outcome['read'] == 'ok' else r.outcome['read']}"
               f" | {_cell(r, 'exact', exact)} | "
               f"{_cell(r, 'noisy', noisy_error)} | {v.get('converged', '-')} | "

@@ -47,19 +47,22 @@ CACHE = Path(os.environ.get("FFS_SCALE_CACHE", "/tmp/ffs-scale"))
 """Where the subdivided meshes and their forms are cached (outside the repository)."""
 BASE = "nefertiti.obj"
 NOISE = 1e-3
-CASES = ("exact", "linear", "default")
+CASES = ("exact", "linear", "default", "linear-direct", "linear-iterative",
+         "default-direct", "default-iterative")
+"""``linear`` and ``default`` choose the linear solver by size (``linear_solver="auto"``);
+the ``-direct`` and ``-iterative`` cases force it."""
 
 
-def forms_file(level: int) -> Path:
-    """The cached forms of ``BASE`` subdivided ``level`` times (made on first use)."""
-    path = CACHE / f"{Path(BASE).stem}-s{level}.npz"
+def forms_file(level: int, base: str = BASE) -> Path:
+    """The cached forms of ``base`` subdivided ``level`` times (made on first use)."""
+    path = CACHE / f"{Path(base).stem}-s{level}.npz"
     if path.exists():
         return path
     import trimesh
 
     from solver import fundamental_forms
 
-    mesh = trimesh.load(SHARED_MESHES / BASE, process=False)
+    mesh = trimesh.load(SHARED_MESHES / base, process=False)
     V, F = np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
     for _ in range(level):
         V, F = trimesh.remesh.subdivide(V, F)
@@ -107,17 +110,26 @@ class StageMemory:
         return {k: round(v) for k, v in self.peak.items()}
 
 
-def run_case(level: int, case: str) -> dict:
+def case_options(case: str) -> dict:
+    """The reconstruct options of a case."""
+    kind, _, solver = case.partition("-")
+    options: dict = {"refine": False} if kind == "linear" else {}
+    if solver:
+        options["linear_solver"] = solver
+    return options
+
+
+def run_case(level: int, case: str, base: str = BASE) -> dict:
     """One case in this process; returns its measurements (a JSON-able dict)."""
     from solver import reconstruct
 
     memory = StageMemory()
-    data = np.load(forms_file(level))
+    data = np.load(forms_file(level, base))
     faces, edges, lengths = data["faces"], data["edges"], data["lengths"]
     angles = data["angles"] if case == "exact" else data["noisy"]
     n_vertices = len(data["vertices"])
     del data
-    options = {"refine": False} if case == "linear" else {}
+    options = case_options(case)
     start, cpu = time.perf_counter(), time.process_time()
     result = reconstruct(faces, edges, lengths, angles, n_vertices=n_vertices,
                          progress=memory, **options)
@@ -125,8 +137,12 @@ def run_case(level: int, case: str) -> dict:
     cpu = time.process_time() - cpu
     report = result.report
     refinement = report["refinement"] or {}
+    linear_solver = report["linear_solver"] or {}
     return {
-        "level": level, "case": case, "faces": len(faces), "seconds": wall,
+        "base": Path(base).stem, "level": level, "case": case, "faces": len(faces),
+        "seconds": wall, "linear_solver": linear_solver.get("method"),
+        "cg_iterations": linear_solver.get("iterations"),
+        "cg_residual": linear_solver.get("relative_residual"),
         "cpu_seconds": cpu,
         "timings": {k: round(v, 3) for k, v in report["timings"].items()},
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -138,10 +154,10 @@ def run_case(level: int, case: str) -> dict:
     }
 
 
-def child(level: int, case: str, max_gb: float | None) -> dict:
+def child(level: int, case: str, max_gb: float | None, base: str = BASE) -> dict:
     """Run one case in a fresh process under an address-space limit of ``max_gb``."""
-    forms_file(level)  # made once, in the parent, outside the measured process
-    cmd = [sys.executable, "-m", "bench.scale", "--child", str(level), case]
+    forms_file(level, base)  # made once, in the parent, outside the measured process
+    cmd = [sys.executable, "-m", "bench.scale", "--child", str(level), case, "--base", base]
     if max_gb:
         cmd[:0] = ["prlimit", f"--as={int(max_gb * 2**30)}"]
     env = dict(os.environ, PYTHONPATH=str(REPO))
@@ -149,34 +165,39 @@ def child(level: int, case: str, max_gb: float | None) -> dict:
     if proc.returncode != 0:
         tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
         oom = "MemoryError" in proc.stderr or "Cannot allocate" in proc.stderr
-        return {"level": level, "case": case, "error": "out of memory" if oom else tail[0]}
+        return {"base": Path(base).stem, "level": level, "case": case,
+                "error": "out of memory" if oom else tail[0]}
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def markdown(rows: list[dict]) -> str:
     """The tables of bench/README.md: one row per case, then the fitted exponents."""
-    lines = ["| faces | case | path | seconds | CPU s | faces/s | peak MB | factorizations | "
-             "iterations | stages (s) | stage peaks (MB) |",
-             "|---:|---|---|---:|---:|---:|---:|---:|---:|---|---|"]
+    lines = ["| mesh | faces | case | path | seconds | CPU s | faces/s | peak MB | CG iterations "
+             "(residual) | factorizations | iterations | stages (s) | stage peaks (MB) |",
+             "|---|---:|---|---|---:|---:|---:|---:|---|---:|---:|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| level {r['level']} | {r['case']} | {r['error']} | | | | | | | | |")
+            lines.append(f"| {r.get('base', '')} | level {r['level']} | {r['case']} | "
+                         f"{r['error']} | | | | | | | | | |")
             continue
+        cg = (f"{r['cg_iterations']} ({r['cg_residual']:.1e})"
+              if r.get("cg_iterations") is not None else "-")
         stages = ", ".join(f"{k} {v:.2f}" for k, v in r["timings"].items())
         peaks = ", ".join(f"{k} {v}" for k, v in r["stage_peak_mb"].items())
         lines.append(
-            f"| {r['faces']} | {r['case']} | {r['solve_path']} | {r['seconds']:.2f} | "
-            f"{r.get('cpu_seconds', float('nan')):.2f} | "
-            f"{r['faces'] / r['seconds']:,.0f} | {r['peak_mb']:.0f} | "
+            f"| {r.get('base', '')} | {r['faces']} | {r['case']} | {r['solve_path']} | "
+            f"{r['seconds']:.2f} | {r.get('cpu_seconds', float('nan')):.2f} | "
+            f"{r['faces'] / r['seconds']:,.0f} | {r['peak_mb']:.0f} | {cg} | "
             f"{r['factorizations'] if r['factorizations'] is not None else '-'} | "
             f"{r['iterations'] if r['iterations'] is not None else '-'} | {stages} | {peaks} |")
     lines.append("")
-    for case in CASES:
-        ok = [r for r in rows if r["case"] == case and "error" not in r]
+    for base, case in sorted({(r.get("base", ""), r["case"]) for r in rows}):
+        ok = [r for r in rows if r["case"] == case and r.get("base", "") == base
+              and "error" not in r]
         if len(ok) >= 2:
             k_t = scaling_exponent([r["faces"] for r in ok], [r["seconds"] for r in ok])
             k_m = scaling_exponent([r["faces"] for r in ok], [r["peak_mb"] for r in ok])
-            lines.append(f"- {case}: time ~ faces^{k_t:.2f}, peak RSS ~ faces^{k_m:.2f} "
+            lines.append(f"- {base} {case}: time ~ faces^{k_t:.2f}, peak RSS ~ faces^{k_m:.2f} "
                          f"({ok[0]['faces']} to {ok[-1]['faces']} faces)")
     return "\n".join(lines)
 
@@ -187,19 +208,23 @@ def main() -> None:
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
     parser.add_argument("--max-gb", type=float, default=10.0,
                         help="address-space limit of each child (GB; 0: none)")
+    parser.add_argument("--bases", nargs="+", default=[BASE],
+                        help="shared meshes to subdivide (e.g. nefertiti.obj armadillo.obj)")
+    parser.add_argument("--base", default=BASE, help=argparse.SUPPRESS)
     parser.add_argument("--markdown", action="store_true")
     parser.add_argument("--child", nargs=2, metavar=("LEVEL", "CASE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        print(json.dumps(run_case(int(args.child[0]), args.child[1])))
+        print(json.dumps(run_case(int(args.child[0]), args.child[1], args.base)))
         return
     print(f"# load {load_averages()}", flush=True)
     rows = []
-    for case in args.cases:
-        for level in args.levels:
-            row = child(level, case, args.max_gb)
-            rows.append(row)
-            print(json.dumps(row), flush=True)
+    for base in args.bases:
+        for case in args.cases:
+            for level in args.levels:
+                row = child(level, case, args.max_gb, base)
+                rows.append(row)
+                print(json.dumps(row), flush=True)
     print(f"# load {load_averages()}")
     if args.markdown:
         print(markdown(rows))

@@ -67,6 +67,12 @@ SERVER_ENV = "FFS_SERVER"
 """Environment variable naming the service when ``Client()`` is given no URL."""
 TOKEN_ENV = "FFS_TOKEN"
 """The API key a :class:`Client` sends when it is given none (services with keys)."""
+USE_A_JOB = "use-a-job"
+"""The problem kind of a request too large to answer synchronously: :meth:`Client.run`
+submits it as a job instead."""
+LARGE_INPUT_FACES = 10_000
+"""Faces beyond which :meth:`Client.run` compares a call with the service's synchronous
+limit (``GET /v1/me``) before sending it."""
 
 
 @dataclass(frozen=True)
@@ -158,6 +164,8 @@ class Client:
         self.retries = retries
         self.backoff = backoff
         self.max_wait = max_wait
+        self._sync_faces: dict[str, int] | None = None
+        """The service's ``max_sync_faces_by_operation``, read on the first large call."""
         self._http = httpx.Client(base_url=self.url, timeout=timeout, transport=transport,
                                   headers={"User-Agent": f"ffs-client/{__version__}",
                                            **self.auth_headers(), **(headers or {})})
@@ -223,13 +231,44 @@ class Client:
                                      **kwargs.pop("headers", {})}, **kwargs)
 
     def run(self, call: Call, progress: Progress | None = None) -> Any:
-        """Run one :class:`Call`: synchronously, or as a job when ``progress`` is given."""
-        if progress is not None:
-            job = self.submit_call(call)
+        """Run one :class:`Call`: synchronously, or as a job when ``progress`` is given or
+        when the service answers that the request is too large to answer synchronously
+        (413 ``use-a-job``: its answer is predicted to take longer than the service's
+        ``FFS_REQUEST_TIMEOUT``)."""
+        if progress is not None or self._too_slow_for_sync(call):
+            return self._run_as_job(call, progress)
+        try:
+            return self._run_synchronously(call)
+        except ProblemError as exc:
+            if exc.kind != USE_A_JOB:
+                raise
+        return self._run_as_job(call, None)
+
+    def _too_slow_for_sync(self, call: Call) -> bool:
+        """Whether a call of more than :data:`LARGE_INPUT_FACES` faces exceeds the faces the
+        service answers synchronously for its operation (``GET /v1/me``'s
+        ``max_sync_faces_by_operation``, read once), so that it goes to the job API without
+        being sent twice."""
+        faces = call.arrays.get("faces")
+        if faces is None or len(faces) <= LARGE_INPUT_FACES:
+            return False
+        if self._sync_faces is None:
             try:
-                return job.result(on_progress=progress)
-            finally:
-                job.discard()
+                limits = self.size_limits()
+            except (ProblemError, KeyError, TypeError, ValueError):  # keys, older services
+                limits = {}
+            self._sync_faces = dict(limits.get("max_sync_faces_by_operation") or {})
+        limit = self._sync_faces.get(call.operation)
+        return limit is not None and len(faces) > limit
+
+    def _run_as_job(self, call: Call, progress: Progress | None) -> Any:
+        job = self.submit_call(call)
+        try:
+            return job.result(on_progress=progress)
+        finally:
+            job.discard()
+
+    def _run_synchronously(self, call: Call) -> Any:
         if self.binary:
             response = self.request("POST", f"/v1/{call.operation}",
                                     content=binary_body(call.params, call.arrays),
@@ -273,7 +312,7 @@ class Client:
         ``align_to``: (n, 3) vertices of a reference to move the answer onto rigidly
         (``report["alignment"]`` has the residual); ``options``: frame_weight,
         orthonormalize, orthonormal_weight, weighting, solver, tolerance,
-        require_integrable, exact_shortcut."""
+        require_integrable, exact_shortcut, linear_solver."""
         params: dict[str, Any] = {"options": _options(refine, options)}
         if constraints:
             params["constraints"] = dict(constraints)

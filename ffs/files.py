@@ -167,8 +167,9 @@ def read_forms(path: str | os.PathLike[str], fmt: str | None = None) -> Forms:
                   _array(path, doc, "edges", np.int64, 2),
                   _array(path, doc, "lengths", np.float64, None),
                   _array(path, doc, "angles", np.float64, None))
-    if doc.get("vertex_map") is not None:  # forms of a non-manifold mesh (its cut)
-        forms.vertex_map = _array(path, doc, "vertex_map", np.int64, None)
+    for name in ("vertex_map", "weld_map", "dropped_faces"):  # a cut or welded mesh's
+        if doc.get(name) is not None:
+            setattr(forms, name, _array(path, doc, name, np.int64, None))
     extras = Forms.from_dict({**doc, "faces": [], "edges": [], "lengths": [], "angles": []})
     forms.placement = extras.placement
     return forms

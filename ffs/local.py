@@ -73,7 +73,8 @@ class Local:
                           progress: Progress | None = None) -> Forms:
         forms = solver.fundamental_forms(vertices, faces)
         return Forms(forms.faces, forms.edges, forms.lengths, forms.angles, forms.vertex_map,
-                     None if forms.placement is None else forms.placement.to_dict())
+                     None if forms.placement is None else forms.placement.to_dict(),
+                     forms.weld_map, forms.dropped_faces)
 
     def check_integrability(self, faces: Any, edges: Any = None, lengths: Any = None,
                             angles: Any = None, *, tol: float | None = None,
@@ -82,7 +83,8 @@ class Local:
         forms = _forms(faces, edges, lengths, angles)
         report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
                                             forms.angles, tol=1e-8 if tol is None else tol,
-                                            n_vertices=n_vertices, vertex_map=forms.vertex_map)
+                                            n_vertices=n_vertices, vertex_map=forms.vertex_map,
+                                            weld_map=forms.weld_map)
         return integrability_report(report)
 
     def _checked_first(self, forms: Forms, solve: ReconstructOptions,
@@ -94,7 +96,8 @@ class Local:
         tolerance = solve.integrability_tol
         report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
                                             forms.angles, tol=tolerance,
-                                            vertex_map=forms.vertex_map)
+                                            vertex_map=forms.vertex_map,
+                                            weld_map=forms.weld_map)
         if not report.integrable:
             worst = [int(v) for v in report.worst_vertices]
             raise NotIntegrableError(
@@ -116,7 +119,8 @@ class Local:
             constraints=_constraints(constraints),
             options=solve.replace(check_integrability=report_first is None
                                   or report_first.integrable),
-            progress=progress, vertex_map=forms.vertex_map, placement=forms.placement)
+            progress=progress, vertex_map=forms.vertex_map, placement=forms.placement,
+            weld_map=forms.weld_map)
         report = result.report.to_dict()
         if report_first is not None:
             report = {"integrability": to_jsonable(report_first.summary()), **report}

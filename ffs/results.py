@@ -31,7 +31,9 @@ class Forms:
     (E,) and signed dihedral angles (E,) aligned with the edges; for a non-manifold mesh
     ``vertex_map`` (n_cut,) int64, the file vertex of each vertex of the (cut) faces; and
     ``placement``, each component's pose (``{"faces", "origins", "frames"}``), which
-    ``reconstruct`` uses to put every part back where it was."""
+    ``reconstruct`` uses to put every part back where it was; for a mesh with zero-length
+    edges ``weld_map`` (n,) int64, the file vertex each file vertex was welded into, and
+    ``dropped_faces`` (d,) int64, the file faces the weld collapsed (informational)."""
 
     faces: np.ndarray
     edges: np.ndarray
@@ -39,6 +41,8 @@ class Forms:
     angles: np.ndarray
     vertex_map: np.ndarray | None = None
     placement: dict[str, Any] | None = None
+    weld_map: np.ndarray | None = None
+    dropped_faces: np.ndarray | None = None
 
     PLACEMENT_ARRAYS = ("faces", "origins", "frames")
     """The placement's arrays, stored as ``placement_<name>`` in an .npz."""
@@ -52,34 +56,42 @@ class Forms:
         if placement is None and "placement_faces" in doc:
             placement = {name: np.asarray(doc[f"placement_{name}"]).tolist()
                          for name in cls.PLACEMENT_ARRAYS}
-        vertex_map = doc.get("vertex_map")
+        vertex_map, weld_map = doc.get("vertex_map"), doc.get("weld_map")
+        dropped = doc.get("dropped_faces")
         return cls(_ints(doc["faces"]), _ints(doc["edges"], 2), _floats(doc["lengths"], None),
                    _floats(doc["angles"], None),
                    None if vertex_map is None else _ints(vertex_map, None),
-                   None if placement is None else dict(placement))
+                   None if placement is None else dict(placement),
+                   None if weld_map is None else _ints(weld_map, None),
+                   None if dropped is None else _ints(dropped, None))
 
     def to_dict(self) -> dict[str, Any]:
         """The API's forms document (lists; a valid body for integrability/reconstruct)."""
         doc = {name: getattr(self, name).tolist()
                for name in ("faces", "edges", "lengths", "angles")}
+        if self.dropped_faces is not None:
+            doc["dropped_faces"] = np.asarray(self.dropped_faces).tolist()
         return {**doc, **self.params()}
 
     def params(self) -> dict[str, Any]:
-        """The optional ``vertex_map`` and ``placement`` as request params (JSON-ready)."""
+        """The optional ``vertex_map``, ``weld_map`` and ``placement`` as request params
+        (JSON-ready)."""
         out: dict[str, Any] = {}
-        if self.vertex_map is not None:
-            out["vertex_map"] = np.asarray(self.vertex_map).tolist()
+        for name in ("vertex_map", "weld_map"):
+            if getattr(self, name) is not None:
+                out[name] = np.asarray(getattr(self, name)).tolist()
         if self.placement is not None:
             out["placement"] = {name: np.asarray(self.placement[name]).tolist()
                                 for name in self.PLACEMENT_ARRAYS}
         return out
 
     def stored_arrays(self) -> dict[str, np.ndarray]:
-        """Every array by name, for an .npz: :meth:`arrays`, ``vertex_map`` and the
-        ``placement_*`` arrays where present."""
+        """Every array by name, for an .npz: :meth:`arrays`, ``vertex_map``, ``weld_map``,
+        ``dropped_faces`` and the ``placement_*`` arrays where present."""
         out = dict(self.arrays())
-        if self.vertex_map is not None:
-            out["vertex_map"] = np.asarray(self.vertex_map)
+        for name in ("vertex_map", "weld_map", "dropped_faces"):
+            if getattr(self, name) is not None:
+                out[name] = np.asarray(getattr(self, name))
         if self.placement is not None:
             out.update({f"placement_{name}": np.asarray(self.placement[name])
                         for name in self.PLACEMENT_ARRAYS})

@@ -125,7 +125,9 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "/v1/integrability and /v1/reconstruct. Meshes as they come: polygons are "
         "fan-triangulated; a non-manifold mesh (an edge of 3 or more faces, a vertex joining "
         "two fans, faces flipped against a neighbour) is cut into a manifold one and its "
-        "forms carry `vertex_map` (the file vertex of each cut vertex); `placement` holds "
+        "forms carry `vertex_map` (the file vertex of each cut vertex); vertices joined by a "
+        "zero-length edge are welded (`weld_map`) and the faces that collapse dropped "
+        "(`dropped_faces`); `placement` holds "
         "each connected part's pose, so /v1/reconstruct puts every part back in place "
         "(docs/service.md, Meshes as they come)."),
     _operation(
@@ -142,7 +144,8 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "`report.integrability`; with `options.require_integrable` a failed check is a 422 "
         "naming the worst vertices. A mesh file upload is reconstructed from its own forms. "
         "With `vertex_map` the answer is per file vertex (the mean of its copies, their "
-        "spread in `report.input.cut`) on the file's triangles; with `placement` every "
+        "spread in `report.input.cut`; with `weld_map` a welded vertex at its "
+        "representative's position) on the file's triangles; with `placement` every "
         "unconstrained part is put where it was, without it the parts are laid side by side. "
         "Angles outside (-pi, pi] are wrapped (`report.input.wrapped_angles`).",
         colors=("defect",)),

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .atlas_rules import ATLAS_RULES
 from .chart_flattening import ChartFlattening, flatten_chart, refine_chart, relative_length_change
 from .mesh.charts import (
     ChartMesh,
@@ -146,14 +147,8 @@ def overlaps_itself(uv: np.ndarray, faces: np.ndarray, loops: list[np.ndarray],
         or boundary_crossings(uv, faces) > 0
 
 
-SMALL_CHART_FACES = 20_000
-"""Charts with fewer faces are solved with SuperLU when the backend is ``auto``: PARDISO's
-fixed cost per call (measured 0.95 s against 0.10 s per 456-face flattening) dominates
-there."""
-
-
 def chart_options(opts: ParameterizeOptions, faces: int) -> ParameterizeOptions:
-    if (opts.backend or "auto") == "auto" and faces < SMALL_CHART_FACES:
+    if (opts.backend or "auto") == "auto" and faces < ATLAS_RULES.small_chart_faces:
         return opts.replace(backend="superlu")
     return opts
 
@@ -177,7 +172,6 @@ def assemble(charts: list[ChartLayout], m: int,
 
 
 __all__ = [
-    "SMALL_CHART_FACES",
     "ChartLayout",
     "assemble",
     "chart_layouts",

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from .atlas_rules import ATLAS_RULES
 from .linalg import factorize
 from .linear.system import half_cotangents
 from .mesh.forms import flat_faces
@@ -221,24 +222,19 @@ def refine_chart(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
                            linear.anchored)
 
 
-FLIP_RETRY_AREA_FACTOR = 10.0
-"""A refinement that ends with flipped faces is continued from its answer with the
-signed-area weight times this (the bumpy plane: 6 flipped faces of 80,000 at the default
-weight, 0 after the retry)."""
-
-
 def _push_flips_back(topology: MeshTopology, lengths: np.ndarray, opts: ParameterizeOptions,
                      stages: Stages, uv: np.ndarray, refinement: dict[str, Any],
                      ) -> tuple[np.ndarray, dict[str, Any]]:
     """``uv`` (n, 2) and its refinement report, continued with a heavier signed-area weight
-    (:data:`FLIP_RETRY_AREA_FACTOR`) when it has flipped faces and time is left; the
-    continued answer is kept only when it has fewer flipped faces."""
+    (:attr:`~solver.atlas_rules.AtlasRules.flip_retry_area_factor`) when it has flipped
+    faces and time is left; the continued answer is kept only when it has fewer flipped
+    faces."""
     flat = flat_faces(topology, lengths)  # zero area: no flip (solver.mesh.packing.folded)
     flipped = int(folded(uv, topology.faces, flat, strict=True).sum())
     left = stages.left(opts.max_seconds)
     if flipped == 0 or (left is not None and left <= 0):
         return uv, refinement
-    weight = opts.area_weight * FLIP_RETRY_AREA_FACTOR
+    weight = opts.area_weight * ATLAS_RULES.flip_retry_area_factor
     retry = Refiner(FormTargets(topology, lengths, np.zeros_like(lengths), area_weight=weight),
                     dim=2, backend=opts.backend or "auto").run(uv, time_limit=left)
     after = int(folded(retry.vertices, topology.faces, flat, strict=True).sum())

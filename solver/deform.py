@@ -34,6 +34,7 @@ from .mesh.manifold import ManifoldCut, manifold_topology
 from .mesh.metrics import compact, distortion
 from .mesh.rotations import is_rotation, nearest_rotation
 from .mesh.topology import MeshTopology, build_topology
+from .mesh.weld import check_welded_targets, one_handle_per_vertex, welded_mask
 from .options import DeformOptions
 from .refine.energy_weights import HARD_FRAME_WEIGHT
 from .refine.form_energy import FormTargets, Handles
@@ -203,17 +204,21 @@ class Deformer:
                                      dtype=np.int64)
         self.file_handles = as_indices(handles, "handles", upper=n)
         require_unique(self.file_handles, "handles", "vertex")
-        self.handles, self._handle_source = self.cut.copies_of(self.file_handles)
+        self.handles, self._handle_source, self._welded_handles = one_handle_per_vertex(
+            *self.cut.copies_of(self.file_handles))
         if not self.cut.is_identity:
             self.rest = self.cut.to_cut(self.rest)
-            in_roi = in_roi[self.cut.vertex_map]
+            in_roi = welded_mask(self.cut.weld_map, in_roi)[self.cut.vertex_map]
             n = len(self.rest)
         full = rest.topology if rest is not None else cut_topology
         self.faces = full.faces
         self.last_spread = np.zeros(len(self.file_rest))
         """(n_file,) largest distance of a file vertex's copies from their mean in the last
         answer (0 for a manifold mesh)."""
-        groups = [as_indices(g, f"rotations[{i}].faces", upper=len(self.faces))
+        n_file_faces = self.cut.n_file_faces or len(self.faces)
+        groups = [self.cut.to_solve_faces(as_indices(g, f"rotations[{i}].faces",
+                                                     upper=n_file_faces),
+                                          f"rotations[{i}].faces")
                   for i, g in enumerate(rotation_handles or [])]
         for i, g in enumerate(groups):
             if len(g) == 0:
@@ -411,6 +416,7 @@ class Deformer:
         if len(P) != len(self.file_handles):
             raise ConstraintError(f"expected {len(self.file_handles)} handle positions, got "
                                   f"{len(P)}", field="handle_positions")
+        check_welded_targets(P, self.file_handles, self._welded_handles, self.file_rest)
         P = P[self._handle_source]  # every copy of a handle vertex follows it
         R = (np.tile(np.eye(3), (self.n_groups, 1, 1)) if handle_rotations is None
              else np.asarray(handle_rotations, dtype=np.float64).reshape(-1, 3, 3))
@@ -578,7 +584,7 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
         vertex = report.distortion.get("vertex")
         if vertex is not None:
             report.distortion["vertex"] = deformer.cut.to_file(np.asarray(vertex))[0]
-        report.input = {"cut": deformer.cut.report(deformer.last_spread)}
+        report.input = deformer.cut.sections(deformer.last_spread)
     flat = zero_area_faces(deformer.rest, deformer.faces)
     if len(flat):  # collinear corners (issue 40): counted
         report.input = {**(report.input or {}), "zero_area_faces": len(flat)}

@@ -258,17 +258,23 @@ class ImmersionProblem:
         vertices[moved] += shift[comp[moved]] / count[comp[moved], None]
         return vertices
 
+    def tree_unknowns(self, root_faces: ArrayLike, root_vertices: ArrayLike) -> np.ndarray:
+        """Unknowns (N, 3) integrated along spanning trees from the anchors (frame I at
+        each root face, origin at each root vertex), whatever the forms' integrability
+        (noisy forms accumulate their errors along the trees; possibly non-finite)."""
+        forests = integration_forests(self.terms, np.asarray(root_faces, dtype=np.int64),
+                                      np.asarray(root_vertices, dtype=np.int64))
+        frames, _, positions = integrate_along_forests(self.terms, forests)
+        return np.concatenate([positions, np.swapaxes(frames, 1, 2).reshape(-1, 3)])
+
     def integrated_solution(self, root_faces: ArrayLike, root_vertices: ArrayLike,
                             tol: float = EXACT_TOLERANCE) -> np.ndarray | None:
         """Unknowns (N, 3) integrated along spanning trees from the anchors (frame I at
         each root face, origin at each root vertex), or None if some weighted residual row
         of Eq. 5 exceeds ``tol`` (the forms are not integrable to that accuracy)."""
-        forests = integration_forests(self.terms, np.asarray(root_faces, dtype=np.int64),
-                                      np.asarray(root_vertices, dtype=np.int64))
-        frames, _, positions = integrate_along_forests(self.terms, forests)
-        if not np.isfinite(frames).all() or not np.isfinite(positions).all():
+        u = self.tree_unknowns(root_faces, root_vertices)
+        if not np.isfinite(u).all():
             return None
-        u = np.concatenate([positions, np.swapaxes(frames, 1, 2).reshape(-1, 3)])
         residual = self.A @ u
         if max_weighted_residual(self.row_weights, residual) > tol:
             return None
@@ -278,11 +284,13 @@ class ImmersionProblem:
     def system(self, constraints: LinearConstraints, backend: str = "auto",
                extra_penalty_columns: np.ndarray | None = None,
                extra_penalty_weight: float = 0.0,
-               ordering_hint: bool = True) -> ConstrainedSystem:
+               ordering_hint: bool = True, method: str = "direct",
+               near_null: np.ndarray | None = None) -> ConstrainedSystem:
         """Factorize K with ``constraints`` (and optional extra soft columns, e.g. every
         frame for the orthonormalization solve). ``ordering_hint``: pass the unknowns'
         groups to :func:`solver.linalg.factorize` (a cheaper analysis, slower solves); False
-        for a system solved per drag."""
+        for a system solved per drag. ``method="iterative"``: no factorization, a multigrid
+        preconditioner on ``near_null`` (:class:`solver.linear.system.ConstrainedSystem`)."""
         soft_cols, soft_w = constraints.soft_columns, constraints.soft_weights
         if extra_penalty_columns is not None:
             soft_cols = np.concatenate([soft_cols, extra_penalty_columns])
@@ -291,7 +299,7 @@ class ImmersionProblem:
         topo = self.topology
         groups = unknown_groups(topo.n_vertices, topo.n_faces) if ordering_hint else None
         return ConstrainedSystem(self.K, constraints.hard_columns, soft_cols, soft_w, backend,
-                                 groups)
+                                 groups, method=method, near_null=near_null)
 
     def refinement_handles(self, constraints: Constraints) -> Handles:
         """The user's constraints as :class:`solver.refine.Handles`: hard positions fixed,

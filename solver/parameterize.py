@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .atlas import ChartLayout, assemble, chart_layouts, mean_length_change, overlaps_itself
+from .atlas_rules import ATLAS_RULES
 from .chart_flattening import ChartFlattening, flatten_chart, relative_length_change
 from .core.errors import TopologyError
 from .core.serialization import JsonDataclass
@@ -170,27 +171,17 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
                    combined, opts, stages, forms, topology, scale=packed)
 
 
-RECHART_BELOW = 0.5
-"""An atlas of xatlas-seeded charts covering less of the unit square than this is charted
-again by the bisection alone and the atlas that packs better is kept (bench/flatten.py:
-the torus 0.338 -> 0.478, the cylinder 0.407 -> 0.557, the beetle 0.356 -> 0.473, the
-koala 0.457 -> 0.619 (odedstein/meshes); every
-other measured atlas covers 0.5 or more). Above
-:attr:`solver.core.warnings.WarningRules.min_packing_efficiency` (0.4): an atlas is charted
-again before it would warn."""
-
-
 def _packed_atlas(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
                   opts: ParameterizeOptions, stages: Stages, progress: Progress | None,
                   ) -> tuple[list[ChartLayout], Packed, tuple[np.ndarray, ...]]:
     """Charts seeded by xatlas's charting, packed; when they pack below
-    :data:`RECHART_BELOW` (the torus 0.34, the koala 0.46) and time is left, the
-    charts of the bisection alone (``seeds="components"``) are packed too and the atlas
-    that packs better is kept. Returns the charts, the packing and :func:`assemble`'s
-    arrays."""
+    :attr:`~solver.atlas_rules.AtlasRules.rechart_below` (the torus 0.34, the koala 0.46)
+    and time is left, the charts of the bisection alone (``seeds="components"``) are packed
+    too and the atlas that packs better is kept. Returns the charts, the packing and
+    :func:`assemble`'s arrays."""
     best = None
     for seeds in ("xatlas", "components"):
-        if best is not None and (best[1].efficiency >= RECHART_BELOW
+        if best is not None and (best[1].efficiency >= ATLAS_RULES.rechart_below
                                  or _out_of_time(stages, opts)):
             break
         charts = chart_layouts(V, topology, angles, opts, stages, progress, seeds=seeds)
@@ -303,10 +294,11 @@ def _crossings(uv: np.ndarray, faces: np.ndarray, most: int = 20_000) -> int | N
 def _on_file_vertices(flat: Parameterization, cut: ManifoldCut) -> Parameterization:
     """A flattening of a non-manifold mesh's manifold cut, told in the file's vertices: the
     uv indices stay (a cut vertex is one more uv index, as a seam vertex is) and
-    ``uv_vertex`` names the file vertex of each (``report["input"]["cut"]``)."""
+    ``uv_vertex`` names the file vertex of each (``report["input"]["cut"]``; a welded
+    mesh's ``uv_vertex`` names representatives, ``report["input"]["weld"]``)."""
     if flat.uv_vertex is not None:
         flat.uv_vertex = cut.vertex_map[flat.uv_vertex]
-    flat.report.input = {**(flat.report.input or {}), "cut": cut.report()}
+    flat.report.input = {**(flat.report.input or {}), **cut.sections()}
     return flat
 
 

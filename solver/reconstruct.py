@@ -9,7 +9,7 @@ the same pieces.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -21,8 +21,11 @@ from .core.validation import as_points
 from .core.warnings import as_report, refinement_warnings
 from .immersion import ImmersionProblem
 from .linalg import resolve_backend
+from .linalg.iterative import RULES as LINEAR_SOLVER_RULES
+from .linalg.iterative import available_memory
 from .linear.constraints import Constraints
 from .linear.integrability import integrability_from_terms
+from .linear.system import near_null_space
 from .mesh.forms import flat_faces, validate_forms, wrapped_angle_count
 from .mesh.manifold import ManifoldCut
 from .mesh.placement import Placement, apply_placement, side_by_side
@@ -92,6 +95,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                 initial_guess: ArrayLike | None = None, progress: Progress | None = None,
                 vertex_map: ArrayLike | None = None,
                 placement: Placement | dict[str, Any] | None = None,
+                weld_map: ArrayLike | None = None,
                 **overrides: Any) -> Reconstruction:
     """Reconstruct vertex positions from edge lengths and dihedral angles (Eq. 5).
 
@@ -124,6 +128,10 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             non-manifold mesh, :func:`solver.fundamental_forms`): the answer is given per
             file vertex, the mean of its copies, their spread in ``report["input"]["cut"]``
             (``n_vertices`` is then the file's vertex count).
+        weld_map: the forms' (n,) file vertex each file vertex was welded into (forms of a
+            mesh with zero-length edges, :mod:`solver.mesh.weld`; with ``vertex_map``): a
+            welded vertex gets its representative's position, ``report["input"]["weld"]``
+            counts them.
         placement: the forms' component placement (:class:`solver.mesh.placement.Placement` or
             its dict): each component without constraints is moved rigidly so that its
             anchor face has that pose (a multi-part round trip is exact as a whole);
@@ -155,12 +163,22 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     stages("validate")
     backend = resolve_backend(opts.backend or "auto")  # refused even when nothing factorizes
     cut = None
+    if weld_map is not None and vertex_map is None:
+        raise ConstraintError("weld_map needs the forms' vertex_map", field="weld_map")
     if vertex_map is not None:
-        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices)
+        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices, weld_map)
         n_vertices = cut.n_vertices
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     place = Placement.coerce(placement, topology.n_faces)
     user = (constraints or Constraints()).validated(topology.n_vertices, topology.n_faces)
+    if cut is not None and cut.weld_map is not None and len(user.position_vertices):
+        # A constraint on a welded vertex holds its representative (one unknown): two on
+        # one group are a repeated vertex (ConstraintError).
+        held = user.position_vertices
+        below = held < cut.n_file_vertices
+        held = np.where(below, cut.weld_map[np.minimum(held, cut.n_file_vertices - 1)], held)
+        user = replace(user, position_vertices=held).validated(topology.n_vertices,
+                                                               topology.n_faces)
     stages.lap("validate")
     stages("assemble")
     problem = ImmersionProblem(topology, L, A, frame_weight=opts.frame_weight,
@@ -184,6 +202,9 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     linear = linear.extended(anchor)
     stages.lap("assemble")
 
+    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver,
+                                        available_memory())
+    tree = _TreeStart(problem, touched) if method == "iterative" else None
     regularized: list[int] = []
     ref_v = np.zeros((topology.n_vertices, 3))
     pos_only, frame_only = problem.underdetermined_components(user)
@@ -191,8 +212,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         # The gauge left free by the constraints is pinned to an anchored reconstruction.
         stages("factorize")
         ref_anchor, _ = problem.anchors(np.ones_like(touched))
-        ref_u = problem.system(ref_anchor, backend).solve(ref_anchor.hard_values,
-                                                          np.zeros((0, 3)))
+        ref_u = _system(problem, ref_anchor, backend, tree).solve(
+            ref_anchor.hard_values, np.zeros((0, 3)), None if tree is None else tree.guess)
         ref_v, ref_f = problem.unknowns_to_geometry(ref_u)
         gauge, regularized = problem.gauge_constraints(user, ref_v, ref_f)
         linear = linear.extended(gauge)
@@ -209,15 +230,19 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         if u is not None:  # the factorization stage is skipped: report it as 0 s
             stages.timings["factorize"] = 0.0
             stages("factorize", 1.0)
-    solve_path = "tree-integration" if u is not None else "factorization"
+    solve_path = "tree-integration" if u is not None else (
+        "iterative" if method == "iterative" else "factorization")
     factorized = {"backend": "none", "analysis": "none"}
+    linear_solver = None
     if u is None:
         stages("factorize")
-        system = problem.system(linear, backend)
+        system = _system(problem, linear, backend, tree)
         stages.lap("factorize")
         stages("solve")
-        u = system.solve(linear.hard_values, linear.soft_values)
+        u = system.solve(linear.hard_values, linear.soft_values,
+                         None if tree is None else tree.guess)
         factorized = {"backend": system.backend, "analysis": system.analysis}
+        linear_solver = system.linear_solver_report()
         # Dropped now, its analysis (the pattern of K) serves the orthonormalization's
         # factorization below: only the numerical phase is redone (solver.linalg's cache).
         del system
@@ -230,7 +255,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     orthonormality = _orthonormality_error(frames)
     refinement: dict[str, Any] = not_refined("exact: tree integration")
     refine = opts.refine
-    if solve_path == "factorization":
+    if solve_path != "tree-integration":
         exact = refine is not False and reproduces(vertices, topology, L, A)
         refinement = not_refined("disabled (refine=false)" if refine is False
                                  else "exact: the linear answer reproduces the forms")
@@ -241,22 +266,24 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             exact = True
             refinement = not_refined("exact: integrable forms and a linear energy within "
                                      "the integrability tolerance")
-    if opts.orthonormalize and solve_path == "factorization":  # integrated: rotations
+    if opts.orthonormalize and solve_path != "tree-integration":  # integrated: rotations
         stages("factorize", 0.5)
         rotations = nearest_rotation(frames)
         cols = problem.all_frame_columns()
-        system2 = problem.system(linear, backend, cols, opts.orthonormal_weight)
+        system2 = _system(problem, linear, backend, tree, cols, opts.orthonormal_weight)
         stages.lap("factorize")
         stages("solve", 0.5)
         targets = np.swapaxes(rotations, 1, 2).reshape(-1, 3)
         soft_values = np.concatenate([linear.soft_values, targets])
-        u = system2.solve(linear.hard_values, soft_values)
+        u = system2.solve(linear.hard_values, soft_values, u)
+        if system2.iterative is not None:
+            linear_solver = {**system2.linear_solver_report(), "first_solve": linear_solver}
         vertices, frames = problem.unknowns_to_geometry(u, user)
         vertices = problem.recenter(vertices, user, ref_v)
         energy = problem.energies(u)
         stages.lap("solve")
     stages("solve", 1.0)
-    if solve_path == "factorization" and refine is not False and not exact:
+    if solve_path != "tree-integration" and refine is not False and not exact:
         stages("refine")
         vertices, refinement = _refined(problem, user, vertices, frames, anchored,
                                         initial_guess, opts, backend, stages, progress)
@@ -278,9 +305,15 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         vertices, frames = apply_placement(vertices, topology.faces, place.subset(moving),
                                            frames=frames)
         input_report["placement"] = f"{int(moving.sum())} of {len(moving)} components placed"
+    isolated = topology.isolated_vertices
     if cut is not None:
         vertices, spread = cut.to_file(vertices)
-        input_report["cut"] = cut.report(spread)
+        input_report.update(cut.sections(spread) or {"cut": cut.report(spread)})
+        if cut.weld_map is not None:  # a welded vertex is no face's, yet not isolated
+            below = isolated < cut.n_file_vertices
+            welded = np.zeros(len(isolated), dtype=bool)
+            welded[below] = cut.weld_map[isolated[below]] != isolated[below]
+            isolated = isolated[~welded]
     report = ReconstructReport(
         energy=energy, first_solve_energy=first_energy,
         frame_orthonormality_error=orthonormality, orthonormalized=bool(opts.orthonormalize),
@@ -288,8 +321,9 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         n_unknowns=problem.n_unknowns, frame_weight=problem.frame_weight,
         weighting=problem.weighting, length_scale=problem.length_scale,
         regularized_components=regularized, anchored_components=anchored,
-        isolated_vertices=topology.isolated_vertices.tolist(), integrability=integrability,
-        warnings=as_report(refinement_warnings(refinement)), input=input_report)
+        isolated_vertices=isolated.tolist(), integrability=integrability,
+        warnings=as_report(refinement_warnings(refinement)), input=input_report,
+        linear_solver=linear_solver)
     return Reconstruction(vertices=vertices, frames=frames, report=report)
 
 
@@ -334,6 +368,29 @@ def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
         vertices, refinement["returned"] = start, "start: the refined shape's errors on " \
             "well-shaped elements were larger"
     return problem.place_anchored(vertices, anchored), refinement
+
+
+class _TreeStart:
+    """The iterative path's start and near-null space: the unknowns integrated along spanning
+    trees from every component's anchor (the anchors of :meth:`ImmersionProblem.anchors`,
+    so the start satisfies them on the components without constraints)."""
+
+    def __init__(self, problem: ImmersionProblem, touched: np.ndarray) -> None:
+        _, roots = problem.anchors(np.ones_like(touched))
+        u = problem.tree_unknowns([a["face"] for a in roots], [a["vertex"] for a in roots])
+        finite = bool(np.isfinite(u).all())
+        self.guess: np.ndarray | None = u if finite else None
+        self.near_null: np.ndarray | None = (
+            near_null_space(problem.topology.n_vertices, u) if finite else None)
+
+
+def _system(problem: ImmersionProblem, linear: Any, backend: str, tree: _TreeStart | None,
+            extra_columns: np.ndarray | None = None, extra_weight: float = 0.0) -> Any:
+    """The constrained system of Eq. 5: factorized (``tree`` None) or iterative."""
+    if tree is None:
+        return problem.system(linear, backend, extra_columns, extra_weight)
+    return problem.system(linear, backend, extra_columns, extra_weight, method="iterative",
+                          near_null=tree.near_null)
 
 
 def _orthonormality_error(frames: np.ndarray) -> float:

@@ -95,7 +95,7 @@ def mesh_summary(vertices: ArrayLike, faces: ArrayLike,
         "bounds": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
         "mean_edge_length": float(lengths.mean()) if len(lengths) else 0.0}
     if not cut.is_identity:
-        report["input"] = {"cut": cut.report()}
+        report["input"] = cut.sections()
     return points, cut.vertex_map[topology.faces], report
 
 
@@ -146,7 +146,11 @@ class ReconstructReport(Report):
         timings: seconds per stage.
         backend, analysis: the factorization's backend and analysis ("none": no
             factorization).
-        solve_path: "tree-integration" or "factorization".
+        solve_path: "tree-integration", "factorization" or "iterative".
+        linear_solver: how Eq. 5 was solved (None: tree integration): ``{"method":
+            "direct", "backend"}`` or ``{"method": "iterative", "iterations",
+            "relative_residual", "tolerance", "converged", ...}``
+            (:class:`solver.linalg.iterative.IterativeStats`).
         n_unknowns: N = n + 3 m.
         frame_weight, weighting, length_scale: the energy's.
         regularized_components: components whose gauge a reference embedding fixed.
@@ -181,6 +185,7 @@ class ReconstructReport(Report):
     vjp: dict[str, Any] | None = None
     warnings: list[dict[str, Any]] | None = None
     input: dict[str, Any] | None = None
+    linear_solver: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(eq=False)

@@ -100,6 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
                            help="integrability tolerance (default 1e-8)")
     tolerance.add_argument("--require-integrable", action="store_true",
                            help="fail (exit 1) when the forms are not integrable")
+    tolerance.add_argument("--linear-solver", choices=("auto", "direct", "iterative"),
+                           help="Eq. 5's linear solve: direct (factorization), iterative "
+                           "(multigrid-preconditioned CG, bounded memory) or auto (default: "
+                           "iterative where the factor would not fit; docs/large-meshes.md)")
 
     parser = _Parser(prog="ffs", description="Fundamental forms of triangle meshes: forms, "
                      "integrability, reconstruction, deformation, flattening, blending; "
@@ -115,7 +119,11 @@ def build_parser() -> argparse.ArgumentParser:
                      "reconstruct puts every part back where it was (without a placement "
                      "parts are laid side by side); angles outside (-pi, pi] are wrapped and "
                      "counted; a face of zero area (collinear corners) gets its neighbours' "
-                     "mean normal and is counted (report input.zero_area_faces); the "
+                     "mean normal and is counted (report input.zero_area_faces); vertices "
+                     "joined by an edge of length ~0 (1e-12 of the diagonal) are welded into "
+                     "the lowest index and the faces that collapse (or repeat an index) are "
+                     "dropped, answers keep the file's numbering (report input.weld; forms "
+                     "files keep weld_map and dropped_faces); the "
                      "endpoints of needle edges move as one in a refinement. "
                      "See docs/service.md#meshes-as-they-come.")
     parser.add_argument("--version", action="version", version=f"ffs {__version__}")

@@ -53,7 +53,8 @@ def _reconstruct_options(args: argparse.Namespace) -> dict[str, Any]:
     """:func:`_mesh_options` and the integrability options of ``reconstruct`` and ``vjp``."""
     options = _mesh_options(args)
     options.update({k: v for k, v in {"tolerance": args.tolerance,
-                                      "require_integrable": args.require_integrable or None
+                                      "require_integrable": args.require_integrable or None,
+                                      "linear_solver": args.linear_solver,
                                       }.items() if v is not None})
     return options
 
@@ -101,16 +102,26 @@ def _forms_of(backend: Any, path: str, args: argparse.Namespace, progress: Progr
 def run_forms(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
               row: Row) -> None:
     """``ffs forms``: a mesh's edge lengths and dihedral angles as .json or .npz."""
+    import numpy as np
+
     from ffs import files
 
     vertices, faces = files.read_mesh(item.inputs[0], args.input_format)
     forms = backend.fundamental_forms(vertices, faces, progress=progress)
     out = Path(item.outputs[0])
     fmt = _output_format(out, args, ("json", "npz"))
+    extra = forms.params()
+    if forms.dropped_faces is not None:
+        extra["dropped_faces"] = np.asarray(forms.dropped_faces).tolist()
     files.write_arrays(out, fmt, forms.stored_arrays() if fmt == "npz" else forms.arrays(),
-                       forms.params())
+                       extra)
     row.faces = len(forms.faces)
     row.note = f"{len(forms.edges)} edges"
+    if forms.weld_map is not None or forms.dropped_faces is not None:  # solver.mesh.weld
+        welded = (0 if forms.weld_map is None else
+                  int((np.asarray(forms.weld_map) != np.arange(len(forms.weld_map))).sum()))
+        dropped = 0 if forms.dropped_faces is None else len(forms.dropped_faces)
+        row.note += f"; {welded} vertices welded, {dropped} faces dropped"
 
 
 def run_check(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,

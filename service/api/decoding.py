@@ -36,7 +36,7 @@ from ffs_wire.arrays import (  # binary_body: the reference encoder, re-exported
     binary_body,  # noqa: F401
     padded,
 )
-from service.api.problems import ProblemError, element_error, from_validation_errors
+from service.api.problems import ProblemError, element_error, from_validation_errors, use_a_job
 from service.api.schemas import MAX_INDEX, MAX_MAGNITUDE
 from service.api.task import (
     ARRAY_SOURCES,
@@ -95,7 +95,7 @@ _JSON_TYPES = {dict: "an object", list: "a list", str: "a string", bool: "a bool
                type(None): "null", int: "an integer", float: "a number"}
 
 
-def parse_json(body: bytes) -> Any:
+def parse_json(body: bytes | bytearray) -> Any:
     """The parsed JSON body.
 
     ``NaN``, ``Infinity`` and overflowing numbers such as ``1e400`` (which Python's ``json``
@@ -111,7 +111,7 @@ def parse_json(body: bytes) -> Any:
     Raises:
         ProblemError: 400 ``malformed-json`` when it is empty or not JSON.
     """
-    if not body.strip():
+    if not body or body.isspace():  # strip() would copy a bytearray
         raise ProblemError("malformed-json", "the body is empty; send a JSON object")
     try:
         return orjson.loads(body)
@@ -452,7 +452,7 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
         field: The input the mesh came in (named by the problem).
 
     Raises:
-        ProblemError: 413 ``mesh-too-large`` beyond either limit.
+        ProblemError: 413 ``mesh-too-large`` beyond a limit, ``use-a-job`` beyond max_sync_faces.
     """
     errors = []
     if n_vertices > limits.max_vertices:
@@ -468,6 +468,8 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
                                            f"{limits.max_faces}"))
     if errors:
         raise ProblemError("mesh-too-large", errors[0]["reason"], errors=errors)
+    if limits.max_sync_faces is not None and n_faces > limits.max_sync_faces:
+        raise use_a_job(n_faces, limits.max_sync_faces, limits.sync_seconds or 0.0, field)
 
 
 def blend_rows(params: Mapping[str, Any]) -> tuple[int, str]:

@@ -118,6 +118,13 @@ class FormsResponse(BaseModel):
         None, description="Present for a non-manifold mesh, whose forms are those of its "
                           "manifold cut (`faces` are the cut faces): the file vertex of each "
                           "cut vertex. Send it back with the forms.")
+    weld_map: list[int] | None = Field(
+        None, description="Present when vertices joined by zero-length edges were welded: "
+                          "the file vertex each file vertex was welded into (itself unless "
+                          "welded). Send it back with the forms and `vertex_map`.")
+    dropped_faces: list[int] | None = Field(
+        None, description="Present when faces repeat a vertex once welded: those file faces, "
+                          "left out of `faces` (informational).")
     placement: dict[str, Any] | None = Field(
         None, description="Each connected component's rigid placement (`faces`, `origins`, "
                           "`frames`): `reconstruct` puts every part back where it was.")
@@ -436,7 +443,8 @@ class SizeLimits(BaseModel):
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"max_vertices": 1888331, "max_faces": 3147219, "max_body_bytes": 314721900,
          "max_request_memory": 8392486092,
-         "max_faces_by_operation": {"forms": 3147219, "reconstruct": 767192}}]})
+         "max_faces_by_operation": {"forms": 3147219, "reconstruct": 767192},
+         "max_sync_faces_by_operation": {"forms": 9416666, "reconstruct": 2152200}}]})
 
     max_vertices: int = Field(description="FFS_MAX_VERTICES (413 beyond).")
     max_faces: int = Field(description="FFS_MAX_FACES (413 beyond).")
@@ -447,6 +455,11 @@ class SizeLimits(BaseModel):
         description="The most faces each operation takes: at most FFS_MAX_FACES, and at most "
                     "what its predicted peak memory fits in FFS_MAX_REQUEST_MEMORY "
                     "(`sessions`: a deformation session).")
+    max_sync_faces_by_operation: dict[str, int] = Field(
+        default_factory=dict,
+        description="The most faces a synchronous request of each operation may bring: those "
+                    "whose first answer is predicted within FFS_REQUEST_TIMEOUT (less the "
+                    "margin for encoding it); beyond, 413 `use-a-job`: submit it as a job.")
 
 
 class Caller(BaseModel):

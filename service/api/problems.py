@@ -56,6 +56,10 @@ PROBLEM_KINDS: dict[str, tuple[int, str, str]] = {
     "mesh-too-large": (413, "Mesh too large",
                        "The mesh exceeds FFS_MAX_VERTICES or FFS_MAX_FACES, or its operation's "
                        "predicted peak memory exceeds FFS_MAX_REQUEST_MEMORY."),
+    "use-a-job": (413, "Too large for a synchronous request",
+                  "The mesh's answer is predicted to take longer than FFS_REQUEST_TIMEOUT "
+                  "allows a synchronous request: submit the same input as a job "
+                  "(POST /v1/jobs), which has FFS_JOB_TIMEOUT."),
     "blend-too-large": (413, "Blend too large",
                         "Rows x vertices of the blend exceed FFS_MAX_BLEND_VERTICES: send "
                         "fewer rows per request (or a coarser mesh)."),
@@ -302,6 +306,28 @@ def problem_of(exc: BaseException) -> ProblemError:
         return ProblemError("mesh-too-large", "the input needs more memory than is available")
     logger.error("task failed: %s: %s", type(exc).__name__, exc, exc_info=exc)
     return ProblemError("internal-error", INTERNAL_DETAIL, status=500)
+
+
+def use_a_job(n_faces: int, max_sync_faces: int, seconds: float, field: str) -> ProblemError:
+    """The 413 ``use-a-job`` problem of a synchronous request predicted to miss its deadline.
+
+    Args:
+        n_faces: The mesh's face count.
+        max_sync_faces: The most faces whose answer is predicted within ``seconds``.
+        seconds: What FFS_REQUEST_TIMEOUT leaves the solver.
+        field: The input the mesh came in.
+
+    Returns:
+        The problem: its ``detail`` says how to submit the request as a job; ``job`` is the
+        path to submit it to.
+    """
+    reason = (f"{n_faces} faces exceed the {max_sync_faces} faces whose answer is predicted "
+              f"within the {seconds:.0f} s a synchronous request has (FFS_REQUEST_TIMEOUT)")
+    return ProblemError(
+        "use-a-job", reason + "; submit it as a job: POST /v1/jobs with {\"operation\": "
+        "<this endpoint's operation>, \"input\": <this body>} (or this multipart upload "
+        "with an \"operation\" field), then GET its Location until it is done",
+        errors=[element_error(field, reason)], job="/v1/jobs")
 
 
 def failure_of(exc: BaseException) -> dict[str, Any]:

@@ -134,7 +134,8 @@ class MeshParams(ApiModel):
 
 class PlacementModel(ApiModel):
     """The rigid placement of each connected component (``solver.mesh.placement``): the pose
-    of its anchor face (its lowest-numbered face) when the forms were computed."""
+    of its anchor face (its largest face, the lowest-numbered among equals) when the forms
+    were computed."""
 
     model_config = _example({"faces": [0], "origins": [[0.0, 0.0, 0.0]],
                              "frames": [_IDENTITY]})
@@ -157,6 +158,18 @@ class CutFormsParams(ApiModel):
                     "the cut faces): `vertex_map[c]` is the file vertex of cut vertex c. "
                     "Answers are then per file vertex (the mean of its copies; their spread "
                     "in `report.input.cut`). Omitted: the faces' own vertices.")
+    weld_map: list[Index] | None = Field(
+        None, fail_fast=True,
+        description="Forms of a mesh with zero-length edges (two corners of a face at one "
+                    "position) are those of the welded mesh: `weld_map[i]` is the file vertex "
+                    "vertex i was welded into (i itself unless welded; with `vertex_map`, "
+                    "whose length-n prefix then names representatives only). Answers give a "
+                    "welded vertex its representative's position (`report.input.weld`). "
+                    "Omitted: nothing welded.")
+    dropped_faces: list[Index] | None = Field(
+        None, fail_fast=True,
+        description="Informational, as `POST /v1/forms` answers it: the file faces left out "
+                    "of `faces` (they repeat a vertex once welded). Ignored.")
     zero_area_faces: list[Index] | None = Field(
         None, fail_fast=True,
         description="Informational, as `POST /v1/forms` answers it: the faces of zero area "

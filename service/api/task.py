@@ -45,6 +45,8 @@ class FormsArrays:
     """The cut's file vertex of each vertex (forms of a non-manifold mesh), or None."""
     placement: Any = None
     """The components' placement (:class:`solver.mesh.placement.Placement` or its dict), or None."""
+    weld_map: np.ndarray | None = None
+    """The file vertex each file vertex was welded into (solver.mesh.weld), or None."""
 
 
 @dataclass(frozen=True)
@@ -91,7 +93,7 @@ class RawBody:
     validates itself, so that the main process never holds the parsed arrays."""
 
     kind: Literal["json", "binary"]
-    body: bytes
+    body: bytes | bytearray
 
 
 MeshFiles = tuple[MeshFile, ...]
@@ -116,6 +118,13 @@ class Limits:
     max_memory: int | None = None
     """FFS_MAX_REQUEST_MEMORY when it, not FFS_MAX_FACES, sets ``max_faces`` (the most
     faces the operation's predicted peak fits in; named by the 413)."""
+    max_sync_faces: int | None = None
+    """A synchronous request's most faces: those whose first answer is predicted within
+    ``sync_seconds`` (:func:`service.backends.admission.sync_faces_within`); None for a job
+    or a session."""
+    sync_seconds: float | None = None
+    """The seconds a synchronous request's solver has (FFS_REQUEST_TIMEOUT less the margin
+    for encoding the answer)."""
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,10 @@ accepted (:class:`RequestCost`, fitted to ``bench.scale``); :func:`request_memor
 is what one worker may use (the machine's memory, less the sessions', shared by the
 workers) and :func:`faces_within` the largest mesh an operation can take in it. The face
 limit of each operation follows (``FFS_MAX_REQUEST_MEMORY``, ``FFS_MAX_FACES``): beyond it
-413 ``mesh-too-large`` names the memory, never an out-of-memory kill of a worker.
+413 ``mesh-too-large`` names the memory, never an out-of-memory kill of a worker. A
+synchronous request's time is predicted too (:class:`FirstAnswerTime`): one whose first
+answer would miss ``FFS_REQUEST_TIMEOUT`` is answered 413 ``use-a-job`` (jobs have
+``FFS_JOB_TIMEOUT``).
 
 Session admission (:func:`admit_session`) is bounded by ``FFS_MAX_SESSIONS``
 (:class:`TooManySessionsError` beyond), ``FFS_MAX_SESSION_MEMORY`` (:class:`SessionMemoryError`
@@ -103,6 +106,50 @@ use together: the HTTP process, the page cache and the allocator keep the rest."
 def request_cost(solves: bool) -> RequestCost:
     """The cost model of an operation that factorizes (``solves``) or only computes."""
     return SOLVE_COST if solves else LIGHT_COST
+
+
+@dataclass(frozen=True)
+class FirstAnswerTime:
+    """Predicted seconds until a request's first answer, ``seconds_per_face * m *
+    (m / reference)^(exponent - 1)`` for m faces (this 2-core machine at load 2-3).
+
+    The first answer is what a synchronous request cannot do without: the exact or linear
+    answer (a refinement that runs out of the deadline answers its best shape so far, 200),
+    so a request predicted to miss the deadline before it is answered 413 ``use-a-job``
+    (:func:`sync_faces_within`) instead of running into a 504. :attr:`RequestCost.seconds`
+    is the whole (refined) answer's time.
+    """
+
+    seconds_per_face: float
+    exponent: float
+    reference: int = 400_000
+
+    def seconds(self, n_faces: int) -> float:
+        """Predicted seconds of the first answer of ``n_faces`` faces."""
+        m = max(n_faces, 1)
+        return self.seconds_per_face * m * (m / self.reference) ** (self.exponent - 1)
+
+    def faces_within(self, seconds: float) -> int:
+        """The most faces whose first answer is predicted within ``seconds`` (0 for none)."""
+        if seconds <= 0:
+            return 0
+        scale = self.seconds_per_face / self.reference ** (self.exponent - 1)
+        return int((seconds / scale) ** (1 / self.exponent))
+
+
+SOLVE_FIRST_ANSWER = FirstAnswerTime(seconds_per_face=3.75e-5, exponent=1.2)
+"""Operations that factorize: the linear answer of noisy forms (``refine=False``; issue 45,
+nefertiti subdivided, load 2-3: 14.5 s at 388K faces, 77 s at 1.55M: exponent 1.2)."""
+LIGHT_FIRST_ANSWER = FirstAnswerTime(seconds_per_face=1.2e-5, exponent=1.0)
+"""Operations that only compute: the exact path's time (issue 45: 18 s at 1.55M faces;
+forms and mesh take less)."""
+
+
+def sync_faces_within(seconds: float, solves: bool) -> int:
+    """The most faces a synchronous request of an operation (``solves``: one that
+    factorizes) may bring whose first answer is predicted within ``seconds``
+    (:class:`FirstAnswerTime`)."""
+    return (SOLVE_FIRST_ANSWER if solves else LIGHT_FIRST_ANSWER).faces_within(seconds)
 
 
 DASK_REQUEST_MEMORY = 4 * 1024**3

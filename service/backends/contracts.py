@@ -137,7 +137,8 @@ class SessionPolicy:
     refinement budget) and of the set-up (``FFS_REQUEST_TIMEOUT``), the refinement's slice
     (``FFS_SESSION_REFINE_SLICE``), sessions per client (``FFS_MAX_CLIENT_SESSIONS``) and the
     idle seconds after which a session gives way to a new one in a full table
-    (``FFS_SESSION_GIVE_WAY``)."""
+    (``FFS_SESSION_GIVE_WAY``). No defaults here: the settings are their one home
+    (:func:`service.backends.session_policy`)."""
 
     ttl: float
     max_sessions: int
@@ -145,9 +146,9 @@ class SessionPolicy:
     threads: int
     solve_timeout: float
     setup_timeout: float
-    refine_slice: float = 0.05
-    max_per_client: int = 4
-    give_way_after: float = 60.0
+    refine_slice: float
+    max_per_client: int
+    give_way_after: float
 
     def admission(self) -> SessionAdmission:
         """The limits :func:`~service.backends.admission.admit_session` checks."""

@@ -16,6 +16,7 @@ import multiprocessing
 import threading
 import types
 import typing
+from collections.abc import AsyncIterator
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
@@ -89,41 +90,61 @@ def is_json(mtype: str) -> bool:
     return mtype == "application/json"
 
 
-async def read_body(request: Request, settings: Settings) -> bytes:
+async def read_body(request: Request, settings: Settings) -> bytearray:
     """The whole body, read within the body limit and timeout.
+
+    The chunks are appended to one buffer as they arrive (never a list of chunks joined
+    at the end, which held the body twice), so the body's memory is about its size.
 
     Args:
         request: The request.
         settings: FFS_MAX_BODY_BYTES and FFS_BODY_TIMEOUT.
 
     Returns:
-        The body.
+        The body (a ``bytearray``: orjson, numpy and pickle read it as they read bytes).
 
     Raises:
-        ProblemError: 413 as soon as it exceeds FFS_MAX_BODY_BYTES; 408 (and the
-            connection closed) when it takes longer than FFS_BODY_TIMEOUT to arrive.
+        ProblemError: 413 as soon as it exceeds FFS_MAX_BODY_BYTES (a declared
+            Content-Length beyond it before anything is read); 408 (and the connection
+            closed) when it takes longer than FFS_BODY_TIMEOUT to arrive.
         ClientDisconnect: The client went away mid-body (answered 499 and logged without
             a traceback by the app's handler).
+    """
+    body = bytearray()
+    async for chunk in _limited_stream(request, settings):
+        body += chunk
+    return body
+
+
+async def _limited_stream(request: Request, settings: Settings) -> AsyncIterator[bytes]:
+    """The body's chunks as they arrive, within FFS_MAX_BODY_BYTES and FFS_BODY_TIMEOUT.
+
+    Raises:
+        ProblemError: as :func:`read_body`.
     """
     limit = settings.max_body_bytes
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise _too_large(int(declared), limit)
-    chunks, size = [], 0
-    try:
-        async with asyncio.timeout(settings.body_timeout):
-            async for chunk in request.stream():
-                size += len(chunk)
-                if size > limit:
-                    raise _too_large(size, limit)
-                chunks.append(chunk)
-    except TimeoutError:
-        raise ProblemError(
-            "body-timeout", f"the body did not arrive within {settings.body_timeout:g} s "
-            f"(FFS_BODY_TIMEOUT; {size} bytes received)", headers={"Connection": "close"},
-            errors=[element_error("body", f"{size} bytes in {settings.body_timeout:g} s")]
-        ) from None
-    return b"".join(chunks)
+    stream = request.stream().__aiter__()
+    deadline = asyncio.get_running_loop().time() + settings.body_timeout
+    size = 0
+    while True:
+        try:  # the deadline spans the reads only, never the consumer's work between them
+            async with asyncio.timeout_at(deadline):
+                chunk = await anext(stream, None)
+        except TimeoutError:
+            raise ProblemError(
+                "body-timeout", f"the body did not arrive within {settings.body_timeout:g} s "
+                f"(FFS_BODY_TIMEOUT; {size} bytes received)", headers={"Connection": "close"},
+                errors=[element_error("body", f"{size} bytes in {settings.body_timeout:g} s")]
+            ) from None
+        if chunk is None:
+            return
+        size += len(chunk)
+        if size > limit:
+            raise _too_large(size, limit)
+        yield chunk
 
 
 def _too_large(size: int, limit: int) -> ProblemError:
@@ -156,7 +177,8 @@ def validate_object(model: type[BaseModel], data: Any, prefix: tuple[Any, ...] =
 
 async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any],
                                                                    dict[str, UploadFile]]:
-    """Parse a multipart body.
+    """Parse a multipart body as it arrives (the files spooled to temporary files beyond
+    1 MB, Starlette's ``UploadFile``), never holding it whole in memory.
 
     Args:
         request: The request (``multipart/form-data``).
@@ -169,29 +191,42 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
 
     Raises:
         ProblemError: 400 ``malformed-request`` for a body that is cut or not multipart;
-            the problems of :func:`read_body`.
+            the problems of :func:`read_body`, 413 as soon as the body passes the limit.
     """
-    body = await read_body(request, settings)
-    sent = False
+    closing = b"--" + _boundary(request).encode("latin-1") + b"--"
+    tail = bytearray()
+    chunks = _limited_stream(request, settings)
 
     async def receive() -> dict[str, Any]:
-        nonlocal sent
-        if sent:
-            return {"type": "http.disconnect"}
-        sent = True
-        return {"type": "http.request", "body": body, "more_body": False}
+        chunk = await anext(chunks, None)
+        if chunk is None:
+            return {"type": "http.request", "body": b"", "more_body": False}
+        tail[:] = (tail + chunk)[-len(closing) - 4:]  # the closing boundary and a CRLF
+        return {"type": "http.request", "body": chunk, "more_body": True}
 
-    _check_closed(request, body)
-    replay = Request(request.scope, receive)
+    def cut_off() -> ProblemError | None:  # a cut upload would read as a form without its file
+        if bytes(tail).rstrip(b"\r\n").endswith(closing):
+            return None
+        return ProblemError("malformed-request", "the multipart body ends before its closing "
+                            "boundary (the upload was cut off)",
+                            errors=[element_error("body", "no closing boundary")])
+
+    streamed = Request(request.scope, receive)  # files spooled to disk beyond 1 MB
     try:
-        form = await replay.form(max_files=MAX_SHAPES + 4, max_fields=64,
-                                 max_part_size=settings.max_body_bytes)
+        form = await streamed.form(max_files=MAX_SHAPES + 4, max_fields=64,
+                                   max_part_size=settings.max_body_bytes)
+    except ProblemError:
+        raise
     except StarletteHTTPException as exc:
-        raise ProblemError("malformed-request", f"cannot read the multipart body: {exc.detail}"
-                           ) from None
+        raise cut_off() or ProblemError(
+            "malformed-request", f"cannot read the multipart body: {exc.detail}") from None
     except Exception:  # python-multipart parse errors (their text names internals)
-        raise ProblemError("malformed-request", "cannot read the multipart body: it is not "
-                           "well-formed multipart/form-data") from None
+        raise cut_off() or ProblemError(
+            "malformed-request", "cannot read the multipart body: it is not well-formed "
+            "multipart/form-data") from None
+    if problem := cut_off():
+        await form.close()
+        raise problem
     fields: dict[str, Any] = {}
     files: dict[str, UploadFile | list[UploadFile]] = {}
     repeated: set[str] = set()
@@ -251,21 +286,14 @@ def array_fields(model: type[BaseModel]) -> frozenset[str]:
     return frozenset(names)
 
 
-def _check_closed(request: Request, body: bytes) -> None:
-    """A 400 problem unless the multipart body ends with its closing boundary (a cut upload
-    would otherwise read as a form without its file)."""
-    boundary = ""
+def _boundary(request: Request) -> str:
+    """The multipart boundary of the request's Content-Type (a 400 problem without one)."""
     for param in request.headers.get("content-type", "").split(";")[1:]:
         key, _, value = param.partition("=")
-        if key.strip().lower() == "boundary":
-            boundary = value.strip().strip('"')
-    if not boundary:
-        raise ProblemError("malformed-request", "the multipart Content-Type has no boundary",
-                           errors=[element_error("Content-Type", "no boundary")])
-    if not body.rstrip(b"\r\n").endswith(b"--" + boundary.encode("latin-1") + b"--"):
-        raise ProblemError("malformed-request", "the multipart body ends before its closing "
-                           "boundary (the upload was cut off)",
-                           errors=[element_error("body", "no closing boundary")])
+        if key.strip().lower() == "boundary" and value.strip().strip('"'):
+            return value.strip().strip('"')
+    raise ProblemError("malformed-request", "the multipart Content-Type has no boundary",
+                       errors=[element_error("Content-Type", "no boundary")])
 
 
 def _decode_field(value: str) -> Any:

@@ -13,12 +13,14 @@ job) or a :class:`~service.api.task.SessionSpec` (a session), built once, here.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from starlette.datastructures import UploadFile
 from starlette.requests import Request
 
+from service.api.budgets import TIME_POLICY
 from service.api.decoding import (
     BINARY_MEDIA_TYPE,
     MAX_SHAPES,
@@ -38,7 +40,7 @@ from service.api.task import (
     SessionSpec,
     TaskRequest,
 )
-from service.backends.admission import faces_within
+from service.backends.admission import faces_within, sync_faces_within
 from service.http.bodies import (
     ParserPool,
     as_arrays,
@@ -79,16 +81,29 @@ def limits(settings: Settings, operation: str | None = None) -> Limits:
                   settings.max_blend_vertices)
 
 
+def sync_limits(settings: Settings, operation: str) -> Limits:
+    """:func:`limits` of a synchronous request: also the most faces whose first answer is
+    predicted within FFS_REQUEST_TIMEOUT less the margin for encoding the answer
+    (:func:`service.backends.admission.sync_faces_within`; beyond: 413 ``use-a-job``)."""
+    seconds = settings.request_timeout - TIME_POLICY.encode_margin(settings.request_timeout)
+    solves = OPERATIONS[operation].solves
+    return replace(limits(settings, operation), max_sync_faces=sync_faces_within(seconds, solves),
+                   sync_seconds=seconds)
+
+
 def size_limits(settings: Settings) -> dict[str, Any]:
     """The size limits ``GET /v1/me`` shows (:class:`service.api.documents.SizeLimits`):
-    FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BODY_BYTES, FFS_MAX_REQUEST_MEMORY and the
-    faces each operation (and a session) takes (:func:`limits`)."""
+    FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BODY_BYTES, FFS_MAX_REQUEST_MEMORY, the
+    faces each operation (and a session) takes (:func:`limits`) and the faces each takes
+    synchronously (:func:`sync_limits`)."""
     by_operation = {name: limits(settings, name).max_faces for name in OPERATIONS}
     by_operation["sessions"] = limits(settings).max_faces
     return {"max_vertices": settings.max_vertices, "max_faces": settings.max_faces,
             "max_body_bytes": settings.max_body_bytes,
             "max_request_memory": settings.max_request_memory,
-            "max_faces_by_operation": by_operation}
+            "max_faces_by_operation": by_operation,
+            "max_sync_faces_by_operation": {name: sync_limits(settings, name).max_sync_faces
+                                            for name in OPERATIONS}}
 
 
 async def operation_request(request: Request, spec: OperationSpec, settings: Settings,
@@ -110,18 +125,18 @@ async def operation_request(request: Request, spec: OperationSpec, settings: Set
     mtype = media_type(request)
     if mtype == "multipart/form-data":
         fields, files = await read_form(request, settings)
-        return await form_request(spec, fields, files, settings, output)
+        return await form_request(spec, fields, files, settings, output, synchronous=True)
     if is_json(mtype) or mtype == BINARY_MEDIA_TYPE:
         body = await read_body(request, settings)
         kind = "binary" if mtype == BINARY_MEDIA_TYPE else "json"
-        return TaskRequest(spec.name, RawBody(kind, body), limits=limits(settings, spec.name),
+        return TaskRequest(spec.name, RawBody(kind, body), limits=sync_limits(settings, spec.name),
                            backend=settings.solver_backend, output=output)
     raise unsupported_media_type(mtype)
 
 
 async def form_request(spec: OperationSpec, fields: dict[str, Any],
                        files: dict[str, UploadFile | list[UploadFile]], settings: Settings,
-                       output: Output) -> TaskRequest:
+                       output: Output, *, synchronous: bool = False) -> TaskRequest:
     """The task of a multipart upload.
 
     Args:
@@ -132,6 +147,7 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
             ``shapes``: one part per mesh, in order).
         settings: The limits and the solver backend.
         output: The negotiated result format.
+        synchronous: A synchronous request (:func:`sync_limits`), not a job.
 
     Returns:
         The task.
@@ -169,8 +185,9 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
             parts.append((given, name))
     uploads = [await upload(file, field) for file, field in parts]
     source = tuple(uploads) if spec.file_list or len(uploads) > 1 else uploads[0]
-    return TaskRequest(spec.name, source, params.model_dump(), limits(settings, spec.name),
-                       settings.solver_backend, output)
+    size = sync_limits(settings, spec.name) if synchronous else limits(settings, spec.name)
+    return TaskRequest(spec.name, source, params.model_dump(), size, settings.solver_backend,
+                       output)
 
 
 async def job_request(request: Request, settings: Settings, parser: ParserPool

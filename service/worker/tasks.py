@@ -87,14 +87,15 @@ def _forms(request: TaskRequest) -> tuple[FormsArrays, int | None]:
     a non-manifold mesh's forms carry the cut's ``vertex_map`` (solver.mesh.manifold)."""
     if isinstance(request.source, FormsArrays):
         params = request.params
-        vertex_map = params.get("vertex_map")
+        vertex_map, weld_map = params.get("vertex_map"), params.get("weld_map")
         return dataclasses.replace(
             request.source, placement=params.get("placement"),
-            vertex_map=None if vertex_map is None else np.asarray(vertex_map, np.int64)), None
+            vertex_map=None if vertex_map is None else np.asarray(vertex_map, np.int64),
+            weld_map=None if weld_map is None else np.asarray(weld_map, np.int64)), None
     vertices, faces = _mesh(request)
     forms = solver.fundamental_forms(vertices, faces)
     return FormsArrays(forms.faces, forms.edges, forms.lengths, forms.angles,
-                       forms.vertex_map, forms.placement), len(vertices)
+                       forms.vertex_map, forms.placement, forms.weld_map), len(vertices)
 
 
 def _file_faces(forms: FormsArrays) -> np.ndarray:
@@ -139,8 +140,9 @@ def forms_task(request: TaskRequest, progress: Progress) -> TaskResult:
     forms = solver.fundamental_forms(vertices, faces)
     document = {"faces": forms.faces, "edges": forms.edges, "lengths": forms.lengths,
                 "angles": forms.angles, "placement": forms.placement.to_dict()}
-    if forms.vertex_map is not None:
-        document["vertex_map"] = forms.vertex_map
+    for name in ("vertex_map", "weld_map", "dropped_faces"):
+        if getattr(forms, name) is not None:
+            document[name] = getattr(forms, name)
     if forms.zero_area_faces is not None:
         document["zero_area_faces"] = forms.zero_area_faces
     return _finish(request, progress, document)
@@ -173,7 +175,7 @@ def integrability_task(request: TaskRequest, progress: Progress) -> TaskResult:
     progress("solve", 0.0)
     report = solver.check_integrability(forms.faces, forms.edges, forms.lengths, forms.angles,
                                         tol=request.params["tolerance"], n_vertices=n_vertices,
-                                        vertex_map=forms.vertex_map)
+                                        vertex_map=forms.vertex_map, weld_map=forms.weld_map)
     return _finish(request, progress, integrability_document(report))
 
 
@@ -220,7 +222,8 @@ def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
     if require_integrable or request.output.wants("defect"):
         full_report = solver.check_integrability(
             forms.faces, forms.edges, forms.lengths, forms.angles,
-            tol=options.integrability_tol, n_vertices=n_vertices, vertex_map=forms.vertex_map)
+            tol=options.integrability_tol, n_vertices=n_vertices, vertex_map=forms.vertex_map,
+            weld_map=forms.weld_map)
         if require_integrable and not full_report.integrable:
             raise _not_integrable(full_report)
     result = solver.reconstruct(
@@ -230,7 +233,7 @@ def reconstruct_task(request: TaskRequest, progress: Progress) -> TaskResult:
         # spares them a refinement (solver.reconstruct.linear_answer_is_exact).
         options=options.replace(check_integrability=full_report is None
                                 or full_report.integrable), progress=progress,
-        vertex_map=forms.vertex_map, placement=forms.placement)
+        vertex_map=forms.vertex_map, placement=forms.placement, weld_map=forms.weld_map)
     report = result.report.to_dict()
     if full_report is not None:
         report = {"integrability": full_report.summary(), **report}

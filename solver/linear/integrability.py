@@ -25,6 +25,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
+from ..core.errors import ConstraintError
 from ..core.serialization import JsonDataclass
 from ..mesh.forms import validate_forms, wrapped_angle_count
 from ..mesh.frames import face_edge_lengths, transition_quaternions, triangle_inequality_violations
@@ -154,7 +155,8 @@ class IntegrabilityReport(JsonDataclass):
 def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
                         angles: ArrayLike, tol: float = 1e-8,
                         n_vertices: int | None = None,
-                        vertex_map: ArrayLike | None = None) -> IntegrabilityReport:
+                        vertex_map: ArrayLike | None = None,
+                        weld_map: ArrayLike | None = None) -> IntegrabilityReport:
     """Check whether edge lengths and dihedral angles come from an immersion.
 
     Args:
@@ -169,6 +171,9 @@ def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
         vertex_map: the forms' (n_cut,) file vertex of each vertex of ``faces`` (forms of a
             non-manifold mesh, :mod:`solver.mesh.manifold`): the per-vertex defects are then given
             per file vertex (the copy of largest defect).
+        weld_map: the forms' (n,) file vertex each file vertex was welded into
+            (:mod:`solver.mesh.weld`; with ``vertex_map``): a welded vertex reports its
+            representative's defects.
 
     Returns:
         :class:`IntegrabilityReport`. Faces violating the triangle inequality are listed in
@@ -197,8 +202,10 @@ def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
     """
     cut = None
     if vertex_map is not None:
-        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices)
+        cut = ManifoldCut.from_vertex_map(vertex_map, faces, n_vertices, weld_map)
         n_vertices = cut.n_vertices
+    elif weld_map is not None:
+        raise ConstraintError("weld_map needs the forms' vertex_map", field="weld_map")
     topology, L, A = validate_forms(faces, edges, lengths, angles, n_vertices)
     violations = triangle_inequality_violations(face_edge_lengths(topology, L))
     terms = energy_terms(topology, L, A, check=False)
@@ -212,8 +219,10 @@ def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
         report.failing_vertices = np.flatnonzero(report.vertex_defect > tol)
         worst = np.argsort(-report.vertex_defect, kind="stable")[:WORST_COUNT]
         report.worst_vertices = worst[report.vertex_defect[worst] > 0]
-        report.isolated_vertices = np.setdiff1d(np.arange(cut.n_file_vertices),
-                                                cut.vertex_map[topology.faces.ravel()])
+        used = np.zeros(cut.n_file_vertices, dtype=bool)
+        used[cut.vertex_map[topology.faces.ravel()]] = True
+        report.isolated_vertices = np.flatnonzero(
+            ~(used if cut.weld_map is None else used[cut.weld_map]))
     return report
 
 

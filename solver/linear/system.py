@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..linalg import Factorization, factorize
+from ..linalg.iterative import RULES, IterativeSolver, LinearSolverRules
 from ..mesh.frames import (
     edge_coefficients,
     face_edge_lengths,
@@ -253,6 +254,35 @@ def unknown_groups(n_vertices: int, n_faces: int) -> np.ndarray:
                            n_vertices + np.repeat(np.arange(n_faces), 3)])
 
 
+def near_null_space(n_vertices: int, immersion: np.ndarray) -> np.ndarray:
+    """The near-null space of ``K`` that the multigrid preconditioner keeps exact.
+
+    Per coordinate, Eq. 5's energy vanishes (exact forms) or nearly (noisy ones) on the
+    translation and on each coordinate of an immersion of the forms with its frames: for
+    exact forms these four span the kernel of ``K`` per connected component.
+
+    Args:
+        n_vertices: n.
+        immersion: (N, 3) float64 unknowns of an immersion of the forms (e.g. integrated
+            along spanning trees, :meth:`solver.immersion.ImmersionProblem.tree_unknowns`).
+
+    Returns:
+        (N, 4) float64: the translation (1 on the positions, 0 on the frames) and the three
+        columns of ``immersion``.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver.linear.system import near_null_space
+        >>> near_null_space(1, np.arange(12.0).reshape(4, 3))[:, 0].tolist()
+        [1.0, 0.0, 0.0, 0.0]
+    """
+    B = np.empty((immersion.shape[0], 4))
+    B[:, 0] = 0.0
+    B[:n_vertices, 0] = 1.0
+    B[:, 1:] = immersion
+    return B
+
+
 def frame_columns(n_vertices: int, faces: np.ndarray) -> np.ndarray:
     """Unknown indices of the frame rows of some faces.
 
@@ -315,6 +345,15 @@ class ConstrainedSystem:
         soft_weights: (s,) float64 > 0 their penalty weights.
         backend: sparse factorization backend (:func:`solver.linalg.factorize`).
         groups: optional (N,) int64 ordering hint (:func:`unknown_groups`).
+        method: ``"direct"`` (factorize) or ``"iterative"`` (multigrid-preconditioned CG,
+            :class:`solver.linalg.iterative.IterativeSolver`: no factor, for large meshes).
+        near_null: (N, k) float64 near-null space of ``K`` for the iterative method
+            (:func:`near_null_space`); None: the constant.
+        rules: the iterative method's tolerance and iteration limit.
+
+    Attributes:
+        method: ``"direct"`` or ``"iterative"``.
+        iterative: the :class:`~solver.linalg.iterative.IterativeSolver` (None when direct).
 
     Raises:
         SingularSystemError: the constrained matrix is singular.
@@ -323,7 +362,9 @@ class ConstrainedSystem:
 
     def __init__(self, K: sp.spmatrix, hard_columns: np.ndarray, soft_columns: np.ndarray,
                  soft_weights: np.ndarray, backend: str = "auto",
-                 groups: np.ndarray | None = None) -> None:
+                 groups: np.ndarray | None = None, method: str = "direct",
+                 near_null: np.ndarray | None = None,
+                 rules: LinearSolverRules = RULES) -> None:
         N = K.shape[0]
         self.size = N
         self.hard_columns = np.asarray(hard_columns, dtype=np.int64)
@@ -340,28 +381,54 @@ class ConstrainedSystem:
         rows = np.repeat(np.arange(N), np.diff(K.indptr))
         cols = K.indices
         keep = (~hard[rows] & ~hard[cols]) | ((rows == cols) & hard[rows])
+        del rows
         # Explicit zeros kept on purpose (see the class docstring).
         reduced = sp.csr_matrix((K.data * keep, cols, K.indptr), shape=K.shape)
+        del K, keep
         self.hard_diagonal = reduced.diagonal()[self.hard_columns]
-        self.factor: Factorization = factorize(reduced, backend, assume_symmetric=True,
-                                               groups=groups)
+        self.method = method
+        self.iterative: IterativeSolver | None = None
+        self.factor: Factorization | None = None
+        if method == "iterative":
+            reduced.eliminate_zeros()  # the multigrid's strength graph reads the pattern
+            candidates = None
+            if near_null is not None:
+                candidates = np.array(near_null, dtype=np.float64)
+                candidates[self.hard_columns] = 0.0
+            self.iterative = IterativeSolver(reduced, candidates, rules)
+        elif method == "direct":
+            self.factor = factorize(reduced, backend, assume_symmetric=True, groups=groups)
+        else:
+            raise ValueError(f"unknown method {method!r}; expected 'direct' or 'iterative'")
 
     @property
     def backend(self) -> str:
-        """The backend that factorized the system."""
-        return self.factor.backend
+        """The backend that factorized the system (``"none"`` when iterative)."""
+        return "none" if self.factor is None else self.factor.backend
 
     @property
     def analysis(self) -> str:
-        """``"cached"`` or ``"computed"``: see :class:`solver.linalg.Factorization`."""
-        return self.factor.analysis
+        """``"cached"`` or ``"computed"``: see :class:`solver.linalg.Factorization`
+        (``"none"`` when iterative)."""
+        return "none" if self.factor is None else self.factor.analysis
 
-    def solve(self, hard_values: np.ndarray, soft_values: np.ndarray) -> np.ndarray:
-        """Solve for new constraint targets (back-substitution only).
+    def linear_solver_report(self) -> dict[str, object]:
+        """``{"method": "direct", "backend"}`` or the iterative solve's statistics
+        (:meth:`solver.linalg.iterative.IterativeStats.report`: iterations, final relative
+        residual, converged)."""
+        if self.iterative is not None:
+            return self.iterative.stats.report()
+        return {"method": "direct", "backend": self.backend}
+
+    def solve(self, hard_values: np.ndarray, soft_values: np.ndarray,
+              guess: np.ndarray | None = None) -> np.ndarray:
+        """Solve for new constraint targets (back-substitution only when direct).
 
         Args:
             hard_values: (h, 3) float64 values of the hard unknowns.
             soft_values: (s, 3) float64 targets of the soft unknowns.
+            guess: optional (N, 3) float64 start of the iterative method (ignored when
+                direct).
 
         Returns:
             (N, 3) float64 unknowns, one column per coordinate.
@@ -370,6 +437,15 @@ class ConstrainedSystem:
         np.add.at(rhs, self.soft_columns, self.soft_weights[:, None] * soft_values)
         rhs -= self.K_hard_rows.T @ hard_values
         rhs[self.hard_columns] = self.hard_diagonal[:, None] * hard_values
+        if self.iterative is not None:
+            start = None
+            if guess is not None:
+                start = np.array(guess, dtype=np.float64)
+                start[self.hard_columns] = hard_values
+            u = self.iterative.solve(rhs, start)
+            u[self.hard_columns] = hard_values
+            return u
+        assert self.factor is not None
         u = self.factor.solve(rhs)
         u[self.hard_columns] = hard_values
         return u

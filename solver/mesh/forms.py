@@ -78,6 +78,12 @@ class Forms(JsonDataclass):
         zero_area_faces: None, or the (k,) int64 faces of zero area (collinear corners)
             whose normal :func:`degenerate_normals` chose (informational: the solvers
             find such faces from the lengths, :func:`flat_faces`).
+        weld_map: None, or for a mesh with vertices joined by zero-length edges
+            (:mod:`solver.mesh.weld`) the (n,) int64 file vertex each file vertex was
+            welded into (itself unless welded); ``vertex_map`` is then given too (names
+            representatives only) and ``faces`` leave out the faces the weld collapsed.
+        dropped_faces: None, or the (d,) int64 file faces left out of ``faces`` (they
+            repeat a vertex once welded; informational).
     """
 
     faces: np.ndarray
@@ -87,10 +93,13 @@ class Forms(JsonDataclass):
     vertex_map: np.ndarray | None = None
     placement: Placement | None = None
     zero_area_faces: np.ndarray | None = None
+    weld_map: np.ndarray | None = None
+    dropped_faces: np.ndarray | None = None
 
     _array_fields: ClassVar[dict[str, Any]] = {
         "faces": np.int64, "edges": np.int64, "lengths": np.float64,
         "angles": np.float64, "vertex_map": np.int64, "zero_area_faces": np.int64,
+        "weld_map": np.int64, "dropped_faces": np.int64,
     }
     _nested_fields: ClassVar[dict[str, Any]] = {"placement": Placement}
 
@@ -146,19 +155,20 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
         vertices: (n, 3) float coordinates.
         faces: (m, 3) int, 0-based, counter-clockwise seen from outside.
 
-    A non-manifold mesh is cut into a manifold one first (:mod:`solver.mesh.manifold`): the
-    forms are those of the cut, ``faces`` are the cut faces and ``vertex_map`` names the
-    file vertex of each cut vertex. ``placement`` holds each component's pose
-    (:mod:`solver.mesh.placement`).
+    Vertices joined by zero-length edges are welded first and the faces that collapse
+    dropped (:mod:`solver.mesh.weld`: ``weld_map``, ``dropped_faces``); a non-manifold mesh
+    is cut into a manifold one (:mod:`solver.mesh.manifold`): the forms are those of the
+    cut, ``faces`` are the cut faces and ``vertex_map`` names the file vertex of each cut
+    vertex. ``placement`` holds each component's pose (:mod:`solver.mesh.placement`).
 
     Returns:
         :class:`Forms` with edges (E, 2), lengths (E,), angles (E,), vertex_map, placement.
 
     Raises:
-        SolverInputError: a subclass naming the first bad element of a malformed mesh;
-            :class:`~solver.core.errors.DegenerateFaceError` for a face with two corners at one
-            position. Faces of zero area with distinct corners (collinear) are measured
-            with the normal of :func:`degenerate_normals`.
+        SolverInputError: a subclass naming the first bad element of a malformed mesh.
+            Faces of zero area with distinct corners (collinear) are measured with the
+            normal of :func:`degenerate_normals`; a face with two corners at one position
+            is dropped once its vertices are welded.
 
     Example:
         A unit right-angled tetrahedron: six edges, every one convex.
@@ -179,8 +189,11 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
     cut_vertices = V if cut.is_identity else cut.to_cut(V)
     forms = forms_of(cut_vertices, topology)
     forms.placement = placement_of(cut_vertices, forms.faces, topology.face_component)
-    if not cut.is_identity:
+    if cut.is_cut or cut.weld_map is not None:
         forms.vertex_map = cut.vertex_map
+    forms.weld_map = cut.weld_map
+    if cut.face_map is not None:
+        forms.dropped_faces = np.setdiff1d(np.arange(cut.n_file_faces or 0), cut.face_map)
     return forms
 
 

@@ -18,7 +18,8 @@ Per format:
 * **OFF** -- parsed here (``OFF``/``COFF``/``NOFF`` text headers; extra vertex columns and
   face colours are ignored).
 * **PLY** -- trimesh (``process=False``); polygon faces are read back from the file's face
-  list and triangulated here.
+  list and triangulated here; a ``tristrips`` element (triangle strips, ``-1`` restarts) is
+  unrolled into its triangles (:mod:`solver.mesh.strips`).
 * **Polygons** -- in OBJ, OFF and PLY a face with k > 3 corners ``(v0, ..., vk-1)`` is
   fan-triangulated into the k - 2 triangles ``(v0, vj, vj+1)``, j = 1 .. k - 2, in file order
   (the same rule in every format; :func:`read_mesh` reports how many faces were polygons and

@@ -20,6 +20,11 @@ libigl's ``cut_to_disk``-style corner unions follow in spirit):
    pair are detached from all their neighbours (each becomes a part of its own), and rule 2
    runs again.
 
+Before the cut, :func:`manifold_topology` welds the vertices joined by zero-length edges and
+drops the faces that collapse (:mod:`solver.mesh.weld`); :class:`ManifoldCut` then also
+carries ``weld_map`` and ``face_map``, and maps answers back through both: it is the one owner
+of "file numbering <-> solve numbering".
+
 So a manifold mesh is its own cut (``vertex_map`` = ``arange(n)``, faces unchanged), the cut
 faces keep the file's face order, and ``vertex_map[c]`` names the file vertex of cut vertex
 ``c``. Answers computed on the cut mesh come back with :meth:`ManifoldCut.to_file`: the mean
@@ -42,7 +47,7 @@ Example:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -51,12 +56,14 @@ from numpy.typing import ArrayLike
 from scipy.sparse.csgraph import connected_components
 
 from ..core.errors import (
+    ConstraintError,
     InconsistentOrientationError,
     NonManifoldEdgeError,
     NonManifoldVertexError,
 )
 from ..core.validation import as_faces, as_indices
 from .topology import MeshTopology, build_topology
+from .weld import Weld, check_weld_map, weld_report, weld_vertices
 
 
 @dataclass(frozen=True)
@@ -71,6 +78,12 @@ class ManifoldCut:
         split_edges: (k, 2) int64 file edges ``[i, j]`` (i < j) of more than two faces, or
             of two faces that run them the same way.
         split_vertices: (j,) int64 file vertices with more than one copy.
+        weld_map: None, or (n,) int64 the file vertex each file vertex was welded into
+            (itself unless welded: :mod:`solver.mesh.weld`); ``vertex_map`` then names
+            representatives only, and a welded vertex is a cut vertex no face uses.
+        face_map: None, or (m',) int64 the file face of each cut face when faces were
+            dropped (collapsed by the weld).
+        n_file_faces: m, the file's face count, where known (from a mesh, not from forms).
     """
 
     faces: np.ndarray
@@ -78,21 +91,36 @@ class ManifoldCut:
     n_file_vertices: int
     split_edges: np.ndarray
     split_vertices: np.ndarray
+    weld_map: np.ndarray | None = None
+    face_map: np.ndarray | None = None
+    n_file_faces: int | None = None
 
     @classmethod
     def from_vertex_map(cls, vertex_map: ArrayLike, faces: ArrayLike,
-                        n_file_vertices: int | None = None) -> ManifoldCut:
-        """The cut a forms' ``vertex_map`` describes (``faces``: the cut faces).
+                        n_file_vertices: int | None = None,
+                        weld_map: ArrayLike | None = None) -> ManifoldCut:
+        """The cut a forms' ``vertex_map`` (and ``weld_map``) describe (``faces``: the cut
+        faces).
 
         Args:
             vertex_map: (n_cut,) int file vertex of each cut vertex.
             faces: (m, 3) int cut faces (indices below n_cut).
-            n_file_vertices: n (default ``vertex_map.max() + 1``).
+            n_file_vertices: n (default ``len(weld_map)``, else ``vertex_map.max() + 1``).
+            weld_map: optional (n,) int the file vertex each file vertex was welded into.
 
         Raises:
             IndexOutOfRangeError: a face beyond the map, or a map entry beyond n (without n:
                 beyond the map's length).
+            ShapeMismatchError: a ``weld_map`` of another length than n.
+            ConstraintError: a ``weld_map`` entry that is itself welded into another vertex.
         """
+        welds = None
+        if weld_map is not None:
+            welds = as_indices(weld_map, "weld_map",
+                               upper=n_file_vertices if n_file_vertices is not None
+                               else len(np.asarray(weld_map).reshape(-1)))
+            n_file_vertices = len(welds) if n_file_vertices is None else n_file_vertices
+            check_weld_map(welds, int(n_file_vertices))
         # A cut's map numbers its file vertices 0 .. n - 1 first (n <= n_cut): without n the
         # entries are bounded by the map's length (never a huge vertex count from one entry).
         vmap = as_indices(vertex_map, "vertex_map",
@@ -104,7 +132,8 @@ class ManifoldCut:
         counts = np.bincount(vmap, minlength=n)
         return cls(faces=F, vertex_map=vmap, n_file_vertices=n,
                    split_edges=np.zeros((0, 2), dtype=np.int64),
-                   split_vertices=np.flatnonzero(counts > 1).astype(np.int64))
+                   split_vertices=np.flatnonzero(counts > 1).astype(np.int64),
+                   weld_map=welds)
 
     @property
     def n_vertices(self) -> int:
@@ -113,9 +142,37 @@ class ManifoldCut:
 
     @property
     def is_identity(self) -> bool:
-        """True for a manifold mesh: nothing was cut."""
-        return self.n_vertices == self.n_file_vertices and bool(
+        """True for a manifold mesh: nothing was cut, welded or dropped."""
+        return self.weld_map is None and self.face_map is None and (
+            self.n_vertices == self.n_file_vertices) and bool(
             (self.vertex_map == np.arange(self.n_vertices)).all())
+
+    @property
+    def is_cut(self) -> bool:
+        """True when the cut split a vertex or an edge (more than the weld)."""
+        return self.n_vertices > self.n_file_vertices or len(self.split_edges) > 0
+
+    def to_solve_faces(self, file_faces: np.ndarray, field: str = "faces") -> np.ndarray:
+        """File face indices (k,) int64 as cut face indices (the same without a drop).
+
+        Raises:
+            ConstraintError: a face dropped by the weld (it is not solved).
+        """
+        file_faces = np.asarray(file_faces, dtype=np.int64)
+        if self.face_map is None:
+            return file_faces
+        solve = np.full(int(self.face_map.max(initial=-1)) + 1, -1, dtype=np.int64)
+        solve[self.face_map] = np.arange(len(self.face_map))
+        inside = file_faces < len(solve)
+        out = np.full(len(file_faces), -1, dtype=np.int64)
+        out[inside] = solve[file_faces[inside]]
+        if (out < 0).any():
+            k = int(np.flatnonzero(out < 0)[0])
+            raise ConstraintError(
+                f"face {int(file_faces[k])} was dropped (it repeats a vertex once the "
+                "vertices joined by zero-length edges are welded): it is not solved",
+                field=field, index=k)
+        return out
 
     def to_cut(self, values: np.ndarray) -> np.ndarray:
         """Per-file-vertex values (n, ...) as per-cut-vertex values (n_cut, ...)."""
@@ -148,6 +205,8 @@ class ManifoldCut:
         distance = np.linalg.norm(flat - mean[self.vertex_map], axis=1)
         spread = np.zeros(n)
         np.maximum.at(spread, self.vertex_map, distance)
+        if self.weld_map is not None:  # a welded vertex is where its representative is
+            mean, spread = mean[self.weld_map], spread[self.weld_map]
         return mean.reshape((n, *values.shape[1:])), spread
 
     def largest_to_file(self, values: np.ndarray) -> np.ndarray:
@@ -161,7 +220,7 @@ class ManifoldCut:
         first[1:] = self.vertex_map[order][1:] != self.vertex_map[order][:-1]
         out = np.zeros(self.n_file_vertices)
         out[self.vertex_map[order[first]]] = values[order[first]]
-        return out
+        return out if self.weld_map is None else out[self.weld_map]
 
     def copies_of(self, file_vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every cut vertex of the given file vertices.
@@ -171,11 +230,16 @@ class ManifoldCut:
 
         Returns:
             ``(cut_vertices, source)``: (h',) int64 cut vertices and (h',) int64 the
-            position in ``file_vertices`` each comes from (h' >= h; in the order of
-            ``file_vertices``, copies by cut index).
+            position in ``file_vertices`` each comes from (in the order of
+            ``file_vertices``, copies by cut index). A welded vertex names its
+            representative's copies: two file vertices of one group give the same cut
+            vertices (:func:`solver.mesh.weld.one_handle_per_vertex` keeps one).
         """
         file_vertices = np.asarray(file_vertices, dtype=np.int64)
-        if self.is_identity:
+        if self.weld_map is not None:
+            file_vertices = self.weld_map[file_vertices]
+        if self.n_vertices == self.n_file_vertices and bool(
+                (self.vertex_map == np.arange(self.n_vertices)).all()):
             return file_vertices.copy(), np.arange(len(file_vertices))
         order = np.argsort(self.vertex_map, kind="stable")
         starts = np.searchsorted(self.vertex_map[order], file_vertices, side="left")
@@ -184,6 +248,29 @@ class ManifoldCut:
         source = np.repeat(np.arange(len(file_vertices)), counts)
         offset = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
         return order[np.repeat(starts, counts) + offset], source
+
+    def sections(self, spread: np.ndarray | None = None) -> dict[str, Any]:
+        """The ``input`` report sections of what was done to the file's mesh: ``cut``
+        (:meth:`report`) when a vertex or edge was split, ``weld``
+        (:func:`solver.mesh.weld.weld_report`) when vertices were welded or faces dropped;
+        {} for a manifold mesh.
+
+        Args:
+            spread: optional (n,) per-file-vertex spread of the answer (:meth:`to_file`).
+        """
+        out: dict[str, Any] = {}
+        if self.is_cut:
+            out["cut"] = self.report(spread)
+        if self.weld_map is not None or self.face_map is not None:
+            n = self.n_file_vertices
+            kept = self.face_map if self.face_map is not None else np.arange(len(self.faces))
+            out["weld"] = weld_report(Weld(
+                target=self.weld_map if self.weld_map is not None else np.arange(n),
+                faces=self.faces, kept_faces=kept,
+                n_faces=self.n_file_faces or len(kept)))
+            if self.n_file_faces is None:  # forms carry no file faces: drops not known
+                del out["weld"]["dropped_faces"], out["weld"]["dropped_face_list"]
+        return out
 
     def report(self, spread: np.ndarray | None = None) -> dict[str, Any]:
         """The ``input.cut`` report section: what was cut, and how far copies disagree.
@@ -205,9 +292,11 @@ class ManifoldCut:
 
 def manifold_topology(faces: ArrayLike, vertices: ArrayLike | None = None,
                       n_vertices: int | None = None) -> tuple[ManifoldCut, MeshTopology]:
-    """The one layer every mesh entry point passes through: the mesh's topology when it is
-    manifold and consistently oriented (the cut is then the identity, at no extra cost),
-    else its :func:`cut_to_manifold` and the cut's topology.
+    """The one layer every mesh entry point passes through: the vertices joined by
+    zero-length edges welded and the faces that collapse dropped (:mod:`solver.mesh.weld`;
+    with positions only), then the mesh's topology when it is manifold and consistently
+    oriented (the cut is then the identity, at no extra cost), else its
+    :func:`cut_to_manifold` and the cut's topology.
 
     Args:
         faces, vertices, n_vertices: as for :func:`cut_to_manifold`.
@@ -223,16 +312,29 @@ def manifold_topology(faces: ArrayLike, vertices: ArrayLike | None = None,
     """
     if n_vertices is None and vertices is not None:
         n_vertices = len(vertices)
+    weld = weld_vertices(faces, vertices, n_vertices)
+    welded = not weld.is_identity
+    faces, n_vertices = weld.faces, len(weld.target)
     try:
         topology = build_topology(faces, n_vertices)
     except (NonManifoldEdgeError, NonManifoldVertexError, InconsistentOrientationError):
-        cut = cut_to_manifold(faces, vertices, n_vertices)
+        cut = _with_weld(cut_to_manifold(faces, vertices, n_vertices), weld, welded)
         return cut, build_topology(cut.faces, n_vertices=cut.n_vertices)
     n = topology.n_vertices
     identity = ManifoldCut(faces=topology.faces, vertex_map=np.arange(n, dtype=np.int64),
                            n_file_vertices=n, split_edges=np.zeros((0, 2), dtype=np.int64),
                            split_vertices=np.zeros(0, dtype=np.int64))
-    return identity, topology
+    return _with_weld(identity, weld, welded), topology
+
+
+def _with_weld(cut: ManifoldCut, weld: Weld, welded: bool) -> ManifoldCut:
+    """``cut`` (of the welded faces) with what :func:`solver.mesh.weld.weld_vertices` did."""
+    if not welded:
+        return cut
+    dropped = len(weld.kept_faces) < weld.n_faces
+    return replace(cut, weld_map=weld.target if len(weld.welded_vertices) else None,
+                   face_map=weld.kept_faces if dropped else None,
+                   n_file_faces=weld.n_faces)
 
 
 def cut_to_manifold(faces: ArrayLike, vertices: ArrayLike | None = None,

@@ -2,12 +2,13 @@
 
 Forms (lengths and dihedral angles) fix each connected component only up to a rigid motion,
 so a multi-part model rebuilt from its forms alone has its parts anywhere. The placement of a
-component is the pose of one face of it, its *anchor* (the component's lowest-numbered
-face): the position of the anchor's first vertex ``faces[t][0]`` and its frame (columns
-``b1``, along ``faces[t][0] -> faces[t][1]``; ``b2``, in-plane; ``b3``, the unit normal; the
-frame convention of the README). :func:`placement_of` measures it on a mesh;
-:func:`apply_placement` moves each component of a reconstruction rigidly so that its anchor
-face has that pose, which makes a round trip of exact forms exact as a whole mesh.
+component is the pose of one face of it, its *anchor* (the component's largest face, the
+lowest-numbered among equals): the position of the anchor's first vertex ``faces[t][0]``
+and its frame (columns ``b1``, along ``faces[t][0] -> faces[t][1]``; ``b2``, in-plane;
+``b3``, the unit normal; the frame convention of the README). :func:`placement_of`
+measures it on a mesh; :func:`apply_placement` moves each component of a reconstruction
+rigidly so that its anchor face has that pose, which makes a round trip of exact forms
+exact as a whole mesh.
 
 Example:
     Two triangles far apart, rebuilt at the origin, put back where they were:
@@ -46,7 +47,7 @@ class Placement(JsonDataclass):
     """The rigid placement of each connected component (c components).
 
     Attributes:
-        faces: (c,) int64 anchor face of each component (its lowest-numbered face).
+        faces: (c,) int64 anchor face of each component (its largest face: :func:`placement_of`).
         origins: (c, 3) float64 position of each anchor face's first vertex.
         frames: (c, 3, 3) float64 rotation whose columns are the anchor face's b1, b2, b3.
     """
@@ -124,7 +125,8 @@ def face_components(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.
 
 def placement_of(vertices: ArrayLike, faces: ArrayLike,
                  face_component: np.ndarray | None = None) -> Placement:
-    """The placement of every component of a mesh (anchor: its lowest-numbered face).
+    """The placement of every component of a mesh (anchor: its face of largest area, the
+    lowest-numbered among equals: a zero-area face, issue 40, has no frame of its own).
 
     Args:
         vertices: (n, 3) float.
@@ -139,8 +141,10 @@ def placement_of(vertices: ArrayLike, faces: ArrayLike,
     F = np.asarray(faces, dtype=np.int64)
     if face_component is None:
         _, face_component = face_components(F, len(V))
-    _, anchors = np.unique(face_component, return_index=True)
-    anchors = np.sort(anchors)
+    area = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    order = np.lexsort((np.arange(len(F)), -area, face_component))
+    _, first = np.unique(face_component[order], return_index=True)
+    anchors = np.sort(order[first])
     return Placement(faces=anchors.astype(np.int64), origins=V[F[anchors, 0]].copy(),
                      frames=face_frames(V, F[anchors]))
 

@@ -17,8 +17,9 @@ N_GOOD = 20
 
 
 def write_batch(folder: Path) -> list[str]:
-    """20 curved open grids (different sizes and bumps) and one OBJ whose second face
-    repeats a vertex (read fine, refused by the solver), third from last in name order."""
+    """20 curved open grids (different sizes and bumps) and one OBJ whose fourth vertex has a
+    NaN coordinate (a file the reader parses and the solver refuses: a face that repeats a
+    vertex is dropped and reported since the weld), third from last in name order."""
     folder.mkdir()
     names = []
     for k in range(N_GOOD):
@@ -27,8 +28,8 @@ def write_batch(folder: Path) -> list[str]:
         name = f"grid-{k:02d}.obj"
         (folder / name).write_bytes(save_mesh(V, F, "obj"))
         names.append(name)
-    (folder / "grid-17b.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
-                                         "f 1 2 3\nf 2 4 4\n")
+    (folder / "grid-17b.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv nan 1 0\n"
+                                         "f 1 2 3\nf 2 4 3\n")
     return sorted([*names, "grid-17b.obj"])
 
 
@@ -37,7 +38,7 @@ def assert_batch_result(result, workdir: Path, out: str) -> None:
     assert "Traceback" not in result.stderr
     errors = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(errors) == 1, result.stderr
-    assert "grid-17b.obj" in errors[0] and "faces[1]" in errors[0]
+    assert "grid-17b.obj" in errors[0] and "vertex 3" in errors[0]
     written = sorted(p.name for p in (workdir / out).iterdir())
     assert written == [f"grid-{k:02d}.npz" for k in range(N_GOOD)]
     assert "20 of 21 done, 1 failed" in result.stdout

@@ -23,14 +23,17 @@ BAD_FORMS = {"faces": [[0, 1, 2]], "edges": [[0, 1], [0, 2], [1, 2]], "lengths":
 def test_input_errors_name_file_field_and_index(ffs, server, workdir, where):
     options = ["--server", server] if where == "server" else []
     (workdir / "angles.json").write_text(json.dumps({**BAD_FORMS, "lengths": [1, 0, 1]}))
-    (workdir / "degenerate.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
-                                            "f 1 2 3\nf 2 4 4\n")
+    # A mesh face (2, 4, 4) is dropped (issue 40, solver.mesh.weld); forms, which carry no
+    # positions to weld, with such a face are refused.
+    (workdir / "degenerate.json").write_text(json.dumps(
+        {"faces": [[0, 1, 2], [1, 3, 3]], "edges": [[0, 1], [0, 2], [1, 2]],
+         "lengths": [1, 1, 1], "angles": [0, 0, 0]}))
     (workdir / "handles.json").write_text(json.dumps([{"vertex": 99999, "position": [0, 0, 0]}]))
     cases = [
         (("reconstruct", "angles.json", "-o", "x.obj"),
          ["angles.json", "lengths[1]", "non-positive-length"]),
-        (("flatten", "degenerate.obj", "-o", "x.obj"),
-         ["degenerate.obj", "faces[1]", "degenerate-face"]),
+        (("check", "degenerate.json"),
+         ["degenerate.json", "faces[1]", "degenerate-face"]),
         (("deform", "torus.off", "-o", "x.obj", "--handles", "handles.json"),
          ["torus.off", "handles[0]", "99999"]),
         (("flatten", "torus.off", "-o", "x.obj", "--seams", "none"),

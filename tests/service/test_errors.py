@@ -46,9 +46,14 @@ SOLVER_CASES = [
                                                                  5.0)), ("faces", 0)),
     ("edge-mismatch", "integrability", _forms(edges=_with(EXAMPLE_FORMS["edges"], 1, [3, 0])),
      ("edges", 1)),
-    # Collinear corners are measured (issue 40); two corners at one position are not.
-    ("degenerate-face", "forms", {"vertices": [[0, 0, 0], [1, 0, 0], [1, 0, 0]],
-                                  "faces": [[0, 1, 2]]}, ("faces", 0)),
+    # Collinear corners are measured and two corners at one position welded (issue 40);
+    # forms, which carry no positions, with a face that repeats a vertex are not.
+    ("degenerate-face", "integrability",
+     {"faces": [[0, 1, 2], [0, 0, 1]], "edges": [[0, 1], [0, 2], [1, 2]],
+      "lengths": [1.0] * 3, "angles": [0.0] * 3}, ("faces", 1)),
+    # A mesh whose every face collapses once welded has nothing left to solve.
+    ("shape-mismatch", "forms", {"vertices": [[0, 0, 0], [1, 0, 0], [1, 0, 0]],
+                                 "faces": [[0, 1, 2]]}, ("faces", None)),
     # Meshes are cut into manifold ones (issue 40); forms sent with non-manifold faces and
     # no vertex_map are still refused.
     ("non-manifold-edge", "integrability",

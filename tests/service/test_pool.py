@@ -8,6 +8,7 @@ import signal
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from service.backends.errors import (
@@ -55,8 +56,12 @@ def test_sync_timeout_is_504_and_frees_the_worker():
     with running_app(workers=1, request_timeout=0.05) as c:
         executor = c.app.state.services.backend.executor
         pid = executor.worker_pids()[0]
-        V, F = icosphere(5)  # ~1 s of work: far beyond the 50 ms timeout
-        doc = problem(c.post("/v1/reconstruct", json=forms_json(V, F)), 504, "timeout")
+        # ~1 s of work, far beyond the 50 ms timeout, on a mesh small enough that its first
+        # answer is predicted within it (a larger mesh is refused 413 use-a-job unrun)
+        V, F = icosphere(3)
+        body = {"vertices_a": V.tolist(), "vertices_b": (V * [1.0, 1.0, 1.5]).tolist(),
+                "faces": F.tolist(), "t": np.linspace(0, 1, 64).tolist()}
+        doc = problem(c.post("/v1/interpolate", json=body), 504, "timeout")
         assert "FFS_REQUEST_TIMEOUT" in doc["detail"]
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
@@ -66,7 +71,7 @@ def test_sync_timeout_is_504_and_frees_the_worker():
             time.sleep(0.05)
         assert executor.worker_pids() != [pid]  # the abandoned solve was stopped
         assert executor.restarts == 1
-        assert 'ffs_tasks_total{operation="reconstruct",outcome="timeout"} 1.0' in c.get(
+        assert 'ffs_tasks_total{operation="interpolate",outcome="timeout"} 1.0' in c.get(
             "/metrics").text
 
 

@@ -3,7 +3,6 @@ import pytest
 
 from solver import fundamental_forms
 from solver.core.errors import (
-    DegenerateFaceError,
     EdgeMismatchError,
     NonFiniteValueError,
     NonPositiveLengthError,
@@ -80,11 +79,14 @@ def test_zero_area_face_is_measured_by_the_rule():
     np.testing.assert_allclose(forms.angles, 0.0, atol=1e-15)
 
 
-def test_face_with_two_corners_at_one_position_is_degenerate():
+def test_face_with_two_corners_at_one_position_is_welded_and_dropped():
+    """Vertices 1 and 2 are at one position and face 0 joins them: 2 is welded into 1
+    and face 0 dropped (solver.mesh.weld); the other face is measured."""
     V = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [0, 1, 0.0]])
-    with pytest.raises(DegenerateFaceError) as err:
-        fundamental_forms(V, [[0, 1, 2], [0, 3, 1]])
-    assert err.value.index == 0 and "one position" in str(err.value)
+    forms = fundamental_forms(V, [[0, 1, 2], [0, 3, 1]])
+    assert forms.weld_map.tolist() == [0, 1, 1, 3] and forms.dropped_faces.tolist() == [0]
+    assert forms.faces.tolist() == [[0, 3, 1]]
+    np.testing.assert_allclose(forms.lengths, [1.0, 1.0, np.sqrt(2.0)])
 
 
 def test_nan_vertex_is_named():

@@ -256,6 +256,12 @@ class DaskSessions:
         await self._release(session_id)
         return (record or {}).get("reason") or reason
 
+    async def _released(self, session_id: str, reason: str) -> errors.SessionGoneError:
+        """Release this replica's handles of a session the registry has buried, and return
+        the 410 to raise (``reason`` is the registry's)."""
+        await self._release(session_id)
+        return errors.SessionGoneError(session_id, reason)
+
     async def solve(self, session_id: str, positions: np.ndarray,
                     rotations: np.ndarray | None, fmt: str) -> DragAnswer:
         actor = await self._actor(session_id)
@@ -263,8 +269,7 @@ class DaskSessions:
             status, body, timings, *drag = await self._watched(
                 session_id, actor.solve(positions, rotations, fmt), self.policy.solve_timeout)
         except _BuriedError as gone:
-            await self._release(session_id)
-            raise errors.SessionGoneError(session_id, gone.reason) from None
+            raise await self._released(session_id, gone.reason) from None
         except TimeoutError:
             await self._bury(session_id, f"a solve took longer than "
                                          f"{self.policy.solve_timeout:g} s "
@@ -277,8 +282,7 @@ class DaskSessions:
                 self._forget(session_id)
                 raise errors.SessionNotFoundError(session_id) from None
             if record["state"] == "gone":
-                await self._release(session_id)
-                raise errors.SessionGoneError(session_id, record["reason"]) from None
+                raise await self._released(session_id, record["reason"]) from None
             reason = await self._bury(session_id, _actor_failure(exc))
             raise errors.SessionGoneError(session_id, reason) from None
         if status != "ok":
@@ -319,8 +323,7 @@ class DaskSessions:
             except TimeoutError:  # the worker's actor thread is busy: still refining
                 status, value = "refining", None
             except _BuriedError as gone:
-                await self._release(session_id)
-                raise errors.SessionGoneError(session_id, gone.reason) from None
+                raise await self._released(session_id, gone.reason) from None
             except Exception as exc:
                 reason = await self._bury(session_id, _actor_failure(exc))
                 raise errors.SessionGoneError(session_id, reason) from None

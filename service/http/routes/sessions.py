@@ -221,7 +221,7 @@ async def solve_session(request: Request, session_id: SessionId, settings: Setti
     if mtype == OCTET:
         positions, rotations = parse_drag_binary(body, n_handles, n_groups)
     elif is_json(mtype):
-        if not body.strip():
+        if not body or body.isspace():
             raise ProblemError("malformed-json", "the body is empty; send a JSON object")
         try:
             doc = orjson.loads(body)

@@ -14,6 +14,7 @@ import { installInput } from "./input.js";
 import { installMeshPanel } from "./mesh-panel.js";
 import { installProgress, track } from "./progress.js";
 import { installRebuildPanel } from "./rebuild-panel.js";
+import { store } from "./store.js";
 import { showError, status } from "./toasts.js";
 import { FlatView } from "./flat-view.js";
 import { MeshView } from "./viewer.js";
@@ -55,7 +56,9 @@ async function start() {
   const { select, makeHandle, removeHandle, undo, redo } = page.deform;
   installInput({ view, actions: { select, makeHandle, removeHandle, undo, redo,
     setUp: page.mesh.setUp } });
-  await getJson("/v1/me");  // a service with keys: the key is asked for here, before any upload
+  // a service with keys: the key is asked for here, before any upload
+  const me = await getJson("/v1/me");
+  store.set({ sizeLimits: me.size_limits ?? null });
   const samples = await page.mesh.loadSampleList();
   const first = query.get("sample") ?? samples[0]?.file;
   if (first) await page.mesh.loadSample(first);

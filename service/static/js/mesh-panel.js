@@ -31,6 +31,31 @@ function drawStatus(s) {
   status(parts.join(" · "));
 }
 
+const MB = 1024 * 1024;
+const bytesText = (b) => (b >= MB ? `${(b / MB).toFixed(b >= 10 * MB ? 0 : 1)} MB`
+  : `${Math.ceil(b / 1024)} KB`);
+
+/** The service's limits for this mesh: "up to N faces (M to solve)", flagged when the
+ * mesh on screen is over the limit of the operations that solve. */
+function limitsRow(limits, m) {
+  if (!limits) return null;
+  const solve = limits.max_faces_by_operation?.reconstruct ?? limits.max_faces;
+  const text = `up to ${limits.max_faces.toLocaleString("en")} faces`
+    + (solve < limits.max_faces ? ` (${solve.toLocaleString("en")} to solve)` : "")
+    + ` · files up to ${bytesText(limits.max_body_bytes)}`;
+  const over = m > solve;
+  return ["Service", num(over ? `${text}: this mesh is over the limit to solve` : text),
+    over ? "over-limit" : ""];
+}
+
+/** A file over the service's body limit is refused here, before it is sent. */
+function checkFileSize(file, limits) {
+  if (!limits || file.size <= limits.max_body_bytes) return;
+  throw new api.ApiError({ status: 413, title: "File too large", kind: "body-too-large",
+    detail: `${file.name} is ${bytesText(file.size)}; this service takes files up to `
+      + `${bytesText(limits.max_body_bytes)} (FFS_MAX_BODY_BYTES).` }, "upload");
+}
+
 function drawMesh(s) {
   if (!s.topo) return;
   const n = s.vertices.length / 3, m = s.faces.length / 3;
@@ -46,7 +71,8 @@ function drawMesh(s) {
       : " (closed)"}`)],
     ["Size", num(max.map((x, k) => fmt(x - min[k])).join(" × "))],
     ["Mean edge", num(fmt(s.meanEdge))],
-  ]);
+    limitsRow(s.sizeLimits, m),
+  ].filter(Boolean));
 }
 
 /** The sample menu names the mesh on screen ("Choose a sample…" for any other mesh), also
@@ -104,6 +130,7 @@ export function installMeshPanel({ view, inWorker, analyze }) {
   }
 
   async function openUpload(file) {
+    checkFileSize(file, state.sizeLimits);
     try {
       const mesh = await withProgress(`Reading ${file.name}…`, () => inWorker("readMesh", { file,
         name: file.name }, `reading ${file.name}`));
@@ -145,7 +172,7 @@ export function installMeshPanel({ view, inWorker, analyze }) {
   }
 
   store.subscribe(["up"], (s) => { $("up-axis").value = s.up; });
-  store.subscribe(["topo"], drawMesh);
+  store.subscribe(["topo", "sizeLimits"], drawMesh);
   store.subscribe(["name", "topo", "handles", "lastSolveMs", "up", "upSource"], drawStatus);
   $("sample-select").addEventListener("change", (event) => {
     if (event.target.value) action(loadSample)(event.target.value);

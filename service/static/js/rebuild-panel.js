@@ -12,10 +12,10 @@ import { state, store } from "./store.js";
 
 const $ = (id) => document.getElementById(id);
 const FORM_KEYS = ["faces", "edges", "lengths", "angles"];
-/** What a forms document may also carry (POST /v1/forms of a non-manifold or multi-part
- * mesh): the cut's vertex map and each part's placement, passed on so that the rebuilt
- * surface is the file's, in place. */
-const OPTIONAL_FORM_KEYS = ["vertex_map", "placement"];
+/** What a forms document may also carry (POST /v1/forms of a non-manifold, welded or
+ * multi-part mesh): the cut's vertex map, the weld map and each part's placement, passed
+ * on so that the rebuilt surface is the file's, in place. */
+const OPTIONAL_FORM_KEYS = ["vertex_map", "weld_map", "placement"];
 
 /** The reconstruct job's input: options.refine null (the default) refines when the linear
  * answer needs it; false asks for the linear least-squares answer. */

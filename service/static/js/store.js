@@ -52,6 +52,7 @@ export const INITIAL_STATE = {
   blendTime: 0,          // the animation's time (s)
   blendPlaying: false,
   // the page
+  sizeLimits: null,      // GET /v1/me's size_limits: the most faces, bytes, per operation
   tab: "mesh",
   errors: [],            // api.describe() of every error shown
 };

@@ -75,6 +75,7 @@ export function installTestHooks({ page, worker, ready, startup, pinned }) {
     redo: () => action(page.deform.redo)(),
     setUp: (up) => page.mesh.setUp(up),
     showTab: (tab) => store.set({ tab }),
+    setSizeLimits: (sizeLimits) => store.set({ sizeLimits }),
     setColorMode: (colorMode) => store.set({ colorMode }),
     /** Up vector on screen: the screen direction (y down) of the up axis at the mesh centre. */
     screenUp() {

@@ -70,26 +70,32 @@ def reference_seconds() -> float:
     return float(np.median(times))
 
 
-def timed(function, *args) -> tuple[float, object]:
-    """(seconds, result) of ``function(*args)``."""
-    clock = time.perf_counter()
+def timed(function, *args, cpu: list | None = None) -> tuple[float, object]:
+    """(seconds, result) of ``function(*args)``; the process's CPU seconds (every thread's)
+    are appended to ``cpu`` where given."""
+    clock, used = time.perf_counter(), time.process_time()
     result = function(*args)
+    if cpu is not None:
+        cpu.append(time.process_time() - used)
     return time.perf_counter() - clock, result
 
 
 def paired(shapes: list[np.ndarray], weights: np.ndarray, faces: np.ndarray, baseline,
-           pairs: int) -> tuple[list[float], list[float], object]:
-    """Seconds of ``pairs`` sequences by this solver and by ``baseline``'s ``blend``,
-    alternating which goes first, and this solver's first result."""
-    ours, theirs, result = [], [], None
+           pairs: int) -> tuple[dict[str, list[float]], object]:
+    """Wall and CPU seconds of ``pairs`` sequences by this solver (``ours``, ``ours_cpu``)
+    and by ``baseline``'s ``blend`` (``theirs``, ``theirs_cpu``), alternating which goes
+    first, and this solver's first result."""
+    times: dict[str, list[float]] = {k: [] for k in ("ours", "theirs", "ours_cpu",
+                                                      "theirs_cpu")}
+    result = None
     for k in range(pairs):
-        order = [(ours, blend), (theirs, baseline.blend)]
-        for times, function in order if k % 2 == 0 else order[::-1]:
-            seconds, out = timed(function, shapes, weights, faces)
-            times.append(seconds)
+        order = [("ours", blend), ("theirs", baseline.blend)]
+        for key, function in order if k % 2 == 0 else order[::-1]:
+            seconds, out = timed(function, shapes, weights, faces, cpu=times[f"{key}_cpu"])
+            times[key].append(seconds)
             if function is blend and result is None:
                 result = out
-    return ours, theirs, result
+    return times, result
 
 
 def measure(name: str, rows: int, independent: int, baseline=None, pairs: int = 1) -> dict:
@@ -103,11 +109,14 @@ def measure(name: str, rows: int, independent: int, baseline=None, pairs: int = 
     if baseline is None:
         sequence_seconds, sequence = timed(blend, [V, P], weights, F)
     else:
-        ours, theirs, sequence = paired([V, P], weights, F, baseline, pairs)
+        times, sequence = paired([V, P], weights, F, baseline, pairs)
+        ours, theirs = times["ours"], times["theirs"]
         sequence_seconds = float(np.median(ours))
         compared = {"baseline_rows_per_second": rows / float(np.median(theirs)),
                     "pair_ratios": [b / a for a, b in zip(ours, theirs, strict=True)],
-                    "seconds": ours, "baseline_seconds": theirs}
+                    "cpu_ratios": [b / a for a, b in zip(times["ours_cpu"],
+                                                         times["theirs_cpu"], strict=True)],
+                    **times}
     picked = np.unique(np.linspace(0, rows - 1, min(independent, rows)).round().astype(int))
     clock = time.perf_counter()
     alone = blend([V, P], weights[picked], F, sequence=False)
@@ -152,8 +161,9 @@ def table(results: list[dict], command: str, started: str, baseline: str | None 
           ) -> str:
     paired_text = "" if baseline is None else (
         f" *Baseline*: the sequence solved by the solver of commit {baseline} in the same "
-        "process, alternating with this one (bench/baseline.py); rates are medians, *x "
-        "baseline* the median of the pairs' ratios.")
+        "process, alternating with this one (bench/baseline.py); rates are medians, *x* "
+        "the median of the pairs' ratios of rates, *CPU seconds x* that of the process's "
+        "CPU seconds (every thread's: less sensitive to the other processes' load).")
     lines = [
         SECTION, "",
         f"`{command}` (load averages before the run: {started}; 2 cores shared with "
@@ -190,7 +200,8 @@ def _versus(result: dict) -> str:
     if "baseline_rows_per_second" not in result:
         return ""
     return (f" (baseline {result['baseline_rows_per_second']:.1f}, "
-            f"x {float(np.median(result['pair_ratios'])):.2f})")
+            f"x {float(np.median(result['pair_ratios'])):.2f}; CPU seconds x "
+            f"{float(np.median(result['cpu_ratios'])):.2f})")
 
 
 def main() -> None:

@@ -20,7 +20,6 @@ from numpy.typing import ArrayLike
 
 from .core.errors import ShapeMismatchError
 from .core.validation import as_points
-from .mesh.manifold import manifold_topology
 from .options import BlendOptions, InterpolateOptions
 from .reports import Progress
 from .shape_space import blend
@@ -81,14 +80,6 @@ def interpolate(vertices_a: ArrayLike, vertices_b: ArrayLike, faces: ArrayLike,
     if A.shape != B.shape:
         raise ShapeMismatchError(f"vertices_b has shape {B.shape}, vertices_a {A.shape}",
                                  field="vertices_b")
-    cut = manifold_topology(faces, A)[0]
-    if not cut.is_identity:  # a non-manifold mesh: blended on its cut (solver.mesh.manifold)
-        blended = interpolate(cut.to_cut(A), cut.to_cut(B), cut.faces, t, options=opts,
-                              return_reports=True, progress=progress)
-        out = np.asarray(blended[0])
-        out = (cut.to_file(out)[0] if np.ndim(t) == 0
-               else np.stack([cut.to_file(x)[0] for x in out]))
-        return (out, blended[1]) if return_reports else out
     result = blend([A, B], two_shape_weights(t), faces, options=opts, progress=progress)
     reports = [row["refinement"] for row in result.reports]
     out = result.vertices[0] if np.ndim(t) == 0 else result.vertices

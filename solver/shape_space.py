@@ -40,6 +40,7 @@ from .core.validation import as_points
 from .core.warnings import AnswerWarning, as_report, residual_warnings, time_limit_warning
 from .mesh.forms import Forms, fundamental_forms
 from .mesh.frames import face_edge_lengths, triangle_inequality_violations
+from .mesh.manifold import ManifoldCut, manifold_topology
 from .mesh.metrics import wrap_angle
 from .mesh.placement import align_components
 from .mesh.topology import MeshTopology, build_topology
@@ -438,6 +439,9 @@ def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
         ((2, 5, 3), True)
     """
     opts = BlendOptions.given(options, overrides)
+    cut = _file_cut(shapes, faces)
+    if cut is not None:  # non-manifold or welded: blended on the cut (solver.mesh.manifold)
+        return _blend_on_cut(cut, list(shapes), weights, np.asarray(faces), opts, progress)
     stages = Stages(progress)
     stages("validate")
     shape_space = shape_set(shapes, faces)
@@ -465,6 +469,39 @@ def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
     stages.lap("rows")
     return Blend(vertices=out, faces=shape_space.topology.faces, weights=W, reports=reports,
                  timings=stages.timings)
+
+
+def _file_cut(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None
+              ) -> ManifoldCut | None:
+    """The manifold cut of shapes given as vertices when the mesh needs one (a non-manifold
+    edge or vertex, or vertices joined by zero-length edges in the first shape: welded), else
+    None (forms, or a mesh :func:`shape_set` takes as it is)."""
+    items = list(shapes)
+    if faces is None or not items or any(isinstance(item, Forms) for item in items):
+        return None
+    cut = manifold_topology(faces, as_points(items[0], "shapes[0]"))[0]
+    return None if cut.is_identity else cut
+
+
+def _blend_on_cut(cut: ManifoldCut, shapes: list[Any], weights: ArrayLike, faces: np.ndarray,
+                  opts: BlendOptions, progress: Progress | None) -> Blend:
+    """:func:`blend` of the shapes moved onto ``cut``'s vertices, answered in the file's
+    numbering: each file vertex at the mean of its copies, the file's ``faces``, and each
+    row's report's ``input`` saying what was cut or welded (with the copies' spread)."""
+    n = cut.n_file_vertices
+    points = [as_points(item, f"shapes[{k}]") for k, item in enumerate(shapes)]
+    for k, item in enumerate(points):  # a loop over shapes, not mesh elements
+        if item.shape != (n, 3):
+            raise ShapeMismatchError(f"shapes[{k}] has shape {item.shape}, shapes[0] "
+                                     f"{(n, 3)}", field=f"shapes[{k}]")
+    result = blend([cut.to_cut(item) for item in points], weights, cut.faces, options=opts,
+                   progress=progress)
+    vertices = np.empty((len(result.vertices), n, 3))
+    for k, row in enumerate(result.vertices):  # a loop over rows
+        vertices[k], spread = cut.to_file(row)
+        result.reports[k]["input"] = cut.sections(spread)
+    return Blend(vertices=vertices, faces=faces.astype(np.int64), weights=result.weights,
+                 reports=result.reports, timings=result.timings)
 
 
 def mean(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None = None, *,

@@ -176,8 +176,16 @@ def cap_faces(topology: MeshTopology, lengths: np.ndarray) -> CapFaces:
 
     face_lengths = face_edge_lengths(topology, lengths)          # half-edge k: corner k -> k+1
     longest = face_lengths.max(axis=1)
-    height = 2.0 * triangle_areas(face_lengths) / np.where(longest > 0, longest, 1.0)
-    faces = np.flatnonzero(height < CAP_HEIGHT * longest)
+    safe = np.where(longest > 0, longest, 1.0)
+    # Screen with 16 A^2 / longest^4 from the squared lengths (no sort; its rounding, ~1e-15,
+    # is far below the threshold's 4 CAP_HEIGHT^2): a cap has it under 4 CAP_HEIGHT^2, so
+    # faces under 4 times that are measured by the stable formula (a row of a blend asks).
+    q = (face_lengths / safe[:, None]) ** 2
+    area16 = 2.0 * (q[:, 0] * q[:, 1] + q[:, 1] * q[:, 2] + q[:, 2] * q[:, 0]) - (
+        q[:, 0] ** 2 + q[:, 1] ** 2 + q[:, 2] ** 2)
+    suspects = np.flatnonzero((area16 < 16.0 * CAP_HEIGHT**2) & (longest > 0))
+    height = 2.0 * triangle_areas(face_lengths[suspects]) / longest[suspects]
+    faces = suspects[height < CAP_HEIGHT * longest[suspects]]
     base = face_lengths[faces].argmax(axis=1)
     turn = (base[:, None] + np.arange(3)) % 3                     # base, then b -> c, c -> a
     rows = faces[:, None]

@@ -386,10 +386,10 @@ class Refiner:
             kind = "refresh" if s.factorizations > factorizations else "step"
             self._iteration_seconds[kind] = time.perf_counter() - began
             if not s.converged:
-                reason = stopping.after_iteration(rules, accepted, s.trace)
+                reason = stopping.after_iteration(rules, accepted, s.trace, s.steps)
                 if reason is not None:
                     s.end(reason)
-                    if reason == StopReason.STALLED:
+                    if reason in (StopReason.STALLED, StopReason.CONVERGED):
                         break
 
     def prepare(self) -> None:

@@ -12,6 +12,9 @@ Example:
     (True, False)
     >>> StopReason("stalled").converged, StopReason.EXACT.converged
     (False, True)
+    >>> settled(rules, [10.0, 9.9999, 9.9998], [1e-6, 2e-6]), settled(
+    ...     rules, [10.0, 9.9999, 9.9998], [1e-6, 0.3])  # the same stall, a step that moved
+    (True, False)
 """
 
 from __future__ import annotations
@@ -105,7 +108,9 @@ _MEANINGS = {
     StopReason.CONVERGED: "a small full Gauss-Newton step (no vertex moved by more than "
                           f"{_R.tolerance:g} of the mean edge length, or E lowered by less "
                           f"than {_R.energy_tolerance:.1%}), or a trusted factor expects less "
-                          "than that from here",
+                          f"than that from here, or the last {_R.stall_steps} steps each moved "
+                          f"less than {_R.tolerance:g} and together lowered E by less than "
+                          f"{_R.energy_tolerance:.1%}",
     StopReason.EXACT: f"E at most {_R.exact_energy:g}: the forms are met to round-off",
     StopReason.STATIONARY: "no step lowers E, however damped",
     StopReason.NO_FREE_VERTICES: "every vertex is held",
@@ -216,12 +221,27 @@ def stalled(rules: StopRules, trace: Sequence[float]) -> bool:
         rules.energy_tolerance * trace[-1])
 
 
+def settled(rules: StopRules, trace: Sequence[float], moves: Sequence[float]) -> bool:
+    """Whether a run :func:`stalled` where it stands: its last ``stall_steps`` steps each
+    proposed moving no vertex by more than ``tolerance`` of the mean edge length (``moves``,
+    one per accepted step, in mean edge lengths) and together lowered E by at most
+    ``energy_tolerance`` of it -- the small-step test of :func:`after_step`, held over
+    ``stall_steps`` steps instead of one full Gauss-Newton step (which damping may never
+    allow where E is flat to round-off, e.g. thousands of separate parts)."""
+    steps = rules.stall_steps
+    return (stalled(rules, trace) and len(moves) >= steps
+            and max(moves[-steps:]) <= rules.tolerance)
+
+
 def after_iteration(rules: StopRules, accepted: bool, trace: Sequence[float],
-                    ) -> StopReason | None:
+                    moves: Sequence[float] = ()) -> StopReason | None:
     """Why a run that has not converged stops after an iteration, if it does: no step was
-    accepted however damped (stationary), or it :func:`stalled`."""
+    accepted however damped (stationary), it :func:`settled` (converged), or it
+    :func:`stalled`."""
     if not accepted:
         return StopReason.STATIONARY
+    if settled(rules, trace, moves):
+        return StopReason.CONVERGED
     if stalled(rules, trace):
         return StopReason.STALLED
     return None

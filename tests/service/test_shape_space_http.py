@@ -205,3 +205,19 @@ def test_transfer_to_the_source_itself_and_by_upload(client, poses):
     files["file_target"] = ("c.off", save_mesh(*other, "off"))
     doc = problem(client.post("/v1/transfer", files=files), 422, "shape-mismatch")
     assert doc["errors"][0]["field"] == "file_target"
+
+
+def test_blend_of_a_non_manifold_mesh_is_the_librarys(client):
+    """Cones touching at their apex: blended on the manifold cut, answered per file vertex."""
+    from tests.helpers.real_meshes import cones_at_apex, diagonal
+
+    V, F = cones_at_apex()
+    tall = V * [1.0, 1.0, 1.3]
+    weights = [[1.0, 0.0], [0.5, 0.5], [0.0, 1.0]]
+    response = client.post("/v1/blend", json={"shapes": [V.tolist(), tall.tolist()],
+                                              "faces": F.tolist(), "weights": weights})
+    assert response.status_code == 200, response.text
+    doc = response.json()
+    expected = solver.blend([V, tall], weights, F)
+    np.testing.assert_allclose(doc["vertices"], expected.vertices, atol=1e-8 * diagonal(V))
+    assert all("cut" in report["input"] for report in doc["reports"])

@@ -12,16 +12,13 @@ import numpy as np
 import pytest
 
 from solver.mesh.io import load_mesh_file, save_mesh
+from tests.helpers.cli import deform_by_three_handles, where
 from tests.helpers.meshes import rigid_alignment_error
-from tests.helpers.real_meshes import CASES, HAS_CLOSED_PART, diagonal
+from tests.helpers.real_meshes import CASES, HAS_CLOSED_PART
 
 NAMES = ["edge-with-3-faces", "edge-with-4-faces", "cones-at-apex", "multi-component",
          "fin-at-pi", "closed-genus-2", "slivers-1e-4", "zero-area-inserted",
          "zero-area-open"]
-
-
-def _where(server: str, remote: bool) -> list[str]:
-    return ["--server", server] if remote else []
 
 
 @pytest.mark.parametrize("remote", [False, True], ids=["local", "server"])
@@ -31,10 +28,10 @@ def test_forms_reconstruct_round_trip(ffs, server, workdir, name, remote):
     (workdir / f"{name}.off").write_bytes(save_mesh(V, F, "off"))
     for fmt in ("json", "npz"):
         done = ffs("forms", f"{name}.off", "-o", f"{name}.{fmt}", "-q",
-                   *_where(server, remote))
+                   *where(server, remote))
         assert done.returncode == 0, done.stderr
         done = ffs("reconstruct", f"{name}.{fmt}", "-o", f"{name}-{fmt}.ply", "-q",
-                   *_where(server, remote))
+                   *where(server, remote))
         assert done.returncode == 0, done.stderr
         rebuilt, faces = load_mesh_file(workdir / f"{name}-{fmt}.ply")
         assert rebuilt.shape == V.shape and (faces == F).all()
@@ -48,26 +45,16 @@ def test_forms_reconstruct_round_trip(ffs, server, workdir, name, remote):
 def test_deform_hits_its_handles(ffs, server, workdir, name, remote):
     V, F = CASES[name]()
     (workdir / f"{name}.off").write_bytes(save_mesh(V, F, "off"))
-    rng = np.random.default_rng(4)
-    handles = rng.choice(np.unique(F), 3, replace=False)
-    targets = V[handles] + rng.normal(0, 0.05 * diagonal(V), (3, 3))
-    (workdir / "handles.json").write_text(json.dumps(
-        [{"vertex": int(v), "position": p} for v, p in zip(handles, targets.tolist(),
-                                                          strict=True)]))
-    done = ffs("deform", f"{name}.off", "--handles", "handles.json", "-o", f"{name}-d.ply",
-               "-q", *_where(server, remote))
-    assert done.returncode == 0, done.stderr
-    moved, faces = load_mesh_file(workdir / f"{name}-d.ply")
+    _, faces = deform_by_three_handles(ffs, workdir, name, V, F, where(server, remote))
     assert (faces == F).all()
-    np.testing.assert_allclose(moved[handles], targets, atol=1e-6 * diagonal(V))
 
 
 @pytest.mark.parametrize("name", [n for n in NAMES if n not in HAS_CLOSED_PART])
 def test_flatten_accepts_them(ffs, server, workdir, name):
     V, F = CASES[name]()
     (workdir / f"{name}.obj").write_bytes(save_mesh(V, F, "obj"))
-    for where in ([], ["--server", server]):
-        done = ffs("flatten", f"{name}.obj", "-o", f"{name}-flat.npz", "-q", *where)
+    for remote in (False, True):
+        done = ffs("flatten", f"{name}.obj", "-o", f"{name}-flat.npz", "-q", *where(server, remote))
         assert done.returncode == 0, done.stderr
         with np.load(workdir / f"{name}-flat.npz") as flat:
             assert flat["uv"].shape == (len(V), 2)
@@ -77,8 +64,8 @@ def test_quads_in_an_off_file(ffs, server, workdir):
     (workdir / "quads.off").write_bytes(
         b"OFF\n6 2 0\n0 0 0\n1 0 0\n1 1 0.2\n0 1 0\n2 0 0.1\n2 1 0.3\n"
         b"4 0 1 2 3\n4 1 4 5 2\n")
-    for where in ([], ["--server", server]):
-        done = ffs("forms", "quads.off", "-o", "quads.json", "-q", *where)
+    for remote in (False, True):
+        done = ffs("forms", "quads.off", "-o", "quads.json", "-q", *where(server, remote))
         assert done.returncode == 0, done.stderr
         faces = json.loads((workdir / "quads.json").read_text())["faces"]
         assert faces == [[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]]

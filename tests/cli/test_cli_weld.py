@@ -7,19 +7,14 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
 from solver.mesh.io import load_mesh_file, save_mesh
+from tests.helpers.cli import deform_by_three_handles, where
 from tests.helpers.meshes import rigid_alignment_error
-from tests.helpers.real_meshes import diagonal
 from tests.helpers.welded_meshes import CASES
 
 NAMES = ["latlong-sphere", "duplicated-corner", "repeated-index-face", "torus-near-pairs"]
-
-
-def _where(server: str, remote: bool) -> list[str]:
-    return ["--server", server] if remote else []
 
 
 @pytest.mark.parametrize("remote", [False, True], ids=["local", "server"])
@@ -28,25 +23,15 @@ def test_forms_reconstruct_deform(ffs, server, workdir, name, remote):
     V, F, welded, dropped = CASES[name]()
     (workdir / f"{name}.off").write_bytes(save_mesh(V, F, "off"))
     for fmt in ("json", "npz"):
-        done = ffs("forms", f"{name}.off", "-o", f"{name}.{fmt}", *_where(server, remote))
+        done = ffs("forms", f"{name}.off", "-o", f"{name}.{fmt}", *where(server, remote))
         assert done.returncode == 0, done.stderr
         assert f"{welded} vertices welded, {dropped} faces dropped" in done.stdout + done.stderr
         done = ffs("reconstruct", f"{name}.{fmt}", "-o", f"{name}-{fmt}.ply", "-q",
-                   *_where(server, remote))
+                   *where(server, remote))
         assert done.returncode == 0, done.stderr
         rebuilt, _ = load_mesh_file(workdir / f"{name}-{fmt}.ply")
         assert rebuilt.shape == V.shape
         assert rigid_alignment_error(rebuilt, V) < 1e-8, (name, fmt)
     doc = json.loads((workdir / f"{name}.json").read_text())
     assert len(doc["dropped_faces"]) == dropped
-    rng = np.random.default_rng(4)
-    handles = rng.choice(np.unique(F), 3, replace=False)
-    targets = V[handles] + rng.normal(0, 0.05 * diagonal(V), (3, 3))
-    (workdir / "handles.json").write_text(json.dumps(
-        [{"vertex": int(v), "position": p} for v, p in zip(handles, targets.tolist(),
-                                                          strict=True)]))
-    done = ffs("deform", f"{name}.off", "--handles", "handles.json", "-o", f"{name}-d.ply",
-               "-q", *_where(server, remote))
-    assert done.returncode == 0, done.stderr
-    moved, _ = load_mesh_file(workdir / f"{name}-d.ply")
-    np.testing.assert_allclose(moved[handles], targets, atol=1e-6 * diagonal(V))
+    deform_by_three_handles(ffs, workdir, name, V, F, where(server, remote))

@@ -274,17 +274,15 @@ def _ply_strips(metadata: dict[str, Any]) -> tuple[np.ndarray, np.ndarray] | Non
     if "vertex_indices" not in names:
         return None
     rows = data["vertex_indices"]  # ASCII: a dict of lists; binary: a record array
-    if not isinstance(rows, np.ndarray):
-        rows = np.asarray(rows, dtype=object) if len({len(r) for r in rows}) > 1 \
-            else np.asarray(rows)
-    if rows.dtype.names:  # binary: (count, indices) records
+    if isinstance(rows, np.ndarray) and rows.dtype.names:  # binary: (count, indices)
         rows = rows[rows.dtype.names[-1]]
-    if rows.dtype != object:  # records of one length: one block
-        block = np.asarray(rows, dtype=np.int64).reshape(len(rows), -1)
+    if isinstance(rows, np.ndarray) and rows.dtype != object:  # one length: one block
+        block = rows.astype(np.int64).reshape(len(rows), -1)
         indices = np.hstack([block, np.full((len(block), 1), -1)]).ravel()
-    else:  # records of different lengths (ASCII): one array per record, each ended by -1
-        indices = np.concatenate([np.append(np.asarray(row, dtype=np.int64).ravel(), -1)
-                                  for row in rows] or [np.zeros(0, dtype=np.int64)])
+    else:  # records of different lengths (ASCII): joined, each ended by -1
+        counts = np.fromiter(map(len, rows), dtype=np.int64, count=len(rows))
+        flat = np.concatenate(rows).astype(np.int64) if len(rows) else np.zeros(0, np.int64)
+        indices = np.insert(flat, np.cumsum(counts), -1)
     triangles, strip = strip_triangles(indices)
     if not len(triangles):
         raise MeshFileError("its triangle strips hold no triangle", file_type="ply")

@@ -2,14 +2,14 @@
 how much a session may take, and how large a mesh one request may bring.
 
 Request admission: a request's peak memory is predicted from its face count before it is
-accepted (:class:`RequestCost`, fitted to ``bench.scale``); :func:`request_memory_budget`
-is what one worker may use (the machine's memory, less the sessions', shared by the
-workers) and :func:`faces_within` the largest mesh an operation can take in it. The face
-limit of each operation follows (``FFS_MAX_REQUEST_MEMORY``, ``FFS_MAX_FACES``): beyond it
-413 ``mesh-too-large`` names the memory, never an out-of-memory kill of a worker. A
-synchronous request's time is predicted too (:class:`FirstAnswerTime`): one whose first
-answer would miss ``FFS_REQUEST_TIMEOUT`` is answered 413 ``use-a-job`` (jobs have
-``FFS_JOB_TIMEOUT``).
+accepted (:class:`OperationCost`, power laws fitted to ``bench.scale``);
+:func:`request_memory_budget` is what one worker may use (the machine's memory, less the
+sessions', shared by the workers) and :func:`faces_within` the largest mesh an operation can
+take in it. The face limit of each operation follows (``FFS_MAX_REQUEST_MEMORY``,
+``FFS_MAX_FACES``): beyond it 413 ``mesh-too-large`` names the memory, never an
+out-of-memory kill of a worker. A synchronous request's time is predicted too
+(:attr:`OperationCost.first_answer`): one whose first answer would miss
+``FFS_REQUEST_TIMEOUT`` is answered 413 ``use-a-job`` (jobs have ``FFS_JOB_TIMEOUT``).
 
 Session admission (:func:`admit_session`) is bounded by ``FFS_MAX_SESSIONS``
 (:class:`TooManySessionsError` beyond), ``FFS_MAX_SESSION_MEMORY`` (:class:`SessionMemoryError`
@@ -49,51 +49,75 @@ def estimate_memory(n_vertices: int, n_faces: int) -> int:
 
 
 @dataclass(frozen=True)
-class RequestCost:
-    """A request's predicted peak memory, ``base + bytes_per_face * m * (m / reference)^
-    (exponent - 1)`` bytes for m faces (a power law through measured peaks, the process
-    included), and its predicted time, ``seconds_per_face * m * (m / reference)^
-    (time_exponent - 1)`` (this 2-core machine, idle)."""
+class PowerLaw:
+    """A cost that grows as a power of the face count: ``base + per_face * m * (m /
+    reference)^(exponent - 1)`` for m faces, fitted through two measured points (bench.scale,
+    nefertiti subdivided). The one model of admission: bytes of peak memory
+    (:attr:`OperationCost.memory`) and seconds to the first answer
+    (:attr:`OperationCost.first_answer`).
 
-    bytes_per_face: float
+    Example:
+        >>> PowerLaw(per_face=2.0, exponent=1.0).at(1000)
+        2000.0
+        >>> PowerLaw(per_face=2.0, exponent=1.0).within(2001.0)
+        1000
+    """
+
+    per_face: float
     exponent: float
-    seconds_per_face: float
-    time_exponent: float
     reference: int = 400_000
-    base: int = 200 * 1024**2
+    base: float = 0.0
 
-    def memory(self, n_faces: int) -> int:
-        """Predicted peak bytes of a request with ``n_faces`` faces."""
+    def at(self, n_faces: int) -> float:
+        """The predicted cost of ``n_faces`` faces."""
         m = max(n_faces, 1)
-        return int(self.base + self.bytes_per_face * m * (m / self.reference)
-                   ** (self.exponent - 1))
+        return self.base + self.per_face * m * (m / self.reference) ** (self.exponent - 1)
 
-    def seconds(self, n_faces: int) -> float:
-        """Predicted seconds of a request with ``n_faces`` faces."""
-        m = max(n_faces, 1)
-        return self.seconds_per_face * m * (m / self.reference) ** (self.time_exponent - 1)
-
-    def faces_within(self, memory: int) -> int:
-        """The most faces whose predicted peak stays within ``memory`` bytes (0 when even
-        the base does not fit)."""
-        room = memory - self.base
+    def within(self, budget: float) -> int:
+        """The most faces whose predicted cost stays within ``budget`` (0 when even the base
+        does not fit)."""
+        room = budget - self.base
         if room <= 0:
             return 0
-        # bytes_per_face * m^exponent / reference^(exponent - 1) = room
-        scale = self.bytes_per_face / self.reference ** (self.exponent - 1)
+        # per_face * m^exponent / reference^(exponent - 1) = room
+        scale = self.per_face / self.reference ** (self.exponent - 1)
         return int((room / scale) ** (1 / self.exponent))
 
 
-SOLVE_COST = RequestCost(bytes_per_face=9_800, exponent=1.13, seconds_per_face=1e-4,
-                         time_exponent=1.65)
+@dataclass(frozen=True)
+class OperationCost:
+    """What admission predicts of a request from its face count: its peak ``memory`` in
+    bytes (the worker process included) and the seconds until its ``first_answer`` on this
+    2-core machine at load 2-3.
+
+    The first answer is what a synchronous request cannot do without: the exact or linear
+    answer (a refinement that runs out of the deadline answers its best shape so far, 200),
+    so a request predicted to miss the deadline before it is answered 413 ``use-a-job``
+    (:func:`sync_faces_within`) instead of running into a 504.
+    """
+
+    memory: PowerLaw
+    first_answer: PowerLaw
+
+    def memory_bytes(self, n_faces: int) -> int:
+        """Predicted peak bytes of a request with ``n_faces`` faces."""
+        return int(self.memory.at(n_faces))
+
+
+SOLVE_COST = OperationCost(
+    memory=PowerLaw(per_face=9_800, exponent=1.13, base=200 * 1024**2),
+    first_answer=PowerLaw(per_face=3.75e-5, exponent=1.2))
 """Operations that factorize (reconstruct, deform, parameterize, interpolate, blend,
-transfer): the refined reconstruction of noisy forms, the costliest of them (bench.scale,
-nefertiti subdivided: 3.8 GB at 388K faces, 18.1 GB at 1.55M; 38.5 s and 381 s)."""
-LIGHT_COST = RequestCost(bytes_per_face=2_600, exponent=1.0, seconds_per_face=3e-5,
-                         time_exponent=1.0)
+transfer). Memory: the refined reconstruction of noisy forms, the costliest of them
+(bench.scale, nefertiti subdivided: 3.8 GB at 388K faces, 18.1 GB at 1.55M). First answer:
+the linear answer of noisy forms (``refine=False``; 14.5 s at 388K faces, 77 s at 1.55M:
+exponent 1.2)."""
+LIGHT_COST = OperationCost(
+    memory=PowerLaw(per_face=2_600, exponent=1.0, base=200 * 1024**2),
+    first_answer=PowerLaw(per_face=1.2e-5, exponent=1.0))
 """Operations that only compute (forms, integrability, mesh): the exact path's peak
 (bench.scale: 1.06 GB at 400K faces, 2.8 GB at 1.6M, 2.5 KB per face with the reading and
-encoding of the arrays)."""
+encoding of the arrays) and time (18 s at 1.55M faces; forms and mesh take less)."""
 BODY_BYTES_PER_FACE = 100
 """Bytes per face of the largest request body FFS_MAX_BODY_BYTES makes room for by default: a
 JSON forms body (faces, edges, lengths, angles: ~90 bytes per face at 17 significant
@@ -103,53 +127,15 @@ MEMORY_HEADROOM = 0.8
 use together: the HTTP process, the page cache and the allocator keep the rest."""
 
 
-def request_cost(solves: bool) -> RequestCost:
+def request_cost(solves: bool) -> OperationCost:
     """The cost model of an operation that factorizes (``solves``) or only computes."""
     return SOLVE_COST if solves else LIGHT_COST
 
 
-@dataclass(frozen=True)
-class FirstAnswerTime:
-    """Predicted seconds until a request's first answer, ``seconds_per_face * m *
-    (m / reference)^(exponent - 1)`` for m faces (this 2-core machine at load 2-3).
-
-    The first answer is what a synchronous request cannot do without: the exact or linear
-    answer (a refinement that runs out of the deadline answers its best shape so far, 200),
-    so a request predicted to miss the deadline before it is answered 413 ``use-a-job``
-    (:func:`sync_faces_within`) instead of running into a 504. :attr:`RequestCost.seconds`
-    is the whole (refined) answer's time.
-    """
-
-    seconds_per_face: float
-    exponent: float
-    reference: int = 400_000
-
-    def seconds(self, n_faces: int) -> float:
-        """Predicted seconds of the first answer of ``n_faces`` faces."""
-        m = max(n_faces, 1)
-        return self.seconds_per_face * m * (m / self.reference) ** (self.exponent - 1)
-
-    def faces_within(self, seconds: float) -> int:
-        """The most faces whose first answer is predicted within ``seconds`` (0 for none)."""
-        if seconds <= 0:
-            return 0
-        scale = self.seconds_per_face / self.reference ** (self.exponent - 1)
-        return int((seconds / scale) ** (1 / self.exponent))
-
-
-SOLVE_FIRST_ANSWER = FirstAnswerTime(seconds_per_face=3.75e-5, exponent=1.2)
-"""Operations that factorize: the linear answer of noisy forms (``refine=False``; issue 45,
-nefertiti subdivided, load 2-3: 14.5 s at 388K faces, 77 s at 1.55M: exponent 1.2)."""
-LIGHT_FIRST_ANSWER = FirstAnswerTime(seconds_per_face=1.2e-5, exponent=1.0)
-"""Operations that only compute: the exact path's time (issue 45: 18 s at 1.55M faces;
-forms and mesh take less)."""
-
-
 def sync_faces_within(seconds: float, solves: bool) -> int:
     """The most faces a synchronous request of an operation (``solves``: one that
-    factorizes) may bring whose first answer is predicted within ``seconds``
-    (:class:`FirstAnswerTime`)."""
-    return (SOLVE_FIRST_ANSWER if solves else LIGHT_FIRST_ANSWER).faces_within(seconds)
+    factorizes) may bring whose first answer is predicted within ``seconds``."""
+    return request_cost(solves).first_answer.within(seconds) if seconds > 0 else 0
 
 
 DASK_REQUEST_MEMORY = 4 * 1024**3
@@ -169,8 +155,8 @@ def request_memory_budget(machine_memory: int, session_memory: int, workers: int
 
 def faces_within(memory: int, solves: bool) -> int:
     """The largest face count an operation (``solves``: one that factorizes) can take in
-    ``memory`` bytes (:class:`RequestCost`)."""
-    return request_cost(solves).faces_within(memory)
+    ``memory`` bytes (:attr:`OperationCost.memory`)."""
+    return request_cost(solves).memory.within(memory)
 
 
 @dataclass(frozen=True)

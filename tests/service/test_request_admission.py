@@ -27,7 +27,7 @@ GIB = 2**30
     # bench.scale, the exact (tree) path after issue 45's first commits
     (399_752, 0.82, LIGHT_COST), (1_599_008, 2.78, LIGHT_COST)])
 def test_cost_model_meets_the_measured_peaks(faces, measured_gb, cost):
-    predicted = cost.memory(faces) / 1e9
+    predicted = cost.memory_bytes(faces) / 1e9
     assert measured_gb * 0.95 <= predicted <= measured_gb * 1.6, predicted
 
 
@@ -37,7 +37,7 @@ def test_faces_within_inverts_the_prediction(memory_gb):
     for cost, solves in ((SOLVE_COST, True), (LIGHT_COST, False)):
         m = faces_within(memory, solves)
         assert m > 0
-        assert cost.memory(m) <= memory < cost.memory(int(m * 1.001) + 2)
+        assert cost.memory_bytes(m) <= memory < cost.memory_bytes(int(m * 1.001) + 2)
     assert faces_within(int(0.1 * GIB), solves=True) == 0   # less than the process itself
 
 

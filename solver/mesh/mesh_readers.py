@@ -169,10 +169,12 @@ def _obj_blocks(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None
     v_rows, f_rows = np.flatnonzero(is_v), np.flatnonzero(is_f)
     if v_rows.size == 0 or f_rows.size == 0:
         return None
-    lines = data.split(b"\n")
-    vertices = _block(b"\n".join([lines[r] for r in v_rows]), np.float64, v_rows.size,
+    line_bytes = np.diff(np.append(starts, len(raw)))  # each line with its newline
+    vertices = _block(raw[np.repeat(is_v, line_bytes)].tobytes(), np.float64, v_rows.size,
                       columns=(1, 2, 3))
-    face_text = b"\n".join([lines[r][2:] for r in f_rows])
+    in_faces = np.repeat(is_f, line_bytes)
+    in_faces[starts[f_rows]] = in_faces[starts[f_rows] + 1] = False  # the "f " of each line
+    face_text = raw[in_faces].tobytes()
     if b"/" in face_text:
         face_text = _OBJ_REF_TAIL_BYTES.sub(b"", face_text)
     entries = _block(face_text, np.int64, f_rows.size)

@@ -235,6 +235,24 @@ export async function runJob(operation, input, { color, onProgress, signal } = {
   }
 }
 
+/** Whether `err` is the service's 413 `use-a-job`: the request would miss the synchronous
+ * deadline (FFS_REQUEST_TIMEOUT) and is to be submitted as a job. */
+export const isUseAJob = (err) => err instanceof ApiError && err.problem.kind === "use-a-job";
+
+/**
+ * POST `json` to the synchronous `path` and return its JSON answer; when the service answers
+ * 413 `use-a-job` (a mesh too large for a synchronous answer), the same input runs as a job
+ * of `operation` (runJob: progress, cancellation) and its result is returned instead.
+ */
+export async function postJsonOrJob(operation, path, json, { signal, onProgress } = {}) {
+  try {
+    return await postJson(path, json, { signal });
+  } catch (err) {
+    if (!isUseAJob(err)) throw err;
+    return runJob(operation, json, { signal, onProgress });
+  }
+}
+
 /** Title, detail and pointer lines of an error, for display. */
 export function describe(err) {
   if (err instanceof ApiError) {

@@ -14,7 +14,7 @@ import { showAnswerWarnings } from "./answer-warnings.js";
 import * as api from "./api.js";
 import { fmt, pct, setStats } from "./format.js";
 import { rows3 } from "./mesh.js";
-import { action, onFileChosen, withProgress } from "./progress.js";
+import { action, jobProgress, onFileChosen, withProgress } from "./progress.js";
 import { state, store } from "./store.js";
 
 const $ = (id) => document.getElementById(id);
@@ -130,8 +130,10 @@ export function installBlendPanel({ view }) {
   /** The blend of the sliders' weights, shown (one row, synchronous). */
   async function apply() {
     stop();
-    const result = await withProgress("Blending…", () => api.postJson("/v1/blend",
-      body([weightsOf(state.blendShapes)])));
+    // A mesh too large for a synchronous answer (413 use-a-job) is blended as a job.
+    const result = await withProgress("Blending…", (signal) => api.postJsonOrJob("blend",
+      "/v1/blend", body([weightsOf(state.blendShapes)]),
+      { signal, onProgress: jobProgress("Blending") }), { cancellable: true });
     const vertices = Float64Array.from(result.vertices[0].flat());
     show(vertices);
     summarize(result);

@@ -15,7 +15,7 @@
 // report): over the socket a second reply whose JSON trailer (after the 12 n bytes) says
 // {"shape": "refined", ...}, over HTTP the drag's Link rel="refined", long-polled.
 
-import { ApiError, postArrays, request } from "./api.js";
+import { ApiError, isUseAJob, postArrays, request, runJob } from "./api.js";
 import { socketProtocols } from "./auth.js";
 import { flatten3, rows3 } from "./mesh.js";
 
@@ -75,8 +75,15 @@ export class DeformTransport {
   async solve(positions, rotations) {
     // The mesh as a binary body (application/vnd.ffs.arrays): it goes with every update.
     const { rest, faces } = this.setup;
-    const result = await postArrays("/v1/deform", deformParams(this.setup, positions, rotations),
-      { vertices: [rest, [rest.length / 3, 3]], faces: [faces, [faces.length / 3, 3]] });
+    let result;
+    try {
+      result = await postArrays("/v1/deform", deformParams(this.setup, positions, rotations),
+        { vertices: [rest, [rest.length / 3, 3]], faces: [faces, [faces.length / 3, 3]] });
+    } catch (err) {
+      if (!isUseAJob(err)) throw err;
+      // Too large for a synchronous answer (413 use-a-job): the same deformation as a job.
+      result = await runJob("deform", deformBody(this.setup, positions, rotations));
+    }
     return flatten3(result.vertices);
   }
 

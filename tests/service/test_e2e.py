@@ -13,6 +13,7 @@ import trimesh
 
 import solver
 from tests.helpers import DATA
+from tests.helpers.aio import run as run_async
 from tests.helpers.gltf_validator import validate_gltf
 from tests.helpers.meshes import bumpy_grid, icosphere, load
 from tests.helpers.service import forms_json, mesh_json, rigid_error
@@ -100,7 +101,7 @@ def test_twenty_simultaneous_requests(live_server):
             return await asyncio.gather(*(http.post(path, json=body)
                                           for path, body, _, _ in work))
 
-    responses = asyncio.run(run())
+    responses = run_async(run())
     for (path, _, key, want), response in zip(work, responses, strict=True):
         assert response.status_code == 200, (path, response.text[:300])
         # deform and parameterize refine nonlinearly by default: the iterations stop at their

@@ -4,7 +4,6 @@ replaced (its body answered 503 ``unavailable``, the next one validated again)."
 
 from __future__ import annotations
 
-import asyncio
 import os
 import signal
 import time
@@ -15,6 +14,7 @@ import pytest
 
 from service.http import bodies
 from solver import fundamental_forms
+from tests.helpers.aio import run as run_async
 from tests.helpers.meshes import grid
 from tests.helpers.servers import running_app
 from tests.helpers.service import problem
@@ -104,5 +104,5 @@ def test_the_parser_starts_and_stops_with_the_service():
     with pytest.raises(ProcessLookupError):
         os.kill(pids[0], 0)
     with pytest.raises(ProblemError) as info:
-        asyncio.run(parser.run(len, b"x"))
+        run_async(parser.run(len, b"x"))
     assert info.value.kind == "unavailable" and info.value.status == 503

@@ -19,6 +19,7 @@ from service.backends.errors import (
     WorkerDiedError,
 )
 from service.backends.local.executor import ProcessExecutor
+from tests.helpers.aio import run as run_async
 from tests.helpers.meshes import icosphere
 from tests.helpers.servers import running_app
 from tests.helpers.service import debug_task, forms_json, forms_task, mesh_json, problem
@@ -154,4 +155,4 @@ def test_process_executor_directly():
             await pending.future
         assert executor.worker_pids() == []
 
-    asyncio.run(scenario())
+    run_async(scenario())

@@ -6,7 +6,6 @@ submission with a 422 naming ``callback_url``. No request leaves loopback."""
 
 from __future__ import annotations
 
-import asyncio
 import itertools
 import json
 import re
@@ -28,6 +27,7 @@ from service.access.webhooks import (
     signature,
 )
 from tests.helpers import REPO
+from tests.helpers.aio import run as run_async
 from tests.helpers.meshes import icosphere
 from tests.helpers.servers import running_app, uvicorn_process
 from tests.helpers.service import metric_value, problem
@@ -235,8 +235,8 @@ def test_a_wildcard_host_never_reaches_a_non_global_address(address):
     """What a ``*.`` entry's name resolves to at delivery: any address that is not globally
     reachable is refused, the shared address space 100.64.0.0/10 (not ``is_private``; a
     cloud's metadata service may live there) included."""
-    assert asyncio.run(_resolves_to_special(address, 80))
-    assert not asyncio.run(_resolves_to_special("93.184.215.14", 80))
+    assert run_async(_resolves_to_special(address, 80))
+    assert not run_async(_resolves_to_special("93.184.215.14", 80))
 
 
 def test_without_keys_a_callback_is_refused():

@@ -69,7 +69,7 @@ def with_colors(body: bytes, colors: np.ndarray) -> bytes:
 
 def mesh_bytes(fmt: str, vertices: np.ndarray, faces: np.ndarray,
                values: np.ndarray | None = None, texcoords: np.ndarray | None = None,
-               ) -> bytes:
+               warnings: list[dict[str, Any]] | None = None) -> bytes:
     """A mesh response body.
 
     Args:
@@ -78,6 +78,8 @@ def mesh_bytes(fmt: str, vertices: np.ndarray, faces: np.ndarray,
         faces: (m, 3) int.
         values: (n,) float per-vertex scalars drawn as a colour ramp, or None.
         texcoords: (n, 2) float uv written as ``TEXCOORD_0``, or None.
+        warnings: the answer's warnings (``report.warnings``), written as the asset's
+            ``extras.warnings`` when there are any.
 
     Returns:
         The glTF 2.0 asset (:func:`solver.mesh.gltf.encode_gltf`).
@@ -86,4 +88,5 @@ def mesh_bytes(fmt: str, vertices: np.ndarray, faces: np.ndarray,
         ValueError: ``fmt`` is neither ``glb`` nor ``gltf``.
     """
     return gltf.encode_gltf(vertices, faces, colors_for(values), kind=fmt,  # type: ignore[arg-type]
-                            texcoords=texcoords)
+                            texcoords=texcoords,
+                            extras={"warnings": warnings} if warnings else None)

@@ -104,6 +104,15 @@ def _file_faces(forms: FormsArrays) -> np.ndarray:
     return faces if forms.vertex_map is None else np.asarray(forms.vertex_map)[faces]
 
 
+def _answer_warnings(document: dict[str, Any]) -> list[dict[str, Any]]:
+    """The warnings of an answer's report (``report["warnings"]``; [] without a report)."""
+    report = document.get("report")
+    try:
+        return list(report["warnings"] or []) if report is not None else []
+    except (KeyError, TypeError):
+        return []
+
+
 def _finish(request: TaskRequest, progress: Progress, document: dict[str, Any],
             mesh: tuple[np.ndarray, np.ndarray] | None = None,
             colors: dict[str, np.ndarray] | None = None,
@@ -120,7 +129,8 @@ def _finish(request: TaskRequest, progress: Progress, document: dict[str, Any],
     else:
         if mesh is None:
             raise ProblemError("not-acceptable", "this result is not a single mesh")
-        body = output.mesh_bytes(out.format, mesh[0], mesh[1], values, texcoords)
+        body = output.mesh_bytes(out.format, mesh[0], mesh[1], values, texcoords,
+                                 _answer_warnings(document))
     result = TaskResult(output.MEDIA_TYPES[out.format], body)
     if out.keep:
         result.mesh, result.colors = mesh, colors
@@ -399,9 +409,10 @@ def blend_task(request: TaskRequest, progress: Progress) -> TaskResult:
     if formats:
         progress("encode", 0.0)
         try:
+            extras = {"warnings": result.warnings} if result.warnings else None
             encoded = {fmt: gltf.encode_gltf_animation(
                 result.vertices, result.faces, base=shapes[0], times=params.get("times"),
-                kind=fmt) for fmt in formats}
+                kind=fmt, extras=extras) for fmt in formats}
         except solver.SolverInputError as exc:  # times of the wrong length or order
             raise ProblemError("validation-error", f"times: {exc}", errors=[element_error(
                 "times", str(exc))]) from None

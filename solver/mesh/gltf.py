@@ -30,6 +30,7 @@ from __future__ import annotations
 import base64
 import json
 import struct
+from collections.abc import Mapping
 from typing import Any, Final, Literal
 
 import numpy as np
@@ -353,14 +354,18 @@ def _json_bytes(doc: dict[str, Any]) -> bytes:
     return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
-def _container(doc: dict[str, Any], binary: bytes, kind: str) -> bytes:
+def _container(doc: dict[str, Any], binary: bytes, kind: str,
+               extras: Mapping[str, Any] | None = None) -> bytes:
     """The file of a glTF document and its one buffer: ``glb`` (12-byte header, a JSON
     chunk padded with spaces, a BIN chunk padded with zeros, every chunk length a multiple
-    of 4) or ``gltf`` (JSON, the buffer embedded as a base64 data URI).
+    of 4) or ``gltf`` (JSON, the buffer embedded as a base64 data URI). ``extras`` (JSON
+    values), when given and not empty, become ``asset.extras``.
 
     Raises:
         ValueError: Another ``kind``.
     """
+    if extras:
+        doc["asset"]["extras"] = dict(extras)
     if kind == "gltf":
         doc["buffers"][0]["uri"] = ("data:application/octet-stream;base64,"
                                     + base64.b64encode(binary).decode("ascii"))
@@ -379,7 +384,8 @@ def _container(doc: dict[str, Any], binary: bytes, kind: str) -> bytes:
 
 
 def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
-                       normals: bool = True, texcoords: ArrayLike | None = None) -> bytes:
+                       normals: bool = True, texcoords: ArrayLike | None = None,
+                       extras: Mapping[str, Any] | None = None) -> bytes:
     """Encode a triangle mesh as a GLB 2.0 file (media type ``model/gltf-binary``).
 
     Args:
@@ -392,6 +398,8 @@ def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike 
         normals: Write area-weighted unit vertex normals as ``NORMAL``.
         texcoords: (n, 2) float uv (v up), or None: written as float32 ``TEXCOORD_0``
             (:func:`gltf_texcoords`).
+        extras: JSON values written as ``asset.extras`` when not empty (the service puts
+            the answer's ``warnings`` there), or None.
 
     Returns:
         12-byte header, a JSON chunk padded with spaces and a BIN chunk padded with zeros,
@@ -404,11 +412,12 @@ def encode_gltf_binary(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike 
             coordinate that overflows float32.
     """
     doc, binary = _build(vertices, faces, colors, normals, texcoords)
-    return _container(doc, binary, "glb")
+    return _container(doc, binary, "glb", extras)
 
 
 def encode_gltf_json(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
-                     normals: bool = True, texcoords: ArrayLike | None = None) -> bytes:
+                     normals: bool = True, texcoords: ArrayLike | None = None,
+                     extras: Mapping[str, Any] | None = None) -> bytes:
     """Encode a triangle mesh as a self-contained ``.gltf`` (media type ``model/gltf+json``).
 
     Same document as :func:`encode_gltf_binary`; the buffer is embedded as a
@@ -419,6 +428,8 @@ def encode_gltf_json(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | 
         faces: As there.
         colors: As there.
         normals: As there.
+        texcoords: As there.
+        extras: As there.
 
     Returns:
         UTF-8 JSON.
@@ -427,22 +438,24 @@ def encode_gltf_json(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | 
         solver.core.errors.SolverInputError: As :func:`encode_gltf_binary`.
     """
     doc, binary = _build(vertices, faces, colors, normals, texcoords)
-    return _container(doc, binary, "gltf")
+    return _container(doc, binary, "gltf", extras)
 
 
 def encode_gltf(vertices: ArrayLike, faces: ArrayLike, colors: ArrayLike | None = None,
                 normals: bool = True, *, kind: Literal["glb", "gltf"] = "glb",
-                texcoords: ArrayLike | None = None) -> bytes:
+                texcoords: ArrayLike | None = None,
+                extras: Mapping[str, Any] | None = None) -> bytes:
     """Encode with :func:`encode_gltf_binary` (``kind="glb"``) or :func:`encode_gltf_json`
-    (``kind="gltf"``); the other arguments are theirs.
+    (``kind="gltf"``); the other arguments are theirs (``extras``: ``asset.extras``, e.g.
+    the answer's warnings).
 
     Raises:
         ValueError: Another ``kind``.
     """
     if kind == "glb":
-        return encode_gltf_binary(vertices, faces, colors, normals, texcoords)
+        return encode_gltf_binary(vertices, faces, colors, normals, texcoords, extras)
     if kind == "gltf":
-        return encode_gltf_json(vertices, faces, colors, normals, texcoords)
+        return encode_gltf_json(vertices, faces, colors, normals, texcoords, extras)
     raise ValueError(f"unknown glTF kind {kind!r} (expected 'glb' or 'gltf')")
 
 
@@ -502,7 +515,8 @@ def _add_morph_animation(doc: dict[str, Any], buf: _BufferBuilder, base: NDArray
 
 def encode_gltf_animation(rows: ArrayLike, faces: ArrayLike, *, base: ArrayLike | None = None,
                           times: ArrayLike | None = None, normals: bool = True,
-                          kind: Literal["glb", "gltf"] = "glb") -> bytes:
+                          kind: Literal["glb", "gltf"] = "glb",
+                          extras: Mapping[str, Any] | None = None) -> bytes:
     """Encode a sequence of shapes of one mesh as an animated glTF: the base mesh, each row
     a morph target, and one animation (``blend``) that plays them.
 
@@ -516,6 +530,8 @@ def encode_gltf_animation(rows: ArrayLike, faces: ArrayLike, *, base: ArrayLike 
             target ``k``; between keyframes they cross-fade linearly.
         normals: write ``NORMAL`` for the base and each target.
         kind: ``"glb"`` or ``"gltf"`` (buffer as a ``data:`` URI).
+        extras: JSON values written as ``asset.extras`` when not empty (e.g. the blend's
+            ``warnings``).
 
     Returns:
         The file's bytes.
@@ -553,4 +569,4 @@ def encode_gltf_animation(rows: ArrayLike, faces: ArrayLike, *, base: ArrayLike 
     _add_morph_animation(doc, buf, v64, f64, r, t, normals)
     binary = buf.tobytes()
     doc["buffers"] = [{"byteLength": len(binary)}]
-    return _container(doc, binary, kind)
+    return _container(doc, binary, kind, extras)

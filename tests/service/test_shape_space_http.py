@@ -51,6 +51,37 @@ def test_blend_json_is_the_library_answer(client, poses):
                                               for w in tall["warnings"]]
 
 
+def test_glb_answers_carry_their_warnings(client, poses):
+    """A GLB answer has no report beside it: its warnings (the same as the JSON answer's)
+    are the asset's ``extras.warnings``, for the animated blend and a single mesh alike; an
+    answer without warnings has no extras. The files stay valid glTF."""
+    from tests.service.test_gltf_animation import read_glb
+
+    V, P, _, F = poses
+    tall = body([V, V * [1, 1, 3.0]], F, t=[0.0, 0.5, 1.0])
+    want = client.post("/v1/blend", json=tall).json()["warnings"]
+    assert want
+    glb = client.post("/v1/blend", json=tall, headers={"Accept": "model/gltf-binary"})
+    assert glb.status_code == 200, glb.text
+    doc, _ = read_glb(glb.content)
+    assert doc["asset"]["extras"]["warnings"] == json.loads(json.dumps(want))
+    report = validate_gltf(glb.content, "glb")
+    assert report["issues"]["numErrors"] == 0, issue_codes(report)
+    quiet = client.post("/v1/blend", json=body([V, P], F, t=[0.0, 1.0]),
+                        headers={"Accept": "model/gltf-binary"})
+    assert "extras" not in read_glb(quiet.content)[0]["asset"]
+
+    forms = solver.fundamental_forms(V, F)
+    scaled = {"faces": F.tolist(), "edges": forms.edges.tolist(),
+              "lengths": forms.lengths.tolist(), "angles": (0.5 * forms.angles).tolist()}
+    answer = client.post("/v1/reconstruct", json=scaled).json()
+    assert answer["report"]["warnings"]
+    glb = client.post("/v1/reconstruct", json=scaled, headers={"Accept": "model/gltf-binary"})
+    assert glb.status_code == 200, glb.text
+    assert read_glb(glb.content)[0]["asset"]["extras"]["warnings"] == \
+        answer["report"]["warnings"]
+
+
 def test_blend_t_is_interpolate(client, poses):
     V, P, _, F = poses
     doc = client.post("/v1/blend", json=body([V, P], F, t=[0.25, 1.5])).json()

@@ -216,9 +216,11 @@ class Local:
         from solver.mesh.gltf import encode_gltf_animation
 
         result = self._blend(shapes, faces, weights, t, refine, progress, options)
+        warnings = to_jsonable(result.warnings)
         return encode_gltf_animation(result.vertices, result.faces,
                                      base=np.asarray(shapes, dtype=np.float64)[0],
-                                     times=times, kind=kind)  # type: ignore[arg-type]
+                                     times=times, kind=kind,  # type: ignore[arg-type]
+                                     extras={"warnings": warnings} if warnings else None)
 
     def mean(self, shapes: Any, faces: Any, *, refine: bool | None = None,
              progress: Progress | None = None, **options: Any) -> Mesh:

@@ -9,6 +9,7 @@ import pytest
 
 import ffs
 import solver
+from solver.mesh.io import save_mesh
 from tests.helpers.gltf_validator import validate_gltf
 from tests.helpers.meshes import load
 from tests.helpers.poses import bent_pose
@@ -66,7 +67,7 @@ def test_blend_of_k_uploaded_files_and_its_row_warnings(server, poses, tmp_path)
     V, P, Q, F = poses
     paths = []
     for name, X in (("a.off", V), ("b.obj", P), ("c.ply", Q)):
-        (tmp_path / name).write_bytes(solver.mesh.io.save_mesh(X, F, name[-3:]))
+        (tmp_path / name).write_bytes(save_mesh(X, F, name[-3:]))
         paths.append(tmp_path / name)
     weights = [[0.2, 0.5, 0.3], [-0.2, 0.6, 0.6]]
     with ffs.Client(server) as client:
@@ -74,10 +75,28 @@ def test_blend_of_k_uploaded_files_and_its_row_warnings(server, poses, tmp_path)
         np.testing.assert_allclose(rows.vertices, solver.blend([V, P, Q], weights, F).vertices,
                                    atol=1e-5)  # PLY holds float32
         assert rows.warnings == []
-        (tmp_path / "tall.off").write_bytes(solver.mesh.io.save_mesh(V * [1, 1, 3.0], F, "off"))
+        (tmp_path / "tall.off").write_bytes(save_mesh(V * [1, 1, 3.0], F, "off"))
         rows = client.blend_files([paths[0], tmp_path / "tall.off"], [[0.5, 0.5], [0, 1]])
         truth = solver.blend([V, V * [1, 1, 3.0]], [[0.5, 0.5], [0, 1]], F).warnings
         assert [(w["row"], w["code"]) for w in rows.warnings] == [
             (w["row"], w["code"]) for w in truth]
         assert "angle-error" in {w["code"] for w in rows.warnings}
         assert {w["row"] for w in rows.warnings} == {0}
+
+
+def test_blend_gltf_carries_the_warnings_locally_and_remotely(server, poses):
+    """A blend past what a surface can make: the GLB's ``asset.extras.warnings`` are the
+    JSON answer's warnings, from the service and from ``ffs``'s local backend alike."""
+    from ffs.local import Local
+    from tests.service.test_gltf_animation import read_glb
+
+    V, _, _, F = poses
+    tall = [V, V * [1, 1, 3.0]]
+    want = solver.blend(tall, [[0.5, 0.5], [0.0, 1.0]], F).warnings
+    assert want
+    with ffs.Client(server) as client:
+        remote = read_glb(client.blend_gltf(tall, F, t=[0.5, 1.0]))[0]["asset"]["extras"]
+    local = read_glb(Local().blend_gltf(tall, F, t=[0.5, 1.0]))[0]["asset"]["extras"]
+    for got in (remote["warnings"], local["warnings"]):
+        assert [(w["code"], w["row"]) for w in got] == [(w["code"], w["row"]) for w in want]
+        assert [w["value"] for w in got] == pytest.approx([w["value"] for w in want])

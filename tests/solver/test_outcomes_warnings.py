@@ -127,3 +127,33 @@ def test_angle_warning_in_radians_and_degrees() -> None:
         {"after": {"length_error": {"max": 0.01}, "angle_error": {"max": 0.5}}}) if w]
     assert [w.code for w in found] == ["angle-error"]
     assert "0.5 rad (28.6°; limit 0.1 rad)" in found[0].message
+
+
+@pytest.mark.parametrize(("name", "outcome"), [("torus.off", "converged"),
+                                               ("octopus-low-surface.off", "partial")])
+def test_an_atlas_says_what_its_charts_refinements_did(name: str, outcome: str) -> None:
+    """An atlas's refinement is its charts' refinements told as one: the torus's 15 charts
+    all converge (the report said "converged after 0 iterations"), one of the octopus's
+    charts stalls (it said "not refined: None before the first iteration" although 39
+    charts were refined and the layout's energy fell)."""
+    mesh = trimesh.load(DATA / name, process=False)
+    V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    refinement = solver.parameterize(V, F).report["refinement"]
+    assert refinement["charts"] > 1 and refinement["charts_refined"] >= 1
+    assert refinement["refined"] and refinement["iterations"] >= refinement["charts_refined"]
+    assert refinement["energy_after"] < refinement["energy_before"]
+    assert refinement["outcome"] == outcome
+    counts = f"({refinement['charts_refined']} of {refinement['charts']} charts refined"
+    if outcome == "converged":
+        assert refinement["outcome_text"] == (
+            f"converged after {refinement['iterations']} iterations {counts})")
+    else:
+        unconverged = refinement["charts_unconverged"]
+        assert unconverged >= 1 and refinement["stop_reason"] != "converged"
+        assert refinement["outcome_text"].startswith("partly: ")
+        assert refinement["outcome_text"].endswith(f"{counts}, {unconverged} not converged)")
+        assert "None" not in refinement["outcome_text"]
+    linear = solver.parameterize(V, F, refine=False).report["refinement"]
+    assert linear["outcome"] == "not-refined"
+    assert linear["outcome_text"] == f"not refined: disabled (refine=false) " \
+        f"({linear['charts']} charts)"

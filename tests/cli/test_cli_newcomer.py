@@ -156,6 +156,19 @@ def test_truncated_off_in_words(ffs, workdir: Path) -> None:
     assert "inhomogeneous" not in run.stderr and "sequence" not in run.stderr
 
 
+def test_bad_obj_entry_in_words(ffs, workdir: Path) -> None:
+    """An OBJ face entry or coordinate that is not a number: its line and the entry, not
+    Python's "invalid literal for int() with base 10"."""
+    (workdir / "tri.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n# a face\nf 1 2 x3\n")
+    run = ffs("convert", "tri.obj", "-o", "x.ply")
+    assert run.returncode == 1
+    assert "tri.obj: line 5: face index 'x3' is not a whole number" in run.stderr, run.stderr
+    (workdir / "tri.obj").write_text("v 0 0 0\nv 1 0,5 0\nv 0 1 0\nf 1 2 3\n")
+    run = ffs("convert", "tri.obj", "-o", "x.ply")
+    assert "tri.obj: line 2: vertex coordinate '0,5' is not a number" in run.stderr, run.stderr
+    assert "literal" not in run.stderr and "could not convert" not in run.stderr
+
+
 # ------------------------------------------------------------- Botsch-Sorkine handle sets
 
 

@@ -75,6 +75,38 @@ def test_iteration_budget_after_one_step_is_partial() -> None:
     assert fit.report["outcome_text"] == "partly: iteration budget after 1 iteration"
 
 
+def test_time_limit_after_two_iterations_is_partial_without_the_no_progress_warning() -> None:
+    """The time limit runs out after the second accepted step (the progress callback waits
+    out the budget there, as a loaded machine would): the answer is refined partly, says
+    so with the stop reason and the count, and carries no time-limit-no-progress warning."""
+    import time
+
+    from solver.core.budget import Budget
+
+    vertices, faces = _face()
+    forms = solver.fundamental_forms(vertices, faces)
+    start = vertices + np.random.default_rng(0).normal(0, 0.5, vertices.shape)
+    targets = FormTargets(build_topology(faces, len(vertices)), forms.lengths, forms.angles)
+    budget = Budget(3.0)
+    steps: list[float] = []
+
+    def progress(stage: str, fraction: float) -> None:
+        steps.append(fraction)
+        if len(steps) == 2:
+            time.sleep(budget.left() or 0.0)
+
+    fit = refine(start, targets, time_limit=budget, progress=progress)
+    report = fit.report
+    assert len(steps) == 2 and report["stop_reason"] == "time_limit"
+    assert report["iterations"] >= 1 and not report["converged"]
+    assert report["energy_after"] < report["energy_before"]
+    assert report["outcome"] == "partial"
+    count = report["iterations"]
+    assert report["outcome_text"] == (
+        f"partly: time limit after {count} iteration{'' if count == 1 else 's'}")
+    assert "time-limit-no-progress" not in [w.code for w in refinement_warnings(report) if w]
+
+
 def test_outcome_of_a_refinement_that_did_not_run() -> None:
     report = not_refined("disabled (refine=false)")
     assert refinement_outcome(report) == "not-refined"

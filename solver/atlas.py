@@ -9,6 +9,7 @@ charts' layouts over uv indices of their own (a seam vertex once per chart).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +31,7 @@ from .mesh.packing import boundary_crossings, folded, positive_loops
 from .mesh.topology import MeshTopology, build_topology
 from .options import ParameterizeOptions
 from .reconstruct import Progress
+from .refine.outcomes import with_outcome
 from .reports import Stages
 
 
@@ -178,3 +180,45 @@ __all__ = [
     "chart_options",
     "mean_length_change",
 ]
+
+
+def atlas_refinement(charts: list[ChartLayout]) -> dict[str, Any]:
+    """The refinement report of an atlas: its charts' refinements told as one.
+
+    ``refined``: some chart was refined; ``converged``: every refined chart converged;
+    ``iterations``: their sum; ``stop_reason``: ``"converged"``, or the stop reason of the
+    largest chart that did not converge; ``energy_before``/``energy_after``: sums over the
+    refined charts; ``charts``, ``charts_refined``, ``charts_unconverged``: counts. Its
+    ``outcome`` and ``outcome_text`` (:mod:`solver.refine.outcomes`) then say what the
+    charts did, with the counts in words ("converged after 48 iterations (15 of 15 charts
+    refined)"); a chart that needed no refinement (developable, one face) is not refined.
+    An atlas with no refined chart gives the reason of its largest chart.
+    """
+    reports = [chart.flattening.refinement for chart in charts]
+    sizes = [len(chart.mesh.face_ids) for chart in charts]
+    ran = [(size, r) for size, r in zip(sizes, reports, strict=True) if r.get("refined")]
+    if not ran:
+        largest = reports[int(np.argmax(sizes))] if reports else {}
+        report = with_outcome({"refined": False, "reason": largest.get("reason", "not run"),
+                               "charts": len(charts), "charts_refined": 0,
+                               "charts_unconverged": 0})
+        report["outcome_text"] += f" ({len(charts)} charts)"
+        return report
+    unconverged = [(size, r) for size, r in ran if not r.get("converged")]
+    report: dict[str, Any] = {
+        "refined": True, "converged": not unconverged,
+        "stop_reason": (max(unconverged, key=lambda pair: pair[0])[1].get("stop_reason")
+                        if unconverged else "converged"),
+        "iterations": sum(int(r.get("iterations") or 0) for _, r in ran),
+        "charts": len(charts), "charts_refined": len(ran),
+        "charts_unconverged": len(unconverged)}
+    if all(r.get("energy_before") is not None and r.get("energy_after") is not None
+           for _, r in ran):
+        report["energy_before"] = float(sum(r["energy_before"] for _, r in ran))
+        report["energy_after"] = float(sum(r["energy_after"] for _, r in ran))
+    report = with_outcome(report)
+    counts = f"{len(ran)} of {len(charts)} charts refined"
+    if unconverged:
+        counts += f", {len(unconverged)} not converged"
+    report["outcome_text"] += f" ({counts})"
+    return report

@@ -13,7 +13,14 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .atlas import ChartLayout, assemble, chart_layouts, mean_length_change, overlaps_itself
+from .atlas import (
+    ChartLayout,
+    assemble,
+    atlas_refinement,
+    chart_layouts,
+    mean_length_change,
+    overlaps_itself,
+)
 from .atlas_rules import ATLAS_RULES
 from .chart_flattening import ChartFlattening, flatten_chart, relative_length_change
 from .core.errors import TopologyError
@@ -39,7 +46,6 @@ from .mesh.packing import (
 from .mesh.topology import MeshTopology, build_topology
 from .options import ParameterizeOptions
 from .reconstruct import Progress
-from .refine.outcomes import with_outcome
 from .reports import ParameterizeReport, Stages
 
 
@@ -160,10 +166,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
     charts, packed, (_, uv_faces, uv_vertex, face_chart) = _packed_atlas(
         V, topology, forms.angles, opts, stages, progress)
     last = max(charts, key=lambda chart: len(chart.mesh.face_ids)).flattening
-    summary_refinement = with_outcome({
-        "refined": any(c.flattening.refinement.get("refined") for c in charts),
-        "converged": all(c.flattening.refinement.get("converged", True) for c in charts),
-        "reason": f"per chart ({len(charts)} charts)"})
+    summary_refinement = atlas_refinement(charts)
     combined = ChartFlattening(packed.texcoords * packed.scale, last.backend, last.analysis,
                                max(c.flattening.planarity for c in charts),
                                summary_refinement, [])

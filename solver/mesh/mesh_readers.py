@@ -23,6 +23,12 @@ _OBJ_REF_TAIL: Final = re.compile(r"/\S*")
 """The ``/vt/vn`` tail of an OBJ face entry."""
 _OBJ_REF_TAIL_BYTES: Final = re.compile(rb"/\S*")
 """The same, in bytes."""
+_INTEGER: Final = re.compile(r"[+-]?\d+")
+"""A face index as numpy reads it."""
+_FLOAT: Final = re.compile(r"[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?"
+                           r"|inf(?:inity)?|nan)", re.IGNORECASE)
+"""A coordinate as numpy reads it."""
+_TOKEN: Final = re.compile(r"\S+")
 
 
 def off_short(data: bytes, vertices: np.ndarray, faces: np.ndarray) -> str | None:
@@ -101,8 +107,9 @@ def parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                             details={"line": lineno})
     try:
         vertices = np.array(coords, dtype=np.float64)
-    except ValueError as exc:
-        raise MeshFileError(f"bad vertex coordinate ({exc})") from exc
+    except ValueError:
+        raise _not_a_number(["\t".join(c) for c in coords], np.flatnonzero(is_v), _FLOAT,
+                            "vertex coordinate", "a number") from None
 
     f_rows = np.flatnonzero(is_f)
     if f_rows.size == 0:
@@ -114,8 +121,9 @@ def parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     tokens = f_text.split()
     try:
         ids = np.array(tokens, dtype=np.int64)
-    except ValueError as exc:
-        raise MeshFileError(f"bad face index ({exc})") from exc
+    except ValueError:
+        raise _not_a_number(f_text.split("\n"), f_rows, _INTEGER, "face index",
+                            "a whole number") from None
     except OverflowError:
         raise _huge_index(tokens, np.repeat(f_rows, counts)) from None
     if counts.min() < 3:
@@ -221,6 +229,31 @@ def fan_triangulate(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     t = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
     polygon = np.repeat(np.arange(len(counts), dtype=np.int64), ntri)
     return np.stack([first, first + t, first + t + 1], axis=1), polygon
+
+
+def _not_a_number(records: list[str], rows: np.ndarray, number: re.Pattern[str],
+                  what: str, expected: str) -> MeshFileError:
+    """The error for the first entry of ``records`` (one OBJ record's entries, whitespace
+    separated, the record of file line ``rows[k] + 1`` each) that is not ``number``, naming
+    its line and quoting it (numpy's own message names neither).
+
+    Args:
+        records: The records' entries as written, one string per record.
+        rows: The 0-based line of each record.
+        number: What an entry must match in full.
+        what: What an entry is, in words ("face index").
+        expected: What it should be, in words ("a whole number").
+
+    Returns:
+        The error to raise.
+    """
+    text = "\n".join(records)
+    bad = next((m for m in _TOKEN.finditer(text) if not number.fullmatch(m[0])), None)
+    if bad is None:
+        return MeshFileError(f"a {what} is not {expected}")
+    lineno = int(rows[text.count("\n", 0, bad.start())]) + 1
+    return MeshFileError(f"line {lineno}: {what} {bad[0]!r} is not {expected}",
+                         details={"line": lineno, "value": bad[0]})
 
 
 def _huge_index(tokens: list[str], token_rows: np.ndarray) -> MeshFileError:

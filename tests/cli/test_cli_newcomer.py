@@ -156,6 +156,19 @@ def test_truncated_off_in_words(ffs, workdir: Path) -> None:
     assert "inhomogeneous" not in run.stderr and "sequence" not in run.stderr
 
 
+def test_bad_obj_entry_in_words(ffs, workdir: Path) -> None:
+    """An OBJ face entry or coordinate that is not a number: its line and the entry, not
+    Python's "invalid literal for int() with base 10"."""
+    (workdir / "tri.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n# a face\nf 1 2 x3\n")
+    run = ffs("convert", "tri.obj", "-o", "x.ply")
+    assert run.returncode == 1
+    assert "tri.obj: line 5: face index 'x3' is not a whole number" in run.stderr, run.stderr
+    (workdir / "tri.obj").write_text("v 0 0 0\nv 1 0,5 0\nv 0 1 0\nf 1 2 3\n")
+    run = ffs("convert", "tri.obj", "-o", "x.ply")
+    assert "tri.obj: line 2: vertex coordinate '0,5' is not a number" in run.stderr, run.stderr
+    assert "literal" not in run.stderr and "could not convert" not in run.stderr
+
+
 # ------------------------------------------------------------- Botsch-Sorkine handle sets
 
 
@@ -255,3 +268,45 @@ def test_align_to_a_mesh_with_other_vertices_fails_in_words(ffs) -> None:
     assert run.returncode == 1
     assert "align_to: the reference has 1200 vertices, the answer 1180" in run.stderr, \
         run.stderr
+
+
+# ------------------------------------------------------------ "ok" on a broken flattening
+
+
+def _obj_uv(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An OBJ's positions, texture coordinates and the v and vt indices of its faces."""
+    lines = path.read_text().splitlines()
+    v = np.array([ln.split()[1:4] for ln in lines if ln.startswith("v ")], dtype=float)
+    vt = np.array([ln.split()[1:3] for ln in lines if ln.startswith("vt ")], dtype=float)
+    corners = [[c.split("/") for c in ln.split()[1:]] for ln in lines if ln.startswith("f ")]
+    index = np.array(corners, dtype=np.int64) - 1  # (m, 3, 2): v and vt of each corner
+    return v, vt, index[:, :, 0], index[:, :, 1]
+
+
+def test_a_broken_flattening_says_warn_and_strict_exits_1(ffs, workdir: Path) -> None:
+    """A sphere with a hole at its south pole flattened as one chart without refinement
+    (--seams none --no-refine): a third of its faces flip in the written uv. The summary says
+    WARN with the measured fraction, --strict exits 1; the default (an atlas) is clean."""
+    from tests.helpers.meshes import sphere_cap
+
+    V, F = sphere_cap()
+    trimesh.Trimesh(V, F, process=False).export(workdir / "cap.obj")
+    run = ffs("flatten", "cap.obj", "--seams", "none", "--no-refine", "-o", "flat.obj",
+              "--report", "report.json")
+    assert run.returncode == 0, run.stderr
+    row = _lines(run.stdout, "cap.obj")[0]
+    assert "WARN" in row and "flipped-faces" in row and "length-distortion" in row, row
+    _, vt, faces, uv_faces = _obj_uv(workdir / "flat.obj")
+    assert np.array_equal(faces, F)
+    a, b, c = (vt[uv_faces[:, k]] for k in range(3))
+    signed = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+    flipped = float((signed < 0).sum() / len(F))
+    report = json.loads((workdir / "report.json").read_text())["files"][0]
+    warning = {w["code"]: w for w in report["warnings"]}["flipped-faces"]
+    assert 0.1 < flipped < 0.9 and abs(warning["value"] - flipped) < 1e-12
+    assert f"{100 * flipped:.2f}% of the faces are flipped" in run.stderr, run.stderr
+    strict = ffs("flatten", "cap.obj", "--seams", "none", "--no-refine", "-o", "flat.obj",
+                 "--strict")
+    assert strict.returncode == 1, strict.stdout + strict.stderr
+    atlas = ffs("flatten", "cap.obj", "-o", "atlas.obj", "--strict")
+    assert atlas.returncode == 0 and "WARN" not in atlas.stdout, atlas.stdout + atlas.stderr

@@ -155,6 +155,9 @@ def test_reconstruct_require_integrable(client):
     assert named >= edge
     assert "worst vertices" in doc["detail"]
     assert doc["integrability"]["integrable"] is False
+    # Units (issue 43): the defect and its tolerance are angles.
+    defect = doc["integrability"]["max_defect"]
+    assert f"max defect {defect:.3g} rad (tolerance 1e-08 rad)" in doc["detail"], doc["detail"]
 
 
 def test_reconstruct_colored_by_defect(client):

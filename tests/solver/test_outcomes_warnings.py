@@ -75,6 +75,38 @@ def test_iteration_budget_after_one_step_is_partial() -> None:
     assert fit.report["outcome_text"] == "partly: iteration budget after 1 iteration"
 
 
+def test_time_limit_after_two_iterations_is_partial_without_the_no_progress_warning() -> None:
+    """The time limit runs out after the second accepted step (the progress callback waits
+    out the budget there, as a loaded machine would): the answer is refined partly, says
+    so with the stop reason and the count, and carries no time-limit-no-progress warning."""
+    import time
+
+    from solver.core.budget import Budget
+
+    vertices, faces = _face()
+    forms = solver.fundamental_forms(vertices, faces)
+    start = vertices + np.random.default_rng(0).normal(0, 0.5, vertices.shape)
+    targets = FormTargets(build_topology(faces, len(vertices)), forms.lengths, forms.angles)
+    budget = Budget(3.0)
+    steps: list[float] = []
+
+    def progress(stage: str, fraction: float) -> None:
+        steps.append(fraction)
+        if len(steps) == 2:
+            time.sleep(budget.left() or 0.0)
+
+    fit = refine(start, targets, time_limit=budget, progress=progress)
+    report = fit.report
+    assert len(steps) == 2 and report["stop_reason"] == "time_limit"
+    assert report["iterations"] >= 1 and not report["converged"]
+    assert report["energy_after"] < report["energy_before"]
+    assert report["outcome"] == "partial"
+    count = report["iterations"]
+    assert report["outcome_text"] == (
+        f"partly: time limit after {count} iteration{'' if count == 1 else 's'}")
+    assert "time-limit-no-progress" not in [w.code for w in refinement_warnings(report) if w]
+
+
 def test_outcome_of_a_refinement_that_did_not_run() -> None:
     report = not_refined("disabled (refine=false)")
     assert refinement_outcome(report) == "not-refined"
@@ -127,3 +159,33 @@ def test_angle_warning_in_radians_and_degrees() -> None:
         {"after": {"length_error": {"max": 0.01}, "angle_error": {"max": 0.5}}}) if w]
     assert [w.code for w in found] == ["angle-error"]
     assert "0.5 rad (28.6°; limit 0.1 rad)" in found[0].message
+
+
+@pytest.mark.parametrize(("name", "outcome"), [("torus.off", "converged"),
+                                               ("octopus-low-surface.off", "partial")])
+def test_an_atlas_says_what_its_charts_refinements_did(name: str, outcome: str) -> None:
+    """An atlas's refinement is its charts' refinements told as one: the torus's 15 charts
+    all converge (the report said "converged after 0 iterations"), one of the octopus's
+    charts stalls (it said "not refined: None before the first iteration" although 39
+    charts were refined and the layout's energy fell)."""
+    mesh = trimesh.load(DATA / name, process=False)
+    V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    refinement = solver.parameterize(V, F).report["refinement"]
+    assert refinement["charts"] > 1 and refinement["charts_refined"] >= 1
+    assert refinement["refined"] and refinement["iterations"] >= refinement["charts_refined"]
+    assert refinement["energy_after"] < refinement["energy_before"]
+    assert refinement["outcome"] == outcome
+    counts = f"({refinement['charts_refined']} of {refinement['charts']} charts refined"
+    if outcome == "converged":
+        assert refinement["outcome_text"] == (
+            f"converged after {refinement['iterations']} iterations {counts})")
+    else:
+        unconverged = refinement["charts_unconverged"]
+        assert unconverged >= 1 and refinement["stop_reason"] != "converged"
+        assert refinement["outcome_text"].startswith("partly: ")
+        assert refinement["outcome_text"].endswith(f"{counts}, {unconverged} not converged)")
+        assert "None" not in refinement["outcome_text"]
+    linear = solver.parameterize(V, F, refine=False).report["refinement"]
+    assert linear["outcome"] == "not-refined"
+    assert linear["outcome_text"] == f"not refined: disabled (refine=false) " \
+        f"({linear['charts']} charts)"

@@ -37,8 +37,9 @@ ADMIN = "webhook-admin-9876543210"
 
 
 class Receiver:
-    """An HTTP server on 127.0.0.1 that records every request; ``plan[path]`` lists the
-    statuses to answer in turn (then 200), 302 redirecting to ``/elsewhere``."""
+    """An HTTP server on 127.0.0.1 that records every request, whatever its method;
+    ``plan[path]`` lists the statuses to answer in turn (then 200), a 3xx redirecting to
+    ``/elsewhere``."""
 
     def __init__(self) -> None:
         self.requests: list[dict[str, Any]] = []
@@ -51,14 +52,18 @@ class Receiver:
                 body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
                 with receiver.lock:
                     receiver.requests.append({"path": self.path, "body": body,
+                                              "method": self.command,
                                               "headers": dict(self.headers), "at": time.time()})
                     statuses = receiver.plan.get(self.path, [])
                     status = statuses.pop(0) if statuses else 200
                 self.send_response(status)
-                if status == 302:
+                if 300 <= status < 400:
                     self.send_header("Location", "/elsewhere")
                 self.send_header("Content-Length", "0")
                 self.end_headers()
+
+            # A followed 301/302/303 arrives as a GET: recorded all the same.
+            do_GET = do_PUT = do_DELETE = do_PATCH = do_POST  # noqa: N815
 
             def log_message(self, *args: Any) -> None:
                 pass
@@ -176,18 +181,32 @@ def test_a_failing_receiver_is_retried_with_backoff(http, receiver, server):
     assert gaps[0] >= 0.2 and gaps[1] >= 0.4  # FFS_WEBHOOK_BACKOFF, doubled
 
 
-def test_redirects_are_not_followed_and_attempts_are_bounded(http, receiver, server):
-    receiver.plan["/moved"] = [302] * 10
-    submitted = http.post("/v1/jobs", json=_job(receiver, "/moved"))
-    assert submitted.status_code == 202, submitted.text
-    receiver.wait("/moved", 3)
-    time.sleep(1.5)
-    assert len(receiver.at("/moved")) == 3  # FFS_WEBHOOK_ATTEMPTS
-    assert receiver.at("/elsewhere") == []
+def _deliveries(server: str) -> dict[str, float]:
     with httpx.Client(base_url=server, headers={"Authorization": f"Bearer {ADMIN}"}) as ops:
         text = ops.get("/metrics").text
-    assert metric_value(text, "ffs_webhook_deliveries_total", outcome="given-up") >= 1
-    assert metric_value(text, "ffs_webhook_deliveries_total", outcome="delivered") >= 2
+    return {outcome: metric_value(text, "ffs_webhook_deliveries_total", outcome=outcome)
+            for outcome in ("delivered", "retried", "given-up")}
+
+
+@pytest.mark.parametrize("status", [302, 307])
+def test_redirects_are_not_followed_and_attempts_are_bounded(http, receiver, server, status):
+    """A receiver that redirects (302: a follower would GET the new place, 307: POST it
+    again) is tried again at the same URL, never at the one it names, and given up after
+    FFS_WEBHOOK_ATTEMPTS."""
+    before = _deliveries(server)
+    path = f"/moved-{status}"
+    receiver.plan[path] = [status] * 10
+    submitted = http.post("/v1/jobs", json=_job(receiver, path))
+    assert submitted.status_code == 202, submitted.text
+    attempts = receiver.wait(path, 3)
+    time.sleep(1.5)
+    assert len(receiver.at(path)) == 3  # FFS_WEBHOOK_ATTEMPTS
+    assert {a["method"] for a in attempts} == {"POST"}
+    assert receiver.at("/elsewhere") == []
+    after = _deliveries(server)
+    assert after["given-up"] - before["given-up"] == 1
+    assert after["retried"] - before["retried"] == 2
+    assert after["delivered"] == before["delivered"]
 
 
 @pytest.mark.parametrize("url", [

@@ -42,13 +42,15 @@ def _add_key(path: Path, name: str, *options: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def limited_key(tmp_path_factory) -> tuple[Path, str, str]:
-    """A keys file with a key of few requests and jobs, and one of small meshes."""
+def limited_key(tmp_path_factory) -> tuple[Path, str, str, str]:
+    """A keys file with a key of few requests and jobs, one of small meshes and one of a
+    single session."""
     path = tmp_path_factory.mktemp("keys") / "keys.json"
     tight = _add_key(path, "tight", "--requests-per-minute", "5", "--concurrent-jobs", "1",
                      "--concurrent-sessions", "1")
     small = _add_key(path, "small", "--max-faces", "100")
-    return path, tight, small
+    single = _add_key(path, "single", "--concurrent-sessions", "1")
+    return path, tight, small, single
 
 
 @pytest.fixture(scope="module")
@@ -304,6 +306,32 @@ def test_me_and_a_refused_upload_is_a_401(server, alice, ops):
         for _ in range(3):  # (the service reads up to 1 MiB of it before answering)
             response = anonymous.post("/v1/mesh", files={"file": ("bar.off", upload)})
             problem(response, 401, "unauthorized")
+
+
+def test_the_session_quota_answers_429_and_opens_nothing(server, ops, limited_key, sphere):
+    V, F = sphere
+    with httpx.Client(base_url=server, timeout=60,
+                      headers={"Authorization": f"Bearer {limited_key[3]}"}) as single:
+        first = _session(single, V, F)
+        open_before = metric_value(ops.get("/metrics").text, "ffs_sessions")
+        refused = single.post("/v1/sessions", json={
+            "vertices": V.tolist(), "faces": F.tolist(),
+            "handles": [{"vertex": h} for h in HANDLES]})
+        doc = problem(refused, 429, "quota-exceeded")
+        assert doc["quota"] == "concurrent-sessions" and doc["limit"] == 1
+        assert refused.headers["retry-after"] == "5"
+        assert refused.headers["ratelimit-policy"] == \
+            '"concurrent-sessions";q=1;qu="concurrent-requests"'
+        assert refused.headers["ratelimit"].startswith('"concurrent-sessions";r=0;t=')
+        # Nothing was opened: the key's list and the service's count are as before.
+        assert [x["id"] for x in single.get("/v1/sessions").json()] == [
+            first.rsplit("/", 1)[1]]
+        text = ops.get("/metrics").text
+        assert metric_value(text, "ffs_sessions") == open_before
+        assert metric_value(text, "ffs_key_throttled_total", key="single",
+                            quota="concurrent-sessions") == 1
+        assert single.delete(first).status_code == 204
+        assert single.delete(_session(single, V, F)).status_code == 204  # free again
 
 
 def test_no_key_material_in_what_the_server_wrote(server, alice, limited_key):

@@ -16,8 +16,10 @@
 #      vendored three.js modules (scripts/docker_smoke_single.py);
 #   5. the docker-compose.yml topology from the same image: scheduler, two workers, two API
 #      replicas; a job submitted through one replica is polled and fetched through the other,
-#      a deformation session created through one is dragged through the other
-#      (scripts/docker_smoke.py).
+#      a deformation session created through one is dragged through the other; with API
+#      keys: 401s, another key's job and session 404 (HTTP and WebSocket), a key's session
+#      quota 429, a signed webhook retried after a 500, no key in the logs
+#      (scripts/docker_smoke_compose.py; the tools: scripts/docker_smoke.py).
 # Every container and image it made is removed on exit (trap), with the whole work folder
 # (FFS_SMOKE_KEEP=1 keeps them for debugging: export the CONTAINERS_* variables it prints).
 # Exit status: 0 = all checks passed, or skipped where no container can run here at all (not
@@ -233,5 +235,5 @@ $(((size - base) / 1000000)) MB of the Dockerfile's layers"
 # -- 4./5. the containers ------------------------------------------------------------------------
 python3 "$ROOT/scripts/docker_smoke_single.py" --image "$IMAGE" --root "$ROOT" \
   || fail "single container checks"
-python3 "$ROOT/scripts/docker_smoke.py" --image "$IMAGE" --root "$ROOT" \
+python3 "$ROOT/scripts/docker_smoke_compose.py" --image "$IMAGE" --root "$ROOT" \
   || fail "compose topology checks"

@@ -1,6 +1,7 @@
-"""Container checks of scripts/docker-smoke.sh: run the built image with podman and test it
-over HTTP. This module: the checks' tools (podman, HTTP, meshes and independent truth) and
-the compose topology; the single container's checks are scripts/docker_smoke_single.py.
+"""Container checks of scripts/docker-smoke.sh: the tools both check scripts use (podman,
+HTTP, meshes and independent truth) and the compose topology's start and its job and session
+checks; the single container's checks are scripts/docker_smoke_single.py, the compose run
+with API keys scripts/docker_smoke_compose.py.
 
 Standard library only (runs on the host's ``python3``); podman's configuration comes from the
 environment (``CONTAINERS_CONF``, ``CONTAINERS_STORAGE_CONF``) set by docker-smoke.sh. All
@@ -8,15 +9,6 @@ containers share the host network (no CNI bridge, no firewall rules needed), so 
 chosen free on the host (:func:`free_port` here, not the test suite's: this runs on the bare
 host with no test dependencies, and binds 0.0.0.0 as the containers do); ``scheduler``
 resolves to 127.0.0.1 (``--add-host``).
-
-``python3 scripts/docker_smoke.py --image IMAGE``
-    docker-compose.yml's services (command, environment, read-only root, tmpfs,
-    healthcheck, replicas) from the same image: the scheduler (waited for until healthy),
-    its worker replicas and two API replicas; a job submitted through one API replica is
-    polled and fetched through the other; a deformation session created through one is
-    dragged through the other and closed.
-
-Exit status 0 when every check passes, 1 otherwise.
 """
 
 from __future__ import annotations
@@ -29,7 +21,6 @@ import platform
 import re
 import socket
 import subprocess
-import sys
 import time
 import urllib.error
 import urllib.request
@@ -449,101 +440,6 @@ def check_session_across_replicas(first: str, second: str, root: Path) -> None:
              "target after each drag, 2 solves, closed")
 
 
-KEYS = {"alice": "smoke-alice-" + uuid.uuid4().hex, "bob": "smoke-bob-" + uuid.uuid4().hex,
-        "ops": "smoke-ops-" + uuid.uuid4().hex}
-"""The API keys of the compose replicas (FFS_API_KEYS; ``ops`` is the admin)."""
-
-
-def bearer(name: str) -> dict[str, str]:
-    return {"Authorization": f"Bearer {KEYS[name]}"}
-
-
-def check_keys_across_replicas(first: str, second: str, root: Path) -> None:
-    """With FFS_API_KEYS on both replicas: 401 without or with a wrong key, a job and a
-    session of one key are 404 for another key through the other replica and served to the
-    admin key there, /metrics is the admin's, and no key is in the replicas' logs."""
-    vertices, faces = read_off(root / SAMPLES / "torus.off")
-    with step("API keys: 401 without a key, another key's job and session 404 across replicas"):
-        for base in (first, second):
-            for extra in ({"Authorization": "Bearer not-a-key"}, {"Authorization": ""}):
-                status, headers, _ = _anonymous("GET", f"{base}/v1/jobs", extra)
-                check(status == 401 and headers.get("www-authenticate", "").startswith(
-                    "Bearer"), f"{base}: {status} {headers}")
-        headers, _ = post_json(f"{first}/v1/jobs", {"operation": "forms", "input": {
-            "vertices": vertices, "faces": faces}}, expect=202)
-        job = headers["location"]
-        DEFAULT_HEADERS.update(bearer("bob"))
-        status, _, _ = http("GET", f"{second}{job}")
-        check(status == 404, f"bob sees alice's job via replica 2: {status}")
-        status, _, _ = http("DELETE", f"{second}{job}")
-        check(status == 404, f"bob deletes alice's job via replica 2: {status}")
-        status, _, _ = http("GET", f"{second}/metrics")
-        check(status == 403, f"/metrics for a user key: {status}")
-        DEFAULT_HEADERS.update(bearer("ops"))
-        listed = [j["id"] for j in get_json(f"{second}/v1/jobs")]
-        check(job.rsplit("/", 1)[1] in listed, "the admin key does not list alice's job")
-        metrics = http("GET", f"{second}/metrics")[2].decode()
-        check('ffs_key_requests_total{key="alice"}' in metrics or
-              'ffs_key_requests_total{key="bob"}' in metrics, "no per-key metrics")
-        DEFAULT_HEADERS.update(bearer("alice"))
-        small = {"vertices": vertices, "faces": faces, "handles": [{"vertex": 0}, {"vertex": 1}]}
-        headers, _ = post_json(f"{first}/v1/sessions", small, expect=201)
-        session = headers["location"]
-        drag = {"handle_positions": [vertices[0], vertices[1]]}
-        DEFAULT_HEADERS.update(bearer("bob"))
-        status = http("POST", f"{second}{session}/solve", json.dumps(drag).encode(),
-                      {"Content-Type": "application/json"})[0]
-        check(status == 404, f"bob drags alice's session via replica 2: {status}")
-        DEFAULT_HEADERS.update(bearer("ops"))
-        post_json(f"{second}{session}/solve", drag)
-        status = http("DELETE", f"{second}{session}")[0]
-        check(status == 204, f"the admin closes alice's session: {status}")
-        DEFAULT_HEADERS.update(bearer("alice"))
-        for name in (n for n in CONTAINERS if "-api-" in n):
-            log = podman("logs", name, check_rc=False).stdout.decode(errors="replace")
-            leaked = [k for k, v in KEYS.items() if v in log]
-            check(not leaked, f"{name}'s log holds the key(s) of {leaked}")
-        note(f"job {job} and session {session}: 404 for another key via replica 2, served to "
-             "the admin key; 401 without or with an unknown key; no key in the API logs")
-
-
-def _anonymous(method: str, url: str, extra: dict[str, str]) -> tuple[int, dict[str, str],
-                                                                     bytes]:
-    """A request without the default key (with ``extra``'s Authorization when not empty)."""
-    saved = dict(DEFAULT_HEADERS)
-    DEFAULT_HEADERS.clear()
-    try:
-        return http(method, url, headers={k: v for k, v in extra.items() if v}, timeout=30)
-    finally:
-        DEFAULT_HEADERS.update(saved)
-
-
-CONTAINERS: list[str] = []
-"""The containers of the compose topology (their logs are searched for keys)."""
-
-
-def compose(image: str, root: Path) -> None:
-    """The docker-compose.yml topology from the same image, with two API replicas and API
-    keys (FFS_API_KEYS, FFS_ADMIN_KEYS)."""
-    services = compose_services(image, root)
-    print(f"compose topology (docker-compose.yml: {', '.join(services)}, with API keys), "
-          "host network:", flush=True)
-    names: list[str] = CONTAINERS
-    api_env = {"FFS_API_KEYS": json.dumps(KEYS), "FFS_ADMIN_KEYS": "ops"}
-    try:
-        first, second = start_topology(image, services, 2, names, api_env)
-        DEFAULT_HEADERS.update(bearer("alice"))
-        check_job_across_replicas(first, second, root)
-        check_session_across_replicas(first, second, root)
-        check_keys_across_replicas(first, second, root)
-    except Exception:
-        for name in names:
-            print(f"--- {name}:\n{logs_tail(name, 15)}", flush=True)
-        raise
-    finally:
-        remove_containers(names)
-
-
 def run_checks(checks: Callable[[str, Path], None], description: str) -> int:
     """The command line of a check script: ``--image`` and ``--root``.
 
@@ -563,7 +459,3 @@ def run_checks(checks: Callable[[str, Path], None], description: str) -> int:
     except Exception:
         return 1
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(run_checks(compose, __doc__.split("\n\n")[0]))

@@ -42,13 +42,15 @@ def _add_key(path: Path, name: str, *options: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def limited_key(tmp_path_factory) -> tuple[Path, str, str]:
-    """A keys file with a key of few requests and jobs, and one of small meshes."""
+def limited_key(tmp_path_factory) -> tuple[Path, str, str, str]:
+    """A keys file with a key of few requests and jobs, one of small meshes and one of a
+    single session."""
     path = tmp_path_factory.mktemp("keys") / "keys.json"
     tight = _add_key(path, "tight", "--requests-per-minute", "5", "--concurrent-jobs", "1",
                      "--concurrent-sessions", "1")
     small = _add_key(path, "small", "--max-faces", "100")
-    return path, tight, small
+    single = _add_key(path, "single", "--concurrent-sessions", "1")
+    return path, tight, small, single
 
 
 @pytest.fixture(scope="module")
@@ -306,12 +308,111 @@ def test_me_and_a_refused_upload_is_a_401(server, alice, ops):
             problem(response, 401, "unauthorized")
 
 
-def test_no_key_material_in_what_the_server_wrote(server, alice, limited_key):
-    """Last: every request above went through; the log holds access lines, no key."""
+def test_the_session_quota_answers_429_and_opens_nothing(server, ops, limited_key, sphere):
+    V, F = sphere
+    with httpx.Client(base_url=server, timeout=60,
+                      headers={"Authorization": f"Bearer {limited_key[3]}"}) as single:
+        first = _session(single, V, F)
+        open_before = metric_value(ops.get("/metrics").text, "ffs_sessions")
+        refused = single.post("/v1/sessions", json={
+            "vertices": V.tolist(), "faces": F.tolist(),
+            "handles": [{"vertex": h} for h in HANDLES]})
+        doc = problem(refused, 429, "quota-exceeded")
+        assert doc["quota"] == "concurrent-sessions" and doc["limit"] == 1
+        assert refused.headers["retry-after"] == "5"
+        assert refused.headers["ratelimit-policy"] == \
+            '"concurrent-sessions";q=1;qu="concurrent-requests"'
+        assert refused.headers["ratelimit"].startswith('"concurrent-sessions";r=0;t=')
+        # Nothing was opened: the key's list and the service's count are as before.
+        assert [x["id"] for x in single.get("/v1/sessions").json()] == [
+            first.rsplit("/", 1)[1]]
+        text = ops.get("/metrics").text
+        assert metric_value(text, "ffs_sessions") == open_before
+        assert metric_value(text, "ffs_key_throttled_total", key="single",
+                            quota="concurrent-sessions") == 1
+        assert single.delete(first).status_code == 204
+        assert single.delete(_session(single, V, F)).status_code == 204  # free again
+
+
+WRONG_KEYS = ("wrong-key-5f0c2a9e7d4113", "wrong-ws-key-0b9d8e7f6a55")
+"""Keys nobody has, presented to be refused: they must not be written anywhere either."""
+
+
+def _refusals(server: str, alice: httpx.Client, bob: httpx.Client, limited_key,
+              sphere) -> dict[int, list[str]]:
+    """One request on every refusal path (401 without a key, with a wrong one and at the
+    WebSocket; 403; 404 over HTTP and the WebSocket; 429 of the request rate and of a
+    concurrent quota; 413 of the face quota): each answer's status line, headers and body,
+    by status."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    V, F = sphere
+    answers: dict[int, list[str]] = {}
+
+    def keep(status: int, headers, body: str) -> None:
+        answers.setdefault(status, []).append(f"{status} {dict(headers)} {body}")
+
+    def keep_http(response: httpx.Response) -> httpx.Response:
+        keep(response.status_code, response.headers, response.text)
+        return response
+
+    def as_key(key: str) -> httpx.Client:
+        return httpx.Client(base_url=server, timeout=60,
+                            headers={"Authorization": f"Bearer {key}"})
+
+    with _client(server, None) as anonymous:
+        keep_http(anonymous.get("/v1/jobs"))
+    with as_key(WRONG_KEYS[0]) as wrong:
+        keep_http(wrong.post("/v1/forms", json={"vertices": [], "faces": []}))
+    keep_http(alice.get("/metrics"))
+    location = _session(alice, V, F)
+    keep_http(bob.get(location))
+    keep_http(bob.post(f"{location}/solve", json={"handle_positions": V[HANDLES].tolist()}))
+    url = _ws_url(server, location)
+    with connect(url, subprotocols=["ffs", f"bearer.{KEYS['bob']}"]) as ws:
+        message = ws.recv(timeout=10)
+        keep(json.loads(message)["status"], {}, message)
+    for options in ({"subprotocols": ["ffs", f"bearer.{WRONG_KEYS[1]}"]},
+                    {"additional_headers": {"Authorization": f"Bearer {WRONG_KEYS[1]}"}}):
+        with pytest.raises(InvalidStatus) as refused:
+            connect(url, **options)
+        response = refused.value.response
+        keep(response.status_code, response.headers, response.body.decode())
+    with as_key(limited_key[1]) as tight:  # 5 requests a minute
+        for _ in range(6):
+            if keep_http(tight.get("/v1/jobs")).status_code == 429:
+                break
+    with as_key(limited_key[3]) as single:  # one session at once
+        own = _session(single, V, F)
+        keep_http(single.post("/v1/sessions", json={
+            "vertices": V.tolist(), "faces": F.tolist(),
+            "handles": [{"vertex": h} for h in HANDLES]}))
+        single.delete(own)
+    with as_key(limited_key[2]) as small:  # meshes of at most 100 faces
+        keep_http(small.post("/v1/forms", json={"vertices": V.tolist(), "faces": F.tolist()}))
+    alice.delete(location)
+    return answers
+
+
+def test_no_key_material_in_what_the_server_wrote(server, alice, bob, ops, limited_key,
+                                                  sphere):
+    """After every refusal path, neither the server's output (uvicorn's access and error
+    log, the service's log), nor any answer, nor /metrics holds a key, neither the known
+    ones nor the wrong ones presented: only key names."""
+    answers = _refusals(server, alice, bob, limited_key, sphere)
+    assert sorted(answers) == [401, 403, 404, 413, 429], sorted(answers)
+    assert len(answers[401]) == 4 and len(answers[404]) == 3 and len(answers[429]) == 2
     alice.get("/v1/jobs", params={"x": "y"})
     time.sleep(0.2)
     log = server_log(server).read_text()
     assert '"GET /v1/jobs?x=y HTTP/1.1" 200' in log  # the access log is on
-    for key in (*KEYS.values(), *limited_key[1:], "bearer."):
-        assert key not in log
-
+    assert '"GET /metrics HTTP/1.1" 403' in log and '"POST /v1/forms HTTP/1.1" 401' in log
+    metrics = ops.get("/metrics").text
+    assert metric_value(metrics, "ffs_key_throttled_total", key="tight") >= 1
+    written = {"log": log, "metrics": metrics,
+               **{f"answer {status}": "\n".join(texts) for status, texts in answers.items()}}
+    for key in (*KEYS.values(), *limited_key[1:], *WRONG_KEYS):
+        for where, text in written.items():
+            assert key not in text, f"a key in the {where}"
+    assert "bearer." not in log

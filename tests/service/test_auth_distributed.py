@@ -74,6 +74,9 @@ def test_jobs_and_sessions_belong_to_their_key_on_every_replica(replicas):
         job_id = location.rsplit("/", 1)[1]
         assert job_id in [j["id"] for j in ops_b.get("/v1/jobs").json()]
         assert job_id not in [j["id"] for j in bob_b.get("/v1/jobs").json()]
+        assert ops_b.get(f"{location}/result").status_code == 200  # the admin fetches it
+        assert ops_b.delete(location).status_code == 204  # and deletes it, for every replica
+        problem(alice_a.get(location), 404, "not-found")
 
         created = alice_a.post("/v1/sessions", json={
             "vertices": V.tolist(), "faces": F.tolist(),

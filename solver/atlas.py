@@ -192,7 +192,8 @@ def atlas_refinement(charts: list[ChartLayout]) -> dict[str, Any]:
     ``outcome`` and ``outcome_text`` (:mod:`solver.refine.outcomes`) then say what the
     charts did, with the counts in words ("converged after 48 iterations (15 of 15 charts
     refined)"); a chart that needed no refinement (developable, one face) is not refined.
-    An atlas with no refined chart gives the reason of its largest chart.
+    An atlas with no refined chart gives the reason of its largest chart; one whose charts
+    made no progress (a time limit) says "not refined" with the chart count alone.
     """
     reports = [chart.flattening.refinement for chart in charts]
     sizes = [len(chart.mesh.face_ids) for chart in charts]
@@ -218,7 +219,9 @@ def atlas_refinement(charts: list[ChartLayout]) -> dict[str, Any]:
         report["energy_after"] = float(sum(r["energy_after"] for _, r in ran))
     report = with_outcome(report)
     counts = f"{len(ran)} of {len(charts)} charts refined"
-    if unconverged:
+    if report["outcome"] == "not-refined":  # no chart made progress (a time limit)
+        counts = f"{len(charts)} charts"
+    elif unconverged:
         counts += f", {len(unconverged)} not converged"
     report["outcome_text"] += f" ({counts})"
     return report

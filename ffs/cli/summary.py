@@ -31,12 +31,14 @@ def _refined_cell(row: Row) -> str:
 
 
 def _result_cell(row: Row) -> str:
-    """The ``result`` cell: ok (or the command's note), WARN with the warnings' codes, or
-    the status."""
+    """The ``result`` cell: ok (or the command's note), WARN with the warnings' codes (and
+    the note: an --align-to residual or a flattening's charts stay in view), or the
+    status."""
     if row.status != "ok":
         return row.status.upper()
     if row.warnings:
-        return "WARN " + ", ".join(w.get("code", "?") for w in row.warnings)
+        codes = "WARN " + ", ".join(w.get("code", "?") for w in row.warnings)
+        return f"{codes}; {row.note}" if row.note else codes
     return row.note or "ok"
 
 

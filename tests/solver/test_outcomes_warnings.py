@@ -189,3 +189,9 @@ def test_an_atlas_says_what_its_charts_refinements_did(name: str, outcome: str) 
     assert linear["outcome"] == "not-refined"
     assert linear["outcome_text"] == f"not refined: disabled (refine=false) " \
         f"({linear['charts']} charts)"
+    hurried = solver.parameterize(V, F, max_seconds=1e-6).report
+    refinement = hurried["refinement"]
+    assert refinement["outcome"] == "not-refined" and refinement["iterations"] == 0
+    assert refinement["outcome_text"] == "not refined: time limit before the first " \
+        f"iteration ({refinement['charts']} charts)"
+    assert "time-limit-no-progress" in [w["code"] for w in hurried["warnings"]]

@@ -63,6 +63,10 @@ def test_policy_names_no_external_source(web_server: str, path: str) -> None:
         policy = http.get(path).headers["content-security-policy"]
     assert not EXTERNAL.search(policy), policy
     assert "'unsafe-eval'" not in policy and "script-src 'self'" in policy
+    # A scheme source (ws:, https:) names every host of that scheme; data: and blob: are
+    # this document's own.
+    schemes = {t for t in policy.replace(";", " ").split() if t.endswith(":")}
+    assert schemes <= {"data:", "blob:"}, policy
 
 
 def test_redoc_asks_for_no_external_logo(browser, web_server: str) -> None:
@@ -360,3 +364,49 @@ def test_linear_answer_note_and_empty_angle_scale(web) -> None:
     error = web.shown_errors()[-1]
     assert error["title"] == "Invalid angle scale" and "empty" in error["detail"]
     assert web.app("app.state.name") == before  # nothing was rebuilt
+
+
+# ------------------------------------------------------------- warnings on the Flatten tab
+
+
+def _strips_obj(path) -> None:
+    """Two flat strips 40 x 1 side by side (two parts): each flattens exactly, but two long
+    charts leave most of the unit square empty."""
+    import numpy as np
+    import trimesh
+
+    x = np.linspace(0.0, 40.0, 41)
+    i = np.arange(40)
+    strip = np.concatenate([np.stack([i, i + 1, i + 41], 1), np.stack([i + 1, i + 42, i + 41], 1)])
+    parts = [np.concatenate([np.stack([x, x * 0 + y, x * 0], 1),
+                             np.stack([x, x * 0 + y + 1, x * 0], 1)]) for y in (0.0, 3.0)]
+    trimesh.Trimesh(np.concatenate(parts), np.concatenate([strip, strip + 82]),
+                    process=False).export(path)
+
+
+def test_flatten_panel_lists_the_answers_warnings(web, tmp_path) -> None:
+    """The Flatten tab's answer past a documented threshold (packing efficiency under 40%)
+    lists the warning under its figures, with the value the page's own texcoords give."""
+    import numpy as np
+
+    path = tmp_path / "strips.obj"
+    _strips_obj(path)
+    page = web.open()
+    page.set_input_files("#mesh-file", str(path))
+    web.wait_for("window.app.state.name === 'strips.obj'", timeout=60)
+    web.idle()
+    page.click("#tab-flatten")
+    page.click("#flatten")
+    web.wait_for("window.app.state.flat !== null", timeout=120)
+    web.idle()
+    box = page.locator("#flatten-warnings")
+    assert box.is_visible()
+    warnings = web.app("app.state.flat.report.warnings")
+    assert [w["code"] for w in warnings] == ["packing-efficiency"]
+    assert warnings[0]["message"] in box.inner_text()
+    texcoords = np.asarray(web.app("Array.from(app.state.flat.atlas.texcoords)")).reshape(-1, 2)
+    faces = np.asarray(web.app("Array.from(app.state.flat.atlas.uvFaces)")).reshape(-1, 3)
+    a, b, c = (texcoords[faces[:, k]] for k in range(3))
+    covered = 0.5 * np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]).sum()
+    assert covered < 0.4 and abs(warnings[0]["value"] - (1 - covered)) < 1e-5
+    assert web.shown_errors() == []

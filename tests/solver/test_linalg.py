@@ -100,6 +100,23 @@ def test_uninstalled_backend_names_pip_package(monkeypatch: pytest.MonkeyPatch) 
     assert isinstance(info.value, ImportError)
 
 
+def test_an_uninstalled_backend_is_named_in_words() -> None:
+    """The real reason of a backend that does not import, without the exception's class
+    name (issue 43: no internal names in errors)."""
+    import importlib.util
+
+    missing = [name for name in ("cholespy", "pardiso")
+               if importlib.util.find_spec(linalg.backends._PIP_PACKAGE[name]) is None]
+    if not missing:
+        pytest.skip("every optional backend is installed here")
+    linalg.backends._unavailable_reason.cache_clear()
+    with pytest.raises(BackendUnavailableError) as info:
+        factorize(laplacian_plus_identity(4), missing[0])
+    message, package = str(info.value), linalg.backends._PIP_PACKAGE[missing[0]]
+    assert "No module named" in message and f"pip install {package}" in message
+    assert "Error" not in message, message
+
+
 def test_auto_falls_back_to_superlu(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(linalg.backends, "_unavailable_reason",
                         lambda name: None if name == "superlu" else "not installed")

@@ -41,7 +41,7 @@ from collections.abc import Sequence
 
 from ffs.cli.arguments import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, build_parser
 from ffs.cli.batch import run_batch
-from ffs.cli.items import UsageError, check_output_formats, plan_items
+from ffs.cli.items import UsageError, check_given_files, check_output_formats, plan_items
 from ffs.cli.summary import print_summary, write_report
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
@@ -123,6 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.jobs = min(args.jobs, len(items))
         _set_threads(args)  # before the format check imports the library (numpy, MKL)
         check_output_formats(args.command, items, args.format)
+        check_given_files(args)
     except UsageError as exc:
         print(f"ffs {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -54,6 +54,32 @@ def check_output_formats(command: str, items: Sequence[Item], override: str | No
             output_format(command, out, override)
 
 
+GIVEN_FILES: tuple[str, ...] = ("align_to", "handles", "cotangent")
+"""The options that name one file every item reads (``--align-to``, ``--handles``,
+``--cotangent``): checked before any work by :func:`check_given_files`."""
+
+
+def check_given_files(args: Any) -> None:
+    """Every file an option names (:data:`GIVEN_FILES`) exists, and a ``.sel`` / ``.def``
+    handle set has its other half beside it, so that a mistyped name is a usage error
+    (exit 2) before any computation, not a failure of each input file."""
+    from ffs.selections import SELECTION_SUFFIXES
+
+    for name in GIVEN_FILES:
+        path = getattr(args, name, None)
+        if path is None:
+            continue
+        flag = "--" + name.replace("_", "-")
+        paths = [Path(path)]
+        if name == "handles" and paths[0].suffix.lower() in SELECTION_SUFFIXES:
+            other = ".def" if paths[0].suffix.lower() == ".sel" else ".sel"
+            paths.append(paths[0].with_suffix(other))
+        for file in paths:
+            if not file.is_file():
+                beside = f" (the other half of {paths[0].name})" if file != paths[0] else ""
+                raise UsageError(f"{flag} {path}: no such file {file}{beside}")
+
+
 @dataclass
 class Item:
     """One unit of work.

@@ -215,7 +215,26 @@ def test_sel_def_errors_in_words(ffs, workdir: Path) -> None:
     assert "face.sel: vertex[1179]: 7 is not 0 (fixed), 1 (free) or 2 (handle)" in run.stderr
     (workdir / "torus.sel").write_text("2\n" * 1200)
     run = ffs("deform", "torus.off", "--handles", "torus.sel", "-o", "x.ply")
-    assert run.returncode == 1 and "torus.def: no such file" in run.stderr, run.stderr
+    assert run.returncode == 2, (run.stdout, run.stderr)   # usage: before any work
+    assert "no such file torus.def (the other half of torus.sel)" in run.stderr, run.stderr
+
+
+def test_a_missing_option_file_is_a_usage_error_before_any_work(ffs, workdir: Path) -> None:
+    """--align-to, --handles and --cotangent name one file every input reads: a missing one
+    is exit 2 with its name before anything runs, not a failure of each input."""
+    for args, flag in ((("reconstruct", "face.off", "torus.off", "--align-to", "ref.off",
+                         "-o", "out/{stem}.ply"), "--align-to"),
+                       (("deform", "face.off", "--handles", "moves.json", "-o", "out/x.ply"),
+                        "--handles"),
+                       (("deform", "face.off", "--handles", "face.def", "-o", "out/x.ply"),
+                        "--handles"),
+                       (("vjp", "face.off", "--cotangent", "g.npy", "-o", "out/g.npz"),
+                        "--cotangent")):
+        run = ffs(*args, "--report", "report.json")
+        assert run.returncode == 2, (args, run.stdout, run.stderr)
+        assert f"{flag} " in run.stderr and "no such file" in run.stderr, run.stderr
+        assert "Traceback" not in run.stderr and run.stdout == ""   # nothing ran
+        assert not (workdir / "report.json").exists() and not (workdir / "out").exists()
 
 
 # ------------------------------------------------------------------------- --align-to REF

@@ -84,3 +84,141 @@ def off_problem(data: bytes) -> str | None:
             return (f"line {number}: face {index} lists {len(values) - 1} vertex indices, "
                     f"its count says {values[0]}")
     return None
+
+
+# ------------------------------------------------------------- binary files cut short
+
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2,
+              "int16": 2, "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4,
+              "float": 4, "float32": 4, "double": 8, "float64": 8}
+"""Bytes of each PLY scalar type."""
+STL_HEADER_BYTES = 84
+"""A binary STL's 80-byte header and its uint32 triangle count."""
+STL_TRIANGLE_BYTES = 50
+"""A binary STL triangle: normal and three corners (12 float32) and a uint16."""
+
+
+def _ends_early(kept: int, total: int, what: str, have: int, need: int) -> str:
+    return (f"the file ends after {kept} of the {total} {what} its header announces "
+            f"({have} of at least {need} bytes; truncated?)")
+
+
+def stl_problem(data: bytes) -> str | None:
+    """Why a binary STL file is short of the triangles its header counts, or an ASCII one
+    ends without ``endsolid``, in words (None for a complete file).
+
+    Example:
+        >>> import struct
+        >>> stl_problem(bytes(80) + struct.pack("<I", 4) + bytes(120))[:57]
+        'the file ends after 2 of the 4 triangles its header annou'
+    """
+    if data[:5].lower() == b"solid" and b"facet" in data[:1024].lower():  # ASCII
+        if b"endsolid" in data[-1024:].lower():
+            return None
+        facets = data.lower().count(b"endfacet")
+        return (f"the file ends after {facets} complete facets, without the 'endsolid' line "
+                "of an ASCII STL (truncated?)")
+    if len(data) < STL_HEADER_BYTES:
+        return (f"the file ends inside the binary STL header ({len(data)} of "
+                f"{STL_HEADER_BYTES} bytes; truncated?)")
+    count = int.from_bytes(data[80:84], "little")
+    need = STL_HEADER_BYTES + STL_TRIANGLE_BYTES * count
+    if len(data) >= need:
+        return None
+    kept = (len(data) - STL_HEADER_BYTES) // STL_TRIANGLE_BYTES
+    return _ends_early(kept, count, "triangles", len(data), need)
+
+
+def glb_problem(data: bytes) -> str | None:
+    """Why a GLB file is shorter than its header says, in words (None when it is complete
+    or not a GLB).
+
+    Example:
+        >>> import struct
+        >>> glb_problem(b"glTF" + struct.pack("<II", 2, 400) + bytes(100))
+        'the file ends after 112 of the 400 bytes its GLB header announces (truncated?)'
+    """
+    if data[:4] != b"glTF" or len(data) < 12:
+        return None
+    total = int.from_bytes(data[8:12], "little")
+    if len(data) >= total:
+        return None
+    return (f"the file ends after {len(data)} of the {total} bytes its GLB header "
+            "announces (truncated?)")
+
+
+def _ply_header(data: bytes) -> tuple[str, list[tuple[str, int, list[list[str]]]], int] | None:
+    """A PLY header's format, its elements ``(name, count, properties)`` and the data's
+    offset; None without a complete header."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        return None
+    newline = data.find(b"\n", end)
+    offset = len(data) if newline < 0 else newline + 1
+    fmt, elements = "", []
+    for line in data[:end].decode("ascii", "replace").splitlines():
+        tokens = line.split()
+        if tokens[:1] == ["format"] and len(tokens) > 1:
+            fmt = tokens[1]
+        elif tokens[:1] == ["element"] and len(tokens) > 2 and tokens[2].isdigit():
+            elements.append((tokens[1], int(tokens[2]), []))
+        elif tokens[:1] == ["property"] and elements:
+            elements[-1][2].append(tokens[1:])
+    return fmt, elements, offset
+
+
+def _ply_min_bytes(element: str, properties: list[list[str]]) -> int | None:
+    """The fewest bytes one binary record of these properties takes (a list: its count, and
+    three entries for a face's vertex indices, a triangle), or None for a type this does not
+    know."""
+    size = 0
+    for prop in properties:
+        if prop[:1] == ["list"] and len(prop) > 3:
+            count, item = _PLY_SIZES.get(prop[1]), _PLY_SIZES.get(prop[2])
+            if count is None or item is None:
+                return None
+            corners = element == "face" and prop[3] in ("vertex_indices", "vertex_index")
+            size += count + 3 * item * corners
+        elif prop and prop[0] in _PLY_SIZES:
+            size += _PLY_SIZES[prop[0]]
+        else:
+            return None
+    return size
+
+
+def ply_problem(data: bytes) -> str | None:
+    """Why a PLY file holds fewer records than its header announces, in words (None when it
+    holds at least that much, or its header cannot be read).
+
+    A binary file is measured against the fewest bytes its elements need (lists as
+    triangles); an ASCII file's data lines are counted.
+
+    Example:
+        >>> head = b"ply\\nformat ascii 1.0\\nelement vertex 3\\nproperty float x\\n"
+        >>> ply_problem(head + b"end_header\\n0\\n1\\n")
+        'the file ends after 2 of the 3 data lines its header announces (truncated?)'
+    """
+    header = _ply_header(data)
+    if header is None:
+        return None
+    fmt, elements, offset = header
+    total = sum(count for _, count, _ in elements)
+    if fmt == "ascii":
+        body = data[offset:]
+        lines = body.count(b"\n") + (not body.endswith(b"\n") and bool(body.strip()))
+        if lines >= total:  # one record per line: fewer lines, fewer records
+            return None
+        return (f"the file ends after {lines} of the {total} data lines its header announces "
+                "(truncated?)")
+    need = 0
+    for name, count, properties in elements:
+        size = _ply_min_bytes(name, properties)
+        if size is None:
+            return None
+        need += count * size
+    have = len(data) - offset
+    if have >= need:
+        return None
+    named = " and ".join(f"{count} {name}" for name, count, _ in elements)
+    return (f"the file ends after {have} bytes of data, short of the {need} bytes its "
+            f"header's {named} records need at least (truncated?)")

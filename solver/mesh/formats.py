@@ -24,7 +24,7 @@ import numpy as np
 
 from ..core.errors import MeshFileError, UnsupportedFormatError
 from . import gltf
-from .file_diagnosis import off_problem
+from .file_diagnosis import glb_problem, off_problem, ply_problem, stl_problem
 from .mesh_readers import (
     load_trimesh,
     merge_identical,
@@ -54,7 +54,11 @@ class MeshFormat:
         precision: the coordinates it stores (``float64``: a save/load round trip is exact).
         carries: what it holds besides one mesh: ``texcoords`` (an atlas), ``animation``
             (morph targets), ``parts`` (several meshes with their transforms).
-        diagnose: names the record at fault in a file that does not parse (OFF), or None.
+        diagnose: names the record at fault in a file that does not parse (OFF), or what a
+            file cut short lacks (PLY, STL, GLB), or None.
+        complete: a cheap check (from the header's counts) run on every file that parsed:
+            what a file cut short lacks, or None; a parser may read the records that are
+            there and stop (PLY, STL, GLB: the same as ``diagnose``).
     """
 
     name: str
@@ -65,6 +69,7 @@ class MeshFormat:
     precision: Literal["float64", "float32"] = "float64"
     carries: tuple[str, ...] = ()
     diagnose: Callable[[bytes], str | None] | None = None
+    complete: Callable[[bytes], str | None] | None = None
 
     @property
     def writes(self) -> bool:
@@ -137,13 +142,18 @@ FORMATS: Final[dict[str, MeshFormat]] = {f.name: f for f in (
     MeshFormat("obj", parse_obj, _write_obj, ("model/obj",), polygons=True,
                carries=("texcoords",)),
     MeshFormat("off", _read_off, _write_off, polygons=True, diagnose=off_problem),
-    MeshFormat("ply", _trimesh_reader("ply"), _write_ply, polygons=True),
+    MeshFormat("ply", _trimesh_reader("ply"), _write_ply, polygons=True,
+               diagnose=ply_problem,
+               complete=ply_problem),
     MeshFormat("stl", _read_stl, _write_stl,
                ("model/stl", "model/x.stl-binary", "model/x.stl-ascii", "application/sla"),
-               precision="float32"),
+               precision="float32", diagnose=stl_problem,
+               complete=stl_problem),
     MeshFormat("glb", _trimesh_reader("glb"),
                lambda v, f: gltf.encode_gltf(v, f, kind="glb"), ("model/gltf-binary",),
-               precision="float32", carries=("texcoords", "animation", "parts")),
+               precision="float32", carries=("texcoords", "animation", "parts"),
+               diagnose=glb_problem,
+               complete=glb_problem),
     MeshFormat("gltf", _trimesh_reader("gltf"),
                lambda v, f: gltf.encode_gltf(v, f, kind="gltf"), ("model/gltf+json",),
                precision="float32", carries=("texcoords", "animation", "parts")),

@@ -174,8 +174,8 @@ def read_mesh(data: bytes, filename_or_type: str) -> LoadedMesh:
     try:
         vertices, faces, face_polygon = reader.read(data)
     except MeshFileError as exc:  # a reader's own words carry its file type
-        if (exc.file_type is None and reader.diagnose
-                and (problem := reader.diagnose(data))):  # the record at fault
+        if (reader.diagnose and (exc.file_type is None or fmt != "off")
+                and (problem := reader.diagnose(data))):  # the record at fault, a cut file
             raise MeshFileError(f"cannot parse {fmt.upper()} data: {problem}",
                                 file_type=fmt) from exc
         exc.located(file_type=fmt)
@@ -186,6 +186,8 @@ def read_mesh(data: bytes, filename_or_type: str) -> LoadedMesh:
         _log.debug("mesh parse failure", exc_info=True)
         raise MeshFileError(f"cannot parse {fmt.upper()} data: {_in_words(exc, data, fmt)}",
                             file_type=fmt) from exc
+    if reader.complete and (problem := reader.complete(data)):  # read what was there
+        raise MeshFileError(f"cannot parse {fmt.upper()} data: {problem}", file_type=fmt)
     vertices, faces = _finish(vertices, faces, fmt)
     if face_polygon is None or len(face_polygon) != len(faces):
         face_polygon = np.arange(len(faces), dtype=np.int64)

@@ -48,3 +48,49 @@ def test_good_off_still_reads() -> None:
     vertices, faces = load_mesh(GOOD, "torus.off")
     assert vertices.shape == (1200, 3) and faces.shape == (2400, 3)
 
+
+
+# ---------------------------------------------------------------- binary files cut short
+
+def _binary_files() -> dict[str, bytes]:
+    """A family of complete files: three meshes (an icosphere, the torus, a bumpy grid with
+    a boundary) in binary and ASCII PLY, binary and ASCII STL, and GLB."""
+    import trimesh
+
+    from solver.mesh.io import save_mesh
+    from tests.helpers.meshes import bumpy_grid, icosphere
+
+    files = {}
+    for name, (V, F) in {"sphere": icosphere(2), "torus": load_mesh(GOOD, "torus.off"),
+                         "grid": bumpy_grid(12)}.items():
+        mesh = trimesh.Trimesh(V, F, process=False)
+        files[f"{name}.ply"] = save_mesh(V, F, "ply")
+        files[f"{name}-ascii.ply"] = mesh.export(file_type="ply", encoding="ascii")
+        files[f"{name}.stl"] = save_mesh(V, F, "stl")
+        files[f"{name}-ascii.stl"] = mesh.export(file_type="stl_ascii").encode()
+        files[f"{name}.glb"] = save_mesh(V, F, "glb")
+    return files
+
+
+FILES = _binary_files()
+
+
+@pytest.mark.parametrize("name", sorted(FILES))
+@pytest.mark.parametrize("kept", [0.97, 0.6, 0.2])
+def test_a_cut_binary_file_says_it_ends_early(name: str, kept: float) -> None:
+    """Cut anywhere past its header, each file is refused in words that say it ends early
+    (with what its header announced), never a parser's internals; the diagnosis has nothing
+    to say of the complete file, which reads."""
+    from solver.mesh.formats import FORMATS
+
+    data = FILES[name]
+    fmt = name.rsplit(".", 1)[1]
+    assert FORMATS[fmt].diagnose(data) is None
+    load_mesh(data, name)
+    cut = data[:max(int(len(data) * kept), 300)]
+    with pytest.raises(MeshFileError) as caught:
+        load_mesh(cut, name)
+    message = str(caught.value)
+    assert "truncated?" in message and "the file ends" in message, message
+    assert not any(word in message.lower() for word in INTERNALS), message
+    assert "unexpected length" not in message and "no triangle mesh" not in message

@@ -286,7 +286,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     if solve_path != "tree-integration" and refine is not False and not exact:
         stages("refine")
         vertices, refinement = _refined(problem, user, vertices, frames, anchored,
-                                        initial_guess, opts, backend, stages, progress)
+                                        initial_guess, opts, backend, stages, progress,
+                                        method)
         frames = problem.frames_of(vertices)
         stages.lap("refine")
         stages("refine", 1.0)
@@ -330,16 +331,19 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
 def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
              frames: np.ndarray, anchored: list[dict[str, int]],
              initial_guess: ArrayLike | None, opts: ReconstructOptions, backend: str,
-             stages: Stages, progress: Progress | None) -> tuple[np.ndarray, dict[str, Any]]:
+             stages: Stages, progress: Progress | None,
+             method: str = "direct") -> tuple[np.ndarray, dict[str, Any]]:
     """The refinement of :func:`reconstruct`: vertices (n, 3) nearest to the forms, started
     from the better of the layout fit of the linear answer and ``initial_guess``, moved back
-    to the anchors; and its report."""
+    to the anchors; and its report. ``method``: the linear solver its Gauss-Newton steps
+    use (the one Eq. 5 used: ``"direct"`` or ``"iterative"``)."""
     topology = problem.topology
     start = problem.refinement_start(problem.layout_fit(user, backend), frames, user,
                                      vertices)
     targets = FormTargets(topology, problem.lengths, problem.angles,
                           angle_weight=opts.angle_weight)
-    refiner = Refiner(targets, problem.refinement_handles(user), backend=backend)
+    refiner = Refiner(targets, problem.refinement_handles(user), backend=backend,
+                      linear_solver=method)
     label = "layout fit"
     if initial_guess is not None:
         guess = as_points(initial_guess, "initial_guess")

@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..mesh.rigid_motions import RigidProjection
+from .iterative_steps import forcing
 from .mixed_precision import SinglePrecisionFactor
 from .normal_equations import GaussNewtonSystem
 from .quasi_newton import QuasiNewtonMemory
@@ -57,6 +58,7 @@ class IterationState:
     converged: bool = False
     trace: list[float] = field(default_factory=list)
     steps: list[float] = field(default_factory=list)
+    forcing: tuple[int, float, float] | None = None  # iterative path: (iteration, eta, |g|)
 
     @classmethod
     def start(cls, X: np.ndarray, energy: float | None,
@@ -120,6 +122,20 @@ class IterationState:
             return self.factor.solve(v, self.projection)
         x = self.factor.solve(v)
         return x if self.projection is None else self.projection(x)
+
+    def forcing_for(self, g: np.ndarray, steps: StepRules) -> float:
+        """The iterative path's CG tolerance for this iteration's gradient ``g``: the
+        Eisenstat-Walker forcing term (:func:`solver.refine.iterative_steps.forcing`), the
+        same for every refresh of one iteration (more damping at the same positions)."""
+        norm = float(np.linalg.norm(g))
+        if self.forcing is not None and self.forcing[0] == self.iterations:
+            return self.forcing[1]
+        previous = self.forcing
+        eta = forcing(None if previous is None else previous[1], norm,
+                      None if previous is None else previous[2], steps.cg_loosest,
+                      steps.cg_tightest)
+        self.forcing = (self.iterations, eta, norm)
+        return eta
 
     def end(self, reason: StopReason) -> None:
         """Stop for ``reason`` (converged or not, as the reason says)."""

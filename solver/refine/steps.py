@@ -57,6 +57,17 @@ class StepRules:
     bench.slivers, 2662 tied needles and 26 short edges left, spread 8.2e3, had its float32
     factor refused by PARDISO, a wasted factorization of 3.2 s of 13.9; clean meshes spread
     12-200)."""
+    cg_loosest: float = 0.1
+    """The iterative path's (:mod:`solver.refine.iterative_steps`) loosest forcing term: the
+    relative residual of the first Gauss-Newton step's CG, and the most any step's may
+    keep."""
+    cg_tightest: float = 1e-6
+    """... its tightest forcing term."""
+    cg_max_iterations: int = 300
+    """CG iterations after which a Gauss-Newton step's solve stops (reported as capped)."""
+    cg_resetup_growth: float = 2.0
+    """The multigrid hierarchy is set up again when a solve took more than this many times
+    the iterations of the first solve on it (or hit the cap)."""
     single_precision_error: float = 0.1
     """Largest relative correction of a single-precision solve by its refinement step before
     the refiner factorizes in double precision."""

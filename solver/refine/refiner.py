@@ -386,9 +386,10 @@ class Refiner:
                 verdict = stopping.after_step(
                     rules, fresh=s.fresh, interactive=s.interactive, alpha=alpha,
                     damping=s.damping, gain=gain, moved=moved, decrease=decrease,
-                    energy=energy, negligible=negligible, frozen_steps=s.frozen_steps)
+                    energy=energy, negligible=negligible, frozen_steps=s.frozen_steps,
+                    exact_solve=self._multigrid is None or s.factor.tolerance <= steps.cg_confirm)
                 if verdict == stopping.CONFIRM:
-                    s.frozen_steps = s.max_frozen
+                    s.frozen_steps, s.confirm = s.max_frozen, self._multigrid is not None
                 elif verdict is not None:
                     s.end(verdict)
                 if s.fresh:  # Levenberg-Marquardt's damping update (Nielsen)

@@ -63,6 +63,10 @@ class StepRules:
     keep."""
     cg_tightest: float = 1e-6
     """... its tightest forcing term."""
+    cg_confirm: float = 1e-4
+    """A Gauss-Newton step solved to at most this relative residual counts as exact for the
+    stopping rules (:func:`solver.refine.stopping.after_step`); a looser one that looks
+    converged is confirmed by a step solved to this tolerance."""
     cg_max_iterations: int = 300
     """CG iterations after which a Gauss-Newton step's solve stops (reported as capped)."""
     cg_resetup_growth: float = 2.0

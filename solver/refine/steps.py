@@ -63,7 +63,7 @@ class StepRules:
     keep."""
     cg_tightest: float = 1e-6
     """... its tightest forcing term."""
-    cg_confirm: float = 1e-4
+    cg_confirm: float = 1e-3
     """A Gauss-Newton step solved to at most this relative residual counts as exact for the
     stopping rules (:func:`solver.refine.stopping.after_step`); a looser one that looks
     converged is confirmed by a step solved to this tolerance."""

@@ -32,6 +32,7 @@ from .mesh.placement import Placement, apply_placement, side_by_side
 from .mesh.rotations import nearest_rotation
 from .options import ReconstructOptions
 from .refine.form_energy import FormTargets, reproduces, well_shaped_errors
+from .refine.iterative_steps import REFINEMENT_SOLVER_RULES
 from .refine.outcomes import not_refined
 from .refine.refiner import Refiner
 from .reports import Progress, ReconstructReport, Stages
@@ -202,8 +203,11 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     linear = linear.extended(anchor)
     stages.lap("assemble")
 
-    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver,
-                                        available_memory())
+    memory = available_memory()
+    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver, memory)
+    # The refinement's factor takes more memory than Eq. 5's: it may go iterative alone.
+    refine_method = "iterative" if method == "iterative" else REFINEMENT_SOLVER_RULES.choose(
+        topology.n_faces, opts.linear_solver, memory)
     tree = _TreeStart(problem, touched) if method == "iterative" else None
     regularized: list[int] = []
     ref_v = np.zeros((topology.n_vertices, 3))
@@ -287,7 +291,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         stages("refine")
         vertices, refinement = _refined(problem, user, vertices, frames, anchored,
                                         initial_guess, opts, backend, stages, progress,
-                                        method)
+                                        refine_method)
         frames = problem.frames_of(vertices)
         stages.lap("refine")
         stages("refine", 1.0)

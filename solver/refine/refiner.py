@@ -32,7 +32,6 @@ from threadpoolctl import ThreadpoolController
 
 from ..core.budget import Budget
 from ..linalg import SingularSystemError, analyze, factorize, resolve_backend
-from ..linalg.iterative import RULES as LINEAR_SOLVER_RULES
 from ..linalg.iterative import available_memory
 from ..mesh.embedding_geometry import hinge_angles, hinges, signed_areas  # noqa: F401 - re-exported
 from ..mesh.rigid_motions import RigidMotions, RigidProjection
@@ -55,7 +54,7 @@ from .form_energy import (  # noqa: F401 - re-exported: the refinement's public 
     reproduces,
 )
 from .iteration_state import IterationState
-from .iterative_steps import Multigrid
+from .iterative_steps import REFINEMENT_SOLVER_RULES, Multigrid
 from .mixed_precision import ImpreciseSolveError, SinglePrecisionFactor
 from .normal_equations import (  # noqa: F401 - re-exported
     PATTERN_CACHE_BYTES,
@@ -105,8 +104,8 @@ class Refiner:
         step_rules: how it steps (:class:`~solver.refine.steps.StepRules`).
         linear_solver: ``"direct"`` (default: each fresh step factorizes), ``"iterative"``
             (inexact Gauss-Newton steps by multigrid-preconditioned CG, no factor:
-            :mod:`solver.refine.iterative_steps`) or ``"auto"``/None (by size and memory,
-            :class:`solver.linalg.iterative.LinearSolverRules`).
+            :mod:`solver.refine.iterative_steps`) or ``"auto"``/None (by size and memory:
+            :data:`solver.refine.iterative_steps.REFINEMENT_SOLVER_RULES`).
     """
 
     def __init__(self, targets: FormTargets, handles: Handles | None = None, dim: int = 3,
@@ -123,8 +122,8 @@ class Refiner:
         energy = self.form_energy
         self.rigid_motions = RigidMotions(targets.topology, energy.free, energy.held, dim)
         self._needle_coordinates = self._needles()
-        self.linear_solver = LINEAR_SOLVER_RULES.choose(targets.topology.n_faces,
-                                                        linear_solver, available_memory())
+        self.linear_solver = REFINEMENT_SOLVER_RULES.choose(targets.topology.n_faces,
+                                                            linear_solver, available_memory())
         self._multigrid = (Multigrid(step_rules.cg_max_iterations, step_rules.cg_resetup_growth)
                            if self.linear_solver == "iterative" else None)
         # The factor, its matrix and the projection off its rigid motions that the previous

@@ -101,12 +101,14 @@ def test_iterative_steps_with_handles(name):
     assert iterative.report["converged"]
     assert np.array_equal(iterative.vertices[fixed], V[fixed])
     e_d, e_i = direct.report["energy_after"], iterative.report["energy_after"]
+    # Never worse than the direct answer beyond the energy tolerance; the valley under
+    # conflicting handles is flat: the knight's iterative run ends 0.1% *below* the direct
+    # one, the face's direct run stalls 1.7% above the iterative one (26 factorizations).
     assert e_i <= (1 + 1e-3) * e_d
-    if direct.report["converged"]:  # the face's direct run stalls 3% above (26 factors)
-        assert abs(e_i - e_d) <= 1e-3 * e_d
+    if direct.report["converged"]:
+        assert e_i >= (1 - 3e-3) * e_d
         scale = np.linalg.norm(np.ptp(V, axis=0))
-        # flat valley under conflicting handles: the knight's energies agree to 6e-5 while
-        # its positions differ by 1.1e-2 of the size (each run within its stopping rules)
+        # positions differ by ~1e-2 of the size there (each run within its stopping rules)
         assert np.abs(iterative.vertices - direct.vertices).max() / scale < 2e-2
 
 
@@ -164,3 +166,21 @@ def test_forcing_term():
     assert forcing(0.1, 1e-6, 1.0, 0.1, 1e-6) == 1e-6
     assert forcing(0.1, 2.0, 1.0, 0.1, 1e-6) == 0.1
     assert forcing(0.5, 1e-6, 1.0, 0.1, 1e-6) == 0.1  # safeguard 0.9 * 0.25 > 0.1
+
+
+def test_the_refinement_goes_iterative_where_only_eq5_fits():
+    """``auto``: where the memory available holds Eq. 5's factor (8.3 KB per face) but not
+    the refinement's (10.7 KB per face, bench.scale at 400K faces), Eq. 5 factorizes and
+    the refinement runs by CG; with room for both, both factorize; with room for neither,
+    neither. A forced choice is kept."""
+    from solver.linalg.iterative import RULES
+    from solver.refine.iterative_steps import REFINEMENT_SOLVER_RULES
+
+    n = 400_000
+    for per_face, eq5, refinement in [(20e3, "direct", "direct"),
+                                      (9.5e3, "direct", "iterative"),
+                                      (5e3, "iterative", "iterative")]:
+        memory = per_face * n
+        assert RULES.choose(n, "auto", memory) == eq5
+        assert REFINEMENT_SOLVER_RULES.choose(n, "auto", memory) == refinement
+    assert REFINEMENT_SOLVER_RULES.choose(n, "direct", 1.0) == "direct"

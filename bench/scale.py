@@ -50,7 +50,8 @@ NOISE = 1e-3
 CASES = ("exact", "linear", "default", "linear-direct", "linear-iterative",
          "default-direct", "default-iterative")
 """``linear`` and ``default`` choose the linear solver by size (``linear_solver="auto"``);
-the ``-direct`` and ``-iterative`` cases force it."""
+the ``-direct`` and ``-iterative`` cases force it (``default-iterative``: Eq. 5 and the
+refinement's Gauss-Newton steps by CG, no factorization)."""
 
 
 def forms_file(level: int, base: str = BASE) -> Path:
@@ -150,6 +151,9 @@ def run_case(level: int, case: str, base: str = BASE) -> dict:
         "factorizations": refinement.get("factorizations"),
         "iterations": refinement.get("iterations"),
         "converged": refinement.get("converged"),
+        "refine_cg_iterations": (refinement.get("linear_solver") or {}).get("cg_iterations"),
+        "refine_setups": (refinement.get("linear_solver") or {}).get("setups"),
+        "energy_after": refinement.get("energy_after"),
         "refinement": refinement.get("reason") or refinement.get("stopped"),
     }
 

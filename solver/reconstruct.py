@@ -32,6 +32,7 @@ from .mesh.placement import Placement, apply_placement, side_by_side
 from .mesh.rotations import nearest_rotation
 from .options import ReconstructOptions
 from .refine.form_energy import FormTargets, reproduces, well_shaped_errors
+from .refine.iterative_steps import REFINEMENT_SOLVER_RULES
 from .refine.outcomes import not_refined
 from .refine.refiner import Refiner
 from .reports import Progress, ReconstructReport, Stages
@@ -202,8 +203,11 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     linear = linear.extended(anchor)
     stages.lap("assemble")
 
-    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver,
-                                        available_memory())
+    memory = available_memory()
+    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver, memory)
+    # The refinement's factor takes more memory than Eq. 5's: it may go iterative alone.
+    refine_method = "iterative" if method == "iterative" else REFINEMENT_SOLVER_RULES.choose(
+        topology.n_faces, opts.linear_solver, memory)
     tree = _TreeStart(problem, touched) if method == "iterative" else None
     regularized: list[int] = []
     ref_v = np.zeros((topology.n_vertices, 3))
@@ -286,7 +290,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     if solve_path != "tree-integration" and refine is not False and not exact:
         stages("refine")
         vertices, refinement = _refined(problem, user, vertices, frames, anchored,
-                                        initial_guess, opts, backend, stages, progress)
+                                        initial_guess, opts, backend, stages, progress,
+                                        refine_method)
         frames = problem.frames_of(vertices)
         stages.lap("refine")
         stages("refine", 1.0)
@@ -330,16 +335,19 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
 def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,
              frames: np.ndarray, anchored: list[dict[str, int]],
              initial_guess: ArrayLike | None, opts: ReconstructOptions, backend: str,
-             stages: Stages, progress: Progress | None) -> tuple[np.ndarray, dict[str, Any]]:
+             stages: Stages, progress: Progress | None,
+             method: str = "direct") -> tuple[np.ndarray, dict[str, Any]]:
     """The refinement of :func:`reconstruct`: vertices (n, 3) nearest to the forms, started
     from the better of the layout fit of the linear answer and ``initial_guess``, moved back
-    to the anchors; and its report."""
+    to the anchors; and its report. ``method``: the linear solver its Gauss-Newton steps
+    use (the one Eq. 5 used: ``"direct"`` or ``"iterative"``)."""
     topology = problem.topology
     start = problem.refinement_start(problem.layout_fit(user, backend), frames, user,
                                      vertices)
     targets = FormTargets(topology, problem.lengths, problem.angles,
                           angle_weight=opts.angle_weight)
-    refiner = Refiner(targets, problem.refinement_handles(user), backend=backend)
+    refiner = Refiner(targets, problem.refinement_handles(user), backend=backend,
+                      linear_solver=method)
     label = "layout fit"
     if initial_guess is not None:
         guess = as_points(initial_guess, "initial_guess")

@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..mesh.rigid_motions import RigidProjection
+from .iterative_steps import forcing
 from .mixed_precision import SinglePrecisionFactor
 from .normal_equations import GaussNewtonSystem
 from .quasi_newton import QuasiNewtonMemory
@@ -57,6 +58,8 @@ class IterationState:
     converged: bool = False
     trace: list[float] = field(default_factory=list)
     steps: list[float] = field(default_factory=list)
+    forcing: tuple[int, float, float] | None = None  # iterative path: (iteration, eta, |g|)
+    confirm: bool = False  # iterative path: the next step must be solved tightly
 
     @classmethod
     def start(cls, X: np.ndarray, energy: float | None,
@@ -120,6 +123,23 @@ class IterationState:
             return self.factor.solve(v, self.projection)
         x = self.factor.solve(v)
         return x if self.projection is None else self.projection(x)
+
+    def forcing_for(self, g: np.ndarray, steps: StepRules) -> float:
+        """The iterative path's CG tolerance for this iteration's gradient ``g``: the
+        Eisenstat-Walker forcing term (:func:`solver.refine.iterative_steps.forcing`), the
+        same for every refresh of one iteration (more damping at the same positions), at
+        most :attr:`StepRules.cg_confirm` where a step must confirm convergence."""
+        norm = float(np.linalg.norm(g))
+        if self.forcing is not None and self.forcing[0] == self.iterations:
+            return self.forcing[1]
+        previous = self.forcing
+        eta = forcing(None if previous is None else previous[1], norm,
+                      None if previous is None else previous[2], steps.cg_loosest,
+                      steps.cg_tightest)
+        if self.confirm:  # a step that looked converged: confirmed by a tight solve
+            eta, self.confirm = min(eta, steps.cg_confirm), False
+        self.forcing = (self.iterations, eta, norm)
+        return eta
 
     def end(self, reason: StopReason) -> None:
         """Stop for ``reason`` (converged or not, as the reason says)."""

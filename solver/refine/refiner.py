@@ -32,6 +32,7 @@ from threadpoolctl import ThreadpoolController
 
 from ..core.budget import Budget
 from ..linalg import SingularSystemError, analyze, factorize, resolve_backend
+from ..linalg.iterative import available_memory
 from ..mesh.embedding_geometry import hinge_angles, hinges, signed_areas  # noqa: F401 - re-exported
 from ..mesh.rigid_motions import RigidMotions, RigidProjection
 from . import stopping
@@ -53,6 +54,7 @@ from .form_energy import (  # noqa: F401 - re-exported: the refinement's public 
     reproduces,
 )
 from .iteration_state import IterationState
+from .iterative_steps import REFINEMENT_SOLVER_RULES, Multigrid
 from .mixed_precision import ImpreciseSolveError, SinglePrecisionFactor
 from .normal_equations import (  # noqa: F401 - re-exported
     PATTERN_CACHE_BYTES,
@@ -100,11 +102,16 @@ class Refiner:
         backend: sparse factorization backend (:func:`solver.linalg.factorize`).
         stop_rules: when a run stops (:class:`~solver.refine.stopping.StopRules`).
         step_rules: how it steps (:class:`~solver.refine.steps.StepRules`).
+        linear_solver: ``"direct"`` (default: each fresh step factorizes), ``"iterative"``
+            (inexact Gauss-Newton steps by multigrid-preconditioned CG, no factor:
+            :mod:`solver.refine.iterative_steps`) or ``"auto"``/None (by size and memory:
+            :data:`solver.refine.iterative_steps.REFINEMENT_SOLVER_RULES`).
     """
 
     def __init__(self, targets: FormTargets, handles: Handles | None = None, dim: int = 3,
                  backend: str = "auto", *, stop_rules: StopRules = DEFAULT_STOP_RULES,
-                 step_rules: StepRules = DEFAULT_STEP_RULES) -> None:
+                 step_rules: StepRules = DEFAULT_STEP_RULES,
+                 linear_solver: str | None = "direct") -> None:
         handles = handles or Handles(soft_positions=np.zeros((0, dim)),
                                      frame_edges=np.zeros((0, 2, dim)))
         self.targets = targets
@@ -115,6 +122,10 @@ class Refiner:
         energy = self.form_energy
         self.rigid_motions = RigidMotions(targets.topology, energy.free, energy.held, dim)
         self._needle_coordinates = self._needles()
+        self.linear_solver = REFINEMENT_SOLVER_RULES.choose(targets.topology.n_faces,
+                                                            linear_solver, available_memory())
+        self._multigrid = (Multigrid(step_rules.cg_max_iterations, step_rules.cg_resetup_growth)
+                           if self.linear_solver == "iterative" else None)
         # The factor, its matrix and the projection off its rigid motions that the previous
         # keep_factor run ended with (see run(keep_factor=True)).
         self._kept: tuple[Any, sp.csr_array, RigidProjection] | None = None
@@ -209,6 +220,9 @@ class Refiner:
             state = IterationState.start(X, start_energy, self._kept, self._kept_damping,
                                          keep_factor, rules, self.step_rules)
             state.interactive = keep_factor if interactive is None else interactive
+            if self._multigrid is not None:  # every step fresh: an assembly costs less
+                state.max_frozen = 1         # than a CG solve on an old matrix
+                self._multigrid.reset_stats()
             return self._advance(state, Budget.of(time_limit), progress, clock)
 
     def adopt_factor(self, other: Refiner) -> bool:
@@ -261,8 +275,11 @@ class Refiner:
         if state.keep_factor and state.factor is not None:
             self._kept = (state.factor, state.model, state.projection)
             self._kept_damping = state.damping
+        solver = ({"method": "direct"} if self._multigrid is None else
+                  self._multigrid.stats.report(self.step_rules.cg_max_iterations))
         return Refinement(vertices=state.X.copy(), report=with_outcome({
             "refined": True, **state.counters(), "after": self.form_energy.report(state.X),
+            "linear_solver": solver,
             "angle_weight": self.targets.angle_weight,
             "seconds": time.perf_counter() - clock}))
 
@@ -282,7 +299,7 @@ class Refiner:
             if not self._fits(s, refresh, budget):
                 s.end(StopReason.TIME_LIMIT)
                 break
-            began, factorizations = time.perf_counter(), s.factorizations
+            began, refreshed = time.perf_counter(), False
             s.iterations += 1
             energy, H, g = system.normal_equations(s.X, matrix=refresh)
             if s.before is None:  # the start, measured by this evaluation
@@ -295,15 +312,17 @@ class Refiner:
             while not accepted and not stopping.stationary(rules, s.damping):
                 if refresh:
                     s.factor = None  # frees its analysis for the cache: the next one reuses it
+                    s.projection = self.rigid_motions.at(s.X[self.form_energy.free])
                     try:
-                        s.factor = self._damped_factor(H, s.damping, not s.keep_factor)
+                        s.factor = self._damped_factor(H, s.damping, not s.keep_factor, s, g)
                     except SingularSystemError:
                         s.damping, s.rejected = s.damping * 10.0, s.rejected + 1
                         continue
-                    s.factorizations += 1
-                    s.precisions.add(s.factor.precision)
+                    refreshed = True
+                    if self._multigrid is None:
+                        s.factorizations += 1
+                        s.precisions.add(s.factor.precision)
                     s.model, s.fresh, s.frozen_steps, s.factor_gain = H, True, 0, 0.0
-                    s.projection = self.rigid_motions.at(s.X[self.form_energy.free])
                     s.memory.clear()
                 s.solves += 1
                 try:
@@ -366,9 +385,10 @@ class Refiner:
                 verdict = stopping.after_step(
                     rules, fresh=s.fresh, interactive=s.interactive, alpha=alpha,
                     damping=s.damping, gain=gain, moved=moved, decrease=decrease,
-                    energy=energy, negligible=negligible, frozen_steps=s.frozen_steps)
+                    energy=energy, negligible=negligible, frozen_steps=s.frozen_steps,
+                    exact_solve=self._multigrid is None or s.factor.tolerance <= steps.cg_confirm)
                 if verdict == stopping.CONFIRM:
-                    s.frozen_steps = s.max_frozen
+                    s.frozen_steps, s.confirm = s.max_frozen, self._multigrid is not None
                 elif verdict is not None:
                     s.end(verdict)
                 if s.fresh:  # Levenberg-Marquardt's damping update (Nielsen)
@@ -383,7 +403,7 @@ class Refiner:
                     s.frozen_steps = s.max_frozen
             if s.stop == StopReason.TIME_LIMIT:
                 break
-            kind = "refresh" if s.factorizations > factorizations else "step"
+            kind = "refresh" if refreshed else "step"
             self._iteration_seconds[kind] = time.perf_counter() - began
             if not s.converged:
                 reason = stopping.after_iteration(rules, accepted, s.trace, s.steps)
@@ -439,9 +459,12 @@ class Refiner:
         s.iterations -= 1
         return True
 
-    def _damped_factor(self, H: sp.csr_array, damping: float, single: bool = False) -> Any:
+    def _damped_factor(self, H: sp.csr_array, damping: float, single: bool,
+                       s: IterationState, g: np.ndarray) -> Any:
         """Factorization of ``H`` damped by ``damping`` (:func:`solver.refine.damping.damped`).
-        Raises :class:`SingularSystemError` where the backend finds it singular.
+        Raises :class:`SingularSystemError` where the backend finds it singular. On the
+        iterative path, its CG solver instead (:mod:`solver.refine.iterative_steps`), whose
+        tolerance is the forcing term of the gradient ``g`` at ``s``'s positions.
 
         PARDISO orders this matrix itself (no ``groups`` hint): that keeps its two-level
         factor (docs/refinement.md). It factorizes in single precision where ``single``
@@ -453,6 +476,11 @@ class Refiner:
         of time in one precision (:meth:`prepare`)."""
         positions = self.system.diagonal_positions
         matrix = damped(H, damping, positions, self._needle_coordinates)
+        if self._multigrid is not None:
+            operator = self._multigrid.operator(matrix, s.X[self.form_energy.free],
+                                                s.projection)
+            operator.tolerance = s.forcing_for(g, self.step_rules)
+            return operator
         if (single and not self._double and resolve_backend(self.backend) == "pardiso"
                 and factor_precision(matrix.data[positions],
                                      self.step_rules.single_precision_spread) == "single"):
@@ -514,7 +542,8 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
            max_iterations: int | None = None, tolerance: float | None = None,
            time_limit: Budget | float | None = None, backend: str = "auto",
            progress: Any = None, stop_rules: StopRules = DEFAULT_STOP_RULES,
-           step_rules: StepRules = DEFAULT_STEP_RULES) -> Refinement:
+           step_rules: StepRules = DEFAULT_STEP_RULES,
+           linear_solver: str | None = "direct") -> Refinement:
     """Vertex positions whose fundamental forms are nearest to ``targets`` (Levenberg-Marquardt).
 
     Args:
@@ -539,6 +568,7 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
             "energy", "seconds"}`` of each step (the service's job progress shows them).
         stop_rules: :class:`~solver.refine.stopping.StopRules` (when it stops).
         step_rules: :class:`~solver.refine.steps.StepRules` (how it steps).
+        linear_solver: the Gauss-Newton steps' solver (:class:`Refiner`).
     Returns:
         :class:`Refinement`. Its energy is never above the start's: a step is accepted
         only when it lowers E. ``report["converged"]`` is False when the iteration or time
@@ -558,6 +588,6 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
     """
     dim = np.shape(vertices)[1]
     return Refiner(targets, handles, dim, backend, stop_rules=stop_rules,
-                   step_rules=step_rules).run(
+                   step_rules=step_rules, linear_solver=linear_solver).run(
         vertices, max_iterations=max_iterations, tolerance=tolerance, time_limit=time_limit,
         progress=progress)

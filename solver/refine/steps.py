@@ -57,6 +57,24 @@ class StepRules:
     bench.slivers, 2662 tied needles and 26 short edges left, spread 8.2e3, had its float32
     factor refused by PARDISO, a wasted factorization of 3.2 s of 13.9; clean meshes spread
     12-200)."""
+    cg_loosest: float = 1e-2
+    """The iterative path's (:mod:`solver.refine.iterative_steps`) loosest forcing term: the
+    relative residual of the first Gauss-Newton step's CG, and the most any step's may
+    keep. 0.1 let steps stop after 1-3 CG iterations, near-gradient steps: 13 Gauss-Newton
+    steps on the 400K-face scan (direct: 3); from 0.97 x the mesh, 1e-2 took 4-5 steps and
+    166-203 CG iterations where 0.1 took 6 and 148-221 (rocker-arm x 0.8 and noisy,
+    armadillo noisy), 7-28% less time."""
+    cg_tightest: float = 1e-6
+    """... its tightest forcing term."""
+    cg_confirm: float = 1e-3
+    """A Gauss-Newton step solved to at most this relative residual counts as exact for the
+    stopping rules (:func:`solver.refine.stopping.after_step`); a looser one that looks
+    converged is confirmed by a step solved to this tolerance."""
+    cg_max_iterations: int = 300
+    """CG iterations after which a Gauss-Newton step's solve stops (reported as capped)."""
+    cg_resetup_growth: float = 2.0
+    """The multigrid hierarchy is set up again when a solve took more than this many times
+    the iterations of the first solve on it (or hit the cap)."""
     single_precision_error: float = 0.1
     """Largest relative correction of a single-precision solve by its refinement step before
     the refiner factorizes in double precision."""

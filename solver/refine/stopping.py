@@ -188,7 +188,7 @@ def slowing(rules: StopRules, decrease: float, energy: float) -> bool:
 
 def after_step(rules: StopRules, *, fresh: bool, interactive: bool, alpha: float,
                damping: float, gain: float, moved: float, decrease: float, energy: float,
-               negligible: bool, frozen_steps: int,
+               negligible: bool, frozen_steps: int, exact_solve: bool = True,
                ) -> StopReason | Literal["confirm"] | None:
     """What an accepted step means for stopping: :attr:`StopReason.CONVERGED`,
     :data:`CONFIRM` (a fresh factorization must confirm it) or None (go on).
@@ -198,8 +198,15 @@ def after_step(rules: StopRules, *, fresh: bool, interactive: bool, alpha: float
     small, slowing step of a factor built elsewhere converges in ``interactive`` runs; in
     others where it was well predicted (``alpha`` 1, ``gain`` trusted) and moved at most
     ``quasi_newton_reach``; a well-predicted one that moved more takes up to
-    ``small_frozen_steps`` more steps on that factor; any other is confirmed."""
-    full = fresh and alpha == 1.0 and damping <= rules.light_damping
+    ``small_frozen_steps`` more steps on that factor; any other is confirmed. A fresh step
+    whose linear solve was inexact (not ``exact_solve``: CG stopped at a loose forcing term,
+    :mod:`solver.refine.iterative_steps`) is short of the Gauss-Newton step by an unknown
+    amount, so it proves nothing: a small one is confirmed by a tightly solved step."""
+    if fresh and not exact_solve:
+        small = small_step(rules, moved, decrease, energy)
+        if small and slowing(rules, decrease, energy) and not exact(rules, energy):
+            return CONFIRM
+    full = fresh and alpha == 1.0 and damping <= rules.light_damping and exact_solve
     small = small_step(rules, moved, decrease, energy)
     slow = slowing(rules, decrease, energy)
     if (full and small and slow) or negligible or exact(rules, energy):

@@ -1,0 +1,286 @@
+"""Gauss-Newton steps without a factorization: inexact Newton by preconditioned CG.
+
+Where the refinement's linear solver is iterative (``linear_solver``, chosen by
+:class:`solver.linalg.iterative.LinearSolverRules` as for Eq. 5), each fresh Gauss-Newton
+step solves the damped matrix ``H + lambda D`` (:func:`solver.refine.damping.damped`) by
+conjugate gradients preconditioned by smoothed-aggregation multigrid (pyamg), to a relative
+residual of the forcing term (Eisenstat and Walker 1996, choice 2: tight where the gradient
+falls fast, loose far from the optimum). No factor and no dense block is formed: the matrix
+(its full symmetric CSR), the multigrid hierarchy and a few vectors.
+
+Smoothed aggregation needs the matrix's near-null space: the energy is invariant under rigid
+motions, so per vertex the three translations and the three infinitesimal rotations about
+the centroid of the positions (elasticity's rigid-body modes; 2 + 1 in the plane). The
+hierarchy is kept in single precision (a preconditioner need not be exact; CG's products
+and vectors are double). On every
+aggregate, rotations about the global centroid span the local rigid motions of every
+connected component. The hierarchy is set up once and reused for the next Gauss-Newton
+matrices (only its finest level takes the new matrix; the coarse levels keep their Galerkin
+products) while a solve takes at most :attr:`solver.refine.steps.StepRules.cg_resetup_growth`
+times the iterations of the first solve after the setup.
+
+Each preconditioned residual is projected off the rigid motions of the positions the
+matrix was built at (:class:`solver.mesh.rigid_motions.RigidProjection`): the matrix is
+definite along them only by the damping's floor, and the coarse solve would otherwise fill
+the iterates with huge rigid components that cost nothing in the energy norm CG minimizes.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..linalg.iterative import LinearSolverRules, _multigrid
+
+REFINEMENT_SOLVER_RULES = LinearSolverRules(direct_bytes_per_face=10_700.0,
+                                            iterative_bytes_per_face=8_800.0)
+"""Direct or iterative Gauss-Newton steps (``linear_solver="auto"``): the default answer's
+peak memory per face with each (process included; ``bench.scale``'s 400K-face noisy scan:
+4261 MB factorizing, 3530 MB by CG), against Eq. 5's 8.3 KB per face
+(:data:`solver.linalg.iterative.RULES`). Where Eq. 5's factor fits the memory available but
+the refinement's would not, :func:`solver.reconstruct` factorizes Eq. 5 and refines by CG."""
+
+
+def symmetric_from_upper(upper: sp.csr_array) -> sp.csr_matrix:
+    """The full symmetric (N, N) CSR matrix (``upper``'s dtype) whose upper triangle
+    (diagonal included) is ``upper`` (canonical CSR)."""
+    lower = sp.csr_matrix(upper.T)
+    full = sp.csr_matrix(upper) + lower
+    full.setdiag(full.diagonal() / 2.0)
+    full.sort_indices()
+    return full
+
+
+def rigid_modes(X: np.ndarray) -> np.ndarray:
+    """(n * dim, k) float64 infinitesimal rigid motions of positions ``X`` (n, dim),
+    vertex-major: ``dim`` translations then the rotations about the centroid (3 in 3D, 1 in
+    the plane), each column scaled to unit largest entry."""
+    n, dim = X.shape
+    r = X - X.mean(axis=0) if n else X
+    k = dim + (3 if dim == 3 else 1)
+    B = np.zeros((n, dim, k))
+    for c in range(dim):
+        B[:, c, c] = 1.0
+    if dim == 3:
+        for axis in range(3):  # e_axis x r
+            e = np.zeros(3)
+            e[axis] = 1.0
+            B[:, :, 3 + axis] = np.cross(e, r)
+    else:
+        B[:, 0, 2], B[:, 1, 2] = -r[:, 1], r[:, 0]
+    B = B.reshape(n * dim, k)
+    size = np.abs(B).max(axis=0)
+    return B / np.where(size > 0, size, 1.0)
+
+
+def forcing(previous: float | None, gradient_norm: float, previous_norm: float | None,
+            loosest: float, tightest: float) -> float:
+    """Eisenstat-Walker forcing term (choice 2, gamma 0.9, alpha 2, with its safeguard):
+    the relative residual the next Gauss-Newton step's CG stops at.
+
+    Example:
+        >>> forcing(None, 1.0, None, 0.1, 1e-6)
+        0.1
+        >>> round(forcing(0.1, 0.01, 1.0, 0.1, 1e-6), 6)  # gradient 100x down: tight
+        0.009
+    """
+    if previous is None or not previous_norm:
+        return loosest
+    eta = 0.9 * (gradient_norm / previous_norm) ** 2
+    safeguard = 0.9 * previous ** 2
+    if safeguard > 0.1:
+        eta = max(eta, safeguard)
+    return float(min(loosest, max(tightest, eta)))
+
+
+@dataclass
+class CGStats:
+    """What the iterative Gauss-Newton solves of one run did (its report's
+    ``linear_solver``).
+
+    Attributes:
+        iterations: CG iterations of each solve, in order.
+        tolerances: the forcing term (relative residual asked for) of each solve.
+        residuals: the relative residual each solve reached.
+        capped: solves that stopped at the iteration cap before their tolerance.
+        setups: multigrid hierarchies set up.
+        setup_seconds, solve_seconds: their wall time.
+        levels, operator_complexity: of the last hierarchy.
+    """
+
+    iterations: list[int] = field(default_factory=list)
+    tolerances: list[float] = field(default_factory=list)
+    residuals: list[float] = field(default_factory=list)
+    capped: int = 0
+    setups: int = 0
+    setup_seconds: float = 0.0
+    solve_seconds: float = 0.0
+    levels: int = 0
+    operator_complexity: float = 1.0
+
+    def report(self, max_iterations: int) -> dict[str, Any]:
+        """JSON-ready summary (``method`` ``"iterative"``)."""
+        return {"method": "iterative", "preconditioner": "smoothed aggregation",
+                "cg_iterations": list(self.iterations),
+                "total_cg_iterations": int(sum(self.iterations)),
+                "tolerances": [float(f"{t:.3g}") for t in self.tolerances],
+                "relative_residuals": [float(f"{r:.3g}") for r in self.residuals],
+                "capped_solves": int(self.capped), "max_iterations": int(max_iterations),
+                "converged": self.capped == 0, "setups": int(self.setups),
+                "levels": int(self.levels),
+                "operator_complexity": round(float(self.operator_complexity), 3),
+                "setup_seconds": round(self.setup_seconds, 4),
+                "solve_seconds": round(self.solve_seconds, 4)}
+
+
+class Multigrid:
+    """A smoothed-aggregation hierarchy kept across Gauss-Newton matrices of one pattern.
+
+    Args:
+        max_iterations: CG's cap per solve.
+        resetup_growth: set up again when a solve took more than this many times the
+            iterations of the first solve after the last setup (or hit the cap).
+    """
+
+    def __init__(self, max_iterations: int, resetup_growth: float) -> None:
+        self.max_iterations = max_iterations
+        self.resetup_growth = resetup_growth
+        self.stats = CGStats()
+        self._ml: Any = None
+        self._cycle: Any = None
+        self._baseline: int | None = None
+        self._stale = False
+        self._setup_seconds = 0.0
+
+    def reset_stats(self) -> None:
+        """Count a new run's solves from zero (the hierarchy stays)."""
+        self.stats = CGStats(levels=self.stats.levels,
+                             operator_complexity=self.stats.operator_complexity)
+
+    def operator(self, upper: sp.csr_array, X_free: np.ndarray,
+                 project: Callable[[np.ndarray], np.ndarray]) -> IterativeOperator:
+        """The solver of the damped matrix whose upper triangle is ``upper`` (built at the
+        free positions ``X_free`` (n_free, dim), whose rigid motions ``project`` removes):
+        the hierarchy's finest level takes this matrix, or a new hierarchy is set up where
+        the last solves said so."""
+        # The hierarchy's matrix in single precision; CG's products use ``upper`` itself
+        # (double precision, no full copy: 20 of the 36 bytes per stored entry saved).
+        single = symmetric_from_upper(upper.astype(np.float32))
+        if self._ml is None or self._stale or self._ml.levels[0].A.shape != single.shape:
+            self._setup(single, X_free)
+        else:
+            self._ml.levels[0].A = single
+        return IterativeOperator(upper, self, project)
+
+    def _setup(self, single: sp.csr_matrix, X_free: np.ndarray) -> None:
+        pyamg = _multigrid()
+        start = time.perf_counter()
+        self._ml = None  # its memory is free before the new one is built
+        # Energy-minimizing prolongators: 43 CG iterations to 1e-3 on rocker-arm's noisy
+        # Gauss-Newton matrix against 95 with Jacobi-smoothed ones; in single precision:
+        # the same iterations on the 100K-face scan, V-cycles 1.7x faster, half the memory
+        # of the coarse levels (docs/large-meshes.md).
+        self._ml = pyamg.smoothed_aggregation_solver(
+            single, B=rigid_modes(X_free).astype(np.float32), max_coarse=500,
+            coarse_solver="pinv", smooth="energy", improve_candidates=None)
+        self._cycle = self._ml.aspreconditioner(cycle="V")
+        self._baseline, self._stale = None, False
+        stats = self.stats
+        stats.setups += 1
+        self._setup_seconds = time.perf_counter() - start
+        stats.setup_seconds += self._setup_seconds
+        stats.levels = len(self._ml.levels)
+        stats.operator_complexity = self._ml.operator_complexity()
+
+    def cycle(self, r: np.ndarray) -> np.ndarray:
+        """One V-cycle (single precision) from a zero guess on ``r`` (N,) float64."""
+        return (self._cycle @ r.astype(np.float32)).astype(np.float64)
+
+    def solved(self, iterations: int, residual: float, seconds: float, capped: bool) -> None:
+        """Note a solve: ``iterations`` to the relative ``residual`` in ``seconds``. The
+        hierarchy is stale (set up again before the next solve) where it paid: the solve
+        hit the cap, or it took more than ``resetup_growth`` times the iterations per decade
+        of residual of the first solve on this hierarchy and the iterations beyond that
+        rate cost more than the last setup."""
+        decades = max(-math.log10(max(residual, 1e-300)), 0.5)
+        rate = iterations / decades
+        if self._baseline is None:
+            self._baseline = max(rate, 1.0)
+            return
+        extra = (rate - self._baseline) * decades * seconds / max(iterations, 1)
+        if capped or (rate > self.resetup_growth * self._baseline
+                      and extra > self._setup_seconds):
+            self._stale = True
+
+
+class IterativeOperator:
+    """``K^-1 v`` by preconditioned CG for one damped Gauss-Newton matrix ``K`` (the
+    refinement's "factor" on the iterative path; :attr:`precision` says so).
+
+    Args:
+        upper: (N, N) float64 CSR upper triangle of ``K`` (diagonal included).
+        multigrid: the :class:`Multigrid` whose hierarchy preconditions it.
+        project: the projection off the rigid motions of the positions ``K`` was built at.
+
+    Attributes:
+        tolerance: the relative residual the next :meth:`solve` stops at (the forcing term).
+    """
+
+    precision = "iterative"
+
+    def __init__(self, upper: sp.csr_array, multigrid: Multigrid,
+                 project: Callable[[np.ndarray], np.ndarray]) -> None:
+        self.matrix = upper
+        self._diagonal = upper.diagonal()
+        self.multigrid = multigrid
+        self.project = project
+        self.tolerance = 1e-2
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """(N,) float64 approximate ``K^-1 b`` without rigid motions: CG from zero until
+        ``||K x - b|| <= tolerance ||b||`` or the cap (then counted as capped; the
+        iterate is returned all the same: every CG iterate from zero is a descent
+        direction of the model)."""
+        start = time.perf_counter()
+        mg, U, P, d = self.multigrid, self.matrix, self.project, self._diagonal
+        b = P(np.asarray(b, dtype=np.float64))
+        x = np.zeros_like(b)
+        norm_b = float(np.linalg.norm(b))
+        target = self.tolerance * norm_b
+        r = b.copy()
+        z = P(mg.cycle(r))
+        p = z.copy()
+        rz = float(r @ z)
+        iterations, residual = 0, norm_b
+        while residual > target and iterations < mg.max_iterations and rz > 0:
+            Kp = U @ p + U.T @ p - d * p
+            pKp = float(p @ Kp)
+            if not pKp > 0:
+                break
+            alpha = rz / pKp
+            x += alpha * p
+            r -= alpha * Kp
+            residual = float(np.linalg.norm(r))
+            iterations += 1
+            if residual <= target:
+                break
+            z = P(mg.cycle(r))
+            rz_new = float(r @ z)
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        capped = residual > target
+        stats = mg.stats
+        stats.iterations.append(iterations)
+        stats.tolerances.append(self.tolerance)
+        stats.residuals.append(residual / norm_b if norm_b else 0.0)
+        stats.capped += int(capped)
+        stats.solve_seconds += time.perf_counter() - start
+        mg.solved(iterations, residual / norm_b if norm_b else 0.0,
+                  time.perf_counter() - start, capped)
+        return x

@@ -11,11 +11,13 @@ Screenshots go to ``tests/artifacts/web/`` (git-ignored).
 
 from __future__ import annotations
 
+import json
 import re
 import time
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -81,6 +83,15 @@ class WebPage:
         self.evaluate("window.app.ready", timeout=timeout, what="window.app.ready")
         self.idle()
         return self.page
+
+    def load_file(self, path: Any, timeout: float = 120.0) -> None:
+        """Open the mesh file at ``path`` through the Mesh panel's file input and wait until
+        the page shows it (its name) and has no work left."""
+        name = Path(path).name
+        self.page.set_input_files("#mesh-file", str(path))
+        self.wait_for(f"window.app.state.name === {json.dumps(name)}", timeout=timeout,
+                      what=f"{name} to be shown")
+        self.idle(timeout)
 
     def idle(self, timeout: float = 120.0) -> None:
         """Wait until the page has no tracked work left; fail (not hang) after ``timeout``."""

@@ -392,9 +392,7 @@ def test_flatten_panel_lists_the_answers_warnings(web, tmp_path) -> None:
     path = tmp_path / "strips.obj"
     _strips_obj(path)
     page = web.open()
-    page.set_input_files("#mesh-file", str(path))
-    web.wait_for("window.app.state.name === 'strips.obj'", timeout=60)
-    web.idle()
+    web.load_file(path)
     page.click("#tab-flatten")
     page.click("#flatten")
     web.wait_for("window.app.state.flat !== null", timeout=120)

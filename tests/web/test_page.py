@@ -65,9 +65,7 @@ def test_upload_mesh_and_defect_map(web):
     the API's report; the Gauss and Codazzi parts are selectable."""
     page = web.open()
     assert web.app("app.state.name") == "face.off"  # the default sample
-    page.set_input_files("#mesh-file", str(REPO_DATA / "decimated-knight.off"))
-    web.wait_for("window.app.state.name === 'decimated-knight.off'")
-    web.idle()
+    web.load_file(REPO_DATA / "decimated-knight.off")
     assert web.app("app.state.colorMode") == "plain"  # exact forms: nothing to colour
     assert page.locator("#integrability-summary").inner_text().startswith("Forms are exact")
     page.click("#show-defect")

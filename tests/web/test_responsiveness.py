@@ -116,10 +116,8 @@ def test_drag_client_cost_20k_faces(web):
     """A drag on rocker-arm (20K faces): the page's own cost per update (positions, normals,
     distortion, colours, markers; rendering paused) next to the round trip of the update."""
     path = _shared("rocker-arm.obj")
-    page = web.open()
-    page.set_input_files("#mesh-file", str(path))
-    web.wait_for("window.app.state.name === 'rocker-arm.obj'", timeout=120)
-    web.idle()
+    web.open()
+    web.load_file(path)
     web.app("app.makeHandle(app.visibleVertices().slice(0, 30))")
     web.app("app.makeHandle(app.visibleVertices().slice(-30))")
     web.app("(app.view.paused = true, 0)")

@@ -102,9 +102,7 @@ def test_up_axis_guessed_for_z_up_files_and_chosen_by_the_user(web, tmp_path):
     turn = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # y -> z
     path = tmp_path / "knight-z-up.off"
     path.write_bytes(_rotated_off(REPO_DATA / "decimated-knight.off", turn))
-    page.set_input_files("#mesh-file", str(path))
-    web.wait_for("window.app.state.name === 'knight-z-up.off'")
-    web.idle()
+    web.load_file(path)
     assert web.app("app.state.up") == "+z"
     up = web.app("app.screenUp()")
     assert up["y"] < 0 and abs(up["x"]) < 0.2 * abs(up["y"]), up

@@ -49,8 +49,7 @@ def test_the_blend_panel_runs_a_blend_too_large_for_sync_as_a_job(web, tmp_path)
     (tmp_path / "stretched.off").write_bytes(save_mesh(stretched, F, "off"))
     web.allow(r"status of 413 .*/v1/blend")   # the synchronous attempt, answered use-a-job
     page = web.open()
-    page.set_input_files("#mesh-file", str(tmp_path / "sphere.off"))
-    web.idle()
+    web.load_file(tmp_path / "sphere.off")
     assert web.app("app.state.faces.length") == 3 * len(F)
     page.keyboard.press("5")
     page.click("#blend-add")
@@ -86,9 +85,8 @@ def test_a_deformation_too_large_for_sync_runs_as_a_job(web, tmp_path):
     V, F = icosphere(6)
     (tmp_path / "sphere.off").write_bytes(save_mesh(V, F, "off"))
     web.allow(r"status of 413 .*/v1/deform")   # the synchronous attempt, answered use-a-job
-    page = web.open("?transport=deform")
-    page.set_input_files("#mesh-file", str(tmp_path / "sphere.off"))
-    web.idle()
+    web.open("?transport=deform")
+    web.load_file(tmp_path / "sphere.off")
     web.app("app.setRefine(false)")   # the linear answer: each update a factorization
     web.app("app.makeHandle([0, 1, 2])")
     web.app("app.makeHandle(app.visibleVertices().slice(600, 606))")

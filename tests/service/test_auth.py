@@ -241,6 +241,8 @@ def test_quotas_answer_429_with_both_header_sets_and_run_nothing(server, ops, li
                 "Authorization": f"Bearer {limited_key[2]}"})
             doc = problem(big, 413, "mesh-too-large")
             assert "limit of 100" in doc["detail"]
+            # 413, not 429 (retrying does not help), still with the key's rate headers
+            assert big.headers["ratelimit-policy"].startswith('"requests";q=')
         # Concurrent jobs: one slow job runs, the second is refused.
         slow = {"operation": "reconstruct",
                 "input": {**forms_json(*icosphere(5)), "options": {"exact_shortcut": False}}}

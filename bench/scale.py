@@ -22,6 +22,7 @@ Usage (from the repository root)::
     python -m bench.scale --levels 0 1 --cases exact linear
     python -m bench.scale --max-gb 10          # address-space limit of each child
     python -m bench.scale --markdown           # also print the tables for bench/README.md
+    python -m bench.scale --baseline /tmp/old  # each case also run by another tree, before
 
 A child that runs out of its address-space limit is reported as ``out of memory`` (the
 parent survives; the OOM killer is never reached).
@@ -158,20 +159,27 @@ def run_case(level: int, case: str, base: str = BASE) -> dict:
     }
 
 
-def child(level: int, case: str, max_gb: float | None, base: str = BASE) -> dict:
-    """Run one case in a fresh process under an address-space limit of ``max_gb``."""
+def child(level: int, case: str, max_gb: float | None, base: str = BASE,
+          tree: Path | None = None) -> dict:
+    """Run one case in a fresh process under an address-space limit of ``max_gb``, with the
+    library (and this bench) of ``tree`` (default: this repository); a row from another
+    tree has its case suffixed ``(baseline)``."""
     forms_file(level, base)  # made once, in the parent, outside the measured process
     cmd = [sys.executable, "-m", "bench.scale", "--child", str(level), case, "--base", base]
     if max_gb:
         cmd[:0] = ["prlimit", f"--as={int(max_gb * 2**30)}"]
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=REPO)
+    root = REPO if tree is None else tree
+    env = dict(os.environ, PYTHONPATH=str(root))
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=root)
+    label = case if tree is None else f"{case} (baseline)"
     if proc.returncode != 0:
         tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
         oom = "MemoryError" in proc.stderr or "Cannot allocate" in proc.stderr
-        return {"base": Path(base).stem, "level": level, "case": case,
+        return {"base": Path(base).stem, "level": level, "case": label,
                 "error": "out of memory" if oom else tail[0]}
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    row = json.loads(proc.stdout.strip().splitlines()[-1])
+    row["case"] = label
+    return row
 
 
 def markdown(rows: list[dict]) -> str:
@@ -216,6 +224,9 @@ def main() -> None:
                         help="shared meshes to subdivide (e.g. nefertiti.obj armadillo.obj)")
     parser.add_argument("--base", default=BASE, help=argparse.SUPPRESS)
     parser.add_argument("--markdown", action="store_true")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="another tree (e.g. `git archive <commit> solver bench | tar -x "
+                             "-C DIR`): every case also runs with its library, just before")
     parser.add_argument("--child", nargs=2, metavar=("LEVEL", "CASE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -226,9 +237,10 @@ def main() -> None:
     for base in args.bases:
         for case in args.cases:
             for level in args.levels:
-                row = child(level, case, args.max_gb, base)
-                rows.append(row)
-                print(json.dumps(row), flush=True)
+                for tree in ([args.baseline] if args.baseline else []) + [None]:
+                    row = child(level, case, args.max_gb, base, tree)
+                    rows.append(row)
+                    print(json.dumps(row), flush=True)
     print(f"# load {load_averages()}")
     if args.markdown:
         print(markdown(rows))

@@ -13,7 +13,9 @@ convergence with the constant alone.
 :class:`LinearSolverRules` decides direct against iterative (one home for the face threshold
 and the memory models, which the service's admission reads); :class:`IterativeSolver` sets up
 the hierarchy once and solves several right-hand sides (three CGs advanced together: one
-sparse product of the three columns per iteration, one V-cycle per column).
+sparse product of the three columns per iteration, one W-cycle per column). The hierarchy and
+its cycles are single precision (``LinearSolverRules.preconditioner_dtype``); CG, its
+residuals and the answer are float64.
 """
 
 from __future__ import annotations
@@ -46,14 +48,18 @@ class LinearSolverRules:
             answer (process included) by each path, measured by ``bench.scale``; ``auto``
             also goes iterative where the direct path's estimate exceeds the memory given.
         relative_tolerance: CG stops at ``||K x - b|| <= tol * ||b||`` per column.
+        preconditioner_dtype: the multigrid hierarchy's and cycle's precision (CG, its
+            residuals and the answer stay float64): float32 halves the cycle's memory traffic
+            and the hierarchy's memory for the same iteration counts (``bench/README.md``).
         max_iterations: CG gives up after this many iterations (reported, not raised).
     """
 
     face_threshold: int = 2_000_000
     direct_bytes_per_face: float = 8_300.0
-    iterative_bytes_per_face: float = 3_000.0
+    iterative_bytes_per_face: float = 5_000.0   # bench.scale: 5.0 KB at 400K, 4.8 at 1.6M
     relative_tolerance: float = 1e-8
     max_iterations: int = 300
+    preconditioner_dtype: str = "float32"
 
     def choose(self, n_faces: int, requested: str | None = "auto",
                memory_bytes: float | None = None) -> str:
@@ -131,6 +137,7 @@ class IterativeStats:
         setup_seconds, solve_seconds: multigrid setup and CG wall time.
         levels: levels of the multigrid hierarchy.
         operator_complexity: nonzeros of all levels over the fine matrix's.
+        precision: the preconditioner's dtype name.
     """
 
     iterations: int = 0
@@ -141,6 +148,7 @@ class IterativeStats:
     levels: int = 0
     operator_complexity: float = 1.0
     tolerance: float = field(default=RULES.relative_tolerance)
+    precision: str = "float64"
 
     def report(self) -> dict[str, Any]:
         """JSON-ready summary."""
@@ -148,6 +156,7 @@ class IterativeStats:
                 "relative_residual": float(self.relative_residual),
                 "tolerance": float(self.tolerance), "converged": bool(self.converged),
                 "preconditioner": "smoothed aggregation", "levels": int(self.levels),
+                "precision": self.precision,
                 "operator_complexity": round(float(self.operator_complexity), 3),
                 "setup_seconds": round(self.setup_seconds, 4),
                 "solve_seconds": round(self.solve_seconds, 4)}
@@ -173,23 +182,33 @@ class IterativeSolver:
         self.matrix = sp.csr_matrix(matrix)
         self.size = int(self.matrix.shape[0])
         self.rules = rules
-        B = None if near_null is None else np.ascontiguousarray(near_null, dtype=np.float64)
+        dtype = np.dtype(rules.preconditioner_dtype)
+        B = None if near_null is None else np.ascontiguousarray(near_null, dtype=dtype)
         # Jacobi-smoothed prolongators weighted row by row ("local"): pyamg's default
         # estimates a spectral radius per level by Arnoldi, 12 of the 15 s of the setup on
         # the 100K-face scan; the candidates are not pre-smoothed (same iterations, -25%).
+        # The hierarchy is built and cycled in rules.preconditioner_dtype (float32: the
+        # cycle's memory traffic halved, the same iterations; CG itself stays float64).
+        fine = self.matrix if dtype == self.matrix.dtype else self.matrix.astype(dtype)
         self._ml = pyamg.smoothed_aggregation_solver(
-            self.matrix, B=B, max_coarse=500, coarse_solver="splu",
+            fine, B=B, max_coarse=500, coarse_solver="splu",
             smooth=("jacobi", {"weighting": "local"}), improve_candidates=None)
+        del fine
         # W-cycles: 18 and 33 CG iterations on the 100K- and 400K-face noisy scans against
         # V-cycles' 24 and 58, for about the same CPU time at 100K and less at 400K.
         self._preconditioner = self._ml.aspreconditioner(cycle="W")
+        self._dtype = dtype
         self.stats = IterativeStats(setup_seconds=time.perf_counter() - start,
                                     levels=len(self._ml.levels),
                                     operator_complexity=self._ml.operator_complexity(),
-                                    tolerance=rules.relative_tolerance)
+                                    tolerance=rules.relative_tolerance,
+                                    precision=dtype.name)
 
     def _precondition(self, r: np.ndarray) -> np.ndarray:
-        return np.stack([self._preconditioner @ r[:, c] for c in range(r.shape[1])], axis=1)
+        z = np.empty_like(r)
+        for c in range(r.shape[1]):
+            z[:, c] = self._preconditioner @ r[:, c].astype(self._dtype)
+        return z
 
     def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
         """Preconditioned CG on every column of ``rhs`` (advanced together).
@@ -223,10 +242,16 @@ class IterativeSolver:
             pKp = np.einsum("ij,ij->j", p, Kp)
             alpha = np.where(active & (pKp > 0), rz / np.where(pKp > 0, pKp, 1.0), 0.0)
             x += alpha * p
+            previous = r.copy()
             r -= alpha * Kp
             z = self._precondition(r)
             rz_new = np.einsum("ij,ij->j", r, z)
-            beta = np.where(rz != 0, rz_new / np.where(rz != 0, rz, 1.0), 0.0)
+            # Flexible (Polak-Ribiere) beta, z.(r - r_previous) / rz: the single-precision
+            # cycle is symmetric only to rounding (Fletcher-Reeves' rz_new / rz assumes it
+            # exactly; the two agree in exact arithmetic).
+            flexible = rz_new - np.einsum("ij,ij->j", z, previous)
+            del previous
+            beta = np.where(rz != 0, flexible / np.where(rz != 0, rz, 1.0), 0.0)
             p = z + beta * p
             rz = rz_new
             residual = np.linalg.norm(r, axis=0)

@@ -378,13 +378,22 @@ class ConstrainedSystem:
         K = (sp.csr_matrix(K) + sp.diags(diagonal)).tocsr()
         K.sum_duplicates()
         self.K_hard_rows = K[self.hard_columns]            # (h, N): coupling to the rhs
-        rows = np.repeat(np.arange(N), np.diff(K.indptr))
+        # Entries of hard rows or columns are cleared, but for the hard diagonals. K is this
+        # constructor's own sum, so its values are cleared in place; the masks are per
+        # nonzero booleans (no int64 row index per nonzero: 0.6 GB at 1.6M faces).
         cols = K.indices
-        keep = (~hard[rows] & ~hard[cols]) | ((rows == cols) & hard[rows])
-        del rows
+        hard_row = np.repeat(hard, np.diff(K.indptr))
+        clear = hard_row | hard[cols]
+        if len(self.hard_columns):
+            # The hard diagonals (a hard row's entry in its own column) stay.
+            row_of = np.repeat(np.flatnonzero(hard), np.diff(K.indptr)[hard])
+            clear[np.flatnonzero(hard_row)[row_of == cols[hard_row]]] = False
+            del row_of
+        K.data[clear] = 0.0
+        del hard_row, clear
         # Explicit zeros kept on purpose (see the class docstring).
-        reduced = sp.csr_matrix((K.data * keep, cols, K.indptr), shape=K.shape)
-        del K, keep
+        reduced = K
+        del K
         self.hard_diagonal = reduced.diagonal()[self.hard_columns]
         self.method = method
         self.iterative: IterativeSolver | None = None

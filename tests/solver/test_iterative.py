@@ -149,6 +149,32 @@ def test_non_converged_solve_is_reported() -> None:
             assert error > 1e-6
 
 
+@pytest.mark.parametrize("name", ["torus.off", "holes", "two-parts"])
+def test_single_precision_preconditioner_keeps_the_answer(name: str) -> None:
+    """The float32 hierarchy (the default) only preconditions: CG's residual is float64, so
+    the answer reaches the same tolerance as with a float64 hierarchy, against the factor."""
+    forms, angles, n = _forms(name, 1e-2)
+    topology, L, A = validate_forms(forms.faces, forms.edges, forms.lengths, angles, n)
+    problem = ImmersionProblem(topology, L, A)
+    anchor, roots = problem.anchors(np.ones(topology.n_components, dtype=bool))
+    tree = problem.tree_unknowns([r["face"] for r in roots], [r["vertex"] for r in roots])
+    truth = problem.system(anchor).solve(anchor.hard_values, np.zeros((0, 3)))
+    iterations = {}
+    for dtype in ("float32", "float64"):
+        system = ConstrainedSystem(problem.K, anchor.hard_columns, np.zeros(0, np.int64),
+                                   np.zeros(0), method="iterative",
+                                   near_null=near_null_space(topology.n_vertices, tree),
+                                   rules=LinearSolverRules(preconditioner_dtype=dtype))
+        u = system.solve(anchor.hard_values, np.zeros((0, 3)), tree)
+        report = system.linear_solver_report()
+        assert report["precision"] == dtype and report["converged"]
+        assert report["relative_residual"] <= 10 * RULES.relative_tolerance
+        assert _relative(u, truth) < 1e-6
+        iterations[dtype] = report["iterations"]
+    # Single-precision rounding of the cycle costs at most a couple of iterations.
+    assert iterations["float32"] <= iterations["float64"] + 2
+
+
 def test_rules_choose_by_size_and_memory() -> None:
     rules = LinearSolverRules(face_threshold=1000, direct_bytes_per_face=1e4)
     assert rules.choose(999) == "direct"

@@ -205,7 +205,10 @@ class ReconstructOptions(OrthonormalizeOptions):
         "the answer agrees with the direct one to ~1e-8 relative); `auto` (default) is "
         "iterative where the factor would not fit in the memory available, and from 2 "
         "million faces (solver.linalg.iterative.LinearSolverRules). "
-        "`report.linear_solver` says which ran, its iterations and final residual.")
+        "`report.linear_solver` says which ran, its iterations and final residual. The "
+        "refinement's Gauss-Newton steps follow the choice (`iterative`: inexact steps by "
+        "preconditioned CG, no factor; under `auto` also where only its own factor would not "
+        "fit); `report.refinement.linear_solver` gives their CG iterations per step.")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -39,10 +39,10 @@ import scipy.sparse as sp
 from ..linalg.iterative import LinearSolverRules, _multigrid
 
 REFINEMENT_SOLVER_RULES = LinearSolverRules(direct_bytes_per_face=10_700.0,
-                                            iterative_bytes_per_face=8_800.0)
+                                            iterative_bytes_per_face=8_200.0)
 """Direct or iterative Gauss-Newton steps (``linear_solver="auto"``): the default answer's
 peak memory per face with each (process included; ``bench.scale``'s 400K-face noisy scan:
-4261 MB factorizing, 3530 MB by CG), against Eq. 5's 8.3 KB per face
+4261 MB factorizing, 3280 MB by CG), against Eq. 5's 8.3 KB per face
 (:data:`solver.linalg.iterative.RULES`). Where Eq. 5's factor fits the memory available but
 the refinement's would not, :func:`solver.reconstruct` factorizes Eq. 5 and refines by CG."""
 

@@ -92,6 +92,24 @@ class CallbackTarget:
     exact: bool
 
 
+def _names(entry: str, host: str, port: int) -> bool:
+    """Whether an ``FFS_WEBHOOK_HOSTS`` entry names ``host`` (any port) or ``host:port``
+    exactly; an IPv6 address as written in a URL (``[::1]``, ``[::1]:8080``) or bare, in
+    any of its spellings (``0:0::1`` is ``::1``)."""
+    entry = entry.strip().lower()
+    name, _, entry_port = (entry[1:].partition("]") if entry.startswith("[")
+                           else entry.rpartition(":") if entry.count(":") == 1
+                           else (entry, "", ""))
+    name = name.rstrip(".")
+    entry_port = entry_port.lstrip(":")
+    if entry_port and entry_port != str(port):
+        return False
+    if name == host:
+        return True
+    ours, theirs = _ip(host), _ip(name)
+    return ours is not None and ours == theirs
+
+
 def check_callback_url(url: str, policy: WebhookPolicy) -> CallbackTarget:
     """The target of a callback URL, if the policy allows it.
 
@@ -111,7 +129,7 @@ def check_callback_url(url: str, policy: WebhookPolicy) -> CallbackTarget:
     host = parts.hostname.lower().rstrip(".")
     if not policy.hosts:
         raise CallbackRefusedError("this service sends no webhooks (FFS_WEBHOOK_HOSTS is empty)")
-    exact = any(entry.lower() in (host, f"{host}:{port}") for entry in policy.hosts)
+    exact = any(_names(entry, host, port) for entry in policy.hosts)
     wildcard = any(entry.startswith("*.") and host.endswith(entry[1:].lower())
                    for entry in policy.hosts)
     if not exact and not wildcard:

@@ -247,6 +247,20 @@ def test_the_policy_alone():
     assert WebhookPolicy(attempts=4, backoff=0.5).delays() == [0.5, 1.0, 2.0]
 
 
+@pytest.mark.parametrize("entry", ["[::1]:8080", "[::1]", "::1", "0:0::1", "[0:0:0::1]:8080"])
+def test_an_ipv6_host_is_named_as_in_a_url_or_bare(entry):
+    """An IPv6 loopback listed as a URL writes it (``[::1]:8080``) or bare, in any spelling,
+    allows a callback to it (exactly: a special address); another port or address does not."""
+    policy = WebhookPolicy((entry,))
+    assert check_callback_url("http://[::1]:8080/hook", policy).exact
+    for url in ("http://[::2]:8080/hook", "http://127.0.0.1:8080/hook"):
+        with pytest.raises(CallbackRefusedError):
+            check_callback_url(url, policy)
+    if "]:" in entry:
+        with pytest.raises(CallbackRefusedError):
+            check_callback_url("http://[::1]:9090/hook", policy)
+
+
 @pytest.mark.parametrize("address", ["127.0.0.1", "10.0.0.1", "169.254.169.254",
                                      "100.100.100.200", "100.64.0.1", "0.0.0.0", "224.0.0.1",
                                      "::1", "fd00::1", "::ffff:127.0.0.1", "64:ff9b::a00:1"])

@@ -189,7 +189,10 @@ class IterativeSolver:
         # the 100K-face scan; the candidates are not pre-smoothed (same iterations, -25%).
         # The hierarchy is built and cycled in rules.preconditioner_dtype (float32: the
         # cycle's memory traffic halved, the same iterations; CG itself stays float64).
-        fine = self.matrix if dtype == self.matrix.dtype else self.matrix.astype(dtype)
+        fine = self.matrix
+        if dtype != fine.dtype:  # values converted; the index arrays are shared, not copied
+            fine = sp.csr_matrix((fine.data.astype(dtype), fine.indices, fine.indptr),
+                                 shape=fine.shape, copy=False)
         self._ml = pyamg.smoothed_aggregation_solver(
             fine, B=B, max_coarse=500, coarse_solver="splu",
             smooth=("jacobi", {"weighting": "local"}), improve_candidates=None)

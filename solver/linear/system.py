@@ -402,7 +402,8 @@ class ConstrainedSystem:
             reduced.eliminate_zeros()  # the multigrid's strength graph reads the pattern
             candidates = None
             if near_null is not None:
-                candidates = np.array(near_null, dtype=np.float64)
+                # In the preconditioner's precision: the solver takes it without a copy.
+                candidates = np.array(near_null, dtype=rules.preconditioner_dtype)
                 candidates[self.hard_columns] = 0.0
             self.iterative = IterativeSolver(reduced, candidates, rules)
         elif method == "direct":

@@ -5,6 +5,8 @@ where both run (the iterative path is forced by ``linear_solver="iterative"``)."
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 import trimesh
@@ -105,6 +107,27 @@ def test_constrained_answer_matches_direct() -> None:
     assert _relative(answers[1].vertices, answers[0].vertices) < 1e-6
 
 
+def _anchored(name: str) -> tuple[ImmersionProblem, Any, np.ndarray, np.ndarray]:
+    """Eq. 5 of ``name``'s forms with 1e-2 rad of noise, anchored: the problem, its anchor
+    constraints, the tree-integrated unknowns and the factorization's answer."""
+    forms, angles, n = _forms(name, 1e-2)
+    topology, L, A = validate_forms(forms.faces, forms.edges, forms.lengths, angles, n)
+    problem = ImmersionProblem(topology, L, A)
+    anchor, roots = problem.anchors(np.ones(topology.n_components, dtype=bool))
+    tree = problem.tree_unknowns([r["face"] for r in roots], [r["vertex"] for r in roots])
+    return problem, anchor, tree, problem.system(anchor).solve(anchor.hard_values,
+                                                               np.zeros((0, 3)))
+
+
+def _iterative(problem: ImmersionProblem, anchor: Any, tree: np.ndarray,
+               rules: LinearSolverRules) -> ConstrainedSystem:
+    """The anchored system solved by CG under ``rules``."""
+    return ConstrainedSystem(problem.K, anchor.hard_columns, np.zeros(0, np.int64),
+                             np.zeros(0), method="iterative",
+                             near_null=near_null_space(problem.topology.n_vertices, tree),
+                             rules=rules)
+
+
 @pytest.mark.parametrize("name", ["icosphere", "face.off"])
 def test_refined_answer_matches_direct(name: str) -> None:
     """The default (refined) answer from either linear answer: the same to the refinement's
@@ -123,19 +146,9 @@ def test_refined_answer_matches_direct(name: str) -> None:
 
 def test_non_converged_solve_is_reported() -> None:
     """One iteration cannot reach the tolerance: the answer says so (not silently wrong)."""
-    forms, angles, n = _forms("torus.off", 1e-2)
-    topology, L, A = validate_forms(forms.faces, forms.edges, forms.lengths, angles,
-                                    n)
-    problem = ImmersionProblem(topology, L, A)
-    anchor, roots = problem.anchors(np.ones(topology.n_components, dtype=bool))
-    tree = problem.tree_unknowns([r["face"] for r in roots], [r["vertex"] for r in roots])
-
-    truth = problem.system(anchor).solve(anchor.hard_values, np.zeros((0, 3)))
+    problem, anchor, tree, truth = _anchored("torus.off")
     for limit, converged in ((1, False), (RULES.max_iterations, True)):
-        system = ConstrainedSystem(problem.K, anchor.hard_columns, np.zeros(0, np.int64),
-                                   np.zeros(0), method="iterative",
-                                   near_null=near_null_space(topology.n_vertices, tree),
-                                   rules=LinearSolverRules(max_iterations=limit))
+        system = _iterative(problem, anchor, tree, LinearSolverRules(max_iterations=limit))
         u = system.solve(anchor.hard_values, np.zeros((0, 3)), tree)
         report = system.linear_solver_report()
         assert report["converged"] is converged
@@ -153,18 +166,10 @@ def test_non_converged_solve_is_reported() -> None:
 def test_single_precision_preconditioner_keeps_the_answer(name: str) -> None:
     """The float32 hierarchy (the default) only preconditions: CG's residual is float64, so
     the answer reaches the same tolerance as with a float64 hierarchy, against the factor."""
-    forms, angles, n = _forms(name, 1e-2)
-    topology, L, A = validate_forms(forms.faces, forms.edges, forms.lengths, angles, n)
-    problem = ImmersionProblem(topology, L, A)
-    anchor, roots = problem.anchors(np.ones(topology.n_components, dtype=bool))
-    tree = problem.tree_unknowns([r["face"] for r in roots], [r["vertex"] for r in roots])
-    truth = problem.system(anchor).solve(anchor.hard_values, np.zeros((0, 3)))
+    problem, anchor, tree, truth = _anchored(name)
     iterations = {}
     for dtype in ("float32", "float64"):
-        system = ConstrainedSystem(problem.K, anchor.hard_columns, np.zeros(0, np.int64),
-                                   np.zeros(0), method="iterative",
-                                   near_null=near_null_space(topology.n_vertices, tree),
-                                   rules=LinearSolverRules(preconditioner_dtype=dtype))
+        system = _iterative(problem, anchor, tree, LinearSolverRules(preconditioner_dtype=dtype))
         u = system.solve(anchor.hard_values, np.zeros((0, 3)), tree)
         report = system.linear_solver_report()
         assert report["precision"] == dtype and report["converged"]

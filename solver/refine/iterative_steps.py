@@ -88,7 +88,9 @@ def forcing(previous: float | None, gradient_norm: float, previous_norm: float |
         >>> forcing(None, 1.0, None, 0.1, 1e-6)
         0.1
         >>> round(forcing(0.1, 0.01, 1.0, 0.1, 1e-6), 6)  # gradient 100x down: tight
-        0.009
+        9e-05
+        >>> forcing(0.5, 0.01, 1.0, 0.1, 1e-6)  # after a loose step the safeguard holds
+        0.1
     """
     if previous is None or not previous_norm:
         return loosest

@@ -459,12 +459,13 @@ class Refiner:
         s.iterations -= 1
         return True
 
-    def _damped_factor(self, H: sp.csr_array, damping: float, single: bool,
-                       s: IterationState, g: np.ndarray) -> Any:
+    def _damped_factor(self, H: sp.csr_array, damping: float, single: bool = False,
+                       s: IterationState | None = None, g: np.ndarray | None = None) -> Any:
         """Factorization of ``H`` damped by ``damping`` (:func:`solver.refine.damping.damped`).
         Raises :class:`SingularSystemError` where the backend finds it singular. On the
         iterative path, its CG solver instead (:mod:`solver.refine.iterative_steps`), whose
-        tolerance is the forcing term of the gradient ``g`` at ``s``'s positions.
+        tolerance is the forcing term of the gradient ``g`` at ``s``'s positions (both
+        required there; the direct path reads neither).
 
         PARDISO orders this matrix itself (no ``groups`` hint): that keeps its two-level
         factor (docs/refinement.md). It factorizes in single precision where ``single``
@@ -477,6 +478,8 @@ class Refiner:
         positions = self.system.diagonal_positions
         matrix = damped(H, damping, positions, self._needle_coordinates)
         if self._multigrid is not None:
+            if s is None or g is None:
+                raise ValueError("the iterative path's step needs the state and gradient")
             operator = self._multigrid.operator(matrix, s.X[self.form_energy.free],
                                                 s.projection)
             operator.tolerance = s.forcing_for(g, self.step_rules)

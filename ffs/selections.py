@@ -34,6 +34,12 @@ def is_selection_file(path: str | os.PathLike[str]) -> bool:
     return Path(path).suffix.lower() in SELECTION_SUFFIXES
 
 
+def selection_pair(path: str | os.PathLike[str]) -> tuple[Path, Path]:
+    """The ``.sel`` and ``.def`` files of the pair ``path`` (either of them) belongs to."""
+    base = Path(path)
+    return base.with_suffix(".sel"), base.with_suffix(".def")
+
+
 def _numbers(path: Path) -> np.ndarray:
     from ffs.files import InputFileError
 
@@ -81,8 +87,7 @@ def read_selection(path: str | os.PathLike[str], vertices: np.ndarray, faces: np
     from ffs.files import InputFileError
     from solver.mesh.rotations import is_rotation, nearest_rotation
 
-    base = Path(path)
-    sel_path, def_path = base.with_suffix(".sel"), base.with_suffix(".def")
+    sel_path, def_path = selection_pair(path)
     selection = _numbers(sel_path)
     if len(selection) != len(vertices):
         raise InputFileError(sel_path, f"{len(selection)} values for a mesh of "

@@ -63,7 +63,7 @@ def check_given_files(args: Any) -> None:
     """Every file an option names (:data:`GIVEN_FILES`) exists, and a ``.sel`` / ``.def``
     handle set has its other half beside it, so that a mistyped name is a usage error
     (exit 2) before any computation, not a failure of each input file."""
-    from ffs.selections import SELECTION_SUFFIXES
+    from ffs.selections import is_selection_file, selection_pair
 
     for name in GIVEN_FILES:
         path = getattr(args, name, None)
@@ -71,9 +71,8 @@ def check_given_files(args: Any) -> None:
             continue
         flag = "--" + name.replace("_", "-")
         paths = [Path(path)]
-        if name == "handles" and paths[0].suffix.lower() in SELECTION_SUFFIXES:
-            other = ".def" if paths[0].suffix.lower() == ".sel" else ".sel"
-            paths.append(paths[0].with_suffix(other))
+        if name == "handles" and is_selection_file(path):
+            paths += [half for half in selection_pair(path) if half != paths[0]]
         for file in paths:
             if not file.is_file():
                 beside = f" (the other half of {paths[0].name})" if file != paths[0] else ""

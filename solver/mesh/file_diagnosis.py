@@ -204,8 +204,8 @@ def ply_problem(data: bytes) -> str | None:
     fmt, elements, offset = header
     total = sum(count for _, count, _ in elements)
     if fmt == "ascii":
-        body = data[offset:]
-        lines = body.count(b"\n") + (not body.endswith(b"\n") and bool(body.strip()))
+        last = data[max(data.rfind(b"\n") + 1, offset):]  # a last line without newline
+        lines = data.count(b"\n", offset) + bool(last.strip())  # no copy of the body
         if lines >= total:  # one record per line: fewer lines, fewer records
             return None
         return (f"the file ends after {lines} of the {total} data lines its header announces "

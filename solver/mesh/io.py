@@ -174,8 +174,9 @@ def read_mesh(data: bytes, filename_or_type: str) -> LoadedMesh:
     try:
         vertices, faces, face_polygon = reader.read(data)
     except MeshFileError as exc:  # a reader's own words carry its file type
-        if (reader.diagnose and (exc.file_type is None or fmt != "off")
-                and (problem := reader.diagnose(data))):  # the record at fault, a cut file
+        # the record at fault where the reader had no words; a cut file in any case
+        check = reader.diagnose if exc.file_type is None else reader.complete
+        if check and (problem := check(data)):
             raise MeshFileError(f"cannot parse {fmt.upper()} data: {problem}",
                                 file_type=fmt) from exc
         exc.located(file_type=fmt)

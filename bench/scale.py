@@ -138,8 +138,8 @@ def run_case(level: int, case: str, base: str = BASE) -> dict:
     wall = time.perf_counter() - start
     cpu = time.process_time() - cpu
     report = result.report
-    refinement = report["refinement"] or {}
-    linear_solver = report["linear_solver"] or {}
+    refinement = report.get("refinement") or {}
+    linear_solver = report.get("linear_solver") or {}
     return {
         "base": Path(base).stem, "level": level, "case": case, "faces": len(faces),
         "seconds": wall, "linear_solver": linear_solver.get("method"),

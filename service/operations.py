@@ -41,6 +41,9 @@ STAGES_LIGHT: tuple[str, ...] = ("validate", "solve", "encode")
 COMPUTE_ONLY: frozenset[str] = frozenset({"forms", "integrability", "mesh"})
 """The operations that factorize nothing (their memory grows like the mesh's arrays);
 ``interpolate`` has light stages but reconstructs each blend."""
+ITERATIVE: frozenset[str] = frozenset({"reconstruct"})
+"""The operations whose solver chooses between a factorization and the iterative path by the
+request's memory (the others factorize)."""
 STAGES_ROWS: tuple[str, ...] = ("validate", "rows", "encode")
 """Progress stages of the shape-space operations: ``rows`` goes from 0 to 1 as the rows of
 weights are solved, in order (:func:`solver.blend`)."""
@@ -89,8 +92,15 @@ class OperationSpec:
     @property
     def solves(self) -> bool:
         """Whether it factorizes (its requests' memory: :func:`service.backends.admission.
-        request_cost`): every operation but :data:`COMPUTE_ONLY`."""
+        pricing`): every operation but :data:`COMPUTE_ONLY`."""
         return self.name not in COMPUTE_ONLY
+
+    @property
+    def iterative(self) -> bool:
+        """Whether its solver may take the iterative path (``options.linear_solver``,
+        chosen within FFS_MAX_REQUEST_MEMORY; its requests are priced by that path:
+        :class:`service.backends.admission.Pricing`): :data:`ITERATIVE`."""
+        return self.name in ITERATIVE
 
     @property
     def arrays(self) -> ArraySpecs:

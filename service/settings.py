@@ -46,9 +46,9 @@ def _default_request_memory(data: dict[str, Any]) -> int:
 
 def _default_max_faces(data: dict[str, Any]) -> int:
     """FFS_MAX_FACES's default: what the lightest operations fit in a request's memory."""
-    from service.backends.admission import faces_within
+    from service.backends.admission import LIGHT
 
-    return max(1, faces_within(data.get("max_request_memory", 64 * 1024**2), solves=False))
+    return max(1, LIGHT.faces_within(data.get("max_request_memory", 64 * 1024**2)))
 
 
 def _default_body_bytes(data: dict[str, Any]) -> int:

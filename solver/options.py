@@ -209,6 +209,11 @@ class ReconstructOptions(OrthonormalizeOptions):
         "refinement's Gauss-Newton steps follow the choice (`iterative`: inexact steps by "
         "preconditioned CG, no factor; under `auto` also where only its own factor would not "
         "fit); `report.refinement.linear_solver` gives their CG iterations per step.")
+    memory_budget: float | None = option(
+        None, "Bytes the solve may use, by which `linear_solver=\"auto\"` chooses its path "
+        "(solver.linalg.iterative.available_memory); null: the machine's available memory. "
+        "The service sets it to FFS_MAX_REQUEST_MEMORY, the memory its admission priced the "
+        "request in.", served=False, gt=0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -203,7 +203,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     linear = linear.extended(anchor)
     stages.lap("assemble")
 
-    memory = available_memory()
+    memory = available_memory(opts.memory_budget)
     method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver, memory)
     # The refinement's factor takes more memory than Eq. 5's: it may go iterative alone.
     refine_method = "iterative" if method == "iterative" else REFINEMENT_SOLVER_RULES.choose(

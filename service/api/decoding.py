@@ -459,10 +459,7 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
         errors.append(element_error(field, f"{n_vertices} vertices exceed the limit of "
                                            f"{limits.max_vertices}"))
     if n_faces > limits.max_faces and limits.max_memory is not None:
-        errors.append(element_error(field, (
-            f"{n_faces} faces exceed the {limits.max_faces} faces this operation can take "
-            f"in the {limits.max_memory / 2**30:.1f} GiB one request may use "
-            "(FFS_MAX_REQUEST_MEMORY)")))
+        errors.append(element_error(field, _memory_reason(n_faces, limits)))
     elif n_faces > limits.max_faces:
         errors.append(element_error(field, f"{n_faces} faces exceed the limit of "
                                            f"{limits.max_faces}"))
@@ -470,6 +467,23 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
         raise ProblemError("mesh-too-large", errors[0]["reason"], errors=errors)
     if limits.max_sync_faces is not None and n_faces > limits.max_sync_faces:
         raise use_a_job(n_faces, limits.max_sync_faces, limits.sync_seconds or 0.0, field)
+
+
+def _memory_reason(n_faces: int, limits: Limits) -> str:
+    """Why a mesh over the memory's face limit is refused, in words with the numbers: the
+    limit, the memory, and for an operation with an iterative path what each path takes
+    (and, for a refined answer, what its linear answer would)."""
+    reason = (f"{n_faces} faces exceed the {limits.max_faces} faces this operation can take "
+              f"in the {limits.max_memory / 2**30:.1f} GiB one request may use "
+              "(FFS_MAX_REQUEST_MEMORY)")
+    if limits.max_direct_faces is None:
+        return reason
+    reason += (f" by either path: a factorization fits {limits.max_direct_faces} faces, the "
+               f"iterative solver (options.linear_solver) {limits.max_faces}")
+    if limits.linear is not None and limits.linear.max_faces > n_faces:
+        reason += (f"; its linear answer (options.refine: false) fits up to "
+                   f"{limits.linear.max_faces} faces")
+    return reason
 
 
 def blend_rows(params: Mapping[str, Any]) -> tuple[int, str]:
@@ -568,6 +582,7 @@ def decode_document(spec: BodySpec, doc: Any, limits: Limits, prefix: tuple[Any,
     """
     arrays, params = decode_json(spec.arrays, spec.params, doc, prefix)
     dumped = params.model_dump()
+    limits = limits.answering(dumped)
     check_work(dumped, limits, prefix)
     source = array_source(spec.source, arrays, limits)
     check_work(dumped, limits, prefix, _vertex_count(spec.source, arrays)[0])
@@ -594,7 +609,8 @@ def decode_raw(spec: BodySpec, request: TaskRequest) -> TaskRequest:
             arrays, model = decode_json(spec.arrays, spec.params, doc)
         free_later(doc)  # freed once the answer is sent
     params = model.model_dump()
-    check_work(params, request.limits)
-    source = array_source(spec.source, arrays, request.limits)
-    check_work(params, request.limits, n_vertices=_vertex_count(spec.source, arrays)[0])
-    return replace(request, source=source, params=params)
+    size = request.limits.answering(params)
+    check_work(params, size)
+    source = array_source(spec.source, arrays, size)
+    check_work(params, size, n_vertices=_vertex_count(spec.source, arrays)[0])
+    return replace(request, source=source, params=params, limits=size)

@@ -443,8 +443,11 @@ class SizeLimits(BaseModel):
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"max_vertices": 1888331, "max_faces": 3147219, "max_body_bytes": 314721900,
          "max_request_memory": 8392486092,
-         "max_faces_by_operation": {"forms": 3147219, "reconstruct": 767192},
-         "max_sync_faces_by_operation": {"forms": 9416666, "reconstruct": 2152200}}]})
+         "max_faces_by_operation": {"forms": 3147219, "reconstruct": 1062211,
+                                    "deform": 767192},
+         "max_sync_faces_by_operation": {"forms": 9416666, "reconstruct": 1011144},
+         "max_direct_faces_by_operation": {"reconstruct": 767192},
+         "max_linear_faces_by_operation": {"reconstruct": 1772309}}]})
 
     max_vertices: int = Field(description="FFS_MAX_VERTICES (413 beyond).")
     max_faces: int = Field(description="FFS_MAX_FACES (413 beyond).")
@@ -460,6 +463,18 @@ class SizeLimits(BaseModel):
         description="The most faces a synchronous request of each operation may bring: those "
                     "whose first answer is predicted within FFS_REQUEST_TIMEOUT (less the "
                     "margin for encoding it); beyond, 413 `use-a-job`: submit it as a job.")
+    max_direct_faces_by_operation: dict[str, int] = Field(
+        default_factory=dict,
+        description="For the operations whose solver may go iterative (`reconstruct`): the "
+                    "most faces it solves by factorizations within FFS_MAX_REQUEST_MEMORY; "
+                    "beyond, up to `max_faces_by_operation`, it runs the iterative path "
+                    "(`options.linear_solver`: `auto`), which takes less memory and more "
+                    "time.")
+    max_linear_faces_by_operation: dict[str, int] = Field(
+        default_factory=dict,
+        description="For the same operations: the most faces of a request for the linear "
+                    "answer (`options.refine`: false), whose iterative path takes less "
+                    "memory per face than the refined answer's.")
 
 
 class Caller(BaseModel):

@@ -125,6 +125,21 @@ class Limits:
     sync_seconds: float | None = None
     """The seconds a synchronous request's solver has (FFS_REQUEST_TIMEOUT less the margin
     for encoding the answer)."""
+    request_memory: int | None = None
+    """FFS_MAX_REQUEST_MEMORY: the solver's ``memory_budget`` (its ``linear_solver="auto"``
+    chooses the path within it, as admission priced the request)."""
+    max_direct_faces: int | None = None
+    """With ``max_memory``, of an operation with an iterative path: the most faces its
+    factorization fits (beyond them, up to ``max_faces``, it solves iteratively)."""
+    linear: Limits | None = None
+    """The limits of the operation's linear answer (``options.refine: false``) where they
+    differ (``reconstruct``: its iterative linear answer takes less memory per face)."""
+
+    def answering(self, params: dict[str, Any]) -> Limits:
+        """The limits of a request with these (dumped) ``params``: :attr:`linear` for a
+        linear answer (``options.refine`` false), these otherwise."""
+        refine = (params.get("options") or {}).get("refine")
+        return self.linear if refine is False and self.linear is not None else self
 
 
 @dataclass(frozen=True)
@@ -180,10 +195,14 @@ class TaskRequest:
         """The solver's options of this request (``kind``, e.g.
         :class:`solver.options.ReconstructOptions`), in one call: the params' ``options``
         (HTTP names: ``solver`` is the backend), :attr:`backend` where none was chosen, and
-        :meth:`solver_budget` as ``max_seconds``."""
+        :meth:`solver_budget` as ``max_seconds``; FFS_MAX_REQUEST_MEMORY as
+        ``memory_budget`` where the options have it (:attr:`Limits.request_memory`)."""
         options = kind.from_api(self.params.get("options") or {}, ignore=SERVICE_OPTIONS)
-        return options.replace(backend=options.backend or self.backend,
-                               max_seconds=self.solver_budget())
+        options = options.replace(backend=options.backend or self.backend,
+                                  max_seconds=self.solver_budget())
+        if self.limits.request_memory is not None and "memory_budget" in kind.names():
+            options = options.replace(memory_budget=float(self.limits.request_memory))
+        return options
 
     def with_output(self, output: Output) -> TaskRequest:
         return replace(self, output=output)

@@ -2,14 +2,16 @@
 how much a session may take, and how large a mesh one request may bring.
 
 Request admission: a request's peak memory is predicted from its face count before it is
-accepted (:class:`OperationCost`, power laws fitted to ``bench.scale``);
-:func:`request_memory_budget` is what one worker may use (the machine's memory, less the
-sessions', shared by the workers) and :func:`faces_within` the largest mesh an operation can
-take in it. The face limit of each operation follows (``FFS_MAX_REQUEST_MEMORY``,
-``FFS_MAX_FACES``): beyond it 413 ``mesh-too-large`` names the memory, never an
-out-of-memory kill of a worker. A synchronous request's time is predicted too
-(:attr:`OperationCost.first_answer`): one whose first answer would miss
-``FFS_REQUEST_TIMEOUT`` is answered 413 ``use-a-job`` (jobs have ``FFS_JOB_TIMEOUT``).
+accepted (:class:`OperationCost`, power laws fitted to ``bench.scale``: the solver's own
+models, :class:`solver.linalg.iterative.LinearSolverRules`), by the path its solver will take
+(:class:`Pricing`: a reconstruction whose factors would not fit goes iterative, as the worker
+hands the solver the same budget); :func:`request_memory_budget` is what one worker may use
+(the machine's memory, less the sessions', shared by the workers) and :func:`faces_within` the
+largest mesh an operation can take in it by either path. The face limit of each operation
+follows (``FFS_MAX_REQUEST_MEMORY``, ``FFS_MAX_FACES``): beyond it 413 ``mesh-too-large``
+names the memory, never an out-of-memory kill of a worker. A synchronous request's time is
+predicted too (:attr:`OperationCost.first_answer`, by the path): one whose first answer would
+miss ``FFS_REQUEST_TIMEOUT`` is answered 413 ``use-a-job`` (jobs have ``FFS_JOB_TIMEOUT``).
 
 Session admission (:func:`admit_session`) is bounded by ``FFS_MAX_SESSIONS``
 (:class:`TooManySessionsError` beyond), ``FFS_MAX_SESSION_MEMORY`` (:class:`SessionMemoryError`
@@ -27,6 +29,10 @@ from collections.abc import Collection, Iterable
 from dataclasses import dataclass
 
 from service.backends.errors import ClientSessionsError, SessionMemoryError, TooManySessionsError
+from solver.linalg.cost import PowerLaw
+from solver.linalg.iterative import RULES as LINEAR_RULES
+from solver.linalg.iterative import LinearSolverRules
+from solver.refine.iterative_steps import REFINEMENT_SOLVER_RULES
 
 BYTES_PER_FACE_ESTIMATE = 6_000
 """Admission estimate of a session's memory per face before it is measured (a 20K-face
@@ -49,51 +55,15 @@ def estimate_memory(n_vertices: int, n_faces: int) -> int:
 
 
 @dataclass(frozen=True)
-class PowerLaw:
-    """A cost that grows as a power of the face count: ``base + per_face * m * (m /
-    reference)^(exponent - 1)`` for m faces, fitted through two measured points (bench.scale,
-    nefertiti subdivided). The one model of admission: bytes of peak memory
-    (:attr:`OperationCost.memory`) and seconds to the first answer
-    (:attr:`OperationCost.first_answer`).
-
-    Example:
-        >>> PowerLaw(per_face=2.0, exponent=1.0).at(1000)
-        2000.0
-        >>> PowerLaw(per_face=2.0, exponent=1.0).within(2001.0)
-        1000
-    """
-
-    per_face: float
-    exponent: float
-    reference: int = 400_000
-    base: float = 0.0
-
-    def at(self, n_faces: int) -> float:
-        """The predicted cost of ``n_faces`` faces."""
-        m = max(n_faces, 1)
-        return self.base + self.per_face * m * (m / self.reference) ** (self.exponent - 1)
-
-    def within(self, budget: float) -> int:
-        """The most faces whose predicted cost stays within ``budget`` (0 when even the base
-        does not fit)."""
-        room = budget - self.base
-        if room <= 0:
-            return 0
-        # per_face * m^exponent / reference^(exponent - 1) = room
-        scale = self.per_face / self.reference ** (self.exponent - 1)
-        return int((room / scale) ** (1 / self.exponent))
-
-
-@dataclass(frozen=True)
 class OperationCost:
-    """What admission predicts of a request from its face count: its peak ``memory`` in
-    bytes (the worker process included) and the seconds until its ``first_answer`` on this
-    2-core machine at load 2-3.
+    """What admission predicts of a request from its face count, by one solve path: its
+    peak ``memory`` in bytes (the worker process included) and the seconds until its
+    ``first_answer`` on this 2-core machine at load 2-3.
 
     The first answer is what a synchronous request cannot do without: the exact or linear
     answer (a refinement that runs out of the deadline answers its best shape so far, 200),
     so a request predicted to miss the deadline before it is answered 413 ``use-a-job``
-    (:func:`sync_faces_within`) instead of running into a 504.
+    (:meth:`Pricing.sync_faces_within`) instead of running into a 504.
     """
 
     memory: PowerLaw
@@ -104,20 +74,99 @@ class OperationCost:
         return int(self.memory.at(n_faces))
 
 
-SOLVE_COST = OperationCost(
-    memory=PowerLaw(per_face=9_800, exponent=1.13, base=200 * 1024**2),
-    first_answer=PowerLaw(per_face=3.75e-5, exponent=1.2))
-"""Operations that factorize (reconstruct, deform, parameterize, interpolate, blend,
-transfer). Memory: the refined reconstruction of noisy forms, the costliest of them
-(bench.scale, nefertiti subdivided: 3.8 GB at 388K faces, 18.1 GB at 1.55M). First answer:
-the linear answer of noisy forms (``refine=False``; 14.5 s at 388K faces, 77 s at 1.55M:
-exponent 1.2)."""
+FIRST_ANSWER_DIRECT = PowerLaw(per_face=3.75e-5, exponent=1.2)
+"""Seconds to the linear answer of noisy forms by a factorization (``refine=False``; the
+issue: 14.5 s at 388K faces, 77 s at 1.55M: exponent 1.2)."""
+FIRST_ANSWER_ITERATIVE = PowerLaw(per_face=1.9e-4, exponent=1.43)
+"""Seconds to the linear answer by multigrid-preconditioned CG (single-threaded: its CPU
+seconds, bench.scale: 11.9 at 100K faces, 76.7 at 400K, 537-576 at 1.6M)."""
+SOLVE_COST = OperationCost(memory=REFINEMENT_SOLVER_RULES.direct_memory,
+                           first_answer=FIRST_ANSWER_DIRECT)
+"""Operations that factorize (reconstruct where its factors fit, deform, parameterize,
+interpolate, blend, transfer). Memory: the refined reconstruction of noisy forms, the
+costliest of them (``REFINEMENT_SOLVER_RULES.direct_memory``: 3.8 GB at 388K faces, 18.1 GB
+at 1.55M)."""
+ITERATIVE_COST = OperationCost(memory=REFINEMENT_SOLVER_RULES.iterative_memory,
+                               first_answer=FIRST_ANSWER_ITERATIVE)
+"""A reconstruction refined by CG (``REFINEMENT_SOLVER_RULES.iterative_memory``: 968 MB at
+100K faces, 3.3 GB at 400K); its first answer is the iterative linear answer."""
+LINEAR_COST = OperationCost(memory=LINEAR_RULES.direct_memory, first_answer=FIRST_ANSWER_DIRECT)
+"""A linear reconstruction (``options.refine: false``) by a factorization (8.3 KB per face)."""
+LINEAR_ITERATIVE_COST = OperationCost(memory=LINEAR_RULES.iterative_memory,
+                                      first_answer=FIRST_ANSWER_ITERATIVE)
+"""A linear reconstruction by CG (4.65 KB per face and 150 MB: 7.3-7.7 GB at 1.6M faces)."""
 LIGHT_COST = OperationCost(
     memory=PowerLaw(per_face=2_600, exponent=1.0, base=200 * 1024**2),
     first_answer=PowerLaw(per_face=1.2e-5, exponent=1.0))
 """Operations that only compute (forms, integrability, mesh): the exact path's peak
 (bench.scale: 1.06 GB at 400K faces, 2.8 GB at 1.6M, 2.5 KB per face with the reading and
 encoding of the arrays) and time (18 s at 1.55M faces; forms and mesh take less)."""
+
+
+@dataclass(frozen=True)
+class Pricing:
+    """What a request of an operation costs, by the path its solver takes within the
+    request's memory (FFS_MAX_REQUEST_MEMORY, which the worker hands the solver as
+    ``options.memory_budget``).
+
+    Attributes:
+        direct: the cost by a factorization (or, for the light operations, the only one).
+        iterative: the cost by the iterative path (None: the operation has none).
+        choice: the solver's rules whose ``choose`` decides the peak's path (the
+            refinement's for a refined reconstruction, Eq. 5's for a linear one); the first
+            answer's path is always Eq. 5's (:data:`solver.linalg.iterative.RULES`).
+    """
+
+    direct: OperationCost
+    iterative: OperationCost | None = None
+    choice: LinearSolverRules = LINEAR_RULES
+
+    def path(self, n_faces: int, memory: float) -> str:
+        """``"direct"`` or ``"iterative"``: the path of the request's peak."""
+        if self.iterative is None:
+            return "direct"
+        return self.choice.choose(n_faces, "auto", memory)
+
+    def memory_bytes(self, n_faces: int, memory: float) -> int:
+        """Predicted peak bytes of ``n_faces`` faces by the path taken within ``memory``."""
+        cost = self.iterative if self.path(n_faces, memory) == "iterative" else self.direct
+        return (cost or self.direct).memory_bytes(n_faces)
+
+    def direct_faces(self, memory: float) -> int:
+        """The most faces the direct path takes within ``memory``."""
+        return self.direct.memory.within(memory)
+
+    def faces_within(self, memory: float) -> int:
+        """The most faces whose predicted peak, by the path the solver takes, fits
+        ``memory``: the direct path's limit, or the iterative path's where it is larger
+        (beyond the direct limit the solver goes iterative)."""
+        fit = self.direct_faces(memory)
+        if self.iterative is not None:
+            fit = max(fit, self.iterative.memory.within(memory))
+        return fit
+
+    def sync_faces_within(self, seconds: float, memory: float) -> int:
+        """The most faces whose first answer is predicted within ``seconds``: by a
+        factorization up to Eq. 5's crossing within ``memory``, by CG beyond it."""
+        if seconds <= 0:
+            return 0
+        direct = self.direct.first_answer.within(seconds)
+        if self.iterative is None:
+            return direct
+        crossing = min(LINEAR_RULES.direct_memory.within(memory), LINEAR_RULES.face_threshold - 1)
+        if direct <= crossing:
+            return direct
+        return max(crossing, self.iterative.first_answer.within(seconds))
+
+
+LIGHT = Pricing(LIGHT_COST)
+"""Operations that only compute."""
+FACTORIZING = Pricing(SOLVE_COST)
+"""Operations that factorize and have no iterative path."""
+RECONSTRUCTION = Pricing(SOLVE_COST, ITERATIVE_COST, REFINEMENT_SOLVER_RULES)
+"""``reconstruct``'s default answer (refined where the forms are not exact)."""
+LINEAR_RECONSTRUCTION = Pricing(LINEAR_COST, LINEAR_ITERATIVE_COST, LINEAR_RULES)
+"""``reconstruct`` with ``options.refine: false``."""
 BODY_BYTES_PER_FACE = 100
 """Bytes per face of the largest request body FFS_MAX_BODY_BYTES makes room for by default: a
 JSON forms body (faces, edges, lengths, angles: ~90 bytes per face at 17 significant
@@ -127,15 +176,20 @@ MEMORY_HEADROOM = 0.8
 use together: the HTTP process, the page cache and the allocator keep the rest."""
 
 
-def request_cost(solves: bool) -> OperationCost:
-    """The cost model of an operation that factorizes (``solves``) or only computes."""
-    return SOLVE_COST if solves else LIGHT_COST
+def pricing(solves: bool, iterative: bool = False, linear: bool = False) -> Pricing:
+    """The pricing of an operation that factorizes (``solves``) or only computes; one whose
+    solver may go ``iterative`` (reconstruct), of its ``linear`` answer (refine false)."""
+    if not solves:
+        return LIGHT
+    if not iterative:
+        return FACTORIZING
+    return LINEAR_RECONSTRUCTION if linear else RECONSTRUCTION
 
 
-def sync_faces_within(seconds: float, solves: bool) -> int:
-    """The most faces a synchronous request of an operation (``solves``: one that
-    factorizes) may bring whose first answer is predicted within ``seconds``."""
-    return request_cost(solves).first_answer.within(seconds) if seconds > 0 else 0
+def sync_faces_within(seconds: float, how: Pricing, memory: float) -> int:
+    """The most faces a synchronous request of an operation priced ``how`` may bring whose
+    first answer is predicted within ``seconds`` (:meth:`Pricing.sync_faces_within`)."""
+    return how.sync_faces_within(seconds, memory)
 
 
 DASK_REQUEST_MEMORY = 4 * 1024**3
@@ -153,10 +207,10 @@ def request_memory_budget(machine_memory: int, session_memory: int, workers: int
     return max(int(room / max(workers, 1)), MIN_REQUEST_MEMORY)
 
 
-def faces_within(memory: int, solves: bool) -> int:
-    """The largest face count an operation (``solves``: one that factorizes) can take in
-    ``memory`` bytes (:attr:`OperationCost.memory`)."""
-    return request_cost(solves).memory.within(memory)
+def faces_within(memory: int, how: Pricing) -> int:
+    """The largest face count an operation priced ``how`` (:func:`pricing`) can take in
+    ``memory`` bytes, by the path its solver takes there (:meth:`Pricing.faces_within`)."""
+    return how.faces_within(memory)
 
 
 @dataclass(frozen=True)

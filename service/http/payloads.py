@@ -40,7 +40,7 @@ from service.api.task import (
     SessionSpec,
     TaskRequest,
 )
-from service.backends.admission import faces_within, sync_faces_within
+from service.backends.admission import Pricing, pricing, sync_faces_within
 from service.http.bodies import (
     ParserPool,
     as_arrays,
@@ -59,51 +59,80 @@ from service.settings import Settings
 
 
 def limits(settings: Settings, operation: str | None = None) -> Limits:
-    """The size and work limits a task carries to its worker.
+    """The size limits a task carries to its worker.
 
     Args:
-        settings: FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BLEND_STEPS and
-            FFS_MAX_REQUEST_MEMORY.
+        settings: FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BLEND_STEPS,
+            FFS_MAX_BLEND_VERTICES and FFS_MAX_REQUEST_MEMORY.
         operation: the operation (a key of :data:`service.operations.OPERATIONS`), or None
             for a session (which factorizes).
-            FFS_MAX_BLEND_VERTICES.
 
     Returns:
         The limits: at most FFS_MAX_FACES faces, and at most the faces whose predicted peak
-        memory (:mod:`service.backends.admission`) fits FFS_MAX_REQUEST_MEMORY.
+        memory, by the path the solver takes within FFS_MAX_REQUEST_MEMORY
+        (:mod:`service.backends.admission`), fits it; for an operation with an iterative
+        path also those of its linear answer (``Limits.linear``).
     """
     spec = OPERATIONS.get(operation) if operation is not None else None
-    fit = faces_within(settings.max_request_memory, solves=spec is None or spec.solves)
-    if fit < settings.max_faces:
-        return Limits(settings.max_vertices, fit, settings.max_blend_steps,
-                      settings.max_blend_vertices, settings.max_request_memory)
-    return Limits(settings.max_vertices, settings.max_faces, settings.max_blend_steps,
-                  settings.max_blend_vertices)
+    solves, iterative = spec is None or spec.solves, spec is not None and spec.iterative
+    size = _limits(settings, pricing(solves, iterative))
+    if iterative:
+        size = replace(size, linear=_limits(settings, pricing(solves, iterative, linear=True)))
+    return size
+
+
+def _limits(settings: Settings, how: Pricing) -> Limits:
+    """The limits of an operation priced ``how``."""
+    memory = settings.max_request_memory
+    fit = how.faces_within(memory)
+    direct = how.direct_faces(memory) if how.iterative is not None else None
+    bound = fit < settings.max_faces
+    return Limits(settings.max_vertices, min(fit, settings.max_faces), settings.max_blend_steps,
+                  settings.max_blend_vertices, memory if bound else None,
+                  request_memory=memory, max_direct_faces=direct if bound else None)
 
 
 def sync_limits(settings: Settings, operation: str) -> Limits:
     """:func:`limits` of a synchronous request: also the most faces whose first answer is
-    predicted within FFS_REQUEST_TIMEOUT less the margin for encoding the answer
-    (:func:`service.backends.admission.sync_faces_within`; beyond: 413 ``use-a-job``)."""
+    predicted within FFS_REQUEST_TIMEOUT less the margin for encoding the answer, by the path
+    the solver takes (:meth:`service.backends.admission.Pricing.sync_faces_within`; beyond:
+    413 ``use-a-job``)."""
     seconds = settings.request_timeout - TIME_POLICY.encode_margin(settings.request_timeout)
-    solves = OPERATIONS[operation].solves
-    return replace(limits(settings, operation), max_sync_faces=sync_faces_within(seconds, solves),
-                   sync_seconds=seconds)
+    spec = OPERATIONS[operation]
+    memory = settings.max_request_memory
+
+    def timed(size: Limits, how: Pricing) -> Limits:
+        return replace(size, max_sync_faces=sync_faces_within(seconds, how, memory),
+                       sync_seconds=seconds)
+
+    size = limits(settings, operation)
+    if size.linear is not None:
+        size = replace(size, linear=timed(size.linear, pricing(True, True, linear=True)))
+    return timed(size, pricing(spec.solves, spec.iterative))
 
 
 def size_limits(settings: Settings) -> dict[str, Any]:
     """The size limits ``GET /v1/me`` shows (:class:`service.api.documents.SizeLimits`):
     FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BODY_BYTES, FFS_MAX_REQUEST_MEMORY, the
-    faces each operation (and a session) takes (:func:`limits`) and the faces each takes
-    synchronously (:func:`sync_limits`)."""
+    faces each operation (and a session) takes (:func:`limits`), the faces each takes
+    synchronously (:func:`sync_limits`), and for the operations with an iterative path the
+    faces their factorization takes and those their linear answer takes."""
     by_operation = {name: limits(settings, name).max_faces for name in OPERATIONS}
     by_operation["sessions"] = limits(settings).max_faces
+    memory = settings.max_request_memory
+    iterative = [name for name, spec in OPERATIONS.items() if spec.iterative]
     return {"max_vertices": settings.max_vertices, "max_faces": settings.max_faces,
             "max_body_bytes": settings.max_body_bytes,
-            "max_request_memory": settings.max_request_memory,
+            "max_request_memory": memory,
             "max_faces_by_operation": by_operation,
             "max_sync_faces_by_operation": {name: sync_limits(settings, name).max_sync_faces
-                                            for name in OPERATIONS}}
+                                            for name in OPERATIONS},
+            "max_direct_faces_by_operation": {
+                name: min(pricing(True, True).direct_faces(memory), settings.max_faces)
+                for name in iterative},
+            "max_linear_faces_by_operation": {
+                name: (limits(settings, name).linear or limits(settings, name)).max_faces
+                for name in iterative}}
 
 
 async def operation_request(request: Request, spec: OperationSpec, settings: Settings,

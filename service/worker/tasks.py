@@ -57,7 +57,8 @@ def _read_file(upload: MeshFile, request: TaskRequest
     except MeshFileError as exc:  # its problem names the upload's field and file name
         exc.located(field=upload.field, file_name=upload.filename)
         raise
-    check_limits(len(loaded.vertices), len(loaded.faces), request.limits, upload.field)
+    check_limits(len(loaded.vertices), len(loaded.faces), request.limits.answering(request.params),
+                 upload.field)
     return loaded.vertices, loaded.faces, loaded.report()
 
 

@@ -27,11 +27,20 @@ from typing import Any, Literal
 import numpy as np
 import scipy.sparse as sp
 
+from .cost import PowerLaw
 from .errors import BackendUnavailableError
 
 LinearSolver = Literal["auto", "direct", "iterative"]
 LINEAR_SOLVERS: tuple[str, ...] = ("auto", "direct", "iterative")
 """The values of the ``linear_solver`` option."""
+
+
+DIRECT_MEMORY = PowerLaw(per_face=8_300.0)
+"""Peak bytes of Eq. 5's linear answer by a factorization (``bench.scale``, noisy forms,
+``refine=False``: 803-883 MB at 100K faces, 3.0-3.3 GB at 400K)."""
+ITERATIVE_MEMORY = PowerLaw(per_face=4_650.0, base=150e6)
+"""Peak bytes of the linear answer by multigrid-preconditioned CG (the setup's peak: 618 MB at
+100K faces, 2.0 GB at 400K, 7.25-7.75 GB at 1.6M)."""
 
 
 @dataclass(frozen=True)
@@ -44,9 +53,11 @@ class LinearSolverRules:
             below it, only where the direct path's memory estimate exceeds the memory
             available (a factorization is faster wherever it fits: measured in
             ``bench/README.md``, "Iterative linear path").
-        direct_bytes_per_face, iterative_bytes_per_face: peak memory per face of a linear
-            answer (process included) by each path, measured by ``bench.scale``; ``auto``
-            also goes iterative where the direct path's estimate exceeds the memory given.
+        direct_memory, iterative_memory: peak bytes of a solve (the process included) by
+            each path as a function of the face count (:class:`~solver.linalg.cost.PowerLaw`,
+            fitted to ``bench.scale``); ``auto`` goes iterative where ``direct_memory``
+            exceeds the memory given. The service's admission prices a request by the same
+            models (``service.backends.admission``).
         relative_tolerance: CG stops at ``||K x - b|| <= tol * ||b||`` per column.
         preconditioner_dtype: the multigrid hierarchy's and cycle's precision (CG, its
             residuals and the answer stay float64): float32 halves the cycle's memory traffic
@@ -55,8 +66,8 @@ class LinearSolverRules:
     """
 
     face_threshold: int = 2_000_000
-    direct_bytes_per_face: float = 8_300.0
-    iterative_bytes_per_face: float = 5_000.0   # bench.scale: 5.0 KB at 400K, 4.8 at 1.6M
+    direct_memory: PowerLaw = DIRECT_MEMORY
+    iterative_memory: PowerLaw = ITERATIVE_MEMORY
     relative_tolerance: float = 1e-8
     max_iterations: int = 300
     preconditioner_dtype: str = "float32"
@@ -82,7 +93,7 @@ class LinearSolverRules:
             return requested
         if n_faces >= self.face_threshold:
             return "iterative"
-        if memory_bytes is not None and self.direct_bytes_per_face * n_faces > memory_bytes:
+        if memory_bytes is not None and self.direct_memory.at(n_faces) > memory_bytes:
             return "iterative"
         return "direct"
 
@@ -91,30 +102,50 @@ RULES = LinearSolverRules()
 """The rules in force."""
 
 
-def available_memory() -> float | None:
-    """Bytes this process may still allocate: the machine's available memory
-    (``/proc/meminfo`` MemAvailable), capped by the address-space limit (``RLIMIT_AS``) less
-    what the process already maps; None where neither is known."""
-    limits = []
+def available_memory(budget: float | None = None) -> float | None:
+    """Bytes this process may use for a solve: ``budget`` when given (the service's
+    FFS_MAX_REQUEST_MEMORY: the machine's memory is shared among its workers by that budget,
+    so a worker chooses by it, as its admission priced the request, and not by what the
+    machine has free at that moment), else the machine's available memory (``/proc/meminfo``
+    MemAvailable); either capped by the address-space limit (``RLIMIT_AS``) less what the
+    process already maps. None where none of them is known.
+
+    Example:
+        >>> available_memory(1e6) <= 1e6
+        True
+    """
+    limits = [float(budget) if budget is not None else _mem_available(),
+              _address_space_room()]
+    known = [limit for limit in limits if limit is not None]
+    return min(known) if known else None
+
+
+def _mem_available() -> float | None:
+    """The machine's available memory (``/proc/meminfo`` MemAvailable), bytes."""
     try:
         with open("/proc/meminfo") as fh:
             for line in fh:
                 if line.startswith("MemAvailable:"):
-                    limits.append(int(line.split()[1]) * 1024.0)
-                    break
+                    return int(line.split()[1]) * 1024.0
     except OSError:
         pass
+    return None
+
+
+def _address_space_room() -> float | None:
+    """The address-space limit (``RLIMIT_AS``) less what this process maps, bytes; None
+    without a limit."""
     try:
         import resource
 
         soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-        if soft != resource.RLIM_INFINITY:
-            with open("/proc/self/statm") as fh:
-                mapped = int(fh.read().split()[0]) * resource.getpagesize()
-            limits.append(float(soft - mapped))
+        if soft == resource.RLIM_INFINITY:
+            return None
+        with open("/proc/self/statm") as fh:
+            mapped = int(fh.read().split()[0]) * resource.getpagesize()
+        return float(soft - mapped)
     except (OSError, ImportError, ValueError):
-        pass
-    return min(limits) if limits else None
+        return None
 
 
 def _multigrid() -> Any:

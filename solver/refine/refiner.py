@@ -106,12 +106,14 @@ class Refiner:
             (inexact Gauss-Newton steps by multigrid-preconditioned CG, no factor:
             :mod:`solver.refine.iterative_steps`) or ``"auto"``/None (by size and memory:
             :data:`solver.refine.iterative_steps.REFINEMENT_SOLVER_RULES`).
+        memory_budget: bytes ``auto`` chooses by (``iterative.available_memory``).
     """
 
     def __init__(self, targets: FormTargets, handles: Handles | None = None, dim: int = 3,
                  backend: str = "auto", *, stop_rules: StopRules = DEFAULT_STOP_RULES,
                  step_rules: StepRules = DEFAULT_STEP_RULES,
-                 linear_solver: str | None = "direct") -> None:
+                 linear_solver: str | None = "direct",
+                 memory_budget: float | None = None) -> None:
         handles = handles or Handles(soft_positions=np.zeros((0, dim)),
                                      frame_edges=np.zeros((0, 2, dim)))
         self.targets = targets
@@ -122,8 +124,8 @@ class Refiner:
         energy = self.form_energy
         self.rigid_motions = RigidMotions(targets.topology, energy.free, energy.held, dim)
         self._needle_coordinates = self._needles()
-        self.linear_solver = REFINEMENT_SOLVER_RULES.choose(targets.topology.n_faces,
-                                                            linear_solver, available_memory())
+        self.linear_solver = REFINEMENT_SOLVER_RULES.choose(
+            targets.topology.n_faces, linear_solver, available_memory(memory_budget))
         self._multigrid = (Multigrid(step_rules.cg_max_iterations, step_rules.cg_resetup_growth)
                            if self.linear_solver == "iterative" else None)
         # The factor, its matrix and the projection off its rigid motions that the previous
@@ -546,7 +548,8 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
            time_limit: Budget | float | None = None, backend: str = "auto",
            progress: Any = None, stop_rules: StopRules = DEFAULT_STOP_RULES,
            step_rules: StepRules = DEFAULT_STEP_RULES,
-           linear_solver: str | None = "direct") -> Refinement:
+           linear_solver: str | None = "direct",
+           memory_budget: float | None = None) -> Refinement:
     """Vertex positions whose fundamental forms are nearest to ``targets`` (Levenberg-Marquardt).
 
     Args:
@@ -562,8 +565,7 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
             refinement stops before an iteration (or a factorization) that, timed like the
             last one of its kind by this :class:`Refiner`, would end past it (the first
             factorization of a run that has none starts while time is left). It returns
-            the best iterate,
-            ``converged`` False and ``stop_reason`` ``"time_limit"``.
+            the best iterate, ``converged`` False and ``stop_reason`` ``"time_limit"``.
         backend: sparse factorization backend (:func:`solver.linalg.factorize`).
         progress: optional ``progress(stage, fraction)`` callback, called as
             ``progress("refine", fraction)`` after every accepted step; if it also has a
@@ -571,7 +573,8 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
             "energy", "seconds"}`` of each step (the service's job progress shows them).
         stop_rules: :class:`~solver.refine.stopping.StopRules` (when it stops).
         step_rules: :class:`~solver.refine.steps.StepRules` (how it steps).
-        linear_solver: the Gauss-Newton steps' solver (:class:`Refiner`).
+        linear_solver, memory_budget: the Gauss-Newton steps' solver and the memory
+            ``auto`` chooses it by (:class:`Refiner`).
     Returns:
         :class:`Refinement`. Its energy is never above the start's: a step is accepted
         only when it lowers E. ``report["converged"]`` is False when the iteration or time
@@ -591,6 +594,7 @@ def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None =
     """
     dim = np.shape(vertices)[1]
     return Refiner(targets, handles, dim, backend, stop_rules=stop_rules,
-                   step_rules=step_rules, linear_solver=linear_solver).run(
+                   step_rules=step_rules, linear_solver=linear_solver,
+                   memory_budget=memory_budget).run(
         vertices, max_iterations=max_iterations, tolerance=tolerance, time_limit=time_limit,
         progress=progress)

@@ -5,8 +5,9 @@ Python client takes the job path by itself and returns the library's answer.
 
 FFS_REQUEST_TIMEOUT=2 leaves the solver 1.5 s: the prediction
 (:func:`service.backends.admission.sync_faces_within`) admits 58,711 faces for operations
-that factorize and 125,000 for the others, so icosphere(6) (81,920 faces) is refused for
-``reconstruct`` and taken for ``forms``, and icosphere(4) (5,120) is taken for both.
+that factorize (by a factorization: this machine's request memory holds their factors) and
+125,000 for the others, so icosphere(6) (81,920 faces) is refused for ``reconstruct`` and
+taken for ``forms``, and icosphere(4) (5,120) is taken for both.
 """
 
 from __future__ import annotations
@@ -18,21 +19,24 @@ import numpy as np
 
 import solver
 from ffs import Client
-from service.backends.admission import sync_faces_within
+from service.backends.admission import FACTORIZING, LIGHT, RECONSTRUCTION
+from service.settings import Settings
 from tests.helpers.meshes import icosphere
 from tests.helpers.servers import uvicorn_fixture
 from tests.helpers.service import forms_json, mesh_json, problem, rigid_error
 
 TIMEOUT = 2.0
 BUDGET = 1.5  # TIMEOUT less the encode margin (service.api.budgets: 0.5 s of 2 s)
+MEMORY = Settings(workers=1).max_request_memory  # the server's default, this machine's
 server = uvicorn_fixture({"FFS_REQUEST_TIMEOUT": str(TIMEOUT), "FFS_WORKERS": "1"},
                          scope="module")
 
 
 def test_the_meshes_sit_on_both_sides_of_the_prediction() -> None:
     big, small = len(icosphere(6)[1]), len(icosphere(4)[1])
-    assert small < sync_faces_within(BUDGET, solves=True) < big
-    assert big < sync_faces_within(BUDGET, solves=False)
+    for pricing in (RECONSTRUCTION, FACTORIZING):
+        assert small < pricing.sync_faces_within(BUDGET, MEMORY) < big
+    assert big < LIGHT.sync_faces_within(BUDGET, MEMORY)
 
 
 def _wait(http: httpx.Client, location: str) -> dict:
@@ -76,8 +80,9 @@ def test_a_too_slow_upload_is_refused_too(server: str) -> None:
 def test_me_names_the_synchronous_limits(server: str) -> None:
     with httpx.Client(base_url=server, timeout=30) as http:
         limits = http.get("/v1/me").json()["size_limits"]["max_sync_faces_by_operation"]
-    assert limits["reconstruct"] == sync_faces_within(BUDGET, solves=True)
-    assert limits["forms"] == sync_faces_within(BUDGET, solves=False)
+    assert limits["reconstruct"] == RECONSTRUCTION.sync_faces_within(BUDGET, MEMORY)
+    assert limits["deform"] == FACTORIZING.sync_faces_within(BUDGET, MEMORY)
+    assert limits["forms"] == LIGHT.sync_faces_within(BUDGET, MEMORY)
 
 
 def test_the_client_takes_the_job_path_by_itself(server: str) -> None:
@@ -97,4 +102,4 @@ def test_the_client_takes_the_job_path_by_itself(server: str) -> None:
             np.testing.assert_allclose(result.vertices, expected, atol=1e-9)
             assert len(client.request("GET", "/v1/jobs").json()) == before  # discarded
             assert (client._sync_faces or {}).get("reconstruct") == (
-                sync_faces_within(BUDGET, solves=True) if limits_known else None)
+                RECONSTRUCTION.sync_faces_within(BUDGET, MEMORY) if limits_known else None)

@@ -13,9 +13,11 @@ import trimesh
 
 from solver import Constraints, fundamental_forms, reconstruct
 from solver.immersion import ImmersionProblem
-from solver.linalg.iterative import RULES, LinearSolverRules
+from solver.linalg.cost import PowerLaw
+from solver.linalg.iterative import RULES, LinearSolverRules, available_memory
 from solver.linear.system import ConstrainedSystem, near_null_space
 from solver.mesh.forms import validate_forms
+from solver.mesh.topology import build_topology
 from tests.helpers.meshes import bumpy_grid_with_holes, load, torus_grid
 from tests.helpers.real_meshes import multi_component
 
@@ -181,7 +183,7 @@ def test_single_precision_preconditioner_keeps_the_answer(name: str) -> None:
 
 
 def test_rules_choose_by_size_and_memory() -> None:
-    rules = LinearSolverRules(face_threshold=1000, direct_bytes_per_face=1e4)
+    rules = LinearSolverRules(face_threshold=1000, direct_memory=PowerLaw(per_face=1e4))
     assert rules.choose(999) == "direct"
     assert rules.choose(1000) == "iterative"
     assert rules.choose(500, memory_bytes=4e6) == "iterative"   # 5 MB would not fit
@@ -196,3 +198,31 @@ def test_auto_keeps_small_meshes_direct() -> None:
     answer = reconstruct(forms.faces, forms.edges, forms.lengths, angles, refine=False)
     assert answer.report.solve_path == "factorization"
     assert answer.report.linear_solver["method"] == "direct"
+
+
+def test_a_memory_budget_chooses_the_path() -> None:
+    """``memory_budget`` (the service's FFS_MAX_REQUEST_MEMORY) replaces the machine's
+    available memory in ``auto``'s choice: below the direct path's predicted peak the same
+    forms are solved iteratively, above it by a factorization, to the same answer; the
+    refinement's Gauss-Newton steps follow (their direct model is dearer than Eq. 5's)."""
+    forms, angles, _ = _forms("capsule", 1e-3)
+    n = len(forms.faces)
+    direct = RULES.direct_memory.at(n)
+    answers = {}
+    for budget in (0.5 * direct, 2 * direct):
+        answer = reconstruct(forms.faces, forms.edges, forms.lengths, angles, refine=False,
+                             memory_budget=budget)
+        answers[answer.report.linear_solver["method"]] = answer.vertices
+        assert answer.report.solve_path == ("iterative" if budget < direct
+                                            else "factorization")
+    assert _relative(answers["iterative"], answers["direct"]) < 1e-6
+    assert available_memory(0.5 * direct) == pytest.approx(0.5 * direct)
+    from solver.refine import FormTargets, Refiner
+    from solver.refine.iterative_steps import REFINEMENT_SOLVER_RULES
+
+    targets = FormTargets(build_topology(forms.faces), forms.lengths, angles)
+    refinement = REFINEMENT_SOLVER_RULES.direct_memory.at(n)
+    assert Refiner(targets, linear_solver="auto",
+                   memory_budget=0.9 * refinement).linear_solver == "iterative"
+    assert Refiner(targets, linear_solver="auto",
+                   memory_budget=1.1 * refinement).linear_solver == "direct"

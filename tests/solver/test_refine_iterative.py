@@ -170,7 +170,7 @@ def test_forcing_term():
 
 def test_the_refinement_goes_iterative_where_only_eq5_fits():
     """``auto``: where the memory available holds Eq. 5's factor (8.3 KB per face) but not
-    the refinement's (10.7 KB per face, bench.scale at 400K faces), Eq. 5 factorizes and
+    the refinement's (4.1 GB at 400K faces, bench.scale and the issue), Eq. 5 factorizes and
     the refinement runs by CG; with room for both, both factorize; with room for neither,
     neither. A forced choice is kept."""
     from solver.linalg.iterative import RULES

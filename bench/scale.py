@@ -23,6 +23,7 @@ Usage (from the repository root)::
     python -m bench.scale --max-gb 10          # address-space limit of each child
     python -m bench.scale --markdown           # also print the tables for bench/README.md
     python -m bench.scale --baseline /tmp/old  # each case also run by another tree, before
+    python -m bench.scale --cases default-iterative --start-tolerances 1e-8 1e-4 1e-3
 
 A child that runs out of its address-space limit is reported as ``out of memory`` (the
 parent survives; the OOM killer is never reached).
@@ -130,8 +131,16 @@ def run_case(level: int, case: str, base: str = BASE) -> dict:
     faces, edges, lengths = data["faces"], data["edges"], data["lengths"]
     angles = data["angles"] if case == "exact" else data["noisy"]
     n_vertices = len(data["vertices"])
-    del data
+    original = data["vertices"]
     options = case_options(case)
+    start_tolerance = os.environ.get("FFS_SCALE_START_TOLERANCE")
+    if start_tolerance:  # --start-tolerance: the rules in force, with another start's
+        import dataclasses
+        import importlib
+
+        module = importlib.import_module("solver.reconstruct")  # not the function
+        module.LINEAR_SOLVER_RULES = dataclasses.replace(
+            module.LINEAR_SOLVER_RULES, start_tolerance=float(start_tolerance))
     start, cpu = time.perf_counter(), time.process_time()
     result = reconstruct(faces, edges, lengths, angles, n_vertices=n_vertices,
                          progress=memory, **options)
@@ -145,6 +154,8 @@ def run_case(level: int, case: str, base: str = BASE) -> dict:
         "seconds": wall, "linear_solver": linear_solver.get("method"),
         "cg_iterations": linear_solver.get("iterations"),
         "cg_residual": linear_solver.get("relative_residual"),
+        "cg_tolerance": linear_solver.get("tolerance"),
+        "distance": rigid_distance(result.vertices, original),
         "cpu_seconds": cpu,
         "timings": {k: round(v, 3) for k, v in report["timings"].items()},
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -159,8 +170,17 @@ def run_case(level: int, case: str, base: str = BASE) -> dict:
     }
 
 
+def rigid_distance(X: np.ndarray, Y: np.ndarray) -> float:
+    """max |R X + t - Y| over vertices after the best rigid alignment (Kabsch), divided by
+    the bounding-box diagonal of Y: the answer's distance to the mesh the forms came from."""
+    Xc, Yc = X - X.mean(axis=0), Y - Y.mean(axis=0)
+    U, _, Vt = np.linalg.svd(Xc.T @ Yc)
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return float(np.abs(Xc @ R - Yc).max() / np.linalg.norm(Y.max(axis=0) - Y.min(axis=0)))
+
+
 def child(level: int, case: str, max_gb: float | None, base: str = BASE,
-          tree: Path | None = None) -> dict:
+          tree: Path | None = None, start_tolerance: float | None = None) -> dict:
     """Run one case in a fresh process under an address-space limit of ``max_gb``, with the
     library (and this bench) of ``tree`` (default: this repository); a row from another
     tree has its case suffixed ``(baseline)``."""
@@ -170,8 +190,12 @@ def child(level: int, case: str, max_gb: float | None, base: str = BASE,
         cmd[:0] = ["prlimit", f"--as={int(max_gb * 2**30)}"]
     root = REPO if tree is None else tree
     env = dict(os.environ, PYTHONPATH=str(root))
+    if start_tolerance is not None:
+        env["FFS_SCALE_START_TOLERANCE"] = repr(start_tolerance)
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=root)
     label = case if tree is None else f"{case} (baseline)"
+    if start_tolerance is not None:
+        label += f" (start {start_tolerance:g})"
     if proc.returncode != 0:
         tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
         oom = "MemoryError" in proc.stderr or "Cannot allocate" in proc.stderr
@@ -227,6 +251,10 @@ def main() -> None:
     parser.add_argument("--baseline", type=Path, default=None,
                         help="another tree (e.g. `git archive <commit> solver bench | tar -x "
                              "-C DIR`): every case also runs with its library, just before")
+    parser.add_argument("--start-tolerances", type=float, nargs="+", default=None,
+                        help="run every case with each of these tolerances of the iterative "
+                             "solve that starts the refinement (LinearSolverRules."
+                             "start_tolerance), e.g. 1e-8 1e-4 1e-3")
     parser.add_argument("--child", nargs=2, metavar=("LEVEL", "CASE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -238,9 +266,10 @@ def main() -> None:
         for case in args.cases:
             for level in args.levels:
                 for tree in ([args.baseline] if args.baseline else []) + [None]:
-                    row = child(level, case, args.max_gb, base, tree)
-                    rows.append(row)
-                    print(json.dumps(row), flush=True)
+                    for tolerance in args.start_tolerances or [None]:
+                        row = child(level, case, args.max_gb, base, tree, tolerance)
+                        rows.append(row)
+                        print(json.dumps(row), flush=True)
     print(f"# load {load_averages()}")
     if args.markdown:
         print(markdown(rows))

@@ -238,27 +238,26 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         "iterative" if method == "iterative" else "factorization")
     factorized = {"backend": "none", "analysis": "none"}
     linear_solver = None
+    refine = opts.refine
+    # Forms that fail the check are refined: the iterative answer only starts it.
+    tolerance = (LINEAR_SOLVER_RULES.start_tolerance if method == "iterative"
+                 and refine is not False and known_not_integrable else None)
+    system = None
     if u is None:
         stages("factorize")
         system = _system(problem, linear, backend, tree)
         stages.lap("factorize")
         stages("solve")
         u = system.solve(linear.hard_values, linear.soft_values,
-                         None if tree is None else tree.guess)
+                         None if tree is None else tree.guess, tolerance)
         factorized = {"backend": system.backend, "analysis": system.analysis}
         linear_solver = system.linear_solver_report()
-        # Dropped now, its analysis (the pattern of K) serves the orthonormalization's
-        # factorization below: only the numerical phase is redone (solver.linalg's cache).
-        del system
         stages.lap("solve")
 
     first_energy = problem.energies(u)
-    energy = dict(first_energy)  # of the unknowns returned; redone if they change
     vertices, frames = problem.unknowns_to_geometry(u, user)
     vertices = problem.recenter(vertices, user, ref_v)
-    orthonormality = _orthonormality_error(frames)
     refinement: dict[str, Any] = not_refined("exact: tree integration")
-    refine = opts.refine
     if solve_path != "tree-integration":
         exact = refine is not False and reproduces(vertices, topology, L, A)
         refinement = not_refined("disabled (refine=false)" if refine is False
@@ -270,6 +269,18 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
             exact = True
             refinement = not_refined("exact: integrable forms and a linear energy within "
                                      "the integrability tolerance")
+        if exact and tolerance is not None and system is not None:
+            # Returned after all: solved on from the start's tolerance to the full one.
+            u = system.solve(linear.hard_values, linear.soft_values, u)
+            linear_solver, tolerance = system.linear_solver_report(), None
+            first_energy = problem.energies(u)
+            vertices, frames = problem.unknowns_to_geometry(u, user)
+            vertices = problem.recenter(vertices, user, ref_v)
+    # Dropped now, its analysis (the pattern of K) serves the orthonormalization's
+    # factorization below: only the numerical phase is redone (solver.linalg's cache).
+    del system
+    energy = dict(first_energy)  # of the unknowns returned; redone if they change
+    orthonormality = _orthonormality_error(frames)
     if opts.orthonormalize and solve_path != "tree-integration":  # integrated: rotations
         stages("factorize", 0.5)
         rotations = nearest_rotation(frames)
@@ -279,7 +290,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         stages("solve", 0.5)
         targets = np.swapaxes(rotations, 1, 2).reshape(-1, 3)
         soft_values = np.concatenate([linear.soft_values, targets])
-        u = system2.solve(linear.hard_values, soft_values, u)
+        u = system2.solve(linear.hard_values, soft_values, u, tolerance)
         if system2.iterative is not None:
             linear_solver = {**system2.linear_solver_report(), "first_solve": linear_solver}
         vertices, frames = problem.unknowns_to_geometry(u, user)

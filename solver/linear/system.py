@@ -431,7 +431,7 @@ class ConstrainedSystem:
         return {"method": "direct", "backend": self.backend}
 
     def solve(self, hard_values: np.ndarray, soft_values: np.ndarray,
-              guess: np.ndarray | None = None) -> np.ndarray:
+              guess: np.ndarray | None = None, tolerance: float | None = None) -> np.ndarray:
         """Solve for new constraint targets (back-substitution only when direct).
 
         Args:
@@ -439,6 +439,8 @@ class ConstrainedSystem:
             soft_values: (s, 3) float64 targets of the soft unknowns.
             guess: optional (N, 3) float64 start of the iterative method (ignored when
                 direct).
+            tolerance: the iterative method's relative residual (default: its rules';
+                ignored when direct).
 
         Returns:
             (N, 3) float64 unknowns, one column per coordinate.
@@ -452,7 +454,7 @@ class ConstrainedSystem:
             if guess is not None:
                 start = np.array(guess, dtype=np.float64)
                 start[self.hard_columns] = hard_values
-            u = self.iterative.solve(rhs, start)
+            u = self.iterative.solve(rhs, start, tolerance)
             u[self.hard_columns] = hard_values
             return u
         assert self.factor is not None

@@ -130,20 +130,46 @@ def _iterative(problem: ImmersionProblem, anchor: Any, tree: np.ndarray,
                              rules=rules)
 
 
-@pytest.mark.parametrize("name", ["icosphere", "face.off"])
-def test_refined_answer_matches_direct(name: str) -> None:
+@pytest.mark.parametrize(("name", "noise"), [("icosphere", 2e-2), ("face.off", 2e-2),
+                                           ("capsule", 1e-3), ("two-parts", 1e-3)])
+def test_refined_answer_matches_direct(name: str, noise: float) -> None:
     """The default (refined) answer from either linear answer: the same to the refinement's
-    tolerance (its form errors agree)."""
-    forms, angles, n = _forms(name, 2e-2)
+    tolerance (its form errors and energy agree), although the iterative one, which only
+    starts the refinement, is solved to ``RULES.start_tolerance`` (the report says so)."""
+    forms, angles, n = _forms(name, noise)
     answers = [reconstruct(forms.faces, forms.edges, forms.lengths, angles,
                            n_vertices=n, linear_solver=method)
                for method in ("direct", "iterative")]
     for answer in answers:
         assert answer.report.refinement["converged"]
+    solved = answers[1].report.linear_solver
+    assert solved["tolerance"] == RULES.start_tolerance and solved["converged"]
+    assert solved["relative_residual"] <= 10 * RULES.start_tolerance
     size = np.ptp(answers[0].vertices, axis=0).max()
     assert np.abs(answers[1].vertices - answers[0].vertices).max() < 1e-3 * size
     errors = [a.report.refinement["after"]["length_error"]["max"] for a in answers]
     assert errors[1] == pytest.approx(errors[0], rel=1e-2, abs=1e-6)
+    energies = [a.report.refinement["energy_after"] for a in answers]
+    assert energies[1] == pytest.approx(energies[0], rel=1e-4)
+
+
+def test_a_returned_linear_answer_is_solved_to_the_full_tolerance() -> None:
+    """Only a linear answer that starts the refinement stops at the start's tolerance: with
+    ``refine=False``, and where forms that failed the integrability check (a tolerance of
+    1e-15 on exact forms) turn out reproduced by the linear answer, which is then returned,
+    the solve goes on to ``relative_tolerance``."""
+    forms, angles, n = _forms("capsule", 1e-3)
+    linear = reconstruct(forms.faces, forms.edges, forms.lengths, angles, n_vertices=n,
+                         linear_solver="iterative", refine=False).report.linear_solver
+    assert linear["tolerance"] == RULES.relative_tolerance
+    assert linear["relative_residual"] <= 10 * RULES.relative_tolerance
+    exact, _, _ = _forms("capsule", 0.0)
+    answer = reconstruct(exact.faces, exact.edges, exact.lengths, exact.angles, n_vertices=n,
+                         linear_solver="iterative", integrability_tol=1e-15)
+    assert answer.report.solve_path == "iterative"
+    assert answer.report.integrability["integrable"] is False
+    assert answer.report.refinement["reason"].startswith("exact")
+    assert answer.report.linear_solver["tolerance"] == RULES.relative_tolerance
 
 
 def test_non_converged_solve_is_reported() -> None:

@@ -9,6 +9,7 @@ the same pieces.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
@@ -384,12 +385,22 @@ class _TreeStart:
     so the start satisfies them on the components without constraints)."""
 
     def __init__(self, problem: ImmersionProblem, touched: np.ndarray) -> None:
-        _, roots = problem.anchors(np.ones_like(touched))
-        u = problem.tree_unknowns([a["face"] for a in roots], [a["vertex"] for a in roots])
-        finite = bool(np.isfinite(u).all())
-        self.guess: np.ndarray | None = u if finite else None
-        self.near_null: np.ndarray | None = (
-            near_null_space(problem.topology.n_vertices, u) if finite else None)
+        self._problem, self._touched = problem, touched
+
+    @functools.cached_property
+    def guess(self) -> np.ndarray | None:
+        """(N, 3) float64 tree-integrated unknowns (None if not finite); integrated on first
+        use, so an answer of the tree integration alone never pays for it twice."""
+        _, roots = self._problem.anchors(np.ones_like(self._touched))
+        u = self._problem.tree_unknowns([a["face"] for a in roots],
+                                        [a["vertex"] for a in roots])
+        return u if bool(np.isfinite(u).all()) else None
+
+    @functools.cached_property
+    def near_null(self) -> np.ndarray | None:
+        """(N, 4) float64 near-null space of K from :attr:`guess` (None if not finite)."""
+        u = self.guess
+        return None if u is None else near_null_space(self._problem.topology.n_vertices, u)
 
 
 def _system(problem: ImmersionProblem, linear: Any, backend: str, tree: _TreeStart | None,

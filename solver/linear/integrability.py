@@ -28,7 +28,11 @@ from numpy.typing import ArrayLike
 from ..core.errors import ConstraintError
 from ..core.serialization import JsonDataclass
 from ..mesh.forms import validate_forms, wrapped_angle_count
-from ..mesh.frames import face_edge_lengths, transition_quaternions, triangle_inequality_violations
+from ..mesh.frames import (
+    face_edge_lengths,
+    transition_rotations,
+    triangle_inequality_violations,
+)
 from ..mesh.manifold import ManifoldCut
 from ..mesh.rotations import (
     quaternion_angles,
@@ -36,7 +40,7 @@ from ..mesh.rotations import (
     quaternion_multiply,
     rotation_angle,
 )
-from ..mesh.topology import MeshTopology, corner_successor, cycle_ranks, previous_halfedge
+from ..mesh.topology import MeshTopology, corner_successor, previous_halfedge
 from ..mesh.trees import accumulate_products, accumulate_sums, spanning_forest
 from .system import EnergyTerms, energy_terms
 
@@ -284,7 +288,7 @@ def halfedge_transitions(terms: EnergyTerms) -> np.ndarray:
     q = np.zeros((3 * topo.n_faces, 4))
     q[:, 0] = 1.0
     fwd, bwd = topo.edge_halfedges[terms.interior_edges].T
-    q_lr = transition_quaternions(terms.transition)
+    q_lr = terms.quaternions
     q[fwd] = q_lr
     q[bwd] = quaternion_conjugate(q_lr)  # R_RL = R_LR^T
     return q
@@ -293,11 +297,11 @@ def halfedge_transitions(terms: EnergyTerms) -> np.ndarray:
 def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
     """The transition rotations multiplied around each interior vertex (Eq. 4).
 
-    The loop starts at one face of the vertex and goes counter-clockwise; the product is
-    expressed in that face's frame (its z axis is the normal). The corners of every
-    interior vertex are put in ring order (pointer doubling over the corner successor
-    permutation), then multiplied rank by rank for all vertices at once: O(H) quaternion
-    products in all, in as many vectorized steps as the largest valence.
+    The loop starts at the vertex's first corner (smallest half-edge leaving it) and goes
+    counter-clockwise; the product is expressed in that face's frame (its z axis is the
+    normal). All vertices walk their rings at once, one vectorized quaternion product per
+    ring position, the vertices sorted by valence so that those still walking are a prefix
+    (slices, no index lists): O(H) products in all, in as many steps as the largest valence.
 
     Args:
         terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
@@ -324,27 +328,43 @@ def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
     if not len(interior):
         return np.zeros((0, 4))
     H = 3 * topo.n_faces
-    corners = np.arange(H)
-    on_interior = np.zeros(topo.n_vertices, dtype=bool)
-    on_interior[interior] = True
-    successor = corner_successor(topo.halfedge_twin)
-    successor = np.where(on_interior[topo.halfedge_origin], successor, corners)
-    count = np.bincount(topo.halfedge_origin, minlength=topo.n_vertices)[interior]
-    _, rank = cycle_ranks(successor, int(count.max()))
-    # Corners of interior vertices sorted by (vertex, ring position): a counting sort, each
-    # corner at its vertex's start plus its rank (no O(H log H) sort).
-    chosen = corners[on_interior[topo.halfedge_origin]]
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    slot = np.full(topo.n_vertices, -1, dtype=np.int64)
-    slot[interior] = start
-    order = np.empty(len(chosen), dtype=np.int64)
-    order[slot[topo.halfedge_origin[chosen]] + rank[chosen]] = chosen
-    step = halfedge_transitions(terms)[previous_halfedge(order)]  # transition of each step
-    result = step[start].copy()
-    for r in range(1, int(count.max())):  # one vectorized step per ring position
-        active = np.flatnonzero(count > r)
-        result[active] = quaternion_multiply(result[active], step[start[active] + r])
-    return result
+    origin = topo.halfedge_origin
+    index = np.int32 if np.iinfo(np.int32).max > H else np.int64
+    first = np.full(topo.n_vertices, H, dtype=index)
+    np.minimum.at(first, origin, np.arange(H, dtype=index))
+    count = np.bincount(origin, minlength=topo.n_vertices)[interior]
+    by_valence = np.argsort(-count, kind="stable")
+    count = count[by_valence]
+    corner = first[interior[by_valence]]
+    successor = corner_successor(topo.halfedge_twin).astype(index)
+    # Transition of the step out of corner c: across the half-edge before it, from c's face
+    # to the next one; +-(1 + interior edge position): + where that half-edge runs i -> j
+    # (R_LR), - where it runs j -> i (R_RL = R_LR^T, the conjugate quaternion).
+    slot = np.zeros(topo.n_edges, dtype=index)
+    slot[terms.interior_edges] = np.arange(1, len(terms.interior_edges) + 1, dtype=index)
+    signed = slot[topo.halfedge_edge]
+    np.negative(signed, out=signed, where=origin > topo.halfedge_dest)
+    quaternions = terms.quaternions
+    result = _ring_step(quaternions, signed, corner)
+    walking = np.searchsorted(-count, -np.arange(int(count[0]) + 1), side="left")
+    for r in range(1, int(count[0])):  # the vertices of valence > r are the first walking[r]
+        active = slice(0, int(walking[r]))
+        corner[active] = successor[corner[active]]
+        result[active] = quaternion_multiply(result[active],
+                                             _ring_step(quaternions, signed, corner[active]))
+    holonomy = np.empty_like(result)
+    holonomy[by_valence] = result
+    return holonomy
+
+
+def _ring_step(quaternions: np.ndarray, signed: np.ndarray, corners: np.ndarray,
+               ) -> np.ndarray:
+    """(c, 4) transition quaternions of the ring steps out of ``corners`` (c,) (see
+    :func:`vertex_holonomy`: ``signed`` is +-(1 + interior edge position) per half-edge)."""
+    edge = signed[previous_halfedge(corners)]
+    q = np.take(quaternions, np.abs(edge) - 1, axis=0)
+    q[:, 1:] *= np.where(edge < 0, -1.0, 1.0)[:, None]
+    return q
 
 
 def homology_rank(topology: MeshTopology) -> np.ndarray:
@@ -415,7 +435,8 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     if len(generators):  # genus 0 without holes has none: skip the frame integration
         frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask),
                               cotree.levels)
-        hol = frames[left] @ terms.rotations[generators] @ np.swapaxes(frames[right], 1, 2)
+        hol = (frames[left] @ transition_rotations(terms.transition[generators])
+               @ np.swapaxes(frames[right], 1, 2))
         angles = rotation_angle(hol)
     rotation_loops = [
         HolonomyLoop(kind="rotation", component=int(topo.face_component[lf]),
@@ -530,7 +551,7 @@ def _tree_frames(terms: EnergyTerms, parent: np.ndarray, parent_inner: np.ndarra
     local = np.broadcast_to(np.eye(3), (topo.n_faces, 3, 3)).copy()
     has = parent_inner >= 0
     q = parent_inner[has]
-    R = terms.rotations[q]
+    R = transition_rotations(np.take(terms.transition, q, axis=0))  # the tree's edges only
     # f_child = f_parent R_{parent -> child}; R_LR is stored, R_RL = R_LR^T.
     parent_is_left = topo.edge_faces[terms.interior_edges[q], 0] == parent[has]
     local[has] = np.where(parent_is_left[:, None, None], R, np.swapaxes(R, 1, 2))

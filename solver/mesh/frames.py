@@ -216,15 +216,26 @@ def transition_rotations(transition: np.ndarray) -> np.ndarray:
     ca, sa = np.cos(theta_left), np.sin(theta_left)
     cp, sp = np.cos(phi), np.sin(phi)
     cb, sb = np.cos(theta_right), np.sin(theta_right)
-    # Written out (one pass over k, no (k, 3, 3) temporaries): M = Rz(a) Rx(phi) has rows
-    # (ca, -sa cp, sa sp), (sa, ca cp, -ca sp), (0, sp, cp); R = M Rz(-b) turns its first
-    # two columns by b.
-    m0 = np.stack([ca, sa, np.zeros_like(ca)], axis=1)        # (k, 3) column 0 of M
-    m1 = np.stack([-sa * cp, ca * cp, sp], axis=1)            # column 1
+    # Written out entry by entry into the result (one pass over k, no (k, 3) or (k, 3, 3)
+    # temporaries): M = Rz(a) Rx(phi) has columns m0 = (ca, sa, 0), m1 = (-sa cp, ca cp,
+    # sp), m2 = (sa sp, -ca sp, cp); R = M Rz(-b) turns its first two columns by b.
     R = np.empty((len(transition), 3, 3))
-    R[:, :, 0] = m0 * cb[:, None] - m1 * sb[:, None]
-    R[:, :, 1] = m0 * sb[:, None] + m1 * cb[:, None]
-    R[:, :, 2] = np.stack([sa * sp, -ca * sp, cp], axis=1)
+    sacp, cacp = sa * cp, ca * cp
+    np.multiply(ca, cb, out=R[:, 0, 0])
+    R[:, 0, 0] += sacp * sb
+    np.multiply(sa, cb, out=R[:, 1, 0])
+    R[:, 1, 0] -= cacp * sb
+    np.multiply(sp, sb, out=R[:, 2, 0])
+    np.negative(R[:, 2, 0], out=R[:, 2, 0])
+    np.multiply(ca, sb, out=R[:, 0, 1])
+    R[:, 0, 1] -= sacp * cb
+    np.multiply(sa, sb, out=R[:, 1, 1])
+    R[:, 1, 1] += cacp * cb
+    np.multiply(sp, cb, out=R[:, 2, 1])
+    np.multiply(sa, sp, out=R[:, 0, 2])
+    np.multiply(ca, sp, out=R[:, 1, 2])
+    np.negative(R[:, 1, 2], out=R[:, 1, 2])
+    R[:, 2, 2] = cp
     return R
 
 

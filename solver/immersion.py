@@ -17,11 +17,6 @@ from numpy.typing import ArrayLike
 
 from .core.errors import ConstraintError, TriangleInequalityError
 from .linear.constraints import Constraints
-from .linear.integrability import (
-    IntegrationForests,
-    integrate_along_forests,
-    integration_forests,
-)
 from .linear.layout_fit import LayoutFit
 from .linear.system import (
     WEIGHTINGS,
@@ -36,6 +31,11 @@ from .linear.system import (
     normal_matrix,
     residual_summary,
     unknown_groups,
+)
+from .linear.tree_integration import (
+    IntegrationForests,
+    integrated_unknowns,
+    integration_forests,
 )
 from .mesh.frames import (
     face_edge_lengths,
@@ -293,9 +293,7 @@ class ImmersionProblem:
         """:meth:`tree_unknowns` and the forests they were integrated along."""
         forests = integration_forests(self.terms, np.asarray(root_faces, dtype=np.int64),
                                       np.asarray(root_vertices, dtype=np.int64))
-        frames, _, positions = integrate_along_forests(self.terms, forests)
-        u = np.concatenate([positions, np.swapaxes(frames, 1, 2).reshape(-1, 3)])
-        return u, forests
+        return integrated_unknowns(self.terms, forests), forests
 
     def integrated_solution(self, root_faces: ArrayLike, root_vertices: ArrayLike,
                             tol: float = EXACT_TOLERANCE) -> np.ndarray | None:

@@ -17,7 +17,6 @@ from numpy.typing import ArrayLike
 
 from .core.errors import ConstraintError, TriangleInequalityError
 from .linear.constraints import Constraints
-from .linear.integrability import integrate_along_forests, integration_forests
 from .linear.layout_fit import LayoutFit
 from .linear.system import (
     WEIGHTINGS,
@@ -29,9 +28,14 @@ from .linear.system import (
     energy_terms,
     frame_columns,
     least_squares_rows,
-    max_weighted_residual,
     normal_matrix,
+    residual_summary,
     unknown_groups,
+)
+from .linear.tree_integration import (
+    IntegrationForests,
+    integrated_unknowns,
+    integration_forests,
 )
 from .mesh.frames import (
     face_edge_lengths,
@@ -83,8 +87,28 @@ class ImmersionProblem:
             if not len(bad):
                 raise
             raise triangle_inequality_error(topology, lengths, bad) from None
-        self.A, self.row_weights, self.row_kind = least_squares_rows(self.terms, frame_weight)
-        self._residual: tuple[np.ndarray, np.ndarray] | None = None  # (u, A @ u), once
+        self._energy: tuple[np.ndarray, dict[str, float]] | None = None  # (u, energies), once
+
+    @functools.cached_property
+    def _rows(self) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+        """Eq. 5's rows (:func:`least_squares_rows`), built on first use (the tree
+        integration's answer never needs them)."""
+        return least_squares_rows(self.terms, self.frame_weight)
+
+    @property
+    def A(self) -> sp.csr_matrix:  # noqa: N802 - the matrix of the paper
+        """(rows, N) CSR residual operator (:func:`least_squares_rows`)."""
+        return self._rows[0]
+
+    @property
+    def row_weights(self) -> np.ndarray:
+        """(rows,) float64 weights of the rows of :attr:`A`."""
+        return self._rows[1]
+
+    @property
+    def row_kind(self) -> np.ndarray:
+        """(rows,) int8 kind of the rows of :attr:`A` (0 edge, 1 frame)."""
+        return self._rows[2]
 
     @functools.cached_property
     def K(self) -> sp.csc_matrix:  # noqa: N802 - the matrix of the paper
@@ -113,10 +137,10 @@ class ImmersionProblem:
 
     def energies(self, u: np.ndarray) -> dict[str, float]:
         """Residual energy per term (in normalized units) of unknowns u (N, 3)."""
-        kept = self._residual
-        residual = kept[1] if kept is not None and kept[0] is u else None
-        self._residual = None
-        return energies(self.A, self.row_weights, self.row_kind, u, residual)
+        kept, self._energy = self._energy, None
+        if kept is not None and kept[0] is u:
+            return dict(kept[1])
+        return energies(self.A, self.row_weights, self.row_kind, u)
 
     def linear_constraints(self, constraints: Constraints) -> LinearConstraints:
         """Map validated user constraints to unknown columns (positions scaled)."""
@@ -262,23 +286,30 @@ class ImmersionProblem:
         """Unknowns (N, 3) integrated along spanning trees from the anchors (frame I at
         each root face, origin at each root vertex), whatever the forms' integrability
         (noisy forms accumulate their errors along the trees; possibly non-finite)."""
+        return self._tree_integration(root_faces, root_vertices)[0]
+
+    def _tree_integration(self, root_faces: ArrayLike, root_vertices: ArrayLike,
+                          ) -> tuple[np.ndarray, IntegrationForests]:
+        """:meth:`tree_unknowns` and the forests they were integrated along."""
         forests = integration_forests(self.terms, np.asarray(root_faces, dtype=np.int64),
                                       np.asarray(root_vertices, dtype=np.int64))
-        frames, _, positions = integrate_along_forests(self.terms, forests)
-        return np.concatenate([positions, np.swapaxes(frames, 1, 2).reshape(-1, 3)])
+        return integrated_unknowns(self.terms, forests), forests
 
     def integrated_solution(self, root_faces: ArrayLike, root_vertices: ArrayLike,
                             tol: float = EXACT_TOLERANCE) -> np.ndarray | None:
         """Unknowns (N, 3) integrated along spanning trees from the anchors (frame I at
         each root face, origin at each root vertex), or None if some weighted residual row
         of Eq. 5 exceeds ``tol`` (the forms are not integrable to that accuracy)."""
-        u = self.tree_unknowns(root_faces, root_vertices)
+        u, forests = self._tree_integration(root_faces, root_vertices)
         if not np.isfinite(u).all():
             return None
-        residual = self.A @ u
-        if max_weighted_residual(self.row_weights, residual) > tol:
+        # The frame rows of the dual forest's edges hold by construction (f_child = f_parent
+        # R, one rounding): only the other interior edges' frame rows are evaluated.
+        worst, energy = residual_summary(self.terms, self.frame_weight, u,
+                                         np.flatnonzero(~forests.dual.in_tree))
+        if worst > tol:
             return None
-        self._residual = (u, residual)  # energies(u) reuses it
+        self._energy = (u, energy)  # energies(u) reuses it
         return u
 
     def system(self, constraints: LinearConstraints, backend: str = "auto",

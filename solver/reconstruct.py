@@ -9,6 +9,7 @@ the same pieces.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
@@ -395,12 +396,22 @@ class _TreeStart:
     so the start satisfies them on the components without constraints)."""
 
     def __init__(self, problem: ImmersionProblem, touched: np.ndarray) -> None:
-        _, roots = problem.anchors(np.ones_like(touched))
-        u = problem.tree_unknowns([a["face"] for a in roots], [a["vertex"] for a in roots])
-        finite = bool(np.isfinite(u).all())
-        self.guess: np.ndarray | None = u if finite else None
-        self.near_null: np.ndarray | None = (
-            near_null_space(problem.topology.n_vertices, u) if finite else None)
+        self._problem, self._touched = problem, touched
+
+    @functools.cached_property
+    def guess(self) -> np.ndarray | None:
+        """(N, 3) float64 tree-integrated unknowns (None if not finite); integrated on first
+        use, so an answer of the tree integration alone never pays for it twice."""
+        _, roots = self._problem.anchors(np.ones_like(self._touched))
+        u = self._problem.tree_unknowns([a["face"] for a in roots],
+                                        [a["vertex"] for a in roots])
+        return u if bool(np.isfinite(u).all()) else None
+
+    @functools.cached_property
+    def near_null(self) -> np.ndarray | None:
+        """(N, 4) float64 near-null space of K from :attr:`guess` (None if not finite)."""
+        u = self.guess
+        return None if u is None else near_null_space(self._problem.topology.n_vertices, u)
 
 
 def _system(problem: ImmersionProblem, linear: Any, backend: str, tree: _TreeStart | None,
@@ -414,7 +425,12 @@ def _system(problem: ImmersionProblem, linear: Any, backend: str, tree: _TreeSta
 
 def _orthonormality_error(frames: np.ndarray) -> float:
     """max_t ||f_t^T f_t - I||_max: how far the solved frames are from rotations."""
-    if not len(frames):
-        return 0.0
-    gram = np.swapaxes(frames, 1, 2) @ frames
-    return float(np.abs(gram - np.eye(3)).max())
+    worst = 0.0
+    for lo in range(0, len(frames), 1 << 16):  # blocks: temporaries of a few MB
+        f = frames[lo:lo + (1 << 16)]
+        for i in range(3):  # the Gram matrix's upper triangle, entry by entry
+            for j in range(i, 3):
+                gram = f[:, 0, i] * f[:, 0, j] + f[:, 1, i] * f[:, 1, j] + f[:, 2, i] * f[:, 2, j]
+                gram -= float(i == j)
+                worst = max(worst, float(np.abs(gram).max()))
+    return worst

@@ -28,17 +28,27 @@ from numpy.typing import ArrayLike
 from ..core.errors import ConstraintError
 from ..core.serialization import JsonDataclass
 from ..mesh.forms import validate_forms, wrapped_angle_count
-from ..mesh.frames import face_edge_lengths, transition_quaternions, triangle_inequality_violations
+from ..mesh.frames import (
+    face_edge_lengths,
+    transition_rotations,
+    triangle_inequality_violations,
+)
 from ..mesh.manifold import ManifoldCut
 from ..mesh.rotations import (
     quaternion_angles,
-    quaternion_conjugate,
     quaternion_multiply,
     rotation_angle,
 )
-from ..mesh.topology import MeshTopology, corner_successor, cycle_ranks, previous_halfedge
-from ..mesh.trees import accumulate_products, accumulate_sums, spanning_forest
+from ..mesh.topology import MeshTopology, corner_successor, previous_halfedge
+from ..mesh.trees import spanning_forest
 from .system import EnergyTerms, energy_terms
+from .tree_integration import (
+    edge_vectors,
+    integrate_along_forests,
+    integration_forests,
+    links_to_inner,
+    tree_frames,
+)
 
 WORST_COUNT = 10
 """How many of the largest vertex defects a report lists (``worst_vertices``)."""
@@ -271,33 +281,14 @@ def _interior_vertices(topology: MeshTopology) -> np.ndarray:
     return np.flatnonzero(topology.is_referenced & ~topology.is_boundary_vertex)
 
 
-def halfedge_transitions(terms: EnergyTerms) -> np.ndarray:
-    """The transition rotation across each half-edge, from its face to the twin's face.
-
-    Args:
-        terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
-
-    Returns:
-        (H, 4) float64 unit quaternions, the identity on boundary half-edges.
-    """
-    topo = terms.topology
-    q = np.zeros((3 * topo.n_faces, 4))
-    q[:, 0] = 1.0
-    fwd, bwd = topo.edge_halfedges[terms.interior_edges].T
-    q_lr = transition_quaternions(terms.transition)
-    q[fwd] = q_lr
-    q[bwd] = quaternion_conjugate(q_lr)  # R_RL = R_LR^T
-    return q
-
-
 def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
     """The transition rotations multiplied around each interior vertex (Eq. 4).
 
-    The loop starts at one face of the vertex and goes counter-clockwise; the product is
-    expressed in that face's frame (its z axis is the normal). The corners of every
-    interior vertex are put in ring order (pointer doubling over the corner successor
-    permutation), then multiplied rank by rank for all vertices at once: O(H) quaternion
-    products in all, in as many vectorized steps as the largest valence.
+    The loop starts at the vertex's first corner (smallest half-edge leaving it) and goes
+    counter-clockwise; the product is expressed in that face's frame (its z axis is the
+    normal). All vertices walk their rings at once, one vectorized quaternion product per
+    ring position, the vertices sorted by valence so that those still walking are a prefix
+    (slices, no index lists): O(H) products in all, in as many steps as the largest valence.
 
     Args:
         terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
@@ -324,27 +315,43 @@ def vertex_holonomy(terms: EnergyTerms) -> np.ndarray:
     if not len(interior):
         return np.zeros((0, 4))
     H = 3 * topo.n_faces
-    corners = np.arange(H)
-    on_interior = np.zeros(topo.n_vertices, dtype=bool)
-    on_interior[interior] = True
-    successor = corner_successor(topo.halfedge_twin)
-    successor = np.where(on_interior[topo.halfedge_origin], successor, corners)
-    count = np.bincount(topo.halfedge_origin, minlength=topo.n_vertices)[interior]
-    _, rank = cycle_ranks(successor, int(count.max()))
-    # Corners of interior vertices sorted by (vertex, ring position): a counting sort, each
-    # corner at its vertex's start plus its rank (no O(H log H) sort).
-    chosen = corners[on_interior[topo.halfedge_origin]]
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    slot = np.full(topo.n_vertices, -1, dtype=np.int64)
-    slot[interior] = start
-    order = np.empty(len(chosen), dtype=np.int64)
-    order[slot[topo.halfedge_origin[chosen]] + rank[chosen]] = chosen
-    step = halfedge_transitions(terms)[previous_halfedge(order)]  # transition of each step
-    result = step[start].copy()
-    for r in range(1, int(count.max())):  # one vectorized step per ring position
-        active = np.flatnonzero(count > r)
-        result[active] = quaternion_multiply(result[active], step[start[active] + r])
-    return result
+    origin = topo.halfedge_origin
+    index = np.int32 if np.iinfo(np.int32).max > H else np.int64
+    first = np.full(topo.n_vertices, H, dtype=index)
+    np.minimum.at(first, origin, np.arange(H, dtype=index))
+    count = np.bincount(origin, minlength=topo.n_vertices)[interior]
+    by_valence = np.argsort(-count, kind="stable")
+    count = count[by_valence]
+    corner = first[interior[by_valence]]
+    successor = corner_successor(topo.halfedge_twin).astype(index)
+    # Transition of the step out of corner c: across the half-edge before it, from c's face
+    # to the next one; +-(1 + interior edge position): + where that half-edge runs i -> j
+    # (R_LR), - where it runs j -> i (R_RL = R_LR^T, the conjugate quaternion).
+    slot = np.zeros(topo.n_edges, dtype=index)
+    slot[terms.interior_edges] = np.arange(1, len(terms.interior_edges) + 1, dtype=index)
+    signed = slot[topo.halfedge_edge]
+    np.negative(signed, out=signed, where=origin > topo.halfedge_dest)
+    quaternions = terms.quaternions
+    result = _ring_step(quaternions, signed, corner)
+    walking = np.searchsorted(-count, -np.arange(int(count[0]) + 1), side="left")
+    for r in range(1, int(count[0])):  # the vertices of valence > r are the first walking[r]
+        active = slice(0, int(walking[r]))
+        corner[active] = successor[corner[active]]
+        result[active] = quaternion_multiply(result[active],
+                                             _ring_step(quaternions, signed, corner[active]))
+    holonomy = np.empty_like(result)
+    holonomy[by_valence] = result
+    return holonomy
+
+
+def _ring_step(quaternions: np.ndarray, signed: np.ndarray, corners: np.ndarray,
+               ) -> np.ndarray:
+    """(c, 4) transition quaternions of the ring steps out of ``corners`` (c,) (see
+    :func:`vertex_holonomy`: ``signed`` is +-(1 + interior edge position) per half-edge)."""
+    edge = signed[previous_halfedge(corners)]
+    q = np.take(quaternions, np.abs(edge) - 1, axis=0)
+    q[:, 1:] *= np.where(edge < 0, -1.0, 1.0)[:, None]
+    return q
 
 
 def homology_rank(topology: MeshTopology) -> np.ndarray:
@@ -413,9 +420,10 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     left, right = dual_links[generators].T
     angles = np.zeros(0)
     if len(generators):  # genus 0 without holes has none: skip the frame integration
-        frames = _tree_frames(terms, cotree.parent, _links_to_inner(cotree, cotree_mask),
+        frames = tree_frames(terms, cotree.parent, links_to_inner(cotree, cotree_mask),
                               cotree.levels)
-        hol = frames[left] @ terms.rotations[generators] @ np.swapaxes(frames[right], 1, 2)
+        hol = (frames[left] @ transition_rotations(terms.transition[generators])
+               @ np.swapaxes(frames[right], 1, 2))
         angles = rotation_angle(hol)
     rotation_loops = [
         HolonomyLoop(kind="rotation", component=int(topo.face_component[lf]),
@@ -429,10 +437,10 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     rest, tree = forests.rest, forests.primal
     if tree.in_tree.all():
         return rotation_loops, []
-    frames, edge_vectors, positions = integrate_along_forests(terms, forests)
+    frames, positions = integrate_along_forests(terms, forests)
     closing = rest[~tree.in_tree]
     i, j = topo.edges[closing].T
-    gaps = positions[i] + edge_vectors[closing] - positions[j]
+    gaps = positions[i] + edge_vectors(terms, frames, closing) - positions[j]
     sizes = np.linalg.norm(gaps, axis=1) / mean_length
     translation_loops = [
         HolonomyLoop(kind="translation", component=int(topo.vertex_component[a]),
@@ -444,108 +452,18 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     return rotation_loops, translation_loops
 
 
-@dataclass(frozen=True)
-class IntegrationForests:
-    """The paths along which frames and then positions are integrated (Sec. 2.3's proof).
-
-    Attributes:
-        dual: :class:`solver.mesh.trees.SpanningForest` of the faces, across interior edges.
-        rest: (r,) int64 edges the dual forest does not cross.
-        primal: :class:`solver.mesh.trees.SpanningForest` of the vertices along ``rest``.
-    """
-
-    dual: Any
-    rest: np.ndarray
-    primal: Any
-
-
-def integration_forests(terms: EnergyTerms, root_faces: np.ndarray | None = None,
-                        root_vertices: np.ndarray | None = None) -> IntegrationForests:
-    """Spanning forests for :func:`integrate_along_forests`, grown from the given roots.
-
-    Args:
-        terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
-        root_faces: optional (r,) int64 preferred roots of the dual forest.
-        root_vertices: optional (s,) int64 preferred roots of the primal forest.
-
-    Returns:
-        :class:`IntegrationForests`.
-    """
-    topo = terms.topology
-    inner = terms.interior_edges
-    dual = spanning_forest(topo.n_faces, topo.edge_faces[inner], roots=root_faces)
-    crossed = np.zeros(topo.n_edges, dtype=bool)
-    crossed[inner[dual.in_tree]] = True
-    rest = np.flatnonzero(~crossed)
-    primal = spanning_forest(topo.n_vertices, topo.edges[rest], roots=root_vertices)
-    return IntegrationForests(dual=dual, rest=rest, primal=primal)
-
-
-def integrate_along_forests(terms: EnergyTerms, forests: IntegrationForests,
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frames (m, 3, 3), edge vectors (E, 3) and positions (n, 3) integrated from the roots.
-
-    Frames follow ``f_child = f_parent R`` (Eq. 2) from the identity at each dual root;
-    each edge vector is ``f_T (a1, a2, 0)`` (Eq. 3) from one face containing it; positions
-    add edge vectors along the primal forest from the origin at each primal root. For
-    integrable forms this is the immersion itself (up to rounding).
-
-    Args:
-        terms: layouts and transition rotations (:func:`solver.linear.system.energy_terms`).
-        forests: the paths (:func:`integration_forests`).
-
-    Returns:
-        ``(frames, edge_vectors, positions)``: (m, 3, 3), (E, 3) and (n, 3) float64.
-    """
-    topo = terms.topology
-    inner = terms.interior_edges
-    dual, rest, tree = forests.dual, forests.rest, forests.primal
-    frames = _tree_frames(terms, dual.parent, _links_to_inner(dual, np.ones(len(inner), bool)),
-                          dual.levels)
-    edge_vectors = _edge_vectors(terms, frames)
-    link = tree.parent_link
-    has_parent = link >= 0
-    steps = np.zeros((topo.n_vertices, 3))
-    e_up = rest[link[has_parent]]
-    # Step from parent to node along edge e_up: +d if the edge runs parent -> node.
-    sign = np.where(topo.edges[e_up, 1] == np.flatnonzero(has_parent), 1.0, -1.0)
-    steps[has_parent] = sign[:, None] * edge_vectors[e_up]
-    return frames, edge_vectors, accumulate_sums(tree.parent, steps, tree.levels)
-
-
-def _links_to_inner(forest: Any, mask: np.ndarray) -> np.ndarray:
-    """Map each face's parent link (an index into the masked link list) to interior-edge
-    positions (index into ``terms.interior_edges``); -1 at roots."""
-    positions = np.flatnonzero(mask)
-    out = np.full(len(forest.parent_link), -1, dtype=np.int64)
-    has = forest.parent_link >= 0
-    out[has] = positions[forest.parent_link[has]]
-    return out
-
-
-def _tree_frames(terms: EnergyTerms, parent: np.ndarray, parent_inner: np.ndarray,
-                 levels: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """Frames (m, 3, 3) integrated from each root face (identity) along a dual tree."""
-    topo = terms.topology
-    local = np.broadcast_to(np.eye(3), (topo.n_faces, 3, 3)).copy()
-    has = parent_inner >= 0
-    q = parent_inner[has]
-    R = terms.rotations[q]
-    # f_child = f_parent R_{parent -> child}; R_LR is stored, R_RL = R_LR^T.
-    parent_is_left = topo.edge_faces[terms.interior_edges[q], 0] == parent[has]
-    local[has] = np.where(parent_is_left[:, None, None], R, np.swapaxes(R, 1, 2))
-    return accumulate_products(parent, local, levels)
-
-
-def _edge_vectors(terms: EnergyTerms, frames: np.ndarray) -> np.ndarray:
-    """(E, 3) vector of each edge i -> j, ``f_T (a1, a2, 0)`` from a face containing it."""
-    topo = terms.topology
-    a = terms.coefficients.reshape(-1, 2)
-    fwd, bwd = topo.edge_halfedges.T
-    use_fwd = fwd >= 0
-    h = np.where(use_fwd, fwd, bwd)
-    vec = np.einsum("eij,ej->ei", frames[h // 3][:, :, :2], a[h])
-    return np.where(use_fwd[:, None], vec, -vec)
+def _largest(values: np.ndarray, count: int) -> np.ndarray:
+    """(<= count,) int64 indices of the largest positive ``values`` (n,), largest first, ties
+    in index order: ``np.argsort(-values, kind="stable")[:count]`` without sorting all n
+    (a partition finds the count-th largest value; only those at least as large are
+    sorted)."""
+    if len(values) > count:
+        threshold = np.partition(values, len(values) - count)[len(values) - count]
+        candidates = np.flatnonzero(values >= threshold)
+    else:
+        candidates = np.arange(len(values))
+    chosen = candidates[np.argsort(-values[candidates], kind="stable")[:count]]
+    return chosen[values[chosen] > 0]
 
 
 def _assemble_report(topo: MeshTopology, defect: np.ndarray, gauss: np.ndarray,
@@ -555,8 +473,7 @@ def _assemble_report(topo: MeshTopology, defect: np.ndarray, gauss: np.ndarray,
                      ) -> IntegrabilityReport:
     """The :class:`IntegrabilityReport` of measured defects and loops."""
     components = topo.component_summary()
-    worst = np.argsort(-defect, kind="stable")[:WORST_COUNT]
-    worst = worst[defect[worst] > 0]
+    worst = _largest(defect, WORST_COUNT)
     return IntegrabilityReport(
         integrable=bool(local_ok and global_ok and len(violations) == 0),
         max_defect=float(max_defect), tolerance=float(tol), vertex_defect=defect,

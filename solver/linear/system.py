@@ -16,6 +16,7 @@ Rows of ``A`` (per coordinate):
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -28,6 +29,7 @@ from ..mesh.frames import (
     edge_coefficients,
     face_edge_lengths,
     transition_angles,
+    transition_quaternions,
     transition_rotations,
     triangle_areas,
     triangle_layouts,
@@ -51,9 +53,11 @@ class EnergyTerms:
         coefficients: (m, 3, 2) ``a`` of each half-edge in its face's frame.
         interior_edges: (k,) int64 edges with two faces.
         transition: (k, 3) angles (theta_L, phi, theta_R) of their transition rotations.
-        rotations: (k, 3, 3) transition rotations ``R_LR`` of those edges.
         edge_weights: (m, 3) weight of each half-edge row.
         frame_weights: (k,) weight of each interior edge's frame rows (before frame_weight).
+        rotations: (k, 3, 3) transition rotations ``R_LR`` of those edges (computed on first
+            use: the tree integration needs those of its tree's edges only).
+        quaternions: (k, 4) the same rotations as unit quaternions (on first use).
     """
 
     topology: MeshTopology
@@ -61,9 +65,18 @@ class EnergyTerms:
     coefficients: np.ndarray
     interior_edges: np.ndarray
     transition: np.ndarray
-    rotations: np.ndarray
     edge_weights: np.ndarray
     frame_weights: np.ndarray
+
+    @functools.cached_property
+    def rotations(self) -> np.ndarray:
+        """(k, 3, 3) float64 :func:`solver.mesh.frames.transition_rotations`."""
+        return transition_rotations(self.transition)
+
+    @functools.cached_property
+    def quaternions(self) -> np.ndarray:
+        """(k, 4) float64 :func:`solver.mesh.frames.transition_quaternions`."""
+        return transition_quaternions(self.transition)
 
     @property
     def n_unknowns(self) -> int:
@@ -175,11 +188,9 @@ def energy_terms(topology: MeshTopology, lengths: np.ndarray, angles: np.ndarray
     layouts = triangle_layouts(face_lengths, layout_angles, check=check)
     coefficients = edge_coefficients(layouts)
     inner, transition = transition_angles(topology, coefficients, angles)
-    rotations = transition_rotations(transition)
     w_edge, w_frame = energy_weights(topology, face_lengths, inner, weighting, cotan_floor)
     return EnergyTerms(topology=topology, layouts=layouts, coefficients=coefficients,
-                       interior_edges=inner, transition=transition, rotations=rotations,
-                       edge_weights=w_edge,
+                       interior_edges=inner, transition=transition, edge_weights=w_edge,
                        frame_weights=w_frame)
 
 
@@ -496,6 +507,86 @@ def energies(A: sp.csr_matrix, weights: np.ndarray, kind: np.ndarray,
         r2 += np.square(r[:, c])
     r2 *= weights
     return {"edge": float(r2[kind == 0].sum()), "frame": float(r2[kind == 1].sum())}
+
+
+RESIDUAL_CHUNK = 1 << 16
+"""Faces (or interior edges) per block of :func:`residual_summary`: its temporaries stay a
+few MB (in cache, and reused by the allocator instead of fresh pages per pass)."""
+
+
+def residual_summary(terms: EnergyTerms, frame_weight: float, u: np.ndarray,
+                     frame_rows: np.ndarray | None = None,
+                     chunk: int = RESIDUAL_CHUNK) -> tuple[float, dict[str, float]]:
+    """The largest weighted residual row and the energies of Eq. (5) at ``u``, from the
+    terms directly (no residual operator ``A``: the tree integration's answer needs only
+    these two numbers).
+
+    Row for row the same as ``max_weighted_residual(weights, A @ u)`` and ``energies(A,
+    weights, kind, u)`` of :func:`least_squares_rows` (equal to rounding), computed in blocks
+    of ``chunk`` faces or interior edges.
+
+    Args:
+        terms: the forms' :class:`EnergyTerms`.
+        frame_weight: the weight of E_f relative to E_x.
+        u: (N, 3) float64 unknowns.
+        frame_rows: optional (q,) int64 positions in ``terms.interior_edges`` of the edges
+            whose frame rows are evaluated (default all); the caller leaves out rows that
+            vanish by construction (the frames of a tree integration satisfy Eq. 2 on its
+            tree's edges up to one rounding of the product).
+        chunk: block size.
+
+    Returns:
+        ``(max |sqrt(w) r|, {"edge": E_x, "frame": w E_f})``.
+
+    Example:
+        >>> import numpy as np
+        >>> from solver import fundamental_forms
+        >>> from solver.linear.system import energy_terms, least_squares_rows, residual_summary
+        >>> from solver.mesh.topology import build_topology
+        >>> corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> topology = build_topology([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        >>> forms = fundamental_forms(corners, topology.faces)
+        >>> terms = energy_terms(topology, forms.lengths, forms.angles, weighting="cotan")
+        >>> u = np.random.default_rng(0).normal(size=(terms.n_unknowns, 3))
+        >>> A, w, kind = least_squares_rows(terms, 2.0)
+        >>> worst, energy = residual_summary(terms, 2.0, u, chunk=1)
+        >>> bool(np.isclose(worst, max_weighted_residual(w, A @ u)))
+        True
+        >>> reference = energies(A, w, kind, u)
+        >>> all(np.isclose(energy[key], reference[key]) for key in reference)
+        True
+    """
+    topo = terms.topology
+    n, m = topo.n_vertices, topo.n_faces
+    x = u[:n]
+    F = u[n:].reshape(m, 3, 3)                     # [t, c, k] = f_t[k, c]
+    uniform = bool((terms.edge_weights == 1.0).all())
+    worst = edge = frame = 0.0
+    for lo in range(0, m, chunk):
+        block = slice(lo, min(lo + chunk, m))
+        # (b, 3 half-edges, 3 coordinates): x_dest - x_origin - (a1 f[:, 0] + a2 f[:, 1]).
+        r = np.take(x, topo.halfedge_dest[3 * lo: 3 * block.stop], axis=0).reshape(-1, 3, 3)
+        r -= np.take(x, topo.halfedge_origin[3 * lo: 3 * block.stop], axis=0).reshape(r.shape)
+        r -= np.matmul(terms.coefficients[block], F[block, :2])
+        if not uniform:
+            r *= np.sqrt(terms.edge_weights[block])[:, :, None]
+        flat = r.reshape(-1)
+        edge += float(np.einsum("i,i->", flat, flat))
+        worst = max(worst, float(flat.max(initial=0.0)), -float(flat.min(initial=0.0)))
+    inner = terms.interior_edges
+    rows = np.arange(len(inner)) if frame_rows is None else np.asarray(frame_rows)
+    for lo in range(0, len(rows), chunk):
+        q = rows[lo:lo + chunk]
+        left, right = np.take(topo.edge_faces, np.take(inner, q), axis=0).T
+        R = transition_rotations(np.take(terms.transition, q, axis=0))   # (b, d, c)
+        # f_R[k, c] - sum_d f_L[k, d] R[d, c], as [b, c, k].
+        r = np.take(F, right, axis=0) - np.matmul(np.swapaxes(R, 1, 2),
+                                                  np.take(F, left, axis=0))
+        r *= np.sqrt(frame_weight * np.take(terms.frame_weights, q))[:, None, None]
+        flat = r.reshape(-1)
+        frame += float(np.einsum("i,i->", flat, flat))
+        worst = max(worst, float(flat.max(initial=0.0)), -float(flat.min(initial=0.0)))
+    return worst, {"edge": edge, "frame": frame}
 
 
 def max_weighted_residual(weights: np.ndarray, residual: np.ndarray) -> float:

@@ -21,6 +21,7 @@ from ..core.errors import (
     EdgeMismatchError,
     NonFiniteValueError,
     NonPositiveLengthError,
+    SolverInputError,
 )
 from ..core.serialization import JsonDataclass
 from ..core.validation import as_indices, as_points, as_vector
@@ -366,8 +367,12 @@ def validate_forms(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angle
         ...
         solver.core.errors.NonPositiveLengthError: ...length -1.0 of edge [1, 2] is not positive
     """
-    topology = build_topology(faces, n_vertices)
-    E = as_indices(edges, "edges", width=2)
+    try:  # the edges serve the topology's half-edge lookup when they are well formed
+        E = as_indices(edges, "edges", width=2)
+    except SolverInputError:
+        E = None
+    topology = build_topology(faces, n_vertices, edges=E)  # the faces' errors first
+    E = as_indices(edges, "edges", width=2) if E is None else E
     expected = topology.edges
     if len(E) != len(expected):
         raise EdgeMismatchError(

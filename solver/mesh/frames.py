@@ -55,9 +55,18 @@ def triangle_inequality_violations(face_lengths: np.ndarray) -> np.ndarray:
         >>> triangle_inequality_violations(np.array([[3.0, 4.0, 5.0], [1.0, 1.0, 3.0]])).tolist()
         [1]
     """
-    ordered = np.sort(face_lengths, axis=1)
-    slack = ordered[:, 0] + ordered[:, 1] - ordered[:, 2]
-    return np.flatnonzero(slack < -TRIANGLE_SLACK * ordered[:, 2])
+    shortest, middle, longest = _sorted_columns(face_lengths)
+    slack = shortest + middle - longest
+    return np.flatnonzero(slack < -TRIANGLE_SLACK * longest)
+
+
+def _sorted_columns(face_lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The three columns of (m, 3) ``face_lengths`` sorted per row: ``(shortest, middle,
+    longest)``, (m,) each (the values of ``np.sort(axis=1)`` by minima and maxima: no
+    sort of rows of three)."""
+    l0, l1, l2 = face_lengths.T
+    low, high = np.minimum(l0, l1), np.maximum(l0, l1)
+    return np.minimum(low, l2), np.maximum(low, np.minimum(high, l2)), np.maximum(high, l2)
 
 
 def _as_written(value: float) -> str:
@@ -111,9 +120,9 @@ def triangle_areas(face_lengths: np.ndarray) -> np.ndarray:
         >>> triangle_areas(np.array([[3.0, 4.0, 5.0], [1.0, 1.0, 2.0]])).tolist()
         [6.0, 0.0]
     """
-    ordered = np.sort(face_lengths, axis=1)
-    scale = np.where(ordered[:, 2] > 0, ordered[:, 2], 1.0)  # avoids overflow of the product
-    c, b, a = (ordered / scale[:, None]).T  # a >= b >= c
+    shortest, middle, longest = _sorted_columns(face_lengths)
+    scale = np.where(longest > 0, longest, 1.0)  # avoids overflow of the product
+    c, b, a = shortest / scale, middle / scale, longest / scale  # a >= b >= c
     slack = c - (a - b)
     product = (a + (b + c)) * slack * (c + (a - b)) * (a + (b - c))
     product = np.where(slack <= COLLINEAR_SLACK, 0.0, product)
@@ -173,7 +182,7 @@ def edge_coefficients(layouts: np.ndarray) -> np.ndarray:
     Returns:
         (m, 3, 2) float64: the vector from corner k to corner k + 1 of each face.
     """
-    return layouts[:, [1, 2, 0], :] - layouts
+    return np.roll(layouts, -1, axis=1) - layouts  # corner k + 1 - corner k (a slice copy)
 
 
 def transition_angles(topology: MeshTopology, coefficients: np.ndarray,
@@ -212,20 +221,43 @@ def transition_rotations(transition: np.ndarray) -> np.ndarray:
     Returns:
         (k, 3, 3) float64 rotation matrices.
     """
+    R = np.empty((len(transition), 3, 3))
+    for lo in range(0, len(transition), BLOCK):  # temporaries of a block stay in cache
+        _rotations_into(transition[lo:lo + BLOCK], R[lo:lo + BLOCK])
+    return R
+
+
+BLOCK = 1 << 15
+"""Rows per block of :func:`transition_rotations` and :func:`transition_quaternions`: their
+temporaries (a few per entry of the result) stay in cache instead of streaming
+whole-array passes through memory."""
+
+
+def _rotations_into(transition: np.ndarray, R: np.ndarray) -> None:
+    """:func:`transition_rotations` of (b, 3) ``transition`` written into (b, 3, 3) ``R``."""
     theta_left, phi, theta_right = transition.T
     ca, sa = np.cos(theta_left), np.sin(theta_left)
     cp, sp = np.cos(phi), np.sin(phi)
     cb, sb = np.cos(theta_right), np.sin(theta_right)
-    # Written out (one pass over k, no (k, 3, 3) temporaries): M = Rz(a) Rx(phi) has rows
-    # (ca, -sa cp, sa sp), (sa, ca cp, -ca sp), (0, sp, cp); R = M Rz(-b) turns its first
-    # two columns by b.
-    m0 = np.stack([ca, sa, np.zeros_like(ca)], axis=1)        # (k, 3) column 0 of M
-    m1 = np.stack([-sa * cp, ca * cp, sp], axis=1)            # column 1
-    R = np.empty((len(transition), 3, 3))
-    R[:, :, 0] = m0 * cb[:, None] - m1 * sb[:, None]
-    R[:, :, 1] = m0 * sb[:, None] + m1 * cb[:, None]
-    R[:, :, 2] = np.stack([sa * sp, -ca * sp, cp], axis=1)
-    return R
+    # Written out entry by entry into the result (no (k, 3) or (k, 3, 3) temporaries):
+    # M = Rz(a) Rx(phi) has columns m0 = (ca, sa, 0), m1 = (-sa cp, ca cp, sp),
+    # m2 = (sa sp, -ca sp, cp); R = M Rz(-b) turns its first two columns by b.
+    sacp, cacp = sa * cp, ca * cp
+    np.multiply(ca, cb, out=R[:, 0, 0])
+    R[:, 0, 0] += sacp * sb
+    np.multiply(sa, cb, out=R[:, 1, 0])
+    R[:, 1, 0] -= cacp * sb
+    np.multiply(sp, sb, out=R[:, 2, 0])
+    np.negative(R[:, 2, 0], out=R[:, 2, 0])
+    np.multiply(ca, sb, out=R[:, 0, 1])
+    R[:, 0, 1] -= sacp * cb
+    np.multiply(sa, sb, out=R[:, 1, 1])
+    R[:, 1, 1] += cacp * cb
+    np.multiply(sp, cb, out=R[:, 2, 1])
+    np.multiply(sa, sp, out=R[:, 0, 2])
+    np.multiply(ca, sp, out=R[:, 1, 2])
+    np.negative(R[:, 1, 2], out=R[:, 1, 2])
+    R[:, 2, 2] = cp
 
 
 def transition_quaternions(transition: np.ndarray) -> np.ndarray:
@@ -237,14 +269,29 @@ def transition_quaternions(transition: np.ndarray) -> np.ndarray:
     Returns:
         (k, 4) float64 unit quaternions (w, x, y, z).
     """
-    theta_left, phi, theta_right = transition.T
-    ca, sa = np.cos(0.5 * theta_left), np.sin(0.5 * theta_left)
-    cp, sp = np.cos(0.5 * phi), np.sin(0.5 * phi)
-    cb, sb = np.cos(0.5 * theta_right), np.sin(0.5 * theta_right)
-    # qz(a) qx(phi) = (ca cp, ca sp, sa sp, sa cp), then times qz(-b) = (cb, 0, 0, -sb).
+    q = np.empty((len(transition), 4))
+    for lo in range(0, len(transition), BLOCK):  # temporaries of a block stay in cache
+        _quaternions_into(transition[lo:lo + BLOCK], q[lo:lo + BLOCK])
+    return q
+
+
+def _quaternions_into(transition: np.ndarray, q: np.ndarray) -> None:
+    """:func:`transition_quaternions` of (b, 3) ``transition`` written into (b, 4) ``q``."""
+    half = 0.5 * transition
+    c, s = np.cos(half), np.sin(half)
+    ca, cp, cb = c.T
+    sa, sp, sb = s.T
+    # qz(a) qx(phi) = (ca cp, ca sp, sa sp, sa cp), then times qz(-b) = (cb, 0, 0, -sb);
+    # written into the result column by column (no (k, 4) temporaries).
     w, x, y, z = ca * cp, ca * sp, sa * sp, sa * cp
-    return np.stack([w * cb + z * sb, x * cb - y * sb, y * cb + x * sb, z * cb - w * sb],
-                    axis=1)
+    np.multiply(w, cb, out=q[:, 0])
+    q[:, 0] += z * sb
+    np.multiply(x, cb, out=q[:, 1])
+    q[:, 1] -= y * sb
+    np.multiply(y, cb, out=q[:, 2])
+    q[:, 2] += x * sb
+    np.multiply(z, cb, out=q[:, 3])
+    q[:, 3] -= w * sb
 
 
 def layout_frames(vertices: np.ndarray, faces: np.ndarray, layouts: np.ndarray) -> np.ndarray:

@@ -118,12 +118,17 @@ class MeshTopology:
         return summary
 
 
-def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> MeshTopology:
+def build_topology(faces: np.ndarray, n_vertices: int | None = None,
+                   edges: np.ndarray | None = None) -> MeshTopology:
     """Build and validate the half-edge structure of ``faces``.
 
     Args:
         faces: (m, 3) integer array, counter-clockwise.
         n_vertices: vertex count; defaults to ``faces.max() + 1``.
+        edges: optional (E, 2) int64 edge list the caller expects (the forms' edges): when
+            it is exactly the faces' sorted edge list, the half-edges are looked up in it
+            (a binary search instead of sorting the half-edges); otherwise it is ignored
+            (the caller compares it with ``topology.edges`` for its own error).
 
     Returns:
         The :class:`MeshTopology`.
@@ -152,20 +157,23 @@ def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> MeshTopo
     H = 3 * m
     origin = F.ravel()
     dest = F[:, [1, 2, 0]].ravel()
-    lo = np.minimum(origin, dest)
-    hi = np.maximum(origin, dest)
-    edge_keys, halfedge_edge, counts = np.unique(lo * n + hi, return_inverse=True,
-                                                 return_counts=True)
-    edges = np.stack([edge_keys // n, edge_keys % n], axis=1)
+    keys = np.minimum(origin, dest) * n + np.maximum(origin, dest)
+    found = None if edges is None else _given_edges(keys, edges, n)
+    if found is None:
+        edge_keys, halfedge_edge, counts = np.unique(keys, return_inverse=True,
+                                                     return_counts=True)
+        edges = np.stack([edge_keys // n, edge_keys % n], axis=1)
+    else:
+        edges, halfedge_edge, counts = found
+    del keys
     _check_edge_multiplicity(edges, halfedge_edge, counts)
 
     forward = origin < dest
-    direction_key = 2 * halfedge_edge + (~forward)
-    order = np.argsort(direction_key, kind="stable")
-    same = direction_key[order][1:] == direction_key[order][:-1]
-    if same.any():
-        h1, h2 = order[:-1][same][0], order[1:][same][0]
-        e = int(halfedge_edge[h1])
+    # Each edge of two faces must be traversed once each way: one forward half-edge.
+    forward_count = np.bincount(halfedge_edge[forward], minlength=len(edges))
+    if ((counts == 2) & (forward_count != 1)).any():
+        e = int(np.flatnonzero((counts == 2) & (forward_count != 1))[0])
+        h1, h2 = np.flatnonzero(halfedge_edge == e)[:2]
         raise InconsistentOrientationError(
             f"faces {h1 // 3} and {h2 // 3} both traverse edge {edges[e].tolist()} from vertex "
             f"{origin[h1]} to {dest[h1]}: flip one of them (or remove a duplicated face)",
@@ -203,6 +211,29 @@ def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> MeshTopo
         is_boundary_vertex=is_boundary_vertex, is_referenced=is_referenced,
         boundary_loops=loops, boundary_loop_component=loop_component,
     )
+
+
+def _given_edges(keys: np.ndarray, edges: np.ndarray, n: int,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(edges, halfedge_edge, counts)`` when ``edges`` (E, 2) is exactly the sorted edge
+    list of the half-edges' ``keys`` (H,) = ``min * n + max``, else None."""
+    edges = np.asarray(edges)
+    if edges.ndim != 2 or edges.shape[1] != 2 or not len(edges) or not len(keys):
+        return None
+    edges = edges.astype(np.int64, copy=False)
+    if (edges < 0).any() or (edges >= n).any() or (edges[:, 0] >= edges[:, 1]).any():
+        return None
+    edge_keys = edges[:, 0] * n + edges[:, 1]
+    if (edge_keys[1:] <= edge_keys[:-1]).any():      # strictly increasing: sorted, distinct
+        return None
+    position = np.searchsorted(edge_keys, keys)
+    np.minimum(position, len(edge_keys) - 1, out=position)
+    if (edge_keys[position] != keys).any():           # a face edge missing from the list
+        return None
+    counts = np.bincount(position, minlength=len(edge_keys))
+    if (counts == 0).any():                            # a listed edge of no face
+        return None
+    return edges, position, counts
 
 
 def _check_edge_multiplicity(edges: np.ndarray, halfedge_edge: np.ndarray,
@@ -252,10 +283,53 @@ def corner_successor(twin: np.ndarray) -> np.ndarray:
     return twin[previous_halfedge(np.arange(len(twin)))]
 
 
+FAN_WALK_VALENCE = 1024
+"""Largest valence for which :func:`_check_vertex_fans` walks the fans (one vectorized step
+per ring position); meshes with a vertex of more faces take the connected components of
+the corner graph instead."""
+
+
 def _check_vertex_fans(origin: np.ndarray, twin: np.ndarray, n: int) -> None:
-    """Raise :class:`NonManifoldVertexError` for the first vertex with two fans of faces."""
+    """Raise :class:`NonManifoldVertexError` for the first vertex with two fans of faces.
+
+    Every vertex walks its corners from the start of an open fan (a corner no other corner
+    leads to) or, when it has none, from its first corner: the corner successor is
+    one-to-one, so the vertex has one fan exactly when that walk meets all its corners
+    (all vertices at once, sorted by valence so that those still walking are a prefix).
+    A vertex that fails, and every mesh with a vertex of more than
+    :data:`FAN_WALK_VALENCE` faces, takes :func:`_count_vertex_fans` (which names it).
+    """
     H = len(origin)
     succ = corner_successor(twin)
+    count = np.bincount(origin, minlength=n)
+    if not H or count.max() > FAN_WALK_VALENCE:
+        _count_vertex_fans(origin, succ, n)
+        return
+    corners = np.arange(H)
+    has_pred = np.zeros(H, dtype=bool)
+    has_pred[succ[succ >= 0]] = True
+    start = np.full(n, H, dtype=np.int64)
+    np.minimum.at(start, origin, np.where(has_pred, H, corners))   # an open fan's start
+    first = np.full(n, H, dtype=np.int64)
+    np.minimum.at(first, origin, corners)
+    used = np.flatnonzero(count)
+    used = used[np.argsort(-count[used], kind="stable")]
+    count = count[used]
+    start = np.where(start[used] < H, start[used], first[used])
+    walking = np.searchsorted(-count, -np.arange(int(count[0]) + 1), side="left")
+    corner = start.copy()
+    for r in range(1, int(count[0])):  # the vertices of valence > r are the first walking[r]
+        active = slice(0, int(walking[r]))
+        corner[active] = succ[corner[active]]
+        if ((corner[active] < 0) | (corner[active] == start[active])).any():
+            _count_vertex_fans(origin, succ, n)  # a fan shorter than the vertex's valence
+            return
+
+
+def _count_vertex_fans(origin: np.ndarray, succ: np.ndarray, n: int) -> None:
+    """Raise :class:`NonManifoldVertexError` for the first vertex with two fans of faces
+    (connected components of the corner graph linked by ``succ`` (H,))."""
+    H = len(origin)
     linked = succ >= 0
     graph = sp.coo_matrix((np.ones(int(linked.sum())), (np.arange(H)[linked], succ[linked])),
                           shape=(H, H))

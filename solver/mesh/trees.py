@@ -30,7 +30,7 @@ class SpanningForest:
 
 
 def spanning_forest(n_nodes: int, links: np.ndarray, roots: np.ndarray | None = None,
-                    ) -> SpanningForest:
+                    components: np.ndarray | None = None) -> SpanningForest:
     """Breadth-first spanning forest of an undirected graph.
 
     Parallel links are allowed (only one of them can be a tree link).
@@ -40,6 +40,9 @@ def spanning_forest(n_nodes: int, links: np.ndarray, roots: np.ndarray | None = 
         links: (L, 2) int node pairs.
         roots: optional preferred roots: a component containing one is grown from it;
             other components are grown from their smallest node.
+        components: optional (k,) int64 connected component of each node when the caller
+            knows them (e.g. a mesh's faces across its interior edges: the face
+            components); computed otherwise.
 
     Returns:
         The :class:`SpanningForest`.
@@ -55,18 +58,27 @@ def spanning_forest(n_nodes: int, links: np.ndarray, roots: np.ndarray | None = 
     """
     links = np.asarray(links, dtype=np.int64).reshape(-1, 2)
     super_root = n_nodes
-    graph = sp.coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])),
-                          shape=(n_nodes, n_nodes))
-    _, component = connected_components(graph, directed=False)
-    first = np.full(component.max() + 1 if n_nodes else 0, n_nodes, dtype=np.int64)
+    if components is None:
+        graph = sp.coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])),
+                              shape=(n_nodes, n_nodes))
+        components = connected_components(graph, directed=False)[1]
+        del graph
+    n_comp = int(components.max()) + 1 if n_nodes else 0
+    first = np.full(n_comp, n_nodes, dtype=np.int64)
     if roots is not None and len(roots):
-        np.minimum.at(first, component[roots], roots)
-    unset = first == n_nodes
-    first[unset] = np.unique(component, return_index=True)[1][unset]
-    starts = np.concatenate([links[:, 0], np.full(len(first), super_root)])
-    ends = np.concatenate([links[:, 1], first])
-    full = sp.coo_matrix((np.ones(len(starts)), (starts, ends)),
-                         shape=(n_nodes + 1, n_nodes + 1)).tocsr()
+        np.minimum.at(first, components[roots], roots)
+    smallest = np.full(n_comp, n_nodes, dtype=np.int64)
+    np.minimum.at(smallest, components, np.arange(n_nodes))
+    first = np.where(first == n_nodes, smallest, first)
+    first = first[first < n_nodes]
+    # Each entry holds its link (+1), so that each node's parent link is read off the rows
+    # of its pair (the search is scipy's undirected one, as before).
+    L = len(links)
+    full = sp.csr_matrix(
+        (np.concatenate([np.arange(1, L + 1, dtype=np.float64), np.ones(len(first))]),
+         (np.concatenate([links[:, 0], np.full(len(first), super_root)]),
+          np.concatenate([links[:, 1], first]))),
+        shape=(n_nodes + 1, n_nodes + 1))
     visit, pred = breadth_first_order(full, super_root, directed=False,
                                       return_predecessors=True)
     parent = pred[:n_nodes].astype(np.int64)
@@ -74,20 +86,53 @@ def spanning_forest(n_nodes: int, links: np.ndarray, roots: np.ndarray | None = 
     parent[is_root] = np.flatnonzero(is_root)
     levels = _breadth_first_levels(visit[1:].astype(np.int64), parent, len(first))
 
-    # Which link joins each node to its parent: look the unordered pair up among the links.
-    key = np.minimum(links[:, 0], links[:, 1]) * (n_nodes + 1) + np.maximum(links[:, 0],
-                                                                            links[:, 1])
-    order = np.argsort(key, kind="stable")
     nodes = np.flatnonzero(~is_root)
-    want = (np.minimum(nodes, parent[nodes]) * (n_nodes + 1)
-            + np.maximum(nodes, parent[nodes]))
-    pos = np.searchsorted(key[order], want)
-    parent_link = np.full(n_nodes, -1, dtype=np.int64)
-    parent_link[nodes] = order[pos]
-    in_tree = np.zeros(len(links), dtype=bool)
+    if full.nnz == L + len(first):
+        parent_link = _row_lookup(full, nodes, parent[nodes], n_nodes)
+    else:  # parallel links were summed into one entry: look the pair up among the links
+        parent_link = _pair_lookup(links, nodes, parent[nodes], n_nodes)
+    in_tree = np.zeros(L, dtype=bool)
     in_tree[parent_link[nodes]] = True
     return SpanningForest(parent=parent, parent_link=parent_link, in_tree=in_tree,
                           levels=levels)
+
+
+def _row_lookup(full: sp.csr_matrix, nodes: np.ndarray, parents: np.ndarray,
+                n_nodes: int) -> np.ndarray:
+    """(k,) int64 link of each of ``nodes`` to its parent (-1 elsewhere): the entry of the
+    pair in ``full`` (links + 1 as values, no duplicates, one direction each), probed
+    along row ``node`` for column ``parent``, then along row ``parent`` for the rest (as
+    many steps as the longest row)."""
+    parent_link = np.full(n_nodes, -1, dtype=np.int64)
+    rest = np.arange(len(nodes))
+    for rows, columns in ((nodes, parents), (parents, nodes)):
+        position = full.indptr[rows[rest]].astype(np.int64)
+        end = full.indptr[rows[rest] + 1]
+        probing = np.arange(len(rest))
+        while len(probing):
+            at = position[probing]
+            inside = at < end[probing]
+            hit = inside.copy()
+            hit[inside] = full.indices[at[inside]] == columns[rest[probing[inside]]]
+            found = probing[hit]
+            parent_link[nodes[rest[found]]] = full.data[position[found]].astype(np.int64) - 1
+            probing = probing[inside & ~hit]
+            position[probing] += 1
+        rest = rest[parent_link[nodes[rest]] < 0]
+    return parent_link
+
+
+def _pair_lookup(links: np.ndarray, nodes: np.ndarray, parents: np.ndarray,
+                 n_nodes: int) -> np.ndarray:
+    """As :func:`_row_lookup`, by sorting the links' unordered pairs (the first of parallel
+    links)."""
+    key = np.minimum(links[:, 0], links[:, 1]) * (n_nodes + 1) + np.maximum(links[:, 0],
+                                                                            links[:, 1])
+    order = np.argsort(key, kind="stable")
+    want = np.minimum(nodes, parents) * (n_nodes + 1) + np.maximum(nodes, parents)
+    parent_link = np.full(n_nodes, -1, dtype=np.int64)
+    parent_link[nodes] = order[np.searchsorted(key[order], want)]
+    return parent_link
 
 
 def _breadth_first_levels(order: np.ndarray, parent: np.ndarray, n_roots: int,
@@ -145,24 +190,56 @@ def _by_levels(parent: np.ndarray, n_levels: int) -> bool:
     return n_levels <= max(64, LEVELS_PER_NODE * len(parent))
 
 
-def _accumulate(parent: np.ndarray, local: np.ndarray,
-                levels: tuple[np.ndarray, np.ndarray] | None,
-                combine: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+def fold_from_roots(parent: np.ndarray, local_of: Callable[[np.ndarray], np.ndarray],
+                    levels: tuple[np.ndarray, np.ndarray] | None,
+                    combine: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                    out: np.ndarray) -> np.ndarray:
     """Root-to-node folds ``A[v] = combine(A[parent[v]], local[v])`` of an associative
-    ``combine`` (``np.matmul``, ``np.add``) on (k, ...) float64 ``local``: level by level
-    from the roots on shallow forests, by pointer doubling on deep ones."""
+    ``combine`` (``np.matmul``, ``np.add``), written into ``out`` (k, ...).
+
+    On shallow forests the nodes are taken in breadth-first order, where every depth is a
+    contiguous slice whose parents lie in the slice before (no scattered writes per
+    level; one scatter into ``out`` at the end); deep forests use pointer doubling.
+
+    Args:
+        parent: (k,) int64 forest parents (roots point to themselves).
+        local_of: ``local_of(nodes)`` gives the (len(nodes), ...) float64 per-node
+            transforms of ``nodes`` (k,), in that order (roots: the identity of
+            ``combine``); called once.
+        levels: ``(order, bounds)`` of :func:`forest_levels`, or None.
+        combine: the associative operation.
+        out: (k, ...) float64 array the folds are written into.
+
+    Returns:
+        ``out``.
+    """
     order, bounds = forest_levels(parent) if levels is None else levels
-    acc = local.copy()
     if _by_levels(parent, len(bounds) - 2):
+        acc = local_of(order)
+        position = np.empty(len(order), dtype=np.int64)
+        position[order] = np.arange(len(order))
+        parent_position = position[np.asarray(parent)[order]]
+        del position
         for d in range(1, len(bounds) - 1):
-            nodes = order[bounds[d]:bounds[d + 1]]
-            acc[nodes] = combine(acc[parent[nodes]], acc[nodes])
-        return acc
+            level = slice(int(bounds[d]), int(bounds[d + 1]))
+            acc[level] = combine(np.take(acc, parent_position[level], axis=0), acc[level])
+        out[order] = acc
+        return out
+    acc = local_of(np.arange(len(parent)))
     anc = np.asarray(parent, dtype=np.int64).copy()
     while not np.array_equal(anc[anc], anc):
         acc = combine(acc[anc], acc)
         anc = anc[anc]
-    return acc
+    out[...] = acc
+    return out
+
+
+def _accumulate(parent: np.ndarray, local: np.ndarray,
+                levels: tuple[np.ndarray, np.ndarray] | None,
+                combine: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """:func:`fold_from_roots` of the per-node transforms ``local`` (k, ...) float64."""
+    return fold_from_roots(parent, lambda nodes: np.take(local, nodes, axis=0), levels,
+                           combine, np.empty_like(local))
 
 
 def accumulate_products(parent: np.ndarray, local: np.ndarray,

@@ -120,3 +120,39 @@ def test_non_manifold_vertex_bowtie():
     with pytest.raises(NonManifoldVertexError) as err:
         build_topology([[0, 1, 2], [0, 3, 4]])
     assert err.value.details["vertex"] == 0
+
+
+def _fan(centre: int, rim: list[int], closed: bool) -> list[list[int]]:
+    """Triangles (centre, rim[i], rim[i + 1]) around ``centre`` (a closed ring if asked)."""
+    stop = len(rim) if closed else len(rim) - 1
+    return [[centre, rim[i], rim[(i + 1) % len(rim)]] for i in range(stop)]
+
+
+@pytest.mark.parametrize("mesh", [icosphere(2), torus_grid(12, 8), double_torus(),
+                                  bumpy_grid_with_holes(), load("face.off")])
+def test_edges_given_by_the_forms_give_the_same_topology(mesh):
+    """validate_forms passes the forms' edges: looked up when they are exactly the faces'
+    sorted edges, ignored otherwise (a missing, extra, unsorted or reversed edge)."""
+    _, F = mesh
+    reference = build_topology(F)
+    E = reference.edges
+    wrong = [E[1:], np.concatenate([E, [[E[-1, 1] + 1, E[-1, 1] + 2]]]), E[::-1],
+             np.where(np.arange(len(E))[:, None] == 3, E[:, ::-1], E), E[:, ::-1][::-1]]
+    for edges in [E, *wrong]:
+        topology = build_topology(F, edges=edges)
+        for name in ("edges", "halfedge_edge", "halfedge_twin", "edge_halfedges", "edge_faces",
+                     "vertex_component", "is_boundary_vertex"):
+            np.testing.assert_array_equal(getattr(topology, name), getattr(reference, name))
+
+
+@pytest.mark.parametrize("valence", [40, 1500])  # the fan walk, and the components beyond it
+def test_non_manifold_vertices_of_any_valence(valence):
+    rim = list(range(1, valence + 1))
+    other = list(range(valence + 1, 2 * valence + 1))
+    build_topology(_fan(0, rim, closed=False))                  # one open fan: manifold
+    for faces in (_fan(0, rim, closed=False) + _fan(0, other, closed=False),   # two open
+                  _fan(0, rim, closed=True) + _fan(0, other, closed=False)):   # closed + open
+        with pytest.raises(NonManifoldVertexError) as err:
+            build_topology(faces)
+        assert err.value.details["vertex"] == 0
+        assert "joins 2 separate fans" in str(err.value)

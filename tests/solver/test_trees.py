@@ -59,3 +59,27 @@ def test_products_and_sums_follow_the_forest(kind: str, k: int) -> None:
         got = np.empty(n, dtype=np.int64)
         got[order] = np.repeat(np.arange(len(bounds) - 1), np.diff(bounds))
         np.testing.assert_array_equal(got, depth)
+
+
+@pytest.mark.parametrize(("kind", "k"), [("grid", 4900), ("random", 2000), ("path", 500)])
+def test_known_components_give_the_same_forest(kind: str, k: int) -> None:
+    """The components a caller knows (a mesh's) replace the search for them: same forest."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(k)
+    n, links = _graph(kind, k, rng)
+    graph = coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n))
+    components = connected_components(graph, directed=False)[1].astype(np.int64)
+    roots = rng.integers(0, n, size=3)
+    # None: searched; the same labels; other labels of the same partition (reversed).
+    for given in (None, components, components.max() - components):
+        forest = spanning_forest(n, links, roots=roots, components=given)
+        reference = spanning_forest(n, links, roots=roots)
+        np.testing.assert_array_equal(forest.parent, reference.parent)
+        np.testing.assert_array_equal(forest.in_tree, reference.in_tree)
+        # each node's parent link joins it to its parent
+        nodes = np.flatnonzero(forest.parent_link >= 0)
+        pair = np.sort(links[forest.parent_link[nodes]], axis=1)
+        np.testing.assert_array_equal(pair, np.sort(np.stack([nodes, forest.parent[nodes]], 1),
+                                                    axis=1))

@@ -27,4 +27,6 @@ if ! command -v chromium > /dev/null && [ "$(id -u)" = 0 ]; then
   apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium
 fi
 ruff check .
-python -m pytest "$@"
+# The slowest tests are listed at the end: the suite plus the Docker smoke test should stay
+# under 20 minutes on a 2-core machine.
+python -m pytest --durations=25 "$@"

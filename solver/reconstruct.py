@@ -246,7 +246,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
     system = None
     if u is None:
         stages("factorize")
-        system = _system(problem, linear, backend, tree)
+        system = _system(problem, linear, backend, tree, release=not opts.orthonormalize)
         stages.lap("factorize")
         stages("solve")
         u = system.solve(linear.hard_values, linear.soft_values,
@@ -286,7 +286,8 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         stages("factorize", 0.5)
         rotations = nearest_rotation(frames)
         cols = problem.all_frame_columns()
-        system2 = _system(problem, linear, backend, tree, cols, opts.orthonormal_weight)
+        system2 = _system(problem, linear, backend, tree, cols, opts.orthonormal_weight,
+                          release=True)
         stages.lap("factorize")
         stages("solve", 0.5)
         targets = np.swapaxes(rotations, 1, 2).reshape(-1, 3)
@@ -409,18 +410,26 @@ class _TreeStart:
 
     @functools.cached_property
     def near_null(self) -> np.ndarray | None:
-        """(N, 4) float64 near-null space of K from :attr:`guess` (None if not finite)."""
+        """(N, 4) near-null space of K from :attr:`guess` (None if not finite)."""
         u = self.guess
-        return None if u is None else near_null_space(self._problem.topology.n_vertices, u)
+        if u is None:
+            return None
+        # In the preconditioner's precision (the system takes a copy in it): half the bytes
+        # held through the multigrid setup.
+        return near_null_space(self._problem.topology.n_vertices, u).astype(
+            LINEAR_SOLVER_RULES.preconditioner_dtype)
 
 
 def _system(problem: ImmersionProblem, linear: Any, backend: str, tree: _TreeStart | None,
-            extra_columns: np.ndarray | None = None, extra_weight: float = 0.0) -> Any:
-    """The constrained system of Eq. 5: factorized (``tree`` None) or iterative."""
+            extra_columns: np.ndarray | None = None, extra_weight: float = 0.0,
+            release: bool = False) -> Any:
+    """The constrained system of Eq. 5: factorized (``tree`` None) or iterative; ``release``
+    for the last system :func:`reconstruct` builds (``problem.K`` is freed as soon as the
+    system has its own constrained copy: :meth:`ImmersionProblem.system`)."""
     if tree is None:
-        return problem.system(linear, backend, extra_columns, extra_weight)
+        return problem.system(linear, backend, extra_columns, extra_weight, release=release)
     return problem.system(linear, backend, extra_columns, extra_weight, method="iterative",
-                          near_null=tree.near_null)
+                          near_null=tree.near_null, release=release)
 
 
 def _orthonormality_error(frames: np.ndarray) -> float:

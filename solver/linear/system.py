@@ -17,6 +17,7 @@ Rows of ``A`` (per coordinate):
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -350,7 +351,11 @@ class ConstrainedSystem:
     construction; their target values may change per solve.
 
     Args:
-        K: (N, N) sparse ``A^T W A``.
+        K: (N, N) sparse ``A^T W A``, or a function that hands it over: the caller then
+            holds no reference while this constructor runs (arguments stay referenced by
+            the caller's frame until the call returns), so K is freed as soon as the
+            system has made its own constrained copy, before the factorization or the
+            multigrid setup.
         hard_columns: (h,) int64 unknowns fixed exactly.
         soft_columns: (s,) int64 unknowns pulled towards targets.
         soft_weights: (s,) float64 > 0 their penalty weights.
@@ -371,11 +376,14 @@ class ConstrainedSystem:
         BackendUnavailableError: the backend is not installed.
     """
 
-    def __init__(self, K: sp.spmatrix, hard_columns: np.ndarray, soft_columns: np.ndarray,
+    def __init__(self, K: sp.spmatrix | Callable[[], sp.spmatrix], hard_columns: np.ndarray,
+                 soft_columns: np.ndarray,
                  soft_weights: np.ndarray, backend: str = "auto",
                  groups: np.ndarray | None = None, method: str = "direct",
                  near_null: np.ndarray | None = None,
                  rules: LinearSolverRules = RULES) -> None:
+        if callable(K):
+            K = K()
         N = K.shape[0]
         self.size = N
         self.hard_columns = np.asarray(hard_columns, dtype=np.int64)

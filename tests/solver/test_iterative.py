@@ -252,3 +252,26 @@ def test_a_memory_budget_chooses_the_path() -> None:
                    memory_budget=0.9 * refinement).linear_solver == "iterative"
     assert Refiner(targets, linear_solver="auto",
                    memory_budget=1.1 * refinement).linear_solver == "direct"
+
+
+@pytest.mark.parametrize("method", ["direct", "iterative"])
+def test_a_released_k_is_freed_by_the_system(method: str) -> None:
+    """``ImmersionProblem.system(..., release=True)`` (the last system ``reconstruct``
+    builds): the problem lets go of K, which is freed once the system has its own
+    constrained copy (not kept through the multigrid setup and the refinement), and the
+    system solves as one built from a kept K; a later use of K assembles it again."""
+    import weakref
+
+    problem, anchor, tree, truth = _anchored("capsule")
+    near_null = near_null_space(problem.topology.n_vertices, tree)
+    kept = problem.system(anchor, method=method, near_null=near_null).solve(
+        anchor.hard_values, np.zeros((0, 3)), tree)
+    K = problem.K
+    freed = weakref.ref(K)
+    nnz = K.nnz
+    del K
+    system = problem.system(anchor, method=method, near_null=near_null, release=True)
+    assert freed() is None and "K" not in problem.__dict__
+    u = system.solve(anchor.hard_values, np.zeros((0, 3)), tree)
+    assert _relative(u, kept) < 1e-6 and _relative(u, truth) < 1e-6
+    assert problem.K.nnz == nnz

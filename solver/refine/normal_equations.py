@@ -31,24 +31,32 @@ from .residual_groups import ResidualGroup, square_sum
 class _GroupScatter:
     """Where a :class:`solver.refine.residual_groups.ResidualGroup`'s products land.
 
-    ``gradient_index``: positions in ``J^T r`` of the kept gradient entries,
-    ``gradient_select``: the kept entries (None: all). ``J^T J``'s upper triangle: the
-    products ``G_k[r] G_l[c]`` of the slot pairs k <= l, where each lands in the matrix's
-    values (``*_scatter``), and which are gathered first (``*_gather``, None: all, in order);
-    ``twice``: the diagonal entries of degenerate hinges (two slots on one vertex).
+    ``gradient_index``: (rows * q * dim,) positions in ``J^T r`` of its gradient entries.
+    ``J^T J``'s upper triangle: the products ``G_k[r] G_l[c]`` of the slot pairs k <= l, where
+    each lands in the matrix's values: ``diag_scatter`` (rows, q, entries) for the diagonal
+    blocks' entries ``(diag_r, diag_c)``, ``scatter`` (pairs, dim, dim, rows) for the
+    off-diagonal slot pairs ``(pair_k, pair_l)``. Entries of fixed vertices land one past the
+    end (position ``n_free * dim`` of ``J^T r``, ``nnz`` of the values), a slot that is
+    dropped: no index arrays of the kept ones. ``twice``: the diagonal entries of degenerate
+    hinges (two slots on one vertex), as (flat product index, position).
     """
 
     gradient_index: np.ndarray | None = None
-    gradient_select: np.ndarray | None = None
     diag_r: np.ndarray | None = None     # diagonal blocks: entries (r, c), r <= c
     diag_c: np.ndarray | None = None
     diag_scatter: np.ndarray | None = None
-    diag_gather: np.ndarray | None = None
     pair_k: np.ndarray | None = None     # off-diagonal blocks: slot pairs k < l
     pair_l: np.ndarray | None = None
     scatter: np.ndarray | None = None
-    gather: np.ndarray | None = None
     twice: tuple[np.ndarray, np.ndarray] | None = None
+
+
+PRODUCT_BLOCK = 2**21
+"""Products of slot pairs :meth:`GaussNewtonSystem.normal_equations` computes and scatters at
+once (whole slot pairs, at least one): a group with more (its hinges beyond ~40K faces) is
+assembled pair by pair, so that its transient memory is that of a block, not of all its
+products (16 MB here against ~650 B per face for the hinges at once). Below it the sums are
+those of one ``bincount`` per group."""
 
 
 class GaussNewtonSystem:
@@ -81,8 +89,8 @@ class GaussNewtonSystem:
 
     _OBJECTIVE_FIELDS = ("index", "n_free", "indptr", "indices", "nnz",
                          "diagonal_positions")
-    _GROUP_FIELDS = ("gradient_index", "gradient_select", "diag_r", "diag_c", "diag_scatter",
-                     "diag_gather", "pair_k", "pair_l", "scatter", "gather", "twice")
+    _GROUP_FIELDS = ("gradient_index", "diag_r", "diag_c", "diag_scatter", "pair_k", "pair_l",
+                     "scatter", "twice")
 
     def _pattern_key(self, topology: MeshTopology) -> bytes:
         """Digest of everything :meth:`_build_pattern` depends on: the faces, the free
@@ -170,58 +178,66 @@ class GaussNewtonSystem:
         self.indices = indices.astype(np.int32)
         self.nnz = int(indptr[-1])
 
-        upper_r, upper_c = np.triu_indices(dim)                       # diagonal blocks
         if not n_free:  # every vertex fixed: nothing is gathered (keep the indexing valid)
             start = np.zeros((1, dim), dtype=np.int64)
         for group, g in zip(self.groups, self.scatters, strict=True):
-            local = index[group.vertices]
-            q = local.shape[1]
-            slots = (local[:, :, None] * dim + np.arange(dim)).ravel()
-            # Where each (row, vertex, coordinate) gradient entry lands in J^T r.
-            g.gradient_select = None if (local >= 0).all() else np.flatnonzero(slots >= 0)
-            g.gradient_index = slots if g.gradient_select is None else slots[g.gradient_select]
-            # Diagonal blocks: G_k[r] G_k[c] for r <= c, at (dim a + r, dim a + c).
-            g.diag_r, g.diag_c = upper_r, upper_c
-            diag = start[np.maximum(local, 0)][:, :, upper_r] + (upper_c - upper_r)
-            diag_keep = np.repeat(local >= 0, len(upper_r))
-            # Off-diagonal pairs k < l: P[r, c] = G_k[r] G_l[c] lands at block (a, b) entry
-            # (r, c) when a < b, at block (b, a) entry (c, r) when a > b.
-            g.pair_k, g.pair_l = np.triu_indices(q, 1)
-            a, b = local[:, g.pair_k], local[:, g.pair_l]
+            self._group_pattern(group.vertices, g, pattern, block_indptr, start)
+
+    def _group_pattern(self, vertices: np.ndarray, g: _GroupScatter, pattern: np.ndarray,
+                       block_indptr: np.ndarray, start: np.ndarray) -> None:
+        """Fill ``g`` for a group of vertex rows ``vertices`` (rows, q), one slot or slot
+        pair at a time (int64 temporaries of (rows, dim) or (rows,) only): the block
+        ``pattern`` (sorted ``a * n_free + b``), its row pointers ``block_indptr`` and the
+        first value position ``start`` (n_free, dim) of every scalar row."""
+        dim, n_free, nnz = self.dim, self.n_free, self.nnz
+        index_type = np.int32 if nnz < 2**31 - 1 else np.int64
+        local = self.index[vertices]
+        rows, q = local.shape
+        slots = local[:, :, None] * dim + np.arange(dim)
+        g.gradient_index = np.where(local[:, :, None] >= 0, slots,
+                                    n_free * dim).astype(index_type).ravel()
+        del slots
+        # Diagonal blocks: G_k[r] G_k[c] for r <= c, at (dim a + r, dim a + c).
+        upper_r, upper_c = np.triu_indices(dim)
+        g.diag_r, g.diag_c = upper_r, upper_c
+        g.diag_scatter = np.empty((rows, q, len(upper_r)), dtype=index_type)
+        for k in range(q):
+            a = local[:, k]
+            g.diag_scatter[:, k] = np.where(
+                (a >= 0)[:, None], start[np.maximum(a, 0)][:, upper_r] + (upper_c - upper_r),
+                nnz)
+        # Off-diagonal pairs k < l: P[r, c] = G_k[r] G_l[c] lands at block (a, b) entry
+        # (r, c) when a < b, at block (b, a) entry (c, r) when a > b; computed rows last
+        # (see normal_equations), so stored (pairs, dim, dim, rows).
+        g.pair_k, g.pair_l = np.triu_indices(q, 1)
+        g.scatter = np.empty((len(g.pair_k), dim, dim, rows), dtype=index_type)
+        twice_index, twice_dest = [], []
+        for p, (k, m) in enumerate(zip(g.pair_k, g.pair_l, strict=True)):
+            a, b = local[:, k], local[:, m]
             lo, hi = np.minimum(a, b), np.maximum(a, b)
             valid = lo >= 0
+            lo0 = np.maximum(lo, 0)
             block = np.searchsorted(pattern, np.where(valid, lo * n_free + hi, 0))
-            shift = dim * (block - block_indptr[np.maximum(lo, 0)] - 1)  # (rows, pairs)
-            first = start[np.maximum(lo, 0)]                               # (rows, pairs, dim)
-            forward = first[:, :, :, None] + (dim - rr) + cc               # [.., r, c]
-            backward = np.swapaxes(forward, 2, 3)                          # rows of b first
-            off = np.where((a > b)[:, :, None, None], backward, forward) + shift[:, :, None,
-                                                                                 None]
-            off_keep = np.repeat(valid.ravel(), dim * dim)
+            first = start[lo0]                                             # (rows, dim)
+            base = first + (dim * (block - block_indptr[lo0] - 1))[:, None]
+            del block
+            backward = a > b                                               # rows of b first
             # Two slots of one vertex (only in degenerate hinges): fold the pair's product
             # and its transpose onto the diagonal block's upper triangle.
             same = (a == b) & valid
-            if same.any():
-                base = first[same]                                          # (s, dim)
-                lo_rc, hi_rc = np.minimum(rr, cc), np.maximum(rr, cc)
-                off[same] = base[:, lo_rc] + (hi_rc - lo_rc)
-            g.diag_scatter, g.diag_gather = self._scatter(diag.ravel(), diag_keep)
-            # The off-diagonal products are computed rows last (see normal_equations).
-            off_keep = np.moveaxis(off_keep.reshape(off.shape), 0, -1).ravel()
-            off = np.moveaxis(off, 0, -1).ravel()                      # (pairs, dim, dim, rows)
-            g.scatter, g.gather = self._scatter(off, off_keep)
-            g.twice = None
-            if same.any():  # the diagonal entries of P + P^T count twice
-                twice = np.moveaxis(same[:, :, None, None] & (rr == cc), 0, -1).ravel()
-                g.twice = (np.flatnonzero(twice), off[twice])
-
-    def _scatter(self, dest: np.ndarray, keep: np.ndarray,
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
-        """(positions of the kept products in the matrix values, int32 where they fit;
-        indices of the kept products, None when all are kept)."""
-        gather = None if keep.all() else np.flatnonzero(keep)
-        dest = dest if gather is None else dest[gather]
-        return (dest.astype(np.int32) if self.nnz < 2**31 else dest), gather
+            for r in range(dim):
+                for c in range(dim):
+                    dest = np.where(backward, base[:, c] + (dim - c) + r,
+                                    base[:, r] + (dim - r) + c)
+                    if same.any():
+                        dest[same] = first[same, min(r, c)] + abs(c - r)
+                    g.scatter[p, r, c] = np.where(valid, dest, nnz)
+                    if r == c and same.any():  # the diagonal entries of P + P^T count twice
+                        hit = np.flatnonzero(same)
+                        twice_index.append(((p * dim + r) * dim + c) * rows + hit)
+                        twice_dest.append(g.scatter[p, r, c][hit].astype(np.int64))
+        g.twice = ((np.concatenate(twice_index), np.concatenate(twice_dest))
+                   if twice_index else None)
 
     def normal_equations(self, X: np.ndarray, matrix: bool = True,
                          ) -> tuple[float, sp.csr_array | None, np.ndarray]:
@@ -231,8 +247,9 @@ class GaussNewtonSystem:
         J^T r (n_free * dim,))."""
         dim = self.dim
         given, X = X, self.energy.placed(X)  # tied vertices where their masters put them
-        values = np.zeros(self.nnz) if matrix else None
-        gradient = np.zeros(self.n_free * dim)
+        nnz, n = self.nnz, self.n_free * dim
+        values = np.zeros(nnz) if matrix else None
+        gradient = np.zeros(n)
         energy = 0.0
         residuals = []
         for group, g in zip(self.groups, self.scatters, strict=True):
@@ -240,23 +257,10 @@ class GaussNewtonSystem:
             residuals.append(r)
             energy += 0.5 * square_sum(r)
             contrib = (r[:, None, None] * G).ravel()            # (rows * q * dim,)
-            if g.gradient_select is not None:
-                contrib = contrib[g.gradient_select]
-            gradient += np.bincount(g.gradient_index, contrib, minlength=len(gradient))
+            gradient += np.bincount(g.gradient_index, contrib, minlength=n + 1)[:n]
+            del contrib
             if values is not None:
-                diag = G[:, :, g.diag_r] * G[:, :, g.diag_c]        # (rows, q, entries)
-                off = _pair_products(G, g.pair_k, g.pair_l)         # (pairs, dim, dim, rows)
-                if group.curvature is not None:  # r ∇²r kept where it is not small
-                    rows, M = group.curvature(X, r)
-                    diag[rows] += M[:, None, g.diag_r, g.diag_c]
-                    off[0][:, :, rows] -= M.transpose(1, 2, 0)
-                diag, off = diag.ravel(), off.ravel()
-                values += np.bincount(g.diag_scatter, diag if g.diag_gather is None
-                                      else diag[g.diag_gather], minlength=len(values))
-                values += np.bincount(g.scatter, off if g.gather is None else off[g.gather],
-                                      minlength=len(values))
-                if g.twice is not None:
-                    values += np.bincount(g.twice[1], off[g.twice[0]], minlength=len(values))
+                self._add_products(values, group, g, X, r, G)
         self.energy.remember(given, residuals, "point")  # for the report at this point
         if values is None:
             return energy, None, gradient
@@ -264,6 +268,36 @@ class GaussNewtonSystem:
         H = sp.csr_array((values, self.indices, self.indptr), shape=(n, n))
         H.has_canonical_format = True
         return energy, H, gradient
+
+    def _add_products(self, values: np.ndarray, group: ResidualGroup, g: _GroupScatter,
+                      X: np.ndarray, r: np.ndarray, G: np.ndarray) -> None:
+        """Add a group's share of the Gauss-Newton matrix (its residuals ``r`` (rows,) and
+        gradients ``G`` (rows, q, dim) at ``X``) to ``values`` (nnz,) in place: diagonal
+        blocks, then the slot pairs' products in blocks of :data:`PRODUCT_BLOCK`."""
+        nnz = len(values)
+        diag = G[:, :, g.diag_r] * G[:, :, g.diag_c]            # (rows, q, entries)
+        curvature = None
+        if group.curvature is not None:  # r ∇²r kept where it is not small
+            curvature = group.curvature(X, r)
+            diag[curvature[0]] += curvature[1][:, None, g.diag_r, g.diag_c]
+        values += np.bincount(g.diag_scatter.ravel(), diag.ravel(), minlength=nnz + 1)[:nnz]
+        del diag
+        Gt = np.ascontiguousarray(np.moveaxis(G, 0, -1))       # (q, dim, rows)
+        n_pairs, per_pair = len(g.pair_k), int(np.prod(g.scatter.shape[1:]))
+        step = max(1, PRODUCT_BLOCK // max(per_pair, 1))
+        for p0 in range(0, n_pairs, step):  # at most q (q - 1) / 2 blocks: 6 for hinges
+            p1 = min(p0 + step, n_pairs)
+            off = _pair_products(Gt, g.pair_k[p0:p1], g.pair_l[p0:p1])  # (p, dim, dim, rows)
+            if curvature is not None and p0 == 0:
+                rows, M = curvature
+                off[0][:, :, rows] -= M.transpose(1, 2, 0)
+            off = off.ravel()
+            values += np.bincount(g.scatter[p0:p1].ravel(), off, minlength=nnz + 1)[:nnz]
+            if g.twice is not None:
+                lo, hi = np.searchsorted(g.twice[0], [p0 * per_pair, p1 * per_pair])
+                values += np.bincount(g.twice[1][lo:hi], off[g.twice[0][lo:hi] - p0 * per_pair],
+                                      minlength=nnz)
+            del off
 
     def quadratic_form(self, upper: sp.csr_array, x: np.ndarray) -> float:
         """``x^T H x`` for the symmetric H whose upper triangle is ``upper`` (a matrix of
@@ -273,14 +307,15 @@ class GaussNewtonSystem:
                      - np.einsum("i,i->", x, diagonal * x))
 
 
-def _pair_products(G: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Outer products ``G[row, first] G[row, second]^T`` of gradient slots (G: (rows, q, dim))
-    for slot pairs, as (pairs, dim, dim, rows): computed rows last, on contiguous
-    rows, they cost a quarter of the rows-first broadcast (30K hinges: 2.4 against 10 ms)."""
-    Gt = np.ascontiguousarray(np.moveaxis(G, 0, -1))                # (q, dim, rows)
+def _pair_products(Gt: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Outer products ``G[row, first] G[row, second]^T`` of gradient slots (``Gt``: the
+    gradients rows last, (q, dim, rows)) for slot pairs, as (pairs, dim, dim, rows):
+    computed rows last, on contiguous rows, they cost a quarter of the rows-first
+    broadcast (30K hinges: 2.4 against 10 ms)."""
     A, B = Gt[first], Gt[second]
-    out = np.empty((len(first), G.shape[2], G.shape[2], G.shape[0]))
-    for r in range(G.shape[2]):  # the dim rows of each block
+    dim = Gt.shape[1]
+    out = np.empty((len(first), dim, dim, Gt.shape[2]))
+    for r in range(dim):  # the dim rows of each block
         np.multiply(A[:, r, None, :], B, out=out[:, r])
     return out
 

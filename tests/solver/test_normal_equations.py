@@ -1,7 +1,8 @@
 """solver.refine.normal_equations: the Gauss-Newton matrix and gradient assembled in their fixed
 pattern equal J^T J (plus the kept curvature) and J^T r built densely from the residuals'
 gradients, with fixed vertices, soft and orientation handles, needle edges and degenerate
-hinges (two slots on one vertex)."""
+hinges (two slots on one vertex); each both in one block and pair by pair
+(``PRODUCT_BLOCK``)."""
 
 import numpy as np
 import pytest
@@ -9,7 +10,15 @@ import pytest
 from solver import fundamental_forms
 from solver.mesh.topology import build_topology
 from solver.refine import FormTargets, Handles, Refiner
+from solver.refine import normal_equations as normal_equations_module
 from tests.helpers.meshes import load, with_tiny_edges
+
+
+@pytest.fixture(autouse=True, params=["one block", "pair by pair"])
+def product_block(request, monkeypatch):
+    """Every test assembles its products at once and one slot pair at a time."""
+    if request.param == "pair by pair":
+        monkeypatch.setattr(normal_equations_module, "PRODUCT_BLOCK", 1)
 
 
 def dense_reference(refiner: Refiner, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,8 @@ class _GroupScatter:
     and the diagonal blocks' entries ``(diag_r, diag_c)`` land where it says (computed at
     each assembly: cheap, and 320 B per face less kept). ``J^T J``'s off-diagonal blocks:
     the products ``G_k[r] G_l[c]`` of the slot pairs ``(pair_k, pair_l)``, k < l, land in the
-    matrix's values at ``scatter`` (pairs, dim, dim, rows). Entries of fixed vertices land
+    matrix's values in the block whose rank in its row ``rank`` (pairs, rows) int32 gives
+    (:func:`_pair_destinations`). Entries of fixed vertices land
     one past the end (position ``n_free * dim`` of ``J^T r``, ``nnz`` of the values), a slot
     that is dropped: no index arrays of the kept ones. ``twice``: the diagonal entries of
     degenerate hinges (two slots on one vertex), as (flat product index, position).
@@ -46,7 +47,7 @@ class _GroupScatter:
     diag_c: np.ndarray | None = None
     pair_k: np.ndarray | None = None     # off-diagonal blocks: slot pairs k < l
     pair_l: np.ndarray | None = None
-    scatter: np.ndarray | None = None
+    rank: np.ndarray | None = None
     twice: tuple[np.ndarray, np.ndarray] | None = None
 
 
@@ -88,7 +89,7 @@ class GaussNewtonSystem:
 
     _OBJECTIVE_FIELDS = ("index", "n_free", "indptr", "indices", "nnz",
                          "diagonal_positions")
-    _GROUP_FIELDS = ("local", "diag_r", "diag_c", "pair_k", "pair_l", "scatter", "twice")
+    _GROUP_FIELDS = ("local", "diag_r", "diag_c", "pair_k", "pair_l", "rank", "twice")
 
     def _pattern_key(self, topology: MeshTopology) -> bytes:
         """Digest of everything :meth:`_build_pattern` depends on: the faces, the free
@@ -188,42 +189,29 @@ class GaussNewtonSystem:
         ``pattern`` (sorted ``a * n_free + b``), its row pointers ``block_indptr`` and the
         first value position ``start`` (n_free, dim) of every scalar row."""
         dim, n_free, nnz = self.dim, self.n_free, self.nnz
-        index_type = np.int32 if nnz < 2**31 - 1 else np.int64
         local = self.index[vertices]
         rows, q = local.shape
         g.local = local.astype(np.int32)
         # Diagonal blocks: G_k[r] G_k[c] for r <= c, at (dim a + r, dim a + c).
         g.diag_r, g.diag_c = np.triu_indices(dim)
-        # Off-diagonal pairs k < l: P[r, c] = G_k[r] G_l[c] lands at block (a, b) entry
-        # (r, c) when a < b, at block (b, a) entry (c, r) when a > b; computed rows last
-        # (see normal_equations), so stored (pairs, dim, dim, rows).
+        # Off-diagonal pairs k < l: each row's block (lo, hi) of the pair's two vertices, by
+        # its rank among the upper blocks of row lo (:func:`_pair_destinations`).
         g.pair_k, g.pair_l = np.triu_indices(q, 1)
-        g.scatter = np.empty((len(g.pair_k), dim, dim, rows), dtype=index_type)
+        g.rank = np.zeros((len(g.pair_k), rows), dtype=np.int32)
         twice_index, twice_dest = [], []
         for p, (k, m) in enumerate(zip(g.pair_k, g.pair_l, strict=True)):
             a, b = local[:, k], local[:, m]
             lo, hi = np.minimum(a, b), np.maximum(a, b)
-            valid = lo >= 0
+            valid = (lo >= 0) & (lo != hi)
             lo0 = np.maximum(lo, 0)
             block = np.searchsorted(pattern, np.where(valid, lo * n_free + hi, 0))
-            first = start[lo0]                                             # (rows, dim)
-            base = first + (dim * (block - block_indptr[lo0] - 1))[:, None]
-            del block
-            backward = a > b                                               # rows of b first
-            # Two slots of one vertex (only in degenerate hinges): fold the pair's product
-            # and its transpose onto the diagonal block's upper triangle.
-            same = (a == b) & valid
-            for r in range(dim):
-                for c in range(dim):
-                    dest = np.where(backward, base[:, c] + (dim - c) + r,
-                                    base[:, r] + (dim - r) + c)
-                    if same.any():
-                        dest[same] = first[same, min(r, c)] + abs(c - r)
-                    g.scatter[p, r, c] = np.where(valid, dest, nnz)
-                    if r == c and same.any():  # the diagonal entries of P + P^T count twice
-                        hit = np.flatnonzero(same)
-                        twice_index.append(((p * dim + r) * dim + c) * rows + hit)
-                        twice_dest.append(g.scatter[p, r, c][hit].astype(np.int64))
+            g.rank[p] = np.where(valid, block - block_indptr[lo0] - 1, 0)
+            same = np.flatnonzero((a == b) & (a >= 0))
+            if len(same):  # the diagonal entries of P + P^T count twice
+                dest = _pair_destinations(a[same], b[same], g.rank[p][same], start, nnz)
+                for r in range(dim):
+                    twice_index.append(((p * dim + r) * dim + r) * rows + same)
+                    twice_dest.append(dest[r, r])
         g.twice = ((np.concatenate(twice_index), np.concatenate(twice_dest))
                    if twice_index else None)
 
@@ -277,7 +265,7 @@ class GaussNewtonSystem:
         values += np.bincount(dest.ravel(), diag.ravel(), minlength=nnz + 1)[:nnz]
         del diag, dest
         Gt = np.ascontiguousarray(np.moveaxis(G, 0, -1))       # (q, dim, rows)
-        n_pairs, per_pair = len(g.pair_k), int(np.prod(g.scatter.shape[1:]))
+        n_pairs, per_pair = len(g.pair_k), self.dim**2 * len(g.local)
         step = max(1, PRODUCT_BLOCK // max(per_pair, 1))
         for p0 in range(0, n_pairs, step):  # at most q (q - 1) / 2 blocks: 6 for hinges
             p1 = min(p0 + step, n_pairs)
@@ -286,7 +274,11 @@ class GaussNewtonSystem:
                 rows, M = curvature
                 off[0][:, :, rows] -= M.transpose(1, 2, 0)
             off = off.ravel()
-            values += np.bincount(g.scatter[p0:p1].ravel(), off, minlength=nnz + 1)[:nnz]
+            dest = np.concatenate([_pair_destinations(
+                g.local[:, g.pair_k[p]], g.local[:, g.pair_l[p]], g.rank[p], start, nnz).ravel()
+                for p in range(p0, p1)])
+            values += np.bincount(dest, off, minlength=nnz + 1)[:nnz]
+            del dest
             if g.twice is not None:
                 lo, hi = np.searchsorted(g.twice[0], [p0 * per_pair, p1 * per_pair])
                 values += np.bincount(g.twice[1][lo:hi], off[g.twice[0][lo:hi] - p0 * per_pair],
@@ -299,6 +291,31 @@ class GaussNewtonSystem:
         diagonal = upper.data[self.diagonal_positions]
         return float(2.0 * np.einsum("i,i->", x, upper @ x)
                      - np.einsum("i,i->", x, diagonal * x))
+
+
+def _pair_destinations(a: np.ndarray, b: np.ndarray, rank: np.ndarray, start: np.ndarray,
+                       nnz: int) -> np.ndarray:
+    """(dim, dim, rows) int64 positions in the Gauss-Newton matrix's values of the products
+    ``P[r, c] = G_a[r] G_b[c]`` of one slot pair, from its slots' free vertices ``a``, ``b``
+    (rows,) (-1: fixed), the rank of their block among the upper blocks of its row ``rank``
+    (rows,) and the first value position ``start`` (n_free, dim) of every scalar row.
+
+    ``P[r, c]`` lands at block (a, b) entry (r, c) when a < b, at block (b, a) entry (c, r)
+    when a > b; where a == b (two slots of one vertex, only in degenerate hinges) ``P`` and
+    its transpose fold onto the diagonal block's upper triangle; ``nnz`` (dropped) where a
+    vertex is fixed."""
+    dim = start.shape[1]
+    lo = np.minimum(a, b)
+    first = start[np.maximum(lo, 0)].T                                    # (dim, rows)
+    base = first + dim * rank
+    r = np.arange(dim)[:, None, None]
+    c = np.arange(dim)[None, :, None]
+    dest = np.where(a > b, base[None, :, :] + (dim - c + r), base[:, None, :] + (dim - r + c))
+    same = np.flatnonzero(a == b)
+    if len(same):
+        dest[:, :, same] = first[np.minimum(r, c), same] + np.abs(c - r)
+    dest[:, :, lo < 0] = nnz
+    return dest
 
 
 def _pair_products(Gt: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:

@@ -51,6 +51,14 @@ class _GroupScatter:
     twice: tuple[np.ndarray, np.ndarray] | None = None
 
 
+KEPT_POSITIONS_BYTES = 32 * 2**20
+"""A :class:`GaussNewtonSystem` whose positions of every gradient entry and product in
+``J^T r`` and ``J^T J``'s values (int64, ~1.4 KB per face) take at most this many bytes
+(meshes up to ~20K faces) keeps them from its first assembly; a larger one computes them at
+each assembly from its compact pattern (slot vertices and block ranks, ~220 B per face),
+which costs ~10 ms per assembly at 7K faces (3x the assembly there) and little beside the
+products at 100K."""
+
 PRODUCT_BLOCK = 2**21
 """Products of slot pairs :meth:`GaussNewtonSystem.normal_equations` computes and scatters at
 once (whole slot pairs, at least one): a group with more (its hinges beyond ~40K faces) is
@@ -86,6 +94,9 @@ class GaussNewtonSystem:
             _PATTERNS.put(key, self._pattern_state())
         else:
             self._restore_pattern(cached)
+        # Small systems keep the positions each assembly computes (see KEPT_POSITIONS_BYTES).
+        self._kept: dict[tuple[int, Any], np.ndarray] | None = (
+            {} if self._positions_bytes() <= KEPT_POSITIONS_BYTES else None)
 
     _OBJECTIVE_FIELDS = ("index", "n_free", "indptr", "indices", "nnz",
                          "diagonal_positions")
@@ -228,17 +239,17 @@ class GaussNewtonSystem:
         gradient = np.zeros(n)
         energy = 0.0
         residuals = []
-        for group, g in zip(self.groups, self.scatters, strict=True):
+        for i, (group, g) in enumerate(zip(self.groups, self.scatters, strict=True)):
             r, G = group.evaluate(X)
             residuals.append(r)
             energy += 0.5 * square_sum(r)
             contrib = (r[:, None, None] * G).ravel()            # (rows * q * dim,)
-            slots = g.local[:, :, None] * np.int64(dim) + np.arange(dim)  # (rows, q, dim)
-            slots[g.local < 0] = n
-            gradient += np.bincount(slots.ravel(), contrib, minlength=n + 1)[:n]
+            slots = self._positions((i, "gradient"), lambda g=g: _slot_positions(g.local, n,
+                                                                                 dim))
+            gradient += np.bincount(slots, contrib, minlength=n + 1)[:n]
             del contrib, slots
             if values is not None:
-                self._add_products(values, group, g, X, r, G)
+                self._add_products(values, i, group, g, X, r, G)
         self.energy.remember(given, residuals, "point")  # for the report at this point
         if values is None:
             return energy, None, gradient
@@ -247,8 +258,25 @@ class GaussNewtonSystem:
         H.has_canonical_format = True
         return energy, H, gradient
 
-    def _add_products(self, values: np.ndarray, group: ResidualGroup, g: _GroupScatter,
-                      X: np.ndarray, r: np.ndarray, G: np.ndarray) -> None:
+    def _positions(self, key: tuple[int, Any], compute: Any) -> np.ndarray:
+        """``compute()`` (int64 positions), kept under ``key`` where this system keeps them
+        (:data:`KEPT_POSITIONS_BYTES`)."""
+        if self._kept is None:
+            return compute()
+        out = self._kept.get(key)
+        if out is None:
+            out = self._kept[key] = compute()
+        return out
+
+    def _positions_bytes(self) -> int:
+        """Bytes of every position :meth:`normal_equations` computes (int64)."""
+        dim = self.dim
+        per_slot = dim + dim * (dim + 1) // 2
+        return 8 * sum(g.local.size * per_slot + len(g.pair_k) * dim * dim * len(g.local)
+                       for g in self.scatters)
+
+    def _add_products(self, values: np.ndarray, i: int, group: ResidualGroup,
+                      g: _GroupScatter, X: np.ndarray, r: np.ndarray, G: np.ndarray) -> None:
         """Add a group's share of the Gauss-Newton matrix (its residuals ``r`` (rows,) and
         gradients ``G`` (rows, q, dim) at ``X``) to ``values`` (nnz,) in place: diagonal
         blocks, then the slot pairs' products in blocks of :data:`PRODUCT_BLOCK`."""
@@ -260,9 +288,8 @@ class GaussNewtonSystem:
             diag[curvature[0]] += curvature[1][:, None, g.diag_r, g.diag_c]
         start = (self.diagonal_positions.reshape(-1, self.dim) if self.n_free
                  else np.zeros((1, self.dim), dtype=np.int64))  # scalar rows' first entries
-        dest = start[np.maximum(g.local, 0)][:, :, g.diag_r] + (g.diag_c - g.diag_r)
-        dest[g.local < 0] = nnz                                 # (rows, q, entries)
-        values += np.bincount(dest.ravel(), diag.ravel(), minlength=nnz + 1)[:nnz]
+        dest = self._positions((i, "diagonal"), lambda: _diagonal_positions(g, start, nnz))
+        values += np.bincount(dest, diag.ravel(), minlength=nnz + 1)[:nnz]
         del diag, dest
         Gt = np.ascontiguousarray(np.moveaxis(G, 0, -1))       # (q, dim, rows)
         n_pairs, per_pair = len(g.pair_k), self.dim**2 * len(g.local)
@@ -274,9 +301,9 @@ class GaussNewtonSystem:
                 rows, M = curvature
                 off[0][:, :, rows] -= M.transpose(1, 2, 0)
             off = off.ravel()
-            dest = np.concatenate([_pair_destinations(
-                g.local[:, g.pair_k[p]], g.local[:, g.pair_l[p]], g.rank[p], start, nnz).ravel()
-                for p in range(p0, p1)])
+            dest = self._positions((i, p0), lambda p0=p0, p1=p1: np.concatenate([
+                _pair_destinations(g.local[:, g.pair_k[p]], g.local[:, g.pair_l[p]], g.rank[p],
+                                   start, nnz).ravel() for p in range(p0, p1)]))
             values += np.bincount(dest, off, minlength=nnz + 1)[:nnz]
             del dest
             if g.twice is not None:
@@ -291,6 +318,22 @@ class GaussNewtonSystem:
         diagonal = upper.data[self.diagonal_positions]
         return float(2.0 * np.einsum("i,i->", x, upper @ x)
                      - np.einsum("i,i->", x, diagonal * x))
+
+
+def _slot_positions(local: np.ndarray, n: int, dim: int) -> np.ndarray:
+    """(rows * q * dim,) int64 positions in ``J^T r`` (n,) of a group's gradient entries
+    from its slots' free vertices ``local`` (rows, q) (-1: fixed, to ``n``, dropped)."""
+    slots = local[:, :, None] * np.int64(dim) + np.arange(dim)          # (rows, q, dim)
+    slots[local < 0] = n
+    return slots.ravel()
+
+
+def _diagonal_positions(g: _GroupScatter, start: np.ndarray, nnz: int) -> np.ndarray:
+    """(rows * q * entries,) int64 positions in the values of the diagonal blocks' upper
+    entries ``(g.diag_r, g.diag_c)`` of a group's slots (fixed: ``nnz``, dropped)."""
+    dest = start[np.maximum(g.local, 0)][:, :, g.diag_r] + (g.diag_c - g.diag_r)
+    dest[g.local < 0] = nnz
+    return dest.ravel()
 
 
 def _pair_destinations(a: np.ndarray, b: np.ndarray, rank: np.ndarray, start: np.ndarray,

@@ -140,6 +140,8 @@ class ImmersionProblem:
         kept, self._energy = self._energy, None
         if kept is not None and kept[0] is u:
             return dict(kept[1])
+        if "_rows" not in self.__dict__:  # released (or never built): from the terms
+            return residual_summary(self.terms, self.frame_weight, u)[1]
         return energies(self.A, self.row_weights, self.row_kind, u)
 
     def linear_constraints(self, constraints: Constraints) -> LinearConstraints:
@@ -342,6 +344,11 @@ class ImmersionProblem:
         """K, forgotten by this problem (:attr:`K` assembles it again on a later use)."""
         K = self.K
         del self.__dict__["K"]
+        # The last system: Eq. 5's rows (and the rotations in them) served K only; they are
+        # not held through its factorization or multigrid setup (~360 bytes per face).
+        # :meth:`energies` reads the terms from here on (equal to rounding).
+        self.__dict__.pop("_rows", None)
+        self.terms.__dict__.pop("rotations", None)
         return K
 
     def release_linear(self) -> None:

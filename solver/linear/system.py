@@ -382,7 +382,8 @@ class ConstrainedSystem:
                  groups: np.ndarray | None = None, method: str = "direct",
                  near_null: np.ndarray | None = None,
                  rules: LinearSolverRules = RULES) -> None:
-        if callable(K):
+        owned = callable(K)  # handed over: this constructor may reuse its arrays
+        if owned:
             K = K()
         N = K.shape[0]
         self.size = N
@@ -394,8 +395,7 @@ class ConstrainedSystem:
         # Penalties of soft constraints, and 1 on hard diagonals (unused vertices have none).
         diagonal = np.bincount(self.soft_columns, weights=self.soft_weights,
                                minlength=N).astype(np.float64) + hard
-        K = (sp.csr_matrix(K) + sp.diags(diagonal)).tocsr()
-        K.sum_duplicates()
+        K = _plus_diagonal(K, diagonal, owned)
         self.K_hard_rows = K[self.hard_columns]            # (h, N): coupling to the rhs
         # Entries of hard rows or columns are cleared, but for the hard diagonals. K is this
         # constructor's own sum, so its values are cleared in place; the masks are per
@@ -480,6 +480,28 @@ class ConstrainedSystem:
         u = self.factor.solve(rhs)
         u[self.hard_columns] = hard_values
         return u
+
+
+def _plus_diagonal(K: sp.spmatrix, diagonal: np.ndarray, owned: bool) -> sp.csr_matrix:
+    """``K + diag(diagonal)`` as a CSR matrix of the caller's own.
+
+    ``owned``: no one else holds ``K`` (handed over to :class:`ConstrainedSystem`). A CSC
+    ``K`` (symmetric: its CSC arrays are the CSR arrays of ``K^T = K``) is then taken as it
+    is and its stored diagonal updated in place, where every diagonal entry is stored (not
+    so with unused vertices). Otherwise a new matrix is built: a CSR copy and the sum, two
+    transient copies of ``K`` (24 bytes per nonzero, 1.9 GB at 1.6M faces).
+    """
+    if owned and K.format == "csc":
+        csr = sp.csr_matrix((K.data, K.indices, K.indptr), shape=K.shape, copy=False)
+        csr.sum_duplicates()  # sorted rows, in place (a product's rows are not)
+        current = csr.diagonal()
+        if bool((current != 0).all()):
+            current += diagonal
+            csr.setdiag(current)  # every entry stored: written in place, no new pattern
+            return csr
+    K = (sp.csr_matrix(K) + sp.diags(diagonal)).tocsr()
+    K.sum_duplicates()
+    return K
 
 
 def normal_matrix(A: sp.csr_matrix, weights: np.ndarray) -> sp.csc_matrix:

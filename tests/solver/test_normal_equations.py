@@ -1,7 +1,8 @@
 """solver.refine.normal_equations: the Gauss-Newton matrix and gradient assembled in their fixed
 pattern equal J^T J (plus the kept curvature) and J^T r built densely from the residuals'
 gradients, with fixed vertices, soft and orientation handles, needle edges and degenerate
-hinges (two slots on one vertex)."""
+hinges (two slots on one vertex); each with the positions kept and computed at each assembly
+(``KEPT_POSITIONS_BYTES``), in one block and pair by pair (``PRODUCT_BLOCK``)."""
 
 import numpy as np
 import pytest
@@ -9,7 +10,19 @@ import pytest
 from solver import fundamental_forms
 from solver.mesh.topology import build_topology
 from solver.refine import FormTargets, Handles, Refiner
+from solver.refine import normal_equations as normal_equations_module
 from tests.helpers.meshes import load, with_tiny_edges
+
+
+@pytest.fixture(autouse=True, params=["kept positions", "computed positions",
+                                      "computed, pair by pair"])
+def product_block(request, monkeypatch):
+    """Every test assembles with the positions kept (small systems), computed at each
+    assembly (large ones), and its products one slot pair at a time."""
+    if request.param != "kept positions":
+        monkeypatch.setattr(normal_equations_module, "KEPT_POSITIONS_BYTES", 0)
+    if request.param == "computed, pair by pair":
+        monkeypatch.setattr(normal_equations_module, "PRODUCT_BLOCK", 1)
 
 
 def dense_reference(refiner: Refiner, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -24,6 +24,13 @@ Usage (from the repository root)::
     python -m bench.scale --markdown           # also print the tables for bench/README.md
     python -m bench.scale --baseline /tmp/old  # each case also run by another tree, before
     python -m bench.scale --cases default-iterative --start-tolerances 1e-8 1e-4 1e-3
+    python -m bench.scale --allocators glibc tuned  # glibc's malloc, and fixed thresholds
+
+``--allocators tuned`` runs a case with glibc's mmap and trim thresholds fixed at 128 KiB
+(:func:`fixed_malloc_thresholds`; glibc raises its mmap threshold to every freed mapped
+block's size, up to 32 MiB, so freed arrays stay in the process's heap): measured, it does
+not change the peaks (bench/README.md, "Iterative linear path"), so the service does not
+set it.
 
 A child that runs out of its address-space limit is reported as ``out of memory`` (the
 parent survives; the OOM killer is never reached).
@@ -179,11 +186,33 @@ def rigid_distance(X: np.ndarray, Y: np.ndarray) -> float:
     return float(np.abs(Xc @ R - Yc).max() / np.linalg.norm(Y.max(axis=0) - Y.min(axis=0)))
 
 
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+"""glibc's ``mallopt`` parameters (malloc.h)."""
+
+
+def fixed_malloc_thresholds(threshold: int = 128 * 1024) -> bool:
+    """Fix glibc's mmap and trim thresholds at ``threshold`` bytes in this process (a block
+    of that size or more is mapped on its own and unmapped when freed; glibc's dynamic raise
+    is off). True where glibc took both (False elsewhere: nothing changed)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(M_MMAP_THRESHOLD, threshold)) and bool(
+        mallopt(M_TRIM_THRESHOLD, threshold))
+
+
 def child(level: int, case: str, max_gb: float | None, base: str = BASE,
-          tree: Path | None = None, start_tolerance: float | None = None) -> dict:
+          tree: Path | None = None, start_tolerance: float | None = None,
+          allocator: str | None = None) -> dict:
     """Run one case in a fresh process under an address-space limit of ``max_gb``, with the
     library (and this bench) of ``tree`` (default: this repository); a row from another
-    tree has its case suffixed ``(baseline)``."""
+    tree has its case suffixed ``(baseline)``. ``allocator``: ``"glibc"`` (the default) or
+    ``"tuned"`` (:func:`fixed_malloc_thresholds`; the case is suffixed)."""
     forms_file(level, base)  # made once, in the parent, outside the measured process
     cmd = [sys.executable, "-m", "bench.scale", "--child", str(level), case, "--base", base]
     if max_gb:
@@ -192,10 +221,14 @@ def child(level: int, case: str, max_gb: float | None, base: str = BASE,
     env = dict(os.environ, PYTHONPATH=str(root))
     if start_tolerance is not None:
         env["FFS_SCALE_START_TOLERANCE"] = repr(start_tolerance)
+    if allocator is not None:
+        env["FFS_SCALE_ALLOCATOR"] = allocator
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=root)
     label = case if tree is None else f"{case} (baseline)"
     if start_tolerance is not None:
         label += f" (start {start_tolerance:g})"
+    if allocator == "tuned":
+        label += " (fixed malloc thresholds)"
     if proc.returncode != 0:
         tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
         oom = "MemoryError" in proc.stderr or "Cannot allocate" in proc.stderr
@@ -255,9 +288,15 @@ def main() -> None:
                         help="run every case with each of these tolerances of the iterative "
                              "solve that starts the refinement (LinearSolverRules."
                              "start_tolerance), e.g. 1e-8 1e-4 1e-3")
+    parser.add_argument("--allocators", nargs="+", default=None,
+                        choices=("glibc", "tuned"),
+                        help="run every case with each: glibc's malloc (the default) or "
+                             "its mmap and trim thresholds fixed at 128 KiB (tuned)")
     parser.add_argument("--child", nargs=2, metavar=("LEVEL", "CASE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
+        if os.environ.get("FFS_SCALE_ALLOCATOR") == "tuned":
+            fixed_malloc_thresholds()
         print(json.dumps(run_case(int(args.child[0]), args.child[1], args.base)))
         return
     print(f"# load {load_averages()}", flush=True)
@@ -267,9 +306,11 @@ def main() -> None:
             for level in args.levels:
                 for tree in ([args.baseline] if args.baseline else []) + [None]:
                     for tolerance in args.start_tolerances or [None]:
-                        row = child(level, case, args.max_gb, base, tree, tolerance)
-                        rows.append(row)
-                        print(json.dumps(row), flush=True)
+                        for allocator in args.allocators or [None]:
+                            row = child(level, case, args.max_gb, base, tree, tolerance,
+                                        allocator)
+                            rows.append(row)
+                            print(json.dumps(row), flush=True)
     print(f"# load {load_averages()}")
     if args.markdown:
         print(markdown(rows))

@@ -140,6 +140,8 @@ class ImmersionProblem:
         kept, self._energy = self._energy, None
         if kept is not None and kept[0] is u:
             return dict(kept[1])
+        if "_rows" not in self.__dict__:  # released (or never built): from the terms
+            return residual_summary(self.terms, self.frame_weight, u)[1]
         return energies(self.A, self.row_weights, self.row_kind, u)
 
     def linear_constraints(self, constraints: Constraints) -> LinearConstraints:
@@ -342,7 +344,24 @@ class ImmersionProblem:
         """K, forgotten by this problem (:attr:`K` assembles it again on a later use)."""
         K = self.K
         del self.__dict__["K"]
+        # The last system: Eq. 5's rows (and the rotations in them) served K only; they are
+        # not held through its factorization or multigrid setup (~360 bytes per face).
+        # :meth:`energies` reads the terms from here on (equal to rounding).
+        self.__dict__.pop("_rows", None)
+        self.terms.__dict__.pop("rotations", None)
         return K
+
+    def release_linear(self) -> None:
+        """Forget what only Eq. 5's solves use: its rows (:attr:`A`, :attr:`row_weights`,
+        :attr:`row_kind`), :attr:`K`, the kept energy and the terms' transition rotations and
+        quaternions (each assembled again on a later use). :func:`solver.reconstruct` calls
+        it before the refinement, which needs none of them (its own matrices are built from
+        the forms): ~360 bytes per face, 36 MB at 100K faces, ~0.6 GB at 1.6M."""
+        for name in ("_rows", "K"):
+            self.__dict__.pop(name, None)
+        for name in ("rotations", "quaternions"):
+            self.terms.__dict__.pop(name, None)
+        self._energy = None
 
     def refinement_handles(self, constraints: Constraints) -> Handles:
         """The user's constraints as :class:`solver.refine.Handles`: hard positions fixed,

@@ -301,6 +301,10 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         stages.lap("solve")
     stages("solve", 1.0)
     if solve_path != "tree-integration" and refine is not False and not exact:
+        # Nothing of Eq. 5's solves serves the refinement: its rows, K and the tree start's
+        # guess and near-null space are let go before it builds its own matrices.
+        problem.release_linear()
+        tree = None
         stages("refine")
         vertices, refinement = _refined(problem, user, vertices, frames, anchored,
                                         initial_guess, opts, backend, stages, progress,

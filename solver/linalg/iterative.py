@@ -230,8 +230,13 @@ class IterativeSolver:
         if dtype != fine.dtype:  # values converted; the index arrays are shared, not copied
             fine = sp.csr_matrix((fine.data.astype(dtype), fine.indices, fine.indptr),
                                  shape=fine.shape, copy=False)
+        # The fine level's strength graph is the matrix itself: pyamg's symmetric strength
+        # at theta 0 keeps every stored entry (the same pattern, so the same aggregates;
+        # its values serve no one with unfiltered Jacobi smoothing), so no copy of it is
+        # made (8 bytes per nonzero, ~10 % of the setup's peak at 100K faces).
         self._ml = pyamg.smoothed_aggregation_solver(
             fine, B=B, max_coarse=500, coarse_solver="splu",
+            strength=[("predefined", {"C": fine}), "symmetric"],
             smooth=("jacobi", {"weighting": "local"}), improve_candidates=None)
         del fine
         # W-cycles: 18 and 33 CG iterations on the 100K- and 400K-face noisy scans against

@@ -17,12 +17,14 @@ aggregate, rotations about the global centroid span the local rigid motions of e
 connected component. The hierarchy is set up once and reused for the next Gauss-Newton
 matrices (only its finest level takes the new matrix; the coarse levels keep their Galerkin
 products) while a solve takes at most :attr:`solver.refine.steps.StepRules.cg_resetup_growth`
-times the iterations of the first solve after the setup.
-
-Each preconditioned residual is projected off the rigid motions of the positions the
-matrix was built at (:class:`solver.mesh.rigid_motions.RigidProjection`): the matrix is
-definite along them only by the damping's floor, and the coarse solve would otherwise fill
-the iterates with huge rigid components that cost nothing in the energy norm CG minimizes.
+times the iterations per decade of residual of the first solve after the setup. The decisions
+count iterations, never seconds, so that a run takes the same steps on a loaded machine as on
+an idle one: a setup is priced as :attr:`~solver.refine.steps.StepRules.cg_setup_iterations`
+CG iterations. (A hierarchy reused across steps does as well as a fresh one on these
+matrices: on the noisy 100K-face scan, set up for every step or once, the three solves take
+9, 90, 57 and 9, 90, 58 iterations; restarting a solve with a fresh hierarchy when it ran
+long cost 36 iterations more at 400K faces, CG's Krylov space lost. What grows is the
+iterations a tight tolerance needs: docs/large-meshes.md.)
 """
 
 from __future__ import annotations
@@ -153,18 +155,20 @@ class Multigrid:
     Args:
         max_iterations: CG's cap per solve.
         resetup_growth: set up again when a solve took more than this many times the
-            iterations of the first solve after the last setup (or hit the cap).
+            iterations per decade of residual of the first solve after the last setup.
+        setup_iterations: a setup's cost in CG iterations (the price the reuse rules weigh).
     """
 
-    def __init__(self, max_iterations: int, resetup_growth: float) -> None:
+    def __init__(self, max_iterations: int, resetup_growth: float,
+                 setup_iterations: float = 50.0) -> None:
         self.max_iterations = max_iterations
         self.resetup_growth = resetup_growth
+        self.setup_iterations = setup_iterations
         self.stats = CGStats()
         self._ml: Any = None
         self._cycle: Any = None
-        self._baseline: int | None = None
+        self._baseline: float | None = None  # iterations per decade, first solve on it
         self._stale = False
-        self._setup_seconds = 0.0
 
     def reset_stats(self) -> None:
         """Count a new run's solves from zero (the hierarchy stays)."""
@@ -201,8 +205,7 @@ class Multigrid:
         self._baseline, self._stale = None, False
         stats = self.stats
         stats.setups += 1
-        self._setup_seconds = time.perf_counter() - start
-        stats.setup_seconds += self._setup_seconds
+        stats.setup_seconds += time.perf_counter() - start
         stats.levels = len(self._ml.levels)
         stats.operator_complexity = self._ml.operator_complexity()
 
@@ -210,20 +213,27 @@ class Multigrid:
         """One V-cycle (single precision) from a zero guess on ``r`` (N,) float64."""
         return (self._cycle @ r.astype(np.float32)).astype(np.float64)
 
-    def solved(self, iterations: int, residual: float, seconds: float, capped: bool) -> None:
-        """Note a solve: ``iterations`` to the relative ``residual`` in ``seconds``. The
-        hierarchy is stale (set up again before the next solve) where it paid: the solve
-        hit the cap, or it took more than ``resetup_growth`` times the iterations per decade
-        of residual of the first solve on this hierarchy and the iterations beyond that
-        rate cost more than the last setup."""
-        decades = max(-math.log10(max(residual, 1e-300)), 0.5)
-        rate = iterations / decades
+    def solved(self, iterations: int, decades: float, capped: bool) -> None:
+        """Note a solve: ``iterations`` for ``decades``
+        decades of residual. The first on a hierarchy sets its baseline rate; the hierarchy
+        is stale (set up again before the next solve) where the solve hit the cap, or took
+        more than ``resetup_growth`` times the baseline rate and the iterations beyond the
+        baseline cost more than a setup (``setup_iterations``).
+
+        Example:
+            >>> mg = Multigrid(300, 2.0, setup_iterations=50)
+            >>> mg.solved(20, 2.0, False)  # baseline: 10 per decade
+            >>> mg.solved(90, 3.0, False)  # 30 per decade: 60 iterations beyond, > 50
+            >>> mg._stale
+            True
+        """
+        rate = iterations / max(decades, 0.5)
         if self._baseline is None:
             self._baseline = max(rate, 1.0)
             return
-        extra = (rate - self._baseline) * decades * seconds / max(iterations, 1)
+        extra = (rate - self._baseline) * max(decades, 0.5)
         if capped or (rate > self.resetup_growth * self._baseline
-                      and extra > self._setup_seconds):
+                      and extra > self.setup_iterations):
             self._stale = True
 
 
@@ -283,12 +293,12 @@ class IterativeOperator:
             p = z + (rz_new / rz) * p
             rz = rz_new
         capped = residual > target
+        relative = residual / norm_b if norm_b else 0.0
         stats = mg.stats
         stats.iterations.append(iterations)
         stats.tolerances.append(self.tolerance)
-        stats.residuals.append(residual / norm_b if norm_b else 0.0)
+        stats.residuals.append(relative)
         stats.capped += int(capped)
         stats.solve_seconds += time.perf_counter() - start
-        mg.solved(iterations, residual / norm_b if norm_b else 0.0,
-                  time.perf_counter() - start, capped)
+        mg.solved(iterations, -math.log10(max(relative, 1e-300)), capped)
         return x

@@ -74,7 +74,13 @@ class StepRules:
     """CG iterations after which a Gauss-Newton step's solve stops (reported as capped)."""
     cg_resetup_growth: float = 2.0
     """The multigrid hierarchy is set up again when a solve took more than this many times
-    the iterations of the first solve on it (or hit the cap)."""
+    the iterations per decade of the first solve on it (or hit the cap)."""
+    cg_setup_iterations: float = 50.0
+    """A multigrid setup's price in CG iterations, which the reuse rules weigh against the
+    iterations a stale hierarchy costs (:class:`solver.refine.iterative_steps.Multigrid`):
+    iterations, not seconds, so that the refinement's path does not depend on the machine's
+    load. Measured on the noisy scans of ``bench.scale``: one setup takes the time of ~50
+    preconditioned CG iterations at 100K faces (3.1 s against 0.061 s)."""
     single_precision_error: float = 0.1
     """Largest relative correction of a single-precision solve by its refinement step before
     the refiner factorizes in double precision."""

@@ -184,3 +184,61 @@ def test_the_refinement_goes_iterative_where_only_eq5_fits():
         assert RULES.choose(n, "auto", memory) == eq5
         assert REFINEMENT_SOLVER_RULES.choose(n, "auto", memory) == refinement
     assert REFINEMENT_SOLVER_RULES.choose(n, "direct", 1.0) == "direct"
+
+
+@pytest.mark.parametrize("kind", ["noisy", "x0.8"])
+@pytest.mark.parametrize("name", ["face (open)", "trimesh capsule"])
+def test_the_hierarchy_reuse_does_not_depend_on_the_clock(name, kind, monkeypatch):
+    """The refinement's path (its solves, setups and answer) is the same whether a setup
+    looks slow or fast against the solves (a loaded machine slows one more than the other):
+    the reuse rule prices a setup in CG iterations (``StepRules.cg_setup_iterations``), not
+    in seconds. Simulated: a clock that advances 1 ms per reading, and by ``setup`` seconds
+    more during each multigrid setup."""
+    import solver.refine.iterative_steps as iterative_steps
+
+    V, F = MESHES[name]()
+    targets, _ = _targets(V, F, kind)
+    pyamg = iterative_steps._multigrid()
+    real_setup = pyamg.smoothed_aggregation_solver
+    paths = []
+    for setup in (None, 0.0, 1e3):
+        if setup is not None:
+            now = [0.0]
+
+            def reading(now=now):
+                now[0] += 1e-3
+                return now[0]
+
+            def slow_setup(*args, setup=setup, now=now, **kwargs):
+                now[0] += setup
+                return real_setup(*args, **kwargs)
+
+            monkeypatch.setattr(iterative_steps.time, "perf_counter", reading)
+            monkeypatch.setattr(pyamg, "smoothed_aggregation_solver", slow_setup)
+        fit = refine(V, targets, linear_solver="iterative")
+        solver = fit.report["linear_solver"]
+        paths.append((solver["cg_iterations"], solver["setups"], fit.vertices))
+        monkeypatch.undo()
+    assert paths[0][1] >= 1
+    for iterations, setups, vertices in paths[1:]:
+        assert (iterations, setups) == paths[0][:2]
+        np.testing.assert_array_equal(vertices, paths[0][2])
+
+
+def test_a_solve_past_the_baseline_rate_marks_the_hierarchy_stale():
+    """The reuse rule in iterations: a solve at more than ``resetup_growth`` times the
+    baseline rate whose extra iterations exceed a setup's price sets up again; one whose
+    extra iterations cost less than a setup, or a cap, decide as documented."""
+    from solver.refine.iterative_steps import Multigrid
+
+    def after(*solves, price=50.0):
+        mg = Multigrid(300, 2.0, setup_iterations=price)
+        for iterations, decades, capped in solves:
+            mg.solved(iterations, decades, capped)
+        return mg._stale
+
+    assert after((20, 2.0, False), (90, 3.0, False))            # 30/decade, 60 extra > 50
+    assert not after((20, 2.0, False), (90, 3.0, False), price=70.0)
+    assert not after((20, 2.0, False), (35, 3.0, False))         # 11.7/decade < 2 x 10
+    assert after((20, 2.0, False), (25, 2.0, True))              # capped
+    assert not after((20, 2.0, False))                           # the baseline itself

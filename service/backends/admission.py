@@ -88,8 +88,8 @@ costliest of them (``REFINEMENT_SOLVER_RULES.direct_memory``: 3.8 GB at 388K fac
 at 1.55M)."""
 ITERATIVE_COST = OperationCost(memory=REFINEMENT_SOLVER_RULES.iterative_memory,
                                first_answer=FIRST_ANSWER_ITERATIVE)
-"""A reconstruction refined by CG (``REFINEMENT_SOLVER_RULES.iterative_memory``: 968 MB at
-100K faces, 3.3 GB at 400K); its first answer is the iterative linear answer."""
+"""A reconstruction refined by CG (``REFINEMENT_SOLVER_RULES.iterative_memory``: 880 MB at
+100K faces, 2.9 GB at 400K); its first answer is the iterative linear answer."""
 LINEAR_COST = OperationCost(memory=LINEAR_RULES.direct_memory, first_answer=FIRST_ANSWER_DIRECT)
 """A linear reconstruction (``options.refine: false``) by a factorization (8.3 KB per face)."""
 LINEAR_ITERATIVE_COST = OperationCost(memory=LINEAR_RULES.iterative_memory,

@@ -55,6 +55,16 @@ factorizes Eq. 5 and refines by CG; the service's admission prices a reconstruct
 these models."""
 
 
+PROLONGATOR_SMOOTHING = ("energy", {"maxiter": 8})
+"""pyamg's prolongator smoothing for the Gauss-Newton hierarchy: energy minimization, 8 CG
+iterations per column block (pyamg's default is 4). The thin shell's bending modes are what
+the prolongators must carry, and on finer meshes they need more smoothing to reach them: on
+the noisy scans' last Gauss-Newton matrices (bench.scale's nefertiti, CG to 1e-3 from
+zero), 46 -> 39 iterations at 100K faces (setup 3.6 -> 4.2 s, the same total) and
+182 -> 105 at 400K (setup 14.0 -> 18.2 s, CG 59.8 -> 36.0 s); 2 iterations take 217 at
+100K, 16 no better than 8 (docs/large-meshes.md)."""
+
+
 def symmetric_from_upper(upper: sp.csr_array) -> sp.csr_matrix:
     """The full symmetric (N, N) CSR matrix (``upper``'s dtype) whose upper triangle
     (diagonal included) is ``upper`` (canonical CSR)."""
@@ -200,7 +210,7 @@ class Multigrid:
         # of the coarse levels (docs/large-meshes.md).
         self._ml = pyamg.smoothed_aggregation_solver(
             single, B=rigid_modes(X_free).astype(np.float32), max_coarse=500,
-            coarse_solver="pinv", smooth="energy", improve_candidates=None)
+            coarse_solver="pinv", smooth=PROLONGATOR_SMOOTHING, improve_candidates=None)
         self._cycle = self._ml.aspreconditioner(cycle="V")
         self._baseline, self._stale = None, False
         stats = self.stats

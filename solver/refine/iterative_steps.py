@@ -40,6 +40,7 @@ import scipy.sparse as sp
 
 from ..linalg.cost import PowerLaw
 from ..linalg.iterative import LinearSolverRules, _multigrid
+from .steps import StepRules
 
 REFINEMENT_SOLVER_RULES = LinearSolverRules(
     direct_memory=PowerLaw(per_face=9_800.0, exponent=1.13, base=200 * 1024**2),
@@ -179,6 +180,12 @@ class Multigrid:
         self._cycle: Any = None
         self._baseline: float | None = None  # iterations per decade, first solve on it
         self._stale = False
+
+    @classmethod
+    def of(cls, rules: StepRules) -> Multigrid:
+        """The hierarchy the refinement's :class:`~solver.refine.steps.StepRules` ask for
+        (``cg_max_iterations``, ``cg_resetup_growth``, ``cg_setup_iterations``)."""
+        return cls(rules.cg_max_iterations, rules.cg_resetup_growth, rules.cg_setup_iterations)
 
     def reset_stats(self) -> None:
         """Count a new run's solves from zero (the hierarchy stays)."""

@@ -126,9 +126,8 @@ class Refiner:
         self._needle_coordinates = self._needles()
         self.linear_solver = REFINEMENT_SOLVER_RULES.choose(
             targets.topology.n_faces, linear_solver, available_memory(memory_budget))
-        self._multigrid = (Multigrid(step_rules.cg_max_iterations, step_rules.cg_resetup_growth,
-                                     step_rules.cg_setup_iterations)
-                           if self.linear_solver == "iterative" else None)
+        self._multigrid = (Multigrid.of(step_rules) if self.linear_solver == "iterative"
+                           else None)
         # The factor, its matrix and the projection off its rigid motions that the previous
         # keep_factor run ended with (see run(keep_factor=True)).
         self._kept: tuple[Any, sp.csr_array, RigidProjection] | None = None

@@ -79,7 +79,10 @@ class LinearAdjoint:
         touched = problem.constrained_components(user)
         anchor, _ = problem.anchors(~touched)
         self.linear: LinearConstraints = linear.extended(anchor)
-        self.system: ConstrainedSystem = problem.system(self.linear, backend)
+        # Built as reconstruct built its last system (K handed over, the constrained matrix
+        # made in place from it): the same matrix to the bit, so a system that is nearly
+        # singular along what a tiny soft weight fixes still gives reconstruct's answer.
+        self.system: ConstrainedSystem = problem.system(self.linear, backend, release=True)
         self.u = self.system.solve(self.linear.hard_values, self.linear.soft_values)
         hard_pos = np.isinf(user.position_weights)
         hard_frm = np.isinf(user.frame_weights)

@@ -23,8 +23,13 @@ an idle one: a setup is priced as :attr:`~solver.refine.steps.StepRules.cg_setup
 CG iterations. (A hierarchy reused across steps does as well as a fresh one on these
 matrices: on the noisy 100K-face scan, set up for every step or once, the three solves take
 9, 90, 57 and 9, 90, 58 iterations; restarting a solve with a fresh hierarchy when it ran
-long cost 36 iterations more at 400K faces, CG's Krylov space lost. What grows is the
+long cost 42 iterations more at 400K faces, CG's Krylov space lost. What grows is the
 iterations a tight tolerance needs: docs/large-meshes.md.)
+
+Each preconditioned residual is projected off the rigid motions of the positions the
+matrix was built at (:class:`solver.mesh.rigid_motions.RigidProjection`): the matrix is
+definite along them only by the damping's floor, and the coarse solve would otherwise fill
+the iterates with huge rigid components that cost nothing in the energy norm CG minimizes.
 """
 
 from __future__ import annotations
@@ -171,7 +176,7 @@ class Multigrid:
     """
 
     def __init__(self, max_iterations: int, resetup_growth: float,
-                 setup_iterations: float = 50.0) -> None:
+                 setup_iterations: float) -> None:
         self.max_iterations = max_iterations
         self.resetup_growth = resetup_growth
         self.setup_iterations = setup_iterations
@@ -231,8 +236,8 @@ class Multigrid:
         return (self._cycle @ r.astype(np.float32)).astype(np.float64)
 
     def solved(self, iterations: int, decades: float, capped: bool) -> None:
-        """Note a solve: ``iterations`` for ``decades``
-        decades of residual. The first on a hierarchy sets its baseline rate; the hierarchy
+        """Note a solve: ``iterations`` for ``decades`` decades of residual. The first on a
+        hierarchy sets its baseline rate (iterations per decade); the hierarchy
         is stale (set up again before the next solve) where the solve hit the cap, or took
         more than ``resetup_growth`` times the baseline rate and the iterations beyond the
         baseline cost more than a setup (``setup_iterations``).

@@ -6,8 +6,11 @@ A job submitted with ``callback_url`` gets one POST of its status document (the 
 * only to hosts of ``FFS_WEBHOOK_HOSTS`` (:func:`check_callback_url`, at submission: a URL
   elsewhere is refused with 422 naming ``callback_url``). A loopback, private, link-local or
   otherwise special address is refused unless the list names that host exactly; a
-  ``*.example.com`` entry never reaches such an address (checked again when the name is
-  resolved at delivery), so the service cannot be made into a proxy into its own network;
+  ``*.example.com`` entry never reaches such an address: at delivery the name is resolved
+  once, every answer checked, and the connection made to the checked address itself
+  (:func:`pinned_request`: the ``Host`` header and TLS keep the name), so a name that
+  answers differently when asked again cannot turn the service into a proxy into its own
+  network;
 * signed: ``X-FFS-Signature: t=<unix seconds>,v1=<hex HMAC-SHA256 of "<t>.<body>" under the
   key's webhook secret>`` (:func:`signature`), with ``X-FFS-Event`` (``job.succeeded``,
   ``job.failed``, ``job.cancelled``), ``X-FFS-Delivery`` (one id for every attempt) and
@@ -147,15 +150,51 @@ def signature(secret: str, timestamp: int, body: bytes) -> str:
     return f"t={timestamp},v1={mac.hexdigest()}"
 
 
-async def _resolves_to_special(host: str, port: int) -> bool:
-    if _ip(host) is not None:
-        return _special(ipaddress.ip_address(host))
+async def _resolved(host: str, port: int
+                    ) -> list[ipaddress.IPv4Address | ipaddress.IPv6Address]:
+    """The addresses of ``host`` (itself when it is one), in the resolver's order.
+
+    Raises:
+        OSError: the name does not resolve.
+    """
+    if (literal := _ip(host)) is not None:
+        return [literal]
     loop = asyncio.get_running_loop()
-    try:
-        infos = await loop.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except OSError:
-        return False  # the delivery fails to connect and is retried
-    return any(_special(ipaddress.ip_address(info[4][0].split("%")[0])) for info in infos)
+    infos = await loop.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    return [ipaddress.ip_address(info[4][0].split("%")[0]) for info in infos]
+
+
+@dataclass(frozen=True)
+class PinnedRequest:
+    """A delivery's request pinned to one checked address: the URL names the address, the
+    ``Host`` header and TLS (SNI, certificate check) the target's name, so the HTTP client
+    connects where the check looked and resolves nothing itself."""
+
+    url: httpx.URL
+    headers: dict[str, str]
+    extensions: dict[str, str]
+
+
+async def pinned_request(target: CallbackTarget) -> PinnedRequest:
+    """Resolve ``target``'s host once and pin the delivery to its first address.
+
+    Raises:
+        CallbackRefusedError: a ``*.`` target (not listed exactly) whose name resolves to
+            a loopback, private or otherwise special address (any of its answers).
+        OSError: the name does not resolve (the attempt is retried).
+    """
+    url = httpx.URL(target.url)
+    addresses = await _resolved(target.host, target.port)
+    if not addresses:
+        raise OSError(f"{target.host} has no address")
+    if not target.exact and any(_special(address) for address in addresses):
+        raise CallbackRefusedError(f"{target.host} resolves to a loopback or private address")
+    if _ip(target.host) is not None:
+        return PinnedRequest(url, {}, {})
+    default = DEFAULT_PORTS[url.scheme] == target.port
+    host = target.host if default else f"{target.host}:{target.port}"
+    return PinnedRequest(url.copy_with(host=str(addresses[0])), {"Host": host},
+                         {"sni_hostname": target.host})
 
 
 JobLookup = Callable[[], Awaitable[tuple[str, bytes] | None]]
@@ -176,8 +215,11 @@ class WebhookSender:
 
     def _http(self) -> httpx.AsyncClient:
         if self._client is None:
-            self._client = httpx.AsyncClient(follow_redirects=False, trust_env=False,
-                                             timeout=self.policy.timeout)
+            # No keep-alive: a pooled connection is keyed by the pinned address alone and
+            # could carry another name's delivery over a TLS session checked for this one.
+            self._client = httpx.AsyncClient(
+                follow_redirects=False, trust_env=False, timeout=self.policy.timeout,
+                limits=httpx.Limits(max_keepalive_connections=0))
         return self._client
 
     def schedule(self, job_id: str, target: CallbackTarget, secret: str,
@@ -234,16 +276,22 @@ class WebhookSender:
                        delivery: str, attempt: int) -> str:
         """``delivered``, ``retry`` or ``final`` (a 4xx other than 408/429, or a refused
         address)."""
-        if not target.exact and await _resolves_to_special(target.host, target.port):
-            logger.warning("webhook to %s refused: it resolves to a loopback or private "
-                           "address", target.host)
+        try:
+            pinned = await pinned_request(target)
+        except CallbackRefusedError as exc:
+            logger.warning("webhook to %s refused: %s", target.host, exc)
             return "final"
+        except OSError as exc:
+            logger.info("webhook attempt %d to %s: the name does not resolve (%s)", attempt,
+                        target.host, type(exc).__name__)
+            return "retry"
         headers = {"Content-Type": "application/json", "User-Agent": "ffs-webhooks/1",
                    SIGNATURE_HEADER: signature(secret, int(time.time()), body),
                    "X-FFS-Event": event, "X-FFS-Delivery": delivery,
-                   "X-FFS-Attempt": str(attempt)}
+                   "X-FFS-Attempt": str(attempt), **pinned.headers}
         try:
-            response = await self._http().post(target.url, content=body, headers=headers)
+            response = await self._http().post(pinned.url, content=body, headers=headers,
+                                               extensions=pinned.extensions)
         except httpx.HTTPError as exc:
             logger.info("webhook attempt %d to %s failed: %s", attempt, target.host,
                         type(exc).__name__)

@@ -129,8 +129,9 @@ class Limits:
     """FFS_MAX_REQUEST_MEMORY: the solver's ``memory_budget`` (its ``linear_solver="auto"``
     chooses the path within it, as admission priced the request)."""
     max_direct_faces: int | None = None
-    """With ``max_memory``, of an operation with an iterative path: the most faces its
-    factorization fits (beyond them, up to ``max_faces``, it solves iteratively)."""
+    """Of an operation with an iterative path: the most faces its factorization fits
+    (at most FFS_MAX_FACES; beyond them, up to ``max_faces``, it solves iteratively); None
+    for the others."""
     linear: Limits | None = None
     """The limits of the operation's linear answer (``options.refine: false``) where they
     differ (``reconstruct``: its iterative linear answer takes less memory per face)."""

@@ -58,81 +58,82 @@ from service.operations import OPERATIONS, OperationSpec
 from service.settings import Settings
 
 
-def limits(settings: Settings, operation: str | None = None) -> Limits:
-    """The size limits a task carries to its worker.
+def limits(settings: Settings, operation: str | None = None, synchronous: bool = False
+           ) -> Limits:
+    """The size limits a task carries to its worker: the one place an operation's limits
+    are computed (:func:`sync_limits` and ``GET /v1/me``'s :func:`size_limits` read them).
 
     Args:
         settings: FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BLEND_STEPS,
-            FFS_MAX_BLEND_VERTICES and FFS_MAX_REQUEST_MEMORY.
+            FFS_MAX_BLEND_VERTICES, FFS_MAX_REQUEST_MEMORY and FFS_REQUEST_TIMEOUT.
         operation: the operation (a key of :data:`service.operations.OPERATIONS`), or None
             for a session (which factorizes).
+        synchronous: a synchronous request (then ``max_sync_faces`` too), not a job or a
+            session.
 
     Returns:
         The limits: at most FFS_MAX_FACES faces, and at most the faces whose predicted peak
         memory, by the path the solver takes within FFS_MAX_REQUEST_MEMORY
         (:mod:`service.backends.admission`), fits it; for an operation with an iterative
-        path also those of its linear answer (``Limits.linear``).
+        path the faces its factorization fits and the limits of its linear answer
+        (``Limits.linear``); for a synchronous request the most faces whose first answer is
+        predicted within FFS_REQUEST_TIMEOUT less the margin for encoding the answer, by the
+        path the solver takes (:meth:`service.backends.admission.Pricing.sync_faces_within`;
+        beyond: 413 ``use-a-job``).
     """
     spec = OPERATIONS.get(operation) if operation is not None else None
     solves, iterative = spec is None or spec.solves, spec is not None and spec.iterative
-    size = _limits(settings, pricing(solves, iterative))
+    seconds = None
+    if synchronous:
+        seconds = settings.request_timeout - TIME_POLICY.encode_margin(settings.request_timeout)
+    size = _limits(settings, pricing(solves, iterative), seconds)
     if iterative:
-        size = replace(size, linear=_limits(settings, pricing(solves, iterative, linear=True)))
+        size = replace(size, linear=_limits(settings, pricing(solves, iterative, linear=True),
+                                            seconds))
     return size
 
 
-def _limits(settings: Settings, how: Pricing) -> Limits:
-    """The limits of an operation priced ``how``."""
+def _limits(settings: Settings, how: Pricing, seconds: float | None) -> Limits:
+    """The limits of an operation priced ``how`` (synchronous with ``seconds``)."""
     memory = settings.max_request_memory
     fit = how.faces_within(memory)
-    direct = how.direct_faces(memory) if how.iterative is not None else None
+    direct = (min(how.direct_faces(memory), settings.max_faces)
+              if how.iterative is not None else None)
     bound = fit < settings.max_faces
+    sync = sync_faces_within(seconds, how, memory) if seconds is not None else None
     return Limits(settings.max_vertices, min(fit, settings.max_faces), settings.max_blend_steps,
                   settings.max_blend_vertices, memory if bound else None,
-                  request_memory=memory, max_direct_faces=direct if bound else None)
+                  max_sync_faces=sync, sync_seconds=seconds, request_memory=memory,
+                  max_direct_faces=direct)
 
 
 def sync_limits(settings: Settings, operation: str) -> Limits:
-    """:func:`limits` of a synchronous request: also the most faces whose first answer is
-    predicted within FFS_REQUEST_TIMEOUT less the margin for encoding the answer, by the path
-    the solver takes (:meth:`service.backends.admission.Pricing.sync_faces_within`; beyond:
-    413 ``use-a-job``)."""
-    seconds = settings.request_timeout - TIME_POLICY.encode_margin(settings.request_timeout)
-    spec = OPERATIONS[operation]
-    memory = settings.max_request_memory
-
-    def timed(size: Limits, how: Pricing) -> Limits:
-        return replace(size, max_sync_faces=sync_faces_within(seconds, how, memory),
-                       sync_seconds=seconds)
-
-    size = limits(settings, operation)
-    if size.linear is not None:
-        size = replace(size, linear=timed(size.linear, pricing(True, True, linear=True)))
-    return timed(size, pricing(spec.solves, spec.iterative))
+    """:func:`limits` of a synchronous request of ``operation``."""
+    return limits(settings, operation, synchronous=True)
 
 
 def size_limits(settings: Settings) -> dict[str, Any]:
     """The size limits ``GET /v1/me`` shows (:class:`service.api.documents.SizeLimits`):
-    FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BODY_BYTES, FFS_MAX_REQUEST_MEMORY, the
-    faces each operation (and a session) takes (:func:`limits`), the faces each takes
-    synchronously (:func:`sync_limits`), and for the operations with an iterative path the
-    faces their factorization takes and those their linear answer takes."""
-    by_operation = {name: limits(settings, name).max_faces for name in OPERATIONS}
+    FFS_MAX_VERTICES, FFS_MAX_FACES, FFS_MAX_BODY_BYTES, FFS_MAX_REQUEST_MEMORY, and each
+    operation's limits as a synchronous request takes them (:func:`sync_limits`): its faces
+    (and a session's, :func:`limits`), its faces synchronously, and for the operations with
+    an iterative path the faces their factorization takes and those their linear answer
+    takes."""
+    operations = {name: sync_limits(settings, name) for name in OPERATIONS}
+    by_operation = {name: size.max_faces for name, size in operations.items()}
     by_operation["sessions"] = limits(settings).max_faces
-    memory = settings.max_request_memory
-    iterative = [name for name, spec in OPERATIONS.items() if spec.iterative]
+    iterative = {name: size for name, size in operations.items()
+                 if size.max_direct_faces is not None}
     return {"max_vertices": settings.max_vertices, "max_faces": settings.max_faces,
             "max_body_bytes": settings.max_body_bytes,
-            "max_request_memory": memory,
+            "max_request_memory": settings.max_request_memory,
             "max_faces_by_operation": by_operation,
-            "max_sync_faces_by_operation": {name: sync_limits(settings, name).max_sync_faces
-                                            for name in OPERATIONS},
-            "max_direct_faces_by_operation": {
-                name: min(pricing(True, True).direct_faces(memory), settings.max_faces)
-                for name in iterative},
-            "max_linear_faces_by_operation": {
-                name: (limits(settings, name).linear or limits(settings, name)).max_faces
-                for name in iterative}}
+            "max_sync_faces_by_operation": {name: size.max_sync_faces
+                                            for name, size in operations.items()},
+            "max_direct_faces_by_operation": {name: size.max_direct_faces
+                                              for name, size in iterative.items()},
+            "max_linear_faces_by_operation": {name: (size.linear or size).max_faces
+                                              for name, size in iterative.items()}}
 
 
 async def operation_request(request: Request, spec: OperationSpec, settings: Settings,

@@ -22,8 +22,9 @@ from service.access.keys import derived_webhook_secret
 from service.access.webhooks import (
     CallbackRefusedError,
     WebhookPolicy,
-    _resolves_to_special,
+    WebhookSender,
     check_callback_url,
+    pinned_request,
     signature,
 )
 from tests.helpers import REPO
@@ -41,7 +42,7 @@ class Receiver:
     ``plan[path]`` lists the statuses to answer in turn (then 200), a 3xx redirecting to
     ``/elsewhere``."""
 
-    def __init__(self) -> None:
+    def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
         self.requests: list[dict[str, Any]] = []
         self.plan: dict[str, list[int]] = {}
         self.lock = threading.Lock()
@@ -68,7 +69,7 @@ class Receiver:
             def log_message(self, *args: Any) -> None:
                 pass
 
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.server = ThreadingHTTPServer((host, port), Handler)
         self.port = self.server.server_address[1]
         self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
         self.thread.start()
@@ -261,15 +262,99 @@ def test_an_ipv6_host_is_named_as_in_a_url_or_bare(entry):
             check_callback_url("http://[::1]:9090/hook", policy)
 
 
+class Rebinding:
+    """``socket.getaddrinfo`` for one name answering ``answers[0]`` the first time it is
+    asked, ``answers[1]`` every later time (a DNS rebinding); any other host is resolved for
+    real. ``asked`` counts the questions about the name."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, name: str, answers: list[str]) -> None:
+        import socket
+
+        self.asked = 0
+        real = socket.getaddrinfo
+
+        def getaddrinfo(host: Any, port: Any, *args: Any, **kwargs: Any) -> Any:
+            if host != name:
+                return real(host, port, *args, **kwargs)
+            address = answers[min(self.asked, 1)]
+            self.asked += 1
+            family = socket.AF_INET6 if ":" in address else socket.AF_INET
+            where = (address, int(port), 0, 0) if ":" in address else (address, int(port))
+            return [(family, socket.SOCK_STREAM, 6, "", where)]
+
+        monkeypatch.setattr(socket, "getaddrinfo", getaddrinfo)
+
+
 @pytest.mark.parametrize("address", ["127.0.0.1", "10.0.0.1", "169.254.169.254",
                                      "100.100.100.200", "100.64.0.1", "0.0.0.0", "224.0.0.1",
                                      "::1", "fd00::1", "::ffff:127.0.0.1", "64:ff9b::a00:1"])
-def test_a_wildcard_host_never_reaches_a_non_global_address(address):
+def test_a_wildcard_host_never_reaches_a_non_global_address(address, monkeypatch):
     """What a ``*.`` entry's name resolves to at delivery: any address that is not globally
     reachable is refused, the shared address space 100.64.0.0/10 (not ``is_private``; a
-    cloud's metadata service may live there) included."""
-    assert run_async(_resolves_to_special(address, 80))
-    assert not run_async(_resolves_to_special("93.184.215.14", 80))
+    cloud's metadata service may live there) included; a global one is what the request is
+    sent to."""
+    target = check_callback_url("https://a.corp.example/hook", WebhookPolicy(("*.corp.example",)))
+    Rebinding(monkeypatch, "a.corp.example", [address, address])
+    with pytest.raises(CallbackRefusedError, match="resolves to a loopback or private"):
+        run_async(pinned_request(target))
+    Rebinding(monkeypatch, "a.corp.example", ["93.184.215.14", "93.184.215.14"])
+    assert str(run_async(pinned_request(target)).url) == "https://93.184.215.14/hook"
+
+
+@pytest.mark.parametrize(("first", "then"), [("93.184.215.14", "127.0.0.1"),
+                                              ("2606:2800:21f:cb07:6820:80da:af6b:8b2c", "::1"),
+                                              ("127.0.0.1", "93.184.215.14")])
+def test_a_wildcard_name_is_resolved_once_and_the_request_goes_to_that_address(
+        first, then, monkeypatch):
+    """DNS rebinding: a name that answers a public address to the check and a private one
+    afterwards. The delivery's request names the address checked (the ``Host`` header and
+    TLS's SNI the name), so the HTTP client has nothing to resolve; a first answer that is
+    private is refused, whatever comes next."""
+    name = "hooks.corp.example"
+    target = check_callback_url(f"https://{name}:8443/a?b=1",
+                                WebhookPolicy(("*.corp.example",)))
+    rebinding = Rebinding(monkeypatch, name, [first, then])
+    if first == "127.0.0.1":
+        with pytest.raises(CallbackRefusedError):
+            run_async(pinned_request(target))
+        assert rebinding.asked == 1
+        return
+    pinned = run_async(pinned_request(target))
+    assert rebinding.asked == 1
+    assert pinned.url.host == first and pinned.url.port == 8443
+    assert pinned.url.path == "/a" and pinned.url.query == b"b=1"
+    assert pinned.headers == {"Host": f"{name}:8443"}
+    assert pinned.extensions == {"sni_hostname": name}
+
+
+def test_the_http_client_connects_to_the_resolved_address_not_the_name(monkeypatch):
+    """A real delivery to two receivers on loopback, one port, 127.0.0.1 and 127.0.0.2: the
+    name resolves to the first once, to the second whenever asked again. The webhook arrives
+    at the first, with the name in ``Host``, and the name was asked once per attempt: the
+    HTTP client never resolved it again. (A name listed exactly: a ``*.`` entry refuses
+    loopback, and this machine has no public address to listen on.)"""
+    first = Receiver("127.0.0.1")
+    second = Receiver("127.0.0.2", first.port)
+    try:
+        name = "hooks.rebind.example"
+        target = check_callback_url(f"http://{name}:{first.port}/pinned",
+                                    WebhookPolicy((f"{name}:{first.port}",)))
+        rebinding = Rebinding(monkeypatch, name, ["127.0.0.1", "127.0.0.2"])
+        sender = WebhookSender(WebhookPolicy(attempts=1, timeout=10))
+
+        async def deliver() -> bool:
+            try:
+                return await sender.deliver(target, "s3cret", "job.succeeded", b"{}", "j")
+            finally:
+                await sender.stop()
+
+        assert run_async(deliver())
+        [delivery] = first.at("/pinned")
+        assert delivery["headers"]["Host"] == f"{name}:{first.port}"
+        assert second.requests == [] and rebinding.asked == 1
+    finally:
+        first.close()
+        second.close()
 
 
 def test_without_keys_a_callback_is_refused():

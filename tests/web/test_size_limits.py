@@ -52,5 +52,6 @@ def test_the_page_shows_the_limits_and_refuses_a_file_over_them(web, tmp_path):
     web.app("app.setSizeLimits(arg)", tight)
     flagged = web.page.locator("#service-limits.over-limit")
     assert flagged.count() == 1
-    assert "(500 to solve)" in flagged.inner_text()
-    assert "over the limit" in flagged.inner_text()
+    linear = limits["max_linear_faces_by_operation"]["reconstruct"]
+    assert f"(500 to solve, {linear:,} for a linear answer)" in flagged.inner_text()
+    assert "over the limit to solve refined" in flagged.inner_text()

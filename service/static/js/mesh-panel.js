@@ -35,20 +35,35 @@ const MB = 1024 * 1024;
 const bytesText = (b) => (b >= MB ? `${(b / MB).toFixed(b >= 10 * MB ? 0 : 1)} MB`
   : `${Math.ceil(b / 1024)} KB`);
 
-/** The service's limits under the panel: "up to N faces (M to solve)", flagged when the
- * mesh on screen (m faces) is over the limit of the operations that solve. */
+/** The service's limits under the panel: "up to N faces (M to solve, L for a linear
+ * answer)", and what they mean for the mesh on screen (m faces): flagged when it is over the
+ * limit of the operations that solve (over the refined answer's but within the linear
+ * answer's: said so), noted when reconstruct solves it iteratively (over the faces its
+ * factorization fits: slower). */
 function drawLimits(s) {
   const line = $("service-limits"), limits = s.sizeLimits;
   line.hidden = !limits;
   if (!limits) return;
   const m = s.faces ? s.faces.length / 3 : 0;
+  const faces = (n) => n.toLocaleString("en");
   const solve = limits.max_faces_by_operation?.reconstruct ?? limits.max_faces;
-  const text = `Service: up to ${limits.max_faces.toLocaleString("en")} faces`
-    + (solve < limits.max_faces ? ` (${solve.toLocaleString("en")} to solve)` : "")
-    + `, files up to ${bytesText(limits.max_body_bytes)}`;
+  const linear = limits.max_linear_faces_by_operation?.reconstruct ?? solve;
+  const direct = limits.max_direct_faces_by_operation?.reconstruct ?? solve;
+  const within = [solve < limits.max_faces ? `${faces(solve)} to solve` : null,
+    linear > solve ? `${faces(linear)} for a linear answer` : null].filter(Boolean);
+  const text = `Service: up to ${faces(limits.max_faces)} faces`
+    + (within.length ? ` (${within.join(", ")})` : "")
+    + `, files up to ${bytesText(limits.max_body_bytes)}.`;
   const over = m > solve;
-  line.textContent = over ? `${text}. This mesh is over the limit to solve.` : `${text}.`;
+  let note = "";
+  if (m > linear) note = " This mesh is over the limit to solve.";
+  else if (over) note = ` This mesh is over the limit to solve refined; its linear answer `
+    + `(up to ${faces(linear)} faces) fits.`;
+  else if (m > direct) note = ` This mesh is over the ${faces(direct)} faces a factorization `
+    + "fits: it is solved iteratively (slower).";
+  line.textContent = text + note;
   line.classList.toggle("over-limit", over);
+  line.classList.toggle("iterative", !over && m > direct);
 }
 
 /** A file over the service's body limit is refused here, before it is sent. */

@@ -1,0 +1,126 @@
+"""The page says where a mesh stands against reconstruct's limits by path (``GET /v1/me``:
+``max_faces_by_operation``, ``max_linear_faces_by_operation``,
+``max_direct_faces_by_operation``), in Debian's Chromium against a real uvicorn whose
+FFS_MAX_REQUEST_MEMORY (215 MiB) puts the sample under every limit, a second mesh between
+the factorization's limit and the refined answer's, and a third between the refined answer's
+and the linear answer's; what the page says is checked against what the service does
+with the same meshes (real reconstruct jobs: refused 413, answered by a linear answer,
+refined iteratively)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from solver.mesh.io import load_mesh_file, save_mesh
+from tests.helpers import DATA
+from tests.helpers.meshes import bumpy_grid
+from tests.helpers.servers import uvicorn_server
+from tests.helpers.service import forms_json
+from tests.web.conftest import VENDOR_MANIFEST
+
+MEMORY = 215 * 1024**2
+
+
+@pytest.fixture(scope="module")
+def web_server() -> Iterator[str]:
+    """This module's server (the ``web`` fixture's page opens it): 215 MiB a request."""
+    if not VENDOR_MANIFEST.is_file():
+        pytest.fail("the page's three.js modules are not built: run `npm ci --prefix web`")
+    with uvicorn_server({"FFS_WORKERS": "1", "FFS_MAX_REQUEST_MEMORY": str(MEMORY),
+                         "FFS_MAX_FACES": "100000"}) as base:
+        yield base
+
+
+def _reconstruct(base: str, V: np.ndarray, F: np.ndarray, refine: bool | None) -> dict[str, Any]:
+    """A reconstruct job of the mesh's forms (angles with noise: the answer is refined) run
+    to its end: the submission's problem (4xx) or the finished job's document."""
+    forms = forms_json(V, F)
+    forms["angles"] = (np.asarray(forms["angles"])
+                       + np.random.default_rng(2).normal(scale=1e-3, size=len(forms["angles"]))
+                       ).tolist()
+    options = {} if refine is None else {"refine": refine}
+    with httpx.Client(base_url=base, timeout=120) as http:
+        submitted = http.post("/v1/jobs", json={"operation": "reconstruct",
+                                                "input": {**forms, "options": options}})
+        if submitted.status_code >= 400:
+            return submitted.json()
+        deadline = time.monotonic() + 300
+        while (job := http.get(submitted.headers["location"]).json())["status"] in (
+                "queued", "running"):
+            assert time.monotonic() < deadline, job
+            time.sleep(0.2)
+        if job["status"] == "succeeded":
+            job["result"] = http.get(job["result_url"] if "result_url" in job
+                                     else f"{submitted.headers['location']}/result").json()
+        return job
+
+
+def _line(web: Any) -> tuple[str, list[str]]:
+    line = web.page.locator("#service-limits")
+    return line.inner_text(), line.get_attribute("class").split()
+
+
+def test_the_page_says_where_a_mesh_stands_against_reconstructs_limits(web, tmp_path):
+    limits = httpx.get(f"{web.base}/v1/me", timeout=30).json()["size_limits"]
+    solve = limits["max_faces_by_operation"]["reconstruct"]
+    linear = limits["max_linear_faces_by_operation"]["reconstruct"]
+    direct = limits["max_direct_faces_by_operation"]["reconstruct"]
+    knight = load_mesh_file(DATA / "decimated-knight.off")     # 1000 faces
+    iterative = bumpy_grid(40, 42)                               # 3360 faces
+    over = bumpy_grid(50, 50)                                    # 5000 faces
+    assert len(knight[1]) < direct < len(iterative[1]) <= solve < len(over[1]) <= linear
+    assert linear < limits["max_faces"]
+
+    web.open("sample=decimated-knight.off")
+    text, classes = _line(web)
+    assert (f"({solve:,} to solve, {linear:,} for a linear answer)" in text), text
+    assert "mesh" not in text and "over-limit" not in classes and "iterative" not in classes
+
+    web.load_file(_saved(tmp_path, "iterative.off", iterative))
+    text, classes = _line(web)
+    assert text.endswith(f"This mesh is over the {direct:,} faces a factorization fits: it is "
+                         "solved iteratively (slower)."), text
+    assert "iterative" in classes and "over-limit" not in classes
+    # The service: the refined answer within the memory, by the iterative path.
+    job = _reconstruct(web.base, *iterative, refine=None)
+    assert job["status"] == "succeeded", job
+    solver = job["result"]["report"]["refinement"]["linear_solver"]
+    assert solver["method"] == "iterative", solver
+
+    web.load_file(_saved(tmp_path, "over.off", over))
+    text, classes = _line(web)
+    assert text.endswith("This mesh is over the limit to solve refined; its linear answer "
+                         f"(up to {linear:,} faces) fits."), text
+    assert "over-limit" in classes and "iterative" not in classes
+    # The service: the refined answer refused with the limit, the linear answer given.
+    refused = _reconstruct(web.base, *over, refine=None)
+    assert refused["status"] == 413 and refused["kind"] == "mesh-too-large", refused
+    assert f"{solve} faces" in refused["detail"], refused
+    job = _reconstruct(web.base, *over, refine=False)
+    assert job["status"] == "succeeded", job
+    assert len(job["result"]["faces"]) == len(over[1])
+
+    # A linear limit under the mesh's faces: over every limit to solve.
+    web.app("app.setSizeLimits(arg)", dict(limits, max_linear_faces_by_operation={
+        "reconstruct": len(over[1]) - 1}))
+    text, classes = _line(web)
+    assert text.endswith("This mesh is over the limit to solve."), text
+    assert "over-limit" in classes
+    # A service whose factorization fits the mesh: nothing said.
+    web.app("app.setSizeLimits(arg)", dict(
+        limits, max_faces_by_operation=dict(limits["max_faces_by_operation"], reconstruct=5000),
+        max_direct_faces_by_operation={"reconstruct": 5000}))
+    text, classes = _line(web)
+    assert "mesh" not in text and "over-limit" not in classes and "iterative" not in classes
+
+
+def _saved(folder: Any, name: str, mesh: tuple[np.ndarray, np.ndarray]) -> Any:
+    path = folder / name
+    path.write_bytes(save_mesh(*mesh, "off"))
+    return path

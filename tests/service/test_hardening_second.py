@@ -20,7 +20,7 @@ import pytest
 from service.api.decoding import BINARY_MAGIC, BINARY_MEDIA_TYPE, binary_body
 from solver.mesh.io import save_mesh
 from tests.helpers.meshes import bumpy_grid
-from tests.helpers.servers import uvicorn_server
+from tests.helpers.servers import server_log, uvicorn_server
 from tests.helpers.service import metric_value, problem
 
 
@@ -523,7 +523,12 @@ def test_a_client_that_never_reads_is_cut_off():
             sock.sendall(b"POST /v1/forms HTTP/1.1\r\nHost: x\r\nContent-Type: "
                          b"application/json\r\nContent-Length: " + str(len(body)).encode()
                          + b"\r\n\r\n" + body)
-            time.sleep(6)  # the solve, then 1 s of a full buffer: aborted
+            # The solve, then 1 s of a full buffer: aborted, which the server logs (polled:
+            # a fixed 6 s sleep before).
+            log, deadline = server_log(url), time.monotonic() + 60
+            while "aborted a connection that read nothing" not in log.read_text():
+                assert time.monotonic() < deadline, log.read_text()[-2000:]
+                time.sleep(0.1)
             received = b""
             with contextlib.suppress(OSError):
                 while chunk := sock.recv(1 << 20):

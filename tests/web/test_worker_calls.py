@@ -90,9 +90,25 @@ def test_a_late_worker_loses_no_call(web):
 
 def test_ready_settles_when_the_first_reply_never_comes(web):
     """The default sample's message is lost: after the acknowledgement bound (15 s) the call
-    is rejected, `window.app.ready` settles and the page says in words what did not answer."""
+    is rejected, `window.app.ready` settles and the page says in words what did not answer.
+
+    The page's clock is Playwright's (``page.clock``, flowing as usual): once the call is
+    posted and not taken up, it is fast-forwarded to 1 s short of the page's default bound
+    (the call still waits) and then 2 s more (rejected), instead of the test waiting 15 s."""
     web.page.add_init_script(NO_READING)
-    web.open(timeout=60)
+    web.page.clock.install()
+    web.page.goto(f"{web.base}/?test", timeout=60_000)
+    web.wait_for("window.app !== undefined && window.app.diagnostics().workerCalls.some("
+                 "(c) => c.posted && !c.accepted)", timeout=60,
+                 what="the default sample's call to be posted to the worker")
+    (call,) = web.evaluate("window.app.diagnostics().workerCalls")
+    web.page.clock.fast_forward(max(0, 14_000 - call["waitingMs"]))
+    web.frame()
+    assert web.evaluate("window.app.diagnostics().workerCalls") != [], "rejected before 15 s"
+    assert web.shown_errors() == []
+    web.page.clock.fast_forward(2_000)
+    web.evaluate("window.app.ready", timeout=60, what="window.app.ready")
+    web.idle()
     diagnostics = web.app("app.diagnostics()")
     assert diagnostics["startup"] == "failed", diagnostics
     assert diagnostics["workerCalls"] == []

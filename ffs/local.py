@@ -139,18 +139,18 @@ class Local:
                         refine: bool | None = None, progress: Progress | None = None,
                         **options: Any) -> VjpResult:
         forms = _forms(faces, edges, lengths, angles)
-        if forms.vertex_map is not None:
-            raise SolverInputError("vertex_map: the gradients of a non-manifold mesh's forms "
-                                   "are not supported; use the forms of a manifold mesh",
-                                   field="vertex_map")
         solve = ReconstructOptions.from_api({**options, "refine": refine},
                                             ignore=("require_integrable",))
         self._checked_first(forms, solve, options)
         result, vjp = solver.reconstruct_vjp(
             forms.faces, forms.edges, forms.lengths, forms.angles, options=solve,
-            constraints=_constraints(constraints), progress=progress)
+            constraints=_constraints(constraints), progress=progress,
+            vertex_map=forms.vertex_map, placement=forms.placement, weld_map=forms.weld_map)
         grads = vjp.cotangents(np.asarray(cotangent, dtype=np.float64))
-        return VjpResult(result.vertices, np.asarray(forms.faces, dtype=np.int64),
+        faces = np.asarray(forms.faces, dtype=np.int64)
+        if forms.vertex_map is not None:  # the answer is on the file's vertices
+            faces = np.asarray(forms.vertex_map, dtype=np.int64)[faces]
+        return VjpResult(result.vertices, faces,
                          grads.lengths, grads.angles, grads.positions, grads.frames,
                          to_jsonable(result.report.to_dict()))
 

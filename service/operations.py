@@ -167,7 +167,10 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "constraint targets: the service as a remote differentiable layer. With "
         "`options.refine: false` the linear answer is differentiated (adjoint method), "
         "otherwise the refined one (implicit differentiation at its optimum, exact "
-        "Hessian); the gauge is the anchor of the answer (docs/differentiable.md)."),
+        "Hessian); the gauge is the anchor of the answer (docs/differentiable.md). The forms "
+        "of a real file (`vertex_map`, `weld_map`, `placement` from /v1/forms) are taken as "
+        "/v1/reconstruct takes them: the answer and the `cotangent` are per file vertex, "
+        "on the file's triangles."),
     _operation(
         "deform", documents.MeshResponse, "mesh", STAGES_SOLVE, True,
         "Deform a mesh with handles",

@@ -38,6 +38,17 @@ Which map is differentiated:
   moved), since the implicit function theorem holds at the optimum, not at a point within
   the refinement's looser stopping tolerance.
 
+Forms of a real file (:func:`solver.fundamental_forms` of a non-manifold mesh, or of one with
+vertices joined by zero-length edges) carry ``vertex_map`` and ``weld_map``, and forms of
+several parts a ``placement``: pass them as to :func:`solver.reconstruct`. The adjoint then
+works on the solved (cut) mesh in the solver's gauge, with the cut's own answer (not the
+mean of the copies, which may spread for noisy forms), and the cotangent, given per FILE
+vertex, is pulled back through what :func:`solver.reconstruct` does after solving
+(:mod:`solver.answer_map`): the placement's rigid motion of each part (or the side-by-side
+layout of parts without one), the mean over each file vertex's copies and the weld.
+Constraints name file vertices, as in :func:`solver.reconstruct` (a split vertex's first
+copy; a welded vertex's representative).
+
 Not differentiated (a :class:`solver.core.errors.ConstraintError` says so): cotangent
 weightings, ``layout_angles``, ``orthonormalize=True`` with ``refine=False``, and
 constraints that leave a gauge to the regularization (``report["regularized_components"]``).
@@ -55,13 +66,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .adjoints import FormCotangents, LinearAdjoint, RefinedAdjoint
+from .answer_map import AnswerMap
 from .core.errors import ConstraintError
 from .immersion import ImmersionProblem
-from .linear.constraints import Constraints
 from .mesh.alignment import kabsch
 from .mesh.forms import validate_forms
 from .options import ReconstructOptions
-from .reconstruct import Reconstruction, reconstruct
+from .reconstruct import Reconstruction, reconstruct_on_cut
 
 
 class ReconstructionVJP:
@@ -71,8 +82,10 @@ class ReconstructionVJP:
     ``(grad_lengths, grad_angles)``. Made by :func:`reconstruct_vjp`.
 
     Args:
-        adjoint: the linear or refined adjoint that computes the cotangents.
-        n_vertices: n.
+        adjoint: the linear or refined adjoint that computes the cotangents (on the solved
+            mesh, in the solver's gauge).
+        answer: the map from that answer to ``result.vertices`` (placement, side-by-side
+            layout, file vertices of a cut mesh: :mod:`solver.answer_map`).
         report: what preparing it cost.
 
     Attributes:
@@ -82,11 +95,12 @@ class ReconstructionVJP:
             ``gradient_norm``).
     """
 
-    def __init__(self, adjoint: LinearAdjoint | RefinedAdjoint, n_vertices: int,
+    def __init__(self, adjoint: LinearAdjoint | RefinedAdjoint, answer: AnswerMap,
                  report: dict[str, Any]) -> None:
         self._adjoint = adjoint
+        self._answer = answer
         self.mode = "linear" if isinstance(adjoint, LinearAdjoint) else "refined"
-        self.n_vertices = n_vertices
+        self.n_vertices = answer.n_vertices
         self.report = report
 
     def cotangents(self, g: ArrayLike) -> FormCotangents:
@@ -109,11 +123,20 @@ class ReconstructionVJP:
                                   f"(k, {self.n_vertices}, 3), got {g.shape}", field="cotangent")
         if not np.isfinite(batch).all():
             raise ConstraintError("the cotangent has non-finite values", field="cotangent")
+        if not self._answer.is_identity:    # to the solver's answer on the solved mesh
+            batch = self._answer.vjp(self._solved_vertices(), batch)
         out = self._adjoint.vjp(batch)
         if single:
             out = FormCotangents(*(a[0] for a in (out.lengths, out.angles, out.positions,
                                                   out.frames)))
         return out
+
+    def _solved_vertices(self) -> np.ndarray:
+        """(n_cut, 3) the differentiated answer on the solved mesh, in the solver's gauge."""
+        adjoint = self._adjoint
+        if isinstance(adjoint, RefinedAdjoint):
+            return adjoint.vertices
+        return adjoint.problem.unknowns_to_geometry(adjoint.u.copy(), adjoint.user)[0]
 
     def __call__(self, g: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """``(grad_lengths, grad_angles)``, (E,) or (k, E) float64, for ``g`` (n, 3) or
@@ -134,7 +157,8 @@ def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angl
             exactly these options.
         polish: refined answers only: Newton steps to the optimum before differentiating.
         **keywords: the other keywords of :func:`solver.reconstruct` (``constraints``,
-            ``n_vertices``, ``progress``, ...) and option overrides.
+            ``n_vertices``, ``progress``, ``vertex_map``, ``weld_map``, ``placement``, ...)
+            and option overrides.
 
     Returns:
         ``(result, vjp)``: the :class:`Reconstruction` (``report["vjp"]`` added) and a
@@ -150,33 +174,40 @@ def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angl
     options = ReconstructOptions.given(
         options, {k: keywords.pop(k) for k in list(keywords) if k in names})
     _check_supported(options, keywords)
-    result = reconstruct(faces, edges, lengths, angles, options=options, **keywords)
+    result, solved = reconstruct_on_cut(faces, edges, lengths, angles, options=options,
+                                        **keywords)
     if result.report.get("regularized_components"):
         raise ConstraintError("reconstruct_vjp does not differentiate the regularized gauge "
                               "of constraints that leave a component's gauge free "
                               f"(components {result.report['regularized_components']})",
                               field="constraints")
     started = time.perf_counter()
-    topology, L, A = validate_forms(faces, edges, lengths, angles, keywords.get("n_vertices"))
-    user = (keywords.get("constraints") or Constraints()).validated(topology.n_vertices,
-                                                                     topology.n_faces)
+    cut = solved.cut
+    topology, L, A = validate_forms(faces, edges, lengths, angles,
+                                    cut.n_vertices if cut is not None
+                                    else keywords.get("n_vertices"))
+    answer = AnswerMap(topology.faces, topology.n_vertices, cut, solved.placement,
+                       solved.laid_out)
+    user = solved.constraints
     problem = ImmersionProblem(topology, L, A, frame_weight=options.frame_weight,
                                weighting="uniform", length_scale=options.length_scale)
     backend = options.backend or "auto"
     if options.refine is False:
         adjoint: LinearAdjoint | RefinedAdjoint = LinearAdjoint(
             problem, user, L, backend, options.length_scale is None)
-        adjoint.check(result.vertices)
+        adjoint.check(solved.vertices)
         report: dict[str, Any] = {"mode": "linear", "factorizations": 1}
     else:
-        adjoint = RefinedAdjoint(problem, user, L, A, result, options.angle_weight, backend,
+        gauge = result if answer.is_identity else Reconstruction(
+            vertices=solved.vertices, frames=result.frames, report=result.report)
+        adjoint = RefinedAdjoint(problem, user, L, A, gauge, options.angle_weight, backend,
                                  polish)
         report = {"mode": "refined", **adjoint.report}
-        result = Reconstruction(vertices=adjoint.vertices,
-                                frames=problem.frames_of(adjoint.vertices), report=result.report)
+        vertices, frames = answer.forward(adjoint.vertices, problem.frames_of(adjoint.vertices))
+        result = Reconstruction(vertices=vertices, frames=frames, report=result.report)
     report["seconds"] = time.perf_counter() - started
     result.report["vjp"] = report
-    return result, ReconstructionVJP(adjoint, topology.n_vertices, report)
+    return result, ReconstructionVJP(adjoint, answer, report)
 
 
 def _check_supported(options: ReconstructOptions, keywords: dict[str, Any]) -> None:

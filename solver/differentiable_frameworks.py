@@ -58,9 +58,17 @@ class _KeptVJPs:
 
 
 def _n_vertices(faces: ArrayLike, keywords: dict[str, Any]) -> int:
-    """n: ``keywords["n_vertices"]`` or ``faces.max() + 1``."""
+    """n, the answer's vertex count: ``keywords["n_vertices"]``; else, for a real file's
+    forms, the file's (``len(weld_map)``, or ``vertex_map.max() + 1``: as
+    :func:`solver.reconstruct` counts them); else ``faces.max() + 1``."""
     n = keywords.get("n_vertices")
-    return int(n) if n is not None else int(np.max(faces)) + 1
+    if n is not None:
+        return int(n)
+    if keywords.get("weld_map") is not None:
+        return len(np.asarray(keywords["weld_map"]).reshape(-1))
+    if keywords.get("vertex_map") is not None:
+        return int(np.max(keywords["vertex_map"])) + 1
+    return int(np.max(faces)) + 1
 
 
 def jax_reconstruction(faces: ArrayLike, edges: ArrayLike,

@@ -46,6 +46,7 @@ from .mesh.packing import (
 from .mesh.topology import MeshTopology, build_topology
 from .options import ParameterizeOptions
 from .reconstruct import Progress
+from .refine.outcomes import stalled_at_targets
 from .reports import ParameterizeReport, Stages
 
 
@@ -266,6 +267,9 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
         float(np.abs(length_change).mean()) if len(length_change) else 0.0,
         float(angle_change.mean()) if len(F) else 0.0, flattening.refinement,
         packing=efficiency, charts=n_charts, crossings=atlas["boundary_crossings"] or 0))
+    refinement = flattening.refinement
+    if not warnings:  # the quality targets met: a stall is the flattening's end
+        refinement = stalled_at_targets(dict(refinement))
     report = ParameterizeReport(
         flipped_count=len(flipped), area_ratio_summary=summary(ratio - 1.0),
         angle_distortion_summary=summary(angle_change),
@@ -273,7 +277,7 @@ def _result(V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
         angle_distortion_histogram=histogram(angle_change),
         length_change_histogram=histogram(length_change),
         planarity_error=flattening.planarity,
-        orthonormalized=bool(opts.orthonormalize), refinement=flattening.refinement,
+        orthonormalized=bool(opts.orthonormalize), refinement=refinement,
         anchored_components=flattening.anchored, backend=flattening.backend,
         analysis=flattening.analysis, timings=stages.timings, atlas=atlas,
         warnings=warnings)

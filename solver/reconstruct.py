@@ -160,6 +160,47 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         >>> bool(np.allclose(rebuilt.lengths, forms.lengths))
         True
     """
+    return reconstruct_on_cut(
+        faces, edges, lengths, angles, constraints=constraints, options=options,
+        n_vertices=n_vertices, layout_angles=layout_angles, initial_guess=initial_guess,
+        progress=progress, vertex_map=vertex_map, placement=placement, weld_map=weld_map,
+        **overrides)[0]
+
+
+@dataclass(frozen=True)
+class CutAnswer:
+    """What :func:`reconstruct` solved before it placed the answer and mapped it to the file
+    (for :func:`solver.differentiable.reconstruct_vjp`).
+
+    Attributes:
+        vertices: (n_cut, 3) float64 the answer on the solved (cut) mesh in the solver's
+            gauge (anchored components: anchor vertex at the origin, anchor frame the
+            identity), before placement, side-by-side layout and :meth:`ManifoldCut.to_file`.
+        cut: the forms' :class:`ManifoldCut`, or None without ``vertex_map``.
+        constraints: the validated constraints on the cut vertices (welded ones held by
+            their representative).
+        placement: the placement applied to the unconstrained components, or None.
+        laid_out: (k,) int64 the components laid out side by side (without placement).
+    """
+
+    vertices: np.ndarray
+    cut: ManifoldCut | None
+    constraints: Constraints
+    placement: Placement | None
+    laid_out: np.ndarray
+
+
+def reconstruct_on_cut(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
+                       angles: ArrayLike, *, constraints: Constraints | None = None,
+                       options: ReconstructOptions | None = None,
+                       n_vertices: int | None = None, layout_angles: np.ndarray | None = None,
+                       initial_guess: ArrayLike | None = None,
+                       progress: Progress | None = None, vertex_map: ArrayLike | None = None,
+                       placement: Placement | dict[str, Any] | None = None,
+                       weld_map: ArrayLike | None = None,
+                       **overrides: Any) -> tuple[Reconstruction, CutAnswer]:
+    """:func:`reconstruct` (the same arguments and answer) and the :class:`CutAnswer` it
+    placed and mapped to the file's vertices."""
     opts = ReconstructOptions.given(options, overrides)
     stages = Stages(progress)
     stages("validate")
@@ -317,6 +358,9 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
                                      "zero_area_faces": len(flat_faces(topology, L)),
                                      "placement": "none"}
     laid_out = np.array([a["component"] for a in anchored], dtype=np.int64)
+    solved = CutAnswer(vertices=vertices, cut=cut, constraints=user, placement=None,
+                       laid_out=laid_out if place is None and len(laid_out) > 1
+                       else laid_out[:0])
     if place is None and len(laid_out) > 1:
         # No placement: the anchored parts would all sit at the origin (issue 40).
         vertices = side_by_side(vertices, topology.vertex_component, laid_out)
@@ -327,6 +371,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         vertices, frames = apply_placement(vertices, topology.faces, place.subset(moving),
                                            frames=frames)
         input_report["placement"] = f"{int(moving.sum())} of {len(moving)} components placed"
+        solved = replace(solved, placement=place.subset(moving))
     isolated = topology.isolated_vertices
     if cut is not None:
         vertices, spread = cut.to_file(vertices)
@@ -346,7 +391,7 @@ def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: 
         isolated_vertices=isolated.tolist(), integrability=integrability,
         warnings=as_report(refinement_warnings(refinement)), input=input_report,
         linear_solver=linear_solver)
-    return Reconstruction(vertices=vertices, frames=frames, report=report)
+    return Reconstruction(vertices=vertices, frames=frames, report=report), solved
 
 
 def _refined(problem: ImmersionProblem, user: Constraints, vertices: np.ndarray,

@@ -239,11 +239,12 @@ def run_flatten(backend: Any, item: Item, args: argparse.Namespace, progress: Pr
     charts = (result.report.get("atlas") or {}).get("charts", 1)
     row.note = f"{len(result.flipped_faces)} flipped faces, {charts} charts"
     _refinement_columns(row, result.report)
-    # A layout's errors are its distortion against the 3D mesh (largest edge-length and
-    # corner-angle change), one chart or an atlas alike: a planar refinement's dihedral
-    # angles are all 0, so its "angle error" said 0 rad beside 1 rad corner distortion.
-    row.length_error = (result.report.get("length_change_summary") or {}).get("max")
-    row.angle_error = (result.report.get("angle_distortion_summary") or {}).get("max")
+    # A layout's errors are its distortion against the 3D mesh (mean edge-length and
+    # corner-angle change: the statistics of its distortion warnings, summary.ERROR_STATISTIC),
+    # one chart or an atlas alike: a planar refinement's dihedral angles are all 0, so its
+    # "angle error" said 0 rad beside 1 rad corner distortion.
+    row.length_error = (result.report.get("length_change_summary") or {}).get("mean")
+    row.angle_error = (result.report.get("angle_distortion_summary") or {}).get("mean")
     row.warnings = list(result.report.get("warnings") or [])
 
 

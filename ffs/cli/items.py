@@ -113,8 +113,10 @@ class Row:
         faces: Faces of the result, when there is one.
         seconds: Wall time of the run.
         refined: Whether the refinement ran (None: the operation has none).
-        length_error: Max edge-length error after refinement.
-        angle_error: Max dihedral-angle error after refinement.
+        length_error: Max edge-length error after refinement (``flatten``: the layout's
+            mean edge-length change, the statistic of its warning).
+        angle_error: Max dihedral-angle error after refinement (``flatten``: the layout's
+            mean corner-angle change, largest per face).
         note: The summary table's ``result`` cell.
         outcome: The refinement's outcome in words (``converged after 3 iterations``,
             ``partly: time limit after 2 iterations``, ``not refined: ...``; "" without one).

@@ -23,6 +23,20 @@ def _radians(value: float | None) -> str:
     return "-" if value is None else f"{value:.3g} rad ({math.degrees(value):.3g}°)"
 
 
+ERROR_STATISTIC = {"flatten": "mean"}
+"""The statistic of the error columns where it is not the largest error: a flattening's
+columns are its mean edge-length and corner-angle changes, the statistics its
+``length-distortion`` and ``angle-distortion`` warnings are on."""
+
+
+def error_headers(command: str) -> list[str]:
+    """The two error columns' headers of ``command``'s table, labelled with their statistic
+    (:data:`ERROR_STATISTIC`; the largest error unlabelled)."""
+    statistic = ERROR_STATISTIC.get(command)
+    suffix = f" ({statistic})" if statistic else ""
+    return [f"length err{suffix}", f"angle err{suffix}"]
+
+
 def _refined_cell(row: Row) -> str:
     """The ``refined`` cell: the outcome with its stop reason, else yes/no/-."""
     if row.outcome:
@@ -68,7 +82,7 @@ def print_summary(command: str, rows: list[Row], elapsed: float, quiet: bool) ->
     print_warnings(command, rows)
     if quiet:
         return
-    headers = ["file", "faces", "seconds", "refined", "length err", "angle err", "result"]
+    headers = ["file", "faces", "seconds", "refined", *error_headers(command), "result"]
     table = [[r.file, "-" if r.faces is None else str(r.faces), f"{r.seconds:.3f}",
               _refined_cell(r), _percent(r.length_error), _radians(r.angle_error),
               _result_cell(r)] for r in rows]

@@ -265,24 +265,22 @@ def reconstruct_vjp_task(request: TaskRequest, progress: Progress) -> TaskResult
     options = request.solve_options(solver.ReconstructOptions)
     progress("validate", 0.0)
     forms, n_vertices = _forms(request)
-    if forms.vertex_map is not None:
-        raise ProblemError("validation-error", "vertex_map: the gradients of a non-manifold "
-                           "mesh's forms are not supported; send the forms of a manifold mesh",
-                           errors=[element_error("vertex_map", "not supported by "
-                                                 "/v1/reconstruct/vjp")])
     if params["options"]["require_integrable"]:
         report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
                                             forms.angles, tol=options.integrability_tol,
-                                            n_vertices=n_vertices)
+                                            n_vertices=n_vertices, vertex_map=forms.vertex_map,
+                                            weld_map=forms.weld_map)
         if not report.integrable:
             raise _not_integrable(report)
-    # reconstruct_vjp reads the options of reconstruct as its keywords.
+    # reconstruct_vjp reads the options of reconstruct as its keywords; a real file's forms
+    # (vertex_map, weld_map) are differentiated per file vertex, as reconstruct answers.
     result, vjp = solver.reconstruct_vjp(
         forms.faces, forms.edges, forms.lengths, forms.angles,
         constraints=_constraints(params.get("constraints")), n_vertices=n_vertices,
-        progress=progress, **dataclasses.asdict(options))
+        progress=progress, vertex_map=forms.vertex_map, placement=forms.placement,
+        weld_map=forms.weld_map, **dataclasses.asdict(options))
     cotangents = vjp.cotangents(np.asarray(params["cotangent"], dtype=np.float64))
-    document = {"vertices": result.vertices, "faces": np.asarray(forms.faces),
+    document = {"vertices": result.vertices, "faces": _file_faces(forms),
                 "grad_lengths": cotangents.lengths, "grad_angles": cotangents.angles,
                 "grad_positions": cotangents.positions, "grad_frames": cotangents.frames,
                 "report": result.report.to_dict()}

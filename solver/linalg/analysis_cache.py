@@ -3,8 +3,9 @@
 The analysis -- fill-reducing ordering (METIS nested dissection, PARDISO's default) and
 symbolic factorization, about two thirds of a cold factorization of the reconstruction
 system -- depends only on the sparsity pattern. Each process keeps it per pattern (a 128-bit
-digest of the upper triangle's CSR index arrays and whether an ordering hint was given,
-:func:`solver.linalg.pardiso.pattern_key`), LRU, within :data:`ANALYSIS_CACHE_BYTES`: the
+digest of the upper triangle's CSR index arrays, whether an ordering hint was given and
+MKL's thread count, :func:`solver.linalg.pardiso.pattern_key`: an analysis made for one
+thread count fails at another), LRU, within :data:`ANALYSIS_CACHE_BYTES`: the
 handles of dead factorizations, with their analysis and, memory allowing, their factor's
 memory, and for a hinted pattern the ordering. A factorization of a known pattern takes such
 a handle and runs only the numerical factorization (PARDISO phase 22), or, if every handle

@@ -84,6 +84,14 @@ class _Mkl:
         self.pardisoinit = lib.pardisoinit
         self.pardisoinit.argtypes = [vp, i32p, vp]
         self.pardisoinit.restype = None
+        self._max_threads = lib.MKL_Get_Max_Threads
+        self._max_threads.argtypes = []
+        self._max_threads.restype = ctypes.c_int
+
+    def max_threads(self) -> int:
+        """The OpenMP threads MKL would use now in the calling thread
+        (``mkl_get_max_threads``: ``MKL_NUM_THREADS``, or ``mkl_set_num_threads`` since)."""
+        return int(self._max_threads())
 
 
 @functools.cache
@@ -243,7 +251,7 @@ def upper_triangle(K: sp.csr_array) -> sp.csr_array:
 
 
 def pattern_key(n: int, ia: np.ndarray, ja: np.ndarray, hinted: bool,
-                single: bool = False) -> bytes:
+                single: bool = False, threads: int = 1) -> bytes:
     """The analysis cache's key of an upper-triangle CSR pattern and the PARDISO settings.
 
     Args:
@@ -252,12 +260,19 @@ def pattern_key(n: int, ia: np.ndarray, ja: np.ndarray, hinted: bool,
         hinted: ordered from a ``groups`` hint (classic factor) rather than by PARDISO
             (two-level factor).
         single: a single-precision handle (its analysis is not shared with double's).
+        threads: MKL's thread count at the analysis (:meth:`_Mkl.max_threads`). The
+            symbolic factorization plans the parallel factorization for it: an analysis
+            made with 1 thread and factorized with 2 fails with error -4 ("not positive
+            definite") on an SPD matrix (the mkl 2026.2 wheel, a 99K-unknown reconstruction system;
+            ``tests/solver/test_analysis_cache_threads.py``), so an analysis is reused
+            only at the thread count it was made with.
 
     Returns:
         A 128-bit digest.
     """
     digest = hashlib.blake2b(digest_size=16)
-    digest.update(repr((n, len(ja), hinted, single, sorted(IPARM.items()))).encode())
+    digest.update(repr((n, len(ja), hinted, single, threads,
+                        sorted(IPARM.items()))).encode())
     digest.update(memoryview(ia))
     digest.update(memoryview(ja))
     return digest.digest()
@@ -354,12 +369,13 @@ def analyze_upper(triangle: sp.csr_array, single: bool = False) -> bool:
     n = int(triangle.shape[0])
     ia = np.ascontiguousarray(triangle.indptr, dtype=np.int32)
     ja = np.ascontiguousarray(triangle.indices, dtype=np.int32)
-    key = pattern_key(n, ia, ja, False, single)
+    mkl = load_mkl()
+    key = pattern_key(n, ia, ja, False, single, mkl.max_threads())
     handle, perm = analysis_cache.CACHE.acquire(key)
     if handle is not None:  # an idle analysed handle: give it back untouched
         analysis_cache.CACHE.park(key, handle)
         return False
-    handle = PardisoHandle(load_mkl(), n, perm, single=single)
+    handle = PardisoHandle(mkl, n, perm, single=single)
     values = np.zeros(len(ja), dtype=np.float32 if single else np.float64)
     values[ia[:-1]] = 1.0  # each row starts at its diagonal entry
     PardisoSolver._raise_if_failed(handle, handle.call(11, values, ia, ja))
@@ -416,7 +432,8 @@ class PardisoSolver:
         self._ja = np.ascontiguousarray(triangle.indices, dtype=np.int32)
         self._dtype = np.float32 if single else np.float64
         self._a = np.ascontiguousarray(triangle.data, dtype=self._dtype)
-        key = pattern_key(self.n, self._ia, self._ja, groups is not None, single)
+        key = pattern_key(self.n, self._ia, self._ja, groups is not None, single,
+                          mkl.max_threads())
         caching = analysis_cache.ANALYSIS_CACHE_BYTES > 0
         handle, perm = analysis_cache.CACHE.acquire(key) if caching else (None, None)
         reused = handle is not None

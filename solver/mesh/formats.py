@@ -29,10 +29,10 @@ from .mesh_readers import (
     load_trimesh,
     merge_identical,
     off_short,
-    parse_obj,
     parse_off,
     text_as_utf8,
 )
+from .obj_reader import parse_obj
 
 Parsed = tuple[np.ndarray, np.ndarray, np.ndarray | None]
 """A reader's answer: vertices (n, 3), triangles (m, 3), the file face of each triangle."""

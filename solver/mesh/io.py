@@ -38,7 +38,8 @@ unshared vertices) through trimesh; GLB and ``.gltf`` (float32, embedded buffer)
 glTF writer :mod:`solver.mesh.gltf`.
 
 Formats, their readers and writers and what each carries are one registry,
-:data:`solver.mesh.formats.FORMATS`; the parsers are :mod:`solver.mesh.mesh_readers`.
+:data:`solver.mesh.formats.FORMATS`; the parsers are :mod:`solver.mesh.mesh_readers` and
+:mod:`solver.mesh.obj_reader`.
 
 All parse failures raise :class:`~solver.core.errors.MeshFileError` (a
 :class:`~solver.core.errors.SolverInputError`) with a ``reason``; unknown formats raise its subclass

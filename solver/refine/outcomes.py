@@ -7,6 +7,10 @@ achieved: ``"converged"`` (it reached the nearest surface, or the answer was exa
 iteration budget or a stall, after ``iterations`` iterations) or ``"not-refined"`` (it did
 not run, or stopped before any step lowered the energy: the answer is its start).
 ``outcome_text`` says it in a sentence fragment ("partly: time limit after 2 iterations").
+A refinement that stalled with its answer's quality targets met (a flattening without
+warnings: :func:`stalled_at_targets`) says it is done ("done: quality targets met, stalled
+(no further progress) after 16 iterations"); its ``outcome`` stays ``"partial"`` and its
+``converged`` false, with ``targets_met`` true.
 
 Example:
     >>> with_outcome({"refined": True, "converged": False, "stop_reason": "time_limit",
@@ -64,6 +68,28 @@ def with_outcome(report: dict[str, Any]) -> dict[str, Any]:
     """``report`` with its ``outcome`` and ``outcome_text`` (set in place, returned)."""
     report["outcome"] = refinement_outcome(report)
     report["outcome_text"] = outcome_text(report)
+    return report
+
+
+def stalled_at_targets(report: dict[str, Any]) -> dict[str, Any]:
+    """``report`` told as done when it stalled (``stop_reason`` ``"stalled"``, outcome
+    ``"partial"``) and its caller found the answer's quality targets met: a flattening of a
+    curved surface cannot reach zero energy, so a stall there is its natural end. Its
+    ``outcome_text`` then begins ``"done: quality targets met, "`` and ``targets_met`` is
+    true; every other field is unchanged. Another report is returned as it is. Set in
+    place, returned.
+
+    Example:
+        >>> stalled_at_targets(with_outcome({"refined": True, "converged": False,
+        ...     "stop_reason": "stalled", "iterations": 16, "energy_before": 6.9,
+        ...     "energy_after": 4.4}))["outcome_text"]
+        'done: quality targets met, stalled (no further progress) after 16 iterations'
+    """
+    if report.get("outcome") != "partial" or report.get("stop_reason") != StopReason.STALLED.value:
+        return report
+    text = str(report.get("outcome_text", ""))
+    report["targets_met"] = True
+    report["outcome_text"] = "done: quality targets met, " + text.removeprefix("partly: ")
     return report
 
 

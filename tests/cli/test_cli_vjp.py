@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 import solver
-from solver.mesh.io import load_mesh_file
+from solver.mesh.io import load_mesh_file, save_mesh
+from tests.helpers.real_meshes import CASES as REAL
+from tests.helpers.welded_meshes import CASES as WELDED
 
 
 def bent_forms(workdir, name: str, factor: float) -> solver.Forms:
@@ -77,3 +79,31 @@ def test_vjp_usage_and_file_errors(ffs, workdir):
     too_few = ffs("vjp", "bent.npz", "--cotangent", "g.npy", "-o", "g.npz")
     assert too_few.returncode == 1 and "cotangent" in too_few.stderr
     assert "Traceback" not in too_few.stderr
+
+
+@pytest.mark.parametrize("name", ["cones-at-apex", "duplicated-corner"])
+def test_vjp_of_a_real_file(ffs, server, workdir, name):
+    """``ffs vjp`` of a non-manifold or welded mesh file (its own forms: vertex_map,
+    weld_map, placement): per file vertex, on the file's faces, the library's cotangents,
+    in-process and on a server."""
+    V, F = REAL[name]() if name in REAL else WELDED[name]()[:2]
+    (workdir / "real.off").write_bytes(save_mesh(V, F, "off"))
+    G = np.random.default_rng(2).standard_normal(V.shape)
+    np.save(workdir / "g.npy", G)
+    forms = solver.fundamental_forms(V, F)
+    assert forms.vertex_map is not None
+    result, vjp = solver.reconstruct_vjp(
+        forms.faces, forms.edges, forms.lengths, forms.angles, refine=False,
+        vertex_map=forms.vertex_map, weld_map=forms.weld_map, placement=forms.placement,
+        n_vertices=len(V))
+    truth = vjp.cotangents(G)
+    scale = max(np.abs(truth.lengths).max(), np.abs(truth.angles).max())
+    for where in (["--threads", "1"], ["--server", server]):
+        done = ffs("vjp", "real.off", "--cotangent", "g.npy", "--no-refine", "-o", "g.npz",
+                   *where)
+        assert done.returncode == 0, done.stderr
+        got = read_result(workdir / "g.npz")
+        np.testing.assert_allclose(got["grad_lengths"], truth.lengths, atol=1e-9 * scale)
+        np.testing.assert_allclose(got["grad_angles"], truth.angles, atol=1e-9 * scale)
+        np.testing.assert_allclose(got["vertices"], result.vertices, atol=1e-8)
+        np.testing.assert_array_equal(got["faces"], forms.vertex_map[forms.faces])

@@ -12,6 +12,8 @@ import ffs
 import solver
 from ffs.local import Local
 from tests.helpers.meshes import load
+from tests.helpers.real_meshes import CASES as REAL
+from tests.helpers.welded_meshes import CASES as WELDED
 
 
 def noisy(name: str, noise: float, seed: int) -> tuple[np.ndarray, solver.Forms]:
@@ -107,3 +109,28 @@ def test_bad_cotangent_is_the_same_error_here_and_there(server):
                                 cotangent=bad)
     assert remote.value.pointer.endswith("cotangent") or "cotangent" in str(remote.value)
     assert local.value.field == "cotangent"
+
+
+@pytest.mark.parametrize(("name", "refine"), [("cones-at-apex", False),
+                                              ("edge-with-3-faces", None),
+                                              ("duplicated-corner", False)])
+def test_a_real_files_forms_here_and_there(server, name, refine):
+    """The forms of a non-manifold or welded file (``fundamental_forms``: vertex_map,
+    weld_map, placement) through Client and Local: per file vertex, on the file's faces,
+    the library's gradients."""
+    V, F = REAL[name]() if name in REAL else WELDED[name]()[:2]
+    G = np.random.default_rng(5).standard_normal((len(V), 3))
+    with ffs.Client(server, timeout=300) as client:
+        forms = client.fundamental_forms(V, F)
+        assert forms.vertex_map is not None
+        remote = client.reconstruct_vjp(forms, cotangent=G, refine=refine)
+        mesh = client.reconstruct(forms, refine=refine)
+    local = Local().reconstruct_vjp(forms, cotangent=G, refine=refine)
+    result, vjp = solver.reconstruct_vjp(
+        forms.faces, forms.edges, forms.lengths, forms.angles, refine=refine,
+        vertex_map=forms.vertex_map, weld_map=forms.weld_map, placement=forms.placement)
+    expected = vjp.cotangents(G)
+    for got in (remote, local):
+        assert_matches(got, result, expected, 1e-9 if refine is False else 1e-6)
+        np.testing.assert_array_equal(got.faces, mesh.faces)
+        assert got.vertices.shape == V.shape

@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import json
 import re
+import ssl
 import threading
 import time
 from collections.abc import Iterator
@@ -42,7 +43,8 @@ class Receiver:
     ``plan[path]`` lists the statuses to answer in turn (then 200), a 3xx redirecting to
     ``/elsewhere``."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
+    def __init__(self, host: str = "127.0.0.1", port: int = 0,
+                 tls: ssl.SSLContext | None = None) -> None:
         self.requests: list[dict[str, Any]] = []
         self.plan: dict[str, list[int]] = {}
         self.lock = threading.Lock()
@@ -70,6 +72,9 @@ class Receiver:
                 pass
 
         self.server = ThreadingHTTPServer((host, port), Handler)
+        if tls is not None:  # HTTPS: the handshake happens in the handler's thread
+            self.server.socket = tls.wrap_socket(self.server.socket, server_side=True,
+                                                 do_handshake_on_connect=False)
         self.port = self.server.server_address[1]
         self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
         self.thread.start()
@@ -355,6 +360,91 @@ def test_the_http_client_connects_to_the_resolved_address_not_the_name(monkeypat
     finally:
         first.close()
         second.close()
+
+
+def _certificates(folder: Any, names: list[str]) -> tuple[str, dict[str, tuple[str, str]]]:
+    """A test CA (its PEM path) and, per name, a certificate for that DNS name signed by it
+    (cert and key PEM paths)."""
+    import datetime
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    now = datetime.datetime.now(datetime.UTC)
+    pem = serialization.Encoding.PEM
+
+    def issue(subject: str, key: Any, issuer: Any, issuer_key: Any, ca: bool) -> Any:
+        builder = (x509.CertificateBuilder()
+                   .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject)]))
+                   .issuer_name(issuer).public_key(key.public_key())
+                   .serial_number(x509.random_serial_number())
+                   .not_valid_before(now - datetime.timedelta(hours=1))
+                   .not_valid_after(now + datetime.timedelta(hours=1))
+                   .add_extension(x509.BasicConstraints(ca=ca, path_length=None), critical=True))
+        if not ca:
+            builder = builder.add_extension(
+                x509.SubjectAlternativeName([x509.DNSName(subject)]), critical=False)
+        else:
+            builder = builder.add_extension(x509.KeyUsage(
+                digital_signature=True, key_cert_sign=True, crl_sign=True,
+                content_commitment=False, key_encipherment=False, data_encipherment=False,
+                key_agreement=False, encipher_only=False, decipher_only=False), critical=True)
+        return builder.sign(issuer_key, hashes.SHA256())
+
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "ffs test CA")])
+    ca = issue("ffs test CA", ca_key, ca_name, ca_key, ca=True)
+    (folder / "ca.pem").write_bytes(ca.public_bytes(pem))
+    leaves = {}
+    for name in names:
+        key = ec.generate_private_key(ec.SECP256R1())
+        (folder / f"{name}.pem").write_bytes(
+            issue(name, key, ca_name, ca_key, ca=False).public_bytes(pem))
+        (folder / f"{name}.key").write_bytes(key.private_bytes(
+            pem, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()))
+        leaves[name] = (str(folder / f"{name}.pem"), str(folder / f"{name}.key"))
+    return str(folder / "ca.pem"), leaves
+
+
+@pytest.mark.parametrize("served", ["hooks.rebind.example", "elsewhere.example"])
+def test_a_pinned_https_delivery_keeps_the_name_for_tls(served, monkeypatch, tmp_path):
+    """HTTPS to the pinned address: the receiver (on 127.0.0.1) is asked for the name by SNI
+    and its certificate is checked against the name, not the address: a certificate for the
+    name is accepted, one for another name refused (the delivery is not sent)."""
+    name = "hooks.rebind.example"
+    ca, leaves = _certificates(tmp_path, [served])
+    tls = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    tls.load_cert_chain(*leaves[served])
+    asked: list[str | None] = []
+    tls.sni_callback = lambda sock, server_name, context: asked.append(server_name)
+    receiver = Receiver("127.0.0.1", tls=tls)
+    try:
+        target = check_callback_url(f"https://{name}:{receiver.port}/tls",
+                                    WebhookPolicy((f"{name}:{receiver.port}",)))
+        Rebinding(monkeypatch, name, ["127.0.0.1", "127.0.0.2"])
+        sender = WebhookSender(WebhookPolicy(attempts=1, timeout=10))
+        sender._client = httpx.AsyncClient(  # the sender's client, trusting the test CA
+            verify=ssl.create_default_context(cafile=ca), follow_redirects=False,
+            trust_env=False, timeout=10, limits=httpx.Limits(max_keepalive_connections=0))
+
+        async def deliver() -> bool:
+            try:
+                return await sender.deliver(target, "s3cret", "job.succeeded", b"{}", "j")
+            finally:
+                await sender.stop()
+
+        delivered = run_async(deliver())
+        assert asked and set(asked) == {name}
+        if served == name:
+            assert delivered
+            [delivery] = receiver.at("/tls")
+            assert delivery["headers"]["Host"] == f"{name}:{receiver.port}"
+        else:
+            assert not delivered and receiver.at("/tls") == []
+    finally:
+        receiver.close()
 
 
 def test_without_keys_a_callback_is_refused():

@@ -18,7 +18,7 @@ import pytest
 import trimesh
 
 from solver.core.errors import MeshFileError
-from solver.mesh import mesh_readers
+from solver.mesh import mesh_readers, obj_reader
 from solver.mesh.io import read_mesh, save_mesh
 
 MESHES = Path(__file__).resolve().parents[3] / "shared" / "meshes"
@@ -40,7 +40,7 @@ def _with_comment(data: bytes, fmt: str) -> bytes:
 
 
 def _blocks(fmt: str):
-    return mesh_readers._off_blocks if fmt == "off" else mesh_readers._obj_blocks
+    return mesh_readers._off_blocks if fmt == "off" else obj_reader._obj_blocks
 
 
 @pytest.mark.parametrize("name", SHARED)
@@ -131,7 +131,7 @@ def test_malformed_off_is_named_at_its_line(data: bytes, words: str) -> None:
     (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 0\n", "line 4: face references"),
 ])
 def test_malformed_obj_is_named_at_its_line(data: bytes, words: str) -> None:
-    assert mesh_readers._obj_blocks(data) is None
+    assert obj_reader._obj_blocks(data) is None
     with pytest.raises(MeshFileError, match=words):
         read_mesh(data, "obj")
 

@@ -217,12 +217,19 @@ def run_policy(source: str, policy: str) -> dict[str, Any]:
     """The default answer of ``source`` by the iterative path, the hierarchy set up again
     by the refinement's rule (``rule``), before every solve (``always``) or never again
     (``never``). The two others replace the rule (:meth:`Multigrid.solved`) in this process
-    only: ``always`` reports every solve as capped, ``never`` ignores every solve."""
+    only: ``always`` reports every solve to it twice as capped (the first solve on a
+    hierarchy only sets its baseline, the second makes it stale), ``never`` ignores every
+    solve."""
     from solver import reconstruct
 
     if policy == "always":
         rule = Multigrid.solved
-        Multigrid.solved = lambda self, i, decades, capped: rule(self, i, decades, True)
+
+        def always(self: Multigrid, iterations: int, decades: float, capped: bool) -> None:
+            rule(self, iterations, decades, True)
+            rule(self, iterations, decades, True)
+
+        Multigrid.solved = always
     elif policy == "never":
         Multigrid.solved = lambda self, i, decades, capped: None
     data = np.load(source_forms(source)[1])

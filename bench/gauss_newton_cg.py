@@ -22,7 +22,8 @@ A SOURCE is a ``bench.scale`` level (``0``: nefertiti, 99 938 faces; ``1``: 399 
   ``--tolerance`` (1e-3): levels, operator complexity, setup CPU s, CG iterations and CPU s.
 * ``policies SOURCE...``: the whole default answer with the hierarchy set up again by the
   refinement's rule (``rule``), before every solve (``always``) or never after the first
-  (``never``, not even after a capped solve): CPU s, CG iterations per step, setups, E.
+  (``never``, not even after a capped solve): CPU s, CG iterations per step, setups, E;
+  ``--hierarchies`` runs it with other ``variants`` (e.g. ``"energy 4"``) too.
 * ``setup-price SOURCE...``: the production setup's CPU time over one CG iteration's
   (median of ``--repeats``), what ``StepRules.cg_setup_iterations`` prices a setup at.
 
@@ -213,15 +214,19 @@ def setup_price(source: str, k: int, repeats: int, root: Path = CAPTURES) -> dic
             "cg_setup_iterations": DEFAULT_STEP_RULES.cg_setup_iterations}
 
 
-def run_policy(source: str, policy: str) -> dict[str, Any]:
-    """The default answer of ``source`` by the iterative path, the hierarchy set up again
+def run_policy(source: str, policy: str, hierarchy: str = "production") -> dict[str, Any]:
+    """The default answer of ``source`` by the iterative path with the hierarchy
+    ``hierarchy`` (a :func:`variants` name: it replaces
+    :data:`solver.refine.iterative_steps.HIERARCHY_RULES` in this process), set up again
     by the refinement's rule (``rule``), before every solve (``always``) or never again
     (``never``). The two others replace the rule (:meth:`Multigrid.solved`) in this process
     only: ``always`` reports every solve to it twice as capped (the first solve on a
     hierarchy only sets its baseline, the second makes it stale), ``never`` ignores every
     solve."""
     from solver import reconstruct
+    from solver.refine import iterative_steps
 
+    iterative_steps.HIERARCHY_RULES = variants()[hierarchy]
     if policy == "always":
         rule = Multigrid.solved
 
@@ -238,7 +243,8 @@ def run_policy(source: str, policy: str) -> dict[str, Any]:
                          n_vertices=len(data["vertices"]), linear_solver="iterative")
     refinement = result.report["refinement"]
     cg = refinement["linear_solver"]
-    return {"source": source, "policy": policy, "faces": len(data["faces"]),
+    return {"source": source, "policy": policy, "hierarchy": hierarchy,
+            "faces": len(data["faces"]),
             "seconds": time.perf_counter() - start, "cpu_seconds": time.process_time() - cpu,
             "refine_seconds": result.report["timings"].get("refine"),
             "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -276,7 +282,7 @@ def run_task(task: dict[str, Any]) -> dict[str, Any]:
     if kind == "setup-price":
         return setup_price(task["source"], task["solve"], task["repeats"], root)
     if kind == "policy":
-        return run_policy(task["source"], task["policy"])
+        return run_policy(task["source"], task["policy"], task.get("hierarchy", "production"))
     raise ValueError(f"unknown task {kind!r}")
 
 
@@ -306,14 +312,15 @@ def variants_table(rows: list[dict[str, Any]]) -> str:
 
 
 def policies_table(rows: list[dict[str, Any]]) -> str:
-    lines = ["| source | faces | policy | CPU s | seconds | peak MB | steps | CG iterations "
-             "per step | setups (s) | CG s | E after |",
-             "|---|---:|---|---:|---:|---:|---:|---|---|---:|---|"]
+    lines = ["| source | faces | hierarchy | policy | CPU s | seconds | peak MB | steps | "
+             "CG iterations per step | setups (s) | CG s | E after |",
+             "|---|---:|---|---|---:|---:|---:|---:|---|---|---:|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['source']} | | {r['policy']} | {r['error']} | | | | | | | |")
+            lines.append(f"| {r['source']} | | {r['hierarchy']} | {r['policy']} | "
+                         f"{r['error']} | | | | | | | |")
             continue
-        lines.append(f"| {r['source']} | {r['faces']} | {r['policy']} | "
+        lines.append(f"| {r['source']} | {r['faces']} | {r['hierarchy']} | {r['policy']} | "
                      f"{r['cpu_seconds']:.1f} | {r['seconds']:.1f} | {r['peak_mb']:.0f} | "
                      f"{r['steps']} | {', '.join(map(str, r['cg_iterations']))} | "
                      f"{r['setups']} ({r['setup_seconds']:.1f}) | {r['solve_seconds']:.1f} | "
@@ -350,7 +357,8 @@ def tasks(args: argparse.Namespace) -> list[dict[str, Any]]:
             out.append({"kind": "setup-price", "source": source, "solve": args.solve,
                         "repeats": args.repeats, "root": root})
         elif args.command == "policies":
-            out += [{"kind": "policy", "source": source, "policy": p} for p in args.policies]
+            out += [{"kind": "policy", "source": source, "policy": p, "hierarchy": h}
+                    for h in args.hierarchies for p in args.policies]
     return out
 
 
@@ -375,6 +383,8 @@ def main() -> None:
     parser.add_argument("--tolerance", type=float, default=1e-3)
     parser.add_argument("--cap", type=int, default=1500, help="CG iterations at most")
     parser.add_argument("--policies", nargs="+", choices=POLICIES, default=list(POLICIES))
+    parser.add_argument("--hierarchies", nargs="+", choices=list(variants()),
+                        default=["production"], help="policies: with each of these")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--max-gb", type=float, default=8.0,
                         help="address-space limit of each child (GB; 0: none)")

@@ -277,15 +277,16 @@ class Multigrid:
         resetup_growth: set up again when a solve took more than this many times the
             iterations per decade of residual of the first solve after the last setup.
         setup_iterations: a setup's cost in CG iterations (the price the reuse rules weigh).
-        hierarchy: how the hierarchy is built (:data:`HIERARCHY_RULES`).
+        hierarchy: how the hierarchy is built (default :data:`HIERARCHY_RULES`, read when
+            the :class:`Multigrid` is made).
     """
 
     def __init__(self, max_iterations: int, resetup_growth: float,
-                 setup_iterations: float, hierarchy: HierarchyRules = HIERARCHY_RULES) -> None:
+                 setup_iterations: float, hierarchy: HierarchyRules | None = None) -> None:
         self.max_iterations = max_iterations
         self.resetup_growth = resetup_growth
         self.setup_iterations = setup_iterations
-        self.hierarchy = hierarchy
+        self.hierarchy = HIERARCHY_RULES if hierarchy is None else hierarchy
         self.stats = CGStats()
         self._ml: Any = None
         self._cycle: Any = None

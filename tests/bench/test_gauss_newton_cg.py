@@ -98,6 +98,8 @@ def test_policies_set_up_as_they_say(source):
     plain = _answer(source).report["refinement"]
     rows = {p: bench.child({"kind": "policy", "source": source, "policy": p}, None)
             for p in bench.POLICIES}
+    rows["energy 2"] = bench.child({"kind": "policy", "source": source, "policy": "rule",
+                                    "hierarchy": "energy 2"}, None)
     assert all("error" not in r for r in rows.values()), rows
     # The refinement's own rule: the answer without any policy.
     assert rows["rule"]["cg_iterations"] == plain["linear_solver"]["cg_iterations"]
@@ -106,6 +108,11 @@ def test_policies_set_up_as_they_say(source):
     # Set up before every solve; never after the first.
     assert rows["always"]["setups"] == len(rows["always"]["cg_iterations"])
     assert rows["never"]["setups"] == 1
+    # Another hierarchy takes effect (prolongators smoothed by 2 iterations instead of the
+    # production's: more CG iterations), the policy's rows say which ran.
+    assert rows["energy 2"]["hierarchy"] == "energy 2" and rows["rule"]["hierarchy"] == \
+        "production"
+    assert sum(rows["energy 2"]["cg_iterations"]) > sum(rows["rule"]["cg_iterations"])
     for r in rows.values():  # the same optimum within the refinement's tolerance
         assert abs(r["energy_after"] - plain["energy_after"]) <= 1e-3 * plain["energy_after"]
 

@@ -21,10 +21,11 @@ times the iterations per decade of residual of the first solve after the setup. 
 count iterations, never seconds, so that a run takes the same steps on a loaded machine as on
 an idle one: a setup is priced as :attr:`~solver.refine.steps.StepRules.cg_setup_iterations`
 CG iterations. (A hierarchy reused across steps does as well as a fresh one on these
-matrices: on the noisy 100K-face scan, set up for every step or once, the three solves take
-9, 90, 57 and 9, 90, 58 iterations; restarting a solve with a fresh hierarchy when it ran
-long cost 42 iterations more at 400K faces, CG's Krylov space lost. What grows is the
-iterations a tight tolerance needs: docs/large-meshes.md.)
+matrices: on the noisy 100K-face scan, set up before every solve or by this rule, the four
+solves take 8, 74, 29, 115 iterations, never set up again 8, 74, 30, 132
+(``python -m bench.gauss_newton_cg policies 0``); restarting a solve with a fresh hierarchy
+when it ran long cost 42 iterations more at 400K faces, CG's Krylov space lost. What grows
+is the iterations a tight tolerance needs: docs/large-meshes.md.)
 
 Each preconditioned residual is projected off the rigid motions of the positions the
 matrix was built at (:class:`solver.mesh.rigid_motions.RigidProjection`): the matrix is
@@ -73,9 +74,10 @@ PROLONGATOR_SMOOTHING = ("energy", {"maxiter": 8})
 iterations per column block (pyamg's default is 4). The thin shell's bending modes are what
 the prolongators must carry, and on finer meshes they need more smoothing to reach them: on
 the noisy scans' last Gauss-Newton matrices (bench.scale's nefertiti, CG to 1e-3 from
-zero), 46 -> 39 iterations at 100K faces (setup 3.6 -> 4.2 s, the same total) and
-182 -> 105 at 400K (setup 14.0 -> 18.2 s, CG 59.8 -> 36.0 s); 2 iterations take 217 at
-100K, 16 no better than 8 (docs/large-meshes.md)."""
+zero; ``python -m bench.gauss_newton_cg variants 0``, and ``1``), 81 -> 62 iterations at
+100K faces (setup 3.6 -> 5.4 CPU s, CG 4.7 -> 3.9 s) and
+182 -> 105 at 400K (a scratch measurement, not re-measured by the bench);
+2 iterations take 320 at 100K, 16 hardly better than 8 (docs/large-meshes.md)."""
 
 
 @dataclass(frozen=True)

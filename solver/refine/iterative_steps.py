@@ -76,7 +76,7 @@ the prolongators must carry, and on finer meshes they need more smoothing to rea
 the noisy scans' last Gauss-Newton matrices (bench.scale's nefertiti, CG to 1e-3 from
 zero; ``python -m bench.gauss_newton_cg variants 0``, and ``1``), 81 -> 62 iterations at
 100K faces (setup 3.6 -> 5.4 CPU s, CG 4.7 -> 3.9 s) and
-182 -> 105 at 400K (a scratch measurement, not re-measured by the bench);
+179 -> 82 at 400K (setup 15.3 -> 18.4 CPU s, CG 43.0 -> 20.2 s);
 2 iterations take 320 at 100K, 16 hardly better than 8 (docs/large-meshes.md)."""
 
 

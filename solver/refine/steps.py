@@ -81,7 +81,7 @@ class StepRules:
     iterations, not seconds, so that the refinement's path does not depend on the machine's
     load. Measured on the noisy scans of ``bench.scale`` before the prolongators took 8
     smoothing iterations: ~50 CG iterations at 100K faces (3.1 s against 0.061 s); with them
-    84 at 100K faces, not re-measured at 400K
+    84 at 100K faces, 87 at 400K
     (``python -m bench.gauss_newton_cg setup-price 0 1``, bench/README.md)."""
     single_precision_error: float = 0.1
     """Largest relative correction of a single-precision solve by its refinement step before

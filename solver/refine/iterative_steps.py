@@ -21,22 +21,30 @@ times the iterations per decade of residual of the first solve after the setup. 
 count iterations, never seconds, so that a run takes the same steps on a loaded machine as on
 an idle one: a setup is priced as :attr:`~solver.refine.steps.StepRules.cg_setup_iterations`
 CG iterations. (A hierarchy reused across steps does as well as a fresh one on these
-matrices: on the noisy 100K-face scan, set up for every step or once, the three solves take
-9, 90, 57 and 9, 90, 58 iterations; restarting a solve with a fresh hierarchy when it ran
-long cost 42 iterations more at 400K faces, CG's Krylov space lost. What grows is the
-iterations a tight tolerance needs: docs/large-meshes.md.)
+matrices: on the noisy 100K-face scan, set up before every solve or by this rule, the four
+solves take 8, 74, 29, 115 iterations, never set up again 8, 74, 30, 132
+(``python -m bench.gauss_newton_cg policies 0``); restarting a solve with a fresh hierarchy
+when it ran long cost 42 iterations more at 400K faces, CG's Krylov space lost. What grows
+is the iterations a tight tolerance needs: docs/large-meshes.md.)
 
 Each preconditioned residual is projected off the rigid motions of the positions the
 matrix was built at (:class:`solver.mesh.rigid_motions.RigidProjection`): the matrix is
 definite along them only by the damping's floor, and the coarse solve would otherwise fill
 the iterates with huge rigid components that cost nothing in the energy norm CG minimizes.
+
+How the hierarchy is built is data (:class:`HierarchyRules`, :data:`HIERARCHY_RULES`), and
+every solve can be watched (:func:`observe_solves`: each solve's matrix, right-hand side,
+projection and iterations, for ``bench.gauss_newton_cg``; nothing is kept when no observer
+is set).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -66,9 +74,107 @@ PROLONGATOR_SMOOTHING = ("energy", {"maxiter": 8})
 iterations per column block (pyamg's default is 4). The thin shell's bending modes are what
 the prolongators must carry, and on finer meshes they need more smoothing to reach them: on
 the noisy scans' last Gauss-Newton matrices (bench.scale's nefertiti, CG to 1e-3 from
-zero), 46 -> 39 iterations at 100K faces (setup 3.6 -> 4.2 s, the same total) and
-182 -> 105 at 400K (setup 14.0 -> 18.2 s, CG 59.8 -> 36.0 s); 2 iterations take 217 at
-100K, 16 no better than 8 (docs/large-meshes.md)."""
+zero; ``python -m bench.gauss_newton_cg variants 0``, and ``1``), 81 -> 62 iterations at
+100K faces (setup 3.6 -> 5.4 CPU s, CG 4.7 -> 3.9 s) and
+179 -> 82 at 400K (setup 15.3 -> 18.4 CPU s, CG 43.0 -> 20.2 s);
+2 iterations take 320 at 100K, 16 hardly better than 8 (docs/large-meshes.md)."""
+
+
+@dataclass(frozen=True)
+class HierarchyRules:
+    """How the Gauss-Newton matrices' smoothed-aggregation hierarchy is built and cycled
+    (keyword arguments of ``pyamg.smoothed_aggregation_solver`` and the cycle of its
+    preconditioner). :data:`HIERARCHY_RULES` is the refinement's; ``bench.gauss_newton_cg``
+    measures others by the same code path (:class:`Multigrid` takes them).
+
+    Attributes:
+        smooth: the prolongator smoothing (:data:`PROLONGATOR_SMOOTHING`).
+        max_coarse: the coarsest level's largest order.
+        coarse_solver: pyamg's coarse solver.
+        cycle: ``"V"``, ``"W"`` or ``"F"``.
+        presmoother, postsmoother: pyamg's smoother specifications (None: pyamg's default,
+            one symmetric Gauss-Seidel sweep).
+    """
+
+    smooth: tuple[str, dict[str, Any]] = PROLONGATOR_SMOOTHING
+    max_coarse: int = 500
+    coarse_solver: str = "pinv"
+    cycle: str = "V"
+    presmoother: tuple[str, dict[str, Any]] | None = None
+    postsmoother: tuple[str, dict[str, Any]] | None = None
+
+    def pyamg_options(self) -> dict[str, Any]:
+        """Keyword arguments of ``pyamg.smoothed_aggregation_solver`` (besides the matrix
+        and the near-null space)."""
+        options: dict[str, Any] = {"max_coarse": self.max_coarse,
+                                   "coarse_solver": self.coarse_solver, "smooth": self.smooth,
+                                   "improve_candidates": None}
+        if self.presmoother is not None:
+            options["presmoother"] = self.presmoother
+        if self.postsmoother is not None:
+            options["postsmoother"] = self.postsmoother
+        return options
+
+
+HIERARCHY_RULES = HierarchyRules()
+"""The refinement's hierarchy: energy-minimizing prolongators (43 CG iterations to 1e-3 on
+rocker-arm's noisy Gauss-Newton matrix against 95 with Jacobi-smoothed ones), one V-cycle,
+pyamg's smoothers (docs/large-meshes.md)."""
+
+
+@dataclass(frozen=True)
+class GaussNewtonSolve:
+    """One iterative Gauss-Newton solve as an observer (:func:`observe_solves`) sees it,
+    after it ran. The arrays are the solver's own (read them, do not change them).
+
+    Attributes:
+        matrix: (N, N) float64 CSR upper triangle of the damped matrix (diagonal included).
+        positions: (n_free, dim) float64 free positions it was built at (N = n_free * dim).
+        project: the projection off their rigid motions (a callable on (N,) float64).
+        rhs: (N,) float64 right-hand side as given to the solve (before the projection).
+        tolerance: the relative residual asked for (the forcing term).
+        iterations: CG iterations taken; relative_residual: reached; capped: hit the cap.
+        fresh: the hierarchy was set up for this matrix (else reused from an earlier one).
+        multigrid: the :class:`Multigrid` that preconditioned it.
+    """
+
+    matrix: sp.csr_array
+    positions: np.ndarray
+    project: Callable[[np.ndarray], np.ndarray]
+    rhs: np.ndarray
+    tolerance: float
+    iterations: int
+    relative_residual: float
+    capped: bool
+    fresh: bool
+    multigrid: Multigrid
+
+
+SolveObserver = Callable[[GaussNewtonSolve], None]
+
+_OBSERVER: ContextVar[SolveObserver | None] = ContextVar("gauss_newton_solve_observer",
+                                                         default=None)
+
+
+@contextmanager
+def observe_solves(observer: SolveObserver) -> Iterator[None]:
+    """Within the ``with`` block (this thread or task), call ``observer`` with a
+    :class:`GaussNewtonSolve` after every iterative Gauss-Newton solve (not after solves the
+    observer itself makes). Observing changes no answer; without an observer a solve does
+    nothing more than one lookup.
+
+    Example:
+        >>> seen = []
+        >>> with observe_solves(seen.append):
+        ...     pass  # e.g. solver.reconstruct(..., linear_solver="iterative")
+        >>> seen
+        []
+    """
+    token = _OBSERVER.set(observer)
+    try:
+        yield
+    finally:
+        _OBSERVER.reset(token)
 
 
 def symmetric_from_upper(upper: sp.csr_array) -> sp.csr_matrix:
@@ -173,13 +279,16 @@ class Multigrid:
         resetup_growth: set up again when a solve took more than this many times the
             iterations per decade of residual of the first solve after the last setup.
         setup_iterations: a setup's cost in CG iterations (the price the reuse rules weigh).
+        hierarchy: how the hierarchy is built (default :data:`HIERARCHY_RULES`, read when
+            the :class:`Multigrid` is made).
     """
 
     def __init__(self, max_iterations: int, resetup_growth: float,
-                 setup_iterations: float) -> None:
+                 setup_iterations: float, hierarchy: HierarchyRules | None = None) -> None:
         self.max_iterations = max_iterations
         self.resetup_growth = resetup_growth
         self.setup_iterations = setup_iterations
+        self.hierarchy = HIERARCHY_RULES if hierarchy is None else hierarchy
         self.stats = CGStats()
         self._ml: Any = None
         self._cycle: Any = None
@@ -206,24 +315,23 @@ class Multigrid:
         # The hierarchy's matrix in single precision; CG's products use ``upper`` itself
         # (double precision, no full copy: 20 of the 36 bytes per stored entry saved).
         single = symmetric_from_upper(upper.astype(np.float32))
-        if self._ml is None or self._stale or self._ml.levels[0].A.shape != single.shape:
+        fresh = self._ml is None or self._stale or self._ml.levels[0].A.shape != single.shape
+        if fresh:
             self._setup(single, X_free)
         else:
             self._ml.levels[0].A = single
-        return IterativeOperator(upper, self, project)
+        return IterativeOperator(upper, self, project, X_free, fresh)
 
     def _setup(self, single: sp.csr_matrix, X_free: np.ndarray) -> None:
         pyamg = _multigrid()
         start = time.perf_counter()
         self._ml = None  # its memory is free before the new one is built
-        # Energy-minimizing prolongators: 43 CG iterations to 1e-3 on rocker-arm's noisy
-        # Gauss-Newton matrix against 95 with Jacobi-smoothed ones; in single precision:
-        # the same iterations on the 100K-face scan, V-cycles 1.7x faster, half the memory
-        # of the coarse levels (docs/large-meshes.md).
+        # In single precision: the same iterations on the 100K-face scan, V-cycles 1.7x
+        # faster, half the memory of the coarse levels (docs/large-meshes.md).
         self._ml = pyamg.smoothed_aggregation_solver(
-            single, B=rigid_modes(X_free).astype(np.float32), max_coarse=500,
-            coarse_solver="pinv", smooth=PROLONGATOR_SMOOTHING, improve_candidates=None)
-        self._cycle = self._ml.aspreconditioner(cycle="V")
+            single, B=rigid_modes(X_free).astype(np.float32),
+            **self.hierarchy.pyamg_options())
+        self._cycle = self._ml.aspreconditioner(cycle=self.hierarchy.cycle)
         self._baseline, self._stale = None, False
         stats = self.stats
         stats.setups += 1
@@ -267,6 +375,8 @@ class IterativeOperator:
         upper: (N, N) float64 CSR upper triangle of ``K`` (diagonal included).
         multigrid: the :class:`Multigrid` whose hierarchy preconditions it.
         project: the projection off the rigid motions of the positions ``K`` was built at.
+        positions: (n_free, dim) float64 those positions (for observers).
+        fresh: the hierarchy was set up for ``K`` (for observers).
 
     Attributes:
         tolerance: the relative residual the next :meth:`solve` stops at (the forcing term).
@@ -275,11 +385,14 @@ class IterativeOperator:
     precision = "iterative"
 
     def __init__(self, upper: sp.csr_array, multigrid: Multigrid,
-                 project: Callable[[np.ndarray], np.ndarray]) -> None:
+                 project: Callable[[np.ndarray], np.ndarray],
+                 positions: np.ndarray | None = None, fresh: bool = False) -> None:
         self.matrix = upper
         self._diagonal = upper.diagonal()
         self.multigrid = multigrid
         self.project = project
+        self.positions = positions
+        self.fresh = fresh
         self.tolerance = 1e-2
 
     def solve(self, b: np.ndarray) -> np.ndarray:
@@ -289,6 +402,7 @@ class IterativeOperator:
         direction of the model)."""
         start = time.perf_counter()
         mg, U, P, d = self.multigrid, self.matrix, self.project, self._diagonal
+        given = b
         b = P(np.asarray(b, dtype=np.float64))
         x = np.zeros_like(b)
         norm_b = float(np.linalg.norm(b))
@@ -323,4 +437,12 @@ class IterativeOperator:
         stats.capped += int(capped)
         stats.solve_seconds += time.perf_counter() - start
         mg.solved(iterations, -math.log10(max(relative, 1e-300)), capped)
+        observer = _OBSERVER.get()
+        if observer is not None:  # not observed itself: it may solve (a replay)
+            token = _OBSERVER.set(None)
+            try:
+                observer(GaussNewtonSolve(U, self.positions, P, given, self.tolerance,
+                                          iterations, relative, capped, self.fresh, mg))
+            finally:
+                _OBSERVER.reset(token)
         return x

@@ -79,8 +79,10 @@ class StepRules:
     """A multigrid setup's price in CG iterations, which the reuse rules weigh against the
     iterations a stale hierarchy costs (:class:`solver.refine.iterative_steps.Multigrid`):
     iterations, not seconds, so that the refinement's path does not depend on the machine's
-    load. Measured on the noisy scans of ``bench.scale``: one setup takes the time of ~50
-    preconditioned CG iterations at 100K faces (3.1 s against 0.061 s)."""
+    load. Measured on the noisy scans of ``bench.scale`` before the prolongators took 8
+    smoothing iterations: ~50 CG iterations at 100K faces (3.1 s against 0.061 s); with them
+    84 at 100K faces, 87 at 400K
+    (``python -m bench.gauss_newton_cg setup-price 0 1``, bench/README.md)."""
     single_precision_error: float = 0.1
     """Largest relative correction of a single-precision solve by its refinement step before
     the refiner factorizes in double precision."""

@@ -75,14 +75,16 @@ class StepRules:
     cg_resetup_growth: float = 2.0
     """The multigrid hierarchy is set up again when a solve took more than this many times
     the iterations per decade of the first solve on it (or hit the cap)."""
-    cg_setup_iterations: float = 50.0
+    cg_setup_iterations: float = 85.0
     """A multigrid setup's price in CG iterations, which the reuse rules weigh against the
     iterations a stale hierarchy costs (:class:`solver.refine.iterative_steps.Multigrid`):
     iterations, not seconds, so that the refinement's path does not depend on the machine's
-    load. Measured on the noisy scans of ``bench.scale`` before the prolongators took 8
-    smoothing iterations: ~50 CG iterations at 100K faces (3.1 s against 0.061 s); with them
-    84 at 100K faces, 87 at 400K
-    (``python -m bench.gauss_newton_cg setup-price 0 1``, bench/README.md)."""
+    load. Measured on the noisy scans of ``bench.scale`` with the prolongators' 8 smoothing
+    iterations: 84 CG iterations at 100K faces, 87 at 400K (``python -m bench.gauss_newton_cg
+    setup-price 0 1``, bench/README.md; it was 50, measured before that change: ~51 at 100K).
+    At 50 the 100K scan set up a second time to save 59 iterations (31.0 CPU s); at 85 it
+    keeps its hierarchy (26.8 CPU s, the same optimum); the 400K scan's path is the same
+    under both."""
     single_precision_error: float = 0.1
     """Largest relative correction of a single-precision solve by its refinement step before
     the refiner factorizes in double precision."""

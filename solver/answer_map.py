@@ -26,16 +26,13 @@ import numpy as np
 
 from .mesh.manifold import ManifoldCut
 from .mesh.placement import (
+    SIDE_BY_SIDE_GAP,
     Placement,
     apply_placement,
     face_components,
     face_frames,
     side_by_side,
 )
-
-GAP_RATIO = 0.1
-"""The side-by-side gap relative to the largest bounding-box diagonal (the default of
-:func:`solver.mesh.placement.side_by_side`, which :func:`solver.reconstruct` uses)."""
 
 
 @dataclass(frozen=True)
@@ -159,7 +156,7 @@ class AnswerMap:
         width_bar[:, :-1] = after[:, 1:]
         high_bar[:, comps, 0] += width_bar
         low_bar[:, comps, 0] -= width_bar
-        gap_bar = GAP_RATIO * np.einsum("bi,i->b", s, np.arange(c, dtype=np.float64))
+        gap_bar = SIDE_BY_SIDE_GAP * np.einsum("bi,i->b", s, np.arange(c, dtype=np.float64))
         low, high, low_at, high_at = _boxes(x, vertex_component, k)
         box = high[comps] - low[comps]
         diag = np.linalg.norm(box, axis=1)

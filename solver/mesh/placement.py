@@ -225,8 +225,13 @@ def align_components(source: np.ndarray, target: np.ndarray,
             + target_centers[c])
 
 
+SIDE_BY_SIDE_GAP = 0.1
+"""The gap between components laid out side by side, relative to the largest bounding-box
+diagonal (:func:`side_by_side`'s default; :mod:`solver.answer_map` differentiates it)."""
+
+
 def side_by_side(vertices: np.ndarray, vertex_component: np.ndarray,
-                 components: np.ndarray, gap_ratio: float = 0.1) -> np.ndarray:
+                 components: np.ndarray, gap_ratio: float = SIDE_BY_SIDE_GAP) -> np.ndarray:
     """Components laid out along +x without overlap: the first of ``components`` stays, each
     next one starts ``gap`` beyond the previous one's largest x (``gap``: ``gap_ratio``
     times the largest bounding-box diagonal); y and z are untouched. For a reconstruction

@@ -19,11 +19,11 @@ from solver import Constraints
 from solver.core.errors import ConstraintError
 from solver.differentiable import aligned_distance, reconstruct_vjp
 from solver.mesh.placement import face_components
+from tests.helpers.finite_differences import STEPS, directional_errors
 from tests.helpers.meshes import load
 from tests.helpers.real_meshes import CASES as REAL
 from tests.helpers.welded_meshes import CASES as WELDED
 
-STEPS = (1e-5, 1e-6)
 TOLERANCE = 1e-4
 
 
@@ -55,19 +55,9 @@ def keywords_of(V, forms, placed=True, **options):
 def finite_difference_errors(forms, L, A, target, grads, rng, answer, directions=2):
     """max over directions of |FD - VJP| / |VJP| of ``aligned_distance(answer(L, A),
     target)``, one value per step size."""
-    grad_L, grad_A = grads
-    errors = []
-    for _ in range(directions):
-        dL = rng.standard_normal(len(L)) * L
-        dA = rng.standard_normal(len(A))
-        predicted = grad_L @ dL + grad_A @ dA
-        row = []
-        for h in STEPS:
-            plus = aligned_distance(answer(L + h * dL, A + h * dA), target)[0]
-            minus = aligned_distance(answer(L - h * dL, A - h * dA), target)[0]
-            row.append(abs((plus - minus) / (2 * h) - predicted) / abs(predicted))
-        errors.append(row)
-    return np.max(errors, axis=0)
+    return directional_errors(L, A, grads, rng,
+                              lambda L, A: aligned_distance(answer(L, A), target)[0],
+                              directions)
 
 
 def check_gradient(name, kind, refine, placed=True, constraints=None):

@@ -28,23 +28,34 @@ pytestmark = pytest.mark.skipif("pardiso" not in linalg.available_backends(),
 
 @pytest.fixture
 def threads() -> Iterator[object]:
-    """``threads(n)`` sets MKL's thread count (``mkl_set_num_threads``), restored after the
-    test; the cache starts and ends empty."""
+    """``threads(n)`` sets MKL's thread count for this thread (``mkl_set_num_threads_local``,
+    which PARDISO's calls from this thread follow), restored after the test; the cache
+    starts and ends empty.
+
+    The thread-local setter, not ``mkl_set_num_threads``: a thread-local count overrides the
+    global one, and threadpoolctl leaves one behind (its MKL limits are thread-local and are
+    restored to the count they found, not cleared), so after any ``threadpool_limits`` in
+    this process (the refinement, bench.gauss_newton_cg's tests) the global setter changes
+    nothing (the whole suite failed this way once)."""
     from solver.linalg.pardiso import load_mkl
 
     mkl = load_mkl()
-    setter = mkl.lib.MKL_Set_Num_Threads
-    setter.argtypes = [ctypes.c_int]
-    before = mkl.max_threads()
+    local = mkl.lib.MKL_Set_Num_Threads_Local
+    local.argtypes = [ctypes.c_int]
+    local.restype = ctypes.c_int
+    found: list[int] = []
     gc.collect()
     linalg.clear_analysis_cache()
 
     def set_threads(n: int) -> None:
-        setter(n)
+        previous = local(n)
+        if not found:
+            found.append(previous)
         assert mkl.max_threads() == n
 
     yield set_threads
-    setter(before)
+    if found:
+        local(found[0])
     gc.collect()
     linalg.clear_analysis_cache()
 

@@ -101,6 +101,13 @@ def _options(refine: bool | None, options: Mapping[str, Any]) -> dict[str, Any]:
     return chosen
 
 
+def _linear_answer(call: Call) -> bool:
+    """Whether ``call`` asks for the linear answer (``options.refine`` false), which the
+    service prices by its own limits."""
+    options = call.params.get("options")
+    return isinstance(options, Mapping) and options.get("refine") is False
+
+
 def _dumps(document: Any) -> bytes:
     return json.dumps(document, separators=(",", ":"), default=json_default).encode()
 
@@ -166,6 +173,8 @@ class Client:
         self.max_wait = max_wait
         self._sync_faces: dict[str, int] | None = None
         """The service's ``max_sync_faces_by_operation``, read on the first large call."""
+        self._linear_sync_faces: dict[str, int] = {}
+        """Its ``max_linear_sync_faces_by_operation`` (a linear answer's, read with it)."""
         self._http = httpx.Client(base_url=self.url, timeout=timeout, transport=transport,
                                   headers={"User-Agent": f"ffs-client/{__version__}",
                                            **self.auth_headers(), **(headers or {})})
@@ -247,8 +256,9 @@ class Client:
     def _too_slow_for_sync(self, call: Call) -> bool:
         """Whether a call of more than :data:`LARGE_INPUT_FACES` faces exceeds the faces the
         service answers synchronously for its operation (``GET /v1/me``'s
-        ``max_sync_faces_by_operation``, read once), so that it goes to the job API without
-        being sent twice."""
+        ``max_sync_faces_by_operation``, or for a linear answer, ``options.refine`` false,
+        its ``max_linear_sync_faces_by_operation`` where the service names one; read once),
+        so that it goes to the job API without being sent twice."""
         faces = call.arrays.get("faces")
         if faces is None or len(faces) <= LARGE_INPUT_FACES:
             return False
@@ -258,7 +268,11 @@ class Client:
             except (ProblemError, KeyError, TypeError, ValueError):  # keys, older services
                 limits = {}
             self._sync_faces = dict(limits.get("max_sync_faces_by_operation") or {})
+            self._linear_sync_faces = dict(limits.get("max_linear_sync_faces_by_operation")
+                                           or {})
         limit = self._sync_faces.get(call.operation)
+        if _linear_answer(call):
+            limit = self._linear_sync_faces.get(call.operation, limit)
         return limit is not None and len(faces) > limit
 
     def _run_as_job(self, call: Call, progress: Progress | None) -> Any:
@@ -421,7 +435,11 @@ class Client:
         """How large a request the service admits for this client (``GET /v1/me``):
         ``max_faces``, ``max_vertices``, ``max_body_bytes``, ``max_request_memory`` and
         ``max_faces_by_operation`` (each operation's largest mesh, the key's quota
-        included); a larger one is answered 413 (:class:`ffs.errors.PayloadTooLargeError`)."""
+        included; a larger one is answered 413, :class:`ffs.errors.PayloadTooLargeError`),
+        ``max_sync_faces_by_operation`` (the most a synchronous request may bring; beyond,
+        :meth:`run` sends a job) and, for ``reconstruct``, ``max_direct_faces_by_operation``,
+        ``max_linear_faces_by_operation`` and ``max_linear_sync_faces_by_operation`` (its
+        linear answer's, ``refine=False``)."""
         limits: dict[str, Any] = self.request("GET", "/v1/me").json()["size_limits"]
         return limits
 

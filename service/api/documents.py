@@ -447,7 +447,8 @@ class SizeLimits(BaseModel):
                                     "deform": 767192},
          "max_sync_faces_by_operation": {"forms": 9416666, "reconstruct": 1011144},
          "max_direct_faces_by_operation": {"reconstruct": 767192},
-         "max_linear_faces_by_operation": {"reconstruct": 1772309}}]})
+         "max_linear_faces_by_operation": {"reconstruct": 1772309},
+         "max_linear_sync_faces_by_operation": {"reconstruct": 1011144}}]})
 
     max_vertices: int = Field(description="FFS_MAX_VERTICES (413 beyond).")
     max_faces: int = Field(description="FFS_MAX_FACES (413 beyond).")
@@ -475,6 +476,13 @@ class SizeLimits(BaseModel):
         description="For the same operations: the most faces of a request for the linear "
                     "answer (`options.refine`: false), whose iterative path takes less "
                     "memory per face than the refined answer's.")
+    max_linear_sync_faces_by_operation: dict[str, int] = Field(
+        default_factory=dict,
+        description="For the same operations: the most faces a synchronous request for the "
+                    "linear answer (`options.refine`: false) may bring, predicted like "
+                    "`max_sync_faces_by_operation` by the linear answer's pricing; beyond, "
+                    "413 `use-a-job`. A client that chooses between a synchronous request and "
+                    "a job reads this one for a linear answer.")
 
 
 class Caller(BaseModel):

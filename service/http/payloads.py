@@ -118,7 +118,7 @@ def size_limits(settings: Settings) -> dict[str, Any]:
     operation's limits as a synchronous request takes them (:func:`sync_limits`): its faces
     (and a session's, :func:`limits`), its faces synchronously, and for the operations with
     an iterative path the faces their factorization takes and those their linear answer
-    takes."""
+    (``options.refine: false``, ``Limits.linear``) takes, in all and synchronously."""
     operations = {name: sync_limits(settings, name) for name in OPERATIONS}
     by_operation = {name: size.max_faces for name, size in operations.items()}
     by_operation["sessions"] = limits(settings).max_faces
@@ -133,7 +133,9 @@ def size_limits(settings: Settings) -> dict[str, Any]:
             "max_direct_faces_by_operation": {name: size.max_direct_faces
                                               for name, size in iterative.items()},
             "max_linear_faces_by_operation": {name: (size.linear or size).max_faces
-                                              for name, size in iterative.items()}}
+                                              for name, size in iterative.items()},
+            "max_linear_sync_faces_by_operation": {name: (size.linear or size).max_sync_faces
+                                                   for name, size in iterative.items()}}
 
 
 async def operation_request(request: Request, spec: OperationSpec, settings: Settings,

@@ -51,6 +51,7 @@ def test_what_me_shows_is_what_a_request_is_held_to(overrides):
         if not spec.iterative:
             assert name not in shown["max_direct_faces_by_operation"]
             assert name not in shown["max_linear_faces_by_operation"]
+            assert name not in shown["max_linear_sync_faces_by_operation"]
             continue
         direct = min(how.direct_faces(memory), settings.max_faces)
         assert shown["max_direct_faces_by_operation"][name] == carried.max_direct_faces == direct
@@ -59,7 +60,8 @@ def test_what_me_shows_is_what_a_request_is_held_to(overrides):
         assert answering is carried.linear
         linear_faces = min(linear.faces_within(memory), settings.max_faces)
         assert shown["max_linear_faces_by_operation"][name] == answering.max_faces == linear_faces
-        assert answering.max_sync_faces == linear.sync_faces_within(seconds, memory)
+        assert (shown["max_linear_sync_faces_by_operation"][name] == answering.max_sync_faces
+                == linear.sync_faces_within(seconds, memory))
         most = min(linear_faces, answering.max_sync_faces)
         check_limits(0, most, answering, "input")
         with pytest.raises(ProblemError):
@@ -73,3 +75,39 @@ def test_the_settings_cover_both_bindings():
     assert bound == {True, False}
     assert any(sync_limits(Settings(**o), "reconstruct").max_sync_faces
                < sync_limits(Settings(**o), "reconstruct").max_faces for o in SETTINGS)
+
+
+def test_a_linear_answer_is_held_to_its_own_synchronous_limit(monkeypatch):
+    """Today both answers' synchronous limits are priced by the time to the first (linear)
+    answer, so they coincide; with a linear answer priced faster (its first answer in half
+    the time) the two differ, and ``GET /v1/me``'s ``max_linear_sync_faces_by_operation`` is
+    the one a ``refine: false`` request is held to, while a refined request keeps
+    ``max_sync_faces_by_operation``."""
+    from dataclasses import replace
+
+    from service.backends import admission
+    from service.http import payloads
+
+    def faster(how: admission.Pricing) -> admission.Pricing:
+        return replace(how, direct=replace(how.direct, first_answer=replace(
+            how.direct.first_answer, per_face=how.direct.first_answer.per_face / 2)))
+
+    settings = Settings(max_request_memory=8 * GIB, request_timeout=10)
+    before = size_limits(settings)
+    assert (before["max_linear_sync_faces_by_operation"]["reconstruct"]
+            == before["max_sync_faces_by_operation"]["reconstruct"])
+    monkeypatch.setattr(payloads, "pricing", lambda solves, iterative=False, linear=False: (
+        faster(pricing(solves, iterative, linear)) if linear else pricing(solves, iterative)))
+    shown = size_limits(settings)
+    refined = shown["max_sync_faces_by_operation"]["reconstruct"]
+    linear = shown["max_linear_sync_faces_by_operation"]["reconstruct"]
+    assert refined == before["max_sync_faces_by_operation"]["reconstruct"] < linear
+    assert linear < shown["max_linear_faces_by_operation"]["reconstruct"]  # time binds
+    carried = sync_limits(settings, "reconstruct")
+    check_limits(0, linear, carried.answering({"options": {"refine": False}}), "input")
+    with pytest.raises(ProblemError) as refused:
+        check_limits(0, linear + 1, carried.answering({"options": {"refine": False}}), "input")
+    assert refused.value.kind == "use-a-job" and f"{linear} faces" in str(refused.value)
+    with pytest.raises(ProblemError) as refused:
+        check_limits(0, refined + 1, carried.answering({"options": {}}), "input")
+    assert refused.value.kind == "use-a-job"

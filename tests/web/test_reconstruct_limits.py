@@ -1,11 +1,13 @@
 """The page says where a mesh stands against reconstruct's limits by path (``GET /v1/me``:
 ``max_faces_by_operation``, ``max_linear_faces_by_operation``,
-``max_direct_faces_by_operation``), in Debian's Chromium against a real uvicorn whose
-FFS_MAX_REQUEST_MEMORY (215 MiB) puts the sample under every limit, a second mesh between
-the factorization's limit and the refined answer's, and a third between the refined answer's
-and the linear answer's; what the page says is checked against what the service does
-with the same meshes (real reconstruct jobs: refused 413, answered by a linear answer,
-refined iteratively)."""
+``max_direct_faces_by_operation``) and against the limit of the other operations its tabs
+run that factorize (Deform, Flatten, Blend: ``max_faces_by_operation``), in Debian's Chromium
+against a real uvicorn whose FFS_MAX_REQUEST_MEMORY (215 MiB) puts the sample under every
+limit, a second mesh between the factorization's limit (the one Deform, Flatten and Blend
+have too) and the refined answer's, and a third between the refined answer's and the linear
+answer's; what the page says is checked against what the service does with the same meshes
+(real reconstruct jobs: refused 413, answered by a linear answer, refined iteratively; a
+deformation and a flattening refused 413)."""
 
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from solver.mesh.io import load_mesh_file, save_mesh
 from tests.helpers import DATA
 from tests.helpers.meshes import bumpy_grid
 from tests.helpers.servers import uvicorn_server
-from tests.helpers.service import forms_json
+from tests.helpers.service import forms_json, mesh_json, problem
 from tests.web.conftest import VENDOR_MANIFEST
 
 MEMORY = 215 * 1024**2
@@ -71,6 +73,9 @@ def test_the_page_says_where_a_mesh_stands_against_reconstructs_limits(web, tmp_
     solve = limits["max_faces_by_operation"]["reconstruct"]
     linear = limits["max_linear_faces_by_operation"]["reconstruct"]
     direct = limits["max_direct_faces_by_operation"]["reconstruct"]
+    tabs = {limits["max_faces_by_operation"][name] for name in ("deform", "parameterize",
+                                                                "blend")}
+    assert tabs == {direct}  # the operations that only factorize: the factorization's limit
     knight = load_mesh_file(DATA / "decimated-knight.off")     # 1000 faces
     iterative = bumpy_grid(40, 42)                               # 3360 faces
     over = bumpy_grid(50, 50)                                    # 5000 faces
@@ -79,14 +84,23 @@ def test_the_page_says_where_a_mesh_stands_against_reconstructs_limits(web, tmp_
 
     web.open("sample=decimated-knight.off")
     text, classes = _line(web)
-    assert (f"({solve:,} to solve, {linear:,} for a linear answer)" in text), text
+    assert (f"({solve:,} to rebuild, {linear:,} for a linear answer, {direct:,} to deform, "
+            "flatten or blend)" in text), text
     assert "mesh" not in text and "over-limit" not in classes and "iterative" not in classes
 
     web.load_file(_saved(tmp_path, "iterative.off", iterative))
     text, classes = _line(web)
     assert text.endswith(f"This mesh is over the {direct:,} faces a factorization fits: it is "
-                         "solved iteratively (slower)."), text
-    assert "iterative" in classes and "over-limit" not in classes
+                         "rebuilt iteratively (slower). It is too large to deform, flatten or "
+                         "blend."), text
+    assert "iterative" in classes and "over-limit" in classes
+    # The service: Deform and Flatten refuse it with the limit the page names.
+    with httpx.Client(base_url=web.base, timeout=120) as http:
+        body = {**mesh_json(*iterative), "handles": [
+            {"vertex": 0, "position": iterative[0][0].tolist()}]}
+        for path, doc in (("/v1/deform", body), ("/v1/parameterize", mesh_json(*iterative))):
+            refused = problem(http.post(path, json=doc), 413, "mesh-too-large")
+            assert f"the {direct} faces this operation can take" in refused["detail"], refused
     # The service: the refined answer within the memory, by the iterative path.
     job = _reconstruct(web.base, *iterative, refine=None)
     assert job["status"] == "succeeded", job
@@ -95,8 +109,9 @@ def test_the_page_says_where_a_mesh_stands_against_reconstructs_limits(web, tmp_
 
     web.load_file(_saved(tmp_path, "over.off", over))
     text, classes = _line(web)
-    assert text.endswith("This mesh is over the limit to solve refined; its linear answer "
-                         f"(up to {linear:,} faces) fits."), text
+    assert text.endswith("This mesh is over the limit to rebuild refined; its linear answer "
+                         f"(up to {linear:,} faces) fits. It is too large to deform, flatten "
+                         "or blend."), text
     assert "over-limit" in classes and "iterative" not in classes
     # The service: the refined answer refused with the limit, the linear answer given.
     refused = _reconstruct(web.base, *over, refine=None)
@@ -110,14 +125,28 @@ def test_the_page_says_where_a_mesh_stands_against_reconstructs_limits(web, tmp_
     web.app("app.setSizeLimits(arg)", dict(limits, max_linear_faces_by_operation={
         "reconstruct": len(over[1]) - 1}))
     text, classes = _line(web)
-    assert text.endswith("This mesh is over the limit to solve."), text
+    assert text.endswith("This mesh is over the limit to rebuild. It is too large to deform, "
+                         "flatten or blend."), text
     assert "over-limit" in classes
     # A service whose factorization fits the mesh: nothing said.
     web.app("app.setSizeLimits(arg)", dict(
-        limits, max_faces_by_operation=dict(limits["max_faces_by_operation"], reconstruct=5000),
+        limits, max_faces_by_operation=dict(limits["max_faces_by_operation"], reconstruct=5000,
+                                            deform=5000, parameterize=5000, blend=5000),
         max_direct_faces_by_operation={"reconstruct": 5000}))
     text, classes = _line(web)
     assert "mesh" not in text and "over-limit" not in classes and "iterative" not in classes
+    assert "to deform" not in text, text
+    # Limits of their own, Blend's alone under the mesh's 5000 faces: each named, Blend's
+    # said to be under the mesh.
+    web.app("app.setSizeLimits(arg)", dict(
+        limits, max_faces_by_operation=dict(limits["max_faces_by_operation"], reconstruct=6000,
+                                            deform=5500, parameterize=5500, blend=4000),
+        max_direct_faces_by_operation={"reconstruct": 6000}))
+    text, classes = _line(web)
+    assert (f"(6,000 to rebuild, {linear:,} for a linear answer, 5,500 to deform or flatten, "
+            "4,000 to blend)" in text), text
+    assert text.endswith(" It is too large to blend.") and "This mesh" not in text, text
+    assert "over-limit" in classes
 
 
 def _saved(folder: Any, name: str, mesh: tuple[np.ndarray, np.ndarray]) -> Any:

@@ -53,5 +53,5 @@ def test_the_page_shows_the_limits_and_refuses_a_file_over_them(web, tmp_path):
     flagged = web.page.locator("#service-limits.over-limit")
     assert flagged.count() == 1
     linear = limits["max_linear_faces_by_operation"]["reconstruct"]
-    assert f"(500 to solve, {linear:,} for a linear answer)" in flagged.inner_text()
-    assert "over the limit to solve refined" in flagged.inner_text()
+    assert f"(500 to rebuild, {linear:,} for a linear answer" in flagged.inner_text()
+    assert "over the limit to rebuild refined" in flagged.inner_text()

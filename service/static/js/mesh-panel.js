@@ -35,10 +35,30 @@ const MB = 1024 * 1024;
 const bytesText = (b) => (b >= MB ? `${(b / MB).toFixed(b >= 10 * MB ? 0 : 1)} MB`
   : `${Math.ceil(b / 1024)} KB`);
 
-/** The service's limits under the panel: "up to N faces (M to solve, L for a linear
- * answer)", and what they mean for the mesh on screen (m faces): flagged when it is over the
- * limit of the operations that solve (over the refined answer's but within the linear
- * answer's: said so), noted when reconstruct solves it iteratively (over the faces its
+/** The page's tabs that run an operation which only factorizes (GET /v1/me's name, the
+ * verb): their limit is their own, under reconstruct's (which goes iterative beyond it). */
+const FACTORIZING_TABS = [["deform", "deform"], ["parameterize", "flatten"], ["blend", "blend"]];
+
+/** "a, b or c" */
+const anyOf = (words) => (words.length > 1
+  ? `${words.slice(0, -1).join(", ")} or ${words.at(-1)}` : words[0]);
+
+/** The factorizing tabs' limits under `below` faces, one entry per limit: [{ faces, verbs }]. */
+function tabLimits(byOperation, below) {
+  const groups = new Map();
+  for (const [name, verb] of FACTORIZING_TABS) {
+    const n = byOperation?.[name];
+    if (n === undefined || n >= below) continue;
+    groups.set(n, [...(groups.get(n) ?? []), verb]);
+  }
+  return [...groups].sort((a, b) => b[0] - a[0]).map(([faces, verbs]) => ({ faces, verbs }));
+}
+
+/** The service's limits under the panel: "up to N faces (M to rebuild, L for a linear
+ * answer, D to deform, flatten or blend)", and what they mean for the mesh on screen (m
+ * faces): flagged when it is over a limit of the page's operations (over the refined
+ * answer's but within the linear answer's: said so; over the faces Deform, Flatten and
+ * Blend take: said so), noted when reconstruct solves it iteratively (over the faces its
  * factorization fits: slower). */
 function drawLimits(s) {
   const line = $("service-limits"), limits = s.sizeLimits;
@@ -46,23 +66,28 @@ function drawLimits(s) {
   if (!limits) return;
   const m = s.faces ? s.faces.length / 3 : 0;
   const faces = (n) => n.toLocaleString("en");
-  const solve = limits.max_faces_by_operation?.reconstruct ?? limits.max_faces;
+  const byOperation = limits.max_faces_by_operation;
+  const solve = byOperation?.reconstruct ?? limits.max_faces;
   const linear = limits.max_linear_faces_by_operation?.reconstruct ?? solve;
   const direct = limits.max_direct_faces_by_operation?.reconstruct ?? solve;
-  const within = [solve < limits.max_faces ? `${faces(solve)} to solve` : null,
-    linear > solve ? `${faces(linear)} for a linear answer` : null].filter(Boolean);
+  const tabs = tabLimits(byOperation, Math.min(solve, limits.max_faces));
+  const within = [solve < limits.max_faces ? `${faces(solve)} to rebuild` : null,
+    linear > solve ? `${faces(linear)} for a linear answer` : null,
+    ...tabs.map((t) => `${faces(t.faces)} to ${anyOf(t.verbs)}`)].filter(Boolean);
   const text = `Service: up to ${faces(limits.max_faces)} faces`
     + (within.length ? ` (${within.join(", ")})` : "")
     + `, files up to ${bytesText(limits.max_body_bytes)}.`;
   const over = m > solve;
   let note = "";
-  if (m > linear) note = " This mesh is over the limit to solve.";
-  else if (over) note = ` This mesh is over the limit to solve refined; its linear answer `
+  if (m > linear) note = " This mesh is over the limit to rebuild.";
+  else if (over) note = ` This mesh is over the limit to rebuild refined; its linear answer `
     + `(up to ${faces(linear)} faces) fits.`;
   else if (m > direct) note = ` This mesh is over the ${faces(direct)} faces a factorization `
-    + "fits: it is solved iteratively (slower).";
+    + "fits: it is rebuilt iteratively (slower).";
+  const tooLarge = tabs.filter((t) => m > t.faces).flatMap((t) => t.verbs);
+  if (tooLarge.length) note += ` It is too large to ${anyOf(tooLarge)}.`;
   line.textContent = text + note;
-  line.classList.toggle("over-limit", over);
+  line.classList.toggle("over-limit", over || tooLarge.length > 0);
   line.classList.toggle("iterative", !over && m > direct);
 }
 

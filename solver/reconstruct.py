@@ -91,6 +91,27 @@ def linear_answer_is_exact(energy: dict[str, float], tolerance: float, n_edges: 
     return sum(energy.values()) <= tolerance ** 2 * max(n_edges, 1)
 
 
+def linear_methods(n_faces: int, linear_solver: str | None,
+                   memory_budget: float | None) -> tuple[str, str]:
+    """How the solves of a mesh of ``n_faces`` faces run under the ``linear_solver`` option
+    (:class:`solver.options.ReconstructOptions`; :class:`solver.Deformer` reads it the same
+    way): ``(method, refine_method)``, each ``"direct"`` or ``"iterative"``, of Eq. 5's
+    linear system and of the refinement's Gauss-Newton steps; ``auto`` chooses by the size
+    and the memory available (``memory_budget``, :func:`solver.linalg.iterative.
+    available_memory`).
+
+    Example:
+        >>> linear_methods(1000, "iterative", None), linear_methods(1000, "direct", None)
+        (('iterative', 'iterative'), ('direct', 'direct'))
+    """
+    memory = available_memory(memory_budget)
+    method = LINEAR_SOLVER_RULES.choose(n_faces, linear_solver, memory)
+    # The refinement's factor takes more memory than Eq. 5's: it may go iterative alone.
+    refine_method = "iterative" if method == "iterative" else REFINEMENT_SOLVER_RULES.choose(
+        n_faces, linear_solver, memory)
+    return method, refine_method
+
+
 def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: ArrayLike, *,
                 constraints: Constraints | None = None,
                 options: ReconstructOptions | None = None, n_vertices: int | None = None,
@@ -244,11 +265,8 @@ def reconstruct_on_cut(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
     linear = linear.extended(anchor)
     stages.lap("assemble")
 
-    memory = available_memory(opts.memory_budget)
-    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver, memory)
-    # The refinement's factor takes more memory than Eq. 5's: it may go iterative alone.
-    refine_method = "iterative" if method == "iterative" else REFINEMENT_SOLVER_RULES.choose(
-        topology.n_faces, opts.linear_solver, memory)
+    method, refine_method = linear_methods(topology.n_faces, opts.linear_solver,
+                                           opts.memory_budget)
     tree = _TreeStart(problem, touched) if method == "iterative" else None
     regularized: list[int] = []
     ref_v = np.zeros((topology.n_vertices, 3))

@@ -315,9 +315,10 @@ class Deformer:
             self._near_null = near_null_space(len(sub_rest), self._guess).astype(
                 LINEAR_SOLVER_RULES.preconditioner_dtype)
         self.last_linear_solver: dict[str, Any] | None = None
-        """How the last :meth:`solve` solved Eq. 5 (:meth:`ConstrainedSystem.
-        linear_solver_report`: ``{"method": "direct", "backend"}`` or the CG statistics;
-        ``first_solve``: the first solve's, under ``orthonormalize``); None before one."""
+        """How the last :meth:`solve` solved Eq. 5
+        (:meth:`~solver.linear.constrained.ConstrainedSystem.linear_solver_report`:
+        ``{"method": "direct", "backend"}`` or the CG statistics; ``first_solve``: the first
+        solve's, under ``orthonormalize``); None before one."""
         stages.lap("assemble")
         stages("factorize")
         # PARDISO's own ordering: its two-level factor solves each drag 1.3-1.5x faster

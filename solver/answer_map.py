@@ -10,17 +10,23 @@ component's anchor vertex at the origin, its anchor frame the identity), then
 2. with a ``vertex_map``, gives each file vertex the mean of its copies and each welded
    vertex its representative's position (:meth:`solver.mesh.manifold.ManifoldCut.to_file`).
 
-:class:`AnswerMap` repeats both steps (``forward``) and pulls a cotangent of the returned
-vertices back to the solver's answer (``vjp``): step 2 is linear, ``cut_bar[k] =
-m_bar[vertex_map[k]] / count[vertex_map[k]]`` with ``m_bar`` the scatter-add of the file
-cotangent over ``weld_map``; step 1 is differentiated exactly (the placement's rotation
-depends on the anchor face's positions; the side-by-side shifts on the components' bounding
-boxes, almost everywhere).
+:class:`AnswerMap` is the one home of both steps: :func:`solver.reconstruct` builds one from
+the solved mesh's topology (:meth:`AnswerMap.of`) and maps its answer with ``forward``;
+:func:`solver.differentiable.reconstruct_vjp` maps its polished answer with the same map and
+pulls a cotangent of the returned vertices back to the solver's answer (``vjp``): step 2 is
+linear, ``cut_bar[k] = m_bar[vertex_map[k]] / count[vertex_map[k]]`` with ``m_bar`` the
+scatter-add of the file cotangent over ``weld_map``; step 1 is differentiated exactly (the
+placement's rotation depends on the anchor face's positions; the side-by-side shifts on the
+components' bounding boxes, almost everywhere). Components are numbered as the solved
+mesh's :class:`~solver.mesh.topology.MeshTopology` numbers them (the numbering of
+``laid_out`` and of the anchors of :meth:`solver.immersion.ImmersionProblem.anchors`).
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -29,10 +35,25 @@ from .mesh.placement import (
     SIDE_BY_SIDE_GAP,
     Placement,
     apply_placement,
-    face_components,
     face_frames,
     side_by_side,
 )
+from .mesh.topology import MeshTopology
+
+
+class FileAnswer(NamedTuple):
+    """What :meth:`AnswerMap.forward` returns.
+
+    Attributes:
+        vertices: (n, 3) float64 the returned vertices (per file vertex with a cut).
+        frames: (m, 3, 3) float64 the face frames, rotated with their placed components.
+        spread: (n,) float64 the largest distance of a file vertex's copies from their
+            mean (:meth:`ManifoldCut.to_file`), or None without a cut.
+    """
+
+    vertices: np.ndarray
+    frames: np.ndarray
+    spread: np.ndarray | None
 
 
 @dataclass(frozen=True)
@@ -41,17 +62,35 @@ class AnswerMap:
 
     Attributes:
         faces: (m, 3) int64 the solved (cut) faces.
-        n_solved: n_cut, the solved vertex count.
+        vertex_component: (n_cut,) int64 component of each solved vertex
+            (:attr:`MeshTopology.vertex_component`).
+        face_component: (m,) int64 component of each solved face.
         cut: the forms' :class:`ManifoldCut`, or None (no ``vertex_map``).
         placement: the placement of the moved components, or None.
-        laid_out: (k,) int64 components laid out side by side (empty with a placement).
+        laid_out: (k,) int64 components laid out side by side, in order (empty with a
+            placement or fewer than two).
     """
 
     faces: np.ndarray
-    n_solved: int
+    vertex_component: np.ndarray
+    face_component: np.ndarray
     cut: ManifoldCut | None
     placement: Placement | None
     laid_out: np.ndarray
+
+    @classmethod
+    def of(cls, topology: MeshTopology, cut: ManifoldCut | None,
+           placement: Placement | None, laid_out: np.ndarray) -> AnswerMap:
+        """The map of an answer solved on ``topology`` (its faces and components)."""
+        laid_out = np.asarray(laid_out, dtype=np.int64)
+        return cls(faces=topology.faces, vertex_component=topology.vertex_component,
+                   face_component=topology.face_component, cut=cut, placement=placement,
+                   laid_out=laid_out if len(laid_out) > 1 else laid_out[:0])
+
+    @property
+    def n_solved(self) -> int:
+        """n_cut, the solved vertex count."""
+        return len(self.vertex_component)
 
     @property
     def is_identity(self) -> bool:
@@ -63,18 +102,19 @@ class AnswerMap:
         """n, the returned vertex count."""
         return self.n_solved if self.cut is None else self.cut.n_file_vertices
 
-    def forward(self, vertices: np.ndarray, frames: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """The returned vertices (n, 3) and frames (m, 3, 3) of a solver answer (n_cut, 3)
-        and its face frames (m, 3, 3), as :func:`solver.reconstruct` makes them."""
+    def forward(self, vertices: np.ndarray, frames: np.ndarray) -> FileAnswer:
+        """The answer :func:`solver.reconstruct` returns for a solver answer: vertices
+        (n_cut, 3) float64 and their face frames (m, 3, 3) float64 in the solver's gauge
+        (the inputs are not modified)."""
         if len(self.laid_out) > 1:
-            vertices = side_by_side(vertices, self._components()[0], self.laid_out)
+            vertices = side_by_side(vertices, self.vertex_component, self.laid_out)
         if self.placement is not None:
             vertices, frames = apply_placement(vertices, self.faces, self.placement,
                                                frames=frames)
+        spread = None
         if self.cut is not None:
-            vertices, _ = self.cut.to_file(vertices)
-        return vertices, frames
+            vertices, spread = self.cut.to_file(vertices)
+        return FileAnswer(vertices, frames, spread)
 
     def vjp(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
         """Cotangent (B, n_cut, 3) of the solver answer ``x`` (n_cut, 3) from ``g`` (B, n, 3),
@@ -87,27 +127,30 @@ class AnswerMap:
             g = self._side_by_side_vjp(x, g)
         return g
 
-    def _components(self) -> tuple[np.ndarray, np.ndarray]:
-        return face_components(self.faces, self.n_solved)
+    @functools.cached_property
+    def _copies(self) -> np.ndarray:
+        """(n_cut,) float64 the copy count of each cut vertex's file vertex (the divisor of
+        the mean of :meth:`ManifoldCut.to_file`), counted once per map."""
+        cut = self.cut
+        assert cut is not None
+        counts = np.bincount(cut.vertex_map, minlength=cut.n_file_vertices)
+        return np.maximum(counts, 1).astype(np.float64)[cut.vertex_map]
 
     def _to_file_vjp(self, g: np.ndarray) -> np.ndarray:
         cut = self.cut
         assert cut is not None
-        n = cut.n_file_vertices
-        B = len(g)
         if cut.weld_map is not None:     # file = mean[weld_map]: scatter-add back
-            summed = np.zeros((B, n, 3))
+            summed = np.zeros((len(g), cut.n_file_vertices, 3))
             np.add.at(summed, (slice(None), cut.weld_map), g)
             g = summed
-        counts = np.bincount(cut.vertex_map, minlength=n).astype(np.float64)
-        return g[:, cut.vertex_map] / np.maximum(counts, 1.0)[cut.vertex_map][None, :, None]
+        return g[:, cut.vertex_map] / self._copies[None, :, None]
 
     def _placement_vjp(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
         """``y = P F(x)^T (x - x_a) + o`` on each moved component, F the anchor face's frame
         (:func:`face_frames`), P and o the placement's pose."""
         placement = self.placement
         assert placement is not None
-        vertex_component, face_component = self._components()
+        vertex_component, face_component = self.vertex_component, self.face_component
         k = int(max(vertex_component.max(initial=-1), face_component.max(initial=-1))) + 1
         comp = face_component[placement.faces]
         anchor_faces = self.faces[placement.faces]                      # (c, 3)
@@ -139,8 +182,8 @@ class AnswerMap:
         """Each laid-out component i >= 1 moves along x by ``low_0 + sum_{j<i} (width_j +
         gap) - low_i`` (bounding boxes of the solver answer; ``gap`` from the largest
         diagonal): the cotangents of the shifts go to the extreme vertices."""
-        vertex_component, _ = self._components()
-        comps = np.asarray(self.laid_out, dtype=np.int64)
+        vertex_component = self.vertex_component
+        comps = self.laid_out
         k = int(vertex_component.max()) + 1
         B, c = len(g), len(comps)
         shift_bar = np.zeros((B, k))

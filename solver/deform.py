@@ -4,7 +4,11 @@ The rest mesh's forms define the energy of Eq. (5); handles become constraints. 
 for a handle set is factorized once in :class:`Deformer`; each :meth:`Deformer.solve` only
 back-substitutes (and, with ``orthonormalize``, runs the second solve of Sec. 4 against its
 own cached factorization). With a region of interest the system is built on the faces that
-touch the ROI only, so the cost follows the ROI size.
+touch the ROI only, so the cost follows the ROI size. ``linear_solver`` means what it means
+for :func:`solver.reconstruct` (:func:`solver.reconstruct.linear_methods`): ``iterative``
+(or ``auto`` where the factor would not fit) sets up a multigrid preconditioner once instead
+of the factorization, each drag is then a CG solve started from the previous drag's answer,
+and the refinement's Gauss-Newton steps are inexact CG steps too.
 """
 
 from __future__ import annotations
@@ -25,9 +29,10 @@ from .core.serialization import JsonDataclass
 from .core.validation import as_indices, as_points, require_unique
 from .core.warnings import as_report, refinement_warnings
 from .immersion import ImmersionProblem
+from .linalg.iterative import RULES as LINEAR_SOLVER_RULES
 from .linear.constraints import Constraints
 from .linear.layout_fit import LayoutFit
-from .linear.system import ConstrainedSystem
+from .linear.system import ConstrainedSystem, near_null_space
 from .mesh.forms import forms_of, zero_area_faces
 from .mesh.frames import layout_frames
 from .mesh.manifold import ManifoldCut, manifold_topology
@@ -36,6 +41,7 @@ from .mesh.rotations import is_rotation, nearest_rotation
 from .mesh.topology import MeshTopology, build_topology
 from .mesh.weld import check_welded_targets, one_handle_per_vertex, welded_mask
 from .options import DeformOptions
+from .reconstruct import linear_methods
 from .refine.energy_weights import HARD_FRAME_WEIGHT
 from .refine.form_energy import FormTargets, Handles
 from .refine.outcomes import not_refined
@@ -163,7 +169,10 @@ class Deformer:
             ``refine`` is the default of :meth:`solve`'s and None reads as off here: a
             refined drag costs factorizations of its own (bench/README.md), so an
             interactive client answers the linear shape first and :meth:`refine_last`
-            after it; :func:`deform` refines by default.
+            after it; :func:`deform` refines by default. ``linear_solver`` (``"auto"``,
+            ``"direct"``, ``"iterative"``) and ``memory_budget``: as for
+            :func:`solver.reconstruct` (module docstring); :attr:`last_linear_solver` says
+            which ran.
         progress: optional ``progress(stage, fraction)`` (validate, assemble, factorize).
         **overrides: fields of ``options`` given as keywords (``orthonormalize=True``).
 
@@ -294,12 +303,29 @@ class Deformer:
         self._anchor = anchor.extended(self.problem.gauge_constraints(
             template, sub_rest, self.rest_frames)[0])
         linear = linear.extended(self._anchor)
+        self.linear_method, self.refine_method = linear_methods(
+            self.problem.topology.n_faces, opts.linear_solver, opts.memory_budget)
+        self._guess: np.ndarray | None = None
+        self._near_null: np.ndarray | None = None
+        if self.linear_method == "iterative":
+            # The rest mesh is an immersion of its own forms: CG's first start and, with the
+            # translation, the near-null space the multigrid keeps exact.
+            self._guess = np.concatenate([sub_rest / self.problem.length_scale,
+                                          np.swapaxes(self.rest_frames, 1, 2).reshape(-1, 3)])
+            self._near_null = near_null_space(len(sub_rest), self._guess).astype(
+                LINEAR_SOLVER_RULES.preconditioner_dtype)
+        self.last_linear_solver: dict[str, Any] | None = None
+        """How the last :meth:`solve` solved Eq. 5
+        (:meth:`~solver.linear.constrained.ConstrainedSystem.linear_solver_report`:
+        ``{"method": "direct", "backend"}`` or the CG statistics; ``first_solve``: the first
+        solve's, under ``orthonormalize``); None before one."""
         stages.lap("assemble")
         stages("factorize")
         # PARDISO's own ordering: its two-level factor solves each drag 1.3-1.5x faster
         # than a factor of the hinted ordering (bench/drag_regression.py).
-        self.system: ConstrainedSystem = self.problem.system(linear, self.backend_name,
-                                                             ordering_hint=False)
+        self.system: ConstrainedSystem = self.problem.system(
+            linear, self.backend_name, ordering_hint=False, method=self.linear_method,
+            near_null=self._near_null)
         if key is not None:
             _REST_CACHE.put(key, rest)  # after the first factorization: K is assembled
         self._linear = linear
@@ -320,7 +346,8 @@ class Deformer:
         if self.system_orthonormal is None:
             self.system_orthonormal = self.problem.system(
                 self._linear, self.backend_name, self.problem.all_frame_columns(),
-                self.options.orthonormal_weight, ordering_hint=False)
+                self.options.orthonormal_weight, ordering_hint=False,
+                method=self.linear_method, near_null=self._near_null)
         return self.system_orthonormal
 
     def _start_fit(self) -> LayoutFit:
@@ -352,7 +379,8 @@ class Deformer:
                 frame_weights=np.full(len(local_faces), weight))
             targets = FormTargets(topology, self.rest_forms.lengths, self.rest_forms.angles,
                                   angle_weight=self.options.angle_weight)
-            self._refiner = Refiner(targets, handles, backend=self.backend_name)
+            self._refiner = Refiner(targets, handles, backend=self.backend_name,
+                                    linear_solver=self.refine_method)
         return self._refiner
 
     def _rest_face_edges(self, rotations: np.ndarray) -> np.ndarray:
@@ -429,13 +457,20 @@ class Deformer:
                                   field="handle_rotations", index=int(bad[0]))
         constraints = self._constraints(P, R)
         linear = self.problem.linear_constraints(constraints).extended(self._anchor)
-        u = self.system.solve(linear.hard_values, linear.soft_values)
+        u = self.system.solve(linear.hard_values, linear.soft_values, self._guess)
+        self.last_linear_solver = self.system.linear_solver_report()
         _, frames = self.problem.unknowns_to_geometry(u)
         if self.options.orthonormalize:
             targets = np.swapaxes(nearest_rotation(frames), 1, 2).reshape(-1, 3)
-            u = self._orthonormal_system().solve(
-                linear.hard_values, np.concatenate([linear.soft_values, targets]))
+            system = self._orthonormal_system()
+            u = system.solve(linear.hard_values, np.concatenate([linear.soft_values, targets]),
+                             u)
+            if system.iterative is not None:
+                self.last_linear_solver = {**system.linear_solver_report(),
+                                           "first_solve": self.last_linear_solver}
             _, frames = self.problem.unknowns_to_geometry(u)
+        if self._guess is not None:  # CG: the next drag starts from this one's answer
+            self._guess = u
         local, _ = self.problem.unknowns_to_geometry(u, constraints)
         local = self.problem.recenter(local, constraints, self.rest[self.sub_vertices])
         self._last = {"P": P, "R": R, "constraints": constraints, "linear": local,
@@ -536,13 +571,17 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
         options: :class:`solver.options.DeformOptions`; ``refine`` None (the default) and
             True fit the rest forms nonlinearly from the linear answer unless it already has
             them (:mod:`solver.refine`), False returns the linear answer; ``max_seconds``
-            budgets the whole call (the refinement stops when it runs out).
+            budgets the whole call (the refinement stops when it runs out);
+            ``linear_solver`` (``"auto"`` default, ``"direct"``, ``"iterative"``): how Eq.
+            5 and the refinement's steps are solved, as for :func:`solver.reconstruct`.
         progress: optional ``progress(stage, fraction)`` (validate ... refine).
         **overrides: fields of ``options`` given as keywords.
 
     Returns:
-        :class:`Deformation` whose report holds ``timings`` per stage, the backend, whether
-        and how it refined (``refinement``) and the distortion against the rest mesh
+        :class:`Deformation` whose report holds ``timings`` per stage, the backend, how Eq.
+        5 was solved (``linear_solver``: ``{"method": "direct", "backend"}`` or the CG
+        statistics), whether and how it refined (``refinement``, its steps' solver in
+        ``refinement.linear_solver``) and the distortion against the rest mesh
         (:func:`solver.mesh.metrics.distortion`, without per-edge arrays).
 
     Example:
@@ -579,7 +618,8 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
         refinement=deformer.last_report,
         distortion=compact(distortion(deformer.rest, deformer.cut.to_cut(result),
                                       deformer.faces)),
-        warnings=as_report(refinement_warnings(deformer.last_report)))
+        warnings=as_report(refinement_warnings(deformer.last_report)),
+        linear_solver=deformer.last_linear_solver)
     if not deformer.cut.is_identity:
         vertex = report.distortion.get("vertex")
         if vertex is not None:

@@ -182,12 +182,8 @@ def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angl
                               f"(components {result.report['regularized_components']})",
                               field="constraints")
     started = time.perf_counter()
-    cut = solved.cut
-    topology, L, A = validate_forms(faces, edges, lengths, angles,
-                                    cut.n_vertices if cut is not None
-                                    else keywords.get("n_vertices"))
-    answer = AnswerMap(topology.faces, topology.n_vertices, cut, solved.placement,
-                       solved.laid_out)
+    answer = solved.answer
+    topology, L, A = validate_forms(faces, edges, lengths, angles, answer.n_solved)
     user = solved.constraints
     problem = ImmersionProblem(topology, L, A, frame_weight=options.frame_weight,
                                weighting="uniform", length_scale=options.length_scale)
@@ -203,7 +199,8 @@ def reconstruct_vjp(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angl
         adjoint = RefinedAdjoint(problem, user, L, A, gauge, options.angle_weight, backend,
                                  polish)
         report = {"mode": "refined", **adjoint.report}
-        vertices, frames = answer.forward(adjoint.vertices, problem.frames_of(adjoint.vertices))
+        vertices, frames, _ = answer.forward(adjoint.vertices,
+                                             problem.frames_of(adjoint.vertices))
         result = Reconstruction(vertices=vertices, frames=frames, report=result.report)
     report["seconds"] = time.perf_counter() - started
     result.report["vjp"] = report

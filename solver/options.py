@@ -68,6 +68,14 @@ def redefault(cls: type, name: str, default: Any) -> Any:
     return dataclasses.field(default=default, metadata=cls.__dataclass_fields__[name].metadata)
 
 
+def shared(cls: type, name: str, **metadata: Any) -> Any:
+    """The field ``name`` of ``cls`` declared for another options class with the same default
+    and description (``metadata`` changed, e.g. ``served=False``: not offered over HTTP)."""
+    field = cls.__dataclass_fields__[name]
+    return dataclasses.field(default=field.default,
+                             metadata={**field.metadata, **metadata})
+
+
 def api_name(field: dataclasses.Field[Any]) -> str:
     """The HTTP service's name of an options field."""
     return field.metadata.get("api_name") or field.name
@@ -226,6 +234,9 @@ class DeformOptions(OrthonormalizeOptions):
     bending, smoother shapes), and a :class:`solver.Deformer` reads ``refine=None`` as off
     (an interactive client answers each drag's linear shape first and refines it after,
     :meth:`solver.Deformer.refine_last`); :func:`solver.deform` reads it as auto.
+    ``linear_solver`` and ``memory_budget`` are :class:`ReconstructOptions`' (declared there):
+    Eq. 5's system of the handle set (factorized once, or multigrid-preconditioned CG per
+    drag) and the refinement's Gauss-Newton steps; not offered over HTTP.
     """
 
     angle_weight: float = redefault(SolveOptions, "angle_weight", DEFORM_ANGLE_WEIGHT)
@@ -233,6 +244,11 @@ class DeformOptions(OrthonormalizeOptions):
         np.inf, "Weight of the handle positions; inf eliminates them exactly.", served=False)
     rotation_weight: float = option(
         np.inf, "Weight of the orientation handles; inf makes them hard.", served=False)
+    # As reconstruct's, for the drags' Eq. 5 solves and the refinement's steps (library only:
+    # the service prices deformations by the factorization, service.operations.ITERATIVE).
+    linear_solver: LinearSolver = shared(  # noqa: RUF009 - a field specifier
+        ReconstructOptions, "linear_solver", served=False)
+    memory_budget: float | None = shared(ReconstructOptions, "memory_budget")
 
 
 @dataclasses.dataclass(frozen=True)

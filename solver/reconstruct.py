@@ -16,6 +16,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .answer_map import AnswerMap
 from .core.errors import ConstraintError
 from .core.serialization import JsonDataclass
 from .core.validation import as_points
@@ -29,7 +30,7 @@ from .linear.integrability import integrability_from_terms
 from .linear.system import near_null_space
 from .mesh.forms import flat_faces, validate_forms, wrapped_angle_count
 from .mesh.manifold import ManifoldCut
-from .mesh.placement import Placement, apply_placement, side_by_side
+from .mesh.placement import Placement
 from .mesh.rotations import nearest_rotation
 from .options import ReconstructOptions
 from .refine.form_energy import FormTargets, reproduces, well_shaped_errors
@@ -88,6 +89,27 @@ def linear_answer_is_exact(energy: dict[str, float], tolerance: float, n_edges: 
         False
     """
     return sum(energy.values()) <= tolerance ** 2 * max(n_edges, 1)
+
+
+def linear_methods(n_faces: int, linear_solver: str | None,
+                   memory_budget: float | None) -> tuple[str, str]:
+    """How the solves of a mesh of ``n_faces`` faces run under the ``linear_solver`` option
+    (:class:`solver.options.ReconstructOptions`; :class:`solver.Deformer` reads it the same
+    way): ``(method, refine_method)``, each ``"direct"`` or ``"iterative"``, of Eq. 5's
+    linear system and of the refinement's Gauss-Newton steps; ``auto`` chooses by the size
+    and the memory available (``memory_budget``, :func:`solver.linalg.iterative.
+    available_memory`).
+
+    Example:
+        >>> linear_methods(1000, "iterative", None), linear_methods(1000, "direct", None)
+        (('iterative', 'iterative'), ('direct', 'direct'))
+    """
+    memory = available_memory(memory_budget)
+    method = LINEAR_SOLVER_RULES.choose(n_faces, linear_solver, memory)
+    # The refinement's factor takes more memory than Eq. 5's: it may go iterative alone.
+    refine_method = "iterative" if method == "iterative" else REFINEMENT_SOLVER_RULES.choose(
+        n_faces, linear_solver, memory)
+    return method, refine_method
 
 
 def reconstruct(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike, angles: ArrayLike, *,
@@ -176,18 +198,16 @@ class CutAnswer:
         vertices: (n_cut, 3) float64 the answer on the solved (cut) mesh in the solver's
             gauge (anchored components: anchor vertex at the origin, anchor frame the
             identity), before placement, side-by-side layout and :meth:`ManifoldCut.to_file`.
-        cut: the forms' :class:`ManifoldCut`, or None without ``vertex_map``.
         constraints: the validated constraints on the cut vertices (welded ones held by
             their representative).
-        placement: the placement applied to the unconstrained components, or None.
-        laid_out: (k,) int64 the components laid out side by side (without placement).
+        answer: the :class:`AnswerMap` that made the returned answer of ``vertices`` (the
+            forms' cut, the placement applied to the unconstrained components, the
+            components laid out side by side).
     """
 
     vertices: np.ndarray
-    cut: ManifoldCut | None
     constraints: Constraints
-    placement: Placement | None
-    laid_out: np.ndarray
+    answer: AnswerMap
 
 
 def reconstruct_on_cut(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
@@ -245,11 +265,8 @@ def reconstruct_on_cut(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
     linear = linear.extended(anchor)
     stages.lap("assemble")
 
-    memory = available_memory(opts.memory_budget)
-    method = LINEAR_SOLVER_RULES.choose(topology.n_faces, opts.linear_solver, memory)
-    # The refinement's factor takes more memory than Eq. 5's: it may go iterative alone.
-    refine_method = "iterative" if method == "iterative" else REFINEMENT_SOLVER_RULES.choose(
-        topology.n_faces, opts.linear_solver, memory)
+    method, refine_method = linear_methods(topology.n_faces, opts.linear_solver,
+                                           opts.memory_budget)
     tree = _TreeStart(problem, touched) if method == "iterative" else None
     regularized: list[int] = []
     ref_v = np.zeros((topology.n_vertices, 3))
@@ -358,23 +375,19 @@ def reconstruct_on_cut(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
                                      "zero_area_faces": len(flat_faces(topology, L)),
                                      "placement": "none"}
     laid_out = np.array([a["component"] for a in anchored], dtype=np.int64)
-    solved = CutAnswer(vertices=vertices, cut=cut, constraints=user, placement=None,
-                       laid_out=laid_out if place is None and len(laid_out) > 1
-                       else laid_out[:0])
     if place is None and len(laid_out) > 1:
         # No placement: the anchored parts would all sit at the origin (issue 40).
-        vertices = side_by_side(vertices, topology.vertex_component, laid_out)
         input_report["placement"] = (f"none: {len(laid_out)} components laid out side by "
                                      "side along +x")
     if place is not None:
         moving = ~touched[topology.face_component[place.faces]]
-        vertices, frames = apply_placement(vertices, topology.faces, place.subset(moving),
-                                           frames=frames)
+        place = place.subset(moving)
         input_report["placement"] = f"{int(moving.sum())} of {len(moving)} components placed"
-        solved = replace(solved, placement=place.subset(moving))
+    answer = AnswerMap.of(topology, cut, place, laid_out if place is None else laid_out[:0])
+    solved = CutAnswer(vertices=vertices, constraints=user, answer=answer)
+    vertices, frames, spread = answer.forward(vertices, frames)
     isolated = topology.isolated_vertices
     if cut is not None:
-        vertices, spread = cut.to_file(vertices)
         input_report.update(cut.sections(spread) or {"cut": cut.report(spread)})
         if cut.weld_map is not None:  # a welded vertex is no face's, yet not isolated
             below = isolated < cut.n_file_vertices

@@ -205,6 +205,9 @@ class DeformReport(Report):
             :mod:`solver.mesh.manifold`, with the spread of the copies; ``zero_area_faces``: rest
             faces with collinear corners, whose normals follow
             :func:`solver.mesh.forms.degenerate_normals`); None: nothing.
+        linear_solver: how Eq. 5 was solved (``options.linear_solver``): ``{"method":
+            "direct", "backend"}`` or ``{"method": "iterative", "iterations", ...}``, as in
+            :class:`ReconstructReport` (the refinement's steps: ``refinement.linear_solver``).
     """
 
     timings: Timings
@@ -217,6 +220,7 @@ class DeformReport(Report):
     distortion: dict[str, Any]
     warnings: list[dict[str, Any]] | None = None
     input: dict[str, Any] | None = None
+    linear_solver: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(eq=False)

@@ -27,7 +27,17 @@ from tests.helpers.welded_meshes import CASES as WELDED
 TOLERANCE = 1e-4
 
 
+def parts_listed_out_of_order() -> tuple[np.ndarray, np.ndarray]:
+    """Two icospheres whose faces are listed in the other order than their vertices: the
+    part of vertex 0 comes second in the faces (components numbered by faces and by
+    vertices differ)."""
+    V, F = REAL["closed-genus-0"]()
+    return np.vstack([V, V + np.array([5.0, 1.0, 0.0])]), np.vstack([F + len(V), F])
+
+
 def mesh(name: str) -> tuple[np.ndarray, np.ndarray]:
+    if name == "parts-listed-out-of-order":
+        return parts_listed_out_of_order()
     return REAL[name]() if name in REAL else WELDED[name]()[:2]
 
 
@@ -113,6 +123,16 @@ def test_parts_laid_side_by_side_without_placement(refine):
     """Without the forms' placement the cut's parts are laid out along +x (shifts from the
     parts' bounding boxes) before the copies are averaged: that map is differentiated too."""
     check_gradient("edge-with-4-faces", "noisy", refine, placed=False)
+
+
+@pytest.mark.parametrize("refine", [False, True])
+def test_parts_laid_side_by_side_in_reconstructs_order(refine):
+    """The parts are laid out in the order reconstruct lays them out (its components'
+    numbering), also when the faces list them in another order than the vertices: the
+    refined answer is reconstruct's (not the parts swapped) and the linear gradient
+    matches finite differences."""
+    _, result = check_gradient("parts-listed-out-of-order", "noisy", refine, placed=False)
+    assert "2 components laid out side by side" in result.report["input"]["placement"]
 
 
 @pytest.mark.parametrize("refine", [False, True])

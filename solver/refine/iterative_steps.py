@@ -11,8 +11,8 @@ falls fast, loose far from the optimum). No factor and no dense block is formed:
 Smoothed aggregation needs the matrix's near-null space: the energy is invariant under rigid
 motions, so per vertex the three translations and the three infinitesimal rotations about
 the centroid of the positions (elasticity's rigid-body modes; 2 + 1 in the plane). The
-hierarchy is kept in single precision (a preconditioner need not be exact; CG's products
-and vectors are double). On every
+hierarchy aggregates whole vertices (the matrix in 3x3 blocks, smoothed by block
+Gauss-Seidel) in double precision (:class:`HierarchyRules`). On every
 aggregate, rotations about the global centroid span the local rigid motions of every
 connected component. The hierarchy is set up once and reused for the next Gauss-Newton
 matrices (only its finest level takes the new matrix; the coarse levels keep their Galerkin
@@ -93,7 +93,13 @@ class HierarchyRules:
         coarse_solver: pyamg's coarse solver.
         cycle: ``"V"``, ``"W"`` or ``"F"``.
         presmoother, postsmoother: pyamg's smoother specifications (None: pyamg's default,
-            one symmetric Gauss-Seidel sweep).
+            one symmetric block Gauss-Seidel sweep).
+        by_vertex: the finest matrix in (dim, dim) blocks (BSR, one block row per free
+            vertex): aggregates take whole vertices and the default smoother inverts each
+            vertex's block (False: scalar unknowns, CSR, point Gauss-Seidel on the finest
+            level).
+        dtype: the hierarchy's precision, ``"float64"`` or ``"float32"`` (CG's products and
+            vectors are double either way).
     """
 
     smooth: tuple[str, dict[str, Any]] = PROLONGATOR_SMOOTHING
@@ -102,6 +108,8 @@ class HierarchyRules:
     cycle: str = "V"
     presmoother: tuple[str, dict[str, Any]] | None = None
     postsmoother: tuple[str, dict[str, Any]] | None = None
+    by_vertex: bool = True
+    dtype: str = "float64"
 
     def pyamg_options(self) -> dict[str, Any]:
         """Keyword arguments of ``pyamg.smoothed_aggregation_solver`` (besides the matrix
@@ -115,11 +123,28 @@ class HierarchyRules:
             options["postsmoother"] = self.postsmoother
         return options
 
+    def smoothers(self) -> tuple[tuple[str, dict[str, Any]], tuple[str, dict[str, Any]]]:
+        """The pre- and postsmoother specifications the hierarchy uses (pyamg's default
+        where :attr:`presmoother` or :attr:`postsmoother` is None)."""
+        default = ("block_gauss_seidel", {"sweep": "symmetric"})
+        return self.presmoother or default, self.postsmoother or default
+
+    def finest(self, upper: sp.csr_array, dim: int) -> sp.csr_matrix | sp.bsr_matrix:
+        """The hierarchy's finest matrix: the full symmetric matrix whose upper triangle
+        (diagonal included) is ``upper`` (N, N), in :attr:`dtype`, as (``dim``, ``dim``)
+        blocks where :attr:`by_vertex` (N = free vertices x ``dim``, vertex-major)."""
+        full = symmetric_from_upper(upper.astype(self.dtype, copy=False))
+        return sp.bsr_matrix(full, blocksize=(dim, dim)) if self.by_vertex else full
+
 
 HIERARCHY_RULES = HierarchyRules()
 """The refinement's hierarchy: energy-minimizing prolongators (43 CG iterations to 1e-3 on
 rocker-arm's noisy Gauss-Newton matrix against 95 with Jacobi-smoothed ones), one V-cycle,
-pyamg's smoothers (docs/large-meshes.md)."""
+pyamg's smoothers, aggregated and smoothed per vertex in double precision (the noisy scans'
+confirming solves, ``python -m bench.gauss_newton_cg variants 0`` and ``1``: 49 and 42 CG
+iterations at 100K and 400K faces, against 62 and 76 by scalar unknowns in single
+precision and 60 at 400K by scalar unknowns in double; per vertex in single precision the
+3x3 block inverses lose the stiff directions: 320 at 400K; docs/large-meshes.md)."""
 
 
 @dataclass(frozen=True)
@@ -312,24 +337,22 @@ class Multigrid:
         free positions ``X_free`` (n_free, dim), whose rigid motions ``project`` removes):
         the hierarchy's finest level takes this matrix, or a new hierarchy is set up where
         the last solves said so."""
-        # The hierarchy's matrix in single precision; CG's products use ``upper`` itself
-        # (double precision, no full copy: 20 of the 36 bytes per stored entry saved).
-        single = symmetric_from_upper(upper.astype(np.float32))
-        fresh = self._ml is None or self._stale or self._ml.levels[0].A.shape != single.shape
+        # The hierarchy's own copy of the matrix (HierarchyRules.finest); CG's products use
+        # ``upper`` itself (no full copy in CG).
+        finest = self.hierarchy.finest(upper, X_free.shape[1])
+        fresh = self._ml is None or self._stale or self._ml.levels[0].A.shape != finest.shape
         if fresh:
-            self._setup(single, X_free)
+            self._setup(finest, X_free)
         else:
-            self._ml.levels[0].A = single
+            self._reuse(finest)
         return IterativeOperator(upper, self, project, X_free, fresh)
 
-    def _setup(self, single: sp.csr_matrix, X_free: np.ndarray) -> None:
+    def _setup(self, finest: sp.csr_matrix | sp.bsr_matrix, X_free: np.ndarray) -> None:
         pyamg = _multigrid()
         start = time.perf_counter()
         self._ml = None  # its memory is free before the new one is built
-        # In single precision: the same iterations on the 100K-face scan, V-cycles 1.7x
-        # faster, half the memory of the coarse levels (docs/large-meshes.md).
         self._ml = pyamg.smoothed_aggregation_solver(
-            single, B=rigid_modes(X_free).astype(np.float32),
+            finest, B=rigid_modes(X_free).astype(finest.dtype),
             **self.hierarchy.pyamg_options())
         self._cycle = self._ml.aspreconditioner(cycle=self.hierarchy.cycle)
         self._baseline, self._stale = None, False
@@ -339,9 +362,20 @@ class Multigrid:
         stats.levels = len(self._ml.levels)
         stats.operator_complexity = self._ml.operator_complexity()
 
+    def _reuse(self, finest: sp.csr_matrix | sp.bsr_matrix) -> None:
+        """The hierarchy's finest level takes ``finest`` (the coarse levels stay); the
+        smoothers are bound again (block Gauss-Seidel keeps the inverses of the finest
+        matrix's diagonal blocks)."""
+        from pyamg.relaxation.smoothing import change_smoothers
+
+        self._ml.levels[0].A = finest
+        change_smoothers(self._ml, *self.hierarchy.smoothers())
+        self._cycle = self._ml.aspreconditioner(cycle=self.hierarchy.cycle)
+
     def cycle(self, r: np.ndarray) -> np.ndarray:
-        """One V-cycle (single precision) from a zero guess on ``r`` (N,) float64."""
-        return (self._cycle @ r.astype(np.float32)).astype(np.float64)
+        """One cycle (the hierarchy's precision) from a zero guess on ``r`` (N,) float64."""
+        return np.asarray(self._cycle @ r.astype(self._ml.levels[0].A.dtype, copy=False),
+                          dtype=np.float64)
 
     def solved(self, iterations: int, decades: float, capped: bool) -> None:
         """Note a solve: ``iterations`` for ``decades`` decades of residual. The first on a

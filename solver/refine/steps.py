@@ -79,12 +79,16 @@ class StepRules:
     """A multigrid setup's price in CG iterations, which the reuse rules weigh against the
     iterations a stale hierarchy costs (:class:`solver.refine.iterative_steps.Multigrid`):
     iterations, not seconds, so that the refinement's path does not depend on the machine's
-    load. Measured on the noisy scans of ``bench.scale`` with the prolongators' 8 smoothing
-    iterations: 84 CG iterations at 100K faces, 87 at 400K (``python -m bench.gauss_newton_cg
-    setup-price 0 1``, bench/README.md; it was 50, measured before that change: ~51 at 100K).
-    At 50 the 100K scan set up a second time to save 59 iterations (31.0 CPU s); at 85 it
-    keeps its hierarchy (26.8 CPU s, the same optimum); the 400K scan's path is the same
-    under both."""
+    load. Measured by scalar unknowns in single precision: 84 CG iterations at 100K faces,
+    87 at 400K (``python -m bench.gauss_newton_cg setup-price 0 1``, bench/README.md). The
+    hierarchy per vertex in double precision (:data:`~solver.refine.iterative_steps.
+    HIERARCHY_RULES`) sets up in half the time and iterates at half the speed: 19 and 21
+    there. At 20 the 100K scan sets up a second time and its next solve takes the same 37
+    iterations as on the kept hierarchy (24.6 against 19.3 CPU s, ``python -m
+    bench.gauss_newton_cg policies 0 --policies rule``): the later solves take more
+    iterations per decade because their forcing terms are tighter, not because the
+    hierarchy went stale, so a setup is kept at the price that waits for 85 iterations
+    beyond the first solve's rate."""
     single_precision_error: float = 0.1
     """Largest relative correction of a single-precision solve by its refinement step before
     the refiner factorizes in double precision."""

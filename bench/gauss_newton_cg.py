@@ -80,9 +80,9 @@ TWO_SWEEPS = ("block_gauss_seidel", {"sweep": "symmetric", "iterations": 2})
 def variants() -> dict[str, HierarchyRules]:
     """The hierarchies ``variants`` measures, by name: the refinement's (``production``)
     and one-field changes of it (prolongator smoothing iterations 2/4/8/16 where they are
-    not the production's, a W-cycle, two Gauss-Seidel sweeps, Jacobi prolongators, scalar
-    unknowns instead of vertices, the other precision) and the earlier production (scalar
-    unknowns in single precision)."""
+    not the production's, a W-cycle, two Gauss-Seidel sweeps, Jacobi prolongators, per vertex
+    instead of scalar unknowns, the other precision) and both (per vertex in double
+    precision)."""
     prod = HIERARCHY_RULES
     kind, options = prod.smooth
     out = {"production": prod}
@@ -95,11 +95,10 @@ def variants() -> dict[str, HierarchyRules]:
     out["2 Gauss-Seidel sweeps"] = dataclasses.replace(prod, presmoother=TWO_SWEEPS,
                                                        postsmoother=TWO_SWEEPS)
     out["Jacobi prolongators"] = dataclasses.replace(prod, smooth=("jacobi", {"omega": 4 / 3}))
-    out["scalar unknowns"] = dataclasses.replace(prod, by_vertex=not prod.by_vertex)
+    out["per vertex"] = dataclasses.replace(prod, by_vertex=not prod.by_vertex)
     other = "float32" if prod.dtype == "float64" else "float64"
     out[other] = dataclasses.replace(prod, dtype=other)
-    out["scalar float32 (before)"] = dataclasses.replace(prod, by_vertex=False,
-                                                         dtype="float32")
+    out["per vertex float64"] = dataclasses.replace(prod, by_vertex=True, dtype="float64")
     return out
 
 

@@ -11,8 +11,8 @@ falls fast, loose far from the optimum). No factor and no dense block is formed:
 Smoothed aggregation needs the matrix's near-null space: the energy is invariant under rigid
 motions, so per vertex the three translations and the three infinitesimal rotations about
 the centroid of the positions (elasticity's rigid-body modes; 2 + 1 in the plane). The
-hierarchy aggregates whole vertices (the matrix in 3x3 blocks, smoothed by block
-Gauss-Seidel) in double precision (:class:`HierarchyRules`). On every
+hierarchy is kept in single precision (a preconditioner need not be exact; CG's products
+and vectors are double; :class:`HierarchyRules`). On every
 aggregate, rotations about the global centroid span the local rigid motions of every
 connected component. The hierarchy is set up once and reused for the next Gauss-Newton
 matrices (only its finest level takes the new matrix; the coarse levels keep their Galerkin
@@ -108,8 +108,8 @@ class HierarchyRules:
     cycle: str = "V"
     presmoother: tuple[str, dict[str, Any]] | None = None
     postsmoother: tuple[str, dict[str, Any]] | None = None
-    by_vertex: bool = True
-    dtype: str = "float64"
+    by_vertex: bool = False
+    dtype: str = "float32"
 
     def pyamg_options(self) -> dict[str, Any]:
         """Keyword arguments of ``pyamg.smoothed_aggregation_solver`` (besides the matrix
@@ -140,11 +140,13 @@ class HierarchyRules:
 HIERARCHY_RULES = HierarchyRules()
 """The refinement's hierarchy: energy-minimizing prolongators (43 CG iterations to 1e-3 on
 rocker-arm's noisy Gauss-Newton matrix against 95 with Jacobi-smoothed ones), one V-cycle,
-pyamg's smoothers, aggregated and smoothed per vertex in double precision (the noisy scans'
-confirming solves, ``python -m bench.gauss_newton_cg variants 0`` and ``1``: 49 and 42 CG
-iterations at 100K and 400K faces, against 62 and 76 by scalar unknowns in single
-precision and 60 at 400K by scalar unknowns in double; per vertex in single precision the
-3x3 block inverses lose the stiff directions: 320 at 400K; docs/large-meshes.md)."""
+pyamg's smoothers, scalar unknowns in single precision. Aggregated and smoothed per vertex
+in double precision (``by_vertex``, ``dtype``) the noisy scans' confirming solves take 49 and
+42 CG iterations at 100K and 400K faces against 62 and 76 (``python -m bench.gauss_newton_cg
+variants 0`` and ``1``), the whole default answer 19.3 and 120.4 CPU s against 22.9 and
+127.8, but at 1.6M faces a confirming solve stalled (relative residual 0.18 after 275
+iterations) and the run had used more CPU time than the whole answer by this hierarchy
+before it reached its last steps: not chosen (docs/large-meshes.md)."""
 
 
 @dataclass(frozen=True)
@@ -363,14 +365,15 @@ class Multigrid:
         stats.operator_complexity = self._ml.operator_complexity()
 
     def _reuse(self, finest: sp.csr_matrix | sp.bsr_matrix) -> None:
-        """The hierarchy's finest level takes ``finest`` (the coarse levels stay); the
-        smoothers are bound again (block Gauss-Seidel keeps the inverses of the finest
-        matrix's diagonal blocks)."""
+        """The hierarchy's finest level takes ``finest`` (the coarse levels stay); per
+        vertex the smoothers are bound again (block Gauss-Seidel keeps the inverses of the
+        finest matrix's diagonal blocks; point Gauss-Seidel keeps nothing)."""
         from pyamg.relaxation.smoothing import change_smoothers
 
         self._ml.levels[0].A = finest
-        change_smoothers(self._ml, *self.hierarchy.smoothers())
-        self._cycle = self._ml.aspreconditioner(cycle=self.hierarchy.cycle)
+        if self.hierarchy.by_vertex:
+            change_smoothers(self._ml, *self.hierarchy.smoothers())
+            self._cycle = self._ml.aspreconditioner(cycle=self.hierarchy.cycle)
 
     def cycle(self, r: np.ndarray) -> np.ndarray:
         """One cycle (the hierarchy's precision) from a zero guess on ``r`` (N,) float64."""

@@ -80,12 +80,13 @@ class StepRules:
     iterations a stale hierarchy costs (:class:`solver.refine.iterative_steps.Multigrid`):
     iterations, not seconds, so that the refinement's path does not depend on the machine's
     load. Measured by scalar unknowns in single precision: 84 CG iterations at 100K faces,
-    87 at 400K (``python -m bench.gauss_newton_cg setup-price 0 1``, bench/README.md). The
-    hierarchy per vertex in double precision (:data:`~solver.refine.iterative_steps.
-    HIERARCHY_RULES`) sets up in half the time and iterates at half the speed: 19 and 21
-    there. At 20 the 100K scan sets up a second time and its next solve takes the same 37
-    iterations as on the kept hierarchy (24.6 against 19.3 CPU s, ``python -m
-    bench.gauss_newton_cg policies 0 --policies rule``): the later solves take more
+    87 at 400K (``python -m bench.gauss_newton_cg setup-price 0 1``, bench/README.md). A
+    hierarchy per vertex in double precision (``HierarchyRules(by_vertex=True,
+    dtype="float64")``, measured, not chosen) sets up in half the time and iterates at half
+    the speed: 19 and 21 there. At 20 that hierarchy's 100K scan sets up a second time and
+    its next solve takes the same 37 iterations as on the kept hierarchy (24.6 against 19.3
+    CPU s, ``python -m bench.gauss_newton_cg policies 0 --policies rule``): the later
+    solves take more
     iterations per decade because their forcing terms are tighter, not because the
     hierarchy went stale, so a setup is kept at the price that waits for 85 iterations
     beyond the first solve's rate."""

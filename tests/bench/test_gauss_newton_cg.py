@@ -78,7 +78,7 @@ def test_production_variant_repeats_the_refinements_solves(captured):
         assert row["levels"] == summary["report"]["levels"] or k != fresh[-1]
     # A variant to 1e-3 on the last solve reaches it (CG converges with every hierarchy).
     rows = [bench.measure_variant(source, name, -1, 1e-3, 1500, root)
-            for name in ("production", "energy 2", "W-cycle")]
+            for name in ("production", "energy 2", "W-cycle", "per vertex float64")]
     assert all(r["relative_residual"] <= 1e-3 and not r["capped"] for r in rows)
     assert all(r["order"] == rows[0]["order"] for r in rows)
 
@@ -89,7 +89,7 @@ def test_variants_change_one_field_of_the_production_hierarchy():
     fields = [f.name for f in dataclasses.fields(HIERARCHY_RULES)]
     for name, rules in variants.items():
         changed = [f for f in fields if getattr(rules, f) != getattr(HIERARCHY_RULES, f)]
-        two = "sweeps" in name or "before" in name  # both smoothers; by_vertex and dtype
+        two = "sweeps" in name or name == "per vertex float64"  # both smoothers; both fields
         assert len(changed) == (0 if name == "production" else 2 if two else 1), (name,
                                                                                    changed)
 
@@ -128,3 +128,32 @@ def test_setup_price_is_the_setup_over_one_iteration(tmp_path):
     solve = bench.load_solve(source, -1, tmp_path)
     assert row["iterations"] == bench.solve_with(solve, HIERARCHY_RULES, 1e-3, 3000)[
         "iterations"]
+
+
+def test_a_per_vertex_hierarchy_reused_on_the_next_matrix_solves_it(captured):
+    """The per-vertex hierarchy (block Gauss-Seidel keeps its finest blocks' inverses) set
+    up on one captured matrix and reused on the next (the refinement's reuse): each solve
+    reaches 1e-3 and the reused one by the next matrix's inverses, not the stale ones (a
+    hierarchy whose smoothers still held the first matrix's would differ from a fresh
+    hierarchy's finest smoother on the second)."""
+    source, root, summary = captured
+    assert len(summary["solves"]) >= 2  # two matrices (of one pattern) to reuse it on
+    first, second = (bench.load_solve(source, k, root) for k in (0, -1))
+    rules = bench.variants()["per vertex float64"]
+    multigrid = bench.Multigrid(1500, 2.0, 85.0, rules)
+    for k, solve in enumerate((first, second)):
+        operator = multigrid.operator(solve["matrix"], solve["positions"], solve["project"])
+        assert operator.fresh == (k == 0)
+        operator.tolerance = 1e-3
+        operator.solve(solve["rhs"])
+    assert all(r <= 1e-3 for r in multigrid.stats.residuals), multigrid.stats.residuals
+    # The reused hierarchy's finest smoother is bound to the second matrix: its cycle
+    # equals the one of a hierarchy whose finest level took that matrix at its setup's
+    # coarse levels (the same object, smoothers bound again by hand).
+    from pyamg.relaxation.smoothing import change_smoothers
+
+    r = np.random.default_rng(0).standard_normal(second["matrix"].shape[0])
+    reused = multigrid.cycle(r)
+    ml = multigrid._ml
+    change_smoothers(ml, *rules.smoothers())
+    np.testing.assert_array_equal(reused, ml.aspreconditioner(cycle=rules.cycle) @ r)

@@ -145,8 +145,8 @@ in double precision (``by_vertex``, ``dtype``) the noisy scans' confirming solve
 42 CG iterations at 100K and 400K faces against 62 and 76 (``python -m bench.gauss_newton_cg
 variants 0`` and ``1``), the whole default answer 19.3 and 120.4 CPU s against 22.9 and
 127.8, but at 1.6M faces a confirming solve stalled (relative residual 0.18 after 275
-iterations) and the run had used more CPU time than the whole answer by this hierarchy
-before it reached its last steps: not chosen (docs/large-meshes.md)."""
+iterations) when the run, not yet converged, had used ~1,850 CPU s against the whole
+answer's 1193 by the scalar hierarchy: not chosen (docs/large-meshes.md)."""
 
 
 @dataclass(frozen=True)

@@ -251,6 +251,8 @@ class SessionSpec:
         roi: (r,) int64 vertices that may move, or ``None`` (all).
         options: the request's ``options`` (``DeformOptions``, dumped; HTTP names).
         backend: the default factorization backend, used when ``options.solver`` is unset.
+        memory_budget: FFS_MAX_REQUEST_MEMORY, the memory the session was admitted in
+            (:attr:`Limits.request_memory`), or None (the machine's available memory).
     """
 
     vertices: np.ndarray
@@ -260,9 +262,13 @@ class SessionSpec:
     roi: np.ndarray | None = None
     options: dict[str, Any] = field(default_factory=dict)
     backend: str = "auto"
+    memory_budget: float | None = None
 
     def deform_options(self) -> DeformOptions:
         """The solver's options of the session, in one call (:meth:`TaskRequest.solve_options`
-        without a budget: each drag's refinement has its own)."""
+        without a budget: each drag's refinement has its own): ``memory_budget`` is the
+        memory the session was admitted in, so that ``linear_solver="auto"`` chooses by it
+        as a request's solve does, not by the machine's free memory of the moment."""
         options = DeformOptions.from_api(self.options)
-        return options.replace(backend=options.backend or self.backend)
+        return options.replace(backend=options.backend or self.backend,
+                               memory_budget=self.memory_budget)

@@ -277,10 +277,12 @@ def _session_spec(body: bytes, settings: Settings) -> SessionSpec:
     with gc_paused():
         arrays, model = decode_json(MESH_ARRAYS, SessionParams, parse_json(body))
     vertices, faces = arrays["vertices"], arrays["faces"]
-    check_limits(len(vertices), len(faces), limits(settings), "vertices")
+    size = limits(settings)
+    check_limits(len(vertices), len(faces), size, "vertices")
     assert isinstance(model, SessionParams)
     return SessionSpec(
         vertices, faces, np.array([h.vertex for h in model.handles], dtype=np.int64),
         tuple(np.asarray(r.faces, dtype=np.int64) for r in model.rotations or []),
         None if model.roi is None else np.asarray(model.roi, dtype=np.int64),
-        model.options.model_dump(), settings.solver_backend)
+        model.options.model_dump(), settings.solver_backend,
+        None if size.request_memory is None else float(size.request_memory))

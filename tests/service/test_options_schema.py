@@ -61,3 +61,33 @@ def test_a_session_spec_gives_deform_options():
     spec = SessionSpec(None, None, None, options=dumped, backend="superlu")
     options = spec.deform_options()
     assert options == solver.DeformOptions(refine=True, orthonormalize=True, backend="superlu")
+
+
+def test_a_session_deforms_within_the_memory_it_was_admitted_in():
+    """POST /v1/sessions' spec carries FFS_MAX_REQUEST_MEMORY as the Deformer's
+    ``memory_budget``: ``linear_solver="auto"`` chooses by what admission priced, not by
+    the machine's free memory of the moment (a budget too small for a factor goes
+    iterative, the default one stays direct, as the library's own choice says)."""
+    import json
+
+    import numpy as np
+
+    from service.http.payloads import _session_spec
+    from service.settings import Settings
+    from service.worker.session import SessionState
+    from tests.helpers.meshes import icosphere
+
+    V, F = icosphere(2)
+    body = json.dumps({"vertices": V.tolist(), "faces": F.tolist(),
+                       "handles": [{"vertex": 0}, {"vertex": 30}]}).encode()
+    settings = Settings(workers=1)
+    spec = _session_spec(body, settings)
+    assert spec.memory_budget == float(settings.max_request_memory)
+    assert spec.deform_options().memory_budget == spec.memory_budget
+    methods = {}
+    for budget in (spec.memory_budget, 1e5):
+        state = SessionState(dataclasses.replace(spec, memory_budget=budget), 30.0)
+        methods[budget] = state.deformer.last_linear_solver["method"]
+        moved = state.deformer.solve(V[[0, 30]] + [0.0, 0.0, 0.1], refine=False)
+        assert np.isfinite(moved).all()
+    assert methods == {spec.memory_budget: "direct", 1e5: "iterative"}, methods

@@ -1,13 +1,15 @@
 """What several benchmark scripts share: where the meshes are, how a benchmark mesh, its
-handles and its drags are made, the machine's load, a markdown section rewritten in place, and
-the command line of the scripts that time a few meshes over rounds.
+handles and its drags are made, the machine's load, a markdown table and a markdown section
+rewritten in place, and the command line of the scripts that time a few meshes over rounds.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -81,6 +83,31 @@ def random_drags(V: np.ndarray, handles: np.ndarray, count: int,
 def scaling_exponent(sizes, seconds) -> float:
     """k of ``seconds ~ sizes^k``: the least-squares slope of log time against log size."""
     return float(np.polyfit(np.log(sizes), np.log(seconds), 1)[0])
+
+
+def markdown_table(columns: Sequence[tuple[str, str]], rows: Iterable[Sequence[Any]]
+                   ) -> list[str]:
+    """The lines of a markdown table: ``columns`` are (heading, ``"l"`` or ``"r"``
+    alignment); each row's cells are written with ``str``, a row shorter than the columns
+    (an error row) padded with empty cells.
+
+    Example:
+        >>> print("\\n".join(markdown_table([("mesh", "l"), ("faces", "r")],
+        ...                                 [["bunny", 1000], ["big: out of memory"]])))
+        | mesh | faces |
+        |---|---:|
+        | bunny | 1000 |
+        | big: out of memory | |
+    """
+    def line(cells: Sequence[str]) -> str:
+        return "|" + "|".join(f" {c} " if c else " " for c in cells) + "|"
+
+    out = [line([heading for heading, _ in columns]),
+           "|" + "|".join("---:" if align == "r" else "---" for _, align in columns) + "|"]
+    for row in rows:
+        cells = [str(c) for c in row]
+        out.append(line(cells + [""] * (len(columns) - len(cells))))
+    return out
 
 
 def load_averages() -> str:

@@ -60,7 +60,7 @@ import numpy as np
 import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
-from bench.common import REPO, load_averages
+from bench.common import REPO, load_averages, markdown_table
 from bench.scale import BASE, forms_file
 from solver.refine.iterative_steps import (
     HIERARCHY_RULES,
@@ -293,57 +293,50 @@ def run_task(task: dict[str, Any]) -> dict[str, Any]:
 
 
 def capture_table(rows: list[dict[str, Any]]) -> str:
-    lines = ["| source | faces | CPU s | solves: forcing term / CG iterations (set up) | "
-             "report's CG iterations | E after |", "|---|---:|---:|---|---|---|"]
-    for r in rows:
-        solves = ", ".join(f"{s['tolerance']:.2g} / {s['iterations']}"
-                           + (" (set up)" if s["fresh"] else "") for s in r["solves"])
-        lines.append(f"| {r['source']} | {r['faces']} | {r['cpu_seconds']:.1f} | {solves} | "
-                     f"{r['report']['cg_iterations']} | {r['energy_after']:.10e} |")
-    return "\n".join(lines)
+    columns = [("source", "l"), ("faces", "r"), ("CPU s", "r"),
+               ("solves: forcing term / CG iterations (set up)", "l"),
+               ("report's CG iterations", "l"), ("E after", "l")]
+    return "\n".join(markdown_table(columns, (
+        [r["source"], r["faces"], f"{r['cpu_seconds']:.1f}",
+         ", ".join(f"{s['tolerance']:.2g} / {s['iterations']}"
+                   + (" (set up)" if s["fresh"] else "") for s in r["solves"]),
+         r["report"]["cg_iterations"], f"{r['energy_after']:.10e}"] for r in rows)))
 
 
 def variants_table(rows: list[dict[str, Any]]) -> str:
-    lines = ["| source | solve (order) | variant | levels | operator complexity | setup CPU s "
-             "| CG iterations | CG CPU s |", "|---|---|---|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        if "error" in r:
-            lines.append(f"| {r['source']} | | {r['variant']} | {r['error']} | | | | |")
-            continue
-        its = f"{r['iterations']}" + (" (capped)" if r["capped"] else "")
-        lines.append(f"| {r['source']} | {r['solve']} ({r['order']}) | {r['variant']} | "
-                     f"{r['levels']} | {r['operator_complexity']:.2f} | "
-                     f"{r['setup_cpu_seconds']:.1f} | {its} | {r['cg_cpu_seconds']:.1f} |")
-    return "\n".join(lines)
+    columns = [("source", "l"), ("solve (order)", "l"), ("variant", "l"), ("levels", "r"),
+               ("operator complexity", "r"), ("setup CPU s", "r"), ("CG iterations", "r"),
+               ("CG CPU s", "r")]
+    return "\n".join(markdown_table(columns, (
+        [r["source"], "", r["variant"], r["error"]] if "error" in r else
+        [r["source"], f"{r['solve']} ({r['order']})", r["variant"], r["levels"],
+         f"{r['operator_complexity']:.2f}", f"{r['setup_cpu_seconds']:.1f}",
+         f"{r['iterations']}" + (" (capped)" if r["capped"] else ""),
+         f"{r['cg_cpu_seconds']:.1f}"] for r in rows)))
 
 
 def policies_table(rows: list[dict[str, Any]]) -> str:
-    lines = ["| source | faces | hierarchy | policy | CPU s | seconds | peak MB | steps | "
-             "CG iterations per step | setups (s) | CG s | E after |",
-             "|---|---:|---|---|---:|---:|---:|---:|---|---|---:|---|"]
-    for r in rows:
-        if "error" in r:
-            lines.append(f"| {r['source']} | | {r['hierarchy']} | {r['policy']} | "
-                         f"{r['error']} | | | | | | | |")
-            continue
-        lines.append(f"| {r['source']} | {r['faces']} | {r['hierarchy']} | {r['policy']} | "
-                     f"{r['cpu_seconds']:.1f} | {r['seconds']:.1f} | {r['peak_mb']:.0f} | "
-                     f"{r['steps']} | {', '.join(map(str, r['cg_iterations']))} | "
-                     f"{r['setups']} ({r['setup_seconds']:.1f}) | {r['solve_seconds']:.1f} | "
-                     f"{r['energy_after']:.10e} |")
-    return "\n".join(lines)
+    columns = [("source", "l"), ("faces", "r"), ("hierarchy", "l"), ("policy", "l"),
+               ("CPU s", "r"), ("seconds", "r"), ("peak MB", "r"), ("steps", "r"),
+               ("CG iterations per step", "l"), ("setups (s)", "l"), ("CG s", "r"),
+               ("E after", "l")]
+    return "\n".join(markdown_table(columns, (
+        [r["source"], "", r["hierarchy"], r["policy"], r["error"]] if "error" in r else
+        [r["source"], r["faces"], r["hierarchy"], r["policy"], f"{r['cpu_seconds']:.1f}",
+         f"{r['seconds']:.1f}", f"{r['peak_mb']:.0f}", r["steps"],
+         ", ".join(map(str, r["cg_iterations"])),
+         f"{r['setups']} ({r['setup_seconds']:.1f})", f"{r['solve_seconds']:.1f}",
+         f"{r['energy_after']:.10e}"] for r in rows)))
 
 
 def price_table(rows: list[dict[str, Any]]) -> str:
-    lines = ["| source | solve (order) | setup CPU s | CG iterations to 1e-3 | CPU s per "
-             "iteration | setup / iteration | `cg_setup_iterations` |",
-             "|---|---|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['source']} | {r['solve']} ({r['order']}) | "
-                     f"{r['setup_cpu_seconds']:.2f} | {r['iterations']} | "
-                     f"{r['iteration_cpu_seconds']:.4f} | {r['setup_in_iterations']:.0f} | "
-                     f"{r['cg_setup_iterations']:g} |")
-    return "\n".join(lines)
+    columns = [("source", "l"), ("solve (order)", "l"), ("setup CPU s", "r"),
+               ("CG iterations to 1e-3", "r"), ("CPU s per iteration", "r"),
+               ("setup / iteration", "r"), ("`cg_setup_iterations`", "r")]
+    return "\n".join(markdown_table(columns, (
+        [r["source"], f"{r['solve']} ({r['order']})", f"{r['setup_cpu_seconds']:.2f}",
+         r["iterations"], f"{r['iteration_cpu_seconds']:.4f}",
+         f"{r['setup_in_iterations']:.0f}", f"{r['cg_setup_iterations']:g}"] for r in rows)))
 
 
 def tasks(args: argparse.Namespace) -> list[dict[str, Any]]:

@@ -47,10 +47,17 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from bench.common import REPO, SHARED_MESHES, load_averages, scaling_exponent
+from bench.common import (
+    REPO,
+    SHARED_MESHES,
+    load_averages,
+    markdown_table,
+    scaling_exponent,
+)
 
 CACHE = Path(os.environ.get("FFS_SCALE_CACHE", "/tmp/ffs-scale"))
 """Where the subdivided meshes and their forms are cached (outside the repository)."""
@@ -239,26 +246,32 @@ def child(level: int, case: str, max_gb: float | None, base: str = BASE,
     return row
 
 
+def _error_cells(r: dict) -> list[Any]:
+    return [r.get("base", ""), f"level {r['level']}", r["case"], r["error"]]
+
+
+def _cells(r: dict) -> list[Any]:
+    """One case's cells of :func:`markdown`'s table."""
+    def given(value: Any) -> Any:
+        return "-" if value is None else value
+
+    cg = (f"{r['cg_iterations']} ({r['cg_residual']:.1e})"
+          if r.get("cg_iterations") is not None else "-")
+    return [r.get("base", ""), r["faces"], r["case"], r["solve_path"], f"{r['seconds']:.2f}",
+            f"{r.get('cpu_seconds', float('nan')):.2f}", f"{r['faces'] / r['seconds']:,.0f}",
+            f"{r['peak_mb']:.0f}", cg, given(r["factorizations"]), given(r["iterations"]),
+            ", ".join(f"{k} {v:.2f}" for k, v in r["timings"].items()),
+            ", ".join(f"{k} {v}" for k, v in r["stage_peak_mb"].items())]
+
+
 def markdown(rows: list[dict]) -> str:
     """The tables of bench/README.md: one row per case, then the fitted exponents."""
-    lines = ["| mesh | faces | case | path | seconds | CPU s | faces/s | peak MB | CG iterations "
-             "(residual) | factorizations | iterations | stages (s) | stage peaks (MB) |",
-             "|---|---:|---|---|---:|---:|---:|---:|---|---:|---:|---|---|"]
-    for r in rows:
-        if "error" in r:
-            lines.append(f"| {r.get('base', '')} | level {r['level']} | {r['case']} | "
-                         f"{r['error']} | | | | | | | | | |")
-            continue
-        cg = (f"{r['cg_iterations']} ({r['cg_residual']:.1e})"
-              if r.get("cg_iterations") is not None else "-")
-        stages = ", ".join(f"{k} {v:.2f}" for k, v in r["timings"].items())
-        peaks = ", ".join(f"{k} {v}" for k, v in r["stage_peak_mb"].items())
-        lines.append(
-            f"| {r.get('base', '')} | {r['faces']} | {r['case']} | {r['solve_path']} | "
-            f"{r['seconds']:.2f} | {r.get('cpu_seconds', float('nan')):.2f} | "
-            f"{r['faces'] / r['seconds']:,.0f} | {r['peak_mb']:.0f} | {cg} | "
-            f"{r['factorizations'] if r['factorizations'] is not None else '-'} | "
-            f"{r['iterations'] if r['iterations'] is not None else '-'} | {stages} | {peaks} |")
+    columns = [("mesh", "l"), ("faces", "r"), ("case", "l"), ("path", "l"), ("seconds", "r"),
+               ("CPU s", "r"), ("faces/s", "r"), ("peak MB", "r"),
+               ("CG iterations (residual)", "l"), ("factorizations", "r"), ("iterations", "r"),
+               ("stages (s)", "l"), ("stage peaks (MB)", "l")]
+    lines = markdown_table(columns, (_error_cells(r) if "error" in r else _cells(r)
+                                     for r in rows))
     lines.append("")
     for base, case in sorted({(r.get("base", ""), r["case"]) for r in rows}):
         ok = [r for r in rows if r["case"] == case and r.get("base", "") == base

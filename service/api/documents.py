@@ -445,7 +445,7 @@ class SizeLimits(BaseModel):
          "max_request_memory": 8392486092,
          "max_faces_by_operation": {"forms": 3147219, "reconstruct": 1062211,
                                     "deform": 767192},
-         "max_sync_faces_by_operation": {"forms": 9416666, "reconstruct": 1011144},
+         "max_sync_faces_by_operation": {"forms": 3147219, "reconstruct": 1011144},
          "max_direct_faces_by_operation": {"reconstruct": 767192},
          "max_linear_faces_by_operation": {"reconstruct": 1772309},
          "max_linear_sync_faces_by_operation": {"reconstruct": 1011144}}]})
@@ -463,7 +463,8 @@ class SizeLimits(BaseModel):
         default_factory=dict,
         description="The most faces a synchronous request of each operation may bring: those "
                     "whose first answer is predicted within FFS_REQUEST_TIMEOUT (less the "
-                    "margin for encoding it); beyond, 413 `use-a-job`: submit it as a job.")
+                    "margin for encoding it), at most `max_faces_by_operation`; beyond, 413 "
+                    "`use-a-job`: submit it as a job.")
     max_direct_faces_by_operation: dict[str, int] = Field(
         default_factory=dict,
         description="For the operations whose solver may go iterative (`reconstruct`): the "

@@ -100,8 +100,12 @@ def _limits(settings: Settings, how: Pricing, seconds: float | None) -> Limits:
     direct = (min(how.direct_faces(memory), settings.max_faces)
               if how.iterative is not None else None)
     bound = fit < settings.max_faces
-    sync = sync_faces_within(seconds, how, memory) if seconds is not None else None
-    return Limits(settings.max_vertices, min(fit, settings.max_faces), settings.max_blend_steps,
+    most = min(fit, settings.max_faces)
+    # Never above the size limit, which is checked first: a synchronous limit beyond it would
+    # tell a caller (GET /v1/me) of faces no request may bring.
+    sync = (min(sync_faces_within(seconds, how, memory), most)
+            if seconds is not None else None)
+    return Limits(settings.max_vertices, most, settings.max_blend_steps,
                   settings.max_blend_vertices, memory if bound else None,
                   max_sync_faces=sync, sync_seconds=seconds, request_memory=memory,
                   max_direct_faces=direct)

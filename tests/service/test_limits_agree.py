@@ -39,9 +39,10 @@ def test_what_me_shows_is_what_a_request_is_held_to(overrides):
         carried = sync_limits(settings, name)
         how = pricing(spec.solves, spec.iterative)
         faces = min(how.faces_within(memory), settings.max_faces)
-        sync = how.sync_faces_within(seconds, memory)
+        sync = min(how.sync_faces_within(seconds, memory), faces)  # never above the size limit
         assert shown["max_faces_by_operation"][name] == carried.max_faces == faces, name
         assert shown["max_sync_faces_by_operation"][name] == carried.max_sync_faces == sync
+        assert shown["max_sync_faces_by_operation"][name] <= shown["max_faces_by_operation"][name]
         assert limits(settings, name).max_faces == faces  # a job: the same faces, no deadline
         assert limits(settings, name).max_sync_faces is None
         most = min(faces, sync)
@@ -61,7 +62,7 @@ def test_what_me_shows_is_what_a_request_is_held_to(overrides):
         linear_faces = min(linear.faces_within(memory), settings.max_faces)
         assert shown["max_linear_faces_by_operation"][name] == answering.max_faces == linear_faces
         assert (shown["max_linear_sync_faces_by_operation"][name] == answering.max_sync_faces
-                == linear.sync_faces_within(seconds, memory))
+                == min(linear.sync_faces_within(seconds, memory), linear_faces))
         most = min(linear_faces, answering.max_sync_faces)
         check_limits(0, most, answering, "input")
         with pytest.raises(ProblemError):
@@ -75,6 +76,11 @@ def test_the_settings_cover_both_bindings():
     assert bound == {True, False}
     assert any(sync_limits(Settings(**o), "reconstruct").max_sync_faces
                < sync_limits(Settings(**o), "reconstruct").max_faces for o in SETTINGS)
+    # and one where the deadline alone would admit more faces than the size limit
+    assert any(pricing(spec.solves, spec.iterative).sync_faces_within(
+        Settings(**o).request_timeout, Settings(**o).max_request_memory)
+        > sync_limits(Settings(**o), name).max_faces
+        for o in SETTINGS for name, spec in OPERATIONS.items())
 
 
 def test_a_linear_answer_is_held_to_its_own_synchronous_limit(monkeypatch):

@@ -21,10 +21,11 @@ times the iterations per decade of residual of the first solve after the setup. 
 count iterations, never seconds, so that a run takes the same steps on a loaded machine as on
 an idle one: a setup is priced as :attr:`~solver.refine.steps.StepRules.cg_setup_iterations`
 CG iterations. (A hierarchy reused across steps does as well as a fresh one on these
-matrices: on the noisy 100K-face scan, set up before every solve or by this rule, the four
-solves take 8, 74, 29, 115 iterations, never set up again 8, 74, 30, 132
-(``python -m bench.gauss_newton_cg policies 0``); restarting a solve with a fresh hierarchy
-when it ran long cost 42 iterations more at 400K faces, CG's Krylov space lost. What grows
+matrices: on the noisy 100K-face scan, set up before every solve the four solves take 8, 53,
+31, 62 iterations, by this rule (which never sets up again here) 8, 53, 32, 61
+(``python -m bench.gauss_newton_cg policies 0 --policies always rule``); restarting a solve
+with a fresh hierarchy when it ran long cost 42 iterations more at 400K faces, CG's Krylov
+space lost. What grows
 is the iterations a tight tolerance needs: docs/large-meshes.md.)
 
 Each preconditioned residual is projected off the rigid motions of the positions the

@@ -73,7 +73,8 @@ class StepRules:
     within 1e-9 relative, 6436 -> 5997 CG iterations in all, 25-30% fewer on noisy forms
     (armadillo 161 -> 111); on bench.scale's noisy 100K-face scan 8, 74, 30, 132 -> 8, 53,
     32, 61 (37-41 -> 29 CPU s), at 400K 11, 46, 40, 143 -> 11, 46, 40, 108 (163 CPU s both;
-    ``python -m bench.gauss_newton_cg policies 0`` and ``1 --policies rule``)."""
+    ``python -m bench.gauss_newton_cg policies 0`` and ``1 --policies rule``); at 1.6M about
+    the same work, 635 against 627 CG iterations (docs/large-meshes.md)."""
     cg_confirm: float = 1e-3
     """A Gauss-Newton step solved to at most this relative residual counts as exact for the
     stopping rules (:func:`solver.refine.stopping.after_step`); a looser one that looks

@@ -78,9 +78,7 @@ class Job:
         while True:
             state = self.progress()
             if on_progress is not None:
-                stage = state.stage or state.status
-                on_progress("queued" if state.status == "queued" else stage,
-                            state.stages.get(stage, 0.0))
+                _report(state, on_progress)
             if state.done:
                 return state
             if deadline is not None and time.monotonic() > deadline:
@@ -110,3 +108,14 @@ class Job:
         is fine."""
         with contextlib.suppress(NotFoundError, GoneError, ServiceUnreachableError):
             self.cancel()
+
+
+def _report(state: JobProgress, on_progress: Progress) -> None:
+    """Call ``on_progress`` with the job's stage (``queued`` while it waits): a job that is
+    running or done but has no stage yet (between its start and its first progress event) is
+    not reported, so that a caller sees only the stage names
+    :data:`ffs.client.Progress` names, never a status such as ``running``."""
+    if state.status == "queued":
+        on_progress("queued", 0.0)
+    elif state.stage:
+        on_progress(state.stage, state.stages.get(state.stage, 0.0))

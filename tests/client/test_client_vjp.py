@@ -134,3 +134,18 @@ def test_a_real_files_forms_here_and_there(server, name, refine):
         assert_matches(got, result, expected, 1e-9 if refine is False else 1e-6)
         np.testing.assert_array_equal(got.faces, mesh.faces)
         assert got.vertices.shape == V.shape
+
+
+def test_progress_names_stages_never_a_status():
+    """Between a job's start and its first progress event the service says ``running`` with
+    no stage; the client's progress callback then gets nothing (it once got ``running``, not a
+    stage name, which the test above caught under load). A queued job is ``queued``; a stage,
+    with its fraction."""
+    from ffs.jobs import JobProgress, _report
+
+    seen = []
+    for state in (JobProgress("queued", None, 0.0, {}), JobProgress("running", None, 0.0, {}),
+                  JobProgress("running", "solve", 0.2, {"solve": 0.5}),
+                  JobProgress("succeeded", None, 1.0, {})):
+        _report(state, lambda stage, fraction: seen.append((stage, fraction)))
+    assert seen == [("queued", 0.0), ("solve", 0.5)]

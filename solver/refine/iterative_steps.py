@@ -25,8 +25,7 @@ matrices: on the noisy 100K-face scan, set up before every solve the four solves
 31, 62 iterations, by this rule (which never sets up again here) 8, 53, 32, 61
 (``python -m bench.gauss_newton_cg policies 0 --policies always rule``); restarting a solve
 with a fresh hierarchy when it ran long cost 42 iterations more at 400K faces, CG's Krylov
-space lost. What grows
-is the iterations a tight tolerance needs: docs/large-meshes.md.)
+space lost. What grows is the iterations a tight tolerance needs: docs/large-meshes.md.)
 
 Each preconditioned residual is projected off the rigid motions of the positions the
 matrix was built at (:class:`solver.mesh.rigid_motions.RigidProjection`): the matrix is

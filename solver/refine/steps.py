@@ -69,8 +69,9 @@ class StepRules:
     as exact for the stopping rules and the run stops at ``StopRules.energy_tolerance`` (1e-3
     of E), not where Newton's local convergence would pay. 1e-6 before: the forcing term went
     to 7e-6 near the optimum. On the noisy forms and x0.8 forms of ten shared meshes (1K-86K
-    faces, ``linear_solver="iterative"``) the same Gauss-Newton steps, every run converged, E
-    within 1e-9 relative, 6436 -> 5997 CG iterations in all, 25-30% fewer on noisy forms
+    faces, ``linear_solver="iterative"``; a scratch script, not in bench/) the same
+    Gauss-Newton steps, every run converged, E within 1e-9 relative, 6436 -> 5997 CG
+    iterations in all, 25-30% fewer on noisy forms
     (armadillo 161 -> 111); on bench.scale's noisy 100K-face scan 8, 74, 30, 132 -> 8, 53,
     32, 61 (37-41 -> 29 CPU s), at 400K 11, 46, 40, 143 -> 11, 46, 40, 108 (163 CPU s both;
     ``python -m bench.gauss_newton_cg policies 0`` and ``1 --policies rule``); at 1.6M about

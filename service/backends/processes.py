@@ -20,8 +20,9 @@ from typing import Any
 
 from service.backends.loops import post_threadsafe
 
-PRELOAD = ["service.operations"]
-"""Modules the forkserver imports once, so that each new worker starts warm."""
+PRELOAD = ["service.operations", "trimesh"]
+"""Modules the forkserver imports once, so that each new worker starts warm (trimesh: the
+file readers defer it, :func:`solver.mesh.io.import_readers`)."""
 
 Message = tuple[Any, ...]
 

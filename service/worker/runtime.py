@@ -36,13 +36,17 @@ def start_worker_process(threads: int) -> None:
 
 
 def initialize_worker(threads: int) -> None:
-    """Warm a worker: load the sparse backends once, cap BLAS/MKL threads, and move every
+    """Warm a worker: load the sparse backends and the mesh file readers once (the first
+    upload would otherwise import trimesh within its deadline: 0.4 s of a 0.55 s
+    FFS_REQUEST_TIMEOUT), cap BLAS/MKL threads, and move every
     object loaded so far out of the garbage collector's sight (``gc.freeze``: the modules
     of numpy, scipy, pydantic... are never garbage, and each collection would traverse
     them again)."""
     from solver import linalg
+    from solver.mesh.io import import_readers
 
     linalg.available_backends()
+    import_readers()
     try:
         from threadpoolctl import threadpool_limits
 

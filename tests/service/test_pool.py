@@ -156,3 +156,21 @@ def test_process_executor_directly():
         assert executor.worker_pids() == []
 
     run_async(scenario())
+
+
+def test_a_worker_starts_with_the_file_readers_imported():
+    """The readers defer trimesh (~0.4 s to import); a worker imports it while warming, so
+    its first upload does not pay that within the request's deadline (CI saw a 20,480-face
+    PLY answered 504 at FFS_REQUEST_TIMEOUT=0.55 instead of 413 ``use-a-job``)."""
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "from service.worker import runtime\n"
+              "before = 'trimesh' in sys.modules\n"
+              "runtime.initialize_worker(1)\n"
+              "print(before, 'trimesh' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         check=True, cwd=os.path.dirname(os.path.dirname(os.path.dirname(
+                             os.path.abspath(__file__))))).stdout.split()
+    assert out == ["False", "True"]

@@ -14,7 +14,14 @@ from typing import Any
 import numpy as np
 
 from .atlas_rules import ATLAS_RULES
-from .chart_flattening import ChartFlattening, flatten_chart, refine_chart, relative_length_change
+from .chart_flattening import (
+    ChartFlattening,
+    flatten_chart,
+    local_global_flattening,
+    refine_chart,
+    relative_length_change,
+    tutte_embedding,
+)
 from .mesh.charts import (
     ChartMesh,
     bisect,
@@ -31,6 +38,7 @@ from .mesh.packing import boundary_crossings, folded, positive_loops
 from .mesh.topology import MeshTopology, build_topology
 from .options import ParameterizeOptions
 from .reconstruct import Progress
+from .refine.form_energy import FORMS_TOLERANCE
 from .refine.outcomes import with_outcome
 from .reports import Stages
 
@@ -55,8 +63,14 @@ def chart_layouts(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
     bisected while it is closed or has a handle, while its linear flattening's mean
     relative length change is above twice ``opts.max_chart_distortion``, or while its
     refined flattening is above it, has a flipped face or overlaps itself
-    (:func:`overlaps_itself`). A loop over charts; each chart's work is vectorized.
-    ``progress("charts", fraction of faces placed)``.
+    (:func:`overlaps_itself`).
+
+    The charts waiting are flattened in rounds (:func:`_flatten_round`: the linear
+    flattening and the refinement's start solved once for the disjoint union of their
+    meshes, each chart then refined and checked alone), and the parts of those that fail
+    wait for the next round.
+    Once ``opts.max_seconds`` is spent, the charts left are flattened one at a time and each
+    is kept (:func:`_flatten_or_none`). ``progress("charts", fraction of faces placed)``.
     """
     faces = topology.faces
     m = len(faces)
@@ -69,20 +83,175 @@ def chart_layouts(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
     done: list[ChartLayout] = []
     placed = 0
     while queue:
-        ids = queue.pop()
-        chart = chart_mesh(faces, ids)
-        flattening = _flatten_or_none(V[chart.vertex_ids], chart.faces,
-                                      chart_options(opts, len(ids)), quiet,
-                                      out_of_time=_out_of_time(stages, opts))
-        if flattening is None:
+        if _out_of_time(stages, opts):
+            ids = queue.pop()
+            chart = chart_mesh(faces, ids)
+            flattening = _flatten_or_none(V[chart.vertex_ids], chart.faces,
+                                          chart_options(opts, len(ids)), quiet,
+                                          out_of_time=True)
+            kept, failed = ([ChartLayout(chart, flattening)], []) if flattening else ([], [ids])
+        else:
+            kept, failed = _flatten_round(V, faces, queue, opts, quiet)
+            queue = []
+        for ids in failed:
             queue.extend(bisect(graph, ids, m))
-            continue
-        done.append(ChartLayout(chart, flattening))
-        placed += len(ids)
+        done.extend(kept)
+        placed += sum(len(chart.mesh.face_ids) for chart in kept)
         stages("charts", placed / m)
     for stage, seconds in quiet.timings.items():
         stages.timings[stage] = stages.timings.get(stage, 0.0) + seconds
     return done
+
+
+@dataclass
+class _Union:
+    """Charts as one mesh: their vertices and faces concatenated (chart ``k``'s vertex ``i``
+    is ``offsets[k] + i``), its topology and edge lengths."""
+
+    charts: list[ChartMesh]
+    vertices: np.ndarray
+    topology: MeshTopology
+    lengths: np.ndarray
+    offsets: np.ndarray
+    vertex_chart: np.ndarray
+
+    @classmethod
+    def of(cls, V: np.ndarray, charts: list[ChartMesh]) -> _Union:
+        sizes = np.array([len(chart.vertex_ids) for chart in charts])
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        vertices = V[np.concatenate([chart.vertex_ids for chart in charts])]
+        faces = np.concatenate([chart.faces + offsets[k] for k, chart in enumerate(charts)])
+        topology = build_topology(faces, n_vertices=len(vertices))
+        return cls(charts, vertices, topology, _lengths(vertices, topology), offsets,
+                   np.repeat(np.arange(len(charts)), sizes))
+
+    def part(self, uv: np.ndarray, k: int) -> np.ndarray:
+        """Chart ``k``'s rows of ``uv`` (a copy)."""
+        return np.array(uv[self.offsets[k]:self.offsets[k + 1]])
+
+    def disk_like(self) -> np.ndarray:
+        """(charts,) bool: each chart one component with a boundary and genus 0."""
+        t = self.topology
+        count = len(self.charts)
+        used = np.bincount(self.vertex_chart, minlength=count)  # a chart uses its vertices
+        comp_chart = np.zeros(t.n_components, dtype=np.int64)
+        comp_chart[t.vertex_component] = self.vertex_chart
+        n_components = np.bincount(comp_chart, minlength=count)
+        loops = np.bincount(comp_chart[t.boundary_loop_component], minlength=count)
+        edges = np.bincount(self.vertex_chart[t.edges[:, 0]], minlength=count)
+        face_count = np.bincount(self.vertex_chart[t.faces[:, 0]], minlength=count)
+        euler = used - edges + face_count
+        return (n_components == 1) & (loops > 0) & (euler == 2 - loops)
+
+    def mean_length_change(self, uv: np.ndarray) -> np.ndarray:
+        """(charts,) each chart's :func:`mean_length_change` of ``uv``."""
+        edges = self.topology.edges
+        change = np.abs(np.linalg.norm(uv[edges[:, 1]] - uv[edges[:, 0]], axis=1)
+                        / self.lengths - 1.0)
+        chart = self.vertex_chart[edges[:, 0]]
+        count = len(self.charts)
+        return np.bincount(chart, change, count) / np.bincount(chart, minlength=count)
+
+
+def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
+                   opts: ParameterizeOptions, stages: Stages,
+                   ) -> tuple[list[ChartLayout], list[np.ndarray]]:
+    """Flatten the charts ``queue`` (each (k,) mesh face indices) as :func:`_flatten_or_none`
+    flattens each, with the solves that need no iteration done for all at once: one linear
+    flattening of their union (the quick check: within twice ``opts.max_chart_distortion``)
+    and one Tutte embedding and local/global fit of the union of those that pass (the
+    refinement's start). Each chart is then refined and checked alone, so its stopping rules
+    and checks are its own. Returns the accepted charts and the face sets to bisect."""
+    meshes = [chart_mesh(faces, ids) for ids in queue]
+    kept: list[ChartLayout] = []
+    failed: list[np.ndarray] = []
+    several = []
+    for ids, chart in zip(queue, meshes, strict=True):
+        if len(ids) == 1:
+            one = _flatten_or_none(V[chart.vertex_ids], chart.faces, opts, stages,
+                                   out_of_time=False)
+            assert one is not None  # a single face is always kept
+            kept.append(ChartLayout(chart, one))
+        else:
+            several.append((ids, chart))
+    several, rejected = _split(several, _Union.of(V, [c for _, c in several]).disk_like()
+                               if several else np.zeros(0, dtype=bool))
+    failed += rejected
+    if not several:
+        return kept, failed
+    union = _Union.of(V, [chart for _, chart in several])
+    options = chart_options(opts, len(union.topology.faces))
+    quick = flatten_chart(union.vertices, union.topology, union.lengths, options, stages,
+                          refine=False)
+    close = union.mean_length_change(quick.uv) <= 2 * opts.max_chart_distortion
+    linear = [union.part(quick.uv, k) for k in np.flatnonzero(close)]
+    several, rejected = _split(several, close)
+    failed += rejected
+    if not several:
+        return kept, failed
+    starts: dict[int, tuple[np.ndarray, str]] = {}
+    if opts.refine is not False:
+        starts = _starts(V, several, linear, options)
+    for k, (ids, chart) in enumerate(several):
+        Vc = V[chart.vertex_ids]
+        topology = build_topology(chart.faces, n_vertices=len(Vc))
+        flattening = _part(quick, linear[k])
+        if opts.refine is not False:
+            flattening = refine_chart(Vc, topology, _lengths(Vc, topology),
+                                      chart_options(opts, len(ids)), stages, flattening,
+                                      start=starts.get(k))
+        if _acceptable(Vc, flattening.uv, topology, opts.max_chart_distortion):
+            kept.append(ChartLayout(chart, flattening))
+        else:
+            failed.append(ids)
+    return kept, failed
+
+
+def _split(pairs: list[Any], keep: np.ndarray) -> tuple[list[Any], list[np.ndarray]]:
+    """``(ids, chart)`` pairs where ``keep``, and the face sets of the others."""
+    return ([pair for pair, ok in zip(pairs, keep, strict=True) if ok],
+            [pair[0] for pair, ok in zip(pairs, keep, strict=True) if not ok])
+
+
+def _starts(V: np.ndarray, pairs: list[Any], linear: list[np.ndarray],
+            opts: ParameterizeOptions) -> dict[int, tuple[np.ndarray, str]]:
+    """The refinement's start of each chart (by its index in ``pairs``) whose linear
+    flattening ``linear[k]`` does not already keep its edge lengths, as
+    :func:`solver.chart_flattening.refine_chart` would make it (local/global steps from a
+    Tutte embedding), for all of them by one solve of each; {} without a Tutte embedding
+    (refine_chart then starts each chart its own way)."""
+    kept = [k for k, (_, chart) in enumerate(pairs)
+            if _length_error(V[chart.vertex_ids], linear[k], chart.faces) > FORMS_TOLERANCE]
+    if not kept:
+        return {}
+    union = _Union.of(V, [pairs[k][1] for k in kept])
+    backend = opts.backend or "auto"
+    tutte = tutte_embedding(union.vertices, union.topology, union.lengths, backend)
+    if tutte is None:
+        return {}
+    fitted = local_global_flattening(union.topology, union.lengths, tutte, backend=backend)
+    return {k: (union.part(fitted, i), "local/global from Tutte") for i, k in enumerate(kept)}
+
+
+def _length_error(V: np.ndarray, uv: np.ndarray, faces: np.ndarray) -> float:
+    """The largest relative edge-length change of ``uv`` against ``V`` (0 for no edges)."""
+    return float(np.abs(relative_length_change(V, uv, faces, np.arange(len(V)))).max(
+        initial=0.0))
+
+
+def _part(flattening: ChartFlattening, uv: np.ndarray) -> ChartFlattening:
+    """A chart's share of a flattening of several charts: its ``uv``, the rest shared."""
+    return ChartFlattening(uv, flattening.backend, flattening.analysis, flattening.planarity,
+                           flattening.refinement, [])
+
+
+def _acceptable(V: np.ndarray, uv: np.ndarray, topology: MeshTopology, limit: float) -> bool:
+    """Whether a chart's flattening ``uv`` stands: no flipped face, a mean relative length
+    change of at most ``limit``, no overlap with itself (:func:`overlaps_itself`)."""
+    faces = topology.faces
+    flat = zero_area_faces(V, faces)
+    return not (folded(uv, faces, flat).any() or mean_length_change(V, uv, faces) > limit
+                or overlaps_itself(uv, faces, topology.boundary_loops, flat))
 
 
 def _out_of_time(stages: Stages, opts: ParameterizeOptions) -> bool:
@@ -111,13 +280,9 @@ def _flatten_or_none(V: np.ndarray, faces: np.ndarray, opts: ParameterizeOptions
         return None
     full = quick if opts.refine is False else refine_chart(V, topology, lengths, opts, stages,
                                                             quick)
-    if out_of_time:
+    if out_of_time or _acceptable(V, full.uv, topology, limit):
         return full
-    flat = zero_area_faces(V, faces)
-    if folded(full.uv, faces, flat).any() or mean_length_change(V, full.uv, faces) > limit \
-            or overlaps_itself(full.uv, faces, topology.boundary_loops, flat):
-        return None
-    return full
+    return None
 
 
 def _last_resort(V: np.ndarray, topology: MeshTopology, opts: ParameterizeOptions,

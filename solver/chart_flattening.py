@@ -45,38 +45,65 @@ def nearest_planar_rotation(frames: np.ndarray) -> np.ndarray:
 
 def tutte_embedding(vertices: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
                     backend: str = "auto") -> np.ndarray | None:
-    """Tutte's embedding (n, 2): the longest boundary loop on a circle (by arc length), every
-    other vertex at the mean of its neighbours (uniform Laplacian), scaled to the target area.
+    """Tutte's embedding (n, 2) of every component: its longest boundary loop on a circle (by
+    arc length), every other vertex at the mean of its neighbours (uniform Laplacian), scaled
+    to the component's target area.
 
-    Flip-free for a disk (Tutte's theorem); with more holes a good start all the same. Returns
-    None unless the mesh is one component with a boundary. Unused vertices stay at 0.
+    Flip-free for a disk (Tutte's theorem); with more holes a good start all the same. The
+    components (charts flattened together, :func:`solver.atlas.chart_layouts`) are laid out
+    each on its own circle about the origin, by one solve. Returns None unless every component
+    with faces has a boundary. Unused vertices stay at 0.
     """
-    if topology.n_components != 1 or not topology.boundary_loops:
+    loops = topology.boundary_loops
+    F = topology.faces
+    if not loops or not len(F):
         return None
-    loop = max(topology.boundary_loops, key=len)
+    loop_component = np.asarray(topology.boundary_loop_component)
+    sizes = np.array([len(loop) for loop in loops])
+    # Each component's longest loop (the first of equals, in the topology's loop order).
+    order = np.lexsort((np.arange(len(loops)), -sizes, loop_component))
+    first = order[np.r_[True, loop_component[order][1:] != loop_component[order][:-1]]]
+    with_faces = np.unique(topology.face_component)
+    if not np.array_equal(np.sort(loop_component[first]), with_faces):
+        return None
     n = topology.n_vertices
-    closing = np.linalg.norm(np.roll(vertices[loop], -1, axis=0) - vertices[loop], axis=1)
-    angle = 2 * np.pi * np.concatenate([[0.0], np.cumsum(closing)[:-1]]) / closing.sum()
+    ring = np.concatenate([loops[i] for i in first])                  # (r,) loop vertices
+    length = sizes[first]
+    start = np.repeat(np.cumsum(length) - length, length)             # (r,) loop's first
+    position = np.arange(len(ring)) - start
+    following = ring[start + (position + 1) % np.repeat(length, length)]
+    closing = np.linalg.norm(vertices[following] - vertices[ring], axis=1)
+    before = np.cumsum(closing) - closing                             # arc length before
+    before -= before[start]
+    total = np.repeat(np.add.reduceat(closing, np.cumsum(length) - length), length)
+    angle = 2 * np.pi * before / total
     uv = np.zeros((n, 2))
-    uv[loop] = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    uv[ring] = np.stack([np.cos(angle), np.sin(angle)], axis=1)
     edges = topology.edges
     A = sp.coo_array((np.ones(2 * len(edges)), (np.concatenate([edges[:, 0], edges[:, 1]]),
                                                np.concatenate([edges[:, 1], edges[:, 0]]))),
                      shape=(n, n)).tocsr()
     L = sp.diags_array(np.asarray(A.sum(axis=1)).ravel()) - A
-    inner = np.flatnonzero(topology.is_referenced & ~np.isin(np.arange(n), loop))
+    on_ring = np.zeros(n, dtype=bool)
+    on_ring[ring] = True
+    inner = np.flatnonzero(topology.is_referenced & ~on_ring)
     if len(inner):
-        rhs = -(L[inner][:, loop] @ uv[loop])
+        rhs = -(L[inner][:, ring] @ uv[ring])
         uv[inner] = factorize(L[inner][:, inner], backend,
                               assume_symmetric=True).solve(rhs)
-    F = topology.faces
     e1, e2 = uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]]
-    area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
-    if area < 0:  # the loop ran clockwise: mirror
-        uv[:, 1] *= -1
-        area = -area
-    target = triangle_areas(face_edge_lengths(topology, lengths)).sum()
-    return uv * np.sqrt(target / area) if area > 0 else None
+    components = topology.n_components
+    area = 0.5 * np.bincount(topology.face_component, e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0],
+                             components)
+    mirrored = area < 0  # the loop ran clockwise: mirror
+    uv[mirrored[topology.vertex_component], 1] *= -1
+    area = np.abs(area)
+    if (area[with_faces] <= 0).any():
+        return None
+    target = np.bincount(topology.face_component,
+                         triangle_areas(face_edge_lengths(topology, lengths)), components)
+    scale = np.sqrt(np.divide(target, area, out=np.zeros(components), where=area > 0))
+    return uv * scale[topology.vertex_component][:, None]
 
 
 def local_global_flattening(topology: MeshTopology, lengths: np.ndarray, uv: np.ndarray,
@@ -93,8 +120,11 @@ def local_global_flattening(topology: MeshTopology, lengths: np.ndarray, uv: np.
     n = topology.n_vertices
     layouts = triangle_layouts(face_edge_lengths(topology, lengths), check=False)  # (m, 3, 2)
     w = np.abs(half_cotangents(face_edge_lengths(topology, lengths)))     # (m, 3), edge k
-    w = np.minimum(w, 1e4 * np.median(w))  # zero-area faces: huge, not dominant, weights
-    w = np.maximum(w, 1e-3 * w.mean())
+    # Each component's weights clamped by its own median and mean (zero-area faces: huge,
+    # not dominant, weights), so that components flattened together fit as they would alone.
+    component = np.repeat(topology.face_component, 3).reshape(w.shape)
+    w = np.minimum(w, 1e4 * _group_median(w, component)[component])
+    w = np.maximum(w, 1e-3 * _group_mean(w, component)[component])
     tail, head = F, np.roll(F, -1, axis=1)                                 # half-edge k
     rest = np.roll(layouts, -1, axis=1) - layouts                          # (m, 3, 2)
     rows = np.concatenate([tail.ravel(), head.ravel(), tail.ravel(), head.ravel()])
@@ -102,7 +132,8 @@ def local_global_flattening(topology: MeshTopology, lengths: np.ndarray, uv: np.
     vals = np.concatenate([-w.ravel(), -w.ravel(), w.ravel(), w.ravel()])
     L = sp.coo_array((vals, (rows, cols)), shape=(n, n)).tocsr()
     pinned = np.zeros(n, dtype=bool)
-    pinned[F[0, 0]] = True
+    _, first_face = np.unique(topology.face_component, return_index=True)
+    pinned[F[first_face, 0]] = True                  # one vertex of each component
     pinned |= ~topology.is_referenced
     free = np.flatnonzero(~pinned)
     factor = factorize(L[free][:, free], backend, assume_symmetric=True)
@@ -121,6 +152,28 @@ def local_global_flattening(topology: MeshTopology, lengths: np.ndarray, uv: np.
                       for d in range(2)], axis=1)
         uv[free] = factor.solve(b[free] - coupling @ uv[pinned])
     return uv
+
+
+def _group_median(values: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """(groups,) the median of ``values`` in each group (``np.median``'s, per group; 0 for a
+    group without values)."""
+    values, group = values.ravel(), group.ravel()
+    order = np.lexsort((values, group))
+    count = np.bincount(group)
+    first = np.cumsum(count) - count
+    low = first + np.maximum(count - 1, 0) // 2
+    high = first + count // 2
+    ordered = values[order]
+    median = np.zeros(len(count))
+    has = count > 0
+    median[has] = 0.5 * (ordered[low[has]] + ordered[np.minimum(high[has], len(ordered) - 1)])
+    return median
+
+
+def _group_mean(values: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """(groups,) the mean of ``values`` in each group (0 for a group without values)."""
+    count = np.bincount(group.ravel())
+    return np.bincount(group.ravel(), values.ravel()) / np.maximum(count, 1)
 
 
 @dataclass
@@ -192,8 +245,11 @@ def flatten_chart(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
 
 def refine_chart(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
                  opts: ParameterizeOptions, stages: Stages, linear: ChartFlattening,
-                 progress: Progress | None = None) -> ChartFlattening:
-    """The planar refinement of :func:`flatten_chart`'s linear answer ``linear``."""
+                 progress: Progress | None = None,
+                 start: tuple[np.ndarray, str] | None = None) -> ChartFlattening:
+    """The planar refinement of :func:`flatten_chart`'s linear answer ``linear``, begun at
+    ``start`` ((n, 2) uv and its name for the report) when given, else at local/global steps
+    from a Tutte embedding computed here."""
     backend = opts.backend or "auto"
     uv = linear.uv
     refiner = Refiner(FormTargets(topology, lengths, np.zeros_like(lengths),
@@ -205,21 +261,28 @@ def refine_chart(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
         # Start from local/global steps begun at a Tutte embedding (robust under large
         # distortion: bumpy-plane 0 flips against 4-146 from the folded linear answer,
         # docs/refinement.md), or from the linear answer where there is no Tutte
-        # embedding (several components).
-        tutte = tutte_embedding(V, topology, lengths, backend)
-        start, name = uv, "linear answer"
-        if tutte is not None:
-            start = local_global_flattening(topology, lengths, tutte, backend=backend)
-            name = "local/global from Tutte"
+        # embedding (a component without boundary).
+        if start is None:
+            start = _tutte_start(V, topology, lengths, backend) or (uv, "linear answer")
         refiner.expect_refresh(stages.timings.get("factorize", 0.0))
-        fit = refiner.run(start, time_limit=stages.left(opts.max_seconds),
+        fit = refiner.run(start[0], time_limit=stages.left(opts.max_seconds),
                           progress=progress)
-        uv, refinement = fit.vertices, dict(fit.report, start=name)
+        uv, refinement = fit.vertices, dict(fit.report, start=start[1])
         uv, refinement = _push_flips_back(topology, lengths, opts, stages, uv, refinement)
         stages.lap("refine")
         stages("refine", 1.0)
     return ChartFlattening(uv, linear.backend, linear.analysis, linear.planarity, refinement,
                            linear.anchored)
+
+
+def _tutte_start(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray, backend: str,
+                 ) -> tuple[np.ndarray, str] | None:
+    """Local/global steps from a Tutte embedding, named, or None without one."""
+    tutte = tutte_embedding(V, topology, lengths, backend)
+    if tutte is None:
+        return None
+    return (local_global_flattening(topology, lengths, tutte, backend=backend),
+            "local/global from Tutte")
 
 
 def _push_flips_back(topology: MeshTopology, lengths: np.ndarray, opts: ParameterizeOptions,

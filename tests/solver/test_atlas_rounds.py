@@ -1,0 +1,106 @@
+"""The atlas's charts are flattened in rounds (solver.atlas.chart_layouts): the linear
+flattening and the refinement's start solved once for the disjoint union of the charts
+waiting, each chart then refined and checked alone. Checked against each chart flattened
+alone by the per-chart path (solver.atlas._flatten_or_none, which solves one chart's own
+system): the same layout up to a rigid motion, on several meshes; and the union's Tutte
+embedding and local/global fit against each component's own."""
+
+import numpy as np
+import pytest
+
+from solver.atlas import _flatten_or_none, chart_layouts, chart_options
+from solver.chart_flattening import local_global_flattening, tutte_embedding
+from solver.mesh.charts import chart_mesh
+from solver.mesh.forms import fundamental_forms
+from solver.mesh.topology import build_topology
+from solver.options import ParameterizeOptions
+from solver.reports import Stages
+from tests.helpers.atlas import genus_two
+from tests.helpers.meshes import holed, icosphere, load
+
+MESHES = {
+    "knight": lambda: load("decimated-knight.off"),
+    "torus": lambda: load("torus.off"),
+    "slab (genus 2)": genus_two,
+    "octopus with holes": lambda: holed(*load("octopus-low-surface.off"), [5, 100, 300]),
+    "sphere": lambda: icosphere(2),
+}
+
+
+def _rigid_gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest distance between ``a`` and ``b`` (n, 2) after the best rotation and shift of
+    ``a`` (no reflection), relative to ``b``'s extent."""
+    A, B = a - a.mean(axis=0), b - b.mean(axis=0)
+    U, _, Vt = np.linalg.svd(A.T @ B)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        return float("inf")
+    return float(np.abs(A @ R - B).max() / np.ptp(B, axis=0).max())
+
+
+def _lengths(V: np.ndarray, topology) -> np.ndarray:
+    return np.linalg.norm(V[topology.edges[:, 1]] - V[topology.edges[:, 0]], axis=1)
+
+
+@pytest.mark.parametrize("name", list(MESHES))
+def test_each_chart_is_flattened_as_it_would_be_alone(name):
+    V, F = MESHES[name]()
+    topology = build_topology(F, n_vertices=len(V))
+    forms = fundamental_forms(V, F)
+    opts = ParameterizeOptions()
+    charts = chart_layouts(V, topology, forms.angles, opts, Stages(None))
+    assert sorted(np.concatenate([c.mesh.face_ids for c in charts]).tolist()) == list(
+        range(len(F)))
+    several = [c for c in charts if len(c.mesh.face_ids) > 1]
+    assert len(several) >= 2
+    for chart in several:
+        alone = _flatten_or_none(V[chart.mesh.vertex_ids], chart.mesh.faces,
+                                 chart_options(opts, len(chart.mesh.face_ids)), Stages(None),
+                                 out_of_time=False)
+        assert alone is not None, "a chart kept in a round fails alone"
+        assert _rigid_gap(chart.flattening.uv, alone.uv) < 1e-6
+        assert (chart.flattening.refinement.get("iterations")
+                == alone.refinement.get("iterations"))
+
+
+def test_the_union_start_is_each_components_own():
+    """Tutte's embedding and the local/global fit of three disjoint charts (different sizes
+    and scales, one with a sliver) against each chart's alone: equal to rounding."""
+    pieces = []
+    for V, F in (load("face.off"), holed(*icosphere(3), [0]), holed(*load("torus.off"), [7])):
+        pieces.append((V, F))
+    pieces[1] = (pieces[1][0] * 1e3, pieces[1][1])                     # another scale
+    V0, F0 = pieces[0]
+    V0 = V0.copy()
+    V0[F0[10, 2]] = 0.5 * (V0[F0[10, 0]] + V0[F0[10, 1]]) + 1e-9       # a near-zero-area face
+    pieces[0] = (V0, F0)
+    # only the disk-like part of the holed torus has a Tutte embedding; keep disks
+    disks = []
+    for V, F in pieces:
+        topology = build_topology(F, n_vertices=len(V))
+        if tutte_embedding(V, topology, _lengths(V, topology)) is not None:
+            disks.append((V, F, topology))
+    assert len(disks) >= 2
+    offsets = np.cumsum([0] + [len(V) for V, _, _ in disks])
+    UV = np.concatenate([V for V, _, _ in disks])
+    UF = np.concatenate([F + offsets[k] for k, (_, F, _) in enumerate(disks)])
+    union = build_topology(UF, n_vertices=len(UV))
+    lengths = _lengths(UV, union)
+    together = tutte_embedding(UV, union, lengths)
+    fitted = local_global_flattening(union, lengths, together)
+    for k, (V, F, topology) in enumerate(disks):
+        rows = slice(offsets[k], offsets[k + 1])
+        own = tutte_embedding(V, topology, _lengths(V, topology))
+        scale = np.ptp(own, axis=0).max()
+        np.testing.assert_allclose(together[rows], own, rtol=0, atol=1e-9 * scale)
+        own_fit = local_global_flattening(topology, _lengths(V, topology), own)
+        assert _rigid_gap(fitted[rows], own_fit) < 1e-8
+
+
+def test_a_closed_component_has_no_tutte_embedding():
+    V1, F1 = load("face.off")
+    V2, F2 = icosphere(1)
+    V = np.concatenate([V1, V2])
+    F = np.concatenate([F1, F2 + len(V1)])
+    topology = build_topology(F, n_vertices=len(V))
+    assert tutte_embedding(V, topology, _lengths(V, topology)) is None

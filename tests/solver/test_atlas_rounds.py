@@ -10,7 +10,6 @@ import pytest
 
 from solver.atlas import _flatten_or_none, chart_layouts, chart_options
 from solver.chart_flattening import local_global_flattening, tutte_embedding
-from solver.mesh.charts import chart_mesh
 from solver.mesh.forms import fundamental_forms
 from solver.mesh.topology import build_topology
 from solver.options import ParameterizeOptions
@@ -66,9 +65,7 @@ def test_each_chart_is_flattened_as_it_would_be_alone(name):
 def test_the_union_start_is_each_components_own():
     """Tutte's embedding and the local/global fit of three disjoint charts (different sizes
     and scales, one with a sliver) against each chart's alone: equal to rounding."""
-    pieces = []
-    for V, F in (load("face.off"), holed(*icosphere(3), [0]), holed(*load("torus.off"), [7])):
-        pieces.append((V, F))
+    pieces = [load("face.off"), holed(*icosphere(3), [0]), holed(*load("torus.off"), [7])]
     pieces[1] = (pieces[1][0] * 1e3, pieces[1][1])                     # another scale
     V0, F0 = pieces[0]
     V0 = V0.copy()
@@ -88,7 +85,7 @@ def test_the_union_start_is_each_components_own():
     lengths = _lengths(UV, union)
     together = tutte_embedding(UV, union, lengths)
     fitted = local_global_flattening(union, lengths, together)
-    for k, (V, F, topology) in enumerate(disks):
+    for k, (V, _, topology) in enumerate(disks):
         rows = slice(offsets[k], offsets[k + 1])
         own = tutte_embedding(V, topology, _lengths(V, topology))
         scale = np.ptp(own, axis=0).max()
@@ -104,3 +101,27 @@ def test_a_closed_component_has_no_tutte_embedding():
     F = np.concatenate([F1, F2 + len(V1)])
     topology = build_topology(F, n_vertices=len(V))
     assert tutte_embedding(V, topology, _lengths(V, topology)) is None
+
+
+@pytest.mark.parametrize("name", ["knight", "octopus with holes"])
+def test_a_charts_graph_is_the_dual_graph_restricted_to_it(name):
+    """The chart's dual graph, read from its faces' entries, against the whole mesh's dual
+    graph (every interior edge's two faces and cost) restricted to the chart's faces."""
+    import scipy.sparse as sp
+
+    from solver.mesh.charts import _local_graph, dual_graph
+
+    V, F = MESHES[name]()
+    topology = build_topology(F, n_vertices=len(V))
+    graph = dual_graph(V, topology, fundamental_forms(V, F).angles, 4.0)
+    m = len(F)
+    a, b = graph.edge_faces.T
+    whole = sp.coo_array((np.concatenate([graph.cost, graph.cost]),
+                          (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(m, m)).tocsr()
+    rng = np.random.default_rng(7)
+    for size in (1, 2, 40, m // 3, m):
+        ids = np.sort(rng.choice(m, size=size, replace=False))
+        local = _local_graph(graph, ids, m)
+        expected = whole[ids][:, ids]
+        assert local.shape == expected.shape and (local != expected).nnz == 0
+        assert local.nnz == expected.nnz

@@ -8,6 +8,7 @@ charts' layouts over uv indices of their own (a seam vertex once per chart).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -82,6 +83,14 @@ def chart_layouts(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
     quiet = Stages(None)
     done: list[ChartLayout] = []
     placed = 0
+
+    def keep(chart: ChartLayout) -> None:
+        """Accept a chart; progress: the fraction of faces placed, chart by chart."""
+        nonlocal placed
+        done.append(chart)
+        placed += len(chart.mesh.face_ids)
+        stages("charts", placed / m)
+
     while queue:
         if _out_of_time(stages, opts):
             ids = queue.pop()
@@ -89,15 +98,14 @@ def chart_layouts(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
             flattening = _flatten_or_none(V[chart.vertex_ids], chart.faces,
                                           chart_options(opts, len(ids)), quiet,
                                           out_of_time=True)
-            kept, failed = ([ChartLayout(chart, flattening)], []) if flattening else ([], [ids])
+            failed = [ids] if flattening is None else []
+            if flattening is not None:
+                keep(ChartLayout(chart, flattening))
         else:
-            kept, failed = _flatten_round(V, faces, queue, opts, quiet)
+            failed = _flatten_round(V, faces, queue, opts, quiet, keep)
             queue = []
         for ids in failed:
             queue.extend(bisect(graph, ids, m))
-        done.extend(kept)
-        placed += sum(len(chart.mesh.face_ids) for chart in kept)
-        stages("charts", placed / m)
     for stage, seconds in quiet.timings.items():
         stages.timings[stage] = stages.timings.get(stage, 0.0) + seconds
     return done
@@ -155,15 +163,15 @@ class _Union:
 
 def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
                    opts: ParameterizeOptions, stages: Stages,
-                   ) -> tuple[list[ChartLayout], list[np.ndarray]]:
+                   keep: Callable[[ChartLayout], None]) -> list[np.ndarray]:
     """Flatten the charts ``queue`` (each (k,) mesh face indices) as :func:`_flatten_or_none`
     flattens each, with the solves that need no iteration done for all at once: one linear
     flattening of their union (the quick check: within twice ``opts.max_chart_distortion``)
     and one Tutte embedding and local/global fit of the union of those that pass (the
     refinement's start). Each chart is then refined and checked alone, so its stopping rules
-    and checks are its own. Returns the accepted charts and the face sets to bisect."""
+    and checks are its own. Each accepted chart is handed to ``keep`` as soon as it is;
+    returns the face sets to bisect."""
     meshes = [chart_mesh(faces, ids) for ids in queue]
-    kept: list[ChartLayout] = []
     failed: list[np.ndarray] = []
     several = []
     for ids, chart in zip(queue, meshes, strict=True):
@@ -171,14 +179,14 @@ def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
             one = _flatten_or_none(V[chart.vertex_ids], chart.faces, opts, stages,
                                    out_of_time=False)
             assert one is not None  # a single face is always kept
-            kept.append(ChartLayout(chart, one))
+            keep(ChartLayout(chart, one))
         else:
             several.append((ids, chart))
     several, rejected = _split(several, _Union.of(V, [c for _, c in several]).disk_like()
                                if several else np.zeros(0, dtype=bool))
     failed += rejected
     if not several:
-        return kept, failed
+        return failed
     union = _Union.of(V, [chart for _, chart in several])
     options = chart_options(opts, len(union.topology.faces))
     quick = flatten_chart(union.vertices, union.topology, union.lengths, options, stages,
@@ -188,7 +196,7 @@ def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
     several, rejected = _split(several, close)
     failed += rejected
     if not several:
-        return kept, failed
+        return failed
     starts: dict[int, tuple[np.ndarray, str]] = {}
     if opts.refine is not False:
         starts = _starts(V, several, linear, options)
@@ -201,10 +209,10 @@ def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
                                       chart_options(opts, len(ids)), stages, flattening,
                                       start=starts.get(k))
         if _acceptable(Vc, flattening.uv, topology, opts.max_chart_distortion):
-            kept.append(ChartLayout(chart, flattening))
+            keep(ChartLayout(chart, flattening))
         else:
             failed.append(ids)
-    return kept, failed
+    return failed
 
 
 def _split(pairs: list[Any], keep: np.ndarray) -> tuple[list[Any], list[np.ndarray]]:

@@ -5,6 +5,8 @@ alone by the per-chart path (solver.atlas._flatten_or_none, which solves one cha
 system): the same layout up to a rigid motion, on several meshes; and the union's Tutte
 embedding and local/global fit against each component's own."""
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -125,3 +127,25 @@ def test_a_charts_graph_is_the_dual_graph_restricted_to_it(name):
         expected = whole[ids][:, ids]
         assert local.shape == expected.shape and (local != expected).nnz == 0
         assert local.nnz == expected.nnz
+
+
+def test_progress_counts_the_faces_placed_chart_by_chart():
+    """``progress("charts", fraction)`` rises as each chart is accepted (not once a round):
+    one report per chart of the atlas kept, never falling, the last 1 (every face placed)."""
+    from solver import parameterize
+
+    V, F = MESHES["octopus with holes"]()
+    reports: list[tuple[str, float]] = []
+    result = parameterize(V, F, progress=lambda stage, fraction: reports.append(
+        (stage, fraction)))
+    charts = [fraction for stage, fraction in reports if stage == "charts"]
+    assert charts and charts[-1] == pytest.approx(1.0)
+    rounds = [0] + [k for k in range(1, len(charts)) if charts[k] < charts[k - 1]]
+    # the xatlas-seeded atlas, then (packing below AtlasRules.rechart_below) the bisection's
+    assert len(rounds) <= 2
+    segments = [charts[a:b] for a, b in itertools.pairwise([*rounds, len(charts)])]
+    for segment in segments:
+        assert all(b > a for a, b in itertools.pairwise(segment))
+        assert segment[-1] == pytest.approx(1.0)
+    # the atlas kept (the one that packs better) had one report per chart
+    assert result.report["atlas"]["charts"] in [len(segment) for segment in segments]

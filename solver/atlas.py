@@ -22,12 +22,14 @@ from .chart_flattening import (
     refine_chart,
     relative_length_change,
     tutte_embedding,
+    uv_edges,
 )
 from .mesh.charts import (
     ChartMesh,
     bisect,
     chart_mesh,
     connected_face_sets,
+    disk_like_components,
     dual_graph,
     is_disk_like,
     labelled_face_sets,
@@ -114,8 +116,10 @@ def chart_layouts(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,
 @dataclass
 class _Union:
     """Charts as one mesh: their vertices and faces concatenated (chart ``k``'s vertex ``i``
-    is ``offsets[k] + i``), its topology and edge lengths."""
+    is ``offsets[k] + i``), its topology and edge lengths; ``source`` the mesh's (n, 3)
+    vertices the charts index."""
 
+    source: np.ndarray
     charts: list[ChartMesh]
     vertices: np.ndarray
     topology: MeshTopology
@@ -130,7 +134,7 @@ class _Union:
         vertices = V[np.concatenate([chart.vertex_ids for chart in charts])]
         faces = np.concatenate([chart.faces + offsets[k] for k, chart in enumerate(charts)])
         topology = build_topology(faces, n_vertices=len(vertices))
-        return cls(charts, vertices, topology, _lengths(vertices, topology), offsets,
+        return cls(V, charts, vertices, topology, _lengths(vertices, topology), offsets,
                    np.repeat(np.arange(len(charts)), sizes))
 
     def part(self, uv: np.ndarray, k: int) -> np.ndarray:
@@ -138,27 +142,29 @@ class _Union:
         return np.array(uv[self.offsets[k]:self.offsets[k + 1]])
 
     def disk_like(self) -> np.ndarray:
-        """(charts,) bool: each chart one component with a boundary and genus 0."""
+        """(charts,) bool: each chart :func:`~solver.mesh.charts.is_disk_like` (a chart is
+        one component of the union)."""
         t = self.topology
-        count = len(self.charts)
-        used = np.bincount(self.vertex_chart, minlength=count)  # a chart uses its vertices
-        comp_chart = np.zeros(t.n_components, dtype=np.int64)
-        comp_chart[t.vertex_component] = self.vertex_chart
-        n_components = np.bincount(comp_chart, minlength=count)
-        loops = np.bincount(comp_chart[t.boundary_loop_component], minlength=count)
-        edges = np.bincount(self.vertex_chart[t.edges[:, 0]], minlength=count)
-        face_count = np.bincount(self.vertex_chart[t.faces[:, 0]], minlength=count)
-        euler = used - edges + face_count
-        return (n_components == 1) & (loops > 0) & (euler == 2 - loops)
+        return disk_like_components(t)[t.vertex_component[self.offsets[:-1]]]
 
-    def mean_length_change(self, uv: np.ndarray) -> np.ndarray:
-        """(charts,) each chart's :func:`mean_length_change` of ``uv``."""
-        edges = self.topology.edges
-        change = np.abs(np.linalg.norm(uv[edges[:, 1]] - uv[edges[:, 0]], axis=1)
-                        / self.lengths - 1.0)
-        chart = self.vertex_chart[edges[:, 0]]
+    def length_change(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(charts,) each chart's mean and (charts,) largest absolute relative edge-length
+        change of ``uv`` (:func:`mean_length_change`, over its edges)."""
+        faces = self.topology.faces
+        change = np.abs(relative_length_change(self.vertices, uv, faces,
+                                               np.arange(len(self.vertices))))
+        chart = self.vertex_chart[uv_edges(faces)[:, 0]]
         count = len(self.charts)
-        return np.bincount(chart, change, count) / np.bincount(chart, minlength=count)
+        largest = np.zeros(count)
+        np.maximum.at(largest, chart, change)
+        return np.bincount(chart, change, count) / np.bincount(chart, minlength=count), largest
+
+    def narrowed(self, keep: np.ndarray) -> _Union:
+        """The union of the charts where ``keep`` (this union itself when that is all)."""
+        if keep.all():
+            return self
+        return _Union.of(self.source,
+                         [chart for chart, ok in zip(self.charts, keep, strict=True) if ok])
 
 
 def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
@@ -171,10 +177,10 @@ def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
     refinement's start). Each chart is then refined and checked alone, so its stopping rules
     and checks are its own. Each accepted chart is handed to ``keep`` as soon as it is;
     returns the face sets to bisect."""
-    meshes = [chart_mesh(faces, ids) for ids in queue]
     failed: list[np.ndarray] = []
     several = []
-    for ids, chart in zip(queue, meshes, strict=True):
+    for ids in queue:
+        chart = chart_mesh(faces, ids)
         if len(ids) == 1:
             one = _flatten_or_none(V[chart.vertex_ids], chart.faces, opts, stages,
                                    out_of_time=False)
@@ -182,16 +188,20 @@ def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
             keep(ChartLayout(chart, one))
         else:
             several.append((ids, chart))
-    several, rejected = _split(several, _Union.of(V, [c for _, c in several]).disk_like()
-                               if several else np.zeros(0, dtype=bool))
-    failed += rejected
     if not several:
         return failed
     union = _Union.of(V, [chart for _, chart in several])
+    disk = union.disk_like()
+    several, rejected = _split(several, disk)
+    failed += rejected
+    if not several:
+        return failed
+    union = union.narrowed(disk)
     options = chart_options(opts, len(union.topology.faces))
     quick = flatten_chart(union.vertices, union.topology, union.lengths, options, stages,
                           refine=False)
-    close = union.mean_length_change(quick.uv) <= 2 * opts.max_chart_distortion
+    mean, largest = union.length_change(quick.uv)
+    close = mean <= 2 * opts.max_chart_distortion
     linear = [union.part(quick.uv, k) for k in np.flatnonzero(close)]
     several, rejected = _split(several, close)
     failed += rejected
@@ -199,7 +209,7 @@ def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
         return failed
     starts: dict[int, tuple[np.ndarray, str]] = {}
     if opts.refine is not False:
-        starts = _starts(V, several, linear, options)
+        starts = _starts(union.narrowed(close), largest[close] > FORMS_TOLERANCE, options)
     for k, (ids, chart) in enumerate(several):
         Vc = V[chart.vertex_ids]
         topology = build_topology(chart.faces, n_vertices=len(Vc))
@@ -221,30 +231,23 @@ def _split(pairs: list[Any], keep: np.ndarray) -> tuple[list[Any], list[np.ndarr
             [pair[0] for pair, ok in zip(pairs, keep, strict=True) if not ok])
 
 
-def _starts(V: np.ndarray, pairs: list[Any], linear: list[np.ndarray],
-            opts: ParameterizeOptions) -> dict[int, tuple[np.ndarray, str]]:
-    """The refinement's start of each chart (by its index in ``pairs``) whose linear
-    flattening ``linear[k]`` does not already keep its edge lengths, as
+def _starts(union: _Union, needed: np.ndarray, opts: ParameterizeOptions,
+            ) -> dict[int, tuple[np.ndarray, str]]:
+    """The refinement's start of each chart of ``union`` (by its index) where ``needed``
+    (its linear flattening does not already keep its edge lengths), as
     :func:`solver.chart_flattening.refine_chart` would make it (local/global steps from a
     Tutte embedding), for all of them by one solve of each; {} without a Tutte embedding
     (refine_chart then starts each chart its own way)."""
-    kept = [k for k, (_, chart) in enumerate(pairs)
-            if _length_error(V[chart.vertex_ids], linear[k], chart.faces) > FORMS_TOLERANCE]
-    if not kept:
+    if not needed.any():
         return {}
-    union = _Union.of(V, [pairs[k][1] for k in kept])
+    union = union.narrowed(needed)
     backend = opts.backend or "auto"
     tutte = tutte_embedding(union.vertices, union.topology, union.lengths, backend)
     if tutte is None:
         return {}
     fitted = local_global_flattening(union.topology, union.lengths, tutte, backend=backend)
-    return {k: (union.part(fitted, i), "local/global from Tutte") for i, k in enumerate(kept)}
-
-
-def _length_error(V: np.ndarray, uv: np.ndarray, faces: np.ndarray) -> float:
-    """The largest relative edge-length change of ``uv`` against ``V`` (0 for no edges)."""
-    return float(np.abs(relative_length_change(V, uv, faces, np.arange(len(V)))).max(
-        initial=0.0))
+    return {int(k): (union.part(fitted, i), "local/global from Tutte")
+            for i, k in enumerate(np.flatnonzero(needed))}
 
 
 def _part(flattening: ChartFlattening, uv: np.ndarray) -> ChartFlattening:

@@ -184,11 +184,20 @@ def chart_mesh(faces: np.ndarray, face_ids: np.ndarray) -> ChartMesh:
 
 def is_disk_like(topology: MeshTopology) -> bool:
     """One component with a boundary and genus 0 (a disk, possibly with holes)."""
-    if topology.n_components != 1 or not topology.boundary_loops:
-        return False
-    used = int(topology.is_referenced.sum())
-    euler = used - topology.n_edges + topology.n_faces
-    return euler == 2 - len(topology.boundary_loops)
+    return topology.n_components == 1 and bool(disk_like_components(topology)[0])
+
+
+def disk_like_components(topology: MeshTopology) -> np.ndarray:
+    """(components,) bool: each component has a boundary and genus 0 (Euler characteristic
+    2 - b over its used vertices, edges and faces; b its boundary loops). A component without
+    faces (an unused vertex) is not disk-like."""
+    count = topology.n_components
+    used = np.bincount(topology.vertex_component[topology.is_referenced], minlength=count)
+    edges = np.bincount(topology.vertex_component[topology.edges[:, 0]], minlength=count)
+    faces = np.bincount(topology.face_component, minlength=count)
+    loops = np.bincount(np.asarray(topology.boundary_loop_component, dtype=np.int64),
+                        minlength=count)
+    return (loops > 0) & (used - edges + faces == 2 - loops)
 
 
 def seam_edges(topology: MeshTopology, face_chart: np.ndarray) -> np.ndarray:
@@ -239,5 +248,5 @@ def labelled_face_sets(graph: DualGraph, label: np.ndarray) -> list[np.ndarray]:
 
 
 __all__ = ["ChartMesh", "DualGraph", "bisect", "chart_mesh", "connected_face_sets",
-           "dual_graph", "is_disk_like", "labelled_face_sets", "seam_edges",
+           "disk_like_components", "dual_graph", "is_disk_like", "labelled_face_sets", "seam_edges",
            "xatlas_charts"]

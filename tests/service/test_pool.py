@@ -170,7 +170,8 @@ def test_a_worker_starts_with_the_file_readers_imported():
               "before = 'trimesh' in sys.modules\n"
               "runtime.initialize_worker(1)\n"
               "print(before, 'trimesh' in sys.modules)\n")
+    from tests.helpers import REPO
+
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         check=True, cwd=os.path.dirname(os.path.dirname(os.path.dirname(
-                             os.path.abspath(__file__))))).stdout.split()
+                         check=True, cwd=REPO).stdout.split()
     assert out == ["False", "True"]

@@ -19,10 +19,11 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from service.backends.loops import post_threadsafe
+from solver.mesh.io import READER_MODULES
 
-PRELOAD = ["service.operations", "trimesh"]
-"""Modules the forkserver imports once, so that each new worker starts warm (trimesh: the
-file readers defer it, :func:`solver.mesh.io.import_readers`)."""
+PRELOAD = ["service.operations", *READER_MODULES]
+"""Modules the forkserver imports once, so that each new worker starts warm (the file
+readers' deferred imports, :data:`solver.mesh.io.READER_MODULES`)."""
 
 Message = tuple[Any, ...]
 

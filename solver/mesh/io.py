@@ -49,6 +49,7 @@ All parse failures raise :class:`~solver.core.errors.MeshFileError` (a
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import re
@@ -118,8 +119,13 @@ class LoadedMesh:
                 "triangles": len(self.faces)}
 
 
+READER_MODULES: tuple[str, ...] = ("trimesh",)
+"""The modules the readers import only when first needed (trimesh: PLY, STL, GLB and glTF;
+~0.4 s): :func:`import_readers` imports them, and a service's process pool preloads them."""
+
+
 def import_readers() -> None:
-    """Import what the readers defer (trimesh: PLY, STL, GLB and glTF; ~0.4 s) now.
+    """Import what the readers defer (:data:`READER_MODULES`) now.
 
     A long-lived process that reads files, such as a service worker, calls this once at
     start, so the first file it reads does not pay the import within that request's time.
@@ -130,7 +136,8 @@ def import_readers() -> None:
         >>> "trimesh" in sys.modules
         True
     """
-    import trimesh  # noqa: F401
+    for module in READER_MODULES:
+        importlib.import_module(module)
 
 
 def load_mesh(data: bytes, filename_or_type: str) -> tuple[NDArray[np.float64], NDArray[np.int64]]:

@@ -24,9 +24,11 @@ from tests.helpers.service import forms_json, problem
 
 
 @contextlib.contextmanager
-def _service(port: int, log_name: str) -> Iterator[subprocess.Popen[bytes]]:
-    """``python -m service`` on ``port``; killed (its process group) if the test fails."""
-    env = {**os.environ, "FFS_PORT": str(port), "FFS_WORKERS": "2", "PYTHONUNBUFFERED": "1"}
+def _service(port: int, log_name: str, **env_vars: str) -> Iterator[subprocess.Popen[bytes]]:
+    """``python -m service`` on ``port`` (``env_vars`` added to its environment); killed (its
+    process group) if the test fails."""
+    env = {**os.environ, "FFS_PORT": str(port), "FFS_WORKERS": "2", "PYTHONUNBUFFERED": "1",
+           **env_vars}
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
     logs = REPO / "tests" / "artifacts"
     logs.mkdir(parents=True, exist_ok=True)
@@ -89,3 +91,14 @@ def test_sigterm_during_a_job_ends_every_process_and_the_job_is_lost_after_a_res
         for method in ("DELETE",):
             problem(httpx.request(method, base + location), 410, "job-lost")
         problem(httpx.get(base + location + "/result"), 410, "job-lost")
+
+
+def test_sigterm_exits_with_status_0_and_leaves_no_temporary_folder(tmp_path):
+    """uvicorn raises the SIGTERM it caught again after its graceful shutdown; a death by it
+    skipped the interpreter's exit handlers and left multiprocessing's forkserver socket
+    folder (``pymp-*``) in the temporary folder at every stop of the service."""
+    with _service(free_port(), "shutdown-tmpdir.log", TMPDIR=str(tmp_path)) as proc:
+        assert [p.name for p in tmp_path.glob("pymp-*")], "the forkserver made no folder"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(15) == 0
+    assert list(tmp_path.iterdir()) == []

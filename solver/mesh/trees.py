@@ -97,29 +97,69 @@ def spanning_forest(n_nodes: int, links: np.ndarray, roots: np.ndarray | None = 
                           levels=levels)
 
 
+ROW_PROBE_LIMIT = 16
+"""Rows of at most this many entries are probed entry by entry by :func:`_row_lookup`;
+longer ones (a virtual vertex joined to every boundary vertex: as many entries as the
+boundary has vertices) are searched by sorting their entries, since probing takes as many
+steps as the longest row and, on such a row, time quadratic in its length."""
+
+
 def _row_lookup(full: sp.csr_matrix, nodes: np.ndarray, parents: np.ndarray,
                 n_nodes: int) -> np.ndarray:
     """(k,) int64 link of each of ``nodes`` to its parent (-1 elsewhere): the entry of the
-    pair in ``full`` (links + 1 as values, no duplicates, one direction each), probed
-    along row ``node`` for column ``parent``, then along row ``parent`` for the rest (as
-    many steps as the longest row)."""
+    pair in ``full`` (links + 1 as values, no duplicates, one direction each), looked up
+    in row ``node`` for column ``parent``, then in row ``parent`` for the rest; rows of at
+    most :data:`ROW_PROBE_LIMIT` entries probed (as many steps as the longest of them),
+    longer rows searched (:func:`_search_rows`)."""
     parent_link = np.full(n_nodes, -1, dtype=np.int64)
+    row_length = np.diff(full.indptr)
     rest = np.arange(len(nodes))
     for rows, columns in ((nodes, parents), (parents, nodes)):
-        position = full.indptr[rows[rest]].astype(np.int64)
-        end = full.indptr[rows[rest] + 1]
-        probing = np.arange(len(rest))
-        while len(probing):
-            at = position[probing]
-            inside = at < end[probing]
-            hit = inside.copy()
-            hit[inside] = full.indices[at[inside]] == columns[rest[probing[inside]]]
-            found = probing[hit]
-            parent_link[nodes[rest[found]]] = full.data[position[found]].astype(np.int64) - 1
-            probing = probing[inside & ~hit]
-            position[probing] += 1
+        long = row_length[rows[rest]] > ROW_PROBE_LIMIT
+        for lookup, pick in ((_probe_rows, rest[~long]), (_search_rows, rest[long])):
+            if len(pick):
+                found, link = lookup(full, rows[pick], columns[pick])
+                parent_link[nodes[pick[found]]] = link
         rest = rest[parent_link[nodes[rest]] < 0]
     return parent_link
+
+
+def _probe_rows(full: sp.csr_matrix, rows: np.ndarray, columns: np.ndarray,
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """``(found, link)``: the pairs (``rows``, ``columns``) (k,) int64 found in ``full`` (a
+    (k',) int64 index into them) and their links (``full``'s value - 1), probing each row
+    entry by entry."""
+    position = full.indptr[rows].astype(np.int64)
+    end = full.indptr[rows + 1]
+    probing = np.arange(len(rows))
+    found, link = [], []
+    while len(probing):
+        at = position[probing]
+        inside = at < end[probing]
+        hit = inside.copy()
+        hit[inside] = full.indices[at[inside]] == columns[probing[inside]]
+        found.append(probing[hit])
+        link.append(full.data[at[hit]].astype(np.int64) - 1)
+        probing = probing[inside & ~hit]
+        position[probing] += 1
+    return np.concatenate(found), np.concatenate(link)
+
+
+def _search_rows(full: sp.csr_matrix, rows: np.ndarray, columns: np.ndarray,
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """As :func:`_probe_rows`, by sorting the entries of the rows asked for (time
+    O(R log R) for their R entries, whatever their lengths)."""
+    width = full.shape[1]
+    asked = np.unique(rows)
+    starts = full.indptr[asked].astype(np.int64)
+    counts = full.indptr[asked + 1] - starts
+    positions = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
+    keys = np.repeat(asked.astype(np.int64), counts) * width + full.indices[positions]
+    order = np.argsort(keys, kind="stable")
+    wanted = rows.astype(np.int64) * width + columns
+    at = np.minimum(np.searchsorted(keys[order], wanted), max(len(keys) - 1, 0))
+    found = np.flatnonzero(keys[order][at] == wanted) if len(keys) else np.zeros(0, np.int64)
+    return found, full.data[positions[order[at[found]]]].astype(np.int64) - 1
 
 
 def _pair_lookup(links: np.ndarray, nodes: np.ndarray, parents: np.ndarray,

@@ -83,3 +83,30 @@ def test_known_components_give_the_same_forest(kind: str, k: int) -> None:
         pair = np.sort(links[forest.parent_link[nodes]], axis=1)
         np.testing.assert_array_equal(pair, np.sort(np.stack([nodes, forest.parent[nodes]], 1),
                                                     axis=1))
+
+
+@pytest.mark.parametrize("hub_first", [True, False])
+def test_hub_rows_give_each_node_a_link_to_its_parent(hub_first: bool) -> None:
+    """A virtual vertex joined to every boundary vertex (a mesh whose non-manifold cuts
+    leave most vertices on a boundary: libigl's cube_40k.obj, 56K such links) makes one row
+    of the link matrix as long as the boundary; its links are searched, not probed (a
+    probe of that row took time quadratic in its length: over 20 minutes there). Truth:
+    each non-root's parent link joins it to its parent, and the tree has one link per
+    non-root."""
+    rng = np.random.default_rng(7)
+    n, grid = _graph("grid", 4900, rng)
+    hub = n
+    boundary = rng.choice(n, size=3000, replace=False)
+    virtual = (np.stack([np.full(len(boundary), hub), boundary], 1) if hub_first
+               else np.stack([boundary, np.full(len(boundary), hub)], 1))
+    links = np.concatenate([grid, virtual, grid[:50, ::-1]])  # some parallel links too
+    cases = [(links, np.array([hub])), (links[len(grid) // 2:], None)]  # one, several parts
+    for pairs, roots in cases:
+        forest = spanning_forest(n + 1, pairs, roots=roots)
+        parent, link = forest.parent, forest.parent_link
+        is_root = parent == np.arange(n + 1)
+        nodes = np.flatnonzero(~is_root)
+        assert (link[nodes] >= 0).all() and (link[is_root] == -1).all()
+        joined = np.sort(pairs[link[nodes]], axis=1)
+        np.testing.assert_array_equal(joined, np.sort(np.stack([nodes, parent[nodes]], 1), 1))
+        assert forest.in_tree.sum() == len(nodes)

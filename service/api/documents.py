@@ -227,7 +227,9 @@ class IntegrabilityResponse(BaseModel):
 
 _REPORT_EXAMPLE = {"integrability": {"integrable": True, "max_defect": 5.2e-16,
                                      "worst_vertices": [{"vertex": 4, "defect": 5.2e-16}],
-                                     "rotation_holonomy": [], "translation_holonomy": []},
+                                     "rotation_holonomy": [], "translation_holonomy": [],
+                                     "rotation_loop_count": 0, "translation_loop_count": 0,
+                                     "failing_loop_count": 0},
                    "backend": "pardiso", "timings": {"validate": 0.002, "assemble": 0.008,
                                                      "factorize": 0.02, "solve": 0.001},
                    "warnings": []}

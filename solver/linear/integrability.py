@@ -19,6 +19,7 @@ Global: on a surface with handles or holes, loops that do not bound a disk need 
 
 from __future__ import annotations
 
+import heapq
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -51,7 +52,9 @@ from .tree_integration import (
 )
 
 WORST_COUNT = 10
-"""How many of the largest vertex defects a report lists (``worst_vertices``)."""
+"""How many of the largest vertex defects a report lists (``worst_vertices``), and of
+each kind's largest holonomy loops its summary lists (:meth:`IntegrabilityReport.summary`;
+a mesh of thousands of open parts has a loop per part)."""
 
 
 @dataclass
@@ -146,8 +149,13 @@ class IntegrabilityReport(JsonDataclass):
         Returns:
             JSON-ready dict without per-vertex arrays: the verdicts, ``max_defect``,
             ``tolerance``, the worst vertices with their defects, the count of failing
-            vertices, triangle violations, genus, component count and the global loops.
+            vertices, triangle violations, genus, component count, and of the global loops
+            the :data:`WORST_COUNT` largest of each kind (``rotation_holonomy``,
+            ``translation_holonomy``, largest magnitude first) with the counts of all
+            (``rotation_loop_count``, ``translation_loop_count``, ``failing_loop_count``;
+            the full report lists every loop).
         """
+        loops = self.rotation_holonomy + self.translation_holonomy
         return {
             "integrable": self.integrable, "local_integrable": self.local_integrable,
             "global_integrable": self.global_integrable, "max_defect": self.max_defect,
@@ -157,9 +165,20 @@ class IntegrabilityReport(JsonDataclass):
             "failing_vertex_count": len(self.failing_vertices),
             "triangle_violations": self.triangle_violations.tolist(),
             "genus": self.genus, "n_components": self.n_components,
-            "rotation_holonomy": [g.to_dict() for g in self.rotation_holonomy],
-            "translation_holonomy": [g.to_dict() for g in self.translation_holonomy],
+            "rotation_holonomy": _largest_loops(self.rotation_holonomy),
+            "translation_holonomy": _largest_loops(self.translation_holonomy),
+            "rotation_loop_count": len(self.rotation_holonomy),
+            "translation_loop_count": len(self.translation_holonomy),
+            "failing_loop_count": sum(not g.passes for g in loops),
         }
+
+
+def _largest_loops(loops: list[HolonomyLoop]) -> list[dict[str, Any]]:
+    """The :data:`WORST_COUNT` loops of largest magnitude, largest first (ties in order), as
+    dicts."""
+    largest = heapq.nlargest(WORST_COUNT, enumerate(loops),
+                             key=lambda item: (item[1].magnitude, -item[0]))
+    return [loop.to_dict() for _, loop in largest]
 
 
 def check_integrability(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,

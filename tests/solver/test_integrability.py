@@ -168,3 +168,26 @@ def test_homology_rank_counts_the_independent_loops(name, expected):
     rotations, _ = global_holonomy(energy_terms(topology, forms.lengths, forms.angles),
                                    1e-6, 1.0)
     assert len(rotations) == sum(expected)
+
+
+def test_summary_lists_the_largest_loops_of_each_kind_and_counts_them_all():
+    """Six tori side by side: 12 loops of each kind, more than a summary lists; the angles
+    of one torus are bent so that some of its loops fail. The summary's loops are the full
+    report's largest (largest first), its counts the full report's."""
+    from solver.linear.integrability import WORST_COUNT
+    from tests.helpers.meshes import side_by_side
+
+    forms = forms_of(side_by_side(*[torus_grid(10, 6)] * 6))
+    bent = np.flatnonzero(forms.faces.max(axis=1) < 60)   # faces of the first torus
+    edges = np.unique(np.sort(forms.faces[bent][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), 1), axis=0)
+    first = np.flatnonzero((forms.edges[:, None] == edges[None]).all(-1).any(1))
+    forms.angles[first] *= 0.9
+    report = check(forms)
+    summary = report.summary()
+    for kind in ("rotation", "translation"):
+        loops = getattr(report, f"{kind}_holonomy")
+        assert len(loops) == 12 > WORST_COUNT and summary[f"{kind}_loop_count"] == 12
+        listed = [g["magnitude"] for g in summary[f"{kind}_holonomy"]]
+        assert listed == sorted((g.magnitude for g in loops), reverse=True)[:WORST_COUNT]
+    failing = sum(not g.passes for g in report.rotation_holonomy + report.translation_holonomy)
+    assert summary["failing_loop_count"] == failing > 0

@@ -444,12 +444,14 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
         hol = (frames[left] @ transition_rotations(terms.transition[generators])
                @ np.swapaxes(frames[right], 1, 2))
         angles = rotation_angle(hol)
+    # Columns converted to Python lists once (a mesh of many open parts has a loop per part).
     rotation_loops = [
-        HolonomyLoop(kind="rotation", component=int(topo.face_component[lf]),
-                     edge=topo.edges[inner[g]].tolist(), faces=[int(lf), int(rf)],
-                     edge_index=int(inner[g]),
-                     angle=float(a), magnitude=float(a), passes=bool(a <= tol))
-        for g, lf, rf, a in zip(generators, left, right, angles, strict=True)]
+        HolonomyLoop(kind="rotation", component=c, edge=edge, faces=[lf, rf], edge_index=e,
+                     angle=a, magnitude=a, passes=a <= tol)
+        for c, edge, lf, rf, e, a in zip(
+            topo.face_component[left].tolist(), topo.edges[inner[generators]].tolist(),
+            left.tolist(), right.tolist(), inner[generators].tolist(), angles.tolist(),
+            strict=True)]
 
     # Translation generators: dual tree first, then a primal tree of the remaining edges.
     forests = integration_forests(terms)
@@ -462,12 +464,12 @@ def global_holonomy(terms: EnergyTerms, tol: float, mean_length: float,
     gaps = positions[i] + edge_vectors(terms, frames, closing) - positions[j]
     sizes = np.linalg.norm(gaps, axis=1) / mean_length
     translation_loops = [
-        HolonomyLoop(kind="translation", component=int(topo.vertex_component[a]),
-                     edge=[int(a), int(b)], faces=topo.edge_faces[e].tolist(),
-                     edge_index=int(e),
-                     translation=(gap * length_unit).tolist(), magnitude=float(s),
-                     passes=bool(s <= tol))
-        for e, a, b, gap, s in zip(closing, i, j, gaps, sizes, strict=True)]
+        HolonomyLoop(kind="translation", component=c, edge=edge, faces=faces, edge_index=e,
+                     translation=gap, magnitude=s, passes=s <= tol)
+        for c, edge, faces, e, gap, s in zip(
+            topo.vertex_component[i].tolist(), topo.edges[closing].tolist(),
+            topo.edge_faces[closing].tolist(), closing.tolist(),
+            (gaps * length_unit).tolist(), sizes.tolist(), strict=True)]
     return rotation_loops, translation_loops
 
 

@@ -106,16 +106,16 @@ class MeshTopology:
         f_count = np.bincount(comps, minlength=n_comp)
         e_count = np.bincount(self.vertex_component[self.edges[:, 0]], minlength=n_comp)
         b_count = np.bincount(self.boundary_loop_component, minlength=n_comp)
-        summary = []
-        for c in np.flatnonzero(f_count):
-            chi = int(v_count[c] - e_count[c] + f_count[c])
-            summary.append({
-                "component": int(c), "vertices": int(v_count[c]), "edges": int(e_count[c]),
-                "faces": int(f_count[c]), "boundary_loops": int(b_count[c]),
-                "euler_characteristic": chi, "genus": (2 - chi - int(b_count[c])) // 2,
-                "closed": bool(b_count[c] == 0),
-            })
-        return summary
+        c = np.flatnonzero(f_count)
+        chi = v_count[c] - e_count[c] + f_count[c]
+        columns = {"component": c, "vertices": v_count[c], "edges": e_count[c],
+                   "faces": f_count[c], "boundary_loops": b_count[c],
+                   "euler_characteristic": chi, "genus": (2 - chi - b_count[c]) // 2,
+                   "closed": b_count[c] == 0}
+        names = list(columns)
+        # One conversion per column (Python ints and bools), then one dict per component.
+        return [dict(zip(names, row, strict=True))
+                for row in zip(*(np.asarray(v).tolist() for v in columns.values()), strict=True)]
 
 
 def build_topology(faces: np.ndarray, n_vertices: int | None = None,

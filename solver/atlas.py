@@ -36,7 +36,7 @@ from .mesh.charts import (
     xatlas_charts,
 )
 from .mesh.forms import zero_area_faces
-from .mesh.frames import face_edge_lengths, triangle_layouts
+from .mesh.frames import triangle_layouts
 from .mesh.packing import boundary_crossings, folded, positive_loops
 from .mesh.topology import MeshTopology, build_topology
 from .options import ParameterizeOptions
@@ -178,16 +178,10 @@ def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
     and checks are its own. Each accepted chart is handed to ``keep`` as soon as it is;
     returns the face sets to bisect."""
     failed: list[np.ndarray] = []
-    several = []
-    for ids in queue:
-        chart = chart_mesh(faces, ids)
-        if len(ids) == 1:
-            one = _flatten_or_none(V[chart.vertex_ids], chart.faces, opts, stages,
-                                   out_of_time=False)
-            assert one is not None  # a single face is always kept
-            keep(ChartLayout(chart, one))
-        else:
-            several.append((ids, chart))
+    single = np.array([ids[0] for ids in queue if len(ids) == 1], dtype=np.int64)
+    for chart in _single_faces(V, faces, single):
+        keep(chart)
+    several = [(ids, chart_mesh(faces, ids)) for ids in queue if len(ids) > 1]
     if not several:
         return failed
     union = _Union.of(V, [chart for _, chart in several])
@@ -274,14 +268,9 @@ def _flatten_or_none(V: np.ndarray, faces: np.ndarray, opts: ParameterizeOptions
                      stages: Stages, *, out_of_time: bool) -> ChartFlattening | None:
     """The chart's flattening, or None when it is to be split (see :func:`chart_layouts`);
     a single face, or any chart once the time is out, is always kept."""
-    topology = build_topology(faces, n_vertices=len(V))
     if len(faces) == 1:
-        corners = triangle_layouts(face_edge_lengths(topology, _lengths(V, topology)),
-                                   check=False)[0]                    # (3, 2) per corner
-        layout = np.zeros((len(V), 2))
-        layout[faces[0]] = corners                                        # per chart vertex
-        return ChartFlattening(layout, "none", "", 0.0, {"refined": False,
-                                                          "reason": "one face"}, [])
+        return _single_faces(V, faces, np.zeros(1, dtype=np.int64))[0].flattening
+    topology = build_topology(faces, n_vertices=len(V))
     if not is_disk_like(topology):
         return None if not out_of_time else _last_resort(V, topology, opts, stages)
     lengths = _lengths(V, topology)
@@ -294,6 +283,27 @@ def _flatten_or_none(V: np.ndarray, faces: np.ndarray, opts: ParameterizeOptions
     if out_of_time or _acceptable(V, full.uv, topology, limit):
         return full
     return None
+
+
+def _single_faces(V: np.ndarray, faces: np.ndarray, face_ids: np.ndarray,
+                  ) -> list[ChartLayout]:
+    """Each face of ``face_ids`` (k,) int64 as a chart of its own, laid out with its edge
+    lengths (no solve; a face whose lengths violate the triangle inequality lies flat), all
+    at once: the charts :func:`solver.mesh.charts.chart_mesh` makes of them (chart vertices
+    in the order of their mesh vertices) with their layouts."""
+    if not len(face_ids):
+        return []
+    corners = faces[face_ids]                                           # (k, 3)
+    sides = np.linalg.norm(V[np.roll(corners, -1, axis=1)] - V[corners], axis=2)
+    layouts = triangle_layouts(sides, check=False)                     # (k, 3, 2) per corner
+    order = np.argsort(corners, axis=1, kind="stable")                  # chart vertex -> corner
+    rank = np.argsort(order, axis=1)                                    # corner -> chart vertex
+    uv = np.take_along_axis(layouts, order[:, :, None], axis=1)        # per chart vertex
+    vertex_ids = np.take_along_axis(corners, order, axis=1)
+    return [ChartLayout(ChartMesh(face_ids[i:i + 1], vertex_ids[i], rank[i:i + 1]),
+                        ChartFlattening(uv[i], "none", "", 0.0,
+                                        {"refined": False, "reason": "one face"}, []))
+            for i in range(len(face_ids))]
 
 
 def _last_resort(V: np.ndarray, topology: MeshTopology, opts: ParameterizeOptions,

@@ -149,3 +149,28 @@ def test_progress_counts_the_faces_placed_chart_by_chart():
         assert segment[-1] == pytest.approx(1.0)
     # the atlas kept (the one that packs better) had one report per chart
     assert result.report["atlas"]["charts"] in [len(segment) for segment in segments]
+
+
+def test_single_face_charts_are_laid_out_all_at_once_with_their_edge_lengths():
+    """A triangle soup (every face its own part: the knight's faces apart) is an atlas of
+    one-face charts, laid out together (solver.atlas._single_faces): each chart is the one
+    chart_mesh makes of its face, counter-clockwise, with the face's 3D edge lengths."""
+    from solver.mesh.charts import chart_mesh
+
+    V, F = load("decimated-knight.off")
+    F = F[::3]
+    soup_V, soup_F = V[F].reshape(-1, 3), np.arange(3 * len(F)).reshape(-1, 3)
+    forms = fundamental_forms(soup_V, soup_F)
+    topology = build_topology(forms.faces, n_vertices=len(soup_V))
+    charts = chart_layouts(soup_V, topology, forms.angles, ParameterizeOptions(), Stages(None))
+    assert sorted(int(c.mesh.face_ids[0]) for c in charts) == list(range(len(F)))
+    for chart in charts:
+        want = chart_mesh(soup_F, chart.mesh.face_ids)
+        np.testing.assert_array_equal(chart.mesh.vertex_ids, want.vertex_ids)
+        np.testing.assert_array_equal(chart.mesh.faces, want.faces)
+        a, b, c = chart.flattening.uv[chart.mesh.faces[0]]
+        assert (b - a)[0] * (c - a)[1] - (b - a)[1] * (c - a)[0] > 0
+        corners = soup_V[chart.mesh.vertex_ids][chart.mesh.faces[0]]
+        sides_3d = np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
+        sides_uv = np.linalg.norm(np.roll([a, b, c], -1, axis=0) - [a, b, c], axis=1)
+        np.testing.assert_allclose(sides_uv, sides_3d, rtol=1e-12)

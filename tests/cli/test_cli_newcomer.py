@@ -345,3 +345,13 @@ def test_a_broken_flattening_says_warn_and_strict_exits_1(ffs, workdir: Path) ->
     assert strict.returncode == 1, strict.stdout + strict.stderr
     atlas = ffs("flatten", "cap.obj", "-o", "atlas.obj", "--strict")
     assert atlas.returncode == 0 and "WARN" not in atlas.stdout, atlas.stdout + atlas.stderr
+
+
+def test_flatten_counts_read_in_words(ffs, workdir: Path) -> None:
+    """One chart is "1 chart", not "1 charts" (newcomer sweep: libigl's planexy.off)."""
+    box = trimesh.creation.box()  # two triangles of one square side: one chart
+    trimesh.Trimesh(box.vertices, box.faces[:2], process=True).export(workdir / "square.obj")
+    run = ffs("flatten", "square.obj", "-o", "flat.obj")
+    assert run.returncode == 0, run.stderr
+    row = _lines(run.stdout, "square.obj")[0]
+    assert "0 flipped faces, 1 chart" in row and "1 charts" not in row, run.stdout

@@ -46,10 +46,6 @@ class NotIntegrableError(SolverInputError):
     kind = "not-integrable"
 
 
-def _forms(faces: Any, edges: Any, lengths: Any, angles: Any) -> Forms:
-    if isinstance(faces, Forms) and edges is None:
-        return faces
-    return Forms(np.asarray(faces), np.asarray(edges), np.asarray(lengths), np.asarray(angles))
 
 
 def _constraints(document: Mapping[str, Any] | None) -> solver.Constraints:
@@ -78,9 +74,11 @@ class Local:
 
     def check_integrability(self, faces: Any, edges: Any = None, lengths: Any = None,
                             angles: Any = None, *, tol: float | None = None,
-                            n_vertices: int | None = None,
+                            n_vertices: int | None = None, vertex_map: Any = None,
+                            weld_map: Any = None,
                             progress: Progress | None = None) -> Integrability:
-        forms = _forms(faces, edges, lengths, angles)
+        forms = Forms.given(faces, edges, lengths, angles, vertex_map=vertex_map,
+                            weld_map=weld_map)
         report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
                                             forms.angles, tol=1e-8 if tol is None else tol,
                                             n_vertices=n_vertices, vertex_map=forms.vertex_map,
@@ -109,8 +107,10 @@ class Local:
     def reconstruct(self, faces: Any, edges: Any = None, lengths: Any = None,
                     angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
                     refine: bool | None = None, progress: Progress | None = None,
-                    align_to: Any = None, **options: Any) -> Mesh:
-        forms = _forms(faces, edges, lengths, angles)
+                    align_to: Any = None, vertex_map: Any = None, weld_map: Any = None,
+                    placement: Any = None, **options: Any) -> Mesh:
+        forms = Forms.given(faces, edges, lengths, angles, vertex_map=vertex_map,
+                            weld_map=weld_map, placement=placement)
         solve = ReconstructOptions.from_api({**options, "refine": refine},
                                             ignore=("require_integrable",))
         report_first = self._checked_first(forms, solve, options)
@@ -137,8 +137,10 @@ class Local:
                         angles: Any = None, *, cotangent: Any,
                         constraints: Mapping[str, Any] | None = None,
                         refine: bool | None = None, progress: Progress | None = None,
+                        vertex_map: Any = None, weld_map: Any = None, placement: Any = None,
                         **options: Any) -> VjpResult:
-        forms = _forms(faces, edges, lengths, angles)
+        forms = Forms.given(faces, edges, lengths, angles, vertex_map=vertex_map,
+                            weld_map=weld_map, placement=placement)
         solve = ReconstructOptions.from_api({**options, "refine": refine},
                                             ignore=("require_integrable",))
         self._checked_first(forms, solve, options)

@@ -54,9 +54,9 @@ def check_output_formats(command: str, items: Sequence[Item], override: str | No
             output_format(command, out, override)
 
 
-GIVEN_FILES: tuple[str, ...] = ("align_to", "handles", "cotangent")
+GIVEN_FILES: tuple[str, ...] = ("align_to", "handles", "cotangent", "constraints")
 """The options that name one file every item reads (``--align-to``, ``--handles``,
-``--cotangent``): checked before any work by :func:`check_given_files`."""
+``--cotangent``, ``--constraints``): checked before any work by :func:`check_given_files`."""
 
 
 def check_given_files(args: Any) -> None:

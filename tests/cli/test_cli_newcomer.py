@@ -220,8 +220,9 @@ def test_sel_def_errors_in_words(ffs, workdir: Path) -> None:
 
 
 def test_a_missing_option_file_is_a_usage_error_before_any_work(ffs, workdir: Path) -> None:
-    """--align-to, --handles and --cotangent name one file every input reads: a missing one
-    is exit 2 with its name before anything runs, not a failure of each input."""
+    """--align-to, --handles, --cotangent and --constraints name one file every input reads:
+    a missing one is exit 2 with its name before anything runs, not a failure of each
+    input."""
     for args, flag in ((("reconstruct", "face.off", "torus.off", "--align-to", "ref.off",
                          "-o", "out/{stem}.ply"), "--align-to"),
                        (("deform", "face.off", "--handles", "moves.json", "-o", "out/x.ply"),
@@ -229,7 +230,10 @@ def test_a_missing_option_file_is_a_usage_error_before_any_work(ffs, workdir: Pa
                        (("deform", "face.off", "--handles", "face.def", "-o", "out/x.ply"),
                         "--handles"),
                        (("vjp", "face.off", "--cotangent", "g.npy", "-o", "out/g.npz"),
-                        "--cotangent")):
+                        "--cotangent"),
+                       # newcomer sweep: --constraints failed each input instead (exit 1)
+                       (("reconstruct", "face.off", "torus.off", "--constraints", "pins.json",
+                         "-o", "out/{stem}.ply"), "--constraints")):
         run = ffs(*args, "--report", "report.json")
         assert run.returncode == 2, (args, run.stdout, run.stderr)
         assert f"{flag} " in run.stderr and "no such file" in run.stderr, run.stderr

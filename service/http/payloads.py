@@ -247,9 +247,10 @@ async def job_submission(request: Request, settings: Settings, parser: ParserPoo
     mtype = media_type(request)
     if mtype == "multipart/form-data":
         fields, files = await read_form(request, settings)
-        head = validate_object(JobRequest, {"operation": fields.pop("operation", None),
-                                            "color": fields.pop("color", None), "input": {},
-                                            "callback_url": fields.pop("callback_url", None)})
+        head = validate_object(JobRequest, {  # a missing operation is "Field required"
+            **{name: fields.pop(name) for name in ("operation",) if name in fields},
+            "color": fields.pop("color", None), "input": {},
+            "callback_url": fields.pop("callback_url", None)})
         task = await form_request(OPERATIONS[head.operation], fields, files, settings,
                                   Output())
     elif is_json(mtype):

@@ -365,3 +365,11 @@ def test_face_limit_names_faces_and_quotes_the_count():
                                                        "handles": [{"vertex": 0}]}),
                       413, "mesh-too-large")
         assert doc["errors"][0]["field"] == "faces" and doc["errors"][0]["value"] == 320
+
+
+def test_a_job_upload_without_operation_says_it_is_required(client):
+    off = b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    doc = problem(client.post("/v1/jobs", files={"file": ("tri.off", off)}), 422,
+                  "validation-error")
+    assert doc["errors"][0]["field"] == "operation" and doc["errors"][0]["type"] == "missing"
+    assert doc["detail"].startswith("operation: Field required") and "sent" not in doc["detail"]

@@ -401,7 +401,7 @@ def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence
     for err in errors[:limit]:
         loc = (*prefix, *err.get("loc", ()))
         item = pointer_from_loc(loc)
-        item["reason"] = str(err.get("msg", "invalid"))
+        item["reason"] = _PYTHON_DICT.sub("a JSON object", str(err.get("msg", "invalid")))
         item["type"] = str(err.get("type", ""))
         if (value := quoted_value(err)) is not _NOT_QUOTED:
             item["value"] = value
@@ -415,6 +415,10 @@ def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence
     return ProblemError("validation-error", f"{where}: {first['reason']}{sent}{more}",
                         status=422, errors=items)
 
+
+_PYTHON_DICT = re.compile(r"a valid dictionary( or instance of \w+)?")
+"""Pydantic's Python words for an object ("a valid dictionary or instance of HandleTarget",
+a class of ours): the client sent JSON, so it reads "a JSON object"."""
 
 _NOT_QUOTED = object()
 """What :func:`quoted_value` answers for an error whose value is not worth quoting."""

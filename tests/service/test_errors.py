@@ -373,3 +373,24 @@ def test_a_job_upload_without_operation_says_it_is_required(client):
                   "validation-error")
     assert doc["errors"][0]["field"] == "operation" and doc["errors"][0]["type"] == "missing"
     assert doc["detail"].startswith("operation: Field required") and "sent" not in doc["detail"]
+
+
+def test_an_unknown_query_parameter_is_refused_not_ignored(client):
+    """``?colour=defect`` was answered without colours, as if nothing had been asked."""
+    response = client.post("/v1/reconstruct?colour=defect", json=EXAMPLE_FORMS)
+    doc = problem(response, 422, "validation-error")
+    assert doc["errors"][0]["field"] == "query.colour"
+    assert doc["errors"][0]["value"] == "defect" and '(sent: "defect")' in doc["detail"]
+    assert "`format` and `color`" in doc["detail"]
+    ok = client.post("/v1/reconstruct?color=defect&format=json", json=EXAMPLE_FORMS)
+    assert ok.status_code == 200 and "colors" in ok.json()
+
+
+def test_a_field_that_is_not_an_object_names_no_python_class(client):
+    """A form field that is not JSON (``-F 'handles=not json'``) is read as a string: the
+    problem says a JSON object was expected, not pydantic's "instance of HandleTarget"."""
+    off = b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    doc = problem(client.post("/v1/deform", files={"file": ("tri.off", off)},
+                              data={"handles": "not json"}), 422, "validation-error")
+    assert doc["errors"][0]["reason"] == "Input should be a JSON object", doc
+    assert doc["errors"][0]["value"] == "not json" and "instance" not in doc["detail"]

@@ -54,6 +54,17 @@ def check_output_formats(command: str, items: Sequence[Item], override: str | No
             output_format(command, out, override)
 
 
+def check_blend_count(command: str, inputs: Sequence[str]) -> None:
+    """``ffs blend`` takes 2 to 64 meshes (checked before its ``-t`` or ``--weights``).
+
+    Raises:
+        UsageError: Fewer or more meshes.
+    """
+    if command == "blend" and not 2 <= len(inputs) <= 64:
+        raise UsageError("blend takes 2 to 64 meshes with the same faces: A B (-t), or "
+                         f"A B C ... (--weights); got {len(inputs)}")
+
+
 GIVEN_FILES: tuple[str, ...] = ("align_to", "handles", "cotangent", "constraints")
 """The options that name one file every item reads (``--align-to``, ``--handles``,
 ``--cotangent``, ``--constraints``): checked before any work by :func:`check_given_files`."""
@@ -195,9 +206,7 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
     """
     together = command in ("blend", "mean", "transfer")  # one item of all the inputs
     groups = [list(inputs)] if together else [[p] for p in inputs]
-    if command == "blend" and not 2 <= len(inputs) <= 64:
-        raise UsageError("blend takes 2 to 64 meshes with the same faces: A B (-t), or "
-                         "A B C ... (--weights)")
+    check_blend_count(command, inputs)
     if output is None:
         if command != "check":
             raise UsageError(f"{command} needs -o OUTPUT (a file, a template with {{stem}}, "

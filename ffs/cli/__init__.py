@@ -126,7 +126,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return serve(args)
     try:
         rows = _blend_rows(args) if args.command == "blend" else None
-        items = plan_items(args.command, args.inputs, args.output, rows)
+        items = plan_items(args.command, args.inputs, args.output, rows,
+                           getattr(args, "format", None))
         args.jobs = min(args.jobs, len(items))
         _set_threads(args)  # before the format check imports the library (numpy, MKL)
         check_output_formats(args.command, items, args.format)

@@ -183,7 +183,8 @@ def _default_extension(command: str, first_input: str) -> str:
 
 
 def plan_items(command: str, inputs: Sequence[str], output: str | None,
-               t_values: Sequence[float] | None = None) -> list[Item]:
+               t_values: Sequence[float] | None = None,
+               output_format: str | None = None) -> list[Item]:
     """The items of a command line: inputs grouped and outputs named.
 
     Args:
@@ -192,6 +193,8 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
         output: ``-o``: a file, a template (``{stem}``, ``{name}``, ``{parent}``,
             ``{index}``, ``{ext}``, ``{t}``) or a folder; None only for ``check``.
         t_values: A blend's ``-t`` values (several need ``{t}`` or ``{index}``).
+        output_format: ``--format``: in a folder, the outputs get its extension (not the
+            command's default one, which would put, say, glTF in a ``.obj`` file).
 
     Returns:
         One :class:`Item` per input (per pair for a blend), in input order.
@@ -216,8 +219,9 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
     folder = output.endswith(("/", os.sep)) or Path(output).is_dir()
     many_t = t_values is not None and len(t_values) > 1
     if folder and not templated:
-        output = str(Path(output) / ("{stem}" + ("-{t}" if many_t else "")
-                                     + _default_extension(command, groups[0][0])))
+        extension = (f".{output_format.lower()}" if output_format
+                     else _default_extension(command, groups[0][0]))
+        output = str(Path(output) / ("{stem}" + ("-{t}" if many_t else "") + extension))
     elif not templated and len(groups) > 1:
         raise UsageError(f"{len(groups)} inputs cannot all be written to {output}: use a "
                          "template such as -o 'out/{stem}.glb' or a folder")

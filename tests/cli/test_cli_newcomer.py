@@ -359,3 +359,16 @@ def test_flatten_counts_read_in_words(ffs, workdir: Path) -> None:
     assert run.returncode == 0, run.stderr
     row = _lines(run.stdout, "square.obj")[0]
     assert "0 flipped faces, 1 chart" in row and "1 charts" not in row, run.stdout
+
+
+def test_a_folder_output_takes_the_extension_of_format(ffs, workdir: Path) -> None:
+    """``-o out/ --format gltf`` wrote glTF into ``out/face.off`` (the input's extension),
+    and ``ffs forms -o out/ --format npz`` an .npz into ``out/face.json``."""
+    run = ffs("convert", "face.off", "torus.off", "-o", "out/", "--format", "gltf")
+    assert run.returncode == 0, run.stderr
+    assert sorted(p.name for p in (workdir / "out").iterdir()) == ["face.gltf", "torus.gltf"]
+    assert trimesh.load(workdir / "out" / "face.gltf", force="mesh").faces.shape[1] == 3
+    run = ffs("forms", "face.off", "-o", "forms/", "--format", "npz")
+    assert run.returncode == 0, run.stderr
+    assert [p.name for p in (workdir / "forms").iterdir()] == ["face.npz"]
+    assert "lengths" in np.load(workdir / "forms" / "face.npz")

@@ -323,7 +323,8 @@ class Client:
                             weld_map=weld_map, placement=placement)
         params: dict[str, Any] = {"options": _options(refine, options)}
         if constraints:
-            params["constraints"] = dict(constraints)
+            params["constraints"] = (dict(constraints) if isinstance(constraints, Mapping)
+                                     else constraints)  # the service names what is wrong
         if align_to is not None:
             params["align_to"] = np.asarray(align_to, dtype=np.float64).reshape(-1, 3).tolist()
         params.update(forms.params())

@@ -25,7 +25,7 @@ from ffs.results import (
     ShapeBlend,
     VjpResult,
 )
-from solver.core.errors import SolverInputError
+from solver.core.errors import ConstraintError, SolverInputError
 from solver.core.serialization import to_jsonable
 from solver.options import (
     BlendOptions,
@@ -48,9 +48,26 @@ class NotIntegrableError(SolverInputError):
 
 
 
+CONSTRAINT_KINDS = ("positions", "frames")
+"""The members of the API's constraints object."""
+
+
 def _constraints(document: Mapping[str, Any] | None) -> solver.Constraints:
-    """The library's constraints of the API's ``{"positions": [...], "frames": [...]}``."""
+    """The library's constraints of the API's ``{"positions": [...], "frames": [...]}``.
+
+    Raises:
+        ConstraintError: Not an object, or a member the API does not take (a typo such as
+            ``position`` was ignored here while the service refused it).
+    """
     document = document or {}
+    if not isinstance(document, Mapping):
+        raise ConstraintError('expected an object {"positions": [...], "frames": [...]}',
+                              field="constraints")
+    for name in document:
+        if name not in CONSTRAINT_KINDS:
+            raise ConstraintError(f"unknown member {name!r}; constraints take "
+                                  f"{' and '.join(CONSTRAINT_KINDS)}",
+                                  field=f"constraints.{name}")
     return solver.Constraints.from_records(document.get("positions") or [],
                                            document.get("frames") or [])
 

@@ -372,3 +372,17 @@ def test_a_folder_output_takes_the_extension_of_format(ffs, workdir: Path) -> No
     assert run.returncode == 0, run.stderr
     assert [p.name for p in (workdir / "forms").iterdir()] == ["face.npz"]
     assert "lengths" in np.load(workdir / "forms" / "face.npz")
+
+
+def test_a_constraints_file_the_api_refuses_fails_locally_too(ffs, server, workdir: Path) -> None:
+    """``{"position": [...]}`` (a typo) was ignored in-process, answered as if unconstrained,
+    while the service refused it; a list crashed the client with a TypeError."""
+    for document, words in (({"position": [{"vertex": 0, "position": [0, 0, 0]}]},
+                             "constraints.position"),
+                            ([1, 2], "constraints")):
+        (workdir / "pins.json").write_text(json.dumps(document))
+        for where in ((), ("--server", server)):
+            run = ffs("reconstruct", "decimated-knight.off", "--constraints", "pins.json",
+                      "-o", "out.ply", *where)
+            assert run.returncode == 1, (where, run.stdout, run.stderr)
+            assert words in run.stderr and "unexpected error" not in run.stderr, run.stderr

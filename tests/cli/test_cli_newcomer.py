@@ -386,3 +386,17 @@ def test_a_constraints_file_the_api_refuses_fails_locally_too(ffs, server, workd
                       "-o", "out.ply", *where)
             assert run.returncode == 1, (where, run.stdout, run.stderr)
             assert words in run.stderr and "unexpected error" not in run.stderr, run.stderr
+
+
+def test_a_handles_file_with_a_mistyped_member_is_refused(ffs, workdir: Path) -> None:
+    """``weigth`` in a handle or ``rotation`` for ``rotations`` was dropped silently (the
+    drag done without it); the page's own ``groups`` is still read (and ignored)."""
+    handle = {"vertex": 0, "position": [0.0, 0.0, 0.0]}
+    for document, words in (([{**handle, "weigth": 2}], "handles[0]: unknown member 'weigth'"),
+                            ({"handles": [handle], "rotation": []},
+                             "rotation: unknown member 'rotation'")):
+        (workdir / "moves.json").write_text(json.dumps(document))
+        run = ffs("deform", "face.off", "--handles", "moves.json", "-o", "out.ply")
+        assert run.returncode == 1 and words in run.stderr, run.stderr
+    (workdir / "moves.json").write_text(json.dumps({"handles": [handle], "groups": []}))
+    assert ffs("deform", "face.off", "--handles", "moves.json", "-o", "out.ply").returncode == 0

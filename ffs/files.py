@@ -122,6 +122,10 @@ def read_mesh(path: str | os.PathLike[str], fmt: str | None = None
     fmt = file_format(path, fmt)
     if fmt in DATA_FORMATS:
         doc = _read_fields(path, fmt)
+        if "vertices" not in doc and "edges" in doc:
+            raise InputFileError(path, "a forms file (edges, lengths, angles) has no vertices; "
+                                 "this command takes a mesh: make one of the forms with "
+                                 "'ffs reconstruct' first", field="vertices")
         return (_array(path, doc, "vertices", np.float64, 3),
                 _array(path, doc, "faces", np.int64, 3))
     from solver.mesh.io import MeshFileError, load_mesh

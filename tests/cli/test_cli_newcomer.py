@@ -400,3 +400,12 @@ def test_a_handles_file_with_a_mistyped_member_is_refused(ffs, workdir: Path) ->
         assert run.returncode == 1 and words in run.stderr, run.stderr
     (workdir / "moves.json").write_text(json.dumps({"handles": [handle], "groups": []}))
     assert ffs("deform", "face.off", "--handles", "moves.json", "-o", "out.ply").returncode == 0
+
+
+def test_a_forms_file_where_a_mesh_belongs_says_so(ffs, workdir: Path) -> None:
+    """``ffs flatten forms.npz`` said only "vertices: missing"."""
+    assert ffs("forms", "face.off", "-o", "face-forms.npz").returncode == 0
+    for command in (("flatten",), ("convert",)):
+        run = ffs(*command, "face-forms.npz", "-o", "out.obj")
+        assert run.returncode == 1 and "a forms file" in run.stderr, run.stderr
+        assert "ffs reconstruct" in run.stderr, run.stderr

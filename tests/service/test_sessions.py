@@ -271,6 +271,10 @@ def test_websocket_round_trips_on_a_real_server(sphere):
             ws.send(b"\0\0\0")
             error = json.loads(ws.recv(timeout=30))
             assert error["kind"] == "validation-error" and error["seq"] == 5
+            # NaN in a JSON drag is named like any non-finite value, not malformed JSON
+            ws.send(json.dumps({"handle_positions": [[float("nan")] * 3] * len(HANDLES)}))
+            error = json.loads(ws.recv(timeout=30))
+            assert error["kind"] == "validation-error" and error["seq"] == 6, error
             # A burst of drags: out-of-date ones are dropped, the latest always wins.
             for i in range(4, 40):
                 ws.send(json.dumps({"handle_positions": targets[i].tolist(), "seq": i}))

@@ -319,12 +319,7 @@ async def session_ws(websocket: WebSocket, session_id: str, sessions: SessionsDe
                         positions, rotations = parse_drag_binary(message["bytes"], n_handles,
                                                                  n_groups)
                     else:
-                        try:
-                            doc = orjson.loads(message.get("text") or "")
-                        except orjson.JSONDecodeError as exc:
-                            raise ProblemError("malformed-json",
-                                               f"the message is not valid JSON: {exc}"
-                                               ) from None
+                        doc = parse_json((message.get("text") or "").encode())  # NaN: 422
                         positions, rotations, given = parse_drag_json(doc, n_handles,
                                                                       n_groups)
                         seq = count if given is None else given

@@ -46,6 +46,7 @@ from ffs.cli.items import (
     check_blend_count,
     check_given_files,
     check_output_formats,
+    check_server,
     plan_items,
 )
 from ffs.cli.summary import print_summary, write_report
@@ -132,6 +133,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _set_threads(args)  # before the format check imports the library (numpy, MKL)
         check_output_formats(args.command, items, args.format)
         check_given_files(args)
+        check_server(args.server)
     except UsageError as exc:
         print(f"ffs {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

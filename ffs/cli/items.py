@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 DEFAULT_EXTENSIONS = {"forms": ".json", "check": ".json", "reconstruct": ".obj",
                       "vjp": ".npz"}
@@ -63,6 +64,30 @@ def check_blend_count(command: str, inputs: Sequence[str]) -> None:
     if command == "blend" and not 2 <= len(inputs) <= 64:
         raise UsageError("blend takes 2 to 64 meshes with the same faces: A B (-t), or "
                          f"A B C ... (--weights); got {len(inputs)}")
+
+
+def check_server(server: str | None) -> None:
+    """``--server`` (or ``FFS_SERVER``) is an http(s) URL with a host, so that a bare
+    ``127.0.0.1:8000`` is a usage error before any work, not a failure of every input.
+
+    Raises:
+        UsageError: Another scheme, or no host.
+
+    Example:
+        >>> check_server("http://127.0.0.1:8000")
+        >>> check_server("127.0.0.1:8000")
+        Traceback (most recent call last):
+        ...
+        ffs.cli.items.UsageError: --server (or FFS_SERVER) '127.0.0.1:8000' is not a URL: \
+give http:// or https:// and the host, e.g. http://127.0.0.1:8000
+    """
+    if server is None:
+        return
+    parts = urlsplit(server)
+    if parts.scheme not in ("http", "https") or not parts.netloc:
+        example = f"http://{parts.netloc}{parts.path}" if "//" in server else f"http://{server}"
+        raise UsageError(f"--server (or FFS_SERVER) {server!r} is not a URL: give http:// or "
+                         f"https:// and the host, e.g. {example}")
 
 
 GIVEN_FILES: tuple[str, ...] = ("align_to", "handles", "cotangent", "constraints")

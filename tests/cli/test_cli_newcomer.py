@@ -409,3 +409,14 @@ def test_a_forms_file_where_a_mesh_belongs_says_so(ffs, workdir: Path) -> None:
         run = ffs(*command, "face-forms.npz", "-o", "out.obj")
         assert run.returncode == 1 and "a forms file" in run.stderr, run.stderr
         assert "ffs reconstruct" in run.stderr, run.stderr
+
+
+def test_a_server_without_scheme_is_a_usage_error(ffs, workdir: Path) -> None:
+    """``--server 127.0.0.1:8000`` failed every input with httpx's "missing an 'http://'
+    protocol" (exit 1, one line per file); now exit 2 before any work, with the fix."""
+    run = ffs("forms", "face.off", "torus.off", "-o", "out/{stem}.json", "--server",
+              "127.0.0.1:8000")
+    assert run.returncode == 2 and run.stdout == "", (run.stdout, run.stderr)
+    assert "e.g. http://127.0.0.1:8000" in run.stderr and not (workdir / "out").exists()
+    run = ffs("forms", "face.off", "-o", "out.json", env={"FFS_SERVER": "localhost:8000"})
+    assert run.returncode == 2 and "FFS_SERVER" in run.stderr, run.stderr

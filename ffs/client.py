@@ -120,21 +120,6 @@ def _retry_after(response: httpx.Response) -> float | None:
         return None
 
 
-def _forms_arrays(faces: Any, edges: Any, lengths: Any, angles: Any) -> dict[str, np.ndarray]:
-    if isinstance(faces, Forms) and edges is None:
-        return faces.arrays()
-    if edges is None or lengths is None or angles is None:
-        raise TypeError("pass faces, edges, lengths and angles, or one Forms")
-    return {"faces": np.asarray(faces), "edges": np.asarray(edges),
-            "lengths": np.asarray(lengths), "angles": np.asarray(angles)}
-
-
-def _forms_params(faces: Any, edges: Any) -> dict[str, Any]:
-    """A :class:`Forms`' ``vertex_map`` (non-manifold mesh) and ``placement`` as params:
-    the answer then comes per file vertex, every component where it was."""
-    if isinstance(faces, Forms) and edges is None:
-        return faces.params()
-    return {}
 
 
 class Client:
@@ -310,30 +295,40 @@ class Client:
     # the others' from their row.
 
     def check_integrability_call(self, faces: Any, edges: Any = None, lengths: Any = None,
-                                 angles: Any = None, *, tol: float | None = None) -> Call:
+                                 angles: Any = None, *, tol: float | None = None,
+                                 vertex_map: Any = None, weld_map: Any = None) -> Call:
         """The integrability report of forms (``POST /v1/integrability``); ``faces`` may be
-        a :class:`~ffs.results.Forms` alone."""
+        a :class:`~ffs.results.Forms` alone (its ``vertex_map`` and ``weld_map`` are sent),
+        or those maps given as keywords."""
+        forms = Forms.given(faces, edges, lengths, angles, vertex_map=vertex_map,
+                            weld_map=weld_map)
         params = {} if tol is None else {"tolerance": tol}
-        params.update(_forms_params(faces, edges))
-        return Call("integrability", _forms_arrays(faces, edges, lengths, angles), params)
+        params.update(forms.params())
+        return Call("integrability", forms.arrays(), params)
 
     def reconstruct_call(self, faces: Any, edges: Any = None, lengths: Any = None,
                          angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
                          refine: bool | None = None, align_to: Any = None,
+                         vertex_map: Any = None, weld_map: Any = None, placement: Any = None,
                          **options: Any) -> Call:
         """Vertex positions from forms (``POST /v1/reconstruct``). ``constraints`` is the
         API's ``{"positions": [{"vertex", "position", "weight"?}], "frames": [...]}``;
         ``align_to``: (n, 3) vertices of a reference to move the answer onto rigidly
-        (``report["alignment"]`` has the residual); ``options``: frame_weight,
-        orthonormalize, orthonormal_weight, weighting, solver, tolerance,
-        require_integrable, exact_shortcut, linear_solver."""
+        (``report["alignment"]`` has the residual); ``vertex_map``, ``weld_map`` and
+        ``placement``: those of the forms, as the library's ``reconstruct`` takes them (a
+        :class:`~ffs.results.Forms` alone brings its own): the answer per file vertex, each
+        part where it was; ``options``: frame_weight, orthonormalize, orthonormal_weight,
+        weighting, solver, tolerance, require_integrable, exact_shortcut, linear_solver."""
+        forms = Forms.given(faces, edges, lengths, angles, vertex_map=vertex_map,
+                            weld_map=weld_map, placement=placement)
         params: dict[str, Any] = {"options": _options(refine, options)}
         if constraints:
-            params["constraints"] = dict(constraints)
+            params["constraints"] = (dict(constraints) if isinstance(constraints, Mapping)
+                                     else constraints)  # the service names what is wrong
         if align_to is not None:
             params["align_to"] = np.asarray(align_to, dtype=np.float64).reshape(-1, 3).tolist()
-        params.update(_forms_params(faces, edges))
-        return Call("reconstruct", _forms_arrays(faces, edges, lengths, angles), params)
+        params.update(forms.params())
+        return Call("reconstruct", forms.arrays(), params)
 
     def reconstruct_vjp_call(self, faces: Any, edges: Any = None, lengths: Any = None,
                              angles: Any = None, *, cotangent: Any,

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -121,6 +122,10 @@ def read_mesh(path: str | os.PathLike[str], fmt: str | None = None
     fmt = file_format(path, fmt)
     if fmt in DATA_FORMATS:
         doc = _read_fields(path, fmt)
+        if "vertices" not in doc and "edges" in doc:
+            raise InputFileError(path, "a forms file (edges, lengths, angles) has no vertices; "
+                                 "this command takes a mesh: make one of the forms with "
+                                 "'ffs reconstruct' first", field="vertices")
         return (_array(path, doc, "vertices", np.float64, 3),
                 _array(path, doc, "faces", np.int64, 3))
     from solver.mesh.io import MeshFileError, load_mesh
@@ -187,6 +192,21 @@ class Handles:
     roi: np.ndarray | None
 
 
+HANDLE_FILE_MEMBERS = ("handles", "rotations", "roi", "groups")
+"""The members of a handles file: the API's three and the web page's ``groups`` (ignored)."""
+
+
+def _no_unknown_members(path: str | os.PathLike[str], doc: dict[str, Any],
+                        members: Sequence[str], where: tuple[str, int] | None) -> None:
+    """Refuse a member ``doc`` does not take (a typo such as ``weigth`` or ``rotation``
+    would otherwise be dropped silently), naming it and where it is."""
+    for name in doc:
+        if name not in members:
+            field, index = (where[0], where[1]) if where else (name, None)
+            raise InputFileError(path, f"unknown member {name!r}; expected "
+                                 f"{', '.join(members)}", field=field, index=index)
+
+
 def read_handles(path: str | os.PathLike[str], vertices: np.ndarray | None = None,
                  faces: np.ndarray | None = None) -> Handles:
     """Read deformation handles (``ffs deform --handles``).
@@ -216,6 +236,12 @@ def read_handles(path: str | os.PathLike[str], vertices: np.ndarray | None = Non
             "handles"]:
         raise InputFileError(path, 'expected a non-empty list [{"vertex": i, "position": '
                              '[x, y, z]}, ...] or an object with "handles"', field="handles")
+    _no_unknown_members(path, doc, HANDLE_FILE_MEMBERS, None)
+    for name, members in (("handles", ("vertex", "position")), ("rotations",
+                                                                ("faces", "rotation"))):
+        for i, item in enumerate(doc.get(name) or []):
+            if isinstance(item, dict):
+                _no_unknown_members(path, item, members, (name, i))
     vertices, positions = [], []
     for i, handle in enumerate(doc["handles"]):
         try:

@@ -25,7 +25,7 @@ from ffs.results import (
     ShapeBlend,
     VjpResult,
 )
-from solver.core.errors import SolverInputError
+from solver.core.errors import ConstraintError, SolverInputError
 from solver.core.serialization import to_jsonable
 from solver.options import (
     BlendOptions,
@@ -46,15 +46,28 @@ class NotIntegrableError(SolverInputError):
     kind = "not-integrable"
 
 
-def _forms(faces: Any, edges: Any, lengths: Any, angles: Any) -> Forms:
-    if isinstance(faces, Forms) and edges is None:
-        return faces
-    return Forms(np.asarray(faces), np.asarray(edges), np.asarray(lengths), np.asarray(angles))
+
+
+CONSTRAINT_KINDS = ("positions", "frames")
+"""The members of the API's constraints object."""
 
 
 def _constraints(document: Mapping[str, Any] | None) -> solver.Constraints:
-    """The library's constraints of the API's ``{"positions": [...], "frames": [...]}``."""
+    """The library's constraints of the API's ``{"positions": [...], "frames": [...]}``.
+
+    Raises:
+        ConstraintError: Not an object, or a member the API does not take (a typo such as
+            ``position`` was ignored here while the service refused it).
+    """
     document = document or {}
+    if not isinstance(document, Mapping):
+        raise ConstraintError('expected an object {"positions": [...], "frames": [...]}',
+                              field="constraints")
+    for name in document:
+        if name not in CONSTRAINT_KINDS:
+            raise ConstraintError(f"unknown member {name!r}; constraints take "
+                                  f"{' and '.join(CONSTRAINT_KINDS)}",
+                                  field=f"constraints.{name}")
     return solver.Constraints.from_records(document.get("positions") or [],
                                            document.get("frames") or [])
 
@@ -78,9 +91,11 @@ class Local:
 
     def check_integrability(self, faces: Any, edges: Any = None, lengths: Any = None,
                             angles: Any = None, *, tol: float | None = None,
-                            n_vertices: int | None = None,
+                            n_vertices: int | None = None, vertex_map: Any = None,
+                            weld_map: Any = None,
                             progress: Progress | None = None) -> Integrability:
-        forms = _forms(faces, edges, lengths, angles)
+        forms = Forms.given(faces, edges, lengths, angles, vertex_map=vertex_map,
+                            weld_map=weld_map)
         report = solver.check_integrability(forms.faces, forms.edges, forms.lengths,
                                             forms.angles, tol=1e-8 if tol is None else tol,
                                             n_vertices=n_vertices, vertex_map=forms.vertex_map,
@@ -109,8 +124,10 @@ class Local:
     def reconstruct(self, faces: Any, edges: Any = None, lengths: Any = None,
                     angles: Any = None, *, constraints: Mapping[str, Any] | None = None,
                     refine: bool | None = None, progress: Progress | None = None,
-                    align_to: Any = None, **options: Any) -> Mesh:
-        forms = _forms(faces, edges, lengths, angles)
+                    align_to: Any = None, vertex_map: Any = None, weld_map: Any = None,
+                    placement: Any = None, **options: Any) -> Mesh:
+        forms = Forms.given(faces, edges, lengths, angles, vertex_map=vertex_map,
+                            weld_map=weld_map, placement=placement)
         solve = ReconstructOptions.from_api({**options, "refine": refine},
                                             ignore=("require_integrable",))
         report_first = self._checked_first(forms, solve, options)
@@ -137,8 +154,10 @@ class Local:
                         angles: Any = None, *, cotangent: Any,
                         constraints: Mapping[str, Any] | None = None,
                         refine: bool | None = None, progress: Progress | None = None,
+                        vertex_map: Any = None, weld_map: Any = None, placement: Any = None,
                         **options: Any) -> VjpResult:
-        forms = _forms(faces, edges, lengths, angles)
+        forms = Forms.given(faces, edges, lengths, angles, vertex_map=vertex_map,
+                            weld_map=weld_map, placement=placement)
         solve = ReconstructOptions.from_api({**options, "refine": refine},
                                             ignore=("require_integrable",))
         self._checked_first(forms, solve, options)

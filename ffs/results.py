@@ -9,7 +9,8 @@ flattening's per-face area ratios), so these are not the library's classes thems
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -46,6 +47,31 @@ class Forms:
 
     PLACEMENT_ARRAYS = ("faces", "origins", "frames")
     """The placement's arrays, stored as ``placement_<name>`` in an .npz."""
+
+    @classmethod
+    def given(cls, faces: Any, edges: Any = None, lengths: Any = None, angles: Any = None, *,
+              vertex_map: Any = None, weld_map: Any = None, placement: Any = None) -> Forms:
+        """The forms a call was given: one :class:`Forms`, or its four arrays; and the
+        ``vertex_map``, ``weld_map`` and ``placement`` given as keywords, as the library's
+        ``reconstruct`` takes them (each overrides the Forms' own). ``placement`` is a
+        mapping of ``faces``, ``origins`` and ``frames`` or an object with those attributes
+        (the library's).
+
+        Raises:
+            TypeError: Neither one Forms nor the four arrays.
+        """
+        if isinstance(faces, Forms) and edges is None:
+            forms = faces
+        elif edges is None or lengths is None or angles is None:
+            raise TypeError("pass faces, edges, lengths and angles, or one Forms")
+        else:
+            forms = cls(np.asarray(faces), np.asarray(edges), np.asarray(lengths),
+                        np.asarray(angles))
+        if placement is not None and not isinstance(placement, Mapping):
+            placement = {name: getattr(placement, name) for name in cls.PLACEMENT_ARRAYS}
+        maps = {"vertex_map": vertex_map, "weld_map": weld_map, "placement": placement}
+        return replace(forms, **{name: value for name, value in maps.items()
+                                 if value is not None})
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any]) -> Forms:

@@ -41,7 +41,14 @@ from collections.abc import Sequence
 
 from ffs.cli.arguments import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, build_parser
 from ffs.cli.batch import run_batch
-from ffs.cli.items import UsageError, check_given_files, check_output_formats, plan_items
+from ffs.cli.items import (
+    UsageError,
+    check_blend_count,
+    check_given_files,
+    check_output_formats,
+    check_server,
+    plan_items,
+)
 from ffs.cli.summary import print_summary, write_report
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
@@ -81,6 +88,7 @@ def _blend_rows(args: argparse.Namespace) -> list[float]:
     ``--weights``), after reading ``--weights`` into ``args.weights_rows`` and
     ``args.times``."""
     args.weights_rows, args.times = None, None
+    check_blend_count("blend", args.inputs)
     if args.weights is not None:
         if args.t is not None:
             raise UsageError("give -t (two meshes) or --weights, not both")
@@ -119,11 +127,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return serve(args)
     try:
         rows = _blend_rows(args) if args.command == "blend" else None
-        items = plan_items(args.command, args.inputs, args.output, rows)
+        items = plan_items(args.command, args.inputs, args.output, rows,
+                           getattr(args, "format", None))
         args.jobs = min(args.jobs, len(items))
         _set_threads(args)  # before the format check imports the library (numpy, MKL)
         check_output_formats(args.command, items, args.format)
         check_given_files(args)
+        check_server(args.server)
     except UsageError as exc:
         print(f"ffs {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

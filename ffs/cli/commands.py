@@ -169,6 +169,16 @@ def run_reconstruct(backend: Any, item: Item, args: argparse.Namespace, progress
                     "(mesh units)")
 
 
+def counted(n: int, noun: str) -> str:
+    """``n`` and the noun, in the plural unless ``n`` is 1.
+
+    Example:
+        >>> counted(1, "chart"), counted(0, "flipped face")
+        ('1 chart', '0 flipped faces')
+    """
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def run_vjp(backend: Any, item: Item, args: argparse.Namespace, progress: Progress,
             row: Row) -> None:
     """``ffs vjp``: the cotangents of a reconstruction's inputs (lengths, angles, constraint
@@ -237,7 +247,7 @@ def run_flatten(backend: Any, item: Item, args: argparse.Namespace, progress: Pr
         files.write_mesh(out, fmt, flat, uv_faces)
     row.faces, row.report = len(faces), result.report
     charts = (result.report.get("atlas") or {}).get("charts", 1)
-    row.note = f"{len(result.flipped_faces)} flipped faces, {charts} charts"
+    row.note = f"{counted(len(result.flipped_faces), 'flipped face')}, {counted(charts, 'chart')}"
     _refinement_columns(row, result.report)
     # A layout's errors are its distortion against the 3D mesh (mean edge-length and
     # corner-angle change: the statistics of its distortion warnings, summary.ERROR_STATISTIC),

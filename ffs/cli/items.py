@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 DEFAULT_EXTENSIONS = {"forms": ".json", "check": ".json", "reconstruct": ".obj",
                       "vjp": ".npz"}
@@ -54,9 +55,44 @@ def check_output_formats(command: str, items: Sequence[Item], override: str | No
             output_format(command, out, override)
 
 
-GIVEN_FILES: tuple[str, ...] = ("align_to", "handles", "cotangent")
+def check_blend_count(command: str, inputs: Sequence[str]) -> None:
+    """``ffs blend`` takes 2 to 64 meshes (checked before its ``-t`` or ``--weights``).
+
+    Raises:
+        UsageError: Fewer or more meshes.
+    """
+    if command == "blend" and not 2 <= len(inputs) <= 64:
+        raise UsageError("blend takes 2 to 64 meshes with the same faces: A B (-t), or "
+                         f"A B C ... (--weights); got {len(inputs)}")
+
+
+def check_server(server: str | None) -> None:
+    """``--server`` (or ``FFS_SERVER``) is an http(s) URL with a host, so that a bare
+    ``127.0.0.1:8000`` is a usage error before any work, not a failure of every input.
+
+    Raises:
+        UsageError: Another scheme, or no host.
+
+    Example:
+        >>> check_server("http://127.0.0.1:8000")
+        >>> check_server("127.0.0.1:8000")
+        Traceback (most recent call last):
+        ...
+        ffs.cli.items.UsageError: --server (or FFS_SERVER) '127.0.0.1:8000' is not a URL: \
+give http:// or https:// and the host, e.g. http://127.0.0.1:8000
+    """
+    if server is None:
+        return
+    parts = urlsplit(server)
+    if parts.scheme not in ("http", "https") or not parts.netloc:
+        example = f"http://{parts.netloc}{parts.path}" if "//" in server else f"http://{server}"
+        raise UsageError(f"--server (or FFS_SERVER) {server!r} is not a URL: give http:// or "
+                         f"https:// and the host, e.g. {example}")
+
+
+GIVEN_FILES: tuple[str, ...] = ("align_to", "handles", "cotangent", "constraints")
 """The options that name one file every item reads (``--align-to``, ``--handles``,
-``--cotangent``): checked before any work by :func:`check_given_files`."""
+``--cotangent``, ``--constraints``): checked before any work by :func:`check_given_files`."""
 
 
 def check_given_files(args: Any) -> None:
@@ -172,7 +208,8 @@ def _default_extension(command: str, first_input: str) -> str:
 
 
 def plan_items(command: str, inputs: Sequence[str], output: str | None,
-               t_values: Sequence[float] | None = None) -> list[Item]:
+               t_values: Sequence[float] | None = None,
+               output_format: str | None = None) -> list[Item]:
     """The items of a command line: inputs grouped and outputs named.
 
     Args:
@@ -181,6 +218,8 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
         output: ``-o``: a file, a template (``{stem}``, ``{name}``, ``{parent}``,
             ``{index}``, ``{ext}``, ``{t}``) or a folder; None only for ``check``.
         t_values: A blend's ``-t`` values (several need ``{t}`` or ``{index}``).
+        output_format: ``--format``: in a folder, the outputs get its extension (not the
+            command's default one, which would put, say, glTF in a ``.obj`` file).
 
     Returns:
         One :class:`Item` per input (per pair for a blend), in input order.
@@ -195,9 +234,7 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
     """
     together = command in ("blend", "mean", "transfer")  # one item of all the inputs
     groups = [list(inputs)] if together else [[p] for p in inputs]
-    if command == "blend" and not 2 <= len(inputs) <= 64:
-        raise UsageError("blend takes 2 to 64 meshes with the same faces: A B (-t), or "
-                         "A B C ... (--weights)")
+    check_blend_count(command, inputs)
     if output is None:
         if command != "check":
             raise UsageError(f"{command} needs -o OUTPUT (a file, a template with {{stem}}, "
@@ -207,8 +244,9 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
     folder = output.endswith(("/", os.sep)) or Path(output).is_dir()
     many_t = t_values is not None and len(t_values) > 1
     if folder and not templated:
-        output = str(Path(output) / ("{stem}" + ("-{t}" if many_t else "")
-                                     + _default_extension(command, groups[0][0])))
+        extension = (f".{output_format.lower()}" if output_format
+                     else _default_extension(command, groups[0][0]))
+        output = str(Path(output) / ("{stem}" + ("-{t}" if many_t else "") + extension))
     elif not templated and len(groups) > 1:
         raise UsageError(f"{len(groups)} inputs cannot all be written to {output}: use a "
                          "template such as -o 'out/{stem}.glb' or a folder")

@@ -123,8 +123,9 @@ def parse_json(body: bytes | bytearray) -> Any:
         raise ProblemError("malformed-json", f"the body is not valid JSON: {exc}") from None
 
 
-def _error(loc: Sequence[Any], msg: str, kind: str) -> dict[str, Any]:
-    return {"loc": tuple(loc), "msg": msg, "type": kind}
+def _error(loc: Sequence[Any], msg: str, kind: str, *value: Any) -> dict[str, Any]:
+    """An error in pydantic's shape; ``value``, when given, is the element sent (quoted)."""
+    return {"loc": tuple(loc), "msg": msg, "type": kind, **({"input": value[0]} if value else {})}
 
 
 def _json_type(value: Any) -> str:
@@ -189,15 +190,16 @@ def _checked(array: np.ndarray, spec: ArraySpec, loc: Any
     if spec.integer and array.dtype == np.float64:
         fractional = array != np.trunc(array)
         errors += [_error(loc(k), "Input should be a valid integer, got a number with a "
-                          "fractional part", "int_from_float") for k in _first(fractional)]
+                          "fractional part", "int_from_float", array.flat[k].item())
+                   for k in _first(fractional)]
     low, high = (0, MAX_INDEX) if spec.integer else (-MAX_MAGNITUDE, MAX_MAGNITUDE)
     errors += [_error(loc(k), f"Input should be greater than or equal to {low}",
-                      "greater_than_equal") for k in _first(array < low)]
+                      "greater_than_equal", array.flat[k].item()) for k in _first(array < low)]
     errors += [_error(loc(k), f"Input should be less than or equal to {high}",
-                      "less_than_equal") for k in _first(array > high)]
+                      "less_than_equal", array.flat[k].item()) for k in _first(array > high)]
     if not spec.integer:
-        errors += [_error(loc(k), "Input should be a finite number", "finite_number")
-                   for k in _first(~np.isfinite(array))]
+        errors += [_error(loc(k), "Input should be a finite number", "finite_number",
+                          array.flat[k].item()) for k in _first(~np.isfinite(array))]
     if errors:
         return None, errors[:MAX_ERRORS]
     return array.astype(spec.dtype, copy=False), []
@@ -279,7 +281,7 @@ def _decode(specs: ArraySpecs, params_model: type[BaseModel], sent: dict[str, An
     try:
         params = params_model.model_validate(rest)
     except ValidationError as exc:
-        errors += exc.errors(include_url=False, include_input=False)[:MAX_ERRORS * 4]
+        errors += exc.errors(include_url=False)[:MAX_ERRORS * 4]
     if errors or params is None:
         raise from_validation_errors(errors, prefix)
     return arrays, params
@@ -442,7 +444,8 @@ class BodySpec(Protocol):
     def source(self) -> str: ...
 
 
-def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> None:
+def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str,
+                 faces_field: str | None = None) -> None:
     """Check a mesh's size against the vertex and face limits.
 
     Args:
@@ -450,23 +453,29 @@ def check_limits(n_vertices: int, n_faces: int, limits: Limits, field: str) -> N
         n_faces: Its face count.
         limits: FFS_MAX_VERTICES and FFS_MAX_FACES.
         field: The input the mesh came in (named by the problem).
+        faces_field: The input its faces came in where that is another one (``faces`` of
+            a JSON or binary body; an upload's file holds both).
 
     Raises:
-        ProblemError: 413 ``mesh-too-large`` beyond a limit, ``use-a-job`` beyond max_sync_faces.
+        ProblemError: 413 ``mesh-too-large`` beyond a limit (each error quoting the count
+            as its ``value``), ``use-a-job`` beyond max_sync_faces.
     """
     errors = []
+    faces_field = faces_field or field
     if n_vertices > limits.max_vertices:
         errors.append(element_error(field, f"{n_vertices} vertices exceed the limit of "
-                                           f"{limits.max_vertices}"))
+                                           f"{limits.max_vertices}", value=n_vertices))
     if n_faces > limits.max_faces and limits.max_memory is not None:
-        errors.append(element_error(field, _memory_reason(n_faces, limits)))
+        errors.append(element_error(faces_field, _memory_reason(n_faces, limits),
+                                    value=n_faces))
     elif n_faces > limits.max_faces:
-        errors.append(element_error(field, f"{n_faces} faces exceed the limit of "
-                                           f"{limits.max_faces}"))
+        errors.append(element_error(faces_field, f"{n_faces} faces exceed the limit of "
+                                                 f"{limits.max_faces}", value=n_faces))
     if errors:
         raise ProblemError("mesh-too-large", errors[0]["reason"], errors=errors)
     if limits.max_sync_faces is not None and n_faces > limits.max_sync_faces:
-        raise use_a_job(n_faces, limits.max_sync_faces, limits.sync_seconds or 0.0, field)
+        raise use_a_job(n_faces, limits.max_sync_faces, limits.sync_seconds or 0.0,
+                        faces_field)
 
 
 def _memory_reason(n_faces: int, limits: Limits) -> str:
@@ -563,7 +572,7 @@ def array_source(kind: str, arrays: Mapping[str, np.ndarray], limits: Limits
         The source of that kind.
     """
     n_vertices, field = _vertex_count(kind, arrays)
-    check_limits(n_vertices, len(arrays["faces"]), limits, field)
+    check_limits(n_vertices, len(arrays["faces"]), limits, field, "faces")
     return ARRAY_SOURCES[kind](**arrays)
 
 

@@ -21,7 +21,9 @@ without its ``instance`` (:func:`failure_of` for an exception, :func:`failure` f
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
@@ -399,13 +401,65 @@ def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence
     for err in errors[:limit]:
         loc = (*prefix, *err.get("loc", ()))
         item = pointer_from_loc(loc)
-        item["reason"] = str(err.get("msg", "invalid"))
+        item["reason"] = _PYTHON_DICT.sub("a JSON object", str(err.get("msg", "invalid")))
         item["type"] = str(err.get("type", ""))
+        if (value := quoted_value(err)) is not _NOT_QUOTED:
+            item["value"] = value
         items.append(item)
     first = items[0] if items else {"field": None, "reason": "invalid"}
     where = first["field"] or "body"
     if first.get("index") is not None:
         where += f"[{first['index']}]"
+    sent = f" (sent: {_as_text(errors[0]['input'])})" if "value" in first else ""
     more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-    return ProblemError("validation-error", f"{where}: {first['reason']}{more}", status=422,
-                        errors=items)
+    return ProblemError("validation-error", f"{where}: {first['reason']}{sent}{more}",
+                        status=422, errors=items)
+
+
+_PYTHON_DICT = re.compile(r"a valid dictionary( or instance of \w+)?")
+"""Pydantic's Python words for an object ("a valid dictionary or instance of HandleTarget",
+a class of ours): the client sent JSON, so it reads "a JSON object"."""
+
+_NOT_QUOTED = object()
+"""What :func:`quoted_value` answers for an error whose value is not worth quoting."""
+
+_UNQUOTED_TYPES = {"missing", "extra_forbidden"}
+"""Pydantic error types whose ``input`` is not the value at fault (the parent object)."""
+
+_NON_FINITE = ("NaN", "Infinity", "-Infinity")
+"""How a non-finite number is quoted (JSON has no literal for it)."""
+
+MAX_QUOTED_CHARS = 80
+"""Longest string value a problem quotes (longer ones are cut, with an ellipsis)."""
+
+
+def quoted_value(error: Mapping[str, Any]) -> Any:
+    """The value a validation error is about, JSON-ready, or ``_NOT_QUOTED``.
+
+    Only scalars are quoted (a number, a string cut to :data:`MAX_QUOTED_CHARS`, a
+    boolean, null); a non-finite number as the string JSON has no literal for.
+
+    Example:
+        >>> quoted_value({"type": "greater_than", "input": -5})
+        -5
+        >>> quoted_value({"type": "finite_number", "input": float("nan")})
+        'NaN'
+    """
+    if "input" not in error or error.get("type") in _UNQUOTED_TYPES:
+        return _NOT_QUOTED
+    value = error["input"]
+    if isinstance(value, float) and not math.isfinite(value):
+        return _NON_FINITE[0] if math.isnan(value) else _NON_FINITE[1 if value > 0 else 2]
+    if isinstance(value, str):
+        return value if len(value) <= MAX_QUOTED_CHARS else value[:MAX_QUOTED_CHARS] + "…"
+    if value is None or isinstance(value, bool | int | float):
+        return value
+    return _NOT_QUOTED
+
+
+def _as_text(value: Any) -> str:
+    """A value as the detail quotes it: as JSON, a non-finite number bare (``NaN``)."""
+    quoted = quoted_value({"input": value})
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(quoted)
+    return json.dumps(quoted, ensure_ascii=False)

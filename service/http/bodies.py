@@ -16,7 +16,7 @@ import multiprocessing
 import threading
 import types
 import typing
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
@@ -171,7 +171,7 @@ def validate_object(model: type[BaseModel], data: Any, prefix: tuple[Any, ...] =
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise from_validation_errors(exc.errors(include_url=False, include_input=False),
+        raise from_validation_errors(exc.errors(include_url=False),
                                      prefix) from None
 
 
@@ -472,16 +472,28 @@ def _capture(fn: Any, *args: Any) -> tuple[Any, BaseException | None]:
         return None, exc
 
 
-def unsupported_media_type(mtype: str) -> ProblemError:
+OPERATION_MEDIA_TYPES = ("application/json", "multipart/form-data with the mesh in `file`",
+                         BINARY_MEDIA_TYPE)
+"""What an operation's endpoint takes (``POST /v1/forms``, ...), in words."""
+
+
+def unsupported_media_type(mtype: str, accepted: Sequence[str] = OPERATION_MEDIA_TYPES
+                           ) -> ProblemError:
     """The 415 problem of a media type an endpoint does not take.
 
     Args:
         mtype: The request's media type.
+        accepted: The media types this endpoint takes, in words (default: an operation's).
 
     Returns:
         The problem, naming the media types it takes.
+
+    Example:
+        >>> unsupported_media_type("text/plain", ("application/json",)).detail
+        "Content-Type 'text/plain' is not supported; send application/json"
     """
+    *rest, last = accepted
+    takes = f"{', '.join(rest)}, or {last}" if len(rest) > 1 else " or ".join([*rest, last])
     return ProblemError("unsupported-media-type",
-                        f"Content-Type {mtype!r} is not supported; send application/json, "
-                        f"multipart/form-data with the mesh in `file`, or {BINARY_MEDIA_TYPE}",
+                        f"Content-Type {mtype!r} is not supported; send {takes}",
                         errors=[element_error("Content-Type", mtype)])

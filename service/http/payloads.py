@@ -226,6 +226,11 @@ async def form_request(spec: OperationSpec, fields: dict[str, Any],
                        output)
 
 
+JOB_MEDIA_TYPES = ('application/json ({"operation", "input"})',
+                   "multipart/form-data with an `operation` field and the mesh in `file`")
+"""What ``POST /v1/jobs`` takes, in words."""
+
+
 async def job_request(request: Request, settings: Settings, parser: ParserPool
                       ) -> tuple[str | None, TaskRequest]:
     """(colour, task) of ``POST /v1/jobs`` (:func:`job_submission`)."""
@@ -242,16 +247,17 @@ async def job_submission(request: Request, settings: Settings, parser: ParserPoo
     mtype = media_type(request)
     if mtype == "multipart/form-data":
         fields, files = await read_form(request, settings)
-        head = validate_object(JobRequest, {"operation": fields.pop("operation", None),
-                                            "color": fields.pop("color", None), "input": {},
-                                            "callback_url": fields.pop("callback_url", None)})
+        head = validate_object(JobRequest, {  # a missing operation is "Field required"
+            **{name: fields.pop(name) for name in ("operation",) if name in fields},
+            "color": fields.pop("color", None), "input": {},
+            "callback_url": fields.pop("callback_url", None)})
         task = await form_request(OPERATIONS[head.operation], fields, files, settings,
                                   Output())
     elif is_json(mtype):
         body = await read_body(request, settings)
         head, task = await off_loop(parser, len(body), _json_job, body, settings)
     else:
-        raise unsupported_media_type(mtype)
+        raise unsupported_media_type(mtype, JOB_MEDIA_TYPES)
     return head, task.with_output(Output(compute=(head.color,) if head.color else (),
                                          keep=True))
 
@@ -265,13 +271,18 @@ def _json_job(body: bytes, settings: Settings) -> tuple[JobRequest, TaskRequest]
                              settings.solver_backend)
 
 
+SESSION_MEDIA_TYPES = ("application/json (a session takes no file upload: read the mesh with "
+                       "POST /v1/mesh first)",)
+"""What ``POST /v1/sessions`` takes, in words."""
+
+
 async def session_spec(request: Request, settings: Settings, parser: ParserPool
                        ) -> SessionSpec:
     """The spec of ``POST /v1/sessions`` (JSON only; the mesh is validated as arrays, in
     ``parser`` when the body is large)."""
     mtype = media_type(request)
     if not is_json(mtype):
-        raise unsupported_media_type(mtype)
+        raise unsupported_media_type(mtype, SESSION_MEDIA_TYPES)
     body = await read_body(request, settings)
     spec: SessionSpec = await off_loop(parser, len(body), _session_spec, body, settings)
     return spec
@@ -282,7 +293,7 @@ def _session_spec(body: bytes, settings: Settings) -> SessionSpec:
         arrays, model = decode_json(MESH_ARRAYS, SessionParams, parse_json(body))
     vertices, faces = arrays["vertices"], arrays["faces"]
     size = limits(settings)
-    check_limits(len(vertices), len(faces), size, "vertices")
+    check_limits(len(vertices), len(faces), size, "vertices", "faces")
     assert isinstance(model, SessionParams)
     return SessionSpec(
         vertices, faces, np.array([h.vertex for h in model.handles], dtype=np.int64),

@@ -220,8 +220,9 @@ def test_sel_def_errors_in_words(ffs, workdir: Path) -> None:
 
 
 def test_a_missing_option_file_is_a_usage_error_before_any_work(ffs, workdir: Path) -> None:
-    """--align-to, --handles and --cotangent name one file every input reads: a missing one
-    is exit 2 with its name before anything runs, not a failure of each input."""
+    """--align-to, --handles, --cotangent and --constraints name one file every input reads:
+    a missing one is exit 2 with its name before anything runs, not a failure of each
+    input."""
     for args, flag in ((("reconstruct", "face.off", "torus.off", "--align-to", "ref.off",
                          "-o", "out/{stem}.ply"), "--align-to"),
                        (("deform", "face.off", "--handles", "moves.json", "-o", "out/x.ply"),
@@ -229,7 +230,10 @@ def test_a_missing_option_file_is_a_usage_error_before_any_work(ffs, workdir: Pa
                        (("deform", "face.off", "--handles", "face.def", "-o", "out/x.ply"),
                         "--handles"),
                        (("vjp", "face.off", "--cotangent", "g.npy", "-o", "out/g.npz"),
-                        "--cotangent")):
+                        "--cotangent"),
+                       # newcomer sweep: --constraints failed each input instead (exit 1)
+                       (("reconstruct", "face.off", "torus.off", "--constraints", "pins.json",
+                         "-o", "out/{stem}.ply"), "--constraints")):
         run = ffs(*args, "--report", "report.json")
         assert run.returncode == 2, (args, run.stdout, run.stderr)
         assert f"{flag} " in run.stderr and "no such file" in run.stderr, run.stderr
@@ -345,3 +349,74 @@ def test_a_broken_flattening_says_warn_and_strict_exits_1(ffs, workdir: Path) ->
     assert strict.returncode == 1, strict.stdout + strict.stderr
     atlas = ffs("flatten", "cap.obj", "-o", "atlas.obj", "--strict")
     assert atlas.returncode == 0 and "WARN" not in atlas.stdout, atlas.stdout + atlas.stderr
+
+
+def test_flatten_counts_read_in_words(ffs, workdir: Path) -> None:
+    """One chart is "1 chart", not "1 charts" (newcomer sweep: libigl's planexy.off)."""
+    box = trimesh.creation.box()  # two triangles of one square side: one chart
+    trimesh.Trimesh(box.vertices, box.faces[:2], process=True).export(workdir / "square.obj")
+    run = ffs("flatten", "square.obj", "-o", "flat.obj")
+    assert run.returncode == 0, run.stderr
+    row = _lines(run.stdout, "square.obj")[0]
+    assert "0 flipped faces, 1 chart" in row and "1 charts" not in row, run.stdout
+
+
+def test_a_folder_output_takes_the_extension_of_format(ffs, workdir: Path) -> None:
+    """``-o out/ --format gltf`` wrote glTF into ``out/face.off`` (the input's extension),
+    and ``ffs forms -o out/ --format npz`` an .npz into ``out/face.json``."""
+    run = ffs("convert", "face.off", "torus.off", "-o", "out/", "--format", "gltf")
+    assert run.returncode == 0, run.stderr
+    assert sorted(p.name for p in (workdir / "out").iterdir()) == ["face.gltf", "torus.gltf"]
+    assert trimesh.load(workdir / "out" / "face.gltf", force="mesh").faces.shape[1] == 3
+    run = ffs("forms", "face.off", "-o", "forms/", "--format", "npz")
+    assert run.returncode == 0, run.stderr
+    assert [p.name for p in (workdir / "forms").iterdir()] == ["face.npz"]
+    assert "lengths" in np.load(workdir / "forms" / "face.npz")
+
+
+def test_a_constraints_file_the_api_refuses_fails_locally_too(ffs, server, workdir: Path) -> None:
+    """``{"position": [...]}`` (a typo) was ignored in-process, answered as if unconstrained,
+    while the service refused it; a list crashed the client with a TypeError."""
+    for document, words in (({"position": [{"vertex": 0, "position": [0, 0, 0]}]},
+                             "constraints.position"),
+                            ([1, 2], "constraints")):
+        (workdir / "pins.json").write_text(json.dumps(document))
+        for where in ((), ("--server", server)):
+            run = ffs("reconstruct", "decimated-knight.off", "--constraints", "pins.json",
+                      "-o", "out.ply", *where)
+            assert run.returncode == 1, (where, run.stdout, run.stderr)
+            assert words in run.stderr and "unexpected error" not in run.stderr, run.stderr
+
+
+def test_a_handles_file_with_a_mistyped_member_is_refused(ffs, workdir: Path) -> None:
+    """``weigth`` in a handle or ``rotation`` for ``rotations`` was dropped silently (the
+    drag done without it); the page's own ``groups`` is still read (and ignored)."""
+    handle = {"vertex": 0, "position": [0.0, 0.0, 0.0]}
+    for document, words in (([{**handle, "weigth": 2}], "handles[0]: unknown member 'weigth'"),
+                            ({"handles": [handle], "rotation": []},
+                             "rotation: unknown member 'rotation'")):
+        (workdir / "moves.json").write_text(json.dumps(document))
+        run = ffs("deform", "face.off", "--handles", "moves.json", "-o", "out.ply")
+        assert run.returncode == 1 and words in run.stderr, run.stderr
+    (workdir / "moves.json").write_text(json.dumps({"handles": [handle], "groups": []}))
+    assert ffs("deform", "face.off", "--handles", "moves.json", "-o", "out.ply").returncode == 0
+
+
+def test_a_forms_file_where_a_mesh_belongs_says_so(ffs, workdir: Path) -> None:
+    """``ffs flatten forms.npz`` said only "vertices: missing"."""
+    assert ffs("forms", "face.off", "-o", "face-forms.npz").returncode == 0
+    for command in (("flatten",), ("convert",)):
+        run = ffs(*command, "face-forms.npz", "-o", "out.obj")
+        assert run.returncode == 1 and "a forms file" in run.stderr, run.stderr
+        assert "ffs reconstruct" in run.stderr, run.stderr
+
+
+def test_a_server_without_scheme_is_a_usage_error(ffs, workdir: Path) -> None:
+    """``--server 127.0.0.1:8000`` failed every input with httpx's "missing an 'http://'
+    protocol" (exit 1, one line per file); now exit 2 before any work, with the fix."""
+    run = ffs("forms", "face.off", "torus.off", "-o", "out/{stem}.json", "--server",
+              "127.0.0.1:8000")
+    assert run.returncode == 2 and run.stdout == "", (run.stdout, run.stderr)
+    assert "e.g. http://127.0.0.1:8000" in run.stderr and not (workdir / "out").exists()
+    run = ffs("forms", "face.off", "-o", "out.json", env={"FFS_SERVER": "localhost:8000"})
+    assert run.returncode == 2 and "FFS_SERVER" in run.stderr, run.stderr

@@ -64,6 +64,12 @@ def test_blend_t_into_one_json_and_bad_weights(ffs, workdir):
     (workdir / "w.json").write_text("[[0.5, 0.6]]")
     off = ffs("blend", "decimated-knight.off", "p.obj", "--weights", "w.json", "-o", "x.obj")
     assert off.returncode == 1 and "weights" in off.stderr + off.stdout
+    # one mesh: the count is the mistake, whichever of -t or --weights (newcomer sweep: it
+    # said "1 meshes need --weights (rows of 1 weights)")
+    for extra in (("-t", "0.5"), ("--weights", "w.json")):
+        one = ffs("blend", "decimated-knight.off", *extra, "-o", "x.obj")
+        assert one.returncode == 2 and "blend takes 2 to 64 meshes" in one.stderr, one.stderr
+        assert "got 1" in one.stderr and "1 meshes" not in one.stderr
 
 
 def test_mean_and_transfer(ffs, server, workdir):

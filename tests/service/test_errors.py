@@ -306,3 +306,91 @@ def test_triangle_inequality_quotes_the_lengths_as_sent(client):
     assert sorted(doc["errors"][0]["lengths"]) == [1.41, 1.41, 100]
     normalized = 100 / np.mean(body["lengths"])
     assert f"{normalized:.3f}" not in doc["detail"]
+
+
+# A newcomer's mistakes (newcomer sweep): every problem quotes the value that was sent.
+@pytest.mark.parametrize(("raw", "pointer", "value"), [
+    (b'{"vertices": [[0, 0, 0], [1, 0, NaN], [0, 1, 0]], "faces": [[0, 1, 2]]}',
+     "/vertices/1/2", "NaN"),
+    (b'{"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "faces": [[0, 1, -1]]}',
+     "/faces/0/2", -1),
+    (b'{"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "faces": [[0, 1, 2.5]]}',
+     "/faces/0/2", 2.5),
+])
+def test_array_validation_errors_quote_the_value_sent(client, raw, pointer, value):
+    doc = problem(client.post("/v1/forms", content=raw,
+                              headers={"content-type": "application/json"}),
+                  422, "validation-error")
+    assert doc["errors"][0]["pointer"] == pointer and doc["errors"][0]["value"] == value
+    assert f"(sent: {value})" in doc["detail"]
+
+
+def test_option_validation_errors_quote_the_value_sent(client):
+    body = {**EXAMPLE_FORMS, "options": {"weighting": "cotangent", "frame_weight": -5}}
+    doc = problem(client.post("/v1/reconstruct", json=body), 422, "validation-error")
+    values = {e["field"]: e.get("value") for e in doc["errors"]}
+    assert values == {"options.weighting": "cotangent", "options.frame_weight": -5}
+    assert '(sent: "cotangent")' in doc["detail"] or "(sent: -5)" in doc["detail"]
+    # a missing field or an unknown one has no value of its own to quote
+    doc = problem(client.post("/v1/forms", json={"vertices": EXAMPLE_MESH["vertices"],
+                                                 "triangles": EXAMPLE_MESH["faces"]}),
+                  422, "validation-error")
+    assert all("value" not in e for e in doc["errors"]) and "sent" not in doc["detail"]
+
+
+def test_415_names_what_each_endpoint_takes(client):
+    doc = problem(client.post("/v1/forms", content=b"x", headers={"content-type": "text/plain"}),
+                  415, "unsupported-media-type")
+    assert "multipart/form-data" in doc["detail"] and "application/vnd.ffs.arrays" in doc["detail"]
+    doc = problem(client.post("/v1/jobs", content=b"x", headers={
+        "content-type": "application/vnd.ffs.arrays"}), 415, "unsupported-media-type")
+    assert "application/vnd.ffs.arrays' is not supported" in doc["detail"]
+    assert "send application/json" in doc["detail"] and "`operation`" in doc["detail"]
+    # a session takes JSON only: an upload is not offered as an alternative
+    off = b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    doc = problem(client.post("/v1/sessions", files={"file": ("tri.off", off)},
+                              data={"handles": '[{"vertex": 0}]'}), 415, "unsupported-media-type")
+    assert "multipart/form-data" in doc["errors"][0]["reason"]
+    assert "send application/json" in doc["detail"] and "multipart" not in doc["detail"].split(
+        "send")[1].split("POST /v1/mesh")[0]
+    assert "POST /v1/mesh" in doc["detail"]
+
+
+def test_face_limit_names_faces_and_quotes_the_count():
+    V, F = icosphere(2)  # 162 vertices, 320 faces
+    with running_app(workers=1, max_vertices=1000, max_faces=300) as small:
+        doc = problem(small.post("/v1/forms", json=mesh_json(V, F)), 413, "mesh-too-large")
+        assert doc["errors"][0]["field"] == "faces" and doc["errors"][0]["value"] == 320
+        doc = problem(small.post("/v1/sessions", json={**mesh_json(V, F),
+                                                       "handles": [{"vertex": 0}]}),
+                      413, "mesh-too-large")
+        assert doc["errors"][0]["field"] == "faces" and doc["errors"][0]["value"] == 320
+
+
+def test_a_job_upload_without_operation_says_it_is_required(client):
+    off = b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    doc = problem(client.post("/v1/jobs", files={"file": ("tri.off", off)}), 422,
+                  "validation-error")
+    assert doc["errors"][0]["field"] == "operation" and doc["errors"][0]["type"] == "missing"
+    assert doc["detail"].startswith("operation: Field required") and "sent" not in doc["detail"]
+
+
+def test_an_unknown_query_parameter_is_refused_not_ignored(client):
+    """``?colour=defect`` was answered without colours, as if nothing had been asked."""
+    response = client.post("/v1/reconstruct?colour=defect", json=EXAMPLE_FORMS)
+    doc = problem(response, 422, "validation-error")
+    assert doc["errors"][0]["field"] == "query.colour"
+    assert doc["errors"][0]["value"] == "defect" and '(sent: "defect")' in doc["detail"]
+    assert "`format` and `color`" in doc["detail"]
+    ok = client.post("/v1/reconstruct?color=defect&format=json", json=EXAMPLE_FORMS)
+    assert ok.status_code == 200 and "colors" in ok.json()
+
+
+def test_a_field_that_is_not_an_object_names_no_python_class(client):
+    """A form field that is not JSON (``-F 'handles=not json'``) is read as a string: the
+    problem says a JSON object was expected, not pydantic's "instance of HandleTarget"."""
+    off = b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    doc = problem(client.post("/v1/deform", files={"file": ("tri.off", off)},
+                              data={"handles": "not json"}), 422, "validation-error")
+    assert doc["errors"][0]["reason"] == "Input should be a JSON object", doc
+    assert doc["errors"][0]["value"] == "not json" and "instance" not in doc["detail"]

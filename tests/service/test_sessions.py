@@ -124,6 +124,13 @@ def test_session_errors(client, sphere):
                 422, "validation-error")
         problem(client.post(f"{location}/solve", content=b"{",
                             headers={"content-type": "application/json"}), 400, "malformed-json")
+        # NaN, as Python's json writes it, is named like every non-finite value (422), not
+        # called malformed JSON (400 "unexpected character"; newcomer sweep)
+        drag = json.dumps({"handle_positions": [[0, 0, 0]] * 3 + [[0, 0, float("nan")]]})
+        doc = problem(client.post(f"{location}/solve", content=drag.encode(),
+                                  headers={"content-type": "application/json"}),
+                      422, "validation-error")
+        assert doc["errors"][0]["field"] == "handle_positions", doc
         problem(client.post(f"{location}/solve", json={"handle_positions": [[0, 0, 0]] * 4},
                             headers={"accept": "text/csv"}), 406, "not-acceptable")
         # The session survives bad drags.
@@ -264,6 +271,10 @@ def test_websocket_round_trips_on_a_real_server(sphere):
             ws.send(b"\0\0\0")
             error = json.loads(ws.recv(timeout=30))
             assert error["kind"] == "validation-error" and error["seq"] == 5
+            # NaN in a JSON drag is named like any non-finite value, not malformed JSON
+            ws.send(json.dumps({"handle_positions": [[float("nan")] * 3] * len(HANDLES)}))
+            error = json.loads(ws.recv(timeout=30))
+            assert error["kind"] == "validation-error" and error["seq"] == 6, error
             # A burst of drags: out-of-date ones are dropped, the latest always wins.
             for i in range(4, 40):
                 ws.send(json.dumps({"handle_positions": targets[i].tolist(), "seq": i}))

@@ -7,6 +7,7 @@ answers in the negotiated format (JSON, GLB or glTF for mesh results).
 from __future__ import annotations
 
 import inspect
+import json
 from collections.abc import Awaitable, Callable
 from typing import Annotated, Any, Literal
 
@@ -119,12 +120,36 @@ def result_format(request: Request, offered: tuple[str, ...], requested: str | N
     return requested
 
 
+QUERY_PARAMETERS = ("format", "color")
+"""The query parameters of an operation's endpoint (each refused where it does nothing)."""
+
+
+def check_query(request: Request) -> None:
+    """Refuse a query parameter the operations do not take, so that a typo (``?colour=``,
+    ``?fromat=glb``) is not answered as if it had not been sent.
+
+    Raises:
+        ProblemError: 422 ``validation-error`` naming each unknown parameter and its value.
+    """
+    unknown = [(name, value) for name, value in request.query_params.multi_items()
+               if name not in QUERY_PARAMETERS]
+    if unknown:
+        takes = " and ".join(f"`{name}`" for name in QUERY_PARAMETERS)
+        raise ProblemError(
+            "validation-error", f"query.{unknown[0][0]}: unknown query parameter (sent: "
+            f"{json.dumps(unknown[0][1])}); the operations take {takes}",
+            errors=[element_error(f"query.{name}", "unknown query parameter", value=value,
+                                  pointer=f"/query/{name}", type="extra_forbidden")
+                    for name, value in unknown])
+
+
 def _endpoint(spec: OperationSpec) -> Callable[..., Awaitable[Response]]:
     """The route function; ``?color=`` and ``?format=`` are documented parameters only where
     they do something (elsewhere a ``color`` is refused with 422 unsupported-color, a
     ``format`` other than ``json`` with 406)."""
 
     async def endpoint(request: Request, services: ServicesDep, **query: Any) -> Response:
+        check_query(request)
         fmt = result_format(request, formats(spec),
                             query.get("fmt", request.query_params.get("format")))
         color = query.get("color", request.query_params.get("color"))

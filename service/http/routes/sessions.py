@@ -18,6 +18,7 @@ from starlette.responses import JSONResponse, Response
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from service.access.quotas import CONCURRENT_SESSIONS
+from service.api.decoding import parse_json
 from service.api.documents import RefiningStatus, SessionInfo, SessionVertices
 from service.api.problems import ProblemError, element_error
 from service.api.schemas import SessionDrag, SessionRequest
@@ -221,13 +222,8 @@ async def solve_session(request: Request, session_id: SessionId, settings: Setti
     if mtype == OCTET:
         positions, rotations = parse_drag_binary(body, n_handles, n_groups)
     elif is_json(mtype):
-        if not body or body.isspace():
-            raise ProblemError("malformed-json", "the body is empty; send a JSON object")
-        try:
-            doc = orjson.loads(body)
-        except orjson.JSONDecodeError as exc:
-            raise ProblemError("malformed-json", f"the body is not valid JSON: {exc}") from None
-        positions, rotations, _ = parse_drag_json(doc, n_handles, n_groups)
+        # NaN and Infinity parse, so that the drag's check names them (422), as everywhere
+        positions, rotations, _ = parse_drag_json(parse_json(body), n_handles, n_groups)
     else:
         raise ProblemError("unsupported-media-type",
                            f"Content-Type {mtype!r} is not supported; send application/json "
@@ -323,12 +319,7 @@ async def session_ws(websocket: WebSocket, session_id: str, sessions: SessionsDe
                         positions, rotations = parse_drag_binary(message["bytes"], n_handles,
                                                                  n_groups)
                     else:
-                        try:
-                            doc = orjson.loads(message.get("text") or "")
-                        except orjson.JSONDecodeError as exc:
-                            raise ProblemError("malformed-json",
-                                               f"the message is not valid JSON: {exc}"
-                                               ) from None
+                        doc = parse_json((message.get("text") or "").encode())  # NaN: 422
                         positions, rotations, given = parse_drag_json(doc, n_handles,
                                                                       n_groups)
                         seq = count if given is None else given

@@ -76,13 +76,9 @@ def folded(uv: np.ndarray, faces: np.ndarray, ignore: np.ndarray | None = None,
 
 
 def principal_rotation(points: np.ndarray) -> np.ndarray:
-    """(2, 2) rotation (det +1) turning the principal axis of ``points`` (k, 2) onto u."""
-    centred = points - points.mean(axis=0)
-    _, vectors = np.linalg.eigh(centred.T @ centred)
-    rotation = vectors[:, ::-1].T
-    if np.linalg.det(rotation) < 0:
-        rotation[1] *= -1
-    return rotation
+    """(2, 2) rotation (det +1) turning the principal axis of ``points`` (k, 2) onto u
+    (:func:`_principal_rotations` of one chart)."""
+    return _principal_rotations(points, np.zeros(len(points), dtype=np.int64), 1)[0]
 
 
 def packing_efficiency(texcoords: np.ndarray, faces: np.ndarray) -> float:
@@ -135,34 +131,72 @@ def pack_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray,
                   packing_efficiency(texcoords, faces))
 
 
+def _chart_vertices(faces: np.ndarray, face_chart: np.ndarray, k: int,
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """``(vertices, chart)``: the (j,) int64 uv vertices that faces use, ascending, and the
+    (j,) int64 rank of each one's chart among the charts (ascending chart labels)."""
+    vertex_chart = np.full(k, -1, dtype=np.int64)
+    vertex_chart[faces.ravel()] = np.repeat(face_chart, 3)
+    vertices = np.flatnonzero(vertex_chart >= 0)
+    labels = vertex_chart[vertices]
+    return vertices, np.searchsorted(np.unique(labels), labels)
+
+
+def _chart_sums(chart: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
+    """(count, c) the sums of ``values`` (j, c) per ``chart`` (j,)."""
+    return np.stack([np.bincount(chart, values[:, i], count) for i in range(values.shape[1])],
+                    axis=1)
+
+
+def _principal_rotations(points: np.ndarray, chart: np.ndarray, count: int) -> np.ndarray:
+    """(count, 2, 2) :func:`principal_rotation` of each chart's ``points`` (j, 2)."""
+    size = np.bincount(chart, minlength=count)[:, None]
+    centred = points - (_chart_sums(chart, points, count) / size)[chart]
+    x, y = centred.T
+    xx, xy, yy = _chart_sums(chart, np.stack([x * x, x * y, y * y], axis=1), count).T
+    _, vectors = np.linalg.eigh(np.stack([np.stack([xx, xy], -1), np.stack([xy, yy], -1)], 1))
+    rotation = np.swapaxes(vectors[:, :, ::-1], 1, 2).copy()
+    rotation[np.linalg.det(rotation) < 0, 1] *= -1
+    return rotation
+
+
 def _turn_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray) -> np.ndarray:
-    """Each chart turned by :func:`principal_rotation` and set apart along u (xatlas welds
-    uv vertices at equal positions, which would join charts; a loop over charts)."""
+    """Each chart turned by :func:`principal_rotation` and set apart along u, in order of
+    its label (xatlas welds uv vertices at equal positions, which would join charts); all
+    charts at once."""
     turned = uv.copy()
-    cursor = 0.0
-    for chart in np.unique(face_chart):
-        ids = np.unique(faces[face_chart == chart])
-        points = uv[ids] @ principal_rotation(uv[ids]).T
-        low, high = points.min(axis=0), points.max(axis=0)
-        turned[ids] = points - low + [cursor, 0.0]
-        cursor += float(high[0] - low[0]) * 1.5 + 1e-9
+    vertices, chart = _chart_vertices(faces, face_chart, len(uv))
+    count = int(chart.max()) + 1 if len(chart) else 0
+    rotation = _principal_rotations(uv[vertices], chart, count)
+    points = np.einsum("jab,jb->ja", rotation[chart], uv[vertices])
+    low = np.full((count, 2), np.inf)
+    high = np.full((count, 2), -np.inf)
+    np.minimum.at(low, chart, points)
+    np.maximum.at(high, chart, points)
+    widths = (high[:, 0] - low[:, 0]) * 1.5 + 1e-9
+    cursor = np.concatenate([[0.0], np.cumsum(widths)[:-1]])
+    turned[vertices] = points - low[chart] + np.stack([cursor, np.zeros(count)], 1)[chart]
     return turned
 
 
 def _exact_translation(turned: np.ndarray, texcoords: np.ndarray, faces: np.ndarray,
                        face_chart: np.ndarray, scale: float) -> np.ndarray:
     """Per chart: ``turned / scale`` moved onto xatlas's placement by the rigid motion
-    that fits it best (Procrustes; a loop over charts)."""
+    that fits it best (Procrustes, never a mirror); all charts at once."""
     exact = turned / scale
-    for chart in np.unique(face_chart):
-        ids = np.unique(faces[face_chart == chart])
-        source, target = exact[ids], texcoords[ids]
-        s_mean, t_mean = source.mean(axis=0), target.mean(axis=0)
-        u, _, vt = np.linalg.svd((source - s_mean).T @ (target - t_mean))
-        rotation = u @ vt
-        if np.linalg.det(rotation) < 0:     # never a mirror: keep the chart's orientation
-            rotation = u @ np.diag([1.0, -1.0]) @ vt
-        exact[ids] = (source - s_mean) @ rotation + t_mean
+    vertices, chart = _chart_vertices(faces, face_chart, len(turned))
+    count = int(chart.max()) + 1 if len(chart) else 0
+    size = np.bincount(chart, minlength=count)[:, None]
+    source, target = exact[vertices], texcoords[vertices]
+    s_mean = _chart_sums(chart, source, count) / size
+    t_mean = _chart_sums(chart, target, count) / size
+    a, b = source - s_mean[chart], target - t_mean[chart]
+    cross = _chart_sums(chart, (a[:, :, None] * b[:, None, :]).reshape(-1, 4), count)
+    u, _, vt = np.linalg.svd(cross.reshape(-1, 2, 2))
+    mirrored = np.linalg.det(u @ vt) < 0    # never a mirror: keep the chart's orientation
+    u[mirrored, :, 1] *= -1
+    rotation = u @ vt
+    exact[vertices] = np.einsum("ja,jab->jb", a, rotation[chart]) + t_mean[chart]
     return exact
 
 

@@ -219,11 +219,20 @@ def rasterized_overlap(texcoords: np.ndarray, faces: np.ndarray, resolution: int
     return int((counts > 1).sum())
 
 
+BOUNDARY_CELL_LIMIT = 64
+"""A boundary edge whose bounding box covers more grid cells than this (cells one mean edge
+wide) is tested against every other edge by :func:`boundary_crossings`; the others only
+against the edges that share a cell with them."""
+
+
 def boundary_crossings(uv: np.ndarray, faces: np.ndarray, chunk: int = 2_000_000) -> int:
     """Pairs of boundary edges of the layout ``uv`` (k, 2) over ``faces`` (m, 3) that cross
     (proper intersections; pairs sharing a vertex are skipped): 0 for a flip-free chart
     means its layout does not overlap itself (a locally injective map of a disk whose
-    boundary stays simple is injective). Vectorized over edge pairs, ``chunk`` at a time.
+    boundary stays simple is injective). Only edges whose bounding boxes share a cell of a
+    grid one mean edge wide are tested (two edges cross at a point inside both boxes), so
+    the time grows with the boundary's length, not its square; vectorized, ``chunk`` pairs
+    at a time.
 
     Example:
         >>> import numpy as np
@@ -238,23 +247,61 @@ def boundary_crossings(uv: np.ndarray, faces: np.ndarray, chunk: int = 2_000_000
     key = np.sort(half, axis=1)
     _, first, count = np.unique(key, axis=0, return_index=True, return_counts=True)
     segments = half[first[count == 1]]                                 # (B, 2)
-    b = len(segments)
+    ii, jj = _nearby_pairs(uv, segments)
+    keep = ((segments[ii, 0] != segments[jj, 0]) & (segments[ii, 0] != segments[jj, 1])
+            & (segments[ii, 1] != segments[jj, 0]) & (segments[ii, 1] != segments[jj, 1]))
+    ii, jj = ii[keep], jj[keep]
     p, r = uv[segments[:, 0]], uv[segments[:, 1]] - uv[segments[:, 0]]
     total = 0
-    rows = max(1, chunk // max(b, 1))
-    for start in range(0, b, rows):                 # bounded memory: a loop over chunks
-        i = np.arange(start, min(b, start + rows))[:, None]
-        j = np.arange(b)[None, :]
-        keep = (j > i) & (segments[i, 0] != segments[j, 0]) & (segments[i, 0] != segments[j, 1]) \
-            & (segments[i, 1] != segments[j, 0]) & (segments[i, 1] != segments[j, 1])
-        ii, jj = np.broadcast_to(i, keep.shape)[keep], np.broadcast_to(j, keep.shape)[keep]
-        denominator = r[ii, 0] * r[jj, 1] - r[ii, 1] * r[jj, 0]
-        d = p[jj] - p[ii]
+    for start in range(0, len(ii), chunk):          # bounded memory: a loop over chunks
+        i, j = ii[start:start + chunk], jj[start:start + chunk]
+        denominator = r[i, 0] * r[j, 1] - r[i, 1] * r[j, 0]
+        d = p[j] - p[i]
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = (d[:, 0] * r[jj, 1] - d[:, 1] * r[jj, 0]) / denominator
-            u = (d[:, 0] * r[ii, 1] - d[:, 1] * r[ii, 0]) / denominator
+            t = (d[:, 0] * r[j, 1] - d[:, 1] * r[j, 0]) / denominator
+            u = (d[:, 0] * r[i, 1] - d[:, 1] * r[i, 0]) / denominator
         total += int(((t > 0) & (t < 1) & (u > 0) & (u < 1)).sum())
     return total
+
+
+def _nearby_pairs(uv: np.ndarray, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(i, j)`` (q,) int64 each pair i < j of ``segments`` (B, 2) whose bounding boxes in
+    ``uv`` share a cell of a grid one mean segment long (every pair with a segment that
+    covers more than :data:`BOUNDARY_CELL_LIMIT` cells), once each."""
+    b = len(segments)
+    if b < 2:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    ends = uv[segments]                                                 # (B, 2, 2)
+    low, high = ends.min(axis=1), ends.max(axis=1)
+    extent = float((high.max(axis=0) - low.min(axis=0)).max())
+    size = max(float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).mean()), extent * 1e-6,
+               np.finfo(float).tiny)
+    origin = low.min(axis=0)
+    first_cell = np.floor((low - origin) / size).astype(np.int64)
+    last_cell = np.floor((high - origin) / size).astype(np.int64)
+    span = last_cell - first_cell + 1
+    cells = span[:, 0] * span[:, 1]
+    long = np.flatnonzero(cells > BOUNDARY_CELL_LIMIT)
+    short = np.flatnonzero(cells <= BOUNDARY_CELL_LIMIT)
+    # Every (segment, cell) of the short segments' boxes, then pairs within each cell.
+    owner = np.repeat(short, cells[short])
+    rank = np.arange(len(owner)) - np.repeat(np.cumsum(cells[short]) - cells[short],
+                                             cells[short])
+    cx = first_cell[owner, 0] + rank // span[owner, 1]
+    cy = first_cell[owner, 1] + rank % span[owner, 1]
+    cell_key = cx * (int(last_cell[:, 1].max()) + 1) + cy
+    order = np.argsort(cell_key, kind="stable")
+    cell_key, owner = cell_key[order], owner[order]
+    end = np.searchsorted(cell_key, cell_key, side="right")
+    partners = end - np.arange(len(owner)) - 1
+    left = np.repeat(np.arange(len(owner)), partners)
+    right = left + 1 + (np.arange(len(left)) - np.repeat(np.cumsum(partners) - partners,
+                                                         partners))
+    a = np.concatenate([owner[left], np.repeat(long, b)])
+    c = np.concatenate([owner[right], np.tile(np.arange(b), len(long))])
+    i, j = np.minimum(a, c), np.maximum(a, c)
+    pair = np.unique(i[i != j] * b + j[i != j])
+    return pair // b, pair % b
 
 
 def positive_loops(uv: np.ndarray, loops: list[np.ndarray]) -> int:

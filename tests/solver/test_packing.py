@@ -4,6 +4,7 @@ chart done alone by a plain loop (numpy's eigh and SVD of that chart's own point
 that touch another moved apart for xatlas, the others left where they are."""
 
 import numpy as np
+import pytest
 
 from solver.mesh.charts import touching_parts_apart
 from solver.mesh.packing import _exact_translation, _turn_charts, principal_rotation
@@ -83,3 +84,46 @@ def test_parts_touching_another_are_moved_apart_for_xatlas():
     np.testing.assert_allclose(moved - moved[0], V - V[0], atol=1e-12)   # only shifted
     shared = set(map(tuple, apart[:n])) & set(map(tuple, moved))
     assert not shared
+
+
+def _crossings_brute_force(uv: np.ndarray, faces: np.ndarray) -> int:
+    """Every pair of boundary edges tested (the reference)."""
+    half = np.stack([faces, np.roll(faces, -1, axis=1)], axis=-1).reshape(-1, 2)
+    keys = [tuple(sorted(e)) for e in half.tolist()]
+    boundary = [e for e, k in zip(half.tolist(), keys, strict=True) if keys.count(k) == 1]
+    count = 0
+    for n, (a, b) in enumerate(boundary):
+        for c, d in boundary[n + 1:]:
+            if {a, b} & {c, d}:
+                continue
+            p, r, q, s = uv[a], uv[b] - uv[a], uv[c], uv[d] - uv[c]
+            den = r[0] * s[1] - r[1] * s[0]
+            if den == 0:
+                continue
+            t = ((q - p)[0] * s[1] - (q - p)[1] * s[0]) / den
+            u = ((q - p)[0] * r[1] - (q - p)[1] * r[0]) / den
+            count += 0 < t < 1 and 0 < u < 1
+    return count
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_boundary_crossings_are_those_of_every_pair(seed):
+    """Separate triangles of very different sizes scattered over one another (long edges
+    over many grid cells, tiny ones inside one), and a strip of quads folded over itself:
+    the grid's candidate pairs find every crossing a test of all pairs finds."""
+    from solver.mesh.packing import boundary_crossings
+
+    rng = np.random.default_rng(seed)
+    k = 120
+    centres = rng.uniform(0, 10, size=(k, 1, 2))
+    sizes = np.exp(rng.uniform(np.log(0.01), np.log(8.0), size=(k, 1, 1)))
+    sizes[:3] = 40.0                                        # edges over hundreds of cells
+    uv = (centres + sizes * rng.normal(size=(k, 3, 2))).reshape(-1, 2)
+    faces = np.arange(3 * k).reshape(k, 3)
+    assert boundary_crossings(uv, faces) == _crossings_brute_force(uv, faces) > 0
+    t = np.linspace(0, 6 * np.pi, 80)                      # a strip wound round three times
+    strip = np.concatenate([np.stack([np.cos(t), np.sin(t)], 1) * (1 + 0.01 * t[:, None]),
+                            np.stack([np.cos(t), np.sin(t)], 1) * (1.3 + 0.01 * t[:, None])])
+    i = np.arange(79)
+    quads = np.concatenate([np.stack([i, i + 1, i + 81], 1), np.stack([i, i + 81, i + 80], 1)])
+    assert boundary_crossings(strip, quads) == _crossings_brute_force(strip, quads) > 0

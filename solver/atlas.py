@@ -16,6 +16,7 @@ import numpy as np
 
 from .atlas_rules import ATLAS_RULES
 from .chart_flattening import (
+    DEVELOPABLE,
     ChartFlattening,
     flatten_chart,
     local_global_flattening,
@@ -42,7 +43,7 @@ from .mesh.topology import MeshTopology, build_topology
 from .options import ParameterizeOptions
 from .reconstruct import Progress
 from .refine.form_energy import FORMS_TOLERANCE
-from .refine.outcomes import with_outcome
+from .refine.outcomes import not_refined, with_outcome
 from .reports import Stages
 
 
@@ -159,6 +160,22 @@ class _Union:
         np.maximum.at(largest, chart, change)
         return np.bincount(chart, change, count) / np.bincount(chart, minlength=count), largest
 
+    def exact_hinges(self, uv: np.ndarray, largest: np.ndarray) -> np.ndarray:
+        """(charts,) bool: the chart is two faces (a hinge), neither of zero area in 3D nor
+        folded in ``uv``, whose edge lengths ``uv`` keeps (``largest`` (charts,) relative
+        change at most :data:`~solver.refine.form_energy.FORMS_TOLERANCE`): then it is
+        exact and cannot overlap itself (two unfolded triangles lie on either side of
+        their shared edge), so no refinement or check of its own is needed."""
+        faces = self.topology.faces
+        count = len(self.charts)
+        face_chart = self.vertex_chart[faces[:, 0]]
+        flat = zero_area_faces(self.vertices, faces)
+        spoilt = np.zeros(len(faces), dtype=bool)
+        spoilt[flat] = True
+        spoilt |= folded(uv, faces, flat)
+        return ((np.bincount(face_chart, minlength=count) == 2) & (largest <= FORMS_TOLERANCE)
+                & (np.bincount(face_chart, spoilt, count) == 0))
+
     def narrowed(self, keep: np.ndarray) -> _Union:
         """The union of the charts where ``keep`` (this union itself when that is all)."""
         if keep.all():
@@ -197,6 +214,7 @@ def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
     mean, largest = union.length_change(quick.uv)
     close = mean <= 2 * opts.max_chart_distortion
     linear = [union.part(quick.uv, k) for k in np.flatnonzero(close)]
+    hinged = union.exact_hinges(quick.uv, largest)[close]
     several, rejected = _split(several, close)
     failed += rejected
     if not several:
@@ -205,9 +223,14 @@ def _flatten_round(V: np.ndarray, faces: np.ndarray, queue: list[np.ndarray],
     if opts.refine is not False:
         starts = _starts(union.narrowed(close), largest[close] > FORMS_TOLERANCE, options)
     for k, (ids, chart) in enumerate(several):
+        flattening = _part(quick, linear[k])
+        if hinged[k]:   # what refine_chart and _acceptable would find, without a topology
+            if opts.refine is not False:
+                flattening.refinement = not_refined(DEVELOPABLE)
+            keep(ChartLayout(chart, flattening))
+            continue
         Vc = V[chart.vertex_ids]
         topology = build_topology(chart.faces, n_vertices=len(Vc))
-        flattening = _part(quick, linear[k])
         if opts.refine is not False:
             flattening = refine_chart(Vc, topology, _lengths(Vc, topology),
                                       chart_options(opts, len(ids)), stages, flattening,

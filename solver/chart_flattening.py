@@ -243,6 +243,10 @@ def flatten_chart(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
         else linear
 
 
+DEVELOPABLE = "exact: the surface is developable"
+"""Why a chart whose linear flattening already has its edge lengths is not refined."""
+
+
 def refine_chart(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
                  opts: ParameterizeOptions, stages: Stages, linear: ChartFlattening,
                  progress: Progress | None = None,
@@ -255,7 +259,7 @@ def refine_chart(V: np.ndarray, topology: MeshTopology, lengths: np.ndarray,
     refiner = Refiner(FormTargets(topology, lengths, np.zeros_like(lengths),
                                   area_weight=opts.area_weight), dim=2, backend=backend)
     if refiner.reproduces(uv):
-        refinement = not_refined("exact: the surface is developable")
+        refinement = not_refined(DEVELOPABLE)
     else:
         stages("refine")
         # Start from local/global steps begun at a Tutte embedding (robust under large

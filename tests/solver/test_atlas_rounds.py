@@ -174,3 +174,35 @@ def test_single_face_charts_are_laid_out_all_at_once_with_their_edge_lengths():
         sides_3d = np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
         sides_uv = np.linalg.norm(np.roll([a, b, c], -1, axis=0) - [a, b, c], axis=1)
         np.testing.assert_allclose(sides_uv, sides_3d, rtol=1e-12)
+
+
+def test_two_face_charts_are_kept_as_the_per_chart_path_keeps_them():
+    """Separate two-face pieces (hinges bent by 0 to 170 degrees, one with a zero-area
+    face, one of sides 1e-3) are kept without a refinement or check of their own
+    (solver.atlas._Union.exact_hinges) where the per-chart path finds them exact; the same
+    layouts, up to a rigid motion, and the same refinement reports."""
+    rng = np.random.default_rng(3)
+    pieces = []
+    for k, bend in enumerate(np.radians(np.linspace(0, 170, 12))):
+        a, b = np.array([0.0, 0, 0]), np.array([1.0, 0, 0])
+        c = np.array([0.4, 0.8, 0.0])
+        d = np.array([0.6, -0.7 * np.cos(bend), 0.7 * np.sin(bend)])
+        quad = np.stack([a, b, c, d]) * (1e-3 if k == 5 else 1.0)
+        if k == 7:
+            quad[2] = [0.5, 0.0, 0.0]                               # zero area: checked alone
+        pieces.append(quad @ np.linalg.qr(rng.normal(size=(3, 3)))[0] + rng.normal(size=3))
+    V = np.concatenate(pieces)
+    o = 4 * np.arange(len(pieces))[:, None]
+    F = np.concatenate([np.array([[0, 1, 2], [1, 0, 3]]) + o[k] for k in range(len(pieces))])
+    topology = build_topology(F, n_vertices=len(V))
+    opts = ParameterizeOptions()
+    charts = chart_layouts(V, topology, fundamental_forms(V, F).angles, opts, Stages(None))
+    assert sorted(np.concatenate([c.mesh.face_ids for c in charts]).tolist()) == list(
+        range(len(F)))
+    for chart in charts:
+        alone = _flatten_or_none(V[chart.mesh.vertex_ids], chart.mesh.faces,
+                                 chart_options(opts, len(chart.mesh.face_ids)), Stages(None),
+                                 out_of_time=False)
+        assert alone is not None
+        assert _rigid_gap(chart.flattening.uv, alone.uv) < 1e-9
+        assert chart.flattening.refinement == alone.refinement

@@ -348,12 +348,17 @@ def _off_records(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     tokens = _Tokens.of(data)
     n_vertices, n_faces, used = _off_header(
         [_words(tokens, d) for d in range(min(2, len(tokens.first)))])
+    if n_vertices < 0 or n_faces < 0:
+        raise MeshFileError(f"cannot parse OFF data: the header's counts ({n_vertices} "
+                            f"vertices, {n_faces} faces) must not be negative",
+                            file_type="off")
     lines = len(tokens.first)
     three = np.full(lines, 3, dtype=np.int64)
     vertex_lines = _record_lines(tokens, three, used, n_vertices)
     spans = _check_complete(tokens, three, vertex_lines, n_vertices, "vertex", False)
     counts, whole = tokens.whole_numbers(tokens.first)
-    need = np.where(whole & (counts < len(tokens.start)), np.maximum(counts, 0) + 1, -1)
+    total = len(tokens.start)  # a count beyond the tokens: a record the file ends inside
+    need = np.where(whole, np.clip(counts, 0, total) + 1, -1)
     face_lines = _record_lines(tokens, need, int(vertex_lines[-1]), n_faces)
     spans = _check_complete(tokens, need, face_lines, n_faces, "face", spans)
     vertices = _off_vertices(tokens, vertex_lines[:-1], spans)
@@ -385,10 +390,12 @@ def _record_lines(tokens: _Tokens, need: np.ndarray, start: int, n: int) -> np.n
 
     Returns:
         (n + 1,) int64 the data line of each record and of the line after the last one;
-        ``d`` (the data lines) after a record that does not end as the rule says.
+        ``d`` (the data lines) after a record that does not end as the rule says. Fewer
+        when the file has fewer lines than records (the last one ``d``).
     """
     lines = len(tokens.first)
-    if start + n <= lines and (tokens.count >= need)[start:start + n].all() and (
+    n = min(n, max(lines - start, 0))  # each takes a line at least: the rest are missing
+    if (tokens.count >= need)[start:start + n].all() and (
             need[start:start + n] >= 1).all():
         return np.arange(start, start + n + 1, dtype=np.int64)
     every = np.arange(lines)
@@ -451,7 +458,7 @@ def _first_fault(tokens: _Tokens, need: np.ndarray, lines: np.ndarray, n: int
         ``(record, spans)``: record None when all ``n`` are whole.
     """
     held = lines[:n] < len(tokens.first)
-    count = int(np.argmin(held)) if not held.all() else n
+    count = int(np.argmin(held)) if not held.all() else len(held)
     fits, _ = _record_fit(tokens, need, lines[:count])
     fault = int(np.argmin(fits)) if not fits.all() else (count if count < n else None)
     whole = lines[:n if fault is None else fault]

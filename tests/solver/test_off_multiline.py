@@ -7,6 +7,7 @@ against the same mesh written one record per line.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -161,6 +162,7 @@ CUT = SPREAD.rsplit(b"3\n3 0 4", 1)[0]
     (CUT + b"3\n3 0 x", "line 20: face 4 has a vertex index that is not a whole number: 'x'"),
     (CUT + b"3.5\n3 0 4", "line 19: face 4 starts with '3.5', not a whole number of corners"),
     (CUT + b"2\n3 0", "line 19: face 4 has fewer than 3 vertices"),
+    (CUT + b"99999999999999999999\n3 0", "the file ends inside face 4 (from line 19"),
 ])
 def test_a_malformed_file_of_spread_records_is_named_at_its_record(data: bytes,
                                                                    words: str) -> None:
@@ -168,6 +170,18 @@ def test_a_malformed_file_of_spread_records_is_named_at_its_record(data: bytes,
         read_mesh(data, "off")
     assert info.value.file_type == "off"
     assert info.value.reason.startswith(f"cannot parse OFF data: {words}")
+
+
+@pytest.mark.parametrize(("head", "words"), [
+    (b"OFF\n10000000000000 1 0\n", "the file ends after 4 of the 10000000000000 vertices"),
+    (b"OFF\n3 10000000000000 0\n", "the file ends after 1 of the 10000000000000 faces"),
+    (b"OFF\n-3 1 0\n", "the header's counts (-3 vertices, 1 faces) must not be negative"),
+])
+def test_header_counts_beyond_the_file_or_negative(head: bytes, words: str) -> None:
+    """Told at once: no array of the header's size is made."""
+    data = head + b"0 0 0\n1 0\n0\n0 1 0\n3 0 1 2\n"
+    with pytest.raises(MeshFileError, match=re.escape(words)):
+        read_mesh(data, "off")
 
 
 def test_a_short_face_in_a_file_of_one_line_records_is_named_as_ever() -> None:

@@ -16,7 +16,9 @@ Per format:
   fan-triangulated, and all groups/objects/materials are merged in file order. ``vt``, ``vn``,
   ``l``, ``p``, materials and vertex colours are ignored.
 * **OFF** -- parsed here (``OFF``/``COFF``/``NOFF`` text headers; extra vertex columns and
-  face colours are ignored).
+  face colours are ignored). A record may run over several lines (a face's indices one a
+  line, as libigl reads them); it then ends with its last line, and only a record on one
+  line carries further columns (the rule: :mod:`solver.mesh.mesh_readers`).
 * **PLY** -- trimesh (``process=False``); polygon faces are read back from the file's face
   list and triangulated here; a ``tristrips`` element (triangle strips, ``-1`` restarts) is
   unrolled into its triangles (:mod:`solver.mesh.strips`).

@@ -5,6 +5,26 @@ numeric blocks, STL's merge of identical corners). The rules per format are
 :mod:`solver.mesh.io`'s docstring; every parser returns ``(vertices, faces, face_polygon)``:
 (n, 3) float, (m, 3) int triangles and the file face of each triangle (None: one file face
 per triangle).
+
+OFF records over several lines. OFF is whitespace-delimited, and some writers spread a record
+over lines (libigl-tutorial-data's ``inspired_mesh_quads_*.off``: ``4 1007`` then ``55``,
+``1008``, ``0`` on lines of their own). The rule read here (Geomview's, where a face's colour
+is the rest of its line, made strict): after the header every record -- ``x y z ...`` or
+``k i0 ... ik-1 [colour]`` -- starts a line (blank and ``#`` comment lines skipped);
+
+* when that line holds the whole record (3 numbers, or ``k + 1``), the record is that line
+  and the line's further columns (normals, colours, a face colour ``r g b [a]``) are ignored;
+* else the record runs on over the next lines and must end with the end of a line: a record
+  over several lines carries no further columns, so a short face in a file of one record a
+  line (``3 0 1`` then ``3 1 2 3``) is that face's fault, not a record that takes the next
+  line's count as its index.
+
+A file whose records are one a line is read as ever (numpy blocks when its faces all have one
+width, :func:`_off_blocks`); every other file as a token stream (:func:`_off_records`, no
+Python loop over records: pointer doubling finds where each starts). A malformed file is
+named at its record: if no record before the fault spans lines, in the words of the line by
+line :func:`~solver.mesh.file_diagnosis.off_problem` (as before), else in the words of the
+token stream (``the file ends inside face 1837 (from line 9190, 5 numbers; truncated?)``).
 """
 
 from __future__ import annotations
@@ -12,6 +32,7 @@ from __future__ import annotations
 import io
 import re
 import warnings
+from dataclasses import dataclass
 from typing import Any, Final
 
 import numpy as np
@@ -183,10 +204,11 @@ def parse_off(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An OFF file (``OFF``, ``COFF``, ``NOFF``, ``CNOFF``... text header).
 
     Vertex records keep their first three numbers (colours and normals are ignored); a face
-    record ``k i0 ... ik-1 [colour]`` is fan-triangulated (:func:`fan_triangulate`). A file
-    whose records are one per line and whose faces all have the same width is read in two
-    numpy blocks (:func:`_off_blocks`, ~5x faster at a million faces); any other file, and
-    every malformed one, record by record (the errors name the record at fault).
+    record ``k i0 ... ik-1 [colour]`` is fan-triangulated (:func:`fan_triangulate`). A record
+    may run over several lines (:func:`_off_records` states the rule). A file whose records
+    are one per line and whose faces all have the same width is read in two numpy blocks
+    (:func:`_off_blocks`, ~5x faster at a million faces); any other file, and every
+    malformed one, by :func:`_off_records` (the errors name the record at fault).
 
     Args:
         data: The OFF file, UTF-8.
@@ -196,38 +218,364 @@ def parse_off(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         each triangle.
     """
     blocks = _off_blocks(data)
-    if blocks is not None:
+    if blocks is not None and np.isfinite(blocks[0]).all():
         return blocks
-    text = data.decode("utf-8", errors="replace")
-    lines = [ln.split("#", 1)[0].split() for ln in text.replace("\r", "\n").split("\n")]
-    lines = [ln for ln in lines if ln]
-    n_vertices, n_faces, used = _off_header(lines[:2])
-    rest = lines[used:]
-    if len(rest) < n_vertices + n_faces:
-        raise MeshFileError(f"the header announces {n_vertices} vertices and {n_faces} faces "
-                            f"but the file has {len(rest)} records")
-    try:
-        vertices = np.array([ln[:3] for ln in rest[:n_vertices]], dtype=np.float64)
-    except ValueError as exc:
-        raise MeshFileError(f"bad vertex coordinate ({exc})") from exc
-    if vertices.ndim != 2 or (n_vertices and vertices.shape[1] != 3):
-        raise MeshFileError("a vertex record needs 3 coordinates")
-    records = rest[n_vertices:n_vertices + n_faces]
-    try:
-        corners = np.array([int(ln[0]) for ln in records], dtype=np.int64)
-        short = [k for k, ln in enumerate(records) if len(ln) < corners[k] + 1]
-        if short:
-            raise MeshFileError(f"face {short[0]} lists fewer indices than its count",
-                                index=short[0])
-        tokens = np.array([i for ln, k in zip(records, corners, strict=True)
-                           for i in ln[1:k + 1]], dtype=np.int64)
-    except ValueError as exc:
-        raise MeshFileError(f"bad face record ({exc})") from exc
+    return _off_records(data)
+
+
+_WHITESPACE: Final = np.isin(np.arange(256), list(b" \t\n\v\f\r"))
+"""(256,) bool: the bytes that separate an OFF file's tokens."""
+
+
+@dataclass(frozen=True)
+class _Tokens:
+    """The whitespace-separated tokens of a text file, comments (``#`` to the line's end)
+    left out, found with numpy (no Python loop over lines or tokens).
+
+    Attributes:
+        raw: (b,) uint8 the file, with a space for every comment byte and one more at the end.
+        start: (t,) int64 the byte where each token starts.
+        end: (t,) int64 the byte after its last.
+        line: (t,) int64 the 0-based file line of each token.
+        first: (d,) int64 the first token of each line holding one (a "data line").
+        count: (d,) int64 the tokens on each data line.
+        data_line: (t,) int64 the data line of each token.
+    """
+
+    raw: np.ndarray
+    start: np.ndarray
+    end: np.ndarray
+    line: np.ndarray
+    first: np.ndarray
+    count: np.ndarray
+    data_line: np.ndarray
+
+    @classmethod
+    def of(cls, data: bytes) -> _Tokens:
+        """The tokens of ``data`` (newlines ``\\n``)."""
+        raw = np.frombuffer(data + b" ", np.uint8)
+        if b"#" in data:
+            raw = _blank_comments(raw)
+        space = _WHITESPACE[raw].view(np.int8)
+        edge = np.diff(space, prepend=np.int8(1))  # -1 where a token starts, 1 after it
+        starts = edge == -1
+        start, end = np.flatnonzero(starts), np.flatnonzero(edge == 1)
+        events = np.flatnonzero(starts | (raw == 10))  # token starts and newlines, in order
+        newline = raw[events] == 10
+        line = np.cumsum(newline)[~newline]
+        is_first = np.diff(line, prepend=-1) != 0
+        first = np.flatnonzero(is_first)
+        return cls(raw, start, end, line, first, np.diff(np.append(first, len(start))),
+                   np.cumsum(is_first) - 1)
+
+    def text(self, k: int) -> str:
+        """Token ``k`` as written."""
+        return self.raw[self.start[k]:self.end[k]].tobytes().decode("utf-8", "replace")
+
+    def whole_numbers(self, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Tokens read as whole numbers, vectorized (``[+-]digits``; more than 18 digits:
+        +-(2**63 - 1), outside every index range).
+
+        Args:
+            tokens: (k,) int64 token numbers.
+
+        Returns:
+            ``(values, ok)``: (k,) int64 and (k,) bool whether each token is a whole number.
+        """
+        start, end = self.start[tokens], self.end[tokens]
+        lead = self.raw[start]
+        first = start + ((lead == ord("+")) | (lead == ord("-")))
+        digits = end - first
+        values, bad = np.zeros(len(tokens), dtype=np.int64), digits < 1
+        last = len(self.raw) - 1
+        for place in range(min(int(digits.max(initial=0)), 18)):  # digit by digit
+            live = digits > place
+            byte = self.raw[np.minimum(first + place, last)]
+            bad |= live & ((byte < ord("0")) | (byte > ord("9")))
+            values = np.where(live, values * 10 + (byte.astype(np.int64) - ord("0")), values)
+        long = np.flatnonzero(digits > 18)
+        if len(long):  # beyond every index; its further digits checked too
+            values[long] = np.iinfo(np.int64).max
+            tail = self.raw[_ranges(first[long] + 18, digits[long] - 18)]
+            owner = np.repeat(np.arange(len(long)), digits[long] - 18)
+            bad[long] |= np.bincount(owner, weights=(tail < ord("0")) | (tail > ord("9")),
+                                     minlength=len(long)) > 0
+        return np.where(lead == ord("-"), -values, values), ~bad
+
+
+def _blank_comments(raw: np.ndarray) -> np.ndarray:
+    """(b,) uint8 ``raw`` with every byte from a ``#`` to the end of its line a space."""
+    hashes = np.flatnonzero(raw == ord("#"))
+    newlines = np.append(np.flatnonzero(raw == 10), len(raw))
+    stops = newlines[np.searchsorted(newlines, hashes)]
+    first = np.unique(stops, return_index=True)[1]  # the first # of each line
+    marks = np.zeros(len(raw) + 1, dtype=np.int8)
+    marks[hashes[first]] = 1
+    marks[stops[first]] = -1
+    blanked = raw.copy()
+    blanked[np.cumsum(marks[:-1], dtype=np.int8).astype(bool)] = ord(" ")
+    return blanked
+
+
+def _ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """The integers ``starts[j] .. starts[j] + lengths[j] - 1`` of every j, concatenated."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    offsets = np.cumsum(lengths) - lengths
+    return np.repeat(np.asarray(starts, dtype=np.int64) - offsets, lengths) + np.arange(
+        int(lengths.sum()), dtype=np.int64)
+
+
+def _off_records(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An OFF file read as a stream of tokens, each record starting a line (the module's
+    rule: a record on one line may carry further columns, a record over several lines ends
+    with its last line), vectorized throughout (:func:`_record_lines`).
+
+    Args:
+        data: The OFF file, UTF-8.
+
+    Returns:
+        ``(vertices, faces, face_polygon)`` as :func:`parse_off`.
+
+    Raises:
+        MeshFileError: Naming the record at fault. In a file whose records are one per line
+            up to the fault the error carries no file type, so that
+            :func:`solver.mesh.io.read_mesh` words it as :func:`off_problem` reads the file
+            line by line; in a file with records over several lines it says what the
+            token stream found.
+    """
+    if b"\r" in data:
+        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    tokens = _Tokens.of(data)
+    n_vertices, n_faces, used = _off_header(
+        [_words(tokens, d) for d in range(min(2, len(tokens.first)))])
+    if n_vertices < 0 or n_faces < 0:
+        raise MeshFileError(f"cannot parse OFF data: the header's counts ({n_vertices} "
+                            f"vertices, {n_faces} faces) must not be negative",
+                            file_type="off")
+    lines = len(tokens.first)
+    three = np.full(lines, 3, dtype=np.int64)
+    vertex_lines = _record_lines(tokens, three, used, n_vertices)
+    spans = _check_complete(tokens, three, vertex_lines, n_vertices, "vertex", False)
+    counts, whole = tokens.whole_numbers(tokens.first)
+    total = len(tokens.start)  # a count beyond the tokens: a record the file ends inside
+    need = np.where(whole, np.clip(counts, 0, total) + 1, -1)
+    face_lines = _record_lines(tokens, need, int(vertex_lines[-1]), n_faces)
+    spans = _check_complete(tokens, need, face_lines, n_faces, "face", spans)
+    vertices = _off_vertices(tokens, vertex_lines[:-1], spans)
+    faces, polygon = _off_faces(tokens, face_lines[:-1], counts[face_lines[:-1]], spans)
+    return vertices, faces, polygon
+
+
+def _words(tokens: _Tokens, line: int) -> list[str]:
+    """The first (at most 8) tokens of data line ``line``, as text."""
+    first = int(tokens.first[line])
+    return [tokens.text(k) for k in range(first, first + min(int(tokens.count[line]), 8))]
+
+
+def _record_lines(tokens: _Tokens, need: np.ndarray, start: int, n: int) -> np.ndarray:
+    """The data lines where ``n`` records start, the first at data line ``start``.
+
+    A record starting at data line d takes ``need[d]`` tokens: those of its line when the
+    line holds as many (the line's further tokens are ignored), else the tokens of the next
+    lines up to the end of a line holding its last one. The next record starts on the next
+    data line. Followed by pointer doubling (:func:`_follow`) unless every record is on its
+    own line.
+
+    Args:
+        tokens: The file's tokens.
+        need: (d,) int64 the tokens a record starting at each data line takes; < 1: that
+            line cannot start one (its count is not a whole number).
+        start: The data line of record 0.
+        n: The records.
+
+    Returns:
+        (n + 1,) int64 the data line of each record and of the line after the last one;
+        ``d`` (the data lines) after a record that does not end as the rule says. Fewer
+        when the file has fewer lines than records (the last one ``d``).
+    """
+    lines = len(tokens.first)
+    n = min(n, max(lines - start, 0))  # each takes a line at least: the rest are missing
+    if (tokens.count >= need)[start:start + n].all() and (
+            need[start:start + n] >= 1).all():
+        return np.arange(start, start + n + 1, dtype=np.int64)
+    every = np.arange(lines)
+    fits, end_line = _record_fit(tokens, need, every)
+    return _follow(np.where(fits, end_line + 1, lines), start, n + 1)
+
+
+def _record_fit(tokens: _Tokens, need: np.ndarray, lines: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Whether records starting at data ``lines`` ((k,) int64) end as the rule of
+    :func:`_record_lines` says, and the data line each ends on.
+
+    Returns:
+        ``(fits, end_line)``: (k,) bool and (k,) int64 (meaningless where it does not fit).
+    """
+    want = need[lines]
+    one_line = (want >= 1) & (tokens.count[lines] >= want)
+    last = tokens.first[lines] + want - 1
+    inside = (want >= 1) & (last < len(tokens.start))
+    end_line = tokens.data_line[np.where(inside, last, 0)]
+    closes = last + 1 == tokens.first[end_line] + tokens.count[end_line]  # ends its line
+    return one_line | (inside & closes), np.where(one_line, lines, end_line)
+
+
+def _follow(after: np.ndarray, start: int, steps: int) -> np.ndarray:
+    """``start``, ``after[start]``, ``after[after[start]]``, ... (``steps`` of them) by
+    pointer doubling: log2(steps) vectorized gathers instead of a loop over the records.
+
+    Args:
+        after: (d,) int64 the data line after each, greater than it; ``d`` past the end.
+        start: Where to start, <= d.
+        steps: How many lines to list.
+
+    Returns:
+        (steps,) int64 the lines; ``d`` once past the end.
+
+    Example:
+        >>> _follow(np.array([2, 3, 3, 5, 5]), 0, 4).tolist()
+        [0, 2, 3, 5]
+    """
+    jump = np.append(after, len(after))[start:] - start  # past the end stays there
+    position = np.zeros(steps, dtype=np.int64)
+    step = np.arange(steps)
+    bit = 1
+    while bit < steps:
+        take = (step & bit) != 0
+        position[take] = jump[position[take]]
+        jump = jump[jump]
+        bit <<= 1
+    return position + start
+
+
+def _first_fault(tokens: _Tokens, need: np.ndarray, lines: np.ndarray, n: int
+                 ) -> tuple[int | None, bool]:
+    """The first of ``n`` records at ``lines`` (:func:`_record_lines`) that the file does
+    not hold or that does not end as the rule says, and whether a record read whole before
+    it runs over several lines.
+
+    Returns:
+        ``(record, spans)``: record None when all ``n`` are whole.
+    """
+    held = lines[:n] < len(tokens.first)
+    count = int(np.argmin(held)) if not held.all() else len(held)
+    fits, _ = _record_fit(tokens, need, lines[:count])
+    fault = int(np.argmin(fits)) if not fits.all() else (count if count < n else None)
+    whole = lines[:n if fault is None else fault]
+    return fault, bool((tokens.count[whole] < need[whole]).any())
+
+
+def _check_complete(tokens: _Tokens, need: np.ndarray, lines: np.ndarray, n: int,
+                    what: str, spans: bool) -> bool:
+    """Whether a record of ``n`` at ``lines`` runs over several lines (or ``spans``); raise
+    when the file does not hold them, naming the record at fault and its line."""
+    fault, spanned = _first_fault(tokens, need, lines, n)
+    spans = spans or spanned
+    if fault is None:
+        return spans
+    line = int(lines[fault])
+    if line >= len(tokens.first):
+        raise _off_error(f"the file ends after {fault} of the {n} {_plural(what)} its "
+                         "header announces (truncated?)", spans)
+    where = int(tokens.line[tokens.first[line]]) + 1
+    if need[line] < 1:
+        word = tokens.text(int(tokens.first[line]))
+        raise _off_error(f"line {where}: {what} {fault} starts with {word!r}, not a "
+                         "whole number of corners", spans, index=fault)
+    last = int(tokens.first[line] + need[line] - 1)
+    if last >= len(tokens.start):
+        raise _off_error(f"the file ends inside {what} {fault} (from line {where}, "
+                         f"{need[line]} numbers; truncated?)", spans, index=fault)
+    stop = int(tokens.line[last]) + 1
+    raise _off_error(
+        f"line {stop}: {what} {fault} (from line {where}, {need[line]} numbers) ends "
+        f"before this line does ({tokens.text(last + 1)!r} follows): a record over "
+        "several lines must end with its last line, further columns (a colour) follow "
+        "only a record on one line", spans, index=fault)
+
+
+def _plural(what: str) -> str:
+    return "vertices" if what == "vertex" else what + "s"
+
+
+def _off_error(reason: str, spans: bool, index: int | None = None,
+               details: dict[str, Any] | None = None) -> MeshFileError:
+    """The error of a malformed OFF record: with the file type (its words stand) in a file
+    with records over several lines, else without (:func:`solver.mesh.io.read_mesh` then
+    words it as :func:`off_problem`, line by line, as ever)."""
+    if spans:
+        return MeshFileError(f"cannot parse OFF data: {reason}", file_type="off",
+                             index=index, details=details)
+    return MeshFileError(reason, index=index, details=details)
+
+
+def _off_vertices(tokens: _Tokens, lines: np.ndarray, spans: bool) -> np.ndarray:
+    """(n, 3) float64 the first three numbers of the vertex records at data ``lines``;
+    raises naming a coordinate that is not a finite number."""
+    if not len(lines):
+        return np.zeros((0, 3), dtype=np.float64)
+    which = tokens.first[lines][:, None] + np.arange(3)
+    if (tokens.count[lines] >= 3).all():  # one per line: the lines' bytes
+        end = tokens.first[lines[-1]] + tokens.count[lines[-1]] - 1
+        text = tokens.raw[tokens.start[which[0, 0]]:tokens.end[end]].tobytes()
+        vertices = number_block(text, np.float64, len(lines), columns=(0, 1, 2))
+    else:
+        vertices = number_block(_number_text(tokens, which), np.float64, len(lines))
+    if vertices is None:
+        for k in which.ravel():  # the error's words only: the first that is not a number
+            try:
+                float(tokens.text(int(k)))
+            except ValueError:
+                row = int(np.argmax((which == k).any(axis=1)))
+                raise _off_error(f"line {tokens.line[k] + 1}: vertex {row} has a coordinate "
+                                 f"that is not a number: {tokens.text(int(k))!r}", spans,
+                                 index=row) from None
+        raise _off_error("a vertex coordinate is not a number", spans)
+    vertices = vertices.reshape(len(lines), 3)
+    bad = ~np.isfinite(vertices)
+    if bad.any():
+        row, column = (int(i) for i in np.argwhere(bad)[0])
+        k = int(which[row, column])
+        value, line = tokens.text(k), int(tokens.line[k]) + 1
+        raise MeshFileError(f"line {line}: vertex {row} has a non-finite coordinate "
+                            f"{value!r}", file_type="off", index=row,
+                            details={"line": line, "value": value})
+    return vertices
+
+
+def _number_text(tokens: _Tokens, which: np.ndarray) -> bytes:
+    """The tokens ``which`` ((r, c) int64) as text, a row of them per line."""
+    start = tokens.start[which.ravel()]
+    length = tokens.end[which.ravel()] - start
+    text = tokens.raw[_ranges(start, length + 1)]  # each token and the byte after it
+    gaps = np.cumsum(length + 1) - 1
+    text[gaps] = ord(" ")
+    text[gaps[which.shape[1] - 1::which.shape[1]]] = ord("\n")
+    return text.tobytes()
+
+
+def _off_faces(tokens: _Tokens, lines: np.ndarray, corners: np.ndarray, spans: bool
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The face records at data ``lines`` with ``corners`` ((f,) int64) each,
+    fan-triangulated: (m, 3) int64 triangles and (m,) int64 the face of each."""
+    if not len(corners):
+        return np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
     if len(corners) and corners.min() < 3:
         k = int(np.argmax(corners < 3))
-        raise MeshFileError(f"face {k} has fewer than 3 vertices", index=k)
+        line = int(tokens.line[tokens.first[lines[k]]]) + 1
+        reason = f"face {k} has fewer than 3 vertices"
+        raise _off_error(f"line {line}: {reason}" if spans else reason, spans, index=k)
+    which = _ranges(tokens.first[lines] + 1, corners)
+    indices, whole = tokens.whole_numbers(which)
+    if not whole.all():
+        bad = int(np.argmin(whole))
+        face = int(np.searchsorted(np.cumsum(corners), bad, side="right"))
+        line, word = int(tokens.line[which[bad]]) + 1, tokens.text(int(which[bad]))
+        raise _off_error(f"line {line}: face {face} has a vertex index that is not a whole "
+                         f"number: {word!r}", spans, index=face,
+                         details={"line": line, "value": word})
     triangles, polygon = fan_triangulate(corners)
-    return vertices.reshape(-1, 3), tokens[triangles].reshape(-1, 3), polygon
+    return indices[triangles].reshape(-1, 3), polygon
 
 
 def _off_header(records: list[list[str]]) -> tuple[int, int, int]:
@@ -307,9 +655,11 @@ def _off_blocks(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None
         return None
     ends = np.append(newlines, len(data))
     vertex_end, face_end = int(ends[n_vertices - 1]), int(ends[n_vertices + n_faces - 1])
-    vertices = number_block(data[start:vertex_end], np.float64, n_vertices)
     faces = number_block(data[vertex_end + 1:face_end], np.int64, n_faces)
-    if vertices is None or faces is None or vertices.shape[1] < 3:
+    if faces is None:  # first: a file of mixed polygons is told early
+        return None
+    vertices = number_block(data[start:vertex_end], np.float64, n_vertices)
+    if vertices is None or vertices.shape[1] < 3:
         return None
     k = int(faces[0, 0])
     if k < 3 or faces.shape[1] < k + 1 or (faces[:, 0] != k).any():

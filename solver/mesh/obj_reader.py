@@ -40,7 +40,7 @@ def parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         every malformed one, line by line (the errors name the line at fault).
     """
     blocks = _obj_blocks(data)
-    if blocks is not None:
+    if blocks is not None and np.isfinite(blocks[0]).all():
         return blocks
     text = data.decode("utf-8", errors="replace")
     text = text.replace("\r\n", "\n").replace("\r", "\n").replace("\\\n", " ")
@@ -62,6 +62,8 @@ def parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     except ValueError:
         raise _not_a_number(["\t".join(c) for c in coords], np.flatnonzero(is_v), _FLOAT,
                             "vertex coordinate", "a number") from None
+    if not np.isfinite(vertices).all():
+        raise _non_finite(vertices, coords, np.flatnonzero(is_v))
 
     f_rows = np.flatnonzero(is_f)
     if f_rows.size == 0:
@@ -88,9 +90,9 @@ def parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     idx = np.where(ids > 0, ids - 1, np.where(ids < 0, nv_tok + ids, -1))
     bad = (idx < 0) | (idx >= nv_tok)
     if bad.any():
-        lineno = int(np.repeat(f_rows, counts)[np.argmax(bad)]) + 1
-        raise MeshFileError(f"line {lineno}: face references a vertex not defined before it",
-                            details={"line": lineno})
+        k = int(np.argmax(bad))
+        face = int(np.searchsorted(np.cumsum(counts), k, side="right"))
+        raise _bad_index(int(ids[k]), face, int(f_rows[face]) + 1, int(nv_tok[k]))
     triangles, face_polygon = fan_triangulate(counts)
     return vertices, idx[triangles], face_polygon
 
@@ -178,6 +180,52 @@ def _not_a_number(records: list[str], rows: np.ndarray, number: re.Pattern[str],
     lineno = int(rows[text.count("\n", 0, bad.start())]) + 1
     return MeshFileError(f"line {lineno}: {what} {bad[0]!r} is not {expected}",
                          details={"line": lineno, "value": bad[0]})
+
+
+def _bad_index(value: int, face: int, line: int, defined: int) -> MeshFileError:
+    """The error for a face's vertex index that names no vertex defined before its line.
+
+    Args:
+        value: The index as written (1-based; negative: counted back from the last vertex).
+        face: The face record at fault (0-based, in the file's order of ``f`` lines).
+        line: Its file line (1-based).
+        defined: The vertices defined before that line.
+
+    Returns:
+        The error to raise (``index`` the face, ``details`` its line and the value).
+
+    Example:
+        >>> _bad_index(9, 2, 7, 4).reason
+        'line 7: face 2 has vertex index 9, but only 4 vertices are defined before its line'
+    """
+    if value == 0:
+        why = ("0, but OBJ indices start at 1 (negative ones count back from the last vertex "
+               "defined)")
+    elif value > 0:
+        why = f"{value}, but only {defined} vertices are defined before its line"
+    else:
+        why = (f"{value}, which counts back past the first vertex (only {defined} are "
+               "defined before its line)")
+    return MeshFileError(f"line {line}: face {face} has vertex index {why}", index=face,
+                         details={"line": line, "value": value})
+
+
+def _non_finite(vertices: np.ndarray, coords: list[list[str]], rows: np.ndarray
+                ) -> MeshFileError:
+    """The error for the first vertex with a NaN or infinite coordinate.
+
+    Args:
+        vertices: (n, 3) float64 the ``v`` lines' coordinates.
+        coords: Those coordinates as written, 3 per ``v`` line.
+        rows: (n,) int64 the 0-based file line of each ``v`` line.
+
+    Returns:
+        The error to raise (``index`` the vertex, ``details`` its line and the value).
+    """
+    vertex, column = (int(i) for i in np.argwhere(~np.isfinite(vertices))[0])
+    line, value = int(rows[vertex]) + 1, coords[vertex][column]
+    return MeshFileError(f"line {line}: vertex {vertex} has a non-finite coordinate "
+                         f"{value!r}", index=vertex, details={"line": line, "value": value})
 
 
 def _huge_index(tokens: list[str], token_rows: np.ndarray) -> MeshFileError:

@@ -166,6 +166,31 @@ def test_huge_obj_face_index_names_the_line_and_no_exception_name(client):
     assert "Error" not in doc["detail"] and "Python int" not in doc["detail"]
 
 
+@pytest.mark.parametrize(("index", "why"), [
+    ("9", "but only 3 vertices are defined before its line"),
+    ("0", "but OBJ indices start at 1"),
+    ("-9", "which counts back past the first vertex"),
+])
+def test_obj_face_index_error_names_the_face_its_line_and_the_index(client, index, why):
+    data = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 " + index.encode() + b"\n"
+    doc = problem(client.post("/v1/mesh", files={"file": ("bad.obj", data)}), 400,
+                  "unreadable-file")
+    assert f"line 5: face 1 has vertex index {index}, {why}" in doc["detail"]
+    element = doc["errors"][0]
+    assert (element["field"], element["index"], element["line"], element["value"]) == (
+        "file", 1, 5, int(index))
+
+
+def test_off_over_several_lines_uploads_and_its_faults_are_named(client):
+    quads = b"OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 \n1 \n2 \n3 \n"
+    doc = client.post("/v1/mesh", files={"file": ("quads.off", quads)}).json()
+    assert doc["faces"] == [[0, 1, 2], [0, 2, 3]]
+    doc = problem(client.post("/v1/mesh", files={"file": ("nan.off", quads.replace(
+        b"1 1 0", b"1 nan 0"))}), 400, "unreadable-file")
+    assert "line 5: vertex 2 has a non-finite coordinate 'nan'" in doc["detail"]
+    assert (doc["errors"][0]["index"], doc["errors"][0]["value"]) == (2, "nan")
+
+
 @pytest.mark.parametrize(("name", "data"), [
     ("broken.ply", b"ply\nformat ascii 1.0\nelement vertex x\nend_header\n"),
     ("broken.off", b"OFF\n3 1 0\n0 0\n"),

@@ -126,9 +126,11 @@ def test_malformed_off_is_named_at_its_line(data: bytes, words: str) -> None:
 
 @pytest.mark.parametrize(("data", "words"), [
     (b"v 0 0 0\nv 1 0 0\nv 0 1\nf 1 2 3\n", "line 3: vertex needs 3 coordinates"),
-    (b"v 0 0 0\nv 1 0 0\nf 1 2 3\nv 0 1 0\n", "line 3: face references a vertex not defined"),
+    (b"v 0 0 0\nv 1 0 0\nf 1 2 3\nv 0 1 0\n",
+     "line 3: face 0 has vertex index 3, but only 2 vertices are defined before its line"),
     (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n", "line 4: face with fewer than 3 vertices"),
-    (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 0\n", "line 4: face references"),
+    (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 0\n",
+     "line 4: face 0 has vertex index 0, but OBJ indices start at 1"),
 ])
 def test_malformed_obj_is_named_at_its_line(data: bytes, words: str) -> None:
     assert obj_reader._obj_blocks(data) is None

@@ -193,8 +193,8 @@ def test_obj_matches_trimesh_on_plain_file() -> None:
 @pytest.mark.parametrize("data, what", [
     (b"v 1 2\nf 1 1 1\n", "3 coordinates"),
     (b"v 1 2 3\nv 0 0 0\nf 1 2\n", "fewer than 3"),
-    (b"v 0 0 0\nv 1 0 0\nf 1 2 3\nv 0 1 0\n", "not defined before"),
-    (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "not defined before"),
+    (b"v 0 0 0\nv 1 0 0\nf 1 2 3\nv 0 1 0\n", "only 2 vertices are defined before"),
+    (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "OBJ indices start at 1"),
     (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n", "line 4: face index 'x' is not a whole number"),
     (b"v 0 0 zz\n", "line 1: vertex coordinate 'zz' is not a number"),
     (b"# c\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n\nf 1 2 3.5 # q\n",
@@ -311,10 +311,42 @@ def test_a_file_error_names_the_file_as_the_caller_knows_it() -> None:
     with pytest.raises(MeshFileError) as info:
         load_mesh(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "obj")
     error = info.value.located(field="file_a", file_name="tri.obj")
-    assert str(error) == "tri.obj: obj: line 4: face references a vertex not defined before it"
-    assert error.element() == {"field": "file_a", "index": None, "line": 4,
-                               "reason": "line 4: face references a vertex not defined "
-                                         "before it"}
+    reason = "line 4: face 0 has vertex index 9, but only 3 vertices are defined before its line"
+    assert str(error) == f"tri.obj: obj: {reason}"
+    assert error.element() == {"field": "file_a", "index": 0, "line": 4, "value": 9,
+                               "reason": reason}
+
+
+OBJ_VERTICES = b"v 0 0 0\nv 1 0 0\nv 0 1 0\n"
+
+
+@pytest.mark.parametrize(("faces", "face", "line", "value", "why"), [
+    (b"f 1 2 9\n", 0, 4, 9, "9, but only 3 vertices are defined before its line"),
+    (b"f 1 2 3\nf 1 2 0\n", 1, 5, 0,
+     "0, but OBJ indices start at 1 (negative ones count back from the last vertex defined)"),
+    (b"f 1 2 3\n\nf -1 -2 -9\n", 1, 6, -9,
+     "-9, which counts back past the first vertex (only 3 are defined before its line)"),
+    (b"f 1/1/1 2/2/2 4/3/3\n", 0, 4, 4, "4, but only 3 vertices are defined before its line"),
+    (b"f 1 2 3\nf 1 2 3 4 # a quad\n", 1, 5, 4, "4, but only 3 vertices"),
+])
+def test_obj_index_errors_name_the_face_its_line_and_the_index(
+        faces: bytes, face: int, line: int, value: int, why: str) -> None:
+    with pytest.raises(MeshFileError) as info:
+        load_mesh(OBJ_VERTICES + faces, "obj")
+    assert info.value.reason.startswith(f"line {line}: face {face} has vertex index {why}")
+    assert info.value.index == face
+    assert info.value.details == {"line": line, "value": value}
+
+
+@pytest.mark.parametrize("data", [
+    OBJ_VERTICES.replace(b"v 1 0 0", b"v 1 -inf 0") + b"f 1 2 3\n",  # numpy blocks
+    OBJ_VERTICES.replace(b"v 1 0 0", b"v 1 -inf 0 # q") + b"vt 0 0\nf 1/1 2/1 3/1\n",
+])
+def test_obj_non_finite_coordinate_names_the_vertex_its_line_and_value(data: bytes) -> None:
+    with pytest.raises(MeshFileError) as info:
+        load_mesh(data, "obj")
+    assert info.value.reason == "line 2: vertex 1 has a non-finite coordinate '-inf'"
+    assert info.value.index == 1 and info.value.details == {"line": 2, "value": "-inf"}
 
 
 def test_a_vertex_record_at_fault_is_the_index() -> None:

@@ -8,7 +8,6 @@ against the same mesh written one record per line.
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,8 +15,7 @@ import pytest
 from solver.core.errors import MeshFileError
 from solver.mesh import mesh_readers
 from solver.mesh.io import read_mesh
-
-CORPUS = Path("/tmp/corpus/igl")
+from tests.helpers import REPO
 
 
 def _reference(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -59,17 +57,13 @@ def _assert_reads_as_reference(data: bytes) -> None:
     np.testing.assert_array_equal(loaded.face_polygon, owner)
 
 
-@pytest.mark.parametrize(("name", "quads"), [("inspired_mesh_quads_Conjugate.off", 1633),
-                                             ("inspired_mesh_quads_Smooth.off", 1838)])
-def test_libigl_quad_files_with_one_index_a_line_read(name: str, quads: int) -> None:
-    path = CORPUS / name
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
-    data = path.read_bytes()
+def test_a_libigl_quad_file_with_one_index_a_line_reads() -> None:
+    """libigl-tutorial-data's inspired_mesh_quads_Conjugate.off (tests/data/README.md)."""
+    data = (REPO / "tests" / "data" / "inspired_mesh_quads_Conjugate.off").read_bytes()
     _assert_reads_as_reference(data)
     loaded = read_mesh(data, "off")
-    assert loaded.report() == {"file_faces": quads, "triangulated_polygons": quads,
-                               "triangles": 2 * quads}
+    assert loaded.report() == {"file_faces": 1633, "triangulated_polygons": 1633,
+                               "triangles": 2 * 1633}
 
 
 SPREAD = b"""OFF

@@ -169,8 +169,12 @@ def test_deform_per_update_sends_the_mesh_binary(web):
     header, arrays = decode(requests[-1].body)
     body = web.app("app.deformRequest()")  # the same request as JSON
     assert set(arrays) == {"vertices", "faces"}
-    np.testing.assert_array_equal(arrays["vertices"], rest)
+    # The rest mesh, bit for bit as the page holds it; to round-off the file's: a handle
+    # made after the page shows an answer bakes that answer into the rest (deform-panel.js),
+    # and the first handle's answer (handles on their own places) may come back before the
+    # second handle is made, on a slow machine (seen in CI: 3e-11 apart).
     np.testing.assert_array_equal(arrays["vertices"], np.asarray(body["vertices"]))
+    np.testing.assert_allclose(arrays["vertices"], rest, rtol=0, atol=1e-9 * np.ptp(rest))
     np.testing.assert_array_equal(arrays["faces"], _faces(web))
     assert header == {k: v for k, v in body.items() if k not in ("vertices", "faces")}
     assert len(header["handles"]) == 9 and len(header["rotations"]) == 2

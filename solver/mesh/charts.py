@@ -26,6 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
+from .placement import face_components
 from .topology import MeshTopology
 
 
@@ -252,11 +253,8 @@ def touching_parts_apart(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         >>> apart[:3].tolist() == V[:3].tolist(), bool((apart[3:] != V[3:]).any())
         (True, True)
     """
-    n = len(vertices)
-    a = faces.ravel()
-    b = np.roll(faces, -1, axis=1).ravel()
-    count, part = connected_components(sp.coo_array((np.ones(len(a)), (a, b)), shape=(n, n)),
-                                       directed=False)
+    part, _ = face_components(faces, len(vertices))
+    count = int(part.max(initial=-1)) + 1
     if count < 2:
         return vertices
     _, position = np.unique(vertices, axis=0, return_inverse=True)

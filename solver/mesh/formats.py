@@ -33,6 +33,7 @@ from .mesh_readers import (
     text_as_utf8,
 )
 from .obj_reader import parse_obj
+from .off_binary import is_binary_off, parse_binary_off
 
 Parsed = tuple[np.ndarray, np.ndarray, np.ndarray | None]
 """A reader's answer: vertices (n, 3), triangles (m, 3), the file face of each triangle."""
@@ -121,7 +122,10 @@ def _write_stl(v: np.ndarray, f: np.ndarray) -> bytes:
 # ----------------------------------------------------------------------------- readers
 
 def _read_off(data: bytes) -> Parsed:
-    """OFF, and a file shorter than its header announces named at its first bad record."""
+    """OFF (text, or binary: :mod:`solver.mesh.off_binary`), and a text file shorter than its
+    header announces named at its first bad record."""
+    if is_binary_off(data):
+        return parse_binary_off(data)
     vertices, faces, face_polygon = parse_off(text_as_utf8(data, "off"))
     if problem := off_short(data, vertices, faces):
         raise MeshFileError(problem, file_type="off")

@@ -18,7 +18,9 @@ Per format:
 * **OFF** -- parsed here (``OFF``/``COFF``/``NOFF`` text headers; extra vertex columns and
   face colours are ignored). A record may run over several lines (a face's indices one a
   line, as libigl reads them); it then ends with its last line, and only a record on one
-  line carries further columns (the rule: :mod:`solver.mesh.mesh_readers`).
+  line carries further columns (the rule: :mod:`solver.mesh.mesh_readers`). Binary OFF
+  (``OFF BINARY``: Geomview's big-endian words or pmp-library's little-endian ones, with or
+  without face colours) is read by :mod:`solver.mesh.off_binary`.
 * **PLY** -- trimesh (``process=False``); polygon faces are read back from the file's face
   list and triangulated here; a ``tristrips`` element (triangle strips, ``-1`` restarts) is
   unrolled into its triangles (:mod:`solver.mesh.strips`).

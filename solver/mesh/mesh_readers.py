@@ -595,7 +595,7 @@ def _off_header(records: list[list[str]]) -> tuple[int, int, int]:
     glued = re.match(r"^([A-Za-z]*OFF)(\S+)$", records[0][0])  # "OFF8 6 12": counts glued on
     header = [glued.group(1), glued.group(2), *records[0][1:]] if glued else records[0]
     if any(word.upper() == "BINARY" for word in header[1:]):
-        raise MeshFileError("binary OFF is not supported; save the mesh as text OFF")
+        raise MeshFileError("'BINARY' must follow the OFF keyword on the file's first line")
     used = 1 if len(header) >= 3 else 2
     counts_line = header[1:] if used == 1 else (records[1] if len(records) > 1 else [])
     try:

@@ -97,10 +97,11 @@ def run_file(path: Path, skip_flatten: bool = False) -> Row:
         return row
     V, F = loaded.vertices, loaded.faces
     row.faces = len(F)
-    used = np.unique(F)
     forms = _timed(row, "forms", lambda: solver.fundamental_forms(V, F))
     if forms is None:
         return row
+    kept = F if forms.dropped_faces is None else np.delete(F, forms.dropped_faces, axis=0)
+    used = np.unique(kept)  # the vertices the forms place (not those of dropped faces only)
     row.values["cut"] = (0 if forms.vertex_map is None
                          else len(forms.vertex_map) - len(V))
     row.values["parts"] = len(forms.placement.faces)
@@ -124,7 +125,8 @@ def run_file(path: Path, skip_flatten: bool = False) -> Row:
         if linear is not None:
             row.values["x_linear"] = row.seconds["noisy"] / max(row.seconds["linear"], 1e-9)
     rng = np.random.default_rng(0)
-    handles = rng.choice(used, min(3, len(used)), replace=False)
+    groups = used if forms.weld_map is None else np.unique(forms.weld_map[used])
+    handles = rng.choice(groups, min(3, len(groups)), replace=False)  # one per welded vertex
     diagonal = float(np.linalg.norm(V[used].max(axis=0) - V[used].min(axis=0)))
     targets = V[handles] + rng.normal(0, HANDLE_SHIFT * diagonal, (len(handles), 3))
     moved = _timed(row, "deform", lambda: solver.deform(V, F, handles, targets))

@@ -23,7 +23,7 @@ from .atlas import (
 )
 from .atlas_rules import ATLAS_RULES
 from .chart_flattening import ChartFlattening, flatten_chart, relative_length_change
-from .core.errors import TopologyError
+from .core.errors import DegenerateFaceError, TopologyError
 from .core.serialization import JsonDataclass
 from .core.validation import as_points
 from .core.warnings import (
@@ -154,6 +154,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
             "let seams='auto' cut it",
             field="faces", details={"closed_components": closed})
     forms = fundamental_forms(V, topology.faces)
+    _refuse_no_area(V, topology.faces)
     stages.lap("validate")
     F = topology.faces
     if opts.seams == "none" or (topology.n_components == 1 and not closed):
@@ -173,6 +174,16 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
                                summary_refinement, [])
     return _result(V, F, combined.uv, uv_faces, uv_vertex, face_chart, packed.texcoords,
                    combined, opts, stages, forms, topology, scale=packed)
+
+
+def _refuse_no_area(V: np.ndarray, F: np.ndarray) -> None:
+    """Raise when every face has zero area (:func:`solver.mesh.forms.zero_area_faces`:
+    collinear or coincident corners): such a mesh has nothing to lay out (CGAL's
+    degeneracies/all_degen.off)."""
+    if len(zero_area_faces(V, F)) == len(F):
+        raise DegenerateFaceError(
+            "every face has zero area (collinear or coincident corners): a mesh without "
+            "area has no flattening", field="faces")
 
 
 def _packed_atlas(V: np.ndarray, topology: MeshTopology, angles: np.ndarray,

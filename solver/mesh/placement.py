@@ -28,7 +28,7 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Final
 
 import numpy as np
 import scipy.sparse as sp
@@ -97,16 +97,46 @@ class Placement(JsonDataclass):
 def face_frames(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Frames (k, 3, 3) of faces (k, 3) from positions: columns b1, b2, b3 (README).
 
+    A face of zero area (collinear or coincident corners: a component made only of such
+    faces has its anchor among them) still gets a rotation: b1 along the edge from corner 0
+    to corner 1 (to corner 2 when corners 0 and 1 coincide; ``e_x`` when all three do) and
+    b3 a unit vector perpendicular to b1 (across the axis b1 leans on least); the same positions
+    give the same frame, so a file's frame and the rebuilt one agree up to a turn about b1,
+    which moves nothing of a collinear component.
+
     Args:
         vertices: (n, 3) float64.
         faces: (k, 3) int64.
+
+    Returns:
+        (k, 3, 3) float64 rotations.
+
+    Example:
+        >>> V = np.array([[0, 0, 0], [2, 2, 0], [1, 1, 0.]])
+        >>> frame = face_frames(V, np.array([[0, 1, 2]]))[0]
+        >>> bool(np.allclose(frame.T @ frame, np.eye(3))), round(float(np.linalg.det(frame)), 12)
+        (True, 1.0)
     """
     p0, p1, p2 = (vertices[faces[:, c]] for c in range(3))
-    b1 = p1 - p0
-    b1 /= np.maximum(np.linalg.norm(b1, axis=1), 1e-300)[:, None]
-    b3 = np.cross(p1 - p0, p2 - p0)
+    e1, e2 = p1 - p0, p2 - p0
+    b3 = np.cross(e1, e2)
+    scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+    flat = np.linalg.norm(b3, axis=1) <= DEGENERATE_AREA * scale
+    b1 = np.where((np.linalg.norm(e1, axis=1) == 0)[:, None] & flat[:, None], e2, e1)
+    length = np.linalg.norm(b1, axis=1)
+    b1 = np.where(length[:, None] > 0, b1 / np.maximum(length, 1e-300)[:, None], [1.0, 0, 0])
+    if flat.any():  # any unit vector perpendicular to b1, chosen by b1 alone
+        axis = np.eye(3)[np.argmin(np.abs(b1[flat]), axis=1)]
+        b3[flat] = np.cross(b1[flat], axis)
     b3 /= np.maximum(np.linalg.norm(b3, axis=1), 1e-300)[:, None]
     return np.stack([b1, np.cross(b3, b1), b3], axis=2)
+
+
+DEGENERATE_AREA: Final = 1e-14
+"""A face whose doubled area is at most this times the product of its two edges from
+corner 0 has no normal to build a frame on (:func:`face_frames`; per face, where
+:data:`solver.mesh.forms.ZERO_AREA`, relative to the mesh's longest edge, decides which
+faces take a neighbour's normal in the forms)."""
 
 
 def face_components(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:

@@ -62,6 +62,7 @@ from ..core.errors import (
     NonManifoldVertexError,
 )
 from ..core.validation import as_faces, as_indices
+from .orientation import orientation_flips
 from .topology import MeshTopology, build_topology
 from .weld import Weld, check_weld_map, weld_report, weld_vertices
 
@@ -84,6 +85,9 @@ class ManifoldCut:
         face_map: None, or (m',) int64 the file face of each cut face when faces were
             dropped (collapsed by the weld).
         n_file_faces: m, the file's face count, where known (from a mesh, not from forms).
+        flipped_faces: None, or (f,) int64 the cut faces written the other way round than
+            in the file (:mod:`solver.mesh.orientation`: faces flipped against their
+            neighbours turned back); ``faces`` holds them turned.
     """
 
     faces: np.ndarray
@@ -94,6 +98,7 @@ class ManifoldCut:
     weld_map: np.ndarray | None = None
     face_map: np.ndarray | None = None
     n_file_faces: int | None = None
+    flipped_faces: np.ndarray | None = None
 
     @classmethod
     def from_vertex_map(cls, vertex_map: ArrayLike, faces: ArrayLike,
@@ -142,8 +147,9 @@ class ManifoldCut:
 
     @property
     def is_identity(self) -> bool:
-        """True for a manifold mesh: nothing was cut, welded or dropped."""
+        """True for a manifold mesh: nothing was cut, welded, dropped or turned."""
         return self.weld_map is None and self.face_map is None and (
+            self.flipped_faces is None) and (
             self.n_vertices == self.n_file_vertices) and bool(
             (self.vertex_map == np.arange(self.n_vertices)).all())
 
@@ -259,6 +265,13 @@ class ManifoldCut:
             spread: optional (n,) per-file-vertex spread of the answer (:meth:`to_file`).
         """
         out: dict[str, Any] = {}
+        if self.flipped_faces is not None:
+            file_faces = (self.flipped_faces if self.face_map is None
+                          else self.face_map[self.flipped_faces])
+            out["reoriented"] = {
+                "rule": "faces running a shared edge the same way as their neighbour turned "
+                        "to the orientation of the most faces of their part",
+                "flipped_faces": len(file_faces), "flipped_face_list": file_faces[:20].tolist()}
         if self.is_cut:
             out["cut"] = self.report(spread)
         if self.weld_map is not None or self.face_map is not None:
@@ -280,7 +293,8 @@ class ManifoldCut:
         """
         section: dict[str, Any] = {
             "rule": "non-manifold vertices split per fan; faces of an edge paired by "
-                    "orientation and angle, flipped neighbours cut apart",
+                    "orientation and angle, flipped neighbours of a non-orientable part cut "
+                    "apart",
             "split_vertices": len(self.split_vertices), "split_edges": len(self.split_edges),
             "added_vertices": self.n_vertices - self.n_file_vertices,
             "split_vertex_list": self.split_vertices[:20].tolist(),
@@ -307,23 +321,33 @@ def manifold_topology(faces: ArrayLike, vertices: ArrayLike | None = None,
 
     Example:
         >>> cut, topology = manifold_topology([[0, 1, 2], [0, 1, 3]])  # flipped neighbours
-        >>> cut.is_identity, topology.n_vertices
-        (False, 6)
+        >>> cut.is_identity, topology.n_vertices, cut.flipped_faces.tolist(), cut.faces[1].tolist()
+        (False, 4, [1], [0, 3, 1])
     """
     if n_vertices is None and vertices is not None:
         n_vertices = len(vertices)
     weld = weld_vertices(faces, vertices, n_vertices)
     welded = not weld.is_identity
     faces, n_vertices = weld.faces, len(weld.target)
-    try:
-        topology = build_topology(faces, n_vertices)
-    except (NonManifoldEdgeError, NonManifoldVertexError, InconsistentOrientationError):
-        cut = _with_weld(cut_to_manifold(faces, vertices, n_vertices), weld, welded)
-        return cut, build_topology(cut.faces, n_vertices=cut.n_vertices)
+    flipped = None
+    for attempt in ("as given", "reoriented"):
+        try:
+            topology = build_topology(faces, n_vertices)
+            break
+        except (NonManifoldEdgeError, NonManifoldVertexError, InconsistentOrientationError):
+            flips = orientation_flips(faces, n_vertices) if attempt == "as given" else None
+            if flips is None or not flips.any():
+                cut = replace(cut_to_manifold(faces, vertices, n_vertices),
+                              flipped_faces=flipped)
+                cut = _with_weld(cut, weld, welded)
+                return cut, build_topology(cut.faces, n_vertices=cut.n_vertices)
+            flipped = np.flatnonzero(flips)
+            faces = faces.copy()
+            faces[flipped] = faces[flipped][:, [0, 2, 1]]
     n = topology.n_vertices
     identity = ManifoldCut(faces=topology.faces, vertex_map=np.arange(n, dtype=np.int64),
                            n_file_vertices=n, split_edges=np.zeros((0, 2), dtype=np.int64),
-                           split_vertices=np.zeros(0, dtype=np.int64))
+                           split_vertices=np.zeros(0, dtype=np.int64), flipped_faces=flipped)
     return _with_weld(identity, weld, welded), topology
 
 

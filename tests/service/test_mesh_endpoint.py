@@ -53,13 +53,18 @@ def test_errors(client):
                                                 "faces": [[0, 1, 5]]}), 422,
                   "index-out-of-range")
     assert doc["errors"][0]["field"] == "faces"
-    # Connectivity is checked like every other operation does: an edge of three faces, and
-    # two faces flipped against each other, are cut (issue 40) and reported.
+    # Connectivity is checked like every other operation does: an edge of three faces is cut
+    # (issue 40), a face flipped against its neighbour turned back, and both reported.
     V = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]]
     F = [[0, 1, 2], [1, 0, 3], [0, 1, 4]]
     cut = client.post("/v1/mesh", json={"vertices": V, "faces": F}).json()["report"]["input"]
     assert cut["cut"]["split_edges"] == 1 and cut["cut"]["split_vertices"] == 2
     flipped = client.post("/v1/mesh", json={"vertices": V, "faces": [[0, 1, 2], [0, 1, 3]]})
-    assert flipped.json()["report"]["input"]["cut"]["split_edges"] == 1
+    turned = flipped.json()["report"]["input"]
+    assert "cut" not in turned and turned["reoriented"]["flipped_face_list"] == [1]
     twice = client.post("/v1/mesh", json={"vertices": V, "faces": [[0, 1, 2], [0, 1, 2]]})
-    assert twice.json()["report"]["input"]["cut"]["split_edges"] == 3  # a duplicated face
+    # a duplicated face on its own: turned, the two bound a closed sliver (dihedral pi)
+    assert twice.json()["report"]["input"]["reoriented"]["flipped_faces"] == 1
+    fin = client.post("/v1/mesh", json={"vertices": V, "faces": [[0, 1, 2], [0, 1, 2],
+                                                                  [1, 0, 3]]})
+    assert fin.json()["report"]["input"]["cut"]["split_edges"] == 1  # duplicated in a mesh

@@ -25,6 +25,7 @@ import numpy as np
 from ..core.errors import MeshFileError, UnsupportedFormatError
 from . import gltf
 from .file_diagnosis import glb_problem, off_problem, ply_problem, stl_problem
+from .gltf_documents import draco_problem, glb_document, gltf_problem
 from .mesh_readers import (
     load_trimesh,
     merge_identical,
@@ -60,6 +61,9 @@ class MeshFormat:
         complete: a cheap check (from the header's counts) run on every file that parsed:
             what a file cut short lacks, or None; a parser may read the records that are
             there and stop (PLY, STL, GLB: the same as ``diagnose``).
+        text: the file starts as text (OBJ, OFF, glTF's JSON), so a byte-order mark at its
+            start says its encoding (:func:`~solver.mesh.mesh_readers.without_bom`:
+            UTF-16 text is read as UTF-8).
     """
 
     name: str
@@ -71,6 +75,7 @@ class MeshFormat:
     carries: tuple[str, ...] = ()
     diagnose: Callable[[bytes], str | None] | None = None
     complete: Callable[[bytes], str | None] | None = None
+    text: bool = False
 
     @property
     def writes(self) -> bool:
@@ -142,10 +147,25 @@ def _trimesh_reader(fmt: str) -> Reader:
     return lambda data: load_trimesh(text_as_utf8(data, fmt), fmt)
 
 
+def _read_glb(data: bytes) -> Parsed:
+    """GLB through trimesh, unless its meshes are Draco-compressed and cannot be decoded."""
+    if problem := draco_problem(glb_document(data)):
+        raise MeshFileError(problem, file_type="glb")
+    return load_trimesh(data, "glb")
+
+
+def _read_gltf(data: bytes) -> Parsed:
+    """A ``.gltf`` document through trimesh, unless a buffer is a separate file or its
+    meshes cannot be decoded (:mod:`solver.mesh.gltf_documents`)."""
+    if problem := gltf_problem(data):
+        raise MeshFileError(problem, file_type="gltf")
+    return load_trimesh(data, "gltf")
+
+
 FORMATS: Final[dict[str, MeshFormat]] = {f.name: f for f in (
     MeshFormat("obj", parse_obj, _write_obj, ("model/obj",), polygons=True,
-               carries=("texcoords",)),
-    MeshFormat("off", _read_off, _write_off, polygons=True, diagnose=off_problem),
+               carries=("texcoords",), text=True),
+    MeshFormat("off", _read_off, _write_off, polygons=True, diagnose=off_problem, text=True),
     MeshFormat("ply", _trimesh_reader("ply"), _write_ply, polygons=True,
                diagnose=ply_problem,
                complete=ply_problem),
@@ -153,16 +173,17 @@ FORMATS: Final[dict[str, MeshFormat]] = {f.name: f for f in (
                ("model/stl", "model/x.stl-binary", "model/x.stl-ascii", "application/sla"),
                precision="float32", diagnose=stl_problem,
                complete=stl_problem),
-    MeshFormat("glb", _trimesh_reader("glb"),
+    MeshFormat("glb", _read_glb,
                lambda v, f: gltf.encode_gltf(v, f, kind="glb"), ("model/gltf-binary",),
                precision="float32", carries=("texcoords", "animation", "parts"),
                diagnose=glb_problem,
                complete=glb_problem),
-    MeshFormat("gltf", _trimesh_reader("gltf"),
+    MeshFormat("gltf", _read_gltf,
                lambda v, f: gltf.encode_gltf(v, f, kind="gltf"), ("model/gltf+json",),
-               precision="float32", carries=("texcoords", "animation", "parts")),
+               precision="float32", carries=("texcoords", "animation", "parts"), text=True),
 )}
-"""Every mesh file format, by name (``.gltf``: buffers as ``data:`` URIs only)."""
+"""Every mesh file format, by name (``.gltf`` as bytes: buffers as ``data:`` URIs only; from
+disk, :func:`solver.mesh.io.load_mesh_file` embeds the files beside it)."""
 
 LOAD_FORMATS: Final = tuple(FORMATS)
 """Formats :func:`solver.mesh.io.load_mesh` reads (lower-case names / file extensions)."""

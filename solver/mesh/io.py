@@ -29,7 +29,9 @@ Per format:
   (the same rule in every format; :func:`read_mesh` reports how many faces were polygons and
   which file face each triangle comes from). Answers are given on these triangles.
 * **STL** -- trimesh, then merge of bit-identical positions (``-0.0`` equals ``0.0``).
-* **GLB** / **glTF** (``.gltf`` only with ``data:`` URI buffers) -- trimesh. Every triangle
+* **GLB** / **glTF** (``.gltf`` as bytes only with ``data:`` URI buffers; from disk,
+  :func:`load_mesh_file` embeds the buffer files beside it; Draco-compressed meshes are
+  refused: :mod:`solver.mesh.gltf_documents`) -- trimesh. Every triangle
   mesh primitive of every node instance is taken with its node transform applied (skipped
   when it is the identity, so positions are bit-exact), concatenated in the scene graph's node
   order: the parts of a multi-part model are components of one mesh, and the forms keep each
@@ -72,7 +74,8 @@ from ..core.errors import (
     UnsupportedFormatError,
 )
 from .formats import FORMATS, LOAD_FORMATS, SAVE_FORMATS, resolve_format
-from .mesh_readers import fan_triangulate
+from .gltf_documents import embed_buffers
+from .mesh_readers import fan_triangulate, without_bom
 
 __all__ = [
     "LOAD_FORMATS",
@@ -199,6 +202,8 @@ def read_mesh(data: bytes, filename_or_type: str) -> LoadedMesh:
     if not data.strip():
         raise MeshFileError("empty file", file_type=fmt)
     reader = FORMATS[fmt]
+    if reader.text:
+        data = without_bom(data)
     try:
         vertices, faces, face_polygon = reader.read(data)
     except MeshFileError as exc:  # a reader's own words carry its file type
@@ -235,6 +240,9 @@ def _in_words(exc: Exception, data: bytes, fmt: str) -> str:
     text = str(exc)
     if text and not _INTERNAL_MESSAGE.search(text) and len(text) < 200:
         return text
+    if fmt in ("gltf", "glb"):
+        return ("its accessors, buffer views and nodes do not fit together (a malformed "
+                "document?)")
     return "the file's records do not form a mesh (a truncated or malformed line?)"
 
 
@@ -248,7 +256,24 @@ def load_mesh_file(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], N
         ``(vertices, faces)`` as :func:`load_mesh` returns them.
     """
     p = Path(path)
-    return load_mesh(p.read_bytes(), p.name)
+    return load_mesh(file_bytes(p), p.name)
+
+
+def file_bytes(path: Path, fmt: str | None = None) -> bytes:
+    """A mesh file's bytes as :func:`load_mesh` takes them: a ``.gltf`` document with the
+    buffer files beside it embedded (:func:`solver.mesh.gltf_documents.embed_buffers`).
+
+    Args:
+        path: The file.
+        fmt: Its format when not its extension's.
+
+    Raises:
+        OSError: the file cannot be read. MeshFileError: a buffer file it names cannot.
+    """
+    data = path.read_bytes()
+    if resolve_format(fmt or path.name) == "gltf":
+        return embed_buffers(without_bom(data), path.parent)
+    return data
 
 
 def _finish(vertices: np.ndarray, faces: np.ndarray, fmt: str

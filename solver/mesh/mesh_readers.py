@@ -29,6 +29,7 @@ token stream (``the file ends inside face 1837 (from line 9190, 5 numbers; trunc
 
 from __future__ import annotations
 
+import codecs
 import io
 import re
 import warnings
@@ -66,6 +67,22 @@ def text_as_utf8(data: bytes, fmt: str) -> bytes:
         return data if end < 0 else _latin1_to_utf8(data[:end]) + data[end:]
     if fmt == "off" or (fmt == "stl" and not _is_binary_stl(data)):
         return _latin1_to_utf8(data)
+    return data
+
+
+def without_bom(data: bytes) -> bytes:
+    """A text file's bytes as UTF-8 without a byte-order mark: UTF-16 (big- or little-endian,
+    by its mark: Windows tools write OBJ files so, assimp's ``box_UTF16BE.obj``) decoded,
+    UTF-8's mark dropped; a file without a mark as it is.
+
+    Example:
+        >>> without_bom("v 1 2 3".encode("utf-16")), without_bom(codecs.BOM_UTF8 + b"OFF")
+        (b'v 1 2 3', b'OFF')
+    """
+    if data.startswith((codecs.BOM_UTF16_BE, codecs.BOM_UTF16_LE)):
+        return data.decode("utf-16", errors="replace").encode("utf-8")
+    if data.startswith(codecs.BOM_UTF8):
+        return data[len(codecs.BOM_UTF8):]
     return data
 
 
@@ -694,7 +711,8 @@ def _single_scene_mesh(scene: Any, fmt: str) -> tuple[np.ndarray, np.ndarray]:
 
     meshes = {name: g for name, g in scene.geometry.items() if isinstance(g, trimesh.Trimesh)}
     if not meshes:
-        raise MeshFileError("no triangle mesh found in the data", file_type=fmt)
+        raise MeshFileError("no triangle mesh found in the data (points, lines and "
+                            "triangle strips are not read)", file_type=fmt)
     instances = [node for node in scene.graph.nodes_geometry
                  if scene.graph[node][1] in meshes] or [None]
     vertices, faces, offset = [], [], 0
@@ -707,8 +725,9 @@ def _single_scene_mesh(scene: Any, fmt: str) -> tuple[np.ndarray, np.ndarray]:
         part = np.asarray(mesh.vertices, dtype=np.float64)
         transform = np.asarray(transform, dtype=np.float64)
         if not np.array_equal(transform, np.eye(4)):
-            homog = np.hstack([part, np.ones((part.shape[0], 1))]) @ transform.T
-            part = homog[:, :3] / homog[:, 3:4]
+            with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+                homog = np.hstack([part, np.ones((part.shape[0], 1))]) @ transform.T
+                part = homog[:, :3] / homog[:, 3:4]  # non-finite: named by the caller
         vertices.append(part)
         faces.append(np.asarray(mesh.faces, dtype=np.int64) + offset)
         offset += len(part)

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -90,18 +90,46 @@ give http:// or https:// and the host, e.g. http://127.0.0.1:8000
                          f"https:// and the host, e.g. {example}")
 
 
-GIVEN_FILES: tuple[str, ...] = ("align_to", "handles", "cotangent", "constraints")
+def _handles_up_front(path: str) -> Any:
+    """A JSON handles file, read once for every input (a ``.sel`` / ``.def`` pair selects on
+    each input's mesh: None, read per input)."""
+    from ffs import files
+    from ffs.selections import is_selection_file
+
+    return None if is_selection_file(path) else files.read_handles(path)
+
+
+def _json_up_front(path: str) -> Any:
+    """A JSON document (``--constraints``), read once for every input."""
+    from ffs import files
+
+    return files.read_json(path)
+
+
+GIVEN_FILES: dict[str, Callable[[str], Any] | None] = {
+    "align_to": None, "handles": _handles_up_front, "cotangent": None,
+    "constraints": _json_up_front}
 """The options that name one file every item reads (``--align-to``, ``--handles``,
-``--cotangent``, ``--constraints``): checked before any work by :func:`check_given_files`."""
+``--cotangent``, ``--constraints``): checked before any work by :func:`check_given_files`,
+each with the reader that reads it once for all items where what it holds does not depend on
+the item (None: read by each item, a mesh or arrays too large to copy to every worker)."""
 
 
 def check_given_files(args: Any) -> None:
     """Every file an option names (:data:`GIVEN_FILES`) exists, and a ``.sel`` / ``.def``
-    handle set has its other half beside it, so that a mistyped name is a usage error
-    (exit 2) before any computation, not a failure of each input file."""
+    handle set has its other half beside it; a file with a reader is read now, once, into
+    ``args.given`` (option -> what it holds; the runners take it from there). So a mistyped
+    name or a file that is not what its option takes (handles that are not JSON) is a usage
+    error (exit 2) before any computation, not a failure of each input file.
+
+    Raises:
+        UsageError: ``--handles moves.json: moves.json: cannot read it as JSON: ...``.
+    """
+    from ffs.files import InputFileError
     from ffs.selections import is_selection_file, selection_pair
 
-    for name in GIVEN_FILES:
+    args.given = {}
+    for name, read in GIVEN_FILES.items():
         path = getattr(args, name, None)
         if path is None:
             continue
@@ -113,6 +141,11 @@ def check_given_files(args: Any) -> None:
             if not file.is_file():
                 beside = f" (the other half of {paths[0].name})" if file != paths[0] else ""
                 raise UsageError(f"{flag} {path}: no such file {file}{beside}")
+        if read is not None:
+            try:
+                args.given[name] = read(path)
+            except InputFileError as exc:
+                raise UsageError(f"{flag} {exc}") from None
 
 
 @dataclass

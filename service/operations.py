@@ -31,7 +31,7 @@ from service.api.decoding import (
 )
 from service.api.task import RawBody, TaskRequest, TaskResult
 from service.worker import tasks
-from service.worker.runtime import Progress, StageClock
+from service.worker.runtime import Progress, ProgressThrottle, StageClock
 
 STAGES_SOLVE: tuple[str, ...] = ("validate", "assemble", "factorize", "solve", "refine",
                                   "encode")
@@ -235,12 +235,18 @@ def run(request: TaskRequest, progress: Progress) -> TaskResult:
 
     A raw body (:class:`~service.api.task.RawBody`) is parsed and validated first, as part
     of the ``validate`` stage; ``request.task`` names a test-only task instead of the
-    operation's own."""
-    clock = StageClock(progress)
-    if isinstance(request.source, RawBody):
-        clock("validate", 0.0)
-        request = decode_raw(OPERATIONS[request.operation], request)
-    task = tasks.DEBUG_TASKS.get(request.task_name) or OPERATIONS[request.task_name].task
-    result: TaskResult = task(request, clock)
+    operation's own. ``progress`` gets the task's reports through a
+    :class:`~service.worker.runtime.ProgressThrottle`, whichever backend's it is: at most 5
+    a second, the first and the last always."""
+    throttle = ProgressThrottle(progress)
+    clock = StageClock(throttle)
+    try:
+        if isinstance(request.source, RawBody):
+            clock("validate", 0.0)
+            request = decode_raw(OPERATIONS[request.operation], request)
+        task = tasks.DEBUG_TASKS.get(request.task_name) or OPERATIONS[request.task_name].task
+        result: TaskResult = task(request, clock)
+    finally:
+        throttle.flush()  # the last report, before the result or the failure goes out
     result.timings = clock.finish()
     return result

@@ -22,6 +22,7 @@ from pydantic import BaseModel
 from service.api import documents, schemas
 from service.api.decoding import (
     FORMS_ARRAYS,
+    MAX_SHAPES,
     MESH_ARRAYS,
     PAIR_ARRAYS,
     STACK_ARRAYS,
@@ -206,9 +207,9 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "from its neighbour's answer with a kept factorization (`options.sequence`); a job "
         "reports progress per row. GLB / glTF output is one animated file: the first shape "
         "as the mesh, each row a morph target, and an animation playing them at `times`. "
-        "Uploads give one `shapes` part per mesh file, in order (2 to 64 files of the same "
-        "faces). Rows x vertices are bounded by FFS_MAX_BLEND_VERTICES (413 "
-        "`blend-too-large`).", files=("shapes",), file_list=True),
+        "Uploads give one `shapes` part per mesh file, in order (1 to "
+        f"{MAX_SHAPES} files of the same faces). Rows x vertices are bounded by "
+        "FFS_MAX_BLEND_VERTICES (413 `blend-too-large`).", files=("shapes",), file_list=True),
     _operation(
         "transfer", documents.TransferResponse, "transfer", STAGES_ROWS, True,
         "Transfer a deformation to another mesh of the same connectivity",

@@ -55,15 +55,24 @@ def check_output_formats(command: str, items: Sequence[Item], override: str | No
             output_format(command, out, override)
 
 
-def check_blend_count(command: str, inputs: Sequence[str]) -> None:
-    """``ffs blend`` takes 2 to 64 meshes (checked before its ``-t`` or ``--weights``).
+SHAPE_COMMANDS: tuple[str, ...] = ("blend", "mean")
+"""The commands whose inputs are one blend's shapes (``POST /v1/blend``, ``solver.blend``)."""
+
+
+def check_shape_count(command: str, inputs: Sequence[str]) -> None:
+    """``ffs blend`` and ``ffs mean`` take as many meshes as the library's blend: 1 to
+    :data:`solver.shape_space.MAX_SHAPES` (the one home of the limit, which the service's
+    ``/v1/blend`` reads too). Imports the library: call it after the BLAS thread variables
+    are set.
 
     Raises:
-        UsageError: Fewer or more meshes.
+        UsageError: More meshes than that (checked before any work).
     """
-    if command == "blend" and not 2 <= len(inputs) <= 64:
-        raise UsageError("blend takes 2 to 64 meshes with the same faces: A B (-t), or "
-                         f"A B C ... (--weights); got {len(inputs)}")
+    from solver.shape_space import MAX_SHAPES
+
+    if command in SHAPE_COMMANDS and not 1 <= len(inputs) <= MAX_SHAPES:
+        raise UsageError(f"{command} takes 1 to {MAX_SHAPES} meshes with the same faces; "
+                         f"got {len(inputs)}")
 
 
 def check_server(server: str | None) -> None:
@@ -267,7 +276,6 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
     """
     together = command in ("blend", "mean", "transfer")  # one item of all the inputs
     groups = [list(inputs)] if together else [[p] for p in inputs]
-    check_blend_count(command, inputs)
     if output is None:
         if command != "check":
             raise UsageError(f"{command} needs -o OUTPUT (a file, a template with {{stem}}, "

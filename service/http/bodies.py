@@ -41,6 +41,9 @@ from service.settings import Settings
 
 THREAD_THRESHOLD = 256 * 1024
 """Bodies larger than this are validated in a worker thread, off the event loop."""
+MAX_FORM_FILES = MAX_SHAPES + 4
+"""Most files one multipart form may carry (spooled as they arrive): a blend's shapes and a
+few more, so that a form one file over a blend's limit is still named by its operation."""
 PROCESS_THRESHOLD = 4 * 1024 * 1024
 """Bodies larger than this are validated in the parser process instead: orjson holds the GIL
 while it parses, so in a thread of this process a 20 MB job body kept the event loop from
@@ -213,11 +216,13 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
 
     streamed = Request(request.scope, receive)  # files spooled to disk beyond 1 MB
     try:
-        form = await streamed.form(max_files=MAX_SHAPES + 4, max_fields=64,
+        form = await streamed.form(max_files=MAX_FORM_FILES, max_fields=64,
                                    max_part_size=settings.max_body_bytes)
     except ProblemError:
         raise
     except StarletteHTTPException as exc:
+        if "too many files" in str(exc.detail).lower():  # Starlette's words for max_files
+            raise _too_many_files() from None
         raise cut_off() or ProblemError(
             "malformed-request", f"cannot read the multipart body: {exc.detail}") from None
     except Exception:  # python-multipart parse errors (their text names internals)
@@ -247,6 +252,16 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
         else:
             fields[key] = _decode_field(value)
     return fields, files
+
+
+def _too_many_files() -> ProblemError:
+    """The 422 of a form with more than :data:`MAX_FORM_FILES` files: only ``blend``'s
+    ``shapes`` takes more than one, as many as the library's blend does."""
+    return ProblemError(
+        "validation-error", f"shapes: the form has more than {MAX_FORM_FILES} files; a blend "
+        f"takes 1 to {MAX_SHAPES} (one `shapes` part per mesh), the other operations one "
+        "file per field", errors=[element_error("shapes", f"at most {MAX_SHAPES} files",
+                                                type="too_long")])
 
 
 def as_arrays(model: type[BaseModel], fields: dict[str, Any]) -> dict[str, Any]:

@@ -36,6 +36,7 @@ from service.api.problems import (
     from_validation_errors,
 )
 from service.api.task import MeshFile
+from service.http.sniffing import SNIFF_BYTES, leading_bytes, sniff
 from service.memory import release_memory
 from service.settings import Settings
 
@@ -320,10 +321,15 @@ def _decode_field(value: str) -> Any:
 
 
 async def upload(file: UploadFile, field: str) -> MeshFile:
-    """Read one uploaded mesh file.
+    """Read one uploaded mesh file, after a look at its first bytes.
+
+    The first :data:`~service.http.sniffing.SNIFF_BYTES` are read and checked against the
+    format the file's name (or media type) gives (:func:`service.http.sniffing.sniff`)
+    before the whole file is read, once, into memory for its worker: a file that cannot be
+    that format is refused at submission, a job included, however large it is.
 
     Args:
-        file: The upload.
+        file: The upload (spooled by :func:`read_form`).
         field: Its form field.
 
     Returns:
@@ -331,25 +337,36 @@ async def upload(file: UploadFile, field: str) -> MeshFile:
 
     Raises:
         ProblemError: 415 ``unsupported-file-type`` for an unknown type, 400
-            ``unreadable-file`` for an empty file.
+            ``unreadable-file`` for an empty file or one whose start is not its format's.
     """
     from solver.core.errors import UnsupportedFormatError
     from solver.mesh.formats import LOAD_FORMATS, resolve_format
 
     name = file.filename or ""
+    given = name if "." in name else (file.content_type or name)
     try:
-        resolve_format(name if "." in name else (file.content_type or name))
+        fmt = resolve_format(given)
     except UnsupportedFormatError as exc:
         raise ProblemError(
             "unsupported-file-type",
             f"{field}: {name or file.content_type!r} is not a supported mesh file; upload "
             f"one of {', '.join(LOAD_FORMATS)}",
             errors=[element_error(field, exc.reason)]) from None
-    data = await file.read()
-    if not data:
+    head = await file.read(SNIFF_BYTES)
+    if not head:
         raise ProblemError("unreadable-file", f"{field}: the file is empty",
                            errors=[element_error(field, "empty file")])
-    return MeshFile(data, name if "." in name else (file.content_type or name), field)
+    size = file.size if file.size is not None else len(head)
+    if problem := sniff(fmt, head, size):
+        raise ProblemError(
+            "unreadable-file", f"{field}: {name or given!r} does not read as {fmt.upper()}: "
+            f"{problem}; its first bytes: '{leading_bytes(head)}'",
+            errors=[element_error(field, problem, value=name or given, format=fmt,
+                                  starts=leading_bytes(head))])
+    if size > len(head) or file.size is None:
+        await file.seek(0)
+        return MeshFile(await file.read(), given, field)  # the whole file, read once
+    return MeshFile(head, given, field)
 
 
 class ParserPool:

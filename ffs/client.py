@@ -421,9 +421,9 @@ class Client:
              progress: Progress | None = None, **options: Any) -> Mesh:
         """The form-space mean (n, 3) of K shapes (``POST /v1/blend`` with equal weights and
         ``align``: where each shape sits does not matter)."""
-        count = len(shapes)
-        result = self.blend(shapes, faces, np.full((1, count), 1.0 / count), refine=refine,
-                            progress=progress, **{"align": True, **options})
+        count = len(shapes)  # none: the service names the count (422, ``shapes``)
+        result = self.blend(shapes, faces, np.full((1, count), 1.0 / max(count, 1)),
+                            refine=refine, progress=progress, **{"align": True, **options})
         return Mesh(result.vertices[0], result.faces, result.reports[0])
 
     def size_limits(self) -> dict[str, Any]:
@@ -568,7 +568,8 @@ def _blend_params(count: int, weights: Any, t: float | Sequence[float] | None,
     (T, count) or ``t`` values, and the options."""
     params: dict[str, Any] = {"options": options}
     if weights is not None:
-        params["weights"] = np.asarray(weights, dtype=np.float64).reshape(-1, count).tolist()
+        rows = np.asarray(weights, dtype=np.float64)
+        params["weights"] = (rows.reshape(-1, count) if count else np.atleast_2d(rows)).tolist()
     if t is not None:
         params["t"] = _t_values(t)
     return params

@@ -243,9 +243,9 @@ class Local:
 
     def mean(self, shapes: Any, faces: Any, *, refine: bool | None = None,
              progress: Progress | None = None, **options: Any) -> Mesh:
-        count = len(shapes)
-        result = self.blend(shapes, faces, np.full((1, count), 1.0 / count), refine=refine,
-                            progress=progress, **{"align": True, **options})
+        count = len(shapes)  # none: the library names the count (``shapes``)
+        result = self.blend(shapes, faces, np.full((1, count), 1.0 / max(count, 1)),
+                            refine=refine, progress=progress, **{"align": True, **options})
         return Mesh(result.vertices[0], result.faces, result.reports[0])
 
     def transfer(self, source: Any, source_deformed: Any, target: Any, faces: Any, *,

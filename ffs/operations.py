@@ -121,7 +121,8 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
             ".obj/.glb the mesh with its uv (vt, TEXCOORD_0), .ply/.off/.stl the flat layout "
             "(z = 0), .json/.npz the arrays", groups=("solve",)),
     Command("blend", ("interpolate", "blend"),
-            "blend, extrapolate or animate 2 to 64 meshes with the same faces in form space",
+            "blend, extrapolate or animate meshes with the same faces in form space (A B "
+            "with -t, or K meshes with --weights)",
             groups=("solve",), inputs_help="A and B (-t), or K meshes (--weights)"),
     Command("mean", ("blend",), "the form-space mean of meshes with the same faces",
             groups=("solve",)),

@@ -22,6 +22,7 @@ from pydantic import BaseModel
 from service.api import documents, schemas
 from service.api.decoding import (
     FORMS_ARRAYS,
+    MAX_SHAPES,
     MESH_ARRAYS,
     PAIR_ARRAYS,
     STACK_ARRAYS,
@@ -31,7 +32,7 @@ from service.api.decoding import (
 )
 from service.api.task import RawBody, TaskRequest, TaskResult
 from service.worker import tasks
-from service.worker.runtime import Progress, StageClock
+from service.worker.runtime import Progress, ProgressThrottle, StageClock
 
 STAGES_SOLVE: tuple[str, ...] = ("validate", "assemble", "factorize", "solve", "refine",
                                   "encode")
@@ -206,9 +207,9 @@ OPERATIONS: dict[str, OperationSpec] = {spec.name: spec for spec in (
         "from its neighbour's answer with a kept factorization (`options.sequence`); a job "
         "reports progress per row. GLB / glTF output is one animated file: the first shape "
         "as the mesh, each row a morph target, and an animation playing them at `times`. "
-        "Uploads give one `shapes` part per mesh file, in order (2 to 64 files of the same "
-        "faces). Rows x vertices are bounded by FFS_MAX_BLEND_VERTICES (413 "
-        "`blend-too-large`).", files=("shapes",), file_list=True),
+        "Uploads give one `shapes` part per mesh file, in order (1 to "
+        f"{MAX_SHAPES} files of the same faces). Rows x vertices are bounded by "
+        "FFS_MAX_BLEND_VERTICES (413 `blend-too-large`).", files=("shapes",), file_list=True),
     _operation(
         "transfer", documents.TransferResponse, "transfer", STAGES_ROWS, True,
         "Transfer a deformation to another mesh of the same connectivity",
@@ -235,12 +236,18 @@ def run(request: TaskRequest, progress: Progress) -> TaskResult:
 
     A raw body (:class:`~service.api.task.RawBody`) is parsed and validated first, as part
     of the ``validate`` stage; ``request.task`` names a test-only task instead of the
-    operation's own."""
-    clock = StageClock(progress)
-    if isinstance(request.source, RawBody):
-        clock("validate", 0.0)
-        request = decode_raw(OPERATIONS[request.operation], request)
-    task = tasks.DEBUG_TASKS.get(request.task_name) or OPERATIONS[request.task_name].task
-    result: TaskResult = task(request, clock)
+    operation's own. ``progress`` gets the task's reports through a
+    :class:`~service.worker.runtime.ProgressThrottle`, whichever backend's it is: at most 5
+    a second, the first and the last always."""
+    throttle = ProgressThrottle(progress)
+    clock = StageClock(throttle)
+    try:
+        if isinstance(request.source, RawBody):
+            clock("validate", 0.0)
+            request = decode_raw(OPERATIONS[request.operation], request)
+        task = tasks.DEBUG_TASKS.get(request.task_name) or OPERATIONS[request.task_name].task
+        result: TaskResult = task(request, clock)
+    finally:
+        throttle.flush()  # the last report, before the result or the failure goes out
     result.timings = clock.finish()
     return result

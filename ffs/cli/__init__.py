@@ -43,10 +43,10 @@ from ffs.cli.arguments import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
 from ffs.cli.batch import run_batch
 from ffs.cli.items import (
     UsageError,
-    check_blend_count,
     check_given_files,
     check_output_formats,
     check_server,
+    check_shape_count,
     plan_items,
 )
 from ffs.cli.summary import print_summary, write_report
@@ -88,7 +88,6 @@ def _blend_rows(args: argparse.Namespace) -> list[float]:
     ``--weights``), after reading ``--weights`` into ``args.weights_rows`` and
     ``args.times``."""
     args.weights_rows, args.times = None, None
-    check_blend_count("blend", args.inputs)
     if args.weights is not None:
         if args.t is not None:
             raise UsageError("give -t (two meshes) or --weights, not both")
@@ -107,8 +106,10 @@ def _blend_rows(args: argparse.Namespace) -> list[float]:
         args.weights_rows = rows
         return [float(k) for k in range(len(rows))]
     if len(args.inputs) != 2:
-        raise UsageError(f"{len(args.inputs)} meshes need --weights (rows of "
-                         f"{len(args.inputs)} weights); -t blends two")
+        count = len(args.inputs)
+        raise UsageError(f"-t blends two meshes (A B), got {count}: "
+                         f"{'one mesh takes' if count == 1 else f'{count} meshes take'} "
+                         f"--weights (rows of {count} weight{'s' * (count > 1)})")
     args.t = args.t or [0.5]
     return list(args.t)
 
@@ -131,6 +132,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                            getattr(args, "format", None))
         args.jobs = min(args.jobs, len(items))
         _set_threads(args)  # before the format check imports the library (numpy, MKL)
+        check_shape_count(args.command, args.inputs)
         check_output_formats(args.command, items, args.format)
         check_given_files(args)
         check_server(args.server)

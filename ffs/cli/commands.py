@@ -38,6 +38,17 @@ def _refinement_columns(row: Row, report: dict[str, Any] | None) -> None:
     row.angle_error = (after.get("angle_error") or {}).get("max")
 
 
+def _given(args: argparse.Namespace, name: str, read: Callable[..., Any], *mesh: Any) -> Any:
+    """What the file of option ``name`` holds: as read once for every item
+    (:func:`ffs.cli.items.check_given_files`), else read here by ``read(path, *mesh)``; None
+    without the option."""
+    path = getattr(args, name, None)
+    if path is None:
+        return None
+    given = getattr(args, "given", None) or {}
+    return given[name] if given.get(name) is not None else read(path, *mesh)
+
+
 def _mesh_options(args: argparse.Namespace, *, orthonormalize_default: bool = False
                   ) -> dict[str, Any]:
     """The solver options given on the command line, by their library names (``None``s
@@ -156,7 +167,7 @@ def run_reconstruct(backend: Any, item: Item, args: argparse.Namespace, progress
 
     forms = _forms_of(backend, item.inputs[0], args, progress)
     options = _reconstruct_options(args)
-    constraints = files.read_json(args.constraints) if args.constraints else None
+    constraints = _given(args, "constraints", files.read_json)
     reference = files.read_mesh(args.align_to)[0] if args.align_to else None
     if reference is not None:
         options["align_to"] = reference
@@ -188,7 +199,7 @@ def run_vjp(backend: Any, item: Item, args: argparse.Namespace, progress: Progre
 
     forms = _forms_of(backend, item.inputs[0], args, progress)
     options = _reconstruct_options(args)
-    constraints = files.read_json(args.constraints) if args.constraints else None
+    constraints = _given(args, "constraints", files.read_json)
     result = backend.reconstruct_vjp(forms, cotangent=files.read_cotangent(args.cotangent),
                                      constraints=constraints, progress=progress, **options)
     out = Path(item.outputs[0])
@@ -208,7 +219,7 @@ def run_deform(backend: Any, item: Item, args: argparse.Namespace, progress: Pro
     from ffs import files
 
     vertices, faces = files.read_mesh(item.inputs[0], args.input_format)
-    handles = files.read_handles(args.handles, vertices, faces)
+    handles = _given(args, "handles", files.read_handles, vertices, faces)
     result = backend.deform(vertices, faces, handles.vertices, handles.positions,
                             rotation_handles=handles.rotation_faces or None,
                             handle_rotations=handles.rotations, roi=handles.roi,

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -55,15 +55,24 @@ def check_output_formats(command: str, items: Sequence[Item], override: str | No
             output_format(command, out, override)
 
 
-def check_blend_count(command: str, inputs: Sequence[str]) -> None:
-    """``ffs blend`` takes 2 to 64 meshes (checked before its ``-t`` or ``--weights``).
+SHAPE_COMMANDS: tuple[str, ...] = ("blend", "mean")
+"""The commands whose inputs are one blend's shapes (``POST /v1/blend``, ``solver.blend``)."""
+
+
+def check_shape_count(command: str, inputs: Sequence[str]) -> None:
+    """``ffs blend`` and ``ffs mean`` take as many meshes as the library's blend: 1 to
+    :data:`solver.shape_space.MAX_SHAPES` (the one home of the limit, which the service's
+    ``/v1/blend`` reads too). Imports the library: call it after the BLAS thread variables
+    are set.
 
     Raises:
-        UsageError: Fewer or more meshes.
+        UsageError: More meshes than that (checked before any work).
     """
-    if command == "blend" and not 2 <= len(inputs) <= 64:
-        raise UsageError("blend takes 2 to 64 meshes with the same faces: A B (-t), or "
-                         f"A B C ... (--weights); got {len(inputs)}")
+    from solver.shape_space import MAX_SHAPES
+
+    if command in SHAPE_COMMANDS and not 1 <= len(inputs) <= MAX_SHAPES:
+        raise UsageError(f"{command} takes 1 to {MAX_SHAPES} meshes with the same faces; "
+                         f"got {len(inputs)}")
 
 
 def check_server(server: str | None) -> None:
@@ -90,18 +99,46 @@ give http:// or https:// and the host, e.g. http://127.0.0.1:8000
                          f"https:// and the host, e.g. {example}")
 
 
-GIVEN_FILES: tuple[str, ...] = ("align_to", "handles", "cotangent", "constraints")
+def _handles_up_front(path: str) -> Any:
+    """A JSON handles file, read once for every input (a ``.sel`` / ``.def`` pair selects on
+    each input's mesh: None, read per input)."""
+    from ffs import files
+    from ffs.selections import is_selection_file
+
+    return None if is_selection_file(path) else files.read_handles(path)
+
+
+def _json_up_front(path: str) -> Any:
+    """A JSON document (``--constraints``), read once for every input."""
+    from ffs import files
+
+    return files.read_json(path)
+
+
+GIVEN_FILES: dict[str, Callable[[str], Any] | None] = {
+    "align_to": None, "handles": _handles_up_front, "cotangent": None,
+    "constraints": _json_up_front}
 """The options that name one file every item reads (``--align-to``, ``--handles``,
-``--cotangent``, ``--constraints``): checked before any work by :func:`check_given_files`."""
+``--cotangent``, ``--constraints``): checked before any work by :func:`check_given_files`,
+each with the reader that reads it once for all items where what it holds does not depend on
+the item (None: read by each item, a mesh or arrays too large to copy to every worker)."""
 
 
 def check_given_files(args: Any) -> None:
     """Every file an option names (:data:`GIVEN_FILES`) exists, and a ``.sel`` / ``.def``
-    handle set has its other half beside it, so that a mistyped name is a usage error
-    (exit 2) before any computation, not a failure of each input file."""
+    handle set has its other half beside it; a file with a reader is read now, once, into
+    ``args.given`` (option -> what it holds; the runners take it from there). So a mistyped
+    name or a file that is not what its option takes (handles that are not JSON) is a usage
+    error (exit 2) before any computation, not a failure of each input file.
+
+    Raises:
+        UsageError: ``--handles moves.json: moves.json: cannot read it as JSON: ...``.
+    """
+    from ffs.files import InputFileError
     from ffs.selections import is_selection_file, selection_pair
 
-    for name in GIVEN_FILES:
+    args.given = {}
+    for name, read in GIVEN_FILES.items():
         path = getattr(args, name, None)
         if path is None:
             continue
@@ -113,6 +150,11 @@ def check_given_files(args: Any) -> None:
             if not file.is_file():
                 beside = f" (the other half of {paths[0].name})" if file != paths[0] else ""
                 raise UsageError(f"{flag} {path}: no such file {file}{beside}")
+        if read is not None:
+            try:
+                args.given[name] = read(path)
+            except InputFileError as exc:
+                raise UsageError(f"{flag} {exc}") from None
 
 
 @dataclass
@@ -234,7 +276,6 @@ def plan_items(command: str, inputs: Sequence[str], output: str | None,
     """
     together = command in ("blend", "mean", "transfer")  # one item of all the inputs
     groups = [list(inputs)] if together else [[p] for p in inputs]
-    check_blend_count(command, inputs)
     if output is None:
         if command != "check":
             raise UsageError(f"{command} needs -o OUTPUT (a file, a template with {{stem}}, "

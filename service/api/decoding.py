@@ -37,7 +37,7 @@ from ffs_wire.arrays import (  # binary_body: the reference encoder, re-exported
     padded,
 )
 from service.api.problems import ProblemError, element_error, from_validation_errors, use_a_job
-from service.api.schemas import MAX_INDEX, MAX_MAGNITUDE
+from service.api.schemas import MAX_INDEX, MAX_MAGNITUDE, MAX_SHAPES
 from service.api.task import (
     ARRAY_SOURCES,
     FormsArrays,
@@ -85,8 +85,6 @@ STACK_ARRAYS: dict[str, ArraySpec] = {"shapes": ArraySpec(3, False, 1, stacked=T
                                       "faces": _TRIANGLES}
 TRANSFER_ARRAYS: dict[str, ArraySpec] = {"source": _POINTS, "source_deformed": _POINTS,
                                          "target": _POINTS, "faces": _TRIANGLES}
-MAX_SHAPES = 64
-"""Most shapes of one ``blend`` body (:data:`solver.shape_space.MAX_SHAPES`)."""
 ArraySpecs = Mapping[str, ArraySpec]
 """The large arrays of a body (its request model's fields minus its params model's)."""
 
@@ -362,13 +360,22 @@ def parse_binary(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     return header, arrays
 
 
+def _shape_count_error(name: str, count: int) -> dict[str, Any] | None:
+    """The error of ``count`` arrays in a stacked field (``blend``'s ``shapes``) outside 1 to
+    :data:`MAX_SHAPES` (the library's :data:`solver.shape_space.MAX_SHAPES`), JSON and binary
+    bodies alike; None within."""
+    if 1 <= count <= MAX_SHAPES:
+        return None
+    return _error((name,), f"expected 1 to {MAX_SHAPES} arrays, got {count}",
+                  "too_long" if count else "too_short")
+
+
 def _stacked_array(name: str, value: list[Any], spec: ArraySpec
                    ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
     """A JSON list of arrays of one shape (``spec.stacked``), each checked by
     :func:`as_array` (errors located as ``name[k]...``), stacked (K, n, cols)."""
-    if not 1 <= len(value) <= MAX_SHAPES:
-        return None, [_error((name,), f"expected 1 to {MAX_SHAPES} arrays, got {len(value)}",
-                             "too_long" if value else "too_short")]
+    if problem := _shape_count_error(name, len(value)):
+        return None, [problem]
     single = replace(spec, stacked=False)
     arrays, errors = [], []
     for k, item in enumerate(value):  # a loop over shapes (at most MAX_SHAPES)
@@ -390,9 +397,11 @@ def _binary_array(name: str, array: np.ndarray, spec: ArraySpec
                   ) -> tuple[np.ndarray | None, list[dict[str, Any]]]:
     """A binary array checked like a JSON one (shape, integer dtype for indices, range)."""
     if spec.stacked:
-        if array.ndim != 3 or array.shape[2] != spec.cols or not array.shape[0]:
+        if array.ndim != 3 or array.shape[2] != spec.cols:
             return None, [_error((name,), f"expected shape (K, n, {spec.cols}), got "
                                  f"{list(array.shape)}", "shape")]
+        if problem := _shape_count_error(name, len(array)):
+            return None, [problem]
         values, errors = _numbers(name, array.ravel(), replace(spec, stacked=False))
         return (None if values is None else values.reshape(array.shape)), errors
     shape = f"(n, {spec.cols})" if spec.cols else "(n,)"

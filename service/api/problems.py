@@ -26,6 +26,7 @@ import logging
 import math
 import re
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from solver.core.errors import ERROR_KINDS, SolverInputError
@@ -397,20 +398,21 @@ def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence
         The problem, its detail naming the first error, its items each error's pointer,
         reason and type.
     """
-    items = []
+    items, quotes = [], []
     for err in errors[:limit]:
         loc = (*prefix, *err.get("loc", ()))
         item = pointer_from_loc(loc)
         item["reason"] = _PYTHON_DICT.sub("a JSON object", str(err.get("msg", "invalid")))
         item["type"] = str(err.get("type", ""))
-        if (value := quoted_value(err)) is not _NOT_QUOTED:
-            item["value"] = value
+        if (quote := quoted_value(err)) is not None:
+            item["value"] = quote.value
         items.append(item)
+        quotes.append(quote)
     first = items[0] if items else {"field": None, "reason": "invalid"}
     where = first["field"] or "body"
     if first.get("index") is not None:
         where += f"[{first['index']}]"
-    sent = f" (sent: {_as_text(errors[0]['input'])})" if "value" in first else ""
+    sent = f" (sent: {quotes[0].text})" if quotes and quotes[0] is not None else ""
     more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
     return ProblemError("validation-error", f"{where}: {first['reason']}{sent}{more}",
                         status=422, errors=items)
@@ -419,9 +421,6 @@ def from_validation_errors(errors: Sequence[Mapping[str, Any]], prefix: Sequence
 _PYTHON_DICT = re.compile(r"a valid dictionary( or instance of \w+)?")
 """Pydantic's Python words for an object ("a valid dictionary or instance of HandleTarget",
 a class of ours): the client sent JSON, so it reads "a JSON object"."""
-
-_NOT_QUOTED = object()
-"""What :func:`quoted_value` answers for an error whose value is not worth quoting."""
 
 _UNQUOTED_TYPES = {"missing", "extra_forbidden"}
 """Pydantic error types whose ``input`` is not the value at fault (the parent object)."""
@@ -433,33 +432,48 @@ MAX_QUOTED_CHARS = 80
 """Longest string value a problem quotes (longer ones are cut, with an ellipsis)."""
 
 
-def quoted_value(error: Mapping[str, Any]) -> Any:
-    """The value a validation error is about, JSON-ready, or ``_NOT_QUOTED``.
+@dataclass(frozen=True)
+class Quote:
+    """The value a validation error is about, quoted once for both places it shows: the
+    ``errors`` item's ``value`` and the problem's ``detail`` (``(sent: ...)``).
+
+    Attributes:
+        value: JSON-ready (a non-finite number as the string JSON has no literal for).
+        bare: ``value`` stands for a non-finite number: the detail writes it without
+            quotes (``NaN``, where the string ``"NaN"`` is quoted).
+    """
+
+    value: Any
+    bare: bool = False
+
+    @property
+    def text(self) -> str:
+        """The value as the detail writes it: as JSON, a non-finite number bare."""
+        return str(self.value) if self.bare else json.dumps(self.value, ensure_ascii=False)
+
+
+def quoted_value(error: Mapping[str, Any]) -> Quote | None:
+    """The value a validation error is about, or None when it is not worth quoting.
 
     Only scalars are quoted (a number, a string cut to :data:`MAX_QUOTED_CHARS`, a
     boolean, null); a non-finite number as the string JSON has no literal for.
 
     Example:
         >>> quoted_value({"type": "greater_than", "input": -5})
-        -5
-        >>> quoted_value({"type": "finite_number", "input": float("nan")})
-        'NaN'
+        Quote(value=-5, bare=False)
+        >>> nan = quoted_value({"type": "finite_number", "input": float("nan")})
+        >>> nan.value, nan.text, quoted_value({"type": "x", "input": "NaN"}).text
+        ('NaN', 'NaN', '"NaN"')
     """
     if "input" not in error or error.get("type") in _UNQUOTED_TYPES:
-        return _NOT_QUOTED
+        return None
     value = error["input"]
     if isinstance(value, float) and not math.isfinite(value):
-        return _NON_FINITE[0] if math.isnan(value) else _NON_FINITE[1 if value > 0 else 2]
+        return Quote(_NON_FINITE[0] if math.isnan(value) else _NON_FINITE[1 if value > 0 else 2],
+                     bare=True)
     if isinstance(value, str):
-        return value if len(value) <= MAX_QUOTED_CHARS else value[:MAX_QUOTED_CHARS] + "…"
+        return Quote(value if len(value) <= MAX_QUOTED_CHARS
+                     else value[:MAX_QUOTED_CHARS] + "…")
     if value is None or isinstance(value, bool | int | float):
-        return value
-    return _NOT_QUOTED
-
-
-def _as_text(value: Any) -> str:
-    """A value as the detail quotes it: as JSON, a non-finite number bare (``NaN``)."""
-    quoted = quoted_value({"input": value})
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(quoted)
-    return json.dumps(quoted, ensure_ascii=False)
+        return Quote(value)
+    return None

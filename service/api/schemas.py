@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 from solver import options as solver_options
 from solver.options import MAX_WEIGHT
 from solver.refine.stopping import StopReason, describe_stop_reasons
+from solver.shape_space import MAX_SHAPES
 
 # ---------------------------------------------------------------------------- examples
 
@@ -486,8 +487,8 @@ class BlendRequest(BlendParams):
                              "weights": [[1.0, 0.0], [0.5, 0.5], [-0.5, 1.5]]})
 
     shapes: Annotated[list[Annotated[list[Vec3], Field(min_length=1)]],
-                      Field(min_length=1, max_length=64, fail_fast=True)] = Field(
-        description="K (n, 3) embeddings of `faces` (1 to 64 shapes).")
+                      Field(min_length=1, max_length=MAX_SHAPES, fail_fast=True)] = Field(
+        description=f"K (n, 3) embeddings of `faces` (1 to {MAX_SHAPES} shapes).")
     faces: list[Tri] = Field(min_length=1, fail_fast=True)
 
 

@@ -36,11 +36,15 @@ from service.api.problems import (
     from_validation_errors,
 )
 from service.api.task import MeshFile
+from service.http.sniffing import SNIFF_BYTES, leading_bytes, sniff
 from service.memory import release_memory
 from service.settings import Settings
 
 THREAD_THRESHOLD = 256 * 1024
 """Bodies larger than this are validated in a worker thread, off the event loop."""
+MAX_FORM_FILES = MAX_SHAPES + 4
+"""Most files one multipart form may carry (spooled as they arrive): a blend's shapes and a
+few more, so that a form one file over a blend's limit is still named by its operation."""
 PROCESS_THRESHOLD = 4 * 1024 * 1024
 """Bodies larger than this are validated in the parser process instead: orjson holds the GIL
 while it parses, so in a thread of this process a 20 MB job body kept the event loop from
@@ -213,11 +217,13 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
 
     streamed = Request(request.scope, receive)  # files spooled to disk beyond 1 MB
     try:
-        form = await streamed.form(max_files=MAX_SHAPES + 4, max_fields=64,
+        form = await streamed.form(max_files=MAX_FORM_FILES, max_fields=64,
                                    max_part_size=settings.max_body_bytes)
     except ProblemError:
         raise
     except StarletteHTTPException as exc:
+        if "too many files" in str(exc.detail).lower():  # Starlette's words for max_files
+            raise _too_many_files() from None
         raise cut_off() or ProblemError(
             "malformed-request", f"cannot read the multipart body: {exc.detail}") from None
     except Exception:  # python-multipart parse errors (their text names internals)
@@ -247,6 +253,16 @@ async def read_form(request: Request, settings: Settings) -> tuple[dict[str, Any
         else:
             fields[key] = _decode_field(value)
     return fields, files
+
+
+def _too_many_files() -> ProblemError:
+    """The 422 of a form with more than :data:`MAX_FORM_FILES` files: only ``blend``'s
+    ``shapes`` takes more than one, as many as the library's blend does."""
+    return ProblemError(
+        "validation-error", f"shapes: the form has more than {MAX_FORM_FILES} files; a blend "
+        f"takes 1 to {MAX_SHAPES} (one `shapes` part per mesh), the other operations one "
+        "file per field", errors=[element_error("shapes", f"at most {MAX_SHAPES} files",
+                                                type="too_long")])
 
 
 def as_arrays(model: type[BaseModel], fields: dict[str, Any]) -> dict[str, Any]:
@@ -305,10 +321,15 @@ def _decode_field(value: str) -> Any:
 
 
 async def upload(file: UploadFile, field: str) -> MeshFile:
-    """Read one uploaded mesh file.
+    """Read one uploaded mesh file, after a look at its first bytes.
+
+    The first :data:`~service.http.sniffing.SNIFF_BYTES` are read and checked against the
+    format the file's name (or media type) gives (:func:`service.http.sniffing.sniff`)
+    before the whole file is read, once, into memory for its worker: a file that cannot be
+    that format is refused at submission, a job included, however large it is.
 
     Args:
-        file: The upload.
+        file: The upload (spooled by :func:`read_form`).
         field: Its form field.
 
     Returns:
@@ -316,25 +337,36 @@ async def upload(file: UploadFile, field: str) -> MeshFile:
 
     Raises:
         ProblemError: 415 ``unsupported-file-type`` for an unknown type, 400
-            ``unreadable-file`` for an empty file.
+            ``unreadable-file`` for an empty file or one whose start is not its format's.
     """
     from solver.core.errors import UnsupportedFormatError
     from solver.mesh.formats import LOAD_FORMATS, resolve_format
 
     name = file.filename or ""
+    given = name if "." in name else (file.content_type or name)
     try:
-        resolve_format(name if "." in name else (file.content_type or name))
+        fmt = resolve_format(given)
     except UnsupportedFormatError as exc:
         raise ProblemError(
             "unsupported-file-type",
             f"{field}: {name or file.content_type!r} is not a supported mesh file; upload "
             f"one of {', '.join(LOAD_FORMATS)}",
             errors=[element_error(field, exc.reason)]) from None
-    data = await file.read()
-    if not data:
+    head = await file.read(SNIFF_BYTES)
+    if not head:
         raise ProblemError("unreadable-file", f"{field}: the file is empty",
                            errors=[element_error(field, "empty file")])
-    return MeshFile(data, name if "." in name else (file.content_type or name), field)
+    size = file.size if file.size is not None else len(head)
+    if problem := sniff(fmt, head, size):
+        raise ProblemError(
+            "unreadable-file", f"{field}: {name or given!r} does not read as {fmt.upper()}: "
+            f"{problem}; its first bytes: '{leading_bytes(head)}'",
+            errors=[element_error(field, problem, value=name or given, format=fmt,
+                                  starts=leading_bytes(head))])
+    if size > len(head) or file.size is None:
+        await file.seek(0)
+        return MeshFile(await file.read(), given, field)  # the whole file, read once
+    return MeshFile(head, given, field)
 
 
 class ParserPool:

@@ -461,11 +461,12 @@ def mesh_task(request: TaskRequest, progress: Progress) -> TaskResult:
 
 
 def _debug_sleep(request: TaskRequest, progress: Progress) -> TaskResult:
-    """Sleep ``params["seconds"]`` reporting progress in ``params["steps"]`` steps."""
+    """Sleep ``params["seconds"]`` reporting progress in ``params["steps"]`` steps, then 1."""
     steps = max(1, int(request.params.get("steps", 10)))
     for i in range(steps):
         progress("solve", i / steps)
         time.sleep(float(request.params.get("seconds", 1.0)) / steps)
+    progress("solve", 1.0)
     return TaskResult("application/json", b'{"slept": true}')
 
 

@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 
 OLD_README_HANDLES = [{"vertex": 0, "position": [0, 0, 0]},
@@ -241,6 +242,51 @@ def test_a_missing_option_file_is_a_usage_error_before_any_work(ffs, workdir: Pa
         assert not (workdir / "report.json").exists() and not (workdir / "out").exists()
 
 
+@pytest.mark.parametrize(("name", "text", "words"), [
+    ("moves.json", "not json {", "cannot read it as JSON"),
+    ("moves.json", '{"handle": [{"vertex": 0, "position": [0, 0, 0]}]}', "non-empty list"),
+    ("moves.json", '[{"vertex": 0, "positon": [0, 0, 0]}]', "unknown member 'positon'"),
+])
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_a_handles_file_that_is_not_handles_is_one_usage_error(ffs, workdir: Path, name, text,
+                                                               words, jobs) -> None:
+    """A --handles file every input reads that is not JSON handles: exit 2 and one line
+    before any input is read (it failed once per input, exit 1), in threads and in worker
+    processes alike; the same for --constraints."""
+    (workdir / name).write_text(text)
+    run = ffs("deform", "face.off", "torus.off", "--handles", name, "-o", "out/",
+              "-j", jobs, "--report", "report.json")
+    assert run.returncode == 2, (run.stdout, run.stderr)
+    lines = [line for line in run.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"ffs deform: error: --handles {name}"), lines
+    assert words in lines[0] and "face.off" not in lines[0] and "torus.off" not in lines[0]
+    assert "Traceback" not in run.stderr and run.stdout == ""
+    assert not (workdir / "report.json").exists() and not (workdir / "out").exists()
+    if jobs == "1":
+        run = ffs("reconstruct", "face.off", "torus.off", "--constraints", name,
+                  "-o", "out/{stem}.ply")
+        if text.startswith("not json"):
+            assert run.returncode == 2 and "--constraints" in run.stderr, run.stderr
+            assert not (workdir / "out").exists()
+
+
+def test_json_handles_read_once_move_every_input(ffs, workdir: Path) -> None:
+    """Handles read up front serve each input: both meshes keep vertex 0 where the file says,
+    as a run per file does."""
+    (workdir / "moves.json").write_text(json.dumps([{"vertex": 0, "position": [0, 0, 0]}]))
+    run = ffs("deform", "face.off", "torus.off", "--handles", "moves.json", "-o",
+              "out/{stem}.ply", "--no-refine", "-q")
+    assert run.returncode == 0, run.stderr
+    for stem in ("face", "torus"):
+        one = ffs("deform", f"{stem}.off", "--handles", "moves.json", "-o", f"{stem}-1.ply",
+                  "--no-refine", "-q")
+        assert one.returncode == 0, one.stderr
+        both = trimesh.load(workdir / "out" / f"{stem}.ply", process=False).vertices
+        alone = trimesh.load(workdir / f"{stem}-1.ply", process=False).vertices
+        np.testing.assert_allclose(both, alone, atol=1e-12)
+        np.testing.assert_allclose(both[0], [0, 0, 0], atol=1e-9)
+
+
 # ------------------------------------------------------------------------- --align-to REF
 
 
@@ -390,14 +436,15 @@ def test_a_constraints_file_the_api_refuses_fails_locally_too(ffs, server, workd
 
 def test_a_handles_file_with_a_mistyped_member_is_refused(ffs, workdir: Path) -> None:
     """``weigth`` in a handle or ``rotation`` for ``rotations`` was dropped silently (the
-    drag done without it); the page's own ``groups`` is still read (and ignored)."""
+    drag done without it); the page's own ``groups`` is still read (and ignored). The file is
+    every input's: a usage error (exit 2) before any input is read."""
     handle = {"vertex": 0, "position": [0.0, 0.0, 0.0]}
     for document, words in (([{**handle, "weigth": 2}], "handles[0]: unknown member 'weigth'"),
                             ({"handles": [handle], "rotation": []},
                              "rotation: unknown member 'rotation'")):
         (workdir / "moves.json").write_text(json.dumps(document))
         run = ffs("deform", "face.off", "--handles", "moves.json", "-o", "out.ply")
-        assert run.returncode == 1 and words in run.stderr, run.stderr
+        assert run.returncode == 2 and words in run.stderr, run.stderr
     (workdir / "moves.json").write_text(json.dumps({"handles": [handle], "groups": []}))
     assert ffs("deform", "face.off", "--handles", "moves.json", "-o", "out.ply").returncode == 0
 

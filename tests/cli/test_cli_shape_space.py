@@ -4,11 +4,14 @@ mean`` and ``ffs transfer``, in-process and on a real service, against the libra
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
+import trimesh
 
 import solver
 from solver.mesh.io import load_mesh_file
+from solver.shape_space import MAX_SHAPES
 from tests.cli.test_cli_commands import run_both
 from tests.helpers.gltf_validator import validate_gltf
 from tests.helpers.poses import bent_pose
@@ -48,7 +51,7 @@ def test_blend_of_three_with_weights_as_animation_and_per_row(ffs, server, workd
         assert np.abs(load_mesh_file(remote.with_name(f"row-{k}.obj"))[0] - W).max() < 1e-9
 
 
-def test_blend_t_into_one_json_and_bad_weights(ffs, workdir):
+def test_blend_t_into_one_json_and_bad_weights(ffs, server, workdir):
     V, P, _, F = poses(workdir)
     done = ffs("blend", "decimated-knight.off", "p.obj", "-t", "0", "1.5", "-o", "rows.json")
     assert done.returncode == 0, done.stderr
@@ -64,12 +67,29 @@ def test_blend_t_into_one_json_and_bad_weights(ffs, workdir):
     (workdir / "w.json").write_text("[[0.5, 0.6]]")
     off = ffs("blend", "decimated-knight.off", "p.obj", "--weights", "w.json", "-o", "x.obj")
     assert off.returncode == 1 and "weights" in off.stderr + off.stdout
-    # one mesh: the count is the mistake, whichever of -t or --weights (newcomer sweep: it
-    # said "1 meshes need --weights (rows of 1 weights)")
-    for extra in (("-t", "0.5"), ("--weights", "w.json")):
-        one = ffs("blend", "decimated-knight.off", *extra, "-o", "x.obj")
-        assert one.returncode == 2 and "blend takes 2 to 64 meshes" in one.stderr, one.stderr
-        assert "got 1" in one.stderr and "1 meshes" not in one.stderr
+    # one mesh: -t blends two (newcomer sweep: it said "1 meshes need --weights (rows of 1
+    # weights)"); a blend takes 1 to MAX_SHAPES meshes, as the library and /v1/blend do
+    one = ffs("blend", "decimated-knight.off", "-t", "0.5", "-o", "x.obj")
+    assert one.returncode == 2 and "-t blends two meshes (A B), got 1" in one.stderr, one.stderr
+    assert "one mesh takes --weights (rows of 1 weight)" in one.stderr
+    assert "1 meshes" not in one.stderr
+    (workdir / "w1.json").write_text("[[1.0]]")
+    for where in ((), ("--server", server)):
+        alone = ffs("blend", "decimated-knight.off", "--weights", "w1.json", "-o", "one.obj",
+                    "--no-refine", *where)
+        assert alone.returncode == 0, alone.stderr
+        got = trimesh.load(workdir / "one.obj", process=False).vertices
+        np.testing.assert_allclose(got, solver.blend([V], [[1.0]], F, refine=False).vertices[0],
+                                   atol=1e-9)
+    many = [f"k{k}.obj" for k in range(MAX_SHAPES + 1)]
+    for name in many:
+        shutil.copy(workdir / "p.obj", workdir / name)
+    (workdir / "w65.json").write_text(json.dumps([[1.0] + [0.0] * MAX_SHAPES]))
+    for command, extra in (("blend", ("--weights", "w65.json")), ("mean", ())):
+        run = ffs(command, *many, *extra, "-o", "x.obj")
+        assert run.returncode == 2, run.stderr  # before any work, as other usage errors
+        assert f"{command} takes 1 to {MAX_SHAPES} meshes with the same faces; got 65" in (
+            run.stderr), run.stderr
 
 
 def test_mean_and_transfer(ffs, server, workdir):

@@ -394,3 +394,21 @@ def test_a_field_that_is_not_an_object_names_no_python_class(client):
                               data={"handles": "not json"}), 422, "validation-error")
     assert doc["errors"][0]["reason"] == "Input should be a JSON object", doc
     assert doc["errors"][0]["value"] == "not json" and "instance" not in doc["detail"]
+
+
+@pytest.mark.parametrize(("sent", "value", "text"), [
+    (float("nan"), "NaN", "NaN"), (float("-inf"), "-Infinity", "-Infinity"),
+    ("NaN", "NaN", '"NaN"'), (-5, -5, "-5"), (None, None, "null"),
+    ("x" * 100, "x" * 80 + "…", '"' + "x" * 80 + '…"'),
+])
+def test_the_detail_quotes_the_value_its_item_quotes(monkeypatch, sent, value, text):
+    from service.api import problems
+
+    calls = []
+    quote = problems.quoted_value
+    monkeypatch.setattr(problems, "quoted_value", lambda e: calls.append(e) or quote(e))
+    errors = [{"loc": ("a",), "msg": "bad", "type": "value_error", "input": sent},
+              {"loc": ("b",), "msg": "bad", "type": "value_error", "input": 1}]
+    doc = problems.from_validation_errors(errors).to_dict()
+    assert doc["errors"][0]["value"] == value and f"(sent: {text})" in doc["detail"]
+    assert len(calls) == len(errors)  # quoted once per error: the item and the detail share it

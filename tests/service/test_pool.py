@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import os
 import signal
 import threading
@@ -118,7 +119,8 @@ def test_process_executor_directly():
             result = await handle.future
             assert result.body == b'{"slept": true}' and "solve" in result.timings
             assert events[0] == ("start", 0.0)
-            assert [f for _, f in events[1:]] == [0.0, 0.2, 0.4, 0.6, 0.8]
+            # 6 reports in 0.05 s: the first and the last (PROGRESS_INTERVAL)
+            assert [f for _, f in events[1:]] == [0.0, 1.0]
 
             failing = await executor.submit(debug_task("debug.raise", message="kaput"))
             with pytest.raises(TaskFailedError) as info:
@@ -154,6 +156,42 @@ def test_process_executor_directly():
         with pytest.raises(ExecutorClosedError):
             await pending.future
         assert executor.worker_pids() == []
+
+    run_async(scenario())
+
+
+def test_local_worker_progress_is_throttled_and_ends_at_1():
+    """A task reporting 2000 times in about a second (an atlas reports every chart) sends
+    a few reports over the local worker's pipe, PROGRESS_INTERVAL apart, the first (0) and
+    the last (1) among them, in order; the job record of that task ends at 1."""
+    from service.backends.jobs import Job
+    from service.worker.runtime import PROGRESS_INTERVAL
+
+    async def scenario():
+        executor = ProcessExecutor(1, 1, start_method="forkserver", threads_per_worker=1)
+        await executor.start()
+        try:
+            events: list[tuple[float, str, float]] = []
+            job = Job("x", "forms")
+            started = time.monotonic()
+
+            def progress(stage: str, fraction: float) -> None:
+                events.append((time.monotonic(), stage, fraction))
+                job.update_progress(stage, fraction)
+
+            handle = await executor.submit(debug_task("debug.sleep", seconds=1.0, steps=2000),
+                                           progress_cb=progress)
+            await handle.future
+            elapsed = time.monotonic() - started
+        finally:
+            await executor.shutdown()
+        fractions = [f for _, _, f in events]
+        assert fractions[0] == 0.0 and fractions[-1] == 1.0, fractions
+        assert fractions == sorted(fractions) and {s for _, s, _ in events} == {"solve"}
+        assert 3 <= len(events) <= elapsed / PROGRESS_INTERVAL + 2, (len(events), elapsed)
+        gaps = [b[0] - a[0] for a, b in itertools.pairwise(events[:-1])]  # the last: flushed
+        assert min(gaps) > PROGRESS_INTERVAL / 2, gaps  # arrival jitter: half the interval
+        assert job.stages["solve"] == 1.0
 
     run_async(scenario())
 

@@ -35,23 +35,19 @@ def _init_worker(threads: int) -> None:
 
 
 class _EventProgress:
-    """``progress(stage, fraction, detail=None)`` -> scheduler events (stage changes, <= 5
-    per second; every refinement iteration's ``detail``)."""
+    """``progress(stage, fraction, detail=None)`` -> scheduler events, one per report
+    :func:`service.operations.run` lets through (its
+    :class:`~service.worker.runtime.ProgressThrottle`: at most 5 a second, the last always;
+    a refinement iteration's ``detail`` with them)."""
 
     def __init__(self, job_id: str) -> None:
         from distributed import get_worker
 
         self.job_id = job_id
         self.worker = get_worker()
-        self.stage: str | None = None
-        self.last = 0.0
 
     def __call__(self, stage: str, fraction: float,
                  detail: dict[str, Any] | None = None) -> None:
-        now = time.monotonic()
-        if detail is None and stage == self.stage and now - self.last < 0.2:
-            return
-        self.stage, self.last = stage, now
         event: dict[str, Any] = {"id": self.job_id, "stage": stage, "fraction": float(fraction)}
         if detail is not None:
             event["detail"] = detail

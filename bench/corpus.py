@@ -35,7 +35,7 @@ import numpy as np
 
 import solver
 from solver.core.errors import SolverInputError
-from solver.mesh.io import LOAD_FORMATS, read_mesh
+from solver.mesh.io import LOAD_FORMATS, file_bytes, read_mesh
 from solver.mesh.topology import build_topology
 
 NOISE = 1e-3
@@ -92,7 +92,7 @@ def _reconstruct(forms: solver.Forms, angles: np.ndarray, n: int, **options: Any
 def run_file(path: Path, skip_flatten: bool = False) -> Row:
     """Every operation on one file."""
     row = Row(path.name)
-    loaded = _timed(row, "read", lambda: read_mesh(path.read_bytes(), path.name))
+    loaded = _timed(row, "read", lambda: read_mesh(file_bytes(path), path.name))
     if loaded is None:
         return row
     V, F = loaded.vertices, loaded.faces

@@ -36,9 +36,9 @@ from service.api.problems import (
     from_validation_errors,
 )
 from service.api.task import MeshFile
-from service.http.sniffing import SNIFF_BYTES, leading_bytes, sniff
 from service.memory import release_memory
 from service.settings import Settings
+from solver.mesh.sniffing import SNIFF_BYTES, leading_bytes, sniff
 
 THREAD_THRESHOLD = 256 * 1024
 """Bodies larger than this are validated in a worker thread, off the event loop."""
@@ -323,8 +323,8 @@ def _decode_field(value: str) -> Any:
 async def upload(file: UploadFile, field: str) -> MeshFile:
     """Read one uploaded mesh file, after a look at its first bytes.
 
-    The first :data:`~service.http.sniffing.SNIFF_BYTES` are read and checked against the
-    format the file's name (or media type) gives (:func:`service.http.sniffing.sniff`)
+    The first :data:`~solver.mesh.sniffing.SNIFF_BYTES` are read and checked against the
+    format the file's name (or media type) gives (:func:`solver.mesh.sniffing.sniff`)
     before the whole file is read, once, into memory for its worker: a file that cannot be
     that format is refused at submission, a job included, however large it is.
 

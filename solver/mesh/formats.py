@@ -35,6 +35,7 @@ from .mesh_readers import (
 )
 from .obj_reader import parse_obj
 from .off_binary import is_binary_off, parse_binary_off
+from .sniffing import SNIFFS
 
 Parsed = tuple[np.ndarray, np.ndarray, np.ndarray | None]
 """A reader's answer: vertices (n, 3), triangles (m, 3), the file face of each triangle."""
@@ -61,6 +62,8 @@ class MeshFormat:
         complete: a cheap check (from the header's counts) run on every file that parsed:
             what a file cut short lacks, or None; a parser may read the records that are
             there and stop (PLY, STL, GLB: the same as ``diagnose``).
+        sniff: what the file's first bytes and size rule out, or None
+            (:mod:`solver.mesh.sniffing`: an upload is checked with it when it arrives).
         text: the file starts as text (OBJ, OFF, glTF's JSON), so a byte-order mark at its
             start says its encoding (:func:`~solver.mesh.mesh_readers.without_bom`:
             UTF-16 text is read as UTF-8).
@@ -76,6 +79,7 @@ class MeshFormat:
     diagnose: Callable[[bytes], str | None] | None = None
     complete: Callable[[bytes], str | None] | None = None
     text: bool = False
+    sniff: Callable[[bytes, int], str | None] | None = None
 
     @property
     def writes(self) -> bool:
@@ -164,23 +168,25 @@ def _read_gltf(data: bytes) -> Parsed:
 
 FORMATS: Final[dict[str, MeshFormat]] = {f.name: f for f in (
     MeshFormat("obj", parse_obj, _write_obj, ("model/obj",), polygons=True,
-               carries=("texcoords",), text=True),
-    MeshFormat("off", _read_off, _write_off, polygons=True, diagnose=off_problem, text=True),
+               carries=("texcoords",), text=True, sniff=SNIFFS["obj"]),
+    MeshFormat("off", _read_off, _write_off, polygons=True, diagnose=off_problem, text=True,
+               sniff=SNIFFS["off"]),
     MeshFormat("ply", _trimesh_reader("ply"), _write_ply, polygons=True,
                diagnose=ply_problem,
-               complete=ply_problem),
+               complete=ply_problem, sniff=SNIFFS["ply"]),
     MeshFormat("stl", _read_stl, _write_stl,
                ("model/stl", "model/x.stl-binary", "model/x.stl-ascii", "application/sla"),
                precision="float32", diagnose=stl_problem,
-               complete=stl_problem),
+               complete=stl_problem, sniff=SNIFFS["stl"]),
     MeshFormat("glb", _read_glb,
                lambda v, f: gltf.encode_gltf(v, f, kind="glb"), ("model/gltf-binary",),
                precision="float32", carries=("texcoords", "animation", "parts"),
                diagnose=glb_problem,
-               complete=glb_problem),
+               complete=glb_problem, sniff=SNIFFS["glb"]),
     MeshFormat("gltf", _read_gltf,
                lambda v, f: gltf.encode_gltf(v, f, kind="gltf"), ("model/gltf+json",),
-               precision="float32", carries=("texcoords", "animation", "parts"), text=True),
+               precision="float32", carries=("texcoords", "animation", "parts"), text=True,
+               sniff=SNIFFS["gltf"]),
 )}
 """Every mesh file format, by name (``.gltf`` as bytes: buffers as ``data:`` URIs only; from
 disk, :func:`solver.mesh.io.load_mesh_file` embeds the files beside it)."""

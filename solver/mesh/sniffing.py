@@ -1,20 +1,24 @@
-"""What an uploaded mesh file's first bytes say, checked when the upload arrives: a file
-that cannot be the format its name (or media type) gives is refused at submission (400
-``unreadable-file``, naming the file and what its start holds) instead of being queued as a
-job that fails in its worker.
+"""What a mesh file's first bytes say: a file that cannot be the format its name (or media
+type) gives, told from its first :data:`SNIFF_BYTES` and its size alone. The service checks
+an upload so when it arrives (400 ``unreadable-file``, naming the file and what its start
+holds) instead of queueing a job that fails in its worker.
 
-One rule per format of the format registry (:data:`solver.mesh.formats.FORMATS`; a test
-fails when a format has none), each over the file's first :data:`SNIFF_BYTES` and its size
-only, so the check costs the same for any file size. Each refuses only what the format's
-reader refuses too (the reader's words where it has them); what the first bytes cannot
-decide (a text file whose start is all comments) is left to the reader.
+One rule per format, the ``sniff`` of each :class:`solver.mesh.formats.MeshFormat` (a test
+fails when a format has none), so the check costs the same for any file size. Each refuses
+only what the format's reader refuses too (the reader's words where it has them); what the
+first bytes cannot decide (a text file whose start is all comments) is left to the reader.
+Text is read as the readers read it: a UTF-16 or UTF-8 byte-order mark says the encoding
+(:func:`solver.mesh.mesh_readers.without_bom`), and binary OFF is OFF.
 """
 
 from __future__ import annotations
 
+import codecs
 import re
 from collections.abc import Callable
 from typing import Final
+
+from .off_binary import is_binary_off
 
 SNIFF_BYTES: Final = 4096
 """How much of a file the check reads: its first 4 KiB."""
@@ -33,15 +37,23 @@ Sniff = Callable[[bytes, int], "str | None"]
 None (it may be; its reader decides)."""
 
 
+def _decoded(head: bytes) -> bytes:
+    """The first bytes of a text file as UTF-8 without a byte-order mark (UTF-16 by its
+    mark decoded; a character cut by the window dropped)."""
+    if head.startswith((codecs.BOM_UTF16_BE, codecs.BOM_UTF16_LE)):
+        return head[:len(head) - len(head) % 2].decode("utf-16", "replace").encode("utf-8")
+    return head.removeprefix(_BOM)
+
+
 def _text(head: bytes) -> bytes:
-    """The first bytes without a UTF-8 byte-order mark and leading whitespace."""
-    return head.removeprefix(_BOM).lstrip()
+    """The first bytes as text (:func:`_decoded`) without leading whitespace."""
+    return _decoded(head).lstrip()
 
 
-def _whole_lines(head: bytes, size: int) -> list[bytes]:
-    """The lines of ``head`` that end within it (all of them when it is the whole file)."""
+def _whole_lines(head: bytes, whole: bool) -> list[bytes]:
+    """The lines of ``head`` that end within it (all of them when it is the ``whole`` file)."""
     lines = head.splitlines()
-    if size > len(head) and lines and not head.endswith((b"\n", b"\r")):
+    if not whole and lines and not head.endswith((b"\n", b"\r")):
         lines.pop()  # cut by the window: its end is unknown
     return lines
 
@@ -53,26 +65,28 @@ def _binary(head: bytes) -> str | None:
 
 
 def _obj(head: bytes, size: int) -> str | None:
+    whole, head = size <= len(head), _decoded(head)
     if problem := _binary(head):
         return problem
-    if size <= len(head) and not _OBJ_VERTEX.search(head):
+    if whole and not _OBJ_VERTEX.search(head):
         return "no vertices ('v' lines) found"
     return None
 
 
 def _off(head: bytes, size: int) -> str | None:
+    if is_binary_off(head):
+        return None  # its words are binary: solver.mesh.off_binary reads them
+    whole, head = size <= len(head), _decoded(head)
     if problem := _binary(head):
         return problem
-    for line in _whole_lines(head, size):  # the reader takes no byte-order mark
+    for line in _whole_lines(head, whole):
         tokens = line.split(b"#", 1)[0].split()
         if not tokens:
             continue  # a comment or a blank line
         if not _OFF_KEYWORD.match(tokens[0]):
             return "the file does not start with the OFF keyword"
-        if len(tokens) > 1 and tokens[1].upper() == b"BINARY":
-            return "binary OFF is not supported; save the mesh as text OFF"
         return None
-    return "the file does not start with the OFF keyword" if size <= len(head) else None
+    return "the file does not start with the OFF keyword" if whole else None
 
 
 def _ply(head: bytes, size: int) -> str | None:
@@ -112,7 +126,8 @@ def _gltf(head: bytes, size: int) -> str | None:
 
 SNIFFS: Final[dict[str, Sniff]] = {"obj": _obj, "off": _off, "ply": _ply, "stl": _stl,
                                    "glb": _glb, "gltf": _gltf}
-"""The rule of each format of :data:`solver.mesh.formats.FORMATS`, by its name."""
+"""The rule of each format, by its name: each :class:`~solver.mesh.formats.MeshFormat`'s
+``sniff`` (the registry takes them from here)."""
 
 _STARTS: Final[dict[str, Callable[[bytes], bool]]] = {
     "glb": lambda head: head[:4] == b"glTF",
@@ -127,7 +142,8 @@ def sniff(fmt: str, head: bytes, size: int) -> str | None:
     """Why a file cannot be a ``fmt`` file, from its first bytes and size, or None.
 
     Args:
-        fmt: Its format (a key of :data:`solver.mesh.formats.FORMATS`).
+        fmt: Its format (a key of :data:`solver.mesh.formats.FORMATS`), whose ``sniff``
+            rule decides.
         head: Its first :data:`SNIFF_BYTES` (or all of it).
         size: Its size in bytes.
 
@@ -143,8 +159,10 @@ def sniff(fmt: str, head: bytes, size: int) -> str | None:
         >>> sniff("off", b"# a comment\\nOFF\\n3 1 0\\n", 20) is None
         True
     """
-    rule = SNIFFS.get(fmt)
-    problem = rule(head, size) if rule is not None else None
+    from .formats import FORMATS  # the registry imports this module's rules
+
+    known = FORMATS.get(fmt)
+    problem = known.sniff(head, size) if known is not None and known.sniff else None
     if problem is None:
         return None
     like = next((name for name, starts in _STARTS.items() if name != fmt and starts(head)),

@@ -128,17 +128,19 @@ def read_mesh(path: str | os.PathLike[str], fmt: str | None = None
                                  "'ffs reconstruct' first", field="vertices")
         return (_array(path, doc, "vertices", np.float64, 3),
                 _array(path, doc, "faces", np.int64, 3))
-    from solver.mesh.io import MeshFileError, load_mesh
+    from solver.mesh.io import MeshFileError, file_bytes, load_mesh
 
+    name = path.name if fmt == path.suffix.lstrip(".").lower() else fmt
     try:
-        data = path.read_bytes()
+        data = file_bytes(path, name)  # a .gltf with the buffer files beside it
     except FileNotFoundError:
         raise InputFileError(path, "no such file") from None
     except OSError as exc:
         raise InputFileError(path, exc.strerror or str(exc)) from None
+    except MeshFileError as exc:
+        raise InputFileError(path, exc.reason) from None
     try:
-        return load_mesh(data, path.name if fmt == path.suffix.lstrip(".").lower()
-                         else fmt)
+        return load_mesh(data, name)
     except MeshFileError as exc:
         raise InputFileError(path, exc.reason) from None
 

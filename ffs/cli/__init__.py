@@ -3,7 +3,7 @@
 Commands: ``forms`` (edge lengths and dihedral angles), ``check`` (integrability),
 ``reconstruct`` (a mesh from forms), ``vjp`` (its gradients for a cotangent of the
 vertices), ``deform`` (handles), ``flatten`` (parameterize),
-``blend`` (blend or extrapolate 2 to 64 meshes, one file per row or one animated GLB),
+``blend`` (blend or extrapolate 1 to 64 meshes, one file per row or one animated GLB),
 ``mean`` (their form-space mean), ``transfer`` (a deformation applied to another mesh),
 ``convert`` (read, check, write), ``serve`` (runs the service, ``python -m service``).
 

@@ -69,3 +69,28 @@ def test_quads_in_an_off_file(ffs, server, workdir):
         assert done.returncode == 0, done.stderr
         faces = json.loads((workdir / "quads.json").read_text())["faces"]
         assert faces == [[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]]
+
+
+@pytest.mark.parametrize("remote", [False, True], ids=["local", "server"])
+def test_a_gltf_beside_its_buffer_file_is_read(ffs, server, workdir, remote):
+    """A .gltf whose buffer is a separate file (as exporters write it) is read with the file
+    beside it, in-process and with --server (the command line reads the mesh itself)."""
+    import base64
+
+    from solver.mesh.gltf import encode_gltf_json
+
+    V, F = CASES["multi-component"]()
+    doc = json.loads(encode_gltf_json(V, F))
+    (workdir / "parts.bin").write_bytes(base64.b64decode(doc["buffers"][0]["uri"].split(",")[1]))
+    doc["buffers"][0]["uri"] = "parts.bin"
+    (workdir / "parts.gltf").write_text(json.dumps(doc))
+    done = ffs("forms", "parts.gltf", "-o", "parts.json", "-q", *where(server, remote))
+    assert done.returncode == 0, done.stderr
+    done = ffs("reconstruct", "parts.json", "-o", "parts.ply", "-q", *where(server, remote))
+    assert done.returncode == 0, done.stderr
+    rebuilt, faces = load_mesh_file(workdir / "parts.ply")
+    assert rebuilt.shape == V.shape and (faces == F).all()
+    assert rigid_alignment_error(rebuilt, V.astype(np.float32).astype(np.float64)) < 1e-6
+    (workdir / "parts.bin").unlink()
+    done = ffs("forms", "parts.gltf", "-o", "parts.json", "-q", *where(server, remote))
+    assert done.returncode != 0 and "cannot read its file 'parts.bin'" in done.stderr

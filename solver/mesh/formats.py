@@ -27,11 +27,13 @@ from . import gltf
 from .file_diagnosis import glb_problem, off_problem, ply_problem, stl_problem
 from .gltf_documents import draco_problem, glb_document, gltf_problem
 from .mesh_readers import (
+    ascii_stl_text,
     load_trimesh,
     merge_identical,
     off_short,
     parse_off,
     text_as_utf8,
+    without_bom,
 )
 from .obj_reader import parse_obj
 from .off_binary import is_binary_off, parse_binary_off
@@ -64,9 +66,11 @@ class MeshFormat:
             there and stop (PLY, STL, GLB: the same as ``diagnose``).
         sniff: what the file's first bytes and size rule out, or None
             (:mod:`solver.mesh.sniffing`: an upload is checked with it when it arrives).
-        text: the file starts as text (OBJ, OFF, glTF's JSON), so a byte-order mark at its
-            start says its encoding (:func:`~solver.mesh.mesh_readers.without_bom`:
-            UTF-16 text is read as UTF-8).
+        prepare: what the file's bytes become before they are read and checked, or None:
+            text formats (OBJ, OFF, glTF's JSON) take a byte-order mark as their encoding
+            (:func:`~solver.mesh.mesh_readers.without_bom`: UTF-16 read as UTF-8); an ASCII
+            STL also loses what comes before ``solid``
+            (:func:`~solver.mesh.mesh_readers.ascii_stl_text`).
     """
 
     name: str
@@ -78,7 +82,7 @@ class MeshFormat:
     carries: tuple[str, ...] = ()
     diagnose: Callable[[bytes], str | None] | None = None
     complete: Callable[[bytes], str | None] | None = None
-    text: bool = False
+    prepare: Callable[[bytes], bytes] | None = None
     sniff: Callable[[bytes, int], str | None] | None = None
 
     @property
@@ -168,8 +172,9 @@ def _read_gltf(data: bytes) -> Parsed:
 
 FORMATS: Final[dict[str, MeshFormat]] = {f.name: f for f in (
     MeshFormat("obj", parse_obj, _write_obj, ("model/obj",), polygons=True,
-               carries=("texcoords",), text=True, sniff=SNIFFS["obj"]),
-    MeshFormat("off", _read_off, _write_off, polygons=True, diagnose=off_problem, text=True,
+               carries=("texcoords",), prepare=without_bom, sniff=SNIFFS["obj"]),
+    MeshFormat("off", _read_off, _write_off, polygons=True, diagnose=off_problem,
+               prepare=without_bom,
                sniff=SNIFFS["off"]),
     MeshFormat("ply", _trimesh_reader("ply"), _write_ply, polygons=True,
                diagnose=ply_problem,
@@ -177,7 +182,7 @@ FORMATS: Final[dict[str, MeshFormat]] = {f.name: f for f in (
     MeshFormat("stl", _read_stl, _write_stl,
                ("model/stl", "model/x.stl-binary", "model/x.stl-ascii", "application/sla"),
                precision="float32", diagnose=stl_problem,
-               complete=stl_problem, sniff=SNIFFS["stl"]),
+               complete=stl_problem, prepare=ascii_stl_text, sniff=SNIFFS["stl"]),
     MeshFormat("glb", _read_glb,
                lambda v, f: gltf.encode_gltf(v, f, kind="glb"), ("model/gltf-binary",),
                precision="float32", carries=("texcoords", "animation", "parts"),
@@ -185,7 +190,8 @@ FORMATS: Final[dict[str, MeshFormat]] = {f.name: f for f in (
                complete=glb_problem, sniff=SNIFFS["glb"]),
     MeshFormat("gltf", _read_gltf,
                lambda v, f: gltf.encode_gltf(v, f, kind="gltf"), ("model/gltf+json",),
-               precision="float32", carries=("texcoords", "animation", "parts"), text=True,
+               precision="float32", carries=("texcoords", "animation", "parts"),
+               prepare=without_bom,
                sniff=SNIFFS["gltf"]),
 )}
 """Every mesh file format, by name (``.gltf`` as bytes: buffers as ``data:`` URIs only; from

@@ -202,8 +202,8 @@ def read_mesh(data: bytes, filename_or_type: str) -> LoadedMesh:
     if not data.strip():
         raise MeshFileError("empty file", file_type=fmt)
     reader = FORMATS[fmt]
-    if reader.text:
-        data = without_bom(data)
+    if reader.prepare is not None:
+        data = reader.prepare(data)
     try:
         vertices, faces, face_polygon = reader.read(data)
     except MeshFileError as exc:  # a reader's own words carry its file type

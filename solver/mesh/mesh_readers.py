@@ -86,6 +86,21 @@ def without_bom(data: bytes) -> bytes:
     return data
 
 
+def ascii_stl_text(data: bytes) -> bytes:
+    r"""An ASCII STL without what comes before its ``solid`` keyword (blank lines, a
+    byte-order mark; UTF-16 decoded by its mark); a binary STL (its size is its triangle
+    count's) or any other data as it is.
+
+    Example:
+        >>> ascii_stl_text(b"\n  solid x\nendsolid x\n")
+        b'solid x\nendsolid x\n'
+    """
+    if _is_binary_stl(data):
+        return data
+    text = without_bom(data).lstrip()
+    return text if text[:5].lower() == b"solid" else data
+
+
 def _latin1_to_utf8(text: bytes) -> bytes:
     try:
         text.decode("utf-8")

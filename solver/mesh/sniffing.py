@@ -95,8 +95,8 @@ def _ply(head: bytes, size: int) -> str | None:
 
 
 def _stl(head: bytes, size: int) -> str | None:
-    if head[:5].lower() == b"solid":
-        return None  # ASCII (the reader takes nothing before 'solid')
+    if _text(head)[:5].lower() == b"solid":
+        return None  # ASCII (blank lines and a byte-order mark before 'solid' are skipped)
     if size >= STL_HEADER_BYTES:
         count = int.from_bytes(head[80:84], "little")
         need = STL_HEADER_BYTES + STL_TRIANGLE_BYTES * count

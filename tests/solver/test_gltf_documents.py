@@ -1,7 +1,7 @@
 """Files as other tools write them (assimp's test models): a ``.gltf`` whose buffers are files
 beside it (read from disk with them; as bytes alone refused in words that say what to send),
-Draco-compressed glTF refused instead of read as zeros, and text files in UTF-16 or with
-UTF-8's byte-order mark read as their UTF-8 selves.
+Draco-compressed glTF refused instead of read as zeros, and text files (OBJ, OFF, glTF,
+ASCII STL) in UTF-16 or with UTF-8's byte-order mark read as their UTF-8 selves.
 """
 
 from __future__ import annotations
@@ -85,12 +85,24 @@ def _encodings(text: bytes) -> dict[str, bytes]:
             "utf-8 with a mark": codecs.BOM_UTF8 + text}
 
 
-@pytest.mark.parametrize("fmt", ["obj", "off", "gltf"])
+def _ascii_stl(V: np.ndarray, F: np.ndarray) -> bytes:
+    rows = "".join("facet normal 0 0 0\nouter loop\n" + "".join(
+        f"vertex {x!r} {y!r} {z!r}\n" for x, y, z in V[f].tolist()) + "endloop\nendfacet\n"
+        for f in np.asarray(F))
+    return ("solid grid\n" + rows + "endsolid grid\n").encode()
+
+
+def _plain(fmt: str, V: np.ndarray, F: np.ndarray) -> bytes:
+    if fmt == "gltf":
+        return encode_gltf_json(V, F)
+    return _ascii_stl(V, F) if fmt == "stl" else save_mesh(V, F, fmt)
+
+
+@pytest.mark.parametrize("fmt", ["obj", "off", "gltf", "stl"])
 @pytest.mark.parametrize("encoding", ["utf-16-le", "utf-16-be", "utf-8 with a mark"])
 def test_text_files_with_a_byte_order_mark_read_as_their_utf8_selves(fmt, encoding):
     V, F = torus_grid(8, 5)
-    plain = (save_mesh(V, F, fmt) if fmt != "gltf"
-             else encode_gltf_json(np.asarray(V, float), np.asarray(F)))
+    plain = _plain(fmt, np.asarray(V, dtype=np.float64), np.asarray(F))
     expected = read_mesh(plain, fmt)
     loaded = read_mesh(_encodings(plain)[encoding], fmt)
     np.testing.assert_array_equal(loaded.vertices, expected.vertices)
@@ -103,3 +115,15 @@ def test_assimps_utf16_big_endian_box_is_a_cube():
     assert loaded.polygons == 6
     extent = loaded.vertices.max(axis=0) - loaded.vertices.min(axis=0)
     np.testing.assert_allclose(extent, extent[0])  # a cube
+
+
+def test_an_ascii_stl_after_blank_lines_and_a_binary_one_with_a_marked_header():
+    V, F = torus_grid(8, 5)
+    V = np.asarray(V, dtype=np.float64)
+    text = _ascii_stl(V, F)
+    expected = read_mesh(text, "stl")
+    np.testing.assert_array_equal(read_mesh(b"\n  \n" + text, "stl").faces, expected.faces)
+    binary = bytearray(save_mesh(V, F, "stl"))
+    binary[:3] = codecs.BOM_UTF8  # a header that starts like marked text stays binary
+    loaded = read_mesh(bytes(binary), "stl")
+    np.testing.assert_array_equal(loaded.faces, read_mesh(save_mesh(V, F, "stl"), "stl").faces)

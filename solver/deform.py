@@ -633,7 +633,7 @@ def deform(vertices: ArrayLike, faces: ArrayLike, handles: ArrayLike,
         roi_faces=len(deformer.sub_faces), orthonormalized=bool(opts.orthonormalize),
         refinement=deformer.last_report,
         distortion=compact(distortion(deformer.rest, deformer.cut.to_cut(result),
-                                      deformer.faces)),
+                                      deformer.faces, coincident=False)),
         warnings=as_report(refinement_warnings(deformer.last_report)),
         linear_solver=deformer.last_linear_solver)
     if not deformer.cut.is_identity:

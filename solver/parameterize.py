@@ -138,7 +138,8 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
         ((5, 2), 0, 1)
     """
     opts = ParameterizeOptions.given(options, overrides)
-    cut = manifold_topology(faces, as_points(vertices, "vertices"))[0]
+    # A seam of vertices at one position is the user's cut here: kept open.
+    cut = manifold_topology(faces, as_points(vertices, "vertices"), coincident=False)[0]
     if not cut.is_identity:  # a non-manifold mesh: flattened on its cut (solver.mesh.manifold)
         return _on_file_vertices(parameterize(cut.to_cut(as_points(vertices, "vertices")),
                                               cut.faces, options=opts, progress=progress), cut)
@@ -153,7 +154,7 @@ def parameterize(vertices: ArrayLike, faces: ArrayLike, *,
             "flattened; cut it open along a seam (duplicate the seam vertices) first, or "
             "let seams='auto' cut it",
             field="faces", details={"closed_components": closed})
-    forms = fundamental_forms(V, topology.faces)
+    forms = fundamental_forms(V, topology.faces, coincident=False)
     _refuse_no_area(V, topology.faces)
     stages.lap("validate")
     F = topology.faces

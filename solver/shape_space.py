@@ -136,7 +136,8 @@ def shape_set(shapes: Sequence[Any] | np.ndarray, faces: ArrayLike | None = None
             raise ShapeMismatchError(f"shapes[{k}] has shape {points.shape}, shapes[0] "
                                      f"{first.shape}", field=f"shapes[{k}]")
         vertices[k] = points
-    forms = [fundamental_forms(v, topology.faces) for v in vertices]
+    # The connectivity is the first shape's (welded by _cut): no shape welds on its own.
+    forms = [fundamental_forms(v, topology.faces, coincident=False) for v in vertices]
     return _stacked(topology, [f.lengths for f in forms], [f.angles for f in forms], vertices)
 
 
@@ -442,6 +443,14 @@ def blend(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
     cut = _file_cut(shapes, faces)
     if cut is not None:  # non-manifold or welded: blended on the cut (solver.mesh.manifold)
         return _blend_on_cut(cut, list(shapes), weights, np.asarray(faces), opts, progress)
+    return _blend_rows(shapes, weights, faces, opts, progress)
+
+
+def _blend_rows(shapes: Sequence[Any] | np.ndarray, weights: ArrayLike,
+                faces: ArrayLike | None, opts: BlendOptions, progress: Progress | None,
+                ) -> Blend:
+    """:func:`blend` of shapes whose mesh is taken as it is (a file's mesh that needs no cut,
+    or a cut's: its split copies sit at one position and must not be welded again)."""
     stages = Stages(progress)
     stages("validate")
     shape_space = shape_set(shapes, faces)
@@ -494,8 +503,8 @@ def _blend_on_cut(cut: ManifoldCut, shapes: list[Any], weights: ArrayLike, faces
         if item.shape != (n, 3):
             raise ShapeMismatchError(f"shapes[{k}] has shape {item.shape}, shapes[0] "
                                      f"{(n, 3)}", field=f"shapes[{k}]")
-    result = blend([cut.to_cut(item) for item in points], weights, cut.faces, options=opts,
-                   progress=progress)
+    result = _blend_rows([cut.to_cut(item) for item in points], weights, cut.faces, opts,
+                         progress)
     vertices = np.empty((len(result.vertices), n, 3))
     for k, row in enumerate(result.vertices):  # a loop over rows
         vertices[k], spread = cut.to_file(row)

@@ -149,15 +149,20 @@ def dihedral_angles(vertices: np.ndarray, topology: MeshTopology,
     return angles
 
 
-def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
+def fundamental_forms(vertices: ArrayLike, faces: ArrayLike, *, coincident: bool = True,
+                      ) -> Forms:
     """Edge lengths and signed dihedral angles of a mesh.
 
     Args:
         vertices: (n, 3) float coordinates.
         faces: (m, 3) int, 0-based, counter-clockwise seen from outside.
+        coincident: weld the vertices at one position (a seam an exporter split by normals
+            or texture coordinates) too; False keeps such seams open.
 
-    Vertices joined by zero-length edges are welded first and the faces that collapse
-    dropped (:mod:`solver.mesh.weld`: ``weld_map``, ``dropped_faces``); a non-manifold mesh
+    Vertices joined by zero-length edges (and, with ``coincident``, vertices at one
+    position) are welded first and the faces that collapse dropped (:mod:`solver.mesh.weld`:
+    ``weld_map``, ``dropped_faces``); faces written the wrong way round are turned
+    (:mod:`solver.mesh.orientation`); a non-manifold mesh
     is cut into a manifold one (:mod:`solver.mesh.manifold`): the forms are those of the
     cut, ``faces`` are the cut faces and ``vertex_map`` names the file vertex of each cut
     vertex. ``placement`` holds each component's pose (:mod:`solver.mesh.placement`).
@@ -186,7 +191,7 @@ def fundamental_forms(vertices: ArrayLike, faces: ArrayLike) -> Forms:
         True
     """
     V = as_points(vertices, "vertices")
-    cut, topology = manifold_topology(faces, V)
+    cut, topology = manifold_topology(faces, V, coincident=coincident)
     cut_vertices = V if cut.is_identity else cut.to_cut(V)
     forms = forms_of(cut_vertices, topology)
     forms.placement = placement_of(cut_vertices, forms.faces, topology.face_component)

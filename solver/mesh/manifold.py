@@ -305,7 +305,8 @@ class ManifoldCut:
 
 
 def manifold_topology(faces: ArrayLike, vertices: ArrayLike | None = None,
-                      n_vertices: int | None = None) -> tuple[ManifoldCut, MeshTopology]:
+                      n_vertices: int | None = None, coincident: bool = True,
+                      ) -> tuple[ManifoldCut, MeshTopology]:
     """The one layer every mesh entry point passes through: the vertices joined by
     zero-length edges welded and the faces that collapse dropped (:mod:`solver.mesh.weld`;
     with positions only), then the mesh's topology when it is manifold and consistently
@@ -314,6 +315,9 @@ def manifold_topology(faces: ArrayLike, vertices: ArrayLike | None = None,
 
     Args:
         faces, vertices, n_vertices: as for :func:`cut_to_manifold`.
+        coincident: weld the vertices of faces at one position too
+            (:func:`solver.mesh.weld.weld_vertices`); False keeps such seams open (the
+            flattening's user cuts).
 
     Returns:
         ``(cut, topology)``: the :class:`ManifoldCut` and the cut mesh's
@@ -326,7 +330,21 @@ def manifold_topology(faces: ArrayLike, vertices: ArrayLike | None = None,
     """
     if n_vertices is None and vertices is not None:
         n_vertices = len(vertices)
-    weld = weld_vertices(faces, vertices, n_vertices)
+    weld = weld_vertices(faces, vertices, n_vertices, coincident=False)
+    cut, topology = _cut_of_weld(weld, vertices)
+    if coincident and vertices is not None and (topology.boundary_loops or cut.is_cut):
+        # Split seams are boundary edges on each other: only a mesh with a boundary (or a
+        # cut) is looked at again, so a closed mesh pays nothing for the rule.
+        zipped = weld_vertices(faces, vertices, n_vertices, coincident=True)
+        if len(zipped.welded_vertices) > len(weld.welded_vertices):
+            return _cut_of_weld(zipped, vertices)
+    return cut, topology
+
+
+def _cut_of_weld(weld: Weld, vertices: ArrayLike | None) -> tuple[ManifoldCut, MeshTopology]:
+    """The cut and topology of the welded faces: the topology as they are when they are
+    manifold and consistently oriented, else after turning faces written the wrong way round,
+    else their :func:`cut_to_manifold`."""
     welded = not weld.is_identity
     faces, n_vertices = weld.faces, len(weld.target)
     flipped = None

@@ -41,6 +41,7 @@ import numpy as np
 from ..core.errors import MeshFileError
 from .file_diagnosis import off_problem
 from .strips import strip_triangles
+from .weld import sorted_positions
 
 
 def off_short(data: bytes, vertices: np.ndarray, faces: np.ndarray) -> str | None:
@@ -755,7 +756,7 @@ def merge_identical(vertices: np.ndarray, faces: np.ndarray
 
     The positions are sorted by a hash of their bits (one stable argsort: ~5x faster than
     ``np.unique(axis=0)`` at a million faces); when two different positions share a hash
-    they are sorted by their coordinates instead (:func:`_sorted_positions`).
+    they are sorted by their coordinates instead (:func:`solver.mesh.weld.sorted_positions`).
 
     Args:
         vertices: (k, 3) float positions.
@@ -773,7 +774,7 @@ def merge_identical(vertices: np.ndarray, faces: np.ndarray
     v = np.ascontiguousarray(vertices, dtype=np.float64) + 0.0  # + 0.0: -0.0 becomes 0.0
     if v.shape[0] == 0:
         return v.reshape(0, 3), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    order, same = _sorted_positions(v)
+    order, same = sorted_positions(v)
     starts = np.concatenate([[True], ~same])
     group = np.cumsum(starts) - 1  # the group of each position, in sorted order
     first = order[starts]  # stable sorts: a group's first member is its first occurrence
@@ -782,34 +783,3 @@ def merge_identical(vertices: np.ndarray, faces: np.ndarray
     new_index = np.empty(len(v), dtype=np.int64)
     new_index[order] = rank[group]  # old vertex -> merged vertex
     return v[np.sort(first)], new_index[np.asarray(faces, dtype=np.int64)]
-
-
-_MIX: Final = (np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB), np.uint64(31))
-"""SplitMix64's finalizer constants: two odd multipliers and a shift."""
-
-
-def _sorted_positions(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A stable order of (k, 3) float64 positions that puts identical ones next to each other.
-
-    Returns:
-        ``(order, same)``: (k,) int64 the order, and (k - 1,) bool whether each sorted
-        position equals the one before it.
-    """
-    bits = v.view(np.uint64)
-    first, second, shift = _MIX
-    key = bits[:, 0].copy()
-    for column in (1, 2):
-        key *= first
-        key ^= key >> shift
-        key ^= bits[:, column]
-    key *= second
-    key ^= key >> shift
-    order = np.argsort(key, kind="stable")
-    ordered = v[order]
-    same = (ordered[1:] == ordered[:-1]).all(axis=1)
-    sorted_key = key[order]
-    if (same != (sorted_key[1:] == sorted_key[:-1])).any():  # a hash two positions share
-        order = np.lexsort(v.T[::-1])
-        ordered = v[order]
-        same = (ordered[1:] == ordered[:-1]).all(axis=1)
-    return order, same

@@ -146,14 +146,17 @@ def forms_distortion(forms: Forms, target_lengths: ArrayLike, target_angles: Arr
     }
 
 
-def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike,
-               ) -> dict[str, Any]:
+def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike, *,
+               coincident: bool = True) -> dict[str, Any]:
     """Distortion of ``vertices`` relative to ``vertices_ref`` (same faces).
 
     Args:
         vertices_ref: (n, 3) float reference embedding.
         vertices: (n, 3) float embedding to measure.
         faces: (m, 3) int, counter-clockwise.
+        coincident: weld the reference's vertices at one position
+            (:func:`solver.mesh.forms.fundamental_forms`); False for a mesh already cut (its
+            split copies sit at one position).
 
     Returns:
         :func:`forms_distortion`'s entries plus per-face (m,) ``face_angle_change`` (max
@@ -181,7 +184,7 @@ def distortion(vertices_ref: ArrayLike, vertices: ArrayLike, faces: ArrayLike,
     """
     V0 = as_points(vertices_ref, "vertices_ref")
     V1 = as_points(vertices, "vertices")
-    rest = fundamental_forms(V0, faces)
+    rest = fundamental_forms(V0, faces, coincident=coincident)
     if rest.vertex_map is not None:  # a non-manifold mesh: measured on its cut
         V0, V1 = V0[rest.vertex_map], V1[rest.vertex_map]
     # The measured shape may have collapsed a face: it is measured, not refused.

@@ -6,8 +6,17 @@ The rule (deterministic, vectorized), applied before the manifold cut
 1. **Zero-length edges.** An edge of a face whose length is at most :data:`WELD_TOLERANCE`
    times the bounding-box diagonal of the faces' vertices (0 included: two corners at one
    position, e.g. a capsule's pole repeated once per longitude, a scan's duplicated
-   vertices) joins its two vertices. Vertices at one position that no face's edge joins (a
-   seam of duplicated vertices) are left apart: the surface is open there.
+   vertices) joins its two vertices.
+   **Split seams.** Exporters split a vertex where its normal or texture coordinate
+   changes (a flat-shaded glTF box is 24 vertices in 6 parts, a triangle soup one part per
+   face); a surface split so would come apart when deformed. With ``coincident=True`` (the
+   default) two boundary edges that lie on each other (their ends at one position each, bit
+   for bit, ``-0.0`` is ``0.0``), run opposite ways (consistently oriented across the
+   seam) and whose faces are not folded onto each other (normals not opposite:
+   :data:`FOLDED`) are zipped: their ends are joined. Only a seam edge with exactly one such
+   partner is zipped; vertices that merely touch (at a point, or layers folded onto each
+   other) stay apart. The flattening keeps seams as the user's cuts
+   (:func:`solver.parameterize` passes ``coincident=False``).
 2. **Groups.** The vertices joined through such edges (transitively) form a group; the
    group's lowest file index is its representative and every other vertex of it is
    welded into it: the solve has one unknown for the group, and the answer gives each
@@ -34,7 +43,7 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 import scipy.sparse as sp
@@ -86,14 +95,16 @@ class Weld:
 
 
 def weld_vertices(faces: ArrayLike, vertices: ArrayLike | None = None,
-                  n_vertices: int | None = None) -> Weld:
-    """Weld the vertices joined by zero-length edges and drop the faces that collapse.
+                  n_vertices: int | None = None, coincident: bool = True) -> Weld:
+    """Weld the vertices joined by zero-length edges (and, with ``coincident``, the vertices
+    at one position) and drop the faces that collapse.
 
     Args:
         faces: (m, 3) int (a face may repeat an index: it is dropped).
         vertices: optional (n, 3) float64 positions (without them only faces that repeat an
             index are dropped: nothing is welded).
         n_vertices: vertex count (default ``len(vertices)`` or ``faces.max() + 1``).
+        coincident: also weld the vertices of faces at one position (rule 1).
 
     Returns:
         :class:`Weld`.
@@ -110,7 +121,7 @@ def weld_vertices(faces: ArrayLike, vertices: ArrayLike | None = None,
     n = int(F.max()) + 1 if n_vertices is None else int(n_vertices)
     target = np.arange(n, dtype=np.int64)
     if vertices is not None:
-        target = _representatives(F, np.asarray(vertices, dtype=np.float64), n)
+        target = _representatives(F, np.asarray(vertices, dtype=np.float64), n, coincident)
     welded = target[F]
     collapsed = ((welded[:, 0] == welded[:, 1]) | (welded[:, 1] == welded[:, 2])
                  | (welded[:, 2] == welded[:, 0]))
@@ -123,8 +134,9 @@ def weld_vertices(faces: ArrayLike, vertices: ArrayLike | None = None,
                 n_faces=len(F))
 
 
-def _representatives(F: np.ndarray, V: np.ndarray, n: int) -> np.ndarray:
-    """(n,) int64 the lowest vertex of each group joined by zero-length edges (rules 1, 2)."""
+def _representatives(F: np.ndarray, V: np.ndarray, n: int, coincident: bool) -> np.ndarray:
+    """(n,) int64 the lowest vertex of each group joined by zero-length edges or, with
+    ``coincident``, one position (rules 1, 2)."""
     a = F.ravel()
     b = F[:, [1, 2, 0]].ravel()
     referenced = np.zeros(n, dtype=bool)
@@ -135,14 +147,61 @@ def _representatives(F: np.ndarray, V: np.ndarray, n: int) -> np.ndarray:
     diagonal = float(np.linalg.norm((high - low) / scale))
     d = (V[b] - V[a]) / scale
     short = (np.einsum("ij,ij->i", d, d) <= (WELD_TOLERANCE * diagonal) ** 2) & (a != b)
+    first, second = a[short], b[short]
+    if coincident:
+        seam_a, seam_b = _seam_pairs(F, V, referenced)
+        first, second = np.concatenate([first, seam_a]), np.concatenate([second, seam_b])
     target = np.arange(n, dtype=np.int64)
-    if not short.any():
+    if not len(first):
         return target
-    graph = sp.coo_matrix((np.ones(int(short.sum())), (a[short], b[short])), shape=(n, n))
+    graph = sp.coo_matrix((np.ones(len(first)), (first, second)), shape=(n, n))
     _, group = connected_components(graph, directed=False)
     lowest = np.full(int(group.max()) + 1, n, dtype=np.int64)
     np.minimum.at(lowest, group, target)
     return lowest[group]
+
+
+FOLDED: Final = 1.0 - 1e-9
+"""Two faces whose unit normals' dot product is at most ``-FOLDED`` lie folded onto each
+other: a boundary edge between them is not a split seam (rule 1)."""
+
+
+def _seam_pairs(F: np.ndarray, V: np.ndarray, referenced: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The vertex pairs a split seam joins (rule 1): the ends of boundary edges that lie on
+    each other, run opposite ways and are not folded, each with exactly one partner.
+
+    Returns:
+        ``(a, b)``: (p,) int64 vertices to join pairwise.
+    """
+    empty = np.zeros(0, dtype=np.int64)
+    origin, dest = F.ravel(), F[:, [1, 2, 0]].ravel()
+    n = len(referenced)
+    undirected = np.minimum(origin, dest) * n + np.maximum(origin, dest)
+    _, inverse, counts = np.unique(undirected, return_inverse=True, return_counts=True)
+    boundary = np.flatnonzero(counts[inverse.ravel()] == 1)
+    if len(boundary) < 2:
+        return empty, empty
+    used = np.flatnonzero(referenced)
+    order, same = sorted_positions(np.ascontiguousarray(V[used], dtype=np.float64) + 0.0)
+    place = np.empty(n, dtype=np.int64)  # the position class of every used vertex
+    place[used[order]] = np.cumsum(np.r_[True, ~same]) - 1
+    count = int(place[used].max()) + 1
+    u, v = place[origin[boundary]], place[dest[boundary]]
+    key, wanted = u * count + v, v * count + u
+    keys, first, many = np.unique(key, return_index=True, return_counts=True)
+    at = np.searchsorted(keys, wanted)
+    found = (at < len(keys)) & (keys[np.minimum(at, len(keys) - 1)] == wanted)
+    at = np.minimum(at, len(keys) - 1)
+    single = found & (many[at] == 1) & (many[np.searchsorted(keys, key)] == 1)
+    mine, partner = boundary[single], boundary[first[at[single]]]
+    normals = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1), 1e-300)[:, None]
+    dot = np.einsum("ij,ij->i", normals[mine // 3], normals[partner // 3])
+    keep = dot > -FOLDED
+    mine, partner = mine[keep], partner[keep]
+    return (np.concatenate([origin[mine], dest[mine]]),
+            np.concatenate([dest[partner], origin[partner]]))
 
 
 def weld_report(weld: Weld) -> dict[str, Any]:
@@ -228,3 +287,34 @@ def check_welded_targets(targets: np.ndarray, file_handles: np.ndarray, welded: 
             f"{targets[a].tolist()} and {targets[b].tolist()}: give them one target, or "
             "one handle", field="handle_positions", index=int(b),
             details={"vertices": [int(file_handles[a]), int(file_handles[b])]})
+
+
+_MIX: Final = (np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB), np.uint64(31))
+"""SplitMix64's finalizer constants: two odd multipliers and a shift."""
+
+
+def sorted_positions(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A stable order of (k, 3) float64 positions that puts identical ones next to each other.
+
+    Returns:
+        ``(order, same)``: (k,) int64 the order, and (k - 1,) bool whether each sorted
+        position equals the one before it.
+    """
+    bits = v.view(np.uint64)
+    first, second, shift = _MIX
+    key = bits[:, 0].copy()
+    for column in (1, 2):
+        key *= first
+        key ^= key >> shift
+        key ^= bits[:, column]
+    key *= second
+    key ^= key >> shift
+    order = np.argsort(key, kind="stable")
+    ordered = v[order]
+    same = (ordered[1:] == ordered[:-1]).all(axis=1)
+    sorted_key = key[order]
+    if (same != (sorted_key[1:] == sorted_key[:-1])).any():  # a hash two positions share
+        order = np.lexsort(v.T[::-1])
+        ordered = v[order]
+        same = (ordered[1:] == ordered[:-1]).all(axis=1)
+    return order, same

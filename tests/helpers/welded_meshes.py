@@ -18,9 +18,10 @@ Welded = tuple[np.ndarray, np.ndarray, int, int]
 
 def latlong(radius: np.ndarray, height: np.ndarray, columns: int) -> Welded:
     """A surface of revolution sampled on a (rows, columns + 1) grid: the seam column is
-    repeated (coincident, joined by no edge: the surface is open there) and the first and
-    last rows have radius 0 (a pole repeated once per column: each pole quad has a face
-    with two corners at one position)."""
+    repeated (coincident, joined by no edge: a split seam, zipped by the weld: its rows - 2
+    copies off the poles are welded) and the first and last rows have radius 0 (a pole
+    repeated once per column: each pole quad has a face with two corners at one
+    position)."""
     rows = len(radius)
     angle = np.linspace(0.0, 2 * np.pi, columns + 1)
     angle[-1] = 0.0  # the seam copy at exactly the first column's position
@@ -33,7 +34,7 @@ def latlong(radius: np.ndarray, height: np.ndarray, columns: int) -> Welded:
     F = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3),
                         np.stack([b, c, d], -1).reshape(-1, 3)])
     F = F[:, ::-1] if height[0] > height[-1] else F  # outward normals
-    return V, F, 2 * columns, 2 * columns
+    return V, F, 2 * columns + rows - 2, 2 * columns
 
 
 def latlong_sphere(rows: int = 10, columns: int = 16) -> Welded:

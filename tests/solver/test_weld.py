@@ -19,7 +19,7 @@ from solver.core.errors import (
 )
 from solver.mesh.topology import build_topology
 from solver.mesh.weld import WELD_TOLERANCE, weld_vertices
-from tests.helpers.meshes import rigid_alignment_error
+from tests.helpers.meshes import icosphere, rigid_alignment_error
 from tests.helpers.real_meshes import diagonal
 from tests.helpers.welded_meshes import CASES
 
@@ -155,15 +155,53 @@ def test_flatten_and_blend_answer_per_file_vertex(case):
     assert rigid_alignment_error(middle, V * [1.0, 1.0, 1.25]) < 0.05
 
 
-def test_coincident_vertices_without_an_edge_stay_apart():
-    """The latitude-longitude seam: coincident columns no face's edge joins are not welded
-    (the surface is open there), and the answer keeps both where the file has them."""
+def test_a_split_seam_is_zipped_and_kept_open_on_request():
+    """The latitude-longitude seam: coincident columns no face's edge joins, their boundary
+    edges on each other and running opposite ways, are welded (a split seam); with
+    ``coincident=False`` (the flattening's user cuts) they stay apart."""
     V, F, _, _ = CASES["latlong-sphere"]()
-    forms = solver.fundamental_forms(V, F)
     columns = 16
     seam = np.arange(1, 10) * (columns + 1)
     np.testing.assert_array_equal(V[seam], V[seam + columns])
-    assert (forms.weld_map[seam + columns] == seam + columns).all()
+    forms = solver.fundamental_forms(V, F)
+    assert (forms.weld_map[seam + columns] == seam).all()
+    assert len(forms.placement.faces) == 1
+    kept = solver.fundamental_forms(V, F, coincident=False)
+    assert (kept.weld_map[seam + columns] == seam + columns).all()
+
+
+def _split_by_face(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every face with corners of its own (a triangle soup, as flat shading writes it)."""
+    return V[F.ravel()], np.arange(3 * len(F)).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("name", ["icosphere", "torus", "open grid"])
+def test_a_triangle_soup_is_zipped_into_its_surface(name):
+    from tests.helpers.meshes import grid, torus_grid
+
+    V, F = {"icosphere": lambda: icosphere(2), "torus": lambda: torus_grid(10, 6),
+            "open grid": lambda: grid(5, 4)}[name]()
+    V, F = np.asarray(V, dtype=np.float64), np.asarray(F)
+    soup_v, soup_f = _split_by_face(V, F)
+    forms = solver.fundamental_forms(soup_v, soup_f)
+    whole = solver.fundamental_forms(V, F)
+    assert len(forms.placement.faces) == 1
+    np.testing.assert_allclose(np.sort(forms.lengths), np.sort(whole.lengths))
+    np.testing.assert_allclose(np.sort(forms.angles), np.sort(whole.angles), atol=1e-12)
+    moved = solver.deform(soup_v, soup_f, [0, len(soup_v) - 1],
+                          soup_v[[0, -1]] + [[0, 0, 0], [0, 0, 0.3]])
+    same_place = (soup_v[:, None] == soup_v[None]).all(axis=2)
+    gap = np.abs(moved.vertices[:, None] - moved.vertices[None]).max(axis=2)[same_place]
+    assert gap.max() < 1e-12  # copies of one corner move together
+
+
+def test_layers_folded_onto_each_other_and_touching_parts_stay_apart():
+    from tests.helpers.real_meshes import boxes_sharing_an_edge, folded_sheet
+
+    for V, F in (folded_sheet(), boxes_sharing_an_edge()):
+        V, F = np.asarray(V), np.asarray(F)
+        before = weld_vertices(F, V, coincident=False).target
+        np.testing.assert_array_equal(weld_vertices(F, V).target, before)
 
 
 def test_weld_rule_is_deterministic_and_transitive():

@@ -61,10 +61,10 @@ from ..core.errors import (
     NonManifoldEdgeError,
     NonManifoldVertexError,
 )
-from ..core.validation import as_faces, as_indices
+from ..core.validation import as_faces, as_indices, as_points
 from .orientation import orientation_flips
 from .topology import MeshTopology, build_topology
-from .weld import Weld, check_weld_map, weld_report, weld_vertices
+from .weld import Weld, check_weld_map, seam_pairs, weld_report, weld_vertices
 
 
 @dataclass(frozen=True)
@@ -330,14 +330,17 @@ def manifold_topology(faces: ArrayLike, vertices: ArrayLike | None = None,
     """
     if n_vertices is None and vertices is not None:
         n_vertices = len(vertices)
-    weld = weld_vertices(faces, vertices, n_vertices, coincident=False)
+    weld = weld_vertices(faces, vertices, n_vertices)
     cut, topology = _cut_of_weld(weld, vertices)
-    if coincident and vertices is not None and (topology.boundary_loops or cut.is_cut):
-        # Split seams are boundary edges on each other: only a mesh with a boundary (or a
-        # cut) is looked at again, so a closed mesh pays nothing for the rule.
-        zipped = weld_vertices(faces, vertices, n_vertices, coincident=True)
-        if len(zipped.welded_vertices) > len(weld.welded_vertices):
-            return _cut_of_weld(zipped, vertices)
+    if coincident and vertices is not None and topology.boundary_loops:
+        # Split seams are boundary edges on each other (solver.mesh.weld, rule 1): looked
+        # for on the first answer's boundary only, so a closed mesh pays nothing.
+        boundary = np.flatnonzero(topology.halfedge_twin < 0)
+        a, b = seam_pairs(topology.faces, cut.to_cut(as_points(vertices, "vertices")),
+                          boundary)
+        if len(a):
+            joined = (cut.vertex_map[a], cut.vertex_map[b])  # cut copies -> file vertices
+            return _cut_of_weld(weld_vertices(faces, vertices, n_vertices, joined), vertices)
     return cut, topology
 
 

@@ -9,8 +9,9 @@ The rule (deterministic, vectorized), applied before the manifold cut
    vertices) joins its two vertices.
    **Split seams.** Exporters split a vertex where its normal or texture coordinate
    changes (a flat-shaded glTF box is 24 vertices in 6 parts, a triangle soup one part per
-   face); a surface split so would come apart when deformed. With ``coincident=True`` (the
-   default) two boundary edges that lie on each other (their ends at one position each, bit
+   face); a surface split so would come apart when deformed. Unless the caller keeps seams
+   open (``coincident=False`` of :func:`solver.mesh.manifold.manifold_topology`), two
+   boundary edges that lie on each other (their ends at one position each, bit
    for bit, ``-0.0`` is ``0.0``), run opposite ways (consistently oriented across the
    seam) and whose faces are not folded onto each other (normals not opposite:
    :data:`FOLDED`) are zipped: their ends are joined. Only a seam edge with exactly one such
@@ -95,16 +96,17 @@ class Weld:
 
 
 def weld_vertices(faces: ArrayLike, vertices: ArrayLike | None = None,
-                  n_vertices: int | None = None, coincident: bool = True) -> Weld:
-    """Weld the vertices joined by zero-length edges (and, with ``coincident``, the vertices
-    at one position) and drop the faces that collapse.
+                  n_vertices: int | None = None,
+                  joined: tuple[np.ndarray, np.ndarray] | None = None) -> Weld:
+    """Weld the vertices joined by zero-length edges (and the pairs ``joined``: a split
+    seam's, :func:`seam_pairs`) and drop the faces that collapse.
 
     Args:
         faces: (m, 3) int (a face may repeat an index: it is dropped).
         vertices: optional (n, 3) float64 positions (without them only faces that repeat an
             index are dropped: nothing is welded).
         n_vertices: vertex count (default ``len(vertices)`` or ``faces.max() + 1``).
-        coincident: also weld the vertices of faces at one position (rule 1).
+        joined: optional ``(a, b)`` (p,) int64 file vertices to weld pairwise too (rule 1).
 
     Returns:
         :class:`Weld`.
@@ -121,7 +123,7 @@ def weld_vertices(faces: ArrayLike, vertices: ArrayLike | None = None,
     n = int(F.max()) + 1 if n_vertices is None else int(n_vertices)
     target = np.arange(n, dtype=np.int64)
     if vertices is not None:
-        target = _representatives(F, np.asarray(vertices, dtype=np.float64), n, coincident)
+        target = _representatives(F, np.asarray(vertices, dtype=np.float64), n, joined)
     welded = target[F]
     collapsed = ((welded[:, 0] == welded[:, 1]) | (welded[:, 1] == welded[:, 2])
                  | (welded[:, 2] == welded[:, 0]))
@@ -134,9 +136,10 @@ def weld_vertices(faces: ArrayLike, vertices: ArrayLike | None = None,
                 n_faces=len(F))
 
 
-def _representatives(F: np.ndarray, V: np.ndarray, n: int, coincident: bool) -> np.ndarray:
-    """(n,) int64 the lowest vertex of each group joined by zero-length edges or, with
-    ``coincident``, one position (rules 1, 2)."""
+def _representatives(F: np.ndarray, V: np.ndarray, n: int,
+                     joined: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """(n,) int64 the lowest vertex of each group joined by zero-length edges or ``joined``
+    pairs (rules 1, 2)."""
     a = F.ravel()
     b = F[:, [1, 2, 0]].ravel()
     referenced = np.zeros(n, dtype=bool)
@@ -148,9 +151,8 @@ def _representatives(F: np.ndarray, V: np.ndarray, n: int, coincident: bool) -> 
     d = (V[b] - V[a]) / scale
     short = (np.einsum("ij,ij->i", d, d) <= (WELD_TOLERANCE * diagonal) ** 2) & (a != b)
     first, second = a[short], b[short]
-    if coincident:
-        seam_a, seam_b = _seam_pairs(F, V, referenced)
-        first, second = np.concatenate([first, seam_a]), np.concatenate([second, seam_b])
+    if joined is not None:
+        first, second = np.concatenate([first, joined[0]]), np.concatenate([second, joined[1]])
     target = np.arange(n, dtype=np.int64)
     if not len(first):
         return target
@@ -166,42 +168,48 @@ FOLDED: Final = 1.0 - 1e-9
 other: a boundary edge between them is not a split seam (rule 1)."""
 
 
-def _seam_pairs(F: np.ndarray, V: np.ndarray, referenced: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
+def seam_pairs(faces: np.ndarray, V: np.ndarray, boundary: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The vertex pairs a split seam joins (rule 1): the ends of boundary edges that lie on
     each other, run opposite ways and are not folded, each with exactly one partner.
 
+    Args:
+        faces: (m, 3) int64 faces (half-edge ``h`` runs from ``faces[h // 3, h % 3]`` to the
+            next corner).
+        V: (n, 3) float64 positions of their vertices.
+        boundary: (k,) int64 the boundary half-edges (of one face).
+
     Returns:
-        ``(a, b)``: (p,) int64 vertices to join pairwise.
+        ``(a, b)``: (p,) int64 vertices to join pairwise (empty when there is no seam).
     """
     empty = np.zeros(0, dtype=np.int64)
-    origin, dest = F.ravel(), F[:, [1, 2, 0]].ravel()
-    n = len(referenced)
-    undirected = np.minimum(origin, dest) * n + np.maximum(origin, dest)
-    _, inverse, counts = np.unique(undirected, return_inverse=True, return_counts=True)
-    boundary = np.flatnonzero(counts[inverse.ravel()] == 1)
     if len(boundary) < 2:
         return empty, empty
-    used = np.flatnonzero(referenced)
-    order, same = sorted_positions(np.ascontiguousarray(V[used], dtype=np.float64) + 0.0)
-    place = np.empty(n, dtype=np.int64)  # the position class of every used vertex
-    place[used[order]] = np.cumsum(np.r_[True, ~same]) - 1
-    count = int(place[used].max()) + 1
-    u, v = place[origin[boundary]], place[dest[boundary]]
+    origin = faces[boundary // 3, boundary % 3]
+    dest = faces[boundary // 3, (boundary % 3 + 1) % 3]
+    ends, slot = np.unique(np.concatenate([origin, dest]), return_inverse=True)
+    order, same = sorted_positions(np.ascontiguousarray(V[ends], dtype=np.float64) + 0.0)
+    place = np.empty(len(ends), dtype=np.int64)  # the position class of every end
+    place[order] = np.cumsum(np.r_[True, ~same]) - 1
+    count = int(place.max()) + 1
+    u, v = place[slot[:len(boundary)]], place[slot[len(boundary):]]
     key, wanted = u * count + v, v * count + u
     keys, first, many = np.unique(key, return_index=True, return_counts=True)
-    at = np.searchsorted(keys, wanted)
-    found = (at < len(keys)) & (keys[np.minimum(at, len(keys) - 1)] == wanted)
-    at = np.minimum(at, len(keys) - 1)
-    single = found & (many[at] == 1) & (many[np.searchsorted(keys, key)] == 1)
-    mine, partner = boundary[single], boundary[first[at[single]]]
-    normals = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1), 1e-300)[:, None]
-    dot = np.einsum("ij,ij->i", normals[mine // 3], normals[partner // 3])
-    keep = dot > -FOLDED
+    at = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
+    single = (keys[at] == wanted) & (many[at] == 1) & (many[np.searchsorted(keys, key)] == 1)
+    mine, partner = np.flatnonzero(single), first[at[single]]
+    normals = _unit_normals(V, faces[boundary[mine] // 3]), _unit_normals(
+        V, faces[boundary[partner] // 3])
+    keep = np.einsum("ij,ij->i", *normals) > -FOLDED
     mine, partner = mine[keep], partner[keep]
     return (np.concatenate([origin[mine], dest[mine]]),
             np.concatenate([dest[partner], origin[partner]]))
+
+
+def _unit_normals(V: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(k, 3) unit normals of ``faces`` (zero for a face without area)."""
+    normals = np.cross(V[faces[:, 1]] - V[faces[:, 0]], V[faces[:, 2]] - V[faces[:, 0]])
+    return normals / np.maximum(np.linalg.norm(normals, axis=1), 1e-300)[:, None]
 
 
 def weld_report(weld: Weld) -> dict[str, Any]:

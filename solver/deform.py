@@ -245,7 +245,7 @@ class Deformer:
             raise ConstraintError(f"handle vertex {int(self.handles[outside[0]])} is outside "
                                   "the region of interest", field="handles",
                                   index=int(outside[0]))
-        self._refuse_handles_in_no_face(n)
+        self._refuse_handles_in_no_face(full)
         sub_faces_mask = in_roi[self.faces].any(axis=1)
         rot_outside = np.flatnonzero(~sub_faces_mask[all_rot])
         if len(rot_outside):
@@ -421,13 +421,11 @@ class Deformer:
             frame_faces=local_faces, frames=frames,
             frame_weights=np.full(len(local_faces), self._rotation_weight))
 
-    def _refuse_handles_in_no_face(self, n: int) -> None:
+    def _refuse_handles_in_no_face(self, topology: MeshTopology) -> None:
         """Raise when a handle names a vertex no face uses (an unreferenced vertex of the
         file, or one whose faces were dropped as degenerate): it has no place in the
         system, so it could neither move the surface nor be placed by it."""
-        used = np.zeros(n, dtype=bool)
-        used[self.faces.ravel()] = True
-        lonely = np.flatnonzero(~used[self.handles])
+        lonely = np.flatnonzero(~topology.is_referenced[self.handles])
         if len(lonely):
             at = int(self._handle_source[lonely[0]])
             vertex = int(self.file_handles[at])

@@ -22,6 +22,8 @@ The rule (vectorized, deterministic):
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from .trees import accumulate_sums, spanning_forest
 
@@ -51,20 +53,21 @@ def orientation_flips(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     links, inconsistent = _face_links(F, n_vertices)
     if not inconsistent.any():
         return np.zeros(m, dtype=bool)
-    forest = spanning_forest(m, links)
+    graph = sp.coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(m, m))
+    part = connected_components(graph, directed=False)[1].astype(np.int64)
+    forest = spanning_forest(m, links, components=part)
     step = np.zeros(m, dtype=np.float64)
     child = np.flatnonzero(forest.parent_link >= 0)
     step[child] = inconsistent[forest.parent_link[child]]
     parity = (accumulate_sums(forest.parent, step, forest.levels).round().astype(np.int64)
               & 1).astype(bool)
-    root = _roots(forest.parent)
     disagree = (parity[links[:, 0]] != parity[links[:, 1]]) != inconsistent
     broken = np.zeros(m, dtype=bool)
-    broken[root[links[disagree, 0]]] = True  # a part with a disagreeing link: not orientable
-    flipped = np.bincount(root, weights=parity, minlength=m)
-    size = np.bincount(root, minlength=m)
-    minority = np.where(2 * flipped[root] > size[root], ~parity, parity)  # the smaller flips
-    return minority & ~broken[root]
+    broken[part[links[disagree, 0]]] = True  # a part with a disagreeing link: not orientable
+    flipped = np.bincount(part, weights=parity, minlength=m)
+    size = np.bincount(part, minlength=m)
+    minority = np.where(2 * flipped[part] > size[part], ~parity, parity)  # the smaller flips
+    return minority & ~broken[part]
 
 
 def _face_links(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -84,13 +87,3 @@ def _face_links(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     first, second = order[pairs], order[pairs + 1]
     links = np.stack([first // 3, second // 3], axis=1)
     return links, origin[first] == origin[second]
-
-
-def _roots(parent: np.ndarray) -> np.ndarray:
-    """(k,) int64 the root of every node of a forest (pointer doubling)."""
-    root = parent.copy()
-    while True:
-        nxt = root[root]
-        if np.array_equal(nxt, root):
-            return root
-        root = nxt

@@ -103,7 +103,8 @@ def pack_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray,
 
     rules = rules or PackingRules()
     uv = np.asarray(uv, dtype=np.float64)
-    turned = _turn_charts(uv, faces, face_chart)
+    members = _chart_vertices(faces, face_chart, len(uv))
+    turned = _turn_charts(uv, members)
     area = float(np.abs(signed_areas(turned, faces)).sum())
     options = xatlas.PackOptions()
     options.padding = rules.padding
@@ -126,7 +127,7 @@ def pack_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray,
     # Exact shapes: map each chart back by the similarity xatlas applied (translation and
     # the one scale), so float32 rounding never reaches the layout.
     scale = 1.0 / (texels_per_unit / side)
-    texcoords = _exact_translation(turned, texcoords, faces, face_chart, scale)
+    texcoords = _exact_translation(turned, texcoords, members, scale)
     return Packed(texcoords, scale, int(side), rules.padding / side,
                   packing_efficiency(texcoords, faces))
 
@@ -160,12 +161,12 @@ def _principal_rotations(points: np.ndarray, chart: np.ndarray, count: int) -> n
     return rotation
 
 
-def _turn_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray) -> np.ndarray:
+def _turn_charts(uv: np.ndarray, members: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """Each chart turned by :func:`principal_rotation` and set apart along u, in order of
     its label (xatlas welds uv vertices at equal positions, which would join charts); all
-    charts at once."""
+    charts at once. ``members``: :func:`_chart_vertices`."""
     turned = uv.copy()
-    vertices, chart = _chart_vertices(faces, face_chart, len(uv))
+    vertices, chart = members
     count = int(chart.max()) + 1 if len(chart) else 0
     rotation = _principal_rotations(uv[vertices], chart, count)
     points = np.einsum("jab,jb->ja", rotation[chart], uv[vertices])
@@ -179,12 +180,13 @@ def _turn_charts(uv: np.ndarray, faces: np.ndarray, face_chart: np.ndarray) -> n
     return turned
 
 
-def _exact_translation(turned: np.ndarray, texcoords: np.ndarray, faces: np.ndarray,
-                       face_chart: np.ndarray, scale: float) -> np.ndarray:
+def _exact_translation(turned: np.ndarray, texcoords: np.ndarray,
+                       members: tuple[np.ndarray, np.ndarray], scale: float) -> np.ndarray:
     """Per chart: ``turned / scale`` moved onto xatlas's placement by the rigid motion
-    that fits it best (Procrustes, never a mirror); all charts at once."""
+    that fits it best (Procrustes, never a mirror); all charts at once. ``members``:
+    :func:`_chart_vertices`."""
     exact = turned / scale
-    vertices, chart = _chart_vertices(faces, face_chart, len(turned))
+    vertices, chart = members
     count = int(chart.max()) + 1 if len(chart) else 0
     size = np.bincount(chart, minlength=count)[:, None]
     source, target = exact[vertices], texcoords[vertices]

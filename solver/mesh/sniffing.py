@@ -13,16 +13,15 @@ Text is read as the readers read it: a UTF-16 or UTF-8 byte-order mark says the 
 
 from __future__ import annotations
 
-import codecs
 import re
 from collections.abc import Callable
 from typing import Final
 
+from .mesh_readers import without_bom
 from .off_binary import is_binary_off
 
 SNIFF_BYTES: Final = 4096
 """How much of a file the check reads: its first 4 KiB."""
-_BOM: Final = b"\xef\xbb\xbf"
 STL_HEADER_BYTES: Final = 84
 """A binary STL's 80-byte header and its uint32 triangle count."""
 STL_TRIANGLE_BYTES: Final = 50
@@ -37,17 +36,10 @@ Sniff = Callable[[bytes, int], "str | None"]
 None (it may be; its reader decides)."""
 
 
-def _decoded(head: bytes) -> bytes:
-    """The first bytes of a text file as UTF-8 without a byte-order mark (UTF-16 by its
-    mark decoded; a character cut by the window dropped)."""
-    if head.startswith((codecs.BOM_UTF16_BE, codecs.BOM_UTF16_LE)):
-        return head[:len(head) - len(head) % 2].decode("utf-16", "replace").encode("utf-8")
-    return head.removeprefix(_BOM)
-
-
 def _text(head: bytes) -> bytes:
-    """The first bytes as text (:func:`_decoded`) without leading whitespace."""
-    return _decoded(head).lstrip()
+    """The first bytes as the readers take text (:func:`without_bom`) without leading
+    whitespace."""
+    return without_bom(head).lstrip()
 
 
 def _whole_lines(head: bytes, whole: bool) -> list[bytes]:
@@ -65,7 +57,7 @@ def _binary(head: bytes) -> str | None:
 
 
 def _obj(head: bytes, size: int) -> str | None:
-    whole, head = size <= len(head), _decoded(head)
+    whole, head = size <= len(head), without_bom(head)
     if problem := _binary(head):
         return problem
     if whole and not _OBJ_VERTEX.search(head):
@@ -76,7 +68,7 @@ def _obj(head: bytes, size: int) -> str | None:
 def _off(head: bytes, size: int) -> str | None:
     if is_binary_off(head):
         return None  # its words are binary: solver.mesh.off_binary reads them
-    whole, head = size <= len(head), _decoded(head)
+    whole, head = size <= len(head), without_bom(head)
     if problem := _binary(head):
         return problem
     for line in _whole_lines(head, whole):

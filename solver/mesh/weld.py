@@ -194,9 +194,10 @@ def seam_pairs(faces: np.ndarray, V: np.ndarray, boundary: np.ndarray
     count = int(place.max()) + 1
     u, v = place[slot[:len(boundary)]], place[slot[len(boundary):]]
     key, wanted = u * count + v, v * count + u
-    keys, first, many = np.unique(key, return_index=True, return_counts=True)
+    keys, first, own, many = np.unique(key, return_index=True, return_inverse=True,
+                                       return_counts=True)
     at = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
-    single = (keys[at] == wanted) & (many[at] == 1) & (many[np.searchsorted(keys, key)] == 1)
+    single = (keys[at] == wanted) & (many[at] == 1) & (many[own.ravel()] == 1)
     mine, partner = np.flatnonzero(single), first[at[single]]
     normals = _unit_normals(V, faces[boundary[mine] // 3]), _unit_normals(
         V, faces[boundary[partner] // 3])

@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from solver.mesh.charts import touching_parts_apart
-from solver.mesh.packing import _exact_translation, _turn_charts, principal_rotation
+from solver.mesh.packing import (
+    _chart_vertices,
+    _exact_translation,
+    _turn_charts,
+    principal_rotation,
+)
 from tests.helpers.meshes import load
 
 
@@ -31,7 +36,7 @@ def _vertices(faces: np.ndarray, chart: np.ndarray, label: int) -> np.ndarray:
 
 def test_charts_are_turned_and_set_apart_as_each_alone():
     uv, faces, chart = _charts()
-    turned = _turn_charts(uv, faces, chart)
+    turned = _turn_charts(uv, _chart_vertices(faces, chart, len(uv)))
     cursor = 0.0
     for label in np.unique(chart):                           # the reference: one at a time
         ids = _vertices(faces, chart, label)
@@ -59,7 +64,7 @@ def test_each_chart_is_fitted_onto_its_placement_by_its_own_rigid_motion():
         R = np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])
         placed[ids] = placed[ids] @ R + rng.normal(size=2)
     noisy = placed + rng.normal(scale=1e-6, size=placed.shape)   # float32 rounding's stand-in
-    exact = _exact_translation(uv, noisy, faces, chart, scale)
+    exact = _exact_translation(uv, noisy, _chart_vertices(faces, chart, len(uv)), scale)
     used = np.unique(faces)
     np.testing.assert_allclose(exact[used], placed[used], atol=1e-5)
     for label in np.unique(chart):                           # shapes kept to round-off

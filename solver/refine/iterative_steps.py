@@ -43,7 +43,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from contextvars import ContextVar
 from dataclasses import dataclass, field
 from typing import Any
@@ -53,6 +53,7 @@ import scipy.sparse as sp
 
 from ..linalg.cost import PowerLaw
 from ..linalg.iterative import LinearSolverRules, _multigrid
+from ..linalg.prolongation import in_place_energy_smoothing
 from .steps import StepRules
 
 REFINEMENT_SOLVER_RULES = LinearSolverRules(
@@ -100,6 +101,12 @@ class HierarchyRules:
             level).
         dtype: the hierarchy's precision, ``"float64"`` or ``"float32"`` (CG's products and
             vectors are double either way).
+        in_place_smoothing: energy-minimized prolongators computed in place
+            (:func:`solver.linalg.prolongation.energy_prolongator`: pyamg's answer to
+            rounding in a third of its memory) instead of by pyamg's own function.
+        strength_is_matrix: the finest level's strength graph is the (scalar, CSR) matrix
+            itself instead of pyamg's copy of it (pyamg's ``symmetric`` strength at theta 0
+            keeps every stored entry; only the pattern is read: the same aggregates).
     """
 
     smooth: tuple[str, dict[str, Any]] = PROLONGATOR_SMOOTHING
@@ -110,13 +117,19 @@ class HierarchyRules:
     postsmoother: tuple[str, dict[str, Any]] | None = None
     by_vertex: bool = False
     dtype: str = "float32"
+    in_place_smoothing: bool = True
+    strength_is_matrix: bool = True
 
-    def pyamg_options(self) -> dict[str, Any]:
+    def pyamg_options(self, finest: sp.spmatrix | None = None) -> dict[str, Any]:
         """Keyword arguments of ``pyamg.smoothed_aggregation_solver`` (besides the matrix
-        and the near-null space)."""
+        and the near-null space) for the finest matrix ``finest`` (:meth:`finest`). The
+        matrix is real symmetric: the restriction is the prolongator's transpose, without
+        pyamg's conjugated copy of it."""
         options: dict[str, Any] = {"max_coarse": self.max_coarse,
                                    "coarse_solver": self.coarse_solver, "smooth": self.smooth,
-                                   "improve_candidates": None}
+                                   "improve_candidates": None, "symmetry": "symmetric"}
+        if self.strength_is_matrix and finest is not None and finest.format == "csr":
+            options["strength"] = [("predefined", {"C": finest}), "symmetric"]
         if self.presmoother is not None:
             options["presmoother"] = self.presmoother
         if self.postsmoother is not None:
@@ -340,9 +353,14 @@ class Multigrid:
         the hierarchy's finest level takes this matrix, or a new hierarchy is set up where
         the last solves said so."""
         # The hierarchy's own copy of the matrix (HierarchyRules.finest); CG's products use
-        # ``upper`` itself (no full copy in CG).
+        # ``upper`` itself (no full copy in CG). The last matrix's copy (or the whole
+        # hierarchy, when it is set up again) is let go before the new copy is made.
+        fresh = self._ml is None or self._stale or self._ml.levels[0].A.shape != upper.shape
+        if fresh:
+            self._ml = self._cycle = None
+        else:
+            self._ml.levels[0].A = None
         finest = self.hierarchy.finest(upper, X_free.shape[1])
-        fresh = self._ml is None or self._stale or self._ml.levels[0].A.shape != finest.shape
         if fresh:
             self._setup(finest, X_free)
         else:
@@ -353,9 +371,12 @@ class Multigrid:
         pyamg = _multigrid()
         start = time.perf_counter()
         self._ml = None  # its memory is free before the new one is built
-        self._ml = pyamg.smoothed_aggregation_solver(
-            finest, B=rigid_modes(X_free).astype(finest.dtype),
-            **self.hierarchy.pyamg_options())
+        smoothing = (in_place_energy_smoothing() if self.hierarchy.in_place_smoothing
+                     else nullcontext())
+        with smoothing:
+            self._ml = pyamg.smoothed_aggregation_solver(
+                finest, B=rigid_modes(X_free).astype(finest.dtype),
+                **self.hierarchy.pyamg_options(finest))
         self._cycle = self._ml.aspreconditioner(cycle=self.hierarchy.cycle)
         self._baseline, self._stale = None, False
         stats = self.stats

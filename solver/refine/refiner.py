@@ -303,6 +303,10 @@ class Refiner:
                 break
             began, refreshed = time.perf_counter(), False
             s.iterations += 1
+            if refresh and self._multigrid is not None and not s.keep_factor:
+                # Replaced below by this point's: the last operator's and model's matrices
+                # are let go before the new one is assembled (the refinement's peak by CG).
+                s.factor = s.model = None
             energy, H, g = system.normal_equations(s.X, matrix=refresh)
             if s.before is None:  # the start, measured by this evaluation
                 s.measured(energy, self.form_energy.report(s.X))

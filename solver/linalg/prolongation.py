@@ -1,0 +1,264 @@
+r"""Energy-minimizing prolongators computed in place: pyamg's ``energy`` smoothing in a
+third of its memory.
+
+Smoothed aggregation with ``smooth=("energy", {...})`` (Mandel, Brezina and Vaněk 1999;
+Olson, Schroder and Tuminaro 2011) improves each tentative prolongator ``T`` (N, M) by a few
+iterations of CG on ``A T = 0``, restricted to a sparsity pattern (``T``'s grown by one
+product with the strength graph) and keeping ``T B_c = B_f`` (the near-null space). pyamg
+(``pyamg.aggregation.smooth.cg_prolongation_smoothing``) runs that CG on sparse matrices:
+every update (``T + alpha P``, ``R - alpha AP``, ``Z + beta P``, the products of the Frobenius
+inner products, the pattern's own values) makes a new matrix of the pattern's size with its
+own index arrays, about ten at once. That transient is the refinement's memory peak
+(docs/large-meshes.md): 240 MB above what is live at the 100K-face scan's first level,
+~3.8 GB at 1.6M faces.
+
+:func:`energy_prolongator` is the same iteration on the pattern's value arrays: ``T``, the
+residual ``R``, the search direction ``P`` and ``A P`` share one pair of index arrays and
+are updated in place, block by block (the preconditioned residual ``Z = D^-1 R`` is never
+stored). The arithmetic is pyamg's (its kernels ``incomplete_mat_mult_bsr`` and
+``satisfy_constraints`` do the products and the projection; Jacobi's row scaling is the
+``local`` (Gershgorin) or ``diagonal`` weighting); the Frobenius inner products are summed
+in double precision (pyamg sums in the matrices' precision), so the prolongators agree with
+pyamg's to the rounding of that precision (``tests/solver/test_prolongation.py``). Options
+it does not cover (root nodes, filtering, other Krylov methods) are handed to pyamg's.
+
+:func:`in_place_energy_smoothing` makes pyamg's hierarchy setup use it (a context manager:
+``pyamg.smoothed_aggregation_solver`` names its smoother as a module global).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+BLOCK_VALUES = 1 << 20
+"""Values per block of the in-place updates: their temporaries stay a few MB."""
+
+
+def _pyamg_energy(*args: Any, **kwargs: Any) -> sp.bsr_array:
+    """pyamg's own ``energy_prolongation_smoother`` (its ``smooth`` module's, never swapped)."""
+    from pyamg.aggregation import smooth
+
+    return smooth.energy_prolongation_smoother(*args, **kwargs)
+
+
+def energy_prolongator(A: sp.spmatrix, T: sp.spmatrix, Atilde: sp.csr_array, B: np.ndarray,
+                       Bf: np.ndarray | None, Cpt_params: tuple[bool, dict],
+                       krylov: str = "cg", maxiter: int = 4, tol: float = 1e-8,
+                       degree: int = 1, weighting: str = "local",
+                       prefilter: dict | None = None,
+                       postfilter: dict | None = None) -> sp.bsr_array:
+    """pyamg's ``energy_prolongation_smoother`` (same signature and answer), in place.
+
+    Args:
+        A: (N, N) SPD CSR or BSR matrix (blocks (b, b)).
+        T: (N, M) CSR or BSR tentative prolongator (row blocks of A's).
+        Atilde: (N / b, N / b) CSR strength graph (its pattern grows T's).
+        B: (M, k) near-null modes of the coarse level.
+        Bf: (N, k) those of the fine level (pyamg's; unused here).
+        Cpt_params, krylov, maxiter, tol, degree, weighting, prefilter, postfilter: as
+            pyamg's; anything but ``krylov="cg"``, no root nodes, no filters, ``degree``
+            >= 1 and ``weighting`` ``"local"`` or ``"diagonal"`` goes to pyamg's function.
+
+    Returns:
+        (N, M) BSR prolongator, T's blocks, on the grown pattern (zero blocks dropped).
+
+    Example:
+        >>> import numpy as np, scipy.sparse as sp
+        >>> from pyamg.gallery import poisson
+        >>> A = poisson((6,), format="csr")
+        >>> T = sp.csr_array(np.kron(np.eye(2), np.ones((3, 1))))
+        >>> P = energy_prolongator(A, T, A, np.ones((2, 1)), None, (False, {}))
+        >>> np.round(P.toarray()[2], 4).tolist()
+        [0.6667, 0.3333]
+    """
+    supported = (krylov == "cg" and not Cpt_params[0] and not prefilter and not postfilter
+                 and degree >= 1 and weighting in ("local", "diagonal"))
+    if not supported:
+        return _pyamg_energy(A, T, Atilde, B, Bf, Cpt_params, krylov=krylov, maxiter=maxiter,
+                             tol=tol, degree=degree, weighting=weighting, prefilter=prefilter,
+                             postfilter=postfilter)
+    from pyamg import amg_core
+    from pyamg.aggregation.smooth import satisfy_constraints
+    from pyamg.util.utils import compute_BtBinv
+
+    if maxiter < 0:
+        raise ValueError("maxiter must be > 0")
+    A = A.tobsr(blocksize=(1, 1), copy=False) if A.format == "csr" else A
+    T = T.tobsr(blocksize=(1, 1), copy=False) if T.format == "csr" else T
+    if min(T.nnz, A.nnz) == 0:
+        return T
+    rb, cb = T.blocksize
+    full_shape = T.shape
+    indptr, indices = _grown_pattern(T, Atilde, degree)
+    shape, dtype = (len(indices), rb, cb), T.dtype
+    n_block_rows, n_block_cols = T.shape[0] // rb, T.shape[1] // cb
+
+    def on_pattern(values: np.ndarray) -> sp.bsr_array:  # a view: the shared index arrays
+        return sp.bsr_array((values, indices, indptr), shape=full_shape, copy=False)
+
+    def times_a(P_values: np.ndarray, out: np.ndarray) -> None:  # out = (A P) on the pattern
+        out.fill(0)
+        amg_core.incomplete_mat_mult_bsr(
+            A.indptr, A.indices, np.ravel(A.data), indptr, indices, np.ravel(P_values),
+            indptr, indices, np.ravel(out), n_block_rows, n_block_cols,
+            A.blocksize[0], A.blocksize[1], cb)
+
+    AP = np.zeros(shape, dtype=dtype)
+    BtBinv = compute_BtBinv(B, on_pattern(AP))
+    scale = _row_scale(A, weighting, dtype)  # (N,) D^-1: Jacobi on the rows
+    block_row = np.repeat(np.arange(n_block_rows, dtype=np.int64), np.diff(indptr))
+    T_values = _values_on_pattern(T, indptr, indices)
+    R = np.zeros(shape, dtype=dtype)
+    amg_core.incomplete_mat_mult_bsr(  # R = -A T on the pattern
+        A.indptr, A.indices, np.ravel(A.data), T.indptr, T.indices, np.ravel(T.data),
+        indptr, indices, np.ravel(R), n_block_rows, n_block_cols,
+        A.blocksize[0], A.blocksize[1], cb)
+    np.negative(R, out=R)
+    satisfy_constraints(on_pattern(R), B, BtBinv)
+    del T
+    P = np.zeros(shape, dtype=dtype)
+    previous = 0.0
+    for i in range(maxiter):
+        rz = _scaled_inner(R, scale, block_row)  # <R, D^-1 R>_F
+        if rz < tol:
+            break
+        _new_direction(P, R, scale, block_row, rz / previous if i else 0.0)
+        previous = rz
+        times_a(P, AP)
+        satisfy_constraints(on_pattern(AP), B, BtBinv)
+        alpha = rz / _inner(P, AP)
+        _axpy(T_values, P, alpha)      # T += alpha P
+        _axpy(R, AP, -alpha)           # R -= alpha A P
+    del R, P, AP
+    prolongator = on_pattern(T_values)  # the pattern's arrays are this function's own
+    prolongator.eliminate_zeros()
+    return prolongator
+
+
+def _grown_pattern(T: sp.bsr_array, Atilde: sp.csr_array,
+                   degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Block-row pointers and sorted block columns of ``Atilde^degree`` times T's block
+    pattern (pyamg's ``pattern``), without its values."""
+    T.sort_indices()
+    shape = (T.shape[0] // T.blocksize[0], T.shape[1] // T.blocksize[1])
+    pattern = sp.csr_array((np.ones(len(T.indices), dtype=np.float32), T.indices, T.indptr),
+                           shape=shape)
+    strength = sp.csr_array((np.ones(len(Atilde.indices), dtype=np.float32), Atilde.indices,
+                             Atilde.indptr), shape=Atilde.shape)
+    for _ in range(degree):
+        pattern = strength @ pattern
+    pattern.sort_indices()
+    return pattern.indptr, pattern.indices
+
+
+def _values_on_pattern(T: sp.bsr_array, indptr: np.ndarray,
+                       indices: np.ndarray) -> np.ndarray:
+    """(nnz_blocks, rb, cb) T's blocks scattered onto the (larger) pattern ``indptr``,
+    ``indices`` (both sorted by row then column; T's pattern lies inside it)."""
+    n_cols = T.shape[1] // T.blocksize[1]
+    wide = np.repeat(np.arange(len(indptr) - 1, dtype=np.int64), np.diff(indptr)) * n_cols
+    wide += indices
+    own = np.repeat(np.arange(len(T.indptr) - 1, dtype=np.int64), np.diff(T.indptr)) * n_cols
+    own += T.indices
+    values = np.zeros((len(indices), *T.blocksize), dtype=T.dtype)
+    values[np.searchsorted(wide, own)] = T.data
+    return values
+
+
+def _row_scale(A: sp.bsr_array, weighting: str, dtype: np.dtype) -> np.ndarray:
+    """(N,) the Jacobi scaling of each row: 1 / sum_j |a_ij| (``local``, Gershgorin) or
+    1 / |a_ii| (``diagonal``); 0 where that is 0. Summed block by block (no copy of A)."""
+    n_rows = A.shape[0]
+    rb, cb = A.blocksize
+    if weighting == "diagonal":
+        size = np.abs(A.diagonal()).astype(dtype)
+    else:
+        size = np.zeros(n_rows, dtype=np.float64)
+        block_row = np.repeat(np.arange(n_rows // rb, dtype=np.int64), np.diff(A.indptr))
+        step = max(1, BLOCK_VALUES // (rb * cb))
+        for lo in range(0, len(A.indices), step):
+            sums = np.abs(A.data[lo:lo + step]).sum(axis=2)  # (blocks, rb)
+            rows = block_row[lo:lo + step, None] * rb + np.arange(rb)
+            size += np.bincount(rows.ravel(), weights=sums.ravel(), minlength=n_rows)
+        size = size.astype(dtype)
+    scale = np.zeros(n_rows, dtype=dtype)
+    np.divide(1.0, size, out=scale, where=size != 0)
+    return scale
+
+
+def _blocks(values: np.ndarray) -> Iterator[slice]:
+    step = max(1, BLOCK_VALUES // max(1, values[0].size if len(values) else 1))
+    for lo in range(0, len(values), step):
+        yield slice(lo, lo + step)
+
+
+def _row_factors(scale: np.ndarray, block_row: np.ndarray, part: slice,
+                 rb: int) -> np.ndarray:
+    """(blocks, rb, 1) the scaling of each block's rows."""
+    return scale[block_row[part, None] * rb + np.arange(rb)][:, :, None]
+
+
+def _scaled_inner(R: np.ndarray, scale: np.ndarray, block_row: np.ndarray) -> float:
+    """<R, D^-1 R>_F in double precision."""
+    total = 0.0
+    for part in _blocks(R):
+        r = R[part]
+        total += float(np.einsum("kab,kab->", r * _row_factors(scale, block_row, part,
+                                                                 R.shape[1]), r,
+                                 dtype=np.float64))
+    return total
+
+
+def _inner(X: np.ndarray, Y: np.ndarray) -> float:
+    """<X, Y>_F in double precision."""
+    return sum(float(np.einsum("kab,kab->", X[part], Y[part], dtype=np.float64))
+               for part in _blocks(X))
+
+
+def _new_direction(P: np.ndarray, R: np.ndarray, scale: np.ndarray, block_row: np.ndarray,
+                   beta: float) -> None:
+    """P = D^-1 R + beta P, in place."""
+    beta = P.dtype.type(beta)
+    for part in _blocks(P):
+        P[part] *= beta
+        P[part] += R[part] * _row_factors(scale, block_row, part, R.shape[1])
+
+
+def _axpy(Y: np.ndarray, X: np.ndarray, alpha: float) -> None:
+    """Y += alpha X, in place."""
+    alpha = Y.dtype.type(alpha)
+    for part in _blocks(Y):
+        Y[part] += alpha * X[part]
+
+
+_LOCK = threading.Lock()
+_DEPTH = 0
+
+
+@contextmanager
+def in_place_energy_smoothing() -> Iterator[None]:
+    """Within the block, ``pyamg.smoothed_aggregation_solver(..., smooth=("energy", ...))``
+    smooths its prolongators by :func:`energy_prolongator` (the same answer in a third of
+    the memory). Re-entrant and thread-safe: pyamg's function is back when the last block
+    ends, and any call :func:`energy_prolongator` does not cover goes to it."""
+    global _DEPTH
+    from pyamg.aggregation import aggregation, smooth
+
+    with _LOCK:
+        if _DEPTH == 0:
+            aggregation.energy_prolongation_smoother = energy_prolongator
+        _DEPTH += 1
+    try:
+        yield
+    finally:
+        with _LOCK:
+            _DEPTH -= 1
+            if _DEPTH == 0:
+                aggregation.energy_prolongation_smoother = (
+                    smooth.energy_prolongation_smoother)

@@ -4,6 +4,8 @@
 * :mod:`ffs_wire.arrays`: the ``application/vnd.ffs.arrays`` binary body (media type,
   framing, the reference encoder) and :func:`~ffs_wire.arrays.json_default` (numpy values
   in every JSON the project writes).
+* :mod:`ffs_wire.gltf`: a ``.gltf`` file as it is sent, its buffer files beside it embedded
+  (the library's rule for files on disk, for the client, which may not import it).
 
 numpy and the standard library only: importing it never imports FastAPI, httpx or the solver.
 """

@@ -110,7 +110,7 @@ def gltf_problem(data: bytes) -> str | None:
     index, uri = separate[0]
     return (f"buffer {index} is the separate file {uri!r}: send the model as GLB, or as "
             ".gltf with its buffers embedded (data: URIs); a .gltf read from disk (ffs, "
-            "solver.mesh.io.load_mesh_file) takes the files beside it")
+            "ffs.Client, solver.mesh.io.load_mesh_file) takes the files beside it")
 
 
 def embed_buffers(data: bytes, folder: Path) -> bytes:

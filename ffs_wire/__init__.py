@@ -6,6 +6,8 @@
   in every JSON the project writes).
 * :mod:`ffs_wire.gltf`: a ``.gltf`` file as it is sent, its buffer files beside it embedded
   (the library's rule for files on disk, for the client, which may not import it).
+* :mod:`ffs_wire.progress`: the one rule of progress reports (:class:`~ffs_wire.progress.
+  ProgressThrottle`: at most 5 a second), the service's workers' and ``ffs -j N``'s.
 
 numpy and the standard library only: importing it never imports FastAPI, httpx or the solver.
 """

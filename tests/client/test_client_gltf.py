@@ -101,3 +101,24 @@ def test_the_client_and_the_library_embed_the_same_bytes(tmp_path, case):
     if case != "not json":
         assert all(b["uri"].startswith("data:") for b in json.loads(sent)["buffers"])
         assert all("uri" not in image for image in json.loads(sent).get("images", []))
+
+
+def test_khronos_primitive_modes_beside_its_buffer_reads_on_the_service(server, tmp_path):
+    """Khronos' MeshPrimitiveModes as its glTF folder has it (``buffer.bin`` beside the
+    document): uploaded by the client, read by the service with its triangle strip and fan
+    (16 triangles of the list, strip and fan meshes; points and lines left out), as the
+    library reads it from disk."""
+    from tests.helpers import DATA
+
+    doc = json.loads((DATA / "khronos_MeshPrimitiveModes.gltf").read_bytes())
+    uri = doc["buffers"][0]["uri"]
+    (tmp_path / "buffer.bin").write_bytes(base64.b64decode(uri.split(",", 1)[1]))
+    doc["buffers"][0]["uri"] = "buffer.bin"
+    path = tmp_path / "MeshPrimitiveModes.gltf"
+    path.write_text(json.dumps(doc))
+    with ffs.Client(server) as client:
+        mesh = client.load_mesh(path)
+    assert mesh.faces.shape == (16, 3) and mesh.vertices.shape == (21, 3)
+    local_vertices, local_faces = mesh_io.load_mesh_file(path)
+    np.testing.assert_array_equal(mesh.vertices, local_vertices)
+    np.testing.assert_array_equal(mesh.faces, local_faces)

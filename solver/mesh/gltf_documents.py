@@ -195,10 +195,11 @@ def _glb_chunks(data: bytes) -> tuple[dict[str, Any], bytes | None] | None:
 
 class _Buffers:
     """A document's buffers as bytes, each decoded once: ``data:`` URIs, and a GLB's BIN
-    chunk as its buffer 0."""
+    chunk as its buffer 0; ``size``: the file's bytes (more than any accessor's count)."""
 
-    def __init__(self, doc: dict[str, Any], binary: bytes | None, kind: str) -> None:
-        self.doc, self.binary, self.kind = doc, binary, kind
+    def __init__(self, doc: dict[str, Any], binary: bytes | None, kind: str,
+                 size: int) -> None:
+        self.doc, self.binary, self.kind, self.size = doc, binary, kind, size
         self.decoded: dict[int, bytes] = {}
 
     def __getitem__(self, k: int) -> bytes:
@@ -269,7 +270,12 @@ def _primitive_indices(doc: dict[str, Any], primitive: dict[str, Any], buffers: 
         if "indices" in primitive:
             return _index_accessor(doc, primitive["indices"], buffers, where)
         position = primitive["attributes"]["POSITION"]
-        return np.arange(int(doc["accessors"][position]["count"]), dtype=np.int64)
+        count = int(doc["accessors"][position]["count"])
+        if not 0 <= count <= buffers.size:  # every vertex takes bytes of the file
+            raise MeshFileError(f"accessors[{position}]: the {count} positions of {where} are "
+                                f"more than the file's {buffers.size} bytes hold",
+                                file_type=buffers.kind, index=position)
+        return np.arange(count, dtype=np.int64)
     except MeshFileError:
         raise
     except KeyError as exc:
@@ -388,7 +394,7 @@ def triangle_lists(data: bytes, kind: str) -> bytes:
                and DRACO not in (primitive.get("extensions") or {})]
     if not targets:
         return data
-    buffers = _Buffers(doc, binary, kind)
+    buffers = _Buffers(doc, binary, kind, len(data))
     rewritten, empty = [], []
     for m, p, primitive in targets:
         where = f"meshes[{m}].primitives[{p}]"

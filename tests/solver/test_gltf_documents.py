@@ -327,3 +327,13 @@ def test_a_strips_index_accessor_past_its_buffer_is_named():
             "accessors[1]: its 40 indices run past the end of bufferViews[1]")) as caught:
         read_mesh(json.dumps(data).encode(), "gltf")
     assert caught.value.index == 1
+
+
+def test_a_strip_without_indices_counting_more_vertices_than_the_file_holds_is_named():
+    """Not a MemoryError (a 500 in the service): the count is checked against the file."""
+    doc = json.loads(_gltf_file(np.eye(3), [(None, 5)], "gltf"))
+    doc["accessors"][0]["count"] = 10**13
+    with pytest.raises(MeshFileError, match=re.escape(
+            "accessors[0]: the 10000000000000 positions of meshes[0].primitives[0] are more "
+            "than the file's")):
+        read_mesh(json.dumps(doc).encode(), "gltf")

@@ -26,8 +26,8 @@ _EXPORTS = {
 numpy before the command line has set the BLAS thread variables)."""
 _EXPORTS.update({name: "ffs.errors" for name in (
     "BadRequestError", "ServiceUnreachableError", "FFSError", "GoneError", "InvalidInputError",
-    "JobCancelledError", "NotFoundError", "ProblemError", "RequestTimeoutError", "ServerError",
-    "ServiceUnavailableError", "TooManyRequestsError")})
+    "JobCancelledError", "LocalFileError", "NotFoundError", "ProblemError",
+    "RequestTimeoutError", "ServerError", "ServiceUnavailableError", "TooManyRequestsError")})
 _EXPORTS.update({name: "ffs.errors" for name in ("UnauthorizedError", "ForbiddenError")})
 
 
@@ -53,6 +53,7 @@ __all__ = [
     "Job",
     "JobCancelledError",
     "JobProgress",
+    "LocalFileError",
     "Mesh",
     "NotFoundError",
     "Parameterization",

@@ -24,6 +24,8 @@ service::
   synchronous request timeout.
 * :meth:`Client.session` keeps one mesh's factorization warm on the service and drags it
   over a WebSocket (float32 vertices) or, without one, over HTTP (float64).
+* Mesh files (:meth:`Client.load_mesh`, :meth:`Client.blend_files`) are uploaded as they
+  are, but a ``.gltf`` with its buffer files beside it embedded (:func:`upload`).
 * A problem document raises the :mod:`ffs.errors` class of its status; 503 (and 429 with
   ``Retry-After``) are retried ``retries`` times, waiting ``Retry-After`` seconds (at most
   ``max_wait``) or an exponential backoff from ``backoff`` seconds.
@@ -47,6 +49,7 @@ import numpy as np
 from ffs import __version__
 from ffs.errors import (
     FFSError,
+    LocalFileError,
     ProblemError,
     RequestTimeoutError,
     ServiceUnreachableError,
@@ -56,6 +59,7 @@ from ffs.jobs import Job
 from ffs.operations import OPERATIONS, Operation
 from ffs.results import Forms, Mesh, ShapeBlend
 from ffs.sessions import Session
+from ffs_wire import gltf
 from ffs_wire.arrays import BINARY_MEDIA_TYPE, binary_body, json_default
 
 Progress = Callable[[str, float], None]
@@ -392,12 +396,13 @@ class Client:
     def blend_files(self, paths: Sequence[str | os.PathLike[str]], weights: Any = None, *,
                     t: float | Sequence[float] | None = None, refine: bool | None = None,
                     **options: Any) -> ShapeBlend:
-        """Blend K mesh files of one connectivity (OBJ, PLY, OFF, STL, GLB), uploaded as
-        they are (``POST /v1/blend``, one ``shapes`` part per file, in order): rows of
-        ``weights`` (T, K), or ``t`` for two files. Its :attr:`ShapeBlend.warnings` name
-        the rows past the documented thresholds."""
+        """Blend K mesh files of one connectivity (OBJ, PLY, OFF, STL, GLB, glTF), uploaded
+        as they are (a ``.gltf``'s buffer files beside it embedded: :func:`upload`;
+        ``POST /v1/blend``, one ``shapes`` part per file, in order): rows of ``weights``
+        (T, K), or ``t`` for two files. Its :attr:`ShapeBlend.warnings` name the rows past
+        the documented thresholds."""
         params = _blend_params(len(paths), weights, t, _options(refine, options))
-        files = [("shapes", (Path(p).name, Path(p).read_bytes())) for p in paths]
+        files = [("shapes", upload(p)) for p in paths]
         response = self.request("POST", "/v1/blend", headers={"Accept": "application/json"},
                                 files=files, data={k: json.dumps(v) for k, v in params.items()})
         return ShapeBlend.from_dict(response.json())
@@ -439,10 +444,10 @@ class Client:
         return limits
 
     def load_mesh(self, path: str | os.PathLike[str]) -> Mesh:
-        """A mesh file (OBJ, PLY, OFF, STL, GLB) uploaded and read by the service."""
-        path = Path(path)
+        """A mesh file (OBJ, PLY, OFF, STL, GLB, glTF) uploaded and read by the service (a
+        ``.gltf``'s buffer files beside it embedded: :func:`upload`)."""
         response = self.request("POST", "/v1/mesh", headers={"Accept": "application/json"},
-                                files={"file": (path.name, path.read_bytes())})
+                                files={"file": upload(path)})
         return Mesh.from_dict(response.json())
 
     # ---------------------------------------------------------------------- jobs
@@ -502,6 +507,23 @@ class Client:
                     session.close()
                     raise
         return session
+
+
+def upload(path: str | os.PathLike[str]) -> tuple[str, bytes]:
+    """A mesh file as a multipart upload ``(name, bytes)``: the file as it is, but a ``.gltf``
+    whose buffers are files beside it gets them embedded as ``data:`` URIs (separate images
+    dropped: :func:`ffs_wire.gltf.file_bytes`, the rule ``ffs`` and the library apply to files
+    on disk), since the service gets the bytes alone.
+
+    Raises:
+        OSError: the file cannot be read.
+        LocalFileError: a buffer file the ``.gltf`` names cannot (``buffers[index]``).
+    """
+    path = Path(path)
+    try:
+        return path.name, gltf.file_bytes(path)
+    except gltf.BufferFileError as exc:
+        raise LocalFileError(str(path), exc.reason, field="buffers", index=exc.index) from None
 
 
 def table_call(operation: Operation) -> Callable[..., Call]:

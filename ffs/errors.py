@@ -36,6 +36,26 @@ class JobCancelledError(FFSError):
     """The job was cancelled; it has no result."""
 
 
+class LocalFileError(FFSError):
+    """A file the client was to send cannot be read: a ``.gltf``'s buffer file beside it
+    (:mod:`ffs_wire.gltf`). Its message is ``path: field[index]: reason``.
+
+    Attributes:
+        path: the file sent (the ``.gltf``).
+        field: ``"buffers"``.
+        index: the buffer whose file it is.
+        reason: why, in words (``cannot read its file 'box.bin' beside the document (No
+            such file or directory)``).
+    """
+
+    def __init__(self, path: str, reason: str, *, field: str | None = None,
+                 index: int | None = None) -> None:
+        self.path, self.reason, self.field, self.index = path, reason, field, index
+        where = "" if field is None else (f"{field}[{index}]: " if index is not None
+                                          else f"{field}: ")
+        super().__init__(f"{path}: {where}{reason}")
+
+
 class ProblemError(FFSError):
     """A problem document answered by the service.
 

@@ -2,6 +2,15 @@
 with its own :class:`ffs.local.Local`) or in threads (``-j 1``, or ``--server``: concurrent
 jobs on the service), with progress events on one queue and ``--fail-fast``.
 
+Progress: each item's reports go through the service's rule
+(:class:`ffs_wire.progress.ProgressThrottle`: at most one per 0.2 s, a new stage, the first
+and the last always), so a flattening that reports each of its thousands of charts does not
+flood the queue from a worker process.
+
+The files ``--align-to``, ``--cotangent``, ``--handles`` and ``--constraints`` name are read
+once for the command (:func:`ffs.cli.items.check_given_files`); a local worker process gets
+what they hold once, when it starts, not with every item.
+
 ``--fail-fast``: the worker whose item fails sets the stop event before it returns, so no
 item starts after it (it is ``skipped``) and those still running stop at their next
 progress report (``stopped``); the batch waits for nothing but the items already running
@@ -25,6 +34,7 @@ from ffs.cli.commands import RUNNERS
 from ffs.cli.failures import StoppedError, describe_error, is_expected
 from ffs.cli.items import Item, Row, skipped_row
 from ffs.cli.progress import Display
+from ffs_wire.progress import ProgressThrottle
 
 
 def run_item(command: str, args: argparse.Namespace, item: Item, backend: Any,
@@ -49,11 +59,13 @@ def run_item(command: str, args: argparse.Namespace, item: Item, backend: Any,
     row = Row(file=item.name, outputs=item.outputs, path=" + ".join(item.inputs),
               pid=os.getpid(), started=time.time())
     events.put((item.index, "start", 0.0))
+    throttle = ProgressThrottle(lambda stage, fraction, detail=None: events.put(
+        (item.index, stage, float(fraction))))
 
     def progress(stage: str, fraction: float) -> None:
         if stop is not None and stop.is_set():
             raise StoppedError("stopped")
-        events.put((item.index, stage, float(fraction)))
+        throttle(stage, fraction)
 
     clock = time.perf_counter()
     try:
@@ -68,6 +80,7 @@ def run_item(command: str, args: argparse.Namespace, item: Item, backend: Any,
             row.extra["traceback"] = traceback.format_exc()
         if args.fail_fast and stop is not None:
             stop.set()
+    throttle.flush()  # the last report held back, before the item is done
     row.seconds = time.perf_counter() - clock
     row.finished = time.time()
     return row
@@ -76,21 +89,25 @@ def run_item(command: str, args: argparse.Namespace, item: Item, backend: Any,
 # --------------------------------------------------------------------- process pool
 
 _WORKER: dict[str, Any] = {}
-"""A local worker process's ``events`` queue, ``stop`` event and ``backend``."""
+"""A local worker process's ``events`` queue, ``stop`` event, ``backend`` and ``given``
+(what the option files hold, :func:`ffs.cli.items.check_given_files`)."""
 
 
-def _init_worker(events: Any, stop: Any) -> None:
-    """Set up a local worker process: progress goes to ``events``; Ctrl-C is the parent's."""
+def _init_worker(events: Any, stop: Any, given: dict[str, Any] | None = None) -> None:
+    """Set up a local worker process: progress goes to ``events``; Ctrl-C is the parent's;
+    ``given`` (the option files, read once by the command) arrives here once, not with
+    every item."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _WORKER["events"], _WORKER["stop"] = events, stop
+    _WORKER["events"], _WORKER["stop"], _WORKER["given"] = events, stop, given
     from ffs.local import Local
 
     _WORKER["backend"] = Local()
 
 
 def _worker_run(command: str, args: argparse.Namespace, item: Item) -> Row:
+    args.given = _WORKER["given"]
     return run_item(command, args, item, _WORKER["backend"], _WORKER["events"],
                     _WORKER["stop"])
 
@@ -140,9 +157,12 @@ def run_batch(command: str, args: argparse.Namespace, items: list[Item]) -> list
     else:
         context = multiprocessing.get_context("spawn")
         events, stop = context.Queue(), context.Event()
+        given = getattr(args, "given", None)
         pool = futures.ProcessPoolExecutor(max_workers=args.jobs, mp_context=context,
-                                           initializer=_init_worker, initargs=(events, stop))
-        pending = {pool.submit(_worker_run, command, args, item): item for item in items}
+                                           initializer=_init_worker,
+                                           initargs=(events, stop, given))
+        shipped = argparse.Namespace(**{**vars(args), "given": None})  # given: once a worker
+        pending = {pool.submit(_worker_run, command, shipped, item): item for item in items}
     try:
         while pending:
             done, _ = futures.wait(pending, timeout=0.05, return_when=futures.FIRST_COMPLETED)

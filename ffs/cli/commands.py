@@ -168,7 +168,7 @@ def run_reconstruct(backend: Any, item: Item, args: argparse.Namespace, progress
     forms = _forms_of(backend, item.inputs[0], args, progress)
     options = _reconstruct_options(args)
     constraints = _given(args, "constraints", files.read_json)
-    reference = files.read_mesh(args.align_to)[0] if args.align_to else None
+    reference = _given(args, "align_to", lambda path: files.read_mesh(path)[0])
     if reference is not None:
         options["align_to"] = reference
     result = backend.reconstruct(forms, constraints=constraints, progress=progress, **options)
@@ -200,7 +200,8 @@ def run_vjp(backend: Any, item: Item, args: argparse.Namespace, progress: Progre
     forms = _forms_of(backend, item.inputs[0], args, progress)
     options = _reconstruct_options(args)
     constraints = _given(args, "constraints", files.read_json)
-    result = backend.reconstruct_vjp(forms, cotangent=files.read_cotangent(args.cotangent),
+    cotangent = _given(args, "cotangent", files.read_cotangent)
+    result = backend.reconstruct_vjp(forms, cotangent=cotangent,
                                      constraints=constraints, progress=progress, **options)
     out = Path(item.outputs[0])
     files.write_arrays(out, _output_format(out, args, ("json", "npz")),

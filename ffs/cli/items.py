@@ -115,21 +115,39 @@ def _json_up_front(path: str) -> Any:
     return files.read_json(path)
 
 
+def _mesh_up_front(path: str) -> Any:
+    """A reference mesh (``--align-to``): its (n, 3) vertices, read once for every input."""
+    from ffs import files
+
+    return files.read_mesh(path)[0]
+
+
+def _cotangent_up_front(path: str) -> Any:
+    """A cotangent (``--cotangent``): its (n, 3) or (k, n, 3) array, read once for every
+    input."""
+    from ffs import files
+
+    return files.read_cotangent(path)
+
+
 GIVEN_FILES: dict[str, Callable[[str], Any] | None] = {
-    "align_to": None, "handles": _handles_up_front, "cotangent": None,
-    "constraints": _json_up_front}
+    "align_to": _mesh_up_front, "handles": _handles_up_front,
+    "cotangent": _cotangent_up_front, "constraints": _json_up_front}
 """The options that name one file every item reads (``--align-to``, ``--handles``,
 ``--cotangent``, ``--constraints``): checked before any work by :func:`check_given_files`,
-each with the reader that reads it once for all items where what it holds does not depend on
-the item (None: read by each item, a mesh or arrays too large to copy to every worker)."""
+each with the reader that reads it once for the command where what it holds does not depend
+on the item (None: read by each item; a ``.sel`` / ``.def`` handle set, which selects on each
+input's mesh, is read per item by its reader answering None). A local worker process gets
+what they hold once, when it starts (:mod:`ffs.cli.batch`)."""
 
 
 def check_given_files(args: Any) -> None:
     """Every file an option names (:data:`GIVEN_FILES`) exists, and a ``.sel`` / ``.def``
     handle set has its other half beside it; a file with a reader is read now, once, into
     ``args.given`` (option -> what it holds; the runners take it from there). So a mistyped
-    name or a file that is not what its option takes (handles that are not JSON) is a usage
-    error (exit 2) before any computation, not a failure of each input file.
+    name or a file that is not what its option takes (handles that are not JSON, an
+    ``--align-to`` that is not a mesh, a ``--cotangent`` that is not (n, 3) numbers) is a
+    usage error (exit 2) before any computation, not a failure of each input file.
 
     Raises:
         UsageError: ``--handles moves.json: moves.json: cannot read it as JSON: ...``.

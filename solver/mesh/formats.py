@@ -25,7 +25,7 @@ import numpy as np
 from ..core.errors import MeshFileError, UnsupportedFormatError
 from . import gltf
 from .file_diagnosis import glb_problem, off_problem, ply_problem, stl_problem
-from .gltf_documents import draco_problem, glb_document, gltf_problem
+from .gltf_documents import draco_problem, glb_document, gltf_problem, triangle_lists
 from .mesh_readers import (
     ascii_stl_text,
     load_trimesh,
@@ -156,18 +156,21 @@ def _trimesh_reader(fmt: str) -> Reader:
 
 
 def _read_glb(data: bytes) -> Parsed:
-    """GLB through trimesh, unless its meshes are Draco-compressed and cannot be decoded."""
+    """GLB through trimesh, unless its meshes are Draco-compressed and cannot be decoded;
+    triangle strips and fans as triangle lists
+    (:func:`~solver.mesh.gltf_documents.triangle_lists`)."""
     if problem := draco_problem(glb_document(data)):
         raise MeshFileError(problem, file_type="glb")
-    return load_trimesh(data, "glb")
+    return load_trimesh(triangle_lists(data, "glb"), "glb")
 
 
 def _read_gltf(data: bytes) -> Parsed:
     """A ``.gltf`` document through trimesh, unless a buffer is a separate file or its
-    meshes cannot be decoded (:mod:`solver.mesh.gltf_documents`)."""
+    meshes cannot be decoded (:mod:`solver.mesh.gltf_documents`); triangle strips and fans
+    as triangle lists (:func:`~solver.mesh.gltf_documents.triangle_lists`)."""
     if problem := gltf_problem(data):
         raise MeshFileError(problem, file_type="gltf")
-    return load_trimesh(data, "gltf")
+    return load_trimesh(triangle_lists(data, "gltf"), "gltf")
 
 
 FORMATS: Final[dict[str, MeshFormat]] = {f.name: f for f in (

@@ -36,7 +36,10 @@ Per format:
   when it is the identity, so positions are bit-exact), concatenated in the scene graph's node
   order: the parts of a multi-part model are components of one mesh, and the forms keep each
   component's placement (:mod:`solver.mesh.placement`). A multi-solid ASCII STL is read the same
-  way (then merged). Points and lines are ignored.
+  way (then merged). Triangle strips and fans are read as triangle lists (a strip's every
+  second triangle flipped, its repeated-index triangles dropped, as PLY's; a fan's as a
+  polygon's: :func:`solver.mesh.gltf_documents.triangle_lists`). Points and lines are
+  ignored.
 
 Saving (:func:`save_mesh`): OBJ, OFF and PLY with full float64 precision (``%.17g`` text,
 binary little-endian ``double`` PLY) so a save/load round trip is exact; STL (float32,

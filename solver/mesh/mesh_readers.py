@@ -727,8 +727,8 @@ def _single_scene_mesh(scene: Any, fmt: str) -> tuple[np.ndarray, np.ndarray]:
 
     meshes = {name: g for name, g in scene.geometry.items() if isinstance(g, trimesh.Trimesh)}
     if not meshes:
-        raise MeshFileError("no triangle mesh found in the data (points, lines and "
-                            "triangle strips are not read)", file_type=fmt)
+        raise MeshFileError("no triangle mesh found in the data (points and lines are not "
+                            "read)", file_type=fmt)
     instances = [node for node in scene.graph.nodes_geometry
                  if scene.graph[node][1] in meshes] or [None]
     vertices, faces, offset = [], [], 0

@@ -1,4 +1,5 @@
-"""Triangle strips (PLY's ``tristrips`` element) unrolled into triangles.
+"""Triangle strips (PLY's ``tristrips`` element, glTF's mode-5 primitives:
+:func:`solver.mesh.gltf_documents.triangle_lists`) unrolled into triangles.
 
 A strip ``s0 s1 s2 s3 ...`` holds the triangles ``(s0, s1, s2)``, ``(s2, s1, s3)``,
 ``(s2, s3, s4)``, ... : every second triangle is flipped so that all keep the strip's

@@ -73,7 +73,7 @@ def test_vjp_usage_and_file_errors(ffs, workdir):
     assert wrong_format.returncode == 2 and "json, npz" in wrong_format.stderr
     np.save(workdir / "g.npy", np.zeros((4, 2)))
     bad_shape = ffs("vjp", "bent.npz", "--cotangent", "g.npy", "-o", "g.npz")
-    assert bad_shape.returncode == 1 and "cotangent" in bad_shape.stderr
+    assert bad_shape.returncode == 2 and "--cotangent" in bad_shape.stderr  # read up front
     assert "(n, 3)" in bad_shape.stderr and "Traceback" not in bad_shape.stderr
     np.save(workdir / "g.npy", np.zeros((4, 3)))  # the wrong vertex count: the solver's check
     too_few = ffs("vjp", "bent.npz", "--cotangent", "g.npy", "-o", "g.npz")

@@ -276,7 +276,7 @@ class IterativeSolver:
         K = self.matrix
         b = np.asarray(rhs, dtype=np.float64).reshape(self.size, -1)
         # The iterate is the guess itself where it is a float64 array (no copy: 134 MB at
-        # 1.6M faces); the vectors are updated in place (x, r, z, p, K p, one scratch).
+        # 1.6M faces); the vectors are updated in place (x, r, z, p and K p).
         x = (np.zeros_like(b) if guess is None
              else np.asarray(guess, dtype=np.float64).reshape(b.shape))
         norm_b = np.linalg.norm(b, axis=0)
@@ -290,16 +290,14 @@ class IterativeSolver:
         rz = np.einsum("ij,ij->j", r, z)
         iterations = 0
         residual = np.linalg.norm(r, axis=0)
-        scratch = np.empty_like(p)
         while iterations < self.rules.max_iterations and (residual > target).any():
             active = residual > target          # converged columns stop moving
             Kp = K @ p
             pKp = np.einsum("ij,ij->j", p, Kp)
             alpha = np.where(active & (pKp > 0), rz / np.where(pKp > 0, pKp, 1.0), 0.0)
-            np.multiply(p, alpha, out=scratch)
-            x += scratch
-            np.multiply(Kp, alpha, out=scratch)
-            r -= scratch
+            for c in range(b.shape[1]):         # column by column: (N,) temporaries
+                x[:, c] += alpha[c] * p[:, c]
+                r[:, c] -= alpha[c] * Kp[:, c]
             z = self._precondition(r, out=z)
             rz_new = np.einsum("ij,ij->j", r, z)
             # Flexible (Polak-Ribiere) beta, z.(r - r_previous) / rz with r_previous =
@@ -307,6 +305,7 @@ class IterativeSolver:
             # (Fletcher-Reeves' rz_new / rz assumes it exactly; the two agree in exact
             # arithmetic).
             flexible = -alpha * np.einsum("ij,ij->j", z, Kp)
+            del Kp                              # the next product is made without it
             beta = np.where(rz != 0, flexible / np.where(rz != 0, rz, 1.0), 0.0)
             p *= beta
             p += z
@@ -314,10 +313,10 @@ class IterativeSolver:
             residual = np.linalg.norm(r, axis=0)
             iterations += 1
         del z, p
-        scratch[...] = K @ x
-        np.subtract(b, scratch, out=scratch)
-        true_residual = np.linalg.norm(scratch, axis=0) / norm_b
-        del scratch
+        r = K @ x
+        np.subtract(b, r, out=r)
+        true_residual = np.linalg.norm(r, axis=0) / norm_b
+        del r
         worst = float(true_residual.max()) if true_residual.size else 0.0
         self.stats.iterations = iterations
         self.stats.relative_residual = worst

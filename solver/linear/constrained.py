@@ -127,7 +127,8 @@ class ConstrainedSystem:
         return {"method": "direct", "backend": self.backend}
 
     def solve(self, hard_values: np.ndarray, soft_values: np.ndarray,
-              guess: np.ndarray | None = None, tolerance: float | None = None) -> np.ndarray:
+              guess: np.ndarray | None = None, tolerance: float | None = None,
+              overwrite_guess: bool = False) -> np.ndarray:
         """Solve for new constraint targets (back-substitution only when direct).
 
         Args:
@@ -137,6 +138,8 @@ class ConstrainedSystem:
                 direct).
             tolerance: the iterative method's relative residual (default: its rules';
                 ignored when direct).
+            overwrite_guess: the iterative method may use ``guess`` (a float64 (N, 3)
+                array) as its iterate, overwriting it, instead of a copy.
 
         Returns:
             (N, 3) float64 unknowns, one column per coordinate.
@@ -148,7 +151,8 @@ class ConstrainedSystem:
         if self.iterative is not None:
             start = None
             if guess is not None:
-                start = np.array(guess, dtype=np.float64)
+                start = (np.asarray(guess, dtype=np.float64) if overwrite_guess
+                         else np.array(guess, dtype=np.float64))
                 start[self.hard_columns] = hard_values
             u = self.iterative.solve(rhs, start, tolerance)
             u[self.hard_columns] = hard_values

@@ -28,6 +28,7 @@ it does not cover (root nodes, filtering, other Krylov methods) are handed to py
 
 from __future__ import annotations
 
+import itertools
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -147,9 +148,10 @@ def _grown_pattern(T: sp.bsr_array, Atilde: sp.csr_array,
     pattern (pyamg's ``pattern``), without its values."""
     T.sort_indices()
     shape = (T.shape[0] // T.blocksize[0], T.shape[1] // T.blocksize[1])
-    pattern = sp.csr_array((np.ones(len(T.indices), dtype=np.float32), T.indices, T.indptr),
+    # Boolean values (one byte per entry; a product of them keeps every structural entry).
+    pattern = sp.csr_array((np.ones(len(T.indices), dtype=bool), T.indices, T.indptr),
                            shape=shape)
-    strength = sp.csr_array((np.ones(len(Atilde.indices), dtype=np.float32), Atilde.indices,
+    strength = sp.csr_array((np.ones(len(Atilde.indices), dtype=bool), Atilde.indices,
                              Atilde.indptr), shape=Atilde.shape)
     for _ in range(degree):
         pattern = strength @ pattern
@@ -178,15 +180,23 @@ def _row_scale(A: sp.bsr_array, weighting: str, dtype: np.dtype) -> np.ndarray:
     rb, cb = A.blocksize
     if weighting == "diagonal":
         size = np.abs(A.diagonal()).astype(dtype)
-    else:
-        size = np.zeros(n_rows, dtype=np.float64)
-        block_row = np.repeat(np.arange(n_rows // rb, dtype=np.int64), np.diff(A.indptr))
-        step = max(1, BLOCK_VALUES // (rb * cb))
-        for lo in range(0, len(A.indices), step):
-            sums = np.abs(A.data[lo:lo + step]).sum(axis=2)  # (blocks, rb)
-            rows = block_row[lo:lo + step, None] * rb + np.arange(rb)
-            size += np.bincount(rows.ravel(), weights=sums.ravel(), minlength=n_rows)
-        size = size.astype(dtype)
+    else:  # block rows in runs of about BLOCK_VALUES values: no per-entry temporaries
+        size = np.zeros((n_rows // rb, rb), dtype=np.float64)
+        indptr = A.indptr
+        per_run = max(1, BLOCK_VALUES // (rb * cb))
+        cuts = np.unique(np.searchsorted(indptr, np.arange(0, indptr[-1], per_run),
+                                         side="right") - 1)
+        bounds = np.append(cuts, len(indptr) - 1)
+        for first, last in itertools.pairwise(bounds):
+            lo, hi = indptr[first], indptr[last]
+            if hi == lo:
+                continue
+            sums = np.zeros((hi - lo + 1, rb))  # each block's row sums, and a zero row
+            np.abs(A.data[lo:hi]).sum(axis=2, dtype=np.float64, out=sums[:-1])
+            run = np.add.reduceat(sums, indptr[first:last] - lo, axis=0)
+            run[np.diff(indptr[first:last + 1]) == 0] = 0.0  # empty block rows
+            size[first:last] = run
+        size = size.ravel().astype(dtype)
     scale = np.zeros(n_rows, dtype=dtype)
     np.divide(1.0, size, out=scale, where=size != 0)
     return scale

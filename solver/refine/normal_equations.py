@@ -235,7 +235,9 @@ class GaussNewtonSystem:
         dim = self.dim
         given, X = X, self.energy.placed(X)  # tied vertices where their masters put them
         nnz, n = self.nnz, self.n_free * dim
-        values = np.zeros(nnz) if matrix else None
+        # The values, and one slot past them where the products of fixed vertices land
+        # (dropped): every product is added in place (no (nnz,) sums per block).
+        values = np.zeros(nnz + 1) if matrix else None
         gradient = np.zeros(n)
         energy = 0.0
         residuals = []
@@ -254,7 +256,7 @@ class GaussNewtonSystem:
         if values is None:
             return energy, None, gradient
         n = self.n_free * dim
-        H = sp.csr_array((values, self.indices, self.indptr), shape=(n, n))
+        H = sp.csr_array((values[:nnz], self.indices, self.indptr), shape=(n, n))
         H.has_canonical_format = True
         return energy, H, gradient
 
@@ -278,9 +280,10 @@ class GaussNewtonSystem:
     def _add_products(self, values: np.ndarray, i: int, group: ResidualGroup,
                       g: _GroupScatter, X: np.ndarray, r: np.ndarray, G: np.ndarray) -> None:
         """Add a group's share of the Gauss-Newton matrix (its residuals ``r`` (rows,) and
-        gradients ``G`` (rows, q, dim) at ``X``) to ``values`` (nnz,) in place: diagonal
-        blocks, then the slot pairs' products in blocks of :data:`PRODUCT_BLOCK`."""
-        nnz = len(values)
+        gradients ``G`` (rows, q, dim) at ``X``) to ``values`` (nnz + 1,: the last slot
+        takes the fixed vertices' products) in place: diagonal blocks, then the slot
+        pairs' products in blocks of :data:`PRODUCT_BLOCK`."""
+        nnz = self.nnz
         curvature = None
         if group.curvature is not None:  # r ∇²r kept where it is not small
             curvature = group.curvature(X, r)
@@ -297,15 +300,14 @@ class GaussNewtonSystem:
                 rows, M = curvature
                 off[0][:, :, rows] -= M.transpose(1, 2, 0)
             off = off.ravel()
-            dest = self._positions((i, p0), lambda p0=p0, p1=p1: np.concatenate([
+            dest = self._positions((i, p0), lambda p0=p0, p1=p1: _concatenated([
                 _pair_destinations(g.local[:, g.pair_k[p]], g.local[:, g.pair_l[p]], g.rank[p],
                                    start, nnz).ravel() for p in range(p0, p1)]))
-            values += np.bincount(dest, off, minlength=nnz + 1)[:nnz]
+            np.add.at(values, dest, off)
             del dest
             if g.twice is not None:
                 lo, hi = np.searchsorted(g.twice[0], [p0 * per_pair, p1 * per_pair])
-                values += np.bincount(g.twice[1][lo:hi], off[g.twice[0][lo:hi] - p0 * per_pair],
-                                      minlength=nnz)
+                np.add.at(values, g.twice[1][lo:hi], off[g.twice[0][lo:hi] - p0 * per_pair])
             del off
 
     def _add_diagonal_blocks(self, values: np.ndarray, g: _GroupScatter, G: np.ndarray,
@@ -361,14 +363,23 @@ def _pair_destinations(a: np.ndarray, b: np.ndarray, rank: np.ndarray, start: np
     lo = np.minimum(a, b)
     first = start[np.maximum(lo, 0)].T                                    # (dim, rows)
     base = first + dim * rank
-    r = np.arange(dim)[:, None, None]
-    c = np.arange(dim)[None, :, None]
-    dest = np.where(a > b, base[None, :, :] + (dim - c + r), base[:, None, :] + (dim - r + c))
+    swapped = a > b
+    dest = np.empty((dim, dim, len(lo)), dtype=np.int64)  # written entry by entry: no
+    for r in range(dim):                                  # (dim, dim, rows) temporaries
+        for c in range(dim):
+            np.add(base[r], dim - r + c, out=dest[r, c])
+            np.add(base[c], dim - c + r, out=dest[r, c], where=swapped)
     same = np.flatnonzero(a == b)
     if len(same):
+        r, c = np.arange(dim)[:, None, None], np.arange(dim)[None, :, None]
         dest[:, :, same] = first[np.minimum(r, c), same] + np.abs(c - r)
     dest[:, :, lo < 0] = nnz
     return dest
+
+
+def _concatenated(parts: list[np.ndarray]) -> np.ndarray:
+    """``np.concatenate(parts)``, without a copy of a single part."""
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _pair_products(Gt: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:

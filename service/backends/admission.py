@@ -88,13 +88,14 @@ costliest of them (``REFINEMENT_SOLVER_RULES.direct_memory``: 3.8 GB at 388K fac
 at 1.55M)."""
 ITERATIVE_COST = OperationCost(memory=REFINEMENT_SOLVER_RULES.iterative_memory,
                                first_answer=FIRST_ANSWER_ITERATIVE)
-"""A reconstruction refined by CG (``REFINEMENT_SOLVER_RULES.iterative_memory``: 880 MB at
-100K faces, 2.9 GB at 400K); its first answer is the iterative linear answer."""
+"""A reconstruction refined by CG (``REFINEMENT_SOLVER_RULES.iterative_memory``: 560 MB at
+100K faces, 1.64 GB at 400K, 5.96 GB at 1.6M); its first answer is the iterative linear
+answer."""
 LINEAR_COST = OperationCost(memory=LINEAR_RULES.direct_memory, first_answer=FIRST_ANSWER_DIRECT)
 """A linear reconstruction (``options.refine: false``) by a factorization (8.3 KB per face)."""
 LINEAR_ITERATIVE_COST = OperationCost(memory=LINEAR_RULES.iterative_memory,
                                       first_answer=FIRST_ANSWER_ITERATIVE)
-"""A linear reconstruction by CG (4.65 KB per face and 150 MB: 7.3-7.7 GB at 1.6M faces)."""
+"""A linear reconstruction by CG (3.4 KB per face and 150 MB: 5.1 GB measured at 1.6M faces)."""
 LIGHT_COST = OperationCost(
     memory=PowerLaw(per_face=2_600, exponent=1.0, base=200 * 1024**2),
     first_answer=PowerLaw(per_face=1.2e-5, exponent=1.0))

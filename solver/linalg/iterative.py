@@ -38,9 +38,15 @@ LINEAR_SOLVERS: tuple[str, ...] = ("auto", "direct", "iterative")
 DIRECT_MEMORY = PowerLaw(per_face=8_300.0)
 """Peak bytes of Eq. 5's linear answer by a factorization (``bench.scale``, noisy forms,
 ``refine=False``: 803-883 MB at 100K faces, 3.0-3.3 GB at 400K)."""
-ITERATIVE_MEMORY = PowerLaw(per_face=4_650.0, base=150e6)
-"""Peak bytes of the linear answer by multigrid-preconditioned CG (the setup's peak: 618 MB at
-100K faces, 2.0 GB at 400K, 7.25-7.75 GB at 1.6M)."""
+ITERATIVE_MEMORY = PowerLaw(per_face=3_400.0, base=150e6)
+"""Peak bytes of the linear answer by multigrid-preconditioned CG (the multigrid setup's or
+CG's, ``bench.scale``: 432 MB at 100K faces, 1280 MB at 400K, 5110 MB at 1.6M before Eq. 5's
+CG was made in place, 3.1 KB per face beyond 150 MB; the model is 9-27 % above)."""
+
+
+ROWS_PER_UPDATE = 1 << 16
+"""Rows of CG's vector updates at once: x += alpha p and r -= alpha K p in contiguous row
+blocks, so that no (N, k) temporary is made (134 MB at 1.6M faces)."""
 
 
 @dataclass(frozen=True)
@@ -295,9 +301,10 @@ class IterativeSolver:
             Kp = K @ p
             pKp = np.einsum("ij,ij->j", p, Kp)
             alpha = np.where(active & (pKp > 0), rz / np.where(pKp > 0, pKp, 1.0), 0.0)
-            for c in range(b.shape[1]):         # column by column: (N,) temporaries
-                x[:, c] += alpha[c] * p[:, c]
-                r[:, c] -= alpha[c] * Kp[:, c]
+            for lo in range(0, len(x), ROWS_PER_UPDATE):  # contiguous blocks, small temporaries
+                rows = slice(lo, lo + ROWS_PER_UPDATE)
+                x[rows] += alpha * p[rows]
+                r[rows] -= alpha * Kp[rows]
             z = self._precondition(r, out=z)
             rz_new = np.einsum("ij,ij->j", r, z)
             # Flexible (Polak-Ribiere) beta, z.(r - r_previous) / rz with r_previous =

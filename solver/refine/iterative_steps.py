@@ -58,16 +58,16 @@ from .steps import StepRules
 
 REFINEMENT_SOLVER_RULES = LinearSolverRules(
     direct_memory=PowerLaw(per_face=9_800.0, exponent=1.13, base=200 * 1024**2),
-    iterative_memory=PowerLaw(per_face=6_800.0, base=200e6))
+    iterative_memory=PowerLaw(per_face=3_600.0, base=200e6))
 """Direct or iterative Gauss-Newton steps (``linear_solver="auto"``): the default answer's
 peak memory (process included) with each, against Eq. 5's
 (:data:`solver.linalg.iterative.RULES`). Direct: the issue's 3.8 GB at 388K faces and 18.1 GB
-at 1.55M (``bench.scale``: 4.2 GB at 400K). By CG: ``bench.scale``'s noisy scans, 805 MiB at
-100K faces and 2753 MiB at 400K (844 and 2887 MB; 888 and 3021 MiB before the compact
-Gauss-Newton pattern, bench/README.md "The refinement's memory"). Where Eq. 5's factor
-fits the memory available but the refinement's would not, :func:`solver.reconstruct`
-factorizes Eq. 5 and refines by CG; the service's admission prices a reconstruction by
-these models."""
+at 1.55M (``bench.scale``: 4.2 GB at 400K). By CG: ``bench.scale``'s noisy scans with the
+setups' and assemblies' transients in place (bench/README.md "Memory in place"): 440 MB at
+100K faces, 1451 MB at 400K, 5487 MB at 1.6M (3.3 KB per face beyond 200 MB; the model is
+9-27 % above; 619, 1994 and 9453 MB before). Where Eq. 5's factor fits the memory available
+but the refinement's would not, :func:`solver.reconstruct` factorizes Eq. 5 and refines by
+CG; the service's admission prices a reconstruction by these models."""
 
 
 PROLONGATOR_SMOOTHING = ("energy", {"maxiter": 8})

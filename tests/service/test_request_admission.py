@@ -32,11 +32,12 @@ GIB = 2**30
     (388_000, 3.8, SOLVE_COST), (1_550_000, 18.1, SOLVE_COST),
     # bench.scale, the exact (tree) path after issue 45's first commits
     (399_752, 0.82, LIGHT_COST), (1_599_008, 2.78, LIGHT_COST),
-    # bench.scale, the iterative paths: refined by CG (805 and 2753 MiB since the compact
-    # Gauss-Newton pattern), and the linear answer by CG
-    (99_938, 0.844, ITERATIVE_COST), (399_752, 2.887, ITERATIVE_COST),
-    (99_938, 0.618, LINEAR_ITERATIVE_COST), (399_752, 2.00, LINEAR_ITERATIVE_COST),
-    (1_599_008, 7.25, LINEAR_ITERATIVE_COST)])
+    # bench.scale, the iterative paths (bench/README.md "Memory in place", 2026-12-07):
+    # refined by CG, and the linear answer by CG
+    (99_938, 0.440, ITERATIVE_COST), (399_752, 1.451, ITERATIVE_COST),
+    (1_599_008, 5.487, ITERATIVE_COST),
+    (99_938, 0.432, LINEAR_ITERATIVE_COST), (399_752, 1.280, LINEAR_ITERATIVE_COST),
+    (1_599_008, 5.110, LINEAR_ITERATIVE_COST)])
 def test_cost_model_meets_the_measured_peaks(faces, measured_gb, cost):
     predicted = cost.memory_bytes(faces) / 1e9
     assert measured_gb * 0.95 <= predicted <= measured_gb * 1.6, predicted
@@ -70,17 +71,18 @@ def test_a_reconstruction_is_priced_by_the_path_its_solver_takes(memory_gb, how)
 
 def test_the_iterative_path_admits_more_at_this_machine_s_budget():
     """At 7.8 GiB per request (this 24 GiB machine, two workers) the factorization fits
-    767K faces of a refined reconstruction; beyond, the solver refines by CG (6.8 KB per
-    face): about 1.2M faces, and the linear answer by CG (4.65 KB per face) 1.77M, where
-    a 1.6M-face linear answer measured 7.3 GB. Operations without an iterative path keep
+    767K faces of a refined reconstruction; beyond, the solver refines by CG (3.6 KB per
+    face, where a 1.6M-face default answer measured 5.5 GB): about 2.28M faces, and the
+    linear answer by CG (3.4 KB per face, 5.1 GB measured at 1.6M) 2.42M. Operations
+    without an iterative path keep
     the factorization's limit; the synchronous limit follows the path's time (CG is
     single-threaded and slower: the first answer beyond Eq. 5's factorization misses 2
     minutes)."""
     memory = 7.8 * GIB
     assert FACTORIZING.faces_within(memory) == RECONSTRUCTION.direct_faces(memory)
     assert 760_000 < RECONSTRUCTION.direct_faces(memory) < 775_000
-    assert 1_190_000 < RECONSTRUCTION.faces_within(memory) < 1_215_000
-    assert 1_600_000 < LINEAR_RECONSTRUCTION.faces_within(memory) < 1_800_000
+    assert 2_250_000 < RECONSTRUCTION.faces_within(memory) < 2_300_000
+    assert 2_400_000 < LINEAR_RECONSTRUCTION.faces_within(memory) < 2_450_000
     # The first answer: by a factorization up to Eq. 5's crossing (8.3 KB per face).
     crossing = LINEAR_RECONSTRUCTION.direct_faces(memory)
     assert RECONSTRUCTION.sync_faces_within(115, memory) == crossing
@@ -109,11 +111,11 @@ def test_defaults_follow_from_the_request_memory():
 
 
 def test_a_request_that_cannot_fit_is_413_naming_the_memory():
-    memory = 250 * 2**20
+    memory = 315 * 2**20
     solve_fit, light_fit = faces_within(memory, RECONSTRUCTION), faces_within(memory, LIGHT)
-    V, F = side_by_side(icosphere(4), icosphere(4))        # 10 240 faces
+    V, F = side_by_side(icosphere(5), icosphere(5))        # 40 960 faces
     assert solve_fit < len(F) < light_fit
-    small_V, small_F = icosphere(4)                          # 5 120 faces
+    small_V, small_F = icosphere(5)                          # 20 480 faces
     assert len(small_F) < solve_fit
     with running_app(workers=1, max_request_memory=memory) as app:
         # Reading the forms needs no factorization: it fits.
@@ -143,8 +145,8 @@ def test_the_client_sees_the_limits_and_the_413():
     from ffs.errors import PayloadTooLargeError
     from tests.helpers.servers import uvicorn_process
 
-    memory = 250 * 2**20
-    V, F = side_by_side(icosphere(4), icosphere(4))        # 10 240 faces
+    memory = 315 * 2**20
+    V, F = side_by_side(icosphere(5), icosphere(5))        # 40 960 faces
     with uvicorn_process({"FFS_WORKERS": "1", "FFS_MAX_REQUEST_MEMORY": str(memory)}) as (
             base, _), Client(base) as client:
         sizes = client.size_limits()
@@ -164,9 +166,10 @@ def test_the_client_sees_the_limits_and_the_413():
 
 
 def test_beyond_the_factorization_a_reconstruction_runs_iteratively():
-    """A real uvicorn whose requests may use 400 MiB: the factorization of a linear answer
-    fits ~50K faces there, its iterative path ~58K (the models of 8.3 KB per face against
-    150 MB + 4.65 KB). A 54K-face linear reconstruction, which the old pricing (every
+    """A real uvicorn whose requests may use 324 MiB: the factorization of a linear answer
+    fits ~41K faces there, its iterative path ~56K (the models of 8.3 KB per face against
+    150 MB + 3.4 KB), the refined answer by CG ~39K (200 MB + 3.6 KB). A 54K-face linear
+    reconstruction, which the old pricing (every
     solving request by the refined factorization's peak) refused, is admitted, its worker
     handed the same budget solves it by CG (the report says so) to the factorization's
     answer; the refined answer of the same forms and a 64K-face linear answer fit neither
@@ -177,7 +180,7 @@ def test_beyond_the_factorization_a_reconstruction_runs_iteratively():
     from tests.helpers.meshes import bumpy_grid
     from tests.helpers.servers import uvicorn_process
 
-    memory = 400 * 2**20
+    memory = 324 * 2**20
     direct, fit = LINEAR_RECONSTRUCTION.direct_faces(memory), LINEAR_RECONSTRUCTION.faces_within(
         memory)
     refined = RECONSTRUCTION.faces_within(memory)
@@ -193,8 +196,10 @@ def test_beyond_the_factorization_a_reconstruction_runs_iteratively():
                                linear_solver="direct")
     big_V, big_F = bumpy_grid(200, 160)                          # 64 000 faces
     assert len(big_F) > fit
-    with uvicorn_process({"FFS_WORKERS": "1", "FFS_MAX_REQUEST_MEMORY": str(memory)}) as (
-            base, _), httpx.Client(base_url=base, timeout=300) as http:
+    # FFS_MAX_FACES above both meshes: its default (what the light operations fit in the
+    # memory, ~50K faces here) would refuse them before the memory's pricing does.
+    env = {"FFS_WORKERS": "1", "FFS_MAX_REQUEST_MEMORY": str(memory), "FFS_MAX_FACES": "100000"}
+    with uvicorn_process(env) as (base, _), httpx.Client(base_url=base, timeout=300) as http:
         sizes = http.get("/v1/me").json()["size_limits"]
         assert sizes["max_faces_by_operation"]["reconstruct"] == refined
         assert sizes["max_direct_faces_by_operation"] == {
@@ -220,6 +225,6 @@ def test_beyond_the_factorization_a_reconstruction_runs_iteratively():
             "lengths": big.lengths.tolist(), "angles": big.angles.tolist(),
             "options": {"refine": False}}), 413, "mesh-too-large")
         assert (f"{len(big_F)} faces exceed the {fit} faces this operation can take in the "
-                "0.4 GiB one request may use (FFS_MAX_REQUEST_MEMORY) by either path: a "
+                "0.3 GiB one request may use (FFS_MAX_REQUEST_MEMORY) by either path: a "
                 f"factorization fits {direct} faces, the iterative solver "
                 f"(options.linear_solver) {fit}") in doc["detail"]

@@ -2,7 +2,7 @@
 ``max_faces_by_operation``, ``max_linear_faces_by_operation``,
 ``max_direct_faces_by_operation``) and against the limit of the other operations its tabs
 run that factorize (Deform, Flatten, Blend: ``max_faces_by_operation``), in Debian's Chromium
-against a real uvicorn whose FFS_MAX_REQUEST_MEMORY (215 MiB) puts the sample under every
+against a real uvicorn whose FFS_MAX_REQUEST_MEMORY (236 MiB) puts the sample under every
 limit, a second mesh between the factorization's limit (the one Deform, Flatten and Blend
 have too) and the refined answer's, and a third between the refined answer's and the linear
 answer's; what the page says is checked against what the service does with the same meshes
@@ -26,12 +26,13 @@ from tests.helpers.servers import uvicorn_server
 from tests.helpers.service import forms_json, mesh_json, problem
 from tests.web.conftest import VENDOR_MANIFEST
 
-MEMORY = 215 * 1024**2
+MEMORY = 236 * 1024**2
 
 
 @pytest.fixture(scope="module")
 def web_server() -> Iterator[str]:
-    """This module's server (the ``web`` fixture's page opens it): 215 MiB a request."""
+    """This module's server (the ``web`` fixture's page opens it): 236 MiB a request (the
+    light operations, which the page calls on a file, fit the largest mesh)."""
     if not VENDOR_MANIFEST.is_file():
         pytest.fail("the page's three.js modules are not built: run `npm ci --prefix web`")
     with uvicorn_server({"FFS_WORKERS": "1", "FFS_MAX_REQUEST_MEMORY": str(MEMORY),
@@ -77,9 +78,10 @@ def test_the_page_says_where_a_mesh_stands_against_reconstructs_limits(web, tmp_
                                                                 "blend")}
     assert tabs == {direct}  # the operations that only factorize: the factorization's limit
     knight = load_mesh_file(DATA / "decimated-knight.off")     # 1000 faces
-    iterative = bumpy_grid(40, 42)                               # 3360 faces
-    over = bumpy_grid(50, 50)                                    # 5000 faces
+    iterative = bumpy_grid(60, 70)                               # 8400 faces
+    over = bumpy_grid(70, 98)                                    # 13 720 faces
     assert len(knight[1]) < direct < len(iterative[1]) <= solve < len(over[1]) <= linear
+    assert len(over[1]) <= limits["max_faces_by_operation"]["forms"]  # the page reads it
     assert linear < limits["max_faces"]
 
     web.open("sample=decimated-knight.off")
@@ -130,21 +132,21 @@ def test_the_page_says_where_a_mesh_stands_against_reconstructs_limits(web, tmp_
     assert "over-limit" in classes
     # A service whose factorization fits the mesh: nothing said.
     web.app("app.setSizeLimits(arg)", dict(
-        limits, max_faces_by_operation=dict(limits["max_faces_by_operation"], reconstruct=5000,
-                                            deform=5000, parameterize=5000, blend=5000),
-        max_direct_faces_by_operation={"reconstruct": 5000}))
+        limits, max_faces_by_operation=dict(limits["max_faces_by_operation"], reconstruct=14000,
+                                            deform=14000, parameterize=14000, blend=14000),
+        max_direct_faces_by_operation={"reconstruct": 14000}))
     text, classes = _line(web)
     assert "mesh" not in text and "over-limit" not in classes and "iterative" not in classes
     assert "to deform" not in text, text
-    # Limits of their own, Blend's alone under the mesh's 5000 faces: each named, Blend's
+    # Limits of their own, Blend's alone under the mesh's 13 720 faces: each named, Blend's
     # said to be under the mesh.
     web.app("app.setSizeLimits(arg)", dict(
-        limits, max_faces_by_operation=dict(limits["max_faces_by_operation"], reconstruct=6000,
-                                            deform=5500, parameterize=5500, blend=4000),
-        max_direct_faces_by_operation={"reconstruct": 6000}))
+        limits, max_faces_by_operation=dict(limits["max_faces_by_operation"], reconstruct=16000,
+                                            deform=15000, parameterize=15000, blend=12000),
+        max_direct_faces_by_operation={"reconstruct": 16000}))
     text, classes = _line(web)
-    assert (f"(6,000 to rebuild, {linear:,} for a linear answer, 5,500 to deform or flatten, "
-            "4,000 to blend)" in text), text
+    assert (f"(16,000 to rebuild, {linear:,} for a linear answer, 15,000 to deform or flatten, "
+            "12,000 to blend)" in text), text
     assert text.endswith(" It is too large to blend.") and "This mesh" not in text, text
     assert "over-limit" in classes
 

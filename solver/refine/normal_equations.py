@@ -53,8 +53,9 @@ class _GroupScatter:
 
 KEPT_POSITIONS_BYTES = 32 * 2**20
 """A :class:`GaussNewtonSystem` whose positions of every gradient entry and product in
-``J^T r`` and ``J^T J``'s values (int64, ~1.4 KB per face) take at most this many bytes
-(meshes up to ~20K faces) keeps them from its first assembly; a larger one computes them at
+``J^T r`` and ``J^T J``'s off-diagonal values (int64, ~0.97 KB per face; the diagonal blocks
+are summed per vertex) take at most this many bytes (meshes up to ~35K faces) keeps them
+from its first assembly; a larger one computes them at
 each assembly from its compact pattern (slot vertices and block ranks, ~220 B per face),
 which costs ~10 ms per assembly at 7K faces (3x the assembly there) and little beside the
 products at 100K."""

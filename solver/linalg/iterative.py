@@ -289,8 +289,7 @@ class IterativeSolver:
         norm_b[norm_b == 0] = 1.0
         tolerance = self.rules.relative_tolerance if tolerance is None else float(tolerance)
         target = tolerance * norm_b
-        r = K @ x
-        np.subtract(b, r, out=r)
+        r = _residual(K, b, x)
         z = self._precondition(r)
         p = z.copy()
         rz = np.einsum("ij,ij->j", r, z)
@@ -320,10 +319,7 @@ class IterativeSolver:
             residual = np.linalg.norm(r, axis=0)
             iterations += 1
         del z, p
-        r = K @ x
-        np.subtract(b, r, out=r)
-        true_residual = np.linalg.norm(r, axis=0) / norm_b
-        del r
+        true_residual = np.linalg.norm(_residual(K, b, x), axis=0) / norm_b
         worst = float(true_residual.max()) if true_residual.size else 0.0
         self.stats.iterations = iterations
         self.stats.relative_residual = worst
@@ -331,3 +327,10 @@ class IterativeSolver:
         self.stats.converged = bool(np.isfinite(x).all() and worst <= 10 * tolerance)
         self.stats.solve_seconds = time.perf_counter() - start
         return x
+
+
+def _residual(K: sp.spmatrix, b: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(N, k) ``b - K x``, written into the product's own array (one (N, k) array)."""
+    r = K @ x
+    np.subtract(b, r, out=r)
+    return r

@@ -115,11 +115,8 @@ def energy_prolongator(A: sp.spmatrix, T: sp.spmatrix, Atilde: sp.csr_array, B: 
     scale = _row_scale(A, weighting, dtype)  # (N,) D^-1: Jacobi on the rows
     block_row = np.repeat(np.arange(n_block_rows, dtype=np.int64), np.diff(indptr))
     T_values = _values_on_pattern(T, indptr, indices)
-    R = np.zeros(shape, dtype=dtype)
-    amg_core.incomplete_mat_mult_bsr(  # R = -A T on the pattern
-        A.indptr, A.indices, np.ravel(A.data), T.indptr, T.indices, np.ravel(T.data),
-        indptr, indices, np.ravel(R), n_block_rows, n_block_cols,
-        A.blocksize[0], A.blocksize[1], cb)
+    R = np.empty(shape, dtype=dtype)
+    times_a(T_values, R)  # R = -A T on the pattern (T's values lie on it)
     np.negative(R, out=R)
     satisfy_constraints(on_pattern(R), B, BtBinv)
     del T

@@ -29,6 +29,7 @@ import scipy.sparse as sp
 
 from .cost import PowerLaw
 from .errors import BackendUnavailableError
+from .hierarchy import smoothed_aggregation
 
 LinearSolver = Literal["auto", "direct", "iterative"]
 LINEAR_SOLVERS: tuple[str, ...] = ("auto", "direct", "iterative")
@@ -220,7 +221,7 @@ class IterativeSolver:
 
     def __init__(self, matrix: sp.spmatrix, near_null: np.ndarray | None = None,
                  rules: LinearSolverRules = RULES) -> None:
-        pyamg = _multigrid()
+        _multigrid()  # pyamg is there (or a clear error)
         start = time.perf_counter()
         self.matrix = sp.csr_matrix(matrix)
         self.size = int(self.matrix.shape[0])
@@ -240,7 +241,9 @@ class IterativeSolver:
         # at theta 0 keeps every stored entry (the same pattern, so the same aggregates;
         # its values serve no one with unfiltered Jacobi smoothing), so no copy of it is
         # made (8 bytes per nonzero, ~10 % of the setup's peak at 100K faces).
-        self._ml = pyamg.smoothed_aggregation_solver(
+        # Set up level by level in bounded memory (solver.linalg.hierarchy: pyamg's
+        # hierarchy without its copies of the matrix and of R A).
+        self._ml = smoothed_aggregation(
             fine, B=B, max_coarse=500, coarse_solver="splu",
             strength=[("predefined", {"C": fine}), "symmetric"],
             smooth=("jacobi", {"weighting": "local"}), improve_candidates=None,

@@ -22,16 +22,15 @@ in double precision (pyamg sums in the matrices' precision), so the prolongators
 pyamg's to the rounding of that precision (``tests/solver/test_prolongation.py``). Options
 it does not cover (root nodes, filtering, other Krylov methods) are handed to pyamg's.
 
-:func:`in_place_energy_smoothing` makes pyamg's hierarchy setup use it (a context manager:
-``pyamg.smoothed_aggregation_solver`` names its smoother as a module global).
+:func:`jacobi_prolongator` is pyamg's Jacobi smoothing (``local`` weighting) without its
+copies of the matrix. :func:`solver.linalg.hierarchy.smoothed_aggregation` sets hierarchies
+up with both.
 """
 
 from __future__ import annotations
 
 import itertools
-import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -42,7 +41,7 @@ BLOCK_VALUES = 1 << 20
 
 
 def _pyamg_energy(*args: Any, **kwargs: Any) -> sp.bsr_array:
-    """pyamg's own ``energy_prolongation_smoother`` (its ``smooth`` module's, never swapped)."""
+    """pyamg's own ``energy_prolongation_smoother``."""
     from pyamg.aggregation import smooth
 
     return smooth.energy_prolongation_smoother(*args, **kwargs)
@@ -139,6 +138,64 @@ def energy_prolongator(A: sp.spmatrix, T: sp.spmatrix, Atilde: sp.csr_array, B: 
     return prolongator
 
 
+def jacobi_prolongator(A: sp.spmatrix, T: sp.spmatrix,
+                       omega: float = 4.0 / 3.0) -> sp.bsr_array:
+    """pyamg's ``jacobi_prolongation_smoother`` with ``weighting="local"``, degree 1 and no
+    filtering, in place: ``P = T - omega D^-1 A T`` with ``D`` each row's Gershgorin bound
+    (the sum of its absolute values).
+
+    pyamg scales a copy of ``A`` by ``D^-1``, multiplies that copy by ``omega`` (a second
+    copy), forms the product with ``T`` and subtracts it from ``T`` (two more matrices of
+    the prolongator's size). Here ``A T`` is computed once on its own pattern (pyamg's
+    ``incomplete_mat_mult_bsr``; the pattern is A's times T's, so nothing of the product is
+    dropped) and ``T - omega D^-1 (A T)`` is written over it row block by row block: besides
+    the answer, one array of its values and T's values on its pattern.
+
+    Args:
+        A: (N, N) CSR or BSR matrix (blocks (b, b)).
+        T: (N, M) CSR or BSR tentative prolongator (row blocks of A's).
+        omega: the Jacobi weight (pyamg's default 4/3).
+
+    Returns:
+        (N, M) BSR prolongator with T's blocks, exact zeros dropped (pyamg's answer to the
+        rounding of A's precision, ``tests/solver/test_hierarchy.py``).
+
+    Example:
+        >>> import numpy as np, scipy.sparse as sp
+        >>> from pyamg.gallery import poisson
+        >>> A = poisson((6,), format="csr")
+        >>> T = sp.csr_array(np.kron(np.eye(2), np.ones((3, 1))))
+        >>> P = jacobi_prolongator(A, T)
+        >>> np.round(P.toarray()[:3, 0], 4).tolist()
+        [0.5556, 1.0, 0.6667]
+    """
+    from pyamg import amg_core
+
+    A = A.tobsr(blocksize=(1, 1), copy=False) if A.format == "csr" else A
+    T = T.tobsr(blocksize=(1, 1), copy=False) if T.format == "csr" else T
+    if min(T.nnz, A.nnz) == 0:
+        return sp.bsr_array(T)
+    rb, cb = T.blocksize
+    n_block_rows, n_block_cols = T.shape[0] // rb, T.shape[1] // cb
+    graph = sp.csr_array((np.ones(len(A.indices), dtype=bool), A.indices, A.indptr),
+                         shape=(A.shape[0] // A.blocksize[0], A.shape[1] // A.blocksize[1]))
+    indptr, indices = _grown_pattern(T, graph, 1)
+    del graph
+    values = np.zeros((len(indices), rb, cb), dtype=np.result_type(A.dtype, T.dtype))
+    amg_core.incomplete_mat_mult_bsr(
+        A.indptr, A.indices, np.ravel(A.data), T.indptr, T.indices, np.ravel(T.data),
+        indptr, indices, np.ravel(values), n_block_rows, n_block_cols,
+        A.blocksize[0], A.blocksize[1], cb)
+    scale = _row_scale(A, "local", values.dtype) * values.dtype.type(-omega)
+    for rows, entries in _row_runs(indptr):  # values = T - omega D^-1 (A T), in place
+        block_row = _run_block_rows(indptr, rows)
+        values[entries] *= scale[block_row[:, None] * rb + np.arange(rb)][:, :, None]
+        _add_rows_on_pattern(values, T, indptr, indices, rows, entries)
+    prolongator = sp.bsr_array((values, indices, indptr), shape=T.shape, copy=False)
+    prolongator.eliminate_zeros()
+    return prolongator
+
+
 def _grown_pattern(T: sp.bsr_array, Atilde: sp.csr_array,
                    degree: int) -> tuple[np.ndarray, np.ndarray]:
     """Block-row pointers and sorted block columns of ``Atilde^degree`` times T's block
@@ -160,14 +217,41 @@ def _values_on_pattern(T: sp.bsr_array, indptr: np.ndarray,
                        indices: np.ndarray) -> np.ndarray:
     """(nnz_blocks, rb, cb) T's blocks scattered onto the (larger) pattern ``indptr``,
     ``indices`` (both sorted by row then column; T's pattern lies inside it)."""
-    n_cols = T.shape[1] // T.blocksize[1]
-    wide = np.repeat(np.arange(len(indptr) - 1, dtype=np.int64), np.diff(indptr)) * n_cols
-    wide += indices
-    own = np.repeat(np.arange(len(T.indptr) - 1, dtype=np.int64), np.diff(T.indptr)) * n_cols
-    own += T.indices
     values = np.zeros((len(indices), *T.blocksize), dtype=T.dtype)
-    values[np.searchsorted(wide, own)] = T.data
+    for rows, entries in _row_runs(indptr):
+        _add_rows_on_pattern(values, T, indptr, indices, rows, entries)
     return values
+
+
+def _row_runs(indptr: np.ndarray) -> Iterator[tuple[slice, slice]]:
+    """Runs of whole block rows with about BLOCK_VALUES // 4 stored blocks each: (block
+    rows, their entries)."""
+    step = max(1, BLOCK_VALUES // 4)
+    cuts = np.searchsorted(indptr, np.arange(0, indptr[-1], step), side="right") - 1
+    bounds = np.unique(np.append(cuts, [0, len(indptr) - 1]))
+    for first, last in itertools.pairwise(bounds.tolist()):
+        yield slice(first, last), slice(int(indptr[first]), int(indptr[last]))
+
+
+def _run_block_rows(indptr: np.ndarray, rows: slice) -> np.ndarray:
+    """The block row of each entry of the run ``rows`` (int64)."""
+    return np.repeat(np.arange(rows.start, rows.stop, dtype=np.int64),
+                     np.diff(indptr[rows.start:rows.stop + 1]))
+
+
+def _add_rows_on_pattern(values: np.ndarray, T: sp.bsr_array, indptr: np.ndarray,
+                         indices: np.ndarray, rows: slice, entries: slice) -> None:
+    """values[entries] += T's blocks of the block rows ``rows`` (T's pattern inside the
+    pattern ``indptr``, ``indices``, both sorted by row then column)."""
+    lo, hi = int(T.indptr[rows.start]), int(T.indptr[rows.stop])
+    if hi == lo:
+        return
+    n_cols = np.int64(T.shape[1] // T.blocksize[1])
+    wide = _run_block_rows(indptr, rows) * n_cols
+    wide += indices[entries]
+    own = _run_block_rows(T.indptr, rows) * n_cols
+    own += T.indices[lo:hi]
+    values[entries][np.searchsorted(wide, own)] += T.data[lo:hi]
 
 
 def _row_scale(A: sp.bsr_array, weighting: str, dtype: np.dtype) -> np.ndarray:
@@ -242,30 +326,3 @@ def _axpy(Y: np.ndarray, X: np.ndarray, alpha: float) -> None:
     alpha = Y.dtype.type(alpha)
     for part in _blocks(Y):
         Y[part] += alpha * X[part]
-
-
-_LOCK = threading.Lock()
-_DEPTH = 0
-
-
-@contextmanager
-def in_place_energy_smoothing() -> Iterator[None]:
-    """Within the block, ``pyamg.smoothed_aggregation_solver(..., smooth=("energy", ...))``
-    smooths its prolongators by :func:`energy_prolongator` (the same answer in a third of
-    the memory). Re-entrant and thread-safe: pyamg's function is back when the last block
-    ends, and any call :func:`energy_prolongator` does not cover goes to it."""
-    global _DEPTH
-    from pyamg.aggregation import aggregation, smooth
-
-    with _LOCK:
-        if _DEPTH == 0:
-            aggregation.energy_prolongation_smoother = energy_prolongator
-        _DEPTH += 1
-    try:
-        yield
-    finally:
-        with _LOCK:
-            _DEPTH -= 1
-            if _DEPTH == 0:
-                aggregation.energy_prolongation_smoother = (
-                    smooth.energy_prolongation_smoother)

@@ -43,7 +43,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass, field
 from typing import Any
@@ -52,8 +52,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..linalg.cost import PowerLaw
+from ..linalg.hierarchy import smoothed_aggregation
 from ..linalg.iterative import LinearSolverRules, _multigrid
-from ..linalg.prolongation import in_place_energy_smoothing
 from .steps import StepRules
 
 REFINEMENT_SOLVER_RULES = LinearSolverRules(
@@ -101,9 +101,11 @@ class HierarchyRules:
             level).
         dtype: the hierarchy's precision, ``"float64"`` or ``"float32"`` (CG's products and
             vectors are double either way).
-        in_place_smoothing: energy-minimized prolongators computed in place
-            (:func:`solver.linalg.prolongation.energy_prolongator`: pyamg's answer to
-            rounding in a third of its memory) instead of by pyamg's own function.
+        bounded_setup: the hierarchy set up by
+            :func:`solver.linalg.hierarchy.smoothed_aggregation` (pyamg's levels, the
+            energy-minimized prolongators computed in place and the coarse matrices formed
+            in blocks of rows: the same answer to rounding in a fraction of the memory)
+            instead of pyamg's ``smoothed_aggregation_solver``.
         strength_is_matrix: the finest level's strength graph is the (scalar, CSR) matrix
             itself instead of pyamg's copy of it (pyamg's ``symmetric`` strength at theta 0
             keeps every stored entry; only the pattern is read: the same aggregates).
@@ -117,7 +119,7 @@ class HierarchyRules:
     postsmoother: tuple[str, dict[str, Any]] | None = None
     by_vertex: bool = False
     dtype: str = "float32"
-    in_place_smoothing: bool = True
+    bounded_setup: bool = True
     strength_is_matrix: bool = True
 
     def pyamg_options(self, finest: sp.spmatrix | None = None) -> dict[str, Any]:
@@ -371,12 +373,10 @@ class Multigrid:
         pyamg = _multigrid()
         start = time.perf_counter()
         self._ml = None  # its memory is free before the new one is built
-        smoothing = (in_place_energy_smoothing() if self.hierarchy.in_place_smoothing
-                     else nullcontext())
-        with smoothing:
-            self._ml = pyamg.smoothed_aggregation_solver(
-                finest, B=rigid_modes(X_free).astype(finest.dtype),
-                **self.hierarchy.pyamg_options(finest))
+        setup = (smoothed_aggregation if self.hierarchy.bounded_setup
+                 else pyamg.smoothed_aggregation_solver)
+        self._ml = setup(finest, B=rigid_modes(X_free).astype(finest.dtype),
+                         **self.hierarchy.pyamg_options(finest))
         self._cycle = self._ml.aspreconditioner(cycle=self.hierarchy.cycle)
         self._baseline, self._stale = None, False
         stats = self.stats

@@ -38,6 +38,10 @@ import scipy.sparse as sp
 
 BLOCK_VALUES = 1 << 20
 """Values per block of the in-place updates: their temporaries stay a few MB."""
+RUN_VALUES = 1 << 17
+"""Stored values per run of whole block rows (row sums, row scaling, the tentative
+prolongator's blocks, dropping zero blocks): each run's temporaries (int64 positions,
+double-precision sums) stay ~1 MB."""
 
 
 def _pyamg_energy(*args: Any, **kwargs: Any) -> sp.bsr_array:
@@ -133,9 +137,8 @@ def energy_prolongator(A: sp.spmatrix, T: sp.spmatrix, Atilde: sp.csr_array, B: 
         _axpy(T_values, P, alpha)      # T += alpha P
         _axpy(R, AP, -alpha)           # R -= alpha A P
     del R, P, AP
-    prolongator = on_pattern(T_values)  # the pattern's arrays are this function's own
-    prolongator.eliminate_zeros()
-    return prolongator
+    # the pattern's arrays are this function's own
+    return _without_zero_blocks(T_values, indices, indptr, full_shape)
 
 
 def jacobi_prolongator(A: sp.spmatrix, T: sp.spmatrix,
@@ -191,9 +194,7 @@ def jacobi_prolongator(A: sp.spmatrix, T: sp.spmatrix,
         block_row = _run_block_rows(indptr, rows)
         values[entries] *= scale[block_row[:, None] * rb + np.arange(rb)][:, :, None]
         _add_rows_on_pattern(values, T, indptr, indices, rows, entries)
-    prolongator = sp.bsr_array((values, indices, indptr), shape=T.shape, copy=False)
-    prolongator.eliminate_zeros()
-    return prolongator
+    return _without_zero_blocks(values, indices, indptr, T.shape)
 
 
 def _grown_pattern(T: sp.bsr_array, Atilde: sp.csr_array,
@@ -224,9 +225,9 @@ def _values_on_pattern(T: sp.bsr_array, indptr: np.ndarray,
 
 
 def _row_runs(indptr: np.ndarray) -> Iterator[tuple[slice, slice]]:
-    """Runs of whole block rows with about BLOCK_VALUES // 4 stored blocks each: (block
+    """Runs of whole block rows with about RUN_VALUES // 4 stored blocks each: (block
     rows, their entries)."""
-    step = max(1, BLOCK_VALUES // 4)
+    step = max(1, RUN_VALUES // 4)
     cuts = np.searchsorted(indptr, np.arange(0, indptr[-1], step), side="right") - 1
     bounds = np.unique(np.append(cuts, [0, len(indptr) - 1]))
     for first, last in itertools.pairwise(bounds.tolist()):
@@ -254,6 +255,33 @@ def _add_rows_on_pattern(values: np.ndarray, T: sp.bsr_array, indptr: np.ndarray
     values[entries][np.searchsorted(wide, own)] += T.data[lo:hi]
 
 
+def _without_zero_blocks(values: np.ndarray, indices: np.ndarray, indptr: np.ndarray,
+                         shape: tuple[int, int]) -> sp.bsr_array:
+    """The BSR matrix of ``values`` (nnz_blocks, rb, cb) on the pattern ``indptr``,
+    ``indices`` without its all-zero blocks (scipy's ``eliminate_zeros``), compacted in
+    place run by run and the arrays shrunk where they are (scipy's makes a mask, the kept
+    blocks' positions and a copy of the kept values). The three arrays must be the
+    caller's own (no other view of them)."""
+    counts = np.zeros(len(indptr) - 1, dtype=indptr.dtype)
+    kept = 0
+    for rows, entries in _row_runs(indptr):
+        if entries.stop == entries.start:
+            continue
+        keep = values[entries].reshape(entries.stop - entries.start, -1).any(axis=1)
+        n = int(np.count_nonzero(keep))
+        values[kept:kept + n] = values[entries][keep]  # kept <= entries.start: no overlap
+        indices[kept:kept + n] = indices[entries][keep]
+        counts[rows] = np.bincount(_run_block_rows(indptr, rows)[keep] - rows.start,
+                                   minlength=rows.stop - rows.start)
+        kept += n
+    indptr[0] = 0
+    np.cumsum(counts, out=indptr[1:])
+    del counts
+    values.resize((kept, *values.shape[1:]), refcheck=False)
+    indices.resize(kept, refcheck=False)
+    return sp.bsr_array((values, indices, indptr), shape=shape, copy=False)
+
+
 def _row_scale(A: sp.bsr_array, weighting: str, dtype: np.dtype) -> np.ndarray:
     """(N,) the Jacobi scaling of each row: 1 / sum_j |a_ij| (``local``, Gershgorin) or
     1 / |a_ii| (``diagonal``); 0 where that is 0. Summed block by block (no copy of A)."""
@@ -264,7 +292,7 @@ def _row_scale(A: sp.bsr_array, weighting: str, dtype: np.dtype) -> np.ndarray:
     else:  # block rows in runs of about BLOCK_VALUES values: no per-entry temporaries
         size = np.zeros((n_rows // rb, rb), dtype=np.float64)
         indptr = A.indptr
-        per_run = max(1, BLOCK_VALUES // (rb * cb))
+        per_run = max(1, RUN_VALUES // (rb * cb))
         cuts = np.unique(np.searchsorted(indptr, np.arange(0, indptr[-1], per_run),
                                          side="right") - 1)
         bounds = np.append(cuts, len(indptr) - 1)

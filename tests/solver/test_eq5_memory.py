@@ -73,7 +73,8 @@ def test_energies_after_release_are_those_of_the_rows(name: str):
 @pytest.mark.parametrize("name", MESHES)
 def test_the_fine_strength_graph_gives_pyamgs_own_prolongator(name: str):
     """The fine level's strength graph given as the matrix itself: the same aggregates,
-    hence the same prolongators and levels as pyamg's symmetric strength (theta 0)."""
+    hence the same prolongators (to float32 rounding) and levels as pyamg's symmetric
+    strength (theta 0)."""
     problem, anchor, tree = _problem(name)
     system = problem.system(anchor, method="iterative",
                             near_null=near_null_space(problem.topology.n_vertices, tree))
@@ -84,5 +85,7 @@ def test_the_fine_strength_graph_gives_pyamgs_own_prolongator(name: str):
         smooth=("jacobi", {"weighting": "local"}), improve_candidates=None)
     assert len(ours.levels) == len(reference.levels) >= 2
     for mine, theirs in zip(ours.levels[:-1], reference.levels[:-1], strict=True):
-        assert mine.P.shape == theirs.P.shape
-        assert abs(sp.csr_matrix(mine.P) - sp.csr_matrix(theirs.P)).max() == 0.0
+        assert mine.P.shape == theirs.P.shape and mine.P.nnz == theirs.P.nnz
+        # float32: pyamg scales A before the product, solver.linalg.hierarchy after it
+        difference = abs(sp.csr_matrix(mine.P) - sp.csr_matrix(theirs.P)).max()
+        assert difference <= 1e-5 * abs(theirs.P).max()

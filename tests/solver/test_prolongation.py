@@ -16,11 +16,10 @@ import numpy as np
 import pyamg
 import pytest
 import scipy.sparse as sp
-from pyamg.aggregation import aggregation
 from pyamg.aggregation import smooth as pyamg_smooth
 
 from solver import fundamental_forms, reconstruct
-from solver.linalg.prolongation import energy_prolongator, in_place_energy_smoothing
+from solver.linalg.prolongation import energy_prolongator
 from solver.refine.iterative_steps import (
     HIERARCHY_RULES,
     Multigrid,
@@ -112,12 +111,13 @@ def test_options_it_does_not_cover_go_to_pyamg():
 
 
 def test_whole_hierarchy_same_levels_and_iterations():
-    """The refinement's Multigrid with and without the in-place smoothing and the matrix as
-    strength graph: the same levels and the same CG iterations on a Gauss-Newton solve."""
+    """The refinement's Multigrid set up by pyamg (its own strength graph) and by
+    solver.linalg.hierarchy (the matrix as strength graph): the same levels and the same CG
+    iterations on a Gauss-Newton solve."""
     solve = _gauss_newton_solve("knight (closed)")
     counts = {}
     for label, rules in {
-            "pyamg": dataclasses.replace(HIERARCHY_RULES, in_place_smoothing=False,
+            "pyamg": dataclasses.replace(HIERARCHY_RULES, bounded_setup=False,
                                          strength_is_matrix=False),
             "in place": HIERARCHY_RULES}.items():
         multigrid = Multigrid(300, DEFAULT_STEP_RULES.cg_resetup_growth,
@@ -150,17 +150,3 @@ def test_memory_is_a_fraction_of_pyamgs():
     ours, P_ours = transient(energy_prolongator)
     _assert_same(sp.bsr_array(P_theirs), P_ours, 1e-10)
     assert ours < 0.6 * theirs, (ours, theirs)
-
-
-def test_the_context_swaps_and_restores_pyamgs_function():
-    original = pyamg_smooth.energy_prolongation_smoother
-    assert aggregation.energy_prolongation_smoother is original
-    with in_place_energy_smoothing():
-        assert aggregation.energy_prolongation_smoother is energy_prolongator
-        with in_place_energy_smoothing():
-            assert aggregation.energy_prolongation_smoother is energy_prolongator
-        assert aggregation.energy_prolongation_smoother is energy_prolongator
-    assert aggregation.energy_prolongation_smoother is original
-    with pytest.raises(RuntimeError), in_place_energy_smoothing():
-        raise RuntimeError("a setup that fails")
-    assert aggregation.energy_prolongation_smoother is original

@@ -12,8 +12,8 @@ convergence with the constant alone.
 
 :class:`LinearSolverRules` decides direct against iterative (one home for the face threshold
 and the memory models, which the service's admission reads); :class:`IterativeSolver` sets up
-the hierarchy once and solves several right-hand sides (three CGs advanced together: one
-sparse product of the three columns per iteration, one W-cycle per column). The hierarchy and
+the hierarchy once (:func:`solver.linalg.hierarchy.smoothed_aggregation`) and solves several
+right-hand sides, one CG after the other (one W-cycle per iteration). The hierarchy and
 its cycles are single precision (``LinearSolverRules.preconditioner_dtype``); CG, its
 residuals and the answer are float64.
 """
@@ -47,7 +47,7 @@ CG was made in place, 3.1 KB per face beyond 150 MB; the model is 9-27 % above).
 
 ROWS_PER_UPDATE = 1 << 16
 """Rows of CG's vector updates at once: x += alpha p and r -= alpha K p in contiguous row
-blocks, so that no (N, k) temporary is made (134 MB at 1.6M faces)."""
+blocks, so that no (N,) temporary is made (45 MB at 1.6M faces)."""
 
 
 @dataclass(frozen=True)
@@ -252,6 +252,8 @@ class IterativeSolver:
         # W-cycles: 18 and 33 CG iterations on the 100K- and 400K-face noisy scans against
         # V-cycles' 24 and 58, for about the same CPU time at 100K and less at 400K.
         self._preconditioner = self._ml.aspreconditioner(cycle="W")
+        for level in self._ml.levels:  # the candidates serve the setup only (cycles never
+            level.B = None             # read them): 90 MB at 1.6M faces
         self._dtype = dtype
         self.stats = IterativeStats(setup_seconds=time.perf_counter() - start,
                                     levels=len(self._ml.levels),
@@ -259,15 +261,14 @@ class IterativeSolver:
                                     tolerance=rules.relative_tolerance,
                                     precision=dtype.name)
 
-    def _precondition(self, r: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        z = np.empty_like(r) if out is None else out
-        for c in range(r.shape[1]):
-            z[:, c] = self._preconditioner @ r[:, c].astype(self._dtype)
-        return z
+    def _precondition(self, r: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """out = one cycle on ``r`` (N,) float64, from a zero guess."""
+        out[:] = self._preconditioner @ r.astype(self._dtype)
+        return out
 
     def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None,
               tolerance: float | None = None) -> np.ndarray:
-        """Preconditioned CG on every column of ``rhs`` (advanced together).
+        """Preconditioned CG on each column of ``rhs``, one column after the other.
 
         Args:
             rhs: (N, k) float64 right-hand sides.
@@ -277,53 +278,29 @@ class IterativeSolver:
                 reported in :attr:`stats`).
 
         Returns:
-            (N, k) float64 solutions; :attr:`stats` says how many iterations they took and
-            whether every column reached ``rules.relative_tolerance`` (an answer that did
-            not is returned all the same, reported as not converged).
+            (N, k) float64 solutions; :attr:`stats` says how many iterations they took (the
+            most of any column) and whether every column reached the tolerance (an answer
+            that did not is returned all the same, reported as not converged).
         """
         start = time.perf_counter()
-        K = self.matrix
         b = np.asarray(rhs, dtype=np.float64).reshape(self.size, -1)
-        # The iterate is the guess itself where it is a float64 array (no copy: 134 MB at
-        # 1.6M faces); the vectors are updated in place (x, r, z, p and K p).
+        # The answer is the guess itself where it is a float64 array (no copy: 134 MB at
+        # 1.6M faces). One column at a time: CG's vectors are (N,), not (N, k) (~310 MB less
+        # at 1.6M faces for k = 3; the columns' products cost ~5 % more than one product
+        # of three columns).
         x = (np.zeros_like(b) if guess is None
              else np.asarray(guess, dtype=np.float64).reshape(b.shape))
-        norm_b = np.linalg.norm(b, axis=0)
-        norm_b[norm_b == 0] = 1.0
         tolerance = self.rules.relative_tolerance if tolerance is None else float(tolerance)
-        target = tolerance * norm_b
-        r = _residual(K, b, x)
-        z = self._precondition(r)
-        p = z.copy()
-        rz = np.einsum("ij,ij->j", r, z)
-        iterations = 0
-        residual = np.linalg.norm(r, axis=0)
-        while iterations < self.rules.max_iterations and (residual > target).any():
-            active = residual > target          # converged columns stop moving
-            Kp = K @ p
-            pKp = np.einsum("ij,ij->j", p, Kp)
-            alpha = np.where(active & (pKp > 0), rz / np.where(pKp > 0, pKp, 1.0), 0.0)
-            for lo in range(0, len(x), ROWS_PER_UPDATE):  # contiguous blocks, small temporaries
-                rows = slice(lo, lo + ROWS_PER_UPDATE)
-                x[rows] += alpha * p[rows]
-                r[rows] -= alpha * Kp[rows]
-            z = self._precondition(r, out=z)
-            rz_new = np.einsum("ij,ij->j", r, z)
-            # Flexible (Polak-Ribiere) beta, z.(r - r_previous) / rz with r_previous =
-            # r + alpha K p: the single-precision cycle is symmetric only to rounding
-            # (Fletcher-Reeves' rz_new / rz assumes it exactly; the two agree in exact
-            # arithmetic).
-            flexible = -alpha * np.einsum("ij,ij->j", z, Kp)
-            del Kp                              # the next product is made without it
-            beta = np.where(rz != 0, flexible / np.where(rz != 0, rz, 1.0), 0.0)
-            p *= beta
-            p += z
-            rz = rz_new
-            residual = np.linalg.norm(r, axis=0)
-            iterations += 1
-        del z, p
-        true_residual = np.linalg.norm(_residual(K, b, x), axis=0) / norm_b
-        worst = float(true_residual.max()) if true_residual.size else 0.0
+        iterations, worst = 0, 0.0
+        for column in range(b.shape[1]):
+            solution = np.ascontiguousarray(x[:, column])
+            taken = self._column(b[:, column], solution, tolerance)
+            x[:, column] = solution
+            residual = _residual(self.matrix, b[:, column], solution)
+            norm_b = float(np.linalg.norm(b[:, column])) or 1.0
+            worst = max(worst, float(np.linalg.norm(residual)) / norm_b)
+            iterations = max(iterations, taken)
+            del solution, residual
         self.stats.iterations = iterations
         self.stats.relative_residual = worst
         self.stats.tolerance = tolerance
@@ -331,9 +308,47 @@ class IterativeSolver:
         self.stats.solve_seconds = time.perf_counter() - start
         return x
 
+    def _column(self, b: np.ndarray, x: np.ndarray, tolerance: float) -> int:
+        """CG on ``K x = b`` (N,) from ``x`` (updated in place); returns its iterations."""
+        K = self.matrix
+        target = tolerance * (float(np.linalg.norm(b)) or 1.0)
+        r = _residual(K, b, x)
+        z = self._precondition(r, np.empty_like(r))
+        p = z.copy()
+        rz = float(r @ z)
+        iterations = 0
+        while iterations < self.rules.max_iterations and np.linalg.norm(r) > target:
+            Kp = K @ p
+            pKp = float(p @ Kp)
+            if not pKp > 0:  # a direction of no curvature (or not finite): stop here
+                break
+            alpha = rz / pKp
+            _axpy(x, p, alpha)
+            _axpy(r, Kp, -alpha)
+            z = self._precondition(r, out=z)
+            rz_new = float(r @ z)
+            # Flexible (Polak-Ribiere) beta, z.(r - r_previous) / rz with r_previous =
+            # r + alpha K p: the single-precision cycle is symmetric only to rounding
+            # (Fletcher-Reeves' rz_new / rz assumes it exactly; the two agree in exact
+            # arithmetic).
+            beta = -alpha * float(z @ Kp) / rz if rz != 0 else 0.0
+            del Kp                              # the next product is made without it
+            p *= beta
+            p += z
+            rz = rz_new
+            iterations += 1
+        return iterations
+
+
+def _axpy(y: np.ndarray, x: np.ndarray, alpha: float) -> None:
+    """y += alpha x (N,), in contiguous row blocks: no (N,) temporary."""
+    for lo in range(0, len(y), ROWS_PER_UPDATE):
+        rows = slice(lo, lo + ROWS_PER_UPDATE)
+        y[rows] += alpha * x[rows]
+
 
 def _residual(K: sp.spmatrix, b: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """(N, k) ``b - K x``, written into the product's own array (one (N, k) array)."""
+    """``b - K x`` (N,) or (N, k), written into the product's own array."""
     r = K @ x
     np.subtract(b, r, out=r)
     return r

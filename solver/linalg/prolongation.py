@@ -260,8 +260,8 @@ def _without_zero_blocks(values: np.ndarray, indices: np.ndarray, indptr: np.nda
     """The BSR matrix of ``values`` (nnz_blocks, rb, cb) on the pattern ``indptr``,
     ``indices`` without its all-zero blocks (scipy's ``eliminate_zeros``), compacted in
     place run by run and the arrays shrunk where they are (scipy's makes a mask, the kept
-    blocks' positions and a copy of the kept values). The three arrays must be the
-    caller's own (no other view of them)."""
+    blocks' positions and a copy of the kept values). The three arrays are overwritten:
+    the caller's own, with no other view of them in use."""
     counts = np.zeros(len(indptr) - 1, dtype=indptr.dtype)
     kept = 0
     for rows, entries in _row_runs(indptr):
@@ -277,9 +277,17 @@ def _without_zero_blocks(values: np.ndarray, indices: np.ndarray, indptr: np.nda
     indptr[0] = 0
     np.cumsum(counts, out=indptr[1:])
     del counts
-    values.resize((kept, *values.shape[1:]), refcheck=False)
-    indices.resize(kept, refcheck=False)
-    return sp.bsr_array((values, indices, indptr), shape=shape, copy=False)
+    return sp.bsr_array((_shrunk(values, kept), _shrunk(indices, kept), indptr), shape=shape,
+                        copy=False)
+
+
+def _shrunk(array: np.ndarray, length: int) -> np.ndarray:
+    """The first ``length`` rows of ``array``: shrunk in place where it owns its memory, a
+    copy where it is a view."""
+    if array.base is None and array.flags.owndata:
+        array.resize((length, *array.shape[1:]), refcheck=False)
+        return array
+    return array[:length].copy()
 
 
 def _row_scale(A: sp.bsr_array, weighting: str, dtype: np.dtype) -> np.ndarray:

@@ -10,6 +10,7 @@ integration of integrable forms, the refinement's start and handles.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -318,7 +319,8 @@ class ImmersionProblem:
                extra_penalty_columns: np.ndarray | None = None,
                extra_penalty_weight: float = 0.0,
                ordering_hint: bool = True, method: str = "direct",
-               near_null: np.ndarray | None = None, release: bool = False
+               near_null: np.ndarray | Callable[[], np.ndarray | None] | None = None,
+               release: bool = False
                ) -> ConstrainedSystem:
         """Factorize K with ``constraints`` (and optional extra soft columns, e.g. every
         frame for the orthonormalization solve). ``ordering_hint``: pass the unknowns'

@@ -484,6 +484,13 @@ class _TreeStart:
         self.__dict__.pop("near_null", None)
         return guess
 
+    def handed_over_near_null(self) -> np.ndarray | None:
+        """:attr:`near_null` for the last system to use in place, forgotten here: not
+        held beside the system's own (zeroed) copy through the multigrid setup."""
+        near_null = self.near_null
+        self.__dict__.pop("near_null", None)
+        return near_null
+
     @functools.cached_property
     def near_null(self) -> np.ndarray | None:
         """(N, 4) near-null space of K from :attr:`guess` (None if not finite)."""
@@ -505,7 +512,8 @@ def _system(problem: ImmersionProblem, linear: Any, backend: str, tree: _TreeSta
     if tree is None:
         return problem.system(linear, backend, extra_columns, extra_weight, release=release)
     return problem.system(linear, backend, extra_columns, extra_weight, method="iterative",
-                          near_null=tree.near_null, release=release)
+                          near_null=tree.handed_over_near_null if release else tree.near_null,
+                          release=release)
 
 
 def _orthonormality_error(frames: np.ndarray) -> float:

@@ -40,8 +40,10 @@ class ConstrainedSystem:
         groups: optional (N,) int64 ordering hint (:func:`solver.linear.system.unknown_groups`).
         method: ``"direct"`` (factorize) or ``"iterative"`` (multigrid-preconditioned CG,
             :class:`solver.linalg.iterative.IterativeSolver`: no factor, for large meshes).
-        near_null: (N, k) float64 near-null space of ``K`` for the iterative method
-            (:func:`solver.linear.system.near_null_space`); None: the constant.
+        near_null: (N, k) near-null space of ``K`` for the iterative method
+            (:func:`solver.linear.system.near_null_space`), or a function that hands it
+            over (its array, in the preconditioner's precision, is then used in place, not
+            copied: 90 MB at 1.6M faces); None: the constant.
         rules: the iterative method's tolerance and iteration limit.
 
     Attributes:
@@ -57,7 +59,7 @@ class ConstrainedSystem:
                  soft_columns: np.ndarray,
                  soft_weights: np.ndarray, backend: str = "auto",
                  groups: np.ndarray | None = None, method: str = "direct",
-                 near_null: np.ndarray | None = None,
+                 near_null: np.ndarray | Callable[[], np.ndarray | None] | None = None,
                  rules: LinearSolverRules = RULES) -> None:
         owned = callable(K)  # handed over: this constructor may reuse its arrays
         if owned:
@@ -96,10 +98,14 @@ class ConstrainedSystem:
         self.factor: Factorization | None = None
         if method == "iterative":
             reduced.eliminate_zeros()  # the multigrid's strength graph reads the pattern
-            candidates = None
-            if near_null is not None:
-                # In the preconditioner's precision: the solver takes it without a copy.
-                candidates = np.array(near_null, dtype=rules.preconditioner_dtype)
+            handed = callable(near_null)
+            candidates = near_null() if handed else near_null
+            del near_null
+            if candidates is not None:
+                # In the preconditioner's precision: the solver takes it without a copy (a
+                # handed-over array of that precision is this system's own already).
+                candidates = (np.asarray if handed else np.array)(
+                    candidates, dtype=rules.preconditioner_dtype)
                 candidates[self.hard_columns] = 0.0
             self.iterative = IterativeSolver(reduced, candidates, rules)
         elif method == "direct":

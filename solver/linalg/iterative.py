@@ -21,6 +21,7 @@ residuals and the answer are float64.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -266,16 +267,20 @@ class IterativeSolver:
         out[:] = self._preconditioner @ r.astype(self._dtype)
         return out
 
-    def solve(self, rhs: np.ndarray, guess: np.ndarray | None = None,
-              tolerance: float | None = None) -> np.ndarray:
+    def solve(self, rhs: np.ndarray | Callable[[int], np.ndarray],
+              guess: np.ndarray | None = None, tolerance: float | None = None,
+              columns: int | None = None) -> np.ndarray:
         """Preconditioned CG on each column of ``rhs``, one column after the other.
 
         Args:
-            rhs: (N, k) float64 right-hand sides.
+            rhs: (N, k) float64 right-hand sides, or a function giving column ``c`` (N,)
+                float64 (``columns`` of them): each is then made when its CG starts and let
+                go when it ends (a (N, k) array is never held).
             guess: optional (N, k) float64 start (default zero); a float64 array is
                 overwritten by the answer (pass a copy to keep it).
             tolerance: the relative residual to reach (default ``rules.relative_tolerance``;
                 reported in :attr:`stats`).
+            columns: k where ``rhs`` is a function.
 
         Returns:
             (N, k) float64 solutions; :attr:`stats` says how many iterations they took (the
@@ -283,24 +288,26 @@ class IterativeSolver:
             that did not is returned all the same, reported as not converged).
         """
         start = time.perf_counter()
-        b = np.asarray(rhs, dtype=np.float64).reshape(self.size, -1)
+        if callable(rhs):
+            column_rhs, k = rhs, int(columns)
+        else:
+            b = np.asarray(rhs, dtype=np.float64).reshape(self.size, -1)
+            column_rhs, k = (lambda c: b[:, c]), b.shape[1]
         # The answer is the guess itself where it is a float64 array (no copy: 134 MB at
-        # 1.6M faces). One column at a time: CG's vectors are (N,), not (N, k) (~310 MB less
-        # at 1.6M faces for k = 3; the columns' products cost ~5 % more than one product
-        # of three columns).
-        x = (np.zeros_like(b) if guess is None
-             else np.asarray(guess, dtype=np.float64).reshape(b.shape))
+        # 1.6M faces), each column updated where it is. One column at a time: CG's vectors
+        # are (N,), not (N, k) (~310 MB less at 1.6M faces for k = 3; the columns' products
+        # cost ~5 % more than one product of three columns).
+        x = (np.zeros((self.size, k)) if guess is None
+             else np.asarray(guess, dtype=np.float64).reshape(self.size, k))
         tolerance = self.rules.relative_tolerance if tolerance is None else float(tolerance)
         iterations, worst = 0, 0.0
-        for column in range(b.shape[1]):
-            solution = np.ascontiguousarray(x[:, column])
-            taken = self._column(b[:, column], solution, tolerance)
-            x[:, column] = solution
-            residual = _residual(self.matrix, b[:, column], solution)
-            norm_b = float(np.linalg.norm(b[:, column])) or 1.0
-            worst = max(worst, float(np.linalg.norm(residual)) / norm_b)
+        for column in range(k):
+            b_column = np.asarray(column_rhs(column), dtype=np.float64).reshape(self.size)
+            taken = self._column(b_column, x[:, column], tolerance)
+            residual = np.linalg.norm(_residual(self.matrix, b_column, x[:, column]))
+            worst = max(worst, float(residual) / (float(np.linalg.norm(b_column)) or 1.0))
             iterations = max(iterations, taken)
-            del solution, residual
+            del b_column
         self.stats.iterations = iterations
         self.stats.relative_residual = worst
         self.stats.tolerance = tolerance
@@ -309,7 +316,8 @@ class IterativeSolver:
         return x
 
     def _column(self, b: np.ndarray, x: np.ndarray, tolerance: float) -> int:
-        """CG on ``K x = b`` (N,) from ``x`` (updated in place); returns its iterations."""
+        """CG on ``K x = b`` (N,) from ``x`` (updated in place, a strided column is fine);
+        returns its iterations."""
         K = self.matrix
         target = tolerance * (float(np.linalg.norm(b)) or 1.0)
         r = _residual(K, b, x)

@@ -150,24 +150,33 @@ class ConstrainedSystem:
         Returns:
             (N, 3) float64 unknowns, one column per coordinate.
         """
-        rhs = np.zeros((self.size, 3))
-        np.add.at(rhs, self.soft_columns, self.soft_weights[:, None] * soft_values)
-        rhs -= self.K_hard_rows.T @ hard_values
-        rhs[self.hard_columns] = self.hard_diagonal[:, None] * hard_values
+        hard_values = np.asarray(hard_values, dtype=np.float64).reshape(-1, 3)
+        soft_values = np.asarray(soft_values, dtype=np.float64).reshape(-1, 3)
         if self.iterative is not None:
             start = None
             if guess is not None:
                 start = (np.asarray(guess, dtype=np.float64) if overwrite_guess
                          else np.array(guess, dtype=np.float64))
                 start[self.hard_columns] = hard_values
-            u = self.iterative.solve(rhs, start, tolerance)
+            # Each coordinate's right-hand side made when its CG starts (N,), not (N, 3).
+            u = self.iterative.solve(lambda c: self._rhs(hard_values[:, c:c + 1],
+                                                         soft_values[:, c:c + 1])[:, 0],
+                                     start, tolerance, columns=3)
             u[self.hard_columns] = hard_values
             return u
         assert self.factor is not None
-        u = self.factor.solve(rhs)
+        u = self.factor.solve(self._rhs(hard_values, soft_values))
         u[self.hard_columns] = hard_values
         return u
 
+
+    def _rhs(self, hard_values: np.ndarray, soft_values: np.ndarray) -> np.ndarray:
+        """(N, k) right-hand sides for (h, k) hard values and (s, k) soft targets."""
+        rhs = np.zeros((self.size, hard_values.shape[1]))
+        np.add.at(rhs, self.soft_columns, self.soft_weights[:, None] * soft_values)
+        rhs -= self.K_hard_rows.T @ hard_values
+        rhs[self.hard_columns] = self.hard_diagonal[:, None] * hard_values
+        return rhs
 
 def _plus_diagonal(K: sp.spmatrix, diagonal: np.ndarray, owned: bool) -> sp.csr_matrix:
     """``K + diag(diagonal)`` as a CSR matrix of the caller's own.

@@ -95,7 +95,7 @@ LINEAR_COST = OperationCost(memory=LINEAR_RULES.direct_memory, first_answer=FIRS
 """A linear reconstruction (``options.refine: false``) by a factorization (8.3 KB per face)."""
 LINEAR_ITERATIVE_COST = OperationCost(memory=LINEAR_RULES.iterative_memory,
                                       first_answer=FIRST_ANSWER_ITERATIVE)
-"""A linear reconstruction by CG (3.4 KB per face and 150 MB: 5.1 GB measured at 1.6M faces)."""
+"""A linear reconstruction by CG (2.6 KB per face and 150 MB: 3.75 GiB measured at 1.6M faces)."""
 LIGHT_COST = OperationCost(
     memory=PowerLaw(per_face=2_600, exponent=1.0, base=200 * 1024**2),
     first_answer=PowerLaw(per_face=1.2e-5, exponent=1.0))

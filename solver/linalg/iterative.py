@@ -40,10 +40,11 @@ LINEAR_SOLVERS: tuple[str, ...] = ("auto", "direct", "iterative")
 DIRECT_MEMORY = PowerLaw(per_face=8_300.0)
 """Peak bytes of Eq. 5's linear answer by a factorization (``bench.scale``, noisy forms,
 ``refine=False``: 803-883 MB at 100K faces, 3.0-3.3 GB at 400K)."""
-ITERATIVE_MEMORY = PowerLaw(per_face=3_400.0, base=150e6)
-"""Peak bytes of the linear answer by multigrid-preconditioned CG (the multigrid setup's or
-CG's, ``bench.scale``: 432 MB at 100K faces, 1280 MB at 400K, 5110 MB at 1.6M before Eq. 5's
-CG was made in place, 3.1 KB per face beyond 150 MB; the model is 9-27 % above)."""
+ITERATIVE_MEMORY = PowerLaw(per_face=2_600.0, base=150e6)
+"""Peak bytes of the linear answer by multigrid-preconditioned CG (the normal matrix's
+assembly, the multigrid setup's or CG's; ``bench.scale``: 345 MiB at 100K faces, 1006 MiB at
+400K, 3753 MiB at 1.6M since the hierarchy is set up level by level (was 434, 1280 and 4899);
+2.4 KB per face beyond 150 MB; the model is 9-13 % above)."""
 
 
 ROWS_PER_UPDATE = 1 << 16

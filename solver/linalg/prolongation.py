@@ -151,8 +151,8 @@ def jacobi_prolongator(A: sp.spmatrix, T: sp.spmatrix,
     copy), forms the product with ``T`` and subtracts it from ``T`` (two more matrices of
     the prolongator's size). Here ``A T`` is computed once on its own pattern (pyamg's
     ``incomplete_mat_mult_bsr``; the pattern is A's times T's, so nothing of the product is
-    dropped) and ``T - omega D^-1 (A T)`` is written over it row block by row block: besides
-    the answer, one array of its values and T's values on its pattern.
+    dropped) and ``T - omega D^-1 (A T)`` is written over it in runs of block rows (each
+    run's temporaries ~1 MB), its zero blocks then dropped in place.
 
     Args:
         A: (N, N) CSR or BSR matrix (blocks (b, b)).

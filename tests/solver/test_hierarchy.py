@@ -36,6 +36,17 @@ ENERGY = {"smooth": ("energy", {"krylov": "cg", "maxiter": 4, "degree": 1,
           "improve_candidates": None, "symmetry": "symmetric", "max_coarse": 50}
 
 
+def _gallery(problem: str, size: int, dtype=np.float64) -> tuple[sp.spmatrix, np.ndarray]:
+    """pyamg's Poisson (CSR, the constant) or 2D elasticity (BSR 2x2, three rigid modes)
+    on a size x size grid, and its near-null space."""
+    if problem == "poisson":
+        A = pyamg.gallery.poisson((size, size), format="csr")
+        B = np.ones((A.shape[0], 1))
+    else:
+        A, B = pyamg.gallery.linear_elasticity((size, size), format="bsr")
+    return A.astype(dtype), B.astype(dtype)
+
+
 def _relative(theirs: sp.spmatrix, ours: sp.spmatrix) -> float:
     scale = abs(sp.csr_array(theirs)).max()
     return float(abs(sp.csr_array(theirs) - sp.csr_array(ours)).max() / scale)
@@ -132,12 +143,7 @@ def test_gauss_newton_hierarchies_are_pyamgs(mesh: str, by_vertex: bool):
 @pytest.mark.parametrize("smoothing", ["jacobi", "energy"])
 @pytest.mark.parametrize("problem", ["poisson", "elasticity"])
 def test_gallery_hierarchies_are_pyamgs(problem: str, smoothing: str, dtype, rtol: float):
-    if problem == "poisson":
-        A = pyamg.gallery.poisson((90, 90), format="csr")
-        B = np.ones((A.shape[0], 1))
-    else:
-        A, B = pyamg.gallery.linear_elasticity((50, 50), format="bsr")
-    A, B = A.astype(dtype), B.astype(dtype)
+    A, B = _gallery(problem, 90 if problem == "poisson" else 50, dtype)
     options = JACOBI if smoothing == "jacobi" else ENERGY
     theirs = pyamg.smoothed_aggregation_solver(A, B=B, **options)
     ours = smoothed_aggregation(A, B=B, **options)
@@ -178,11 +184,7 @@ def test_options_it_does_not_cover_go_to_pyamg(options, monkeypatch):
 def test_galerkin_product_in_blocks_is_r_a_p(problem: str, block_values: int):
     """Any block size, down to one block row at a time; Poisson's constant candidate
     cancels exactly on interior rows (zeros that both drop)."""
-    if problem == "poisson":
-        A = pyamg.gallery.poisson((30, 30), format="csr")
-        B = np.ones((A.shape[0], 1))
-    else:
-        A, B = pyamg.gallery.linear_elasticity((20, 20), format="bsr")
+    A, B = _gallery(problem, 30 if problem == "poisson" else 20)
     T, _, _ = _pieces(A, B)
     P = jacobi_prolongator(A, T)
     R = P.T
@@ -198,12 +200,7 @@ def test_galerkin_product_in_blocks_is_r_a_p(problem: str, block_values: int):
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize("problem", ["poisson", "elasticity"])
 def test_jacobi_prolongator_is_pyamgs(problem: str, dtype):
-    if problem == "poisson":
-        A = pyamg.gallery.poisson((50, 50), format="csr")
-        B = np.ones((A.shape[0], 1))
-    else:
-        A, B = pyamg.gallery.linear_elasticity((30, 30), format="bsr")
-    A, B = A.astype(dtype), B.astype(dtype)
+    A, B = _gallery(problem, 50 if problem == "poisson" else 30, dtype)
     T, C, B_coarse = _pieces(A, B)
     for omega in (4.0 / 3.0, 0.7):
         theirs = sp.bsr_array(pyamg_smooth.jacobi_prolongation_smoother(

@@ -169,7 +169,6 @@ class ConstrainedSystem:
         u[self.hard_columns] = hard_values
         return u
 
-
     def _rhs(self, hard_values: np.ndarray, soft_values: np.ndarray) -> np.ndarray:
         """(N, k) right-hand sides for (h, k) hard values and (s, k) soft targets."""
         rhs = np.zeros((self.size, hard_values.shape[1]))
@@ -177,6 +176,7 @@ class ConstrainedSystem:
         rhs -= self.K_hard_rows.T @ hard_values
         rhs[self.hard_columns] = self.hard_diagonal[:, None] * hard_values
         return rhs
+
 
 def _plus_diagonal(K: sp.spmatrix, diagonal: np.ndarray, owned: bool) -> sp.csr_matrix:
     """``K + diag(diagonal)`` as a CSR matrix of the caller's own.

@@ -290,14 +290,16 @@ class IterativeSolver:
         """
         start = time.perf_counter()
         if callable(rhs):
+            if columns is None:
+                raise ValueError("a function of the column needs columns= (how many)")
             column_rhs, k = rhs, int(columns)
         else:
             b = np.asarray(rhs, dtype=np.float64).reshape(self.size, -1)
             column_rhs, k = (lambda c: b[:, c]), b.shape[1]
         # The answer is the guess itself where it is a float64 array (no copy: 134 MB at
         # 1.6M faces), each column updated where it is. One column at a time: CG's vectors
-        # are (N,), not (N, k) (~310 MB less at 1.6M faces for k = 3; the columns' products
-        # cost ~5 % more than one product of three columns).
+        # are (N,), not (N, k) (~310 MB less at 1.6M faces for k = 3; the same CPU time at
+        # 400K faces within the load's noise, bench/README.md).
         x = (np.zeros((self.size, k)) if guess is None
              else np.asarray(guess, dtype=np.float64).reshape(self.size, k))
         tolerance = self.rules.relative_tolerance if tolerance is None else float(tolerance)

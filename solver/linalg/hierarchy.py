@@ -50,8 +50,9 @@ def smoothed_aggregation(A: sp.spmatrix, B: np.ndarray | None = None, *,
         B: (N, k) near-null space (None: pyamg's constant per block unknown).
         strength: per level (a list) or for all, ``"symmetric"`` (with pyamg's ``theta``),
             ``("predefined", {"C": csr})`` or None (the matrix itself).
-        smooth: per level or for all, ``("jacobi", {"omega", "weighting"})`` (``local`` or
-            ``diagonal``, degree 1, unfiltered), ``("energy", {...})`` (see
+        smooth: per level or for all, ``("jacobi", {"weighting": "local", "omega": w})``
+            (degree 1, unfiltered; pyamg's default ``diagonal`` weighting is handed to
+            pyamg), ``("energy", {...})`` (see
             :func:`~solver.linalg.prolongation.energy_prolongator`) or None.
         max_levels, max_coarse, presmoother, postsmoother: as pyamg's.
         **options: further keywords of pyamg's function (``coarse_solver``; any other, or a
@@ -65,9 +66,12 @@ def smoothed_aggregation(A: sp.spmatrix, B: np.ndarray | None = None, *,
         >>> import numpy as np
         >>> from pyamg.gallery import poisson
         >>> A = poisson((40, 40), format="csr")
-        >>> ml = smoothed_aggregation(A, np.ones((1600, 1)), max_coarse=50)
+        >>> ml = smoothed_aggregation(A, np.ones((1600, 1)), max_coarse=50,
+        ...                           smooth=("jacobi", {"weighting": "local"}))
         >>> [level.A.shape[0] for level in ml.levels]
         [1600, 280, 34]
+        >>> ml.levels[0].R.format  # a view of the prolongator's arrays
+        'csc'
         >>> bool(np.linalg.norm(A @ ml.solve(np.ones(1600), tol=1e-8) - 1) < 1e-6)
         True
     """

@@ -20,13 +20,12 @@ handed to pyamg's function unchanged.
 
 from __future__ import annotations
 
-import itertools
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
-from .prolongation import energy_prolongator, jacobi_prolongator
+from .prolongation import block_pattern, energy_prolongator, jacobi_prolongator, row_runs
 
 GALERKIN_BLOCK_VALUES = 1 << 19
 """Stored values of the restriction per block of :func:`galerkin_product`: the block's
@@ -150,8 +149,10 @@ def _coarser(fine: Any, strength: Any, smooth: Any) -> Any:
 def _scalar_rows(P: sp.bsr_array) -> sp.csr_array:
     """A prolongator with (1, c) blocks as CSR sharing its values (the blocks' values are
     already in CSR order): its transpose is then a free CSC view, where pyamg stores ``R =
-    P^T`` as a second BSR matrix (20 bytes per block). Measured on Eq. 5's matrix at 100K
-    faces: the same cycle to the bit, 15 % faster (0.136 against 0.160 s per W-cycle)."""
+    P^T`` as a second BSR matrix (20 bytes per block). On Eq. 5's matrix at 100K faces (a
+    scratch probe, not a bench/ command): the same cycle to the bit, 15 % faster (0.136
+    against 0.160 s per W-cycle); the linear answer's CPU time in ``bench.scale`` did not
+    move beyond the load's noise."""
     c = P.blocksize[1]
     indices = np.empty((len(P.indices), c), dtype=P.indices.dtype)
     np.multiply(P.indices[:, None], c, out=indices)
@@ -192,13 +193,12 @@ def galerkin_product(R: sp.spmatrix, A: sp.spmatrix, P: sp.spmatrix,
     P = P if P.format == "bsr" else sp.bsr_array(P)
     rb = R.blocksize[0]
     n_block_rows = R.shape[0] // rb
-    per_block = max(1, block_values // (rb * R.blocksize[1]))
-    cuts = np.searchsorted(R.indptr, np.arange(0, R.indptr[-1], per_block), side="right") - 1
-    runs = list(itertools.pairwise(np.unique(np.append(cuts, [0, n_block_rows])).tolist()))
+    runs = [(rows.start, rows.stop)
+            for rows, _ in row_runs(R.indptr, block_values // (rb * R.blocksize[1]))]
     # The answer's block pattern, run by run (index arrays only): an upper bound of its
     # stored blocks (the numeric product drops exact zeros).
-    A_pattern, P_pattern = _block_pattern(A), _block_pattern(P)
-    bound = sum(int((_block_pattern(_block_rows(R, first, last)) @ A_pattern @ P_pattern).nnz)
+    A_pattern, P_pattern = block_pattern(A), block_pattern(P)
+    bound = sum(int((block_pattern(_block_rows(R, first, last)) @ A_pattern @ P_pattern).nnz)
                 for first, last in runs)
     del A_pattern, P_pattern
     dtype = np.result_type(R.dtype, A.dtype, P.dtype)
@@ -221,13 +221,6 @@ def galerkin_product(R: sp.spmatrix, A: sp.spmatrix, P: sp.spmatrix,
     indices.resize(at, refcheck=False)
     return sp.bsr_array((data, indices, indptr), shape=(R.shape[0], P.shape[1]),
                         blocksize=(rb, rb), copy=False)
-
-
-def _block_pattern(M: sp.spmatrix) -> sp.csr_array:
-    """Boolean CSR of ``M``'s stored blocks (its own index arrays, one byte per block)."""
-    rb, cb = M.blocksize if M.format == "bsr" else (1, 1)
-    return sp.csr_array((np.ones(len(M.indices), dtype=bool), M.indices, M.indptr),
-                        shape=(M.shape[0] // rb, M.shape[1] // cb))
 
 
 def _block_rows(M: sp.bsr_array, first: int, last: int) -> sp.bsr_array:

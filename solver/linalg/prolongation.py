@@ -180,21 +180,26 @@ def jacobi_prolongator(A: sp.spmatrix, T: sp.spmatrix,
         return sp.bsr_array(T)
     rb, cb = T.blocksize
     n_block_rows, n_block_cols = T.shape[0] // rb, T.shape[1] // cb
-    graph = sp.csr_array((np.ones(len(A.indices), dtype=bool), A.indices, A.indptr),
-                         shape=(A.shape[0] // A.blocksize[0], A.shape[1] // A.blocksize[1]))
-    indptr, indices = _grown_pattern(T, graph, 1)
-    del graph
+    indptr, indices = _grown_pattern(T, block_pattern(A), 1)
     values = np.zeros((len(indices), rb, cb), dtype=np.result_type(A.dtype, T.dtype))
     amg_core.incomplete_mat_mult_bsr(
         A.indptr, A.indices, np.ravel(A.data), T.indptr, T.indices, np.ravel(T.data),
         indptr, indices, np.ravel(values), n_block_rows, n_block_cols,
         A.blocksize[0], A.blocksize[1], cb)
     scale = _row_scale(A, "local", values.dtype) * values.dtype.type(-omega)
-    for rows, entries in _row_runs(indptr):  # values = T - omega D^-1 (A T), in place
+    for rows, entries in row_runs(indptr):  # values = T - omega D^-1 (A T), in place
         block_row = _run_block_rows(indptr, rows)
         values[entries] *= scale[block_row[:, None] * rb + np.arange(rb)][:, :, None]
         _add_rows_on_pattern(values, T, indptr, indices, rows, entries)
     return _without_zero_blocks(values, indices, indptr, T.shape)
+
+
+def block_pattern(M: sp.spmatrix) -> sp.csr_array:
+    """Boolean CSR of the stored blocks of a CSR or BSR ``M`` (its own index arrays, one
+    byte per block; a product of two keeps every structural entry)."""
+    rb, cb = M.blocksize if M.format == "bsr" else (1, 1)
+    return sp.csr_array((np.ones(len(M.indices), dtype=bool), M.indices, M.indptr),
+                        shape=(M.shape[0] // rb, M.shape[1] // cb))
 
 
 def _grown_pattern(T: sp.bsr_array, Atilde: sp.csr_array,
@@ -202,12 +207,7 @@ def _grown_pattern(T: sp.bsr_array, Atilde: sp.csr_array,
     """Block-row pointers and sorted block columns of ``Atilde^degree`` times T's block
     pattern (pyamg's ``pattern``), without its values."""
     T.sort_indices()
-    shape = (T.shape[0] // T.blocksize[0], T.shape[1] // T.blocksize[1])
-    # Boolean values (one byte per entry; a product of them keeps every structural entry).
-    pattern = sp.csr_array((np.ones(len(T.indices), dtype=bool), T.indices, T.indptr),
-                           shape=shape)
-    strength = sp.csr_array((np.ones(len(Atilde.indices), dtype=bool), Atilde.indices,
-                             Atilde.indptr), shape=Atilde.shape)
+    pattern, strength = block_pattern(T), block_pattern(Atilde)
     for _ in range(degree):
         pattern = strength @ pattern
     pattern.sort_indices()
@@ -219,15 +219,17 @@ def _values_on_pattern(T: sp.bsr_array, indptr: np.ndarray,
     """(nnz_blocks, rb, cb) T's blocks scattered onto the (larger) pattern ``indptr``,
     ``indices`` (both sorted by row then column; T's pattern lies inside it)."""
     values = np.zeros((len(indices), *T.blocksize), dtype=T.dtype)
-    for rows, entries in _row_runs(indptr):
+    for rows, entries in row_runs(indptr):
         _add_rows_on_pattern(values, T, indptr, indices, rows, entries)
     return values
 
 
-def _row_runs(indptr: np.ndarray) -> Iterator[tuple[slice, slice]]:
-    """Runs of whole block rows with about RUN_VALUES // 4 stored blocks each: (block
-    rows, their entries)."""
-    step = max(1, RUN_VALUES // 4)
+def row_runs(indptr: np.ndarray, blocks_per_run: int = RUN_VALUES // 4,
+             ) -> Iterator[tuple[slice, slice]]:
+    """Runs of whole block rows of a CSR/BSR ``indptr`` with about ``blocks_per_run`` stored
+    blocks each (a longer row is a run of its own; empty rows may form runs with no
+    entries): (block rows, their entries)."""
+    step = max(1, int(blocks_per_run))
     cuts = np.searchsorted(indptr, np.arange(0, indptr[-1], step), side="right") - 1
     bounds = np.unique(np.append(cuts, [0, len(indptr) - 1]))
     for first, last in itertools.pairwise(bounds.tolist()):
@@ -264,7 +266,7 @@ def _without_zero_blocks(values: np.ndarray, indices: np.ndarray, indptr: np.nda
     the caller's own, with no other view of them in use."""
     counts = np.zeros(len(indptr) - 1, dtype=indptr.dtype)
     kept = 0
-    for rows, entries in _row_runs(indptr):
+    for rows, entries in row_runs(indptr):
         if entries.stop == entries.start:
             continue
         keep = values[entries].reshape(entries.stop - entries.start, -1).any(axis=1)
@@ -297,15 +299,11 @@ def _row_scale(A: sp.bsr_array, weighting: str, dtype: np.dtype) -> np.ndarray:
     rb, cb = A.blocksize
     if weighting == "diagonal":
         size = np.abs(A.diagonal()).astype(dtype)
-    else:  # block rows in runs of about BLOCK_VALUES values: no per-entry temporaries
+    else:  # block rows in runs of about RUN_VALUES values: no per-entry temporaries
         size = np.zeros((n_rows // rb, rb), dtype=np.float64)
         indptr = A.indptr
-        per_run = max(1, RUN_VALUES // (rb * cb))
-        cuts = np.unique(np.searchsorted(indptr, np.arange(0, indptr[-1], per_run),
-                                         side="right") - 1)
-        bounds = np.append(cuts, len(indptr) - 1)
-        for first, last in itertools.pairwise(bounds):
-            lo, hi = indptr[first], indptr[last]
+        for rows, entries in row_runs(indptr, RUN_VALUES // (rb * cb)):
+            first, last, lo, hi = rows.start, rows.stop, entries.start, entries.stop
             if hi == lo:
                 continue
             sums = np.zeros((hi - lo + 1, rb))  # each block's row sums, and a zero row

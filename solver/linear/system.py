@@ -348,7 +348,8 @@ def normal_matrix(A: sp.csr_matrix, weights: np.ndarray) -> sp.csc_matrix:
     The product is formed as ``(W A)^T`` in CSR (one transposed copy of the rows) times
     ``A``; K's CSR arrays are its CSC arrays (K is symmetric, to rounding). scipy's ``A.T @
     diags(w) @ A`` held a weighted copy of A, a CSC copy of it and a CSC copy of K besides:
-    at 100K faces 139 against 101 MB of peak above the rows (tracemalloc), the linear
+    at 100K faces 139 against 101 MB of peak above the rows (a scratch tracemalloc probe,
+    not a bench/ command), the linear
     answer's memory peak at 1.6M faces.
     """
     A = sp.csr_matrix(A)

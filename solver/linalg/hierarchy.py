@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from .prolongation import block_pattern, energy_prolongator, jacobi_prolongator, row_runs
+from .blocked import block_pattern, row_runs
+from .prolongation import energy_prolongator, jacobi_prolongator
 
 GALERKIN_BLOCK_VALUES = 1 << 19
 """Stored values of the restriction per block of :func:`galerkin_product`: the block's

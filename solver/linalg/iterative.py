@@ -28,6 +28,7 @@ from typing import Any, Literal
 import numpy as np
 import scipy.sparse as sp
 
+from .blocked import ROWS_PER_UPDATE, axpy
 from .cost import PowerLaw
 from .errors import BackendUnavailableError
 from .hierarchy import smoothed_aggregation
@@ -45,11 +46,6 @@ ITERATIVE_MEMORY = PowerLaw(per_face=2_600.0, base=150e6)
 assembly, the multigrid setup's or CG's; ``bench.scale``: 345 MiB at 100K faces, 1006 MiB at
 400K, 3753 MiB at 1.6M since the hierarchy is set up level by level (was 434, 1280 and 4899);
 2.4 KB per face beyond 150 MB; the model is 9-13 % above)."""
-
-
-ROWS_PER_UPDATE = 1 << 16
-"""Rows of CG's vector updates at once: x += alpha p and r -= alpha K p in contiguous row
-blocks, so that no (N,) temporary is made (45 MB at 1.6M faces)."""
 
 
 @dataclass(frozen=True)
@@ -263,9 +259,13 @@ class IterativeSolver:
                                     tolerance=rules.relative_tolerance,
                                     precision=dtype.name)
 
-    def _precondition(self, r: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """out = one cycle on ``r`` (N,) float64, from a zero guess."""
-        out[:] = self._preconditioner @ r.astype(self._dtype)
+    def _precondition(self, r: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+        """One cycle on ``r`` (N,) float64 from a zero guess, written into ``out`` (a new
+        float64 array where ``out`` is None)."""
+        cycle = self._preconditioner @ r.astype(self._dtype)
+        if out is None:
+            return np.asarray(cycle, dtype=np.float64)
+        out[:] = cycle
         return out
 
     def solve(self, rhs: np.ndarray | Callable[[int], np.ndarray],
@@ -324,38 +324,81 @@ class IterativeSolver:
         K = self.matrix
         target = tolerance * (float(np.linalg.norm(b)) or 1.0)
         r = _residual(K, b, x)
-        z = self._precondition(r, np.empty_like(r))
-        p = z.copy()
-        rz = float(r @ z)
-        iterations = 0
-        while iterations < self.rules.max_iterations and np.linalg.norm(r) > target:
-            Kp = K @ p
-            pKp = float(p @ Kp)
-            if not pKp > 0:  # a direction of no curvature (or not finite): stop here
-                break
-            alpha = rz / pKp
-            _axpy(x, p, alpha)
-            _axpy(r, Kp, -alpha)
-            z = self._precondition(r, out=z)
-            rz_new = float(r @ z)
-            # Flexible (Polak-Ribiere) beta, z.(r - r_previous) / rz with r_previous =
-            # r + alpha K p: the single-precision cycle is symmetric only to rounding
-            # (Fletcher-Reeves' rz_new / rz assumes it exactly; the two agree in exact
-            # arithmetic).
-            beta = -alpha * float(z @ Kp) / rz if rz != 0 else 0.0
-            del Kp                              # the next product is made without it
-            p *= beta
-            p += z
-            rz = rz_new
-            iterations += 1
+        iterations, _ = conjugate_gradients(K.__matmul__, self._precondition, x, r, target,
+                                            self.rules.max_iterations)
         return iterations
 
 
-def _axpy(y: np.ndarray, x: np.ndarray, alpha: float) -> None:
-    """y += alpha x (N,), in contiguous row blocks: no (N,) temporary."""
-    for lo in range(0, len(y), ROWS_PER_UPDATE):
-        rows = slice(lo, lo + ROWS_PER_UPDATE)
-        y[rows] += alpha * x[rows]
+def conjugate_gradients(apply: Callable[[np.ndarray], np.ndarray],
+                        precondition: Callable[[np.ndarray, np.ndarray | None], np.ndarray],
+                        x: np.ndarray, r: np.ndarray, target: float,
+                        max_iterations: int) -> tuple[int, float]:
+    """Preconditioned conjugate gradients on ``K x = b`` (the one CG loop of the library:
+    Eq. 5's iterative answer and the refinement's Gauss-Newton steps).
+
+    Args:
+        apply: ``p -> K p`` for (N,) float64 ``p`` (``K`` symmetric positive semi-definite).
+        precondition: ``(r, out) -> M^-1 r`` (N,) float64, written into ``out`` where that
+            is an array (``None`` the first time), an approximation of ``K^-1`` that may be
+            symmetric only to rounding (a single-precision multigrid cycle).
+        x: (N,) float64 the start, updated in place (a strided view is fine).
+        r: (N,) float64 its residual ``b - K x``, updated in place.
+        target: stop once ``||r|| <= target`` (the 2-norm of the recursively updated
+            residual).
+        max_iterations: the cap on iterations.
+
+    Returns:
+        (iterations, ||r||) when it stopped: at the target, at the cap, or where a direction
+        has no curvature (``p.K p <= 0``) or the preconditioned residual ``r.M^-1 r`` is not
+        positive; every iterate from a zero start is a descent direction of ``x.K x / 2 -
+        b.x`` all the same.
+
+    The residual is checked before it is preconditioned (no cycle is spent on the last one);
+    ``beta`` is the flexible (Polak-Ribiere) ``z.(r - r_previous) / r_previous.z_previous``
+    with ``r_previous = r + alpha K p``: a cycle in single precision is symmetric only to
+    rounding, which Fletcher-Reeves' ``r.z / r_previous.z_previous`` assumes exactly (the two
+    agree in exact arithmetic). Updates of ``x``, ``r`` and ``p`` are in place, in row blocks
+    (:data:`~solver.linalg.blocked.ROWS_PER_UPDATE`): no (N,) temporary beyond ``K p`` and
+    the preconditioned residual.
+
+    Example:
+        >>> import numpy as np, scipy.sparse as sp
+        >>> K = sp.diags_array([[-1.0] * 4, [2.0] * 5, [-1.0] * 4], offsets=[-1, 0, 1])
+        >>> b, x = np.ones(5), np.zeros(5)
+        >>> def jacobi(r, out):
+        ...     return r / 2.0
+        >>> iterations, residual = conjugate_gradients(K.__matmul__, jacobi, x, b.copy(),
+        ...                                            1e-12, 10)
+        >>> iterations, bool(np.allclose(K @ x, b))
+        (3, True)
+    """
+    residual = float(np.linalg.norm(r))
+    iterations = 0
+    if residual <= target or max_iterations <= 0:
+        return iterations, residual
+    z = precondition(r, None)
+    p = z.copy()
+    rz = float(r @ z)
+    while iterations < max_iterations and rz > 0:
+        Kp = apply(p)
+        pKp = float(p @ Kp)
+        if not pKp > 0:  # a direction of no curvature (or not finite): stop here
+            break
+        alpha = rz / pKp
+        axpy(x, p, alpha, ROWS_PER_UPDATE)
+        axpy(r, Kp, -alpha, ROWS_PER_UPDATE)
+        iterations += 1
+        residual = float(np.linalg.norm(r))
+        if residual <= target:
+            break
+        z = precondition(r, z)
+        rz_new = float(r @ z)
+        beta = -alpha * float(z @ Kp) / rz
+        del Kp                              # the next product is made without it
+        axpy(z, p, beta, ROWS_PER_UPDATE)   # p = z + beta p, the new direction in z's array
+        p, z = z, p
+        rz = rz_new
+    return iterations, residual
 
 
 def _residual(K: sp.spmatrix, b: np.ndarray, x: np.ndarray) -> np.ndarray:

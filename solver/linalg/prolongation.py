@@ -29,19 +29,20 @@ up with both.
 
 from __future__ import annotations
 
-import itertools
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
-BLOCK_VALUES = 1 << 20
-"""Values per block of the in-place updates: their temporaries stay a few MB."""
-RUN_VALUES = 1 << 17
-"""Stored values per run of whole block rows (row sums, row scaling, the tentative
-prolongator's blocks, dropping zero blocks): each run's temporaries (int64 positions,
-double-precision sums) stay ~1 MB."""
+from .blocked import (
+    RUN_VALUES,
+    axpy,
+    block_pattern,
+    leading_blocks,
+    row_runs,
+    run_block_rows,
+    shrunk,
+)
 
 
 def _pyamg_energy(*args: Any, **kwargs: Any) -> sp.bsr_array:
@@ -134,8 +135,8 @@ def energy_prolongator(A: sp.spmatrix, T: sp.spmatrix, Atilde: sp.csr_array, B: 
         times_a(P, AP)
         satisfy_constraints(on_pattern(AP), B, BtBinv)
         alpha = rz / _inner(P, AP)
-        _axpy(T_values, P, alpha)      # T += alpha P
-        _axpy(R, AP, -alpha)           # R -= alpha A P
+        axpy(T_values, P, alpha)      # T += alpha P
+        axpy(R, AP, -alpha)           # R -= alpha A P
     del R, P, AP
     # the pattern's arrays are this function's own
     return _without_zero_blocks(T_values, indices, indptr, full_shape)
@@ -188,18 +189,10 @@ def jacobi_prolongator(A: sp.spmatrix, T: sp.spmatrix,
         A.blocksize[0], A.blocksize[1], cb)
     scale = _row_scale(A, "local", values.dtype) * values.dtype.type(-omega)
     for rows, entries in row_runs(indptr):  # values = T - omega D^-1 (A T), in place
-        block_row = _run_block_rows(indptr, rows)
+        block_row = run_block_rows(indptr, rows)
         values[entries] *= scale[block_row[:, None] * rb + np.arange(rb)][:, :, None]
         _add_rows_on_pattern(values, T, indptr, indices, rows, entries)
     return _without_zero_blocks(values, indices, indptr, T.shape)
-
-
-def block_pattern(M: sp.spmatrix) -> sp.csr_array:
-    """Boolean CSR of the stored blocks of a CSR or BSR ``M`` (its own index arrays, one
-    byte per block; a product of two keeps every structural entry)."""
-    rb, cb = M.blocksize if M.format == "bsr" else (1, 1)
-    return sp.csr_array((np.ones(len(M.indices), dtype=bool), M.indices, M.indptr),
-                        shape=(M.shape[0] // rb, M.shape[1] // cb))
 
 
 def _grown_pattern(T: sp.bsr_array, Atilde: sp.csr_array,
@@ -224,24 +217,6 @@ def _values_on_pattern(T: sp.bsr_array, indptr: np.ndarray,
     return values
 
 
-def row_runs(indptr: np.ndarray, blocks_per_run: int = RUN_VALUES // 4,
-             ) -> Iterator[tuple[slice, slice]]:
-    """Runs of whole block rows of a CSR/BSR ``indptr`` with about ``blocks_per_run`` stored
-    blocks each (a longer row is a run of its own; empty rows may form runs with no
-    entries): (block rows, their entries)."""
-    step = max(1, int(blocks_per_run))
-    cuts = np.searchsorted(indptr, np.arange(0, indptr[-1], step), side="right") - 1
-    bounds = np.unique(np.append(cuts, [0, len(indptr) - 1]))
-    for first, last in itertools.pairwise(bounds.tolist()):
-        yield slice(first, last), slice(int(indptr[first]), int(indptr[last]))
-
-
-def _run_block_rows(indptr: np.ndarray, rows: slice) -> np.ndarray:
-    """The block row of each entry of the run ``rows`` (int64)."""
-    return np.repeat(np.arange(rows.start, rows.stop, dtype=np.int64),
-                     np.diff(indptr[rows.start:rows.stop + 1]))
-
-
 def _add_rows_on_pattern(values: np.ndarray, T: sp.bsr_array, indptr: np.ndarray,
                          indices: np.ndarray, rows: slice, entries: slice) -> None:
     """values[entries] += T's blocks of the block rows ``rows`` (T's pattern inside the
@@ -250,9 +225,9 @@ def _add_rows_on_pattern(values: np.ndarray, T: sp.bsr_array, indptr: np.ndarray
     if hi == lo:
         return
     n_cols = np.int64(T.shape[1] // T.blocksize[1])
-    wide = _run_block_rows(indptr, rows) * n_cols
+    wide = run_block_rows(indptr, rows) * n_cols
     wide += indices[entries]
-    own = _run_block_rows(T.indptr, rows) * n_cols
+    own = run_block_rows(T.indptr, rows) * n_cols
     own += T.indices[lo:hi]
     values[entries][np.searchsorted(wide, own)] += T.data[lo:hi]
 
@@ -273,23 +248,14 @@ def _without_zero_blocks(values: np.ndarray, indices: np.ndarray, indptr: np.nda
         n = int(np.count_nonzero(keep))
         values[kept:kept + n] = values[entries][keep]  # kept <= entries.start: no overlap
         indices[kept:kept + n] = indices[entries][keep]
-        counts[rows] = np.bincount(_run_block_rows(indptr, rows)[keep] - rows.start,
+        counts[rows] = np.bincount(run_block_rows(indptr, rows)[keep] - rows.start,
                                    minlength=rows.stop - rows.start)
         kept += n
     indptr[0] = 0
     np.cumsum(counts, out=indptr[1:])
     del counts
-    return sp.bsr_array((_shrunk(values, kept), _shrunk(indices, kept), indptr), shape=shape,
+    return sp.bsr_array((shrunk(values, kept), shrunk(indices, kept), indptr), shape=shape,
                         copy=False)
-
-
-def _shrunk(array: np.ndarray, length: int) -> np.ndarray:
-    """The first ``length`` rows of ``array``: shrunk in place where it owns its memory, a
-    copy where it is a view."""
-    if array.base is None and array.flags.owndata:
-        array.resize((length, *array.shape[1:]), refcheck=False)
-        return array
-    return array[:length].copy()
 
 
 def _row_scale(A: sp.bsr_array, weighting: str, dtype: np.dtype) -> np.ndarray:
@@ -317,12 +283,6 @@ def _row_scale(A: sp.bsr_array, weighting: str, dtype: np.dtype) -> np.ndarray:
     return scale
 
 
-def _blocks(values: np.ndarray) -> Iterator[slice]:
-    step = max(1, BLOCK_VALUES // max(1, values[0].size if len(values) else 1))
-    for lo in range(0, len(values), step):
-        yield slice(lo, lo + step)
-
-
 def _row_factors(scale: np.ndarray, block_row: np.ndarray, part: slice,
                  rb: int) -> np.ndarray:
     """(blocks, rb, 1) the scaling of each block's rows."""
@@ -332,7 +292,7 @@ def _row_factors(scale: np.ndarray, block_row: np.ndarray, part: slice,
 def _scaled_inner(R: np.ndarray, scale: np.ndarray, block_row: np.ndarray) -> float:
     """<R, D^-1 R>_F in double precision."""
     total = 0.0
-    for part in _blocks(R):
+    for part in leading_blocks(R):
         r = R[part]
         total += float(np.einsum("kab,kab->", r * _row_factors(scale, block_row, part,
                                                                  R.shape[1]), r,
@@ -343,20 +303,13 @@ def _scaled_inner(R: np.ndarray, scale: np.ndarray, block_row: np.ndarray) -> fl
 def _inner(X: np.ndarray, Y: np.ndarray) -> float:
     """<X, Y>_F in double precision."""
     return sum(float(np.einsum("kab,kab->", X[part], Y[part], dtype=np.float64))
-               for part in _blocks(X))
+               for part in leading_blocks(X))
 
 
 def _new_direction(P: np.ndarray, R: np.ndarray, scale: np.ndarray, block_row: np.ndarray,
                    beta: float) -> None:
     """P = D^-1 R + beta P, in place."""
     beta = P.dtype.type(beta)
-    for part in _blocks(P):
+    for part in leading_blocks(P):
         P[part] *= beta
         P[part] += R[part] * _row_factors(scale, block_row, part, R.shape[1])
-
-
-def _axpy(Y: np.ndarray, X: np.ndarray, alpha: float) -> None:
-    """Y += alpha X, in place."""
-    alpha = Y.dtype.type(alpha)
-    for part in _blocks(Y):
-        Y[part] += alpha * X[part]

@@ -155,11 +155,9 @@ def _search_rows(full: sp.csr_matrix, rows: np.ndarray, columns: np.ndarray,
     counts = full.indptr[asked + 1] - starts
     positions = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
     keys = np.repeat(asked.astype(np.int64), counts) * width + full.indices[positions]
-    order = np.argsort(keys, kind="stable")
     wanted = rows.astype(np.int64) * width + columns
-    at = np.minimum(np.searchsorted(keys[order], wanted), max(len(keys) - 1, 0))
-    found = np.flatnonzero(keys[order][at] == wanted) if len(keys) else np.zeros(0, np.int64)
-    return found, full.data[positions[order[at[found]]]].astype(np.int64) - 1
+    found, position = _find_keys(keys, wanted)
+    return found, full.data[positions[position]].astype(np.int64) - 1
 
 
 def _pair_lookup(links: np.ndarray, nodes: np.ndarray, parents: np.ndarray,
@@ -168,11 +166,24 @@ def _pair_lookup(links: np.ndarray, nodes: np.ndarray, parents: np.ndarray,
     links)."""
     key = np.minimum(links[:, 0], links[:, 1]) * (n_nodes + 1) + np.maximum(links[:, 0],
                                                                             links[:, 1])
-    order = np.argsort(key, kind="stable")
     want = np.minimum(nodes, parents) * (n_nodes + 1) + np.maximum(nodes, parents)
+    found, link = _find_keys(key, want)
     parent_link = np.full(n_nodes, -1, dtype=np.int64)
-    parent_link[nodes] = order[np.searchsorted(key[order], want)]
+    parent_link[nodes[found]] = link
     return parent_link
+
+
+def _find_keys(keys: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(found, position)``: which of ``wanted`` (k,) int64 occur in ``keys`` (K,) int64
+    (a (k',) int64 index into ``wanted``) and where (the first of equal keys), by one stable
+    sort of ``keys`` and a binary search each (time O((K + k) log K))."""
+    if not len(keys):
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    order = np.argsort(keys, kind="stable")
+    ordered = keys[order]
+    at = np.minimum(np.searchsorted(ordered, wanted), len(keys) - 1)
+    found = np.flatnonzero(ordered[at] == wanted)
+    return found, order[at[found]]
 
 
 def _breadth_first_levels(order: np.ndarray, parent: np.ndarray, n_roots: int,

@@ -53,7 +53,7 @@ import scipy.sparse as sp
 
 from ..linalg.cost import PowerLaw
 from ..linalg.hierarchy import smoothed_aggregation
-from ..linalg.iterative import LinearSolverRules, _multigrid
+from ..linalg.iterative import LinearSolverRules, _multigrid, conjugate_gradients
 from .steps import StepRules
 
 REFINEMENT_SOLVER_RULES = LinearSolverRules(
@@ -465,27 +465,9 @@ class IterativeOperator:
         x = np.zeros_like(b)
         norm_b = float(np.linalg.norm(b))
         target = self.tolerance * norm_b
-        r = b.copy()
-        z = P(mg.cycle(r))
-        p = z.copy()
-        rz = float(r @ z)
-        iterations, residual = 0, norm_b
-        while residual > target and iterations < mg.max_iterations and rz > 0:
-            Kp = U @ p + U.T @ p - d * p
-            pKp = float(p @ Kp)
-            if not pKp > 0:
-                break
-            alpha = rz / pKp
-            x += alpha * p
-            r -= alpha * Kp
-            residual = float(np.linalg.norm(r))
-            iterations += 1
-            if residual <= target:
-                break
-            z = P(mg.cycle(r))
-            rz_new = float(r @ z)
-            p = z + (rz_new / rz) * p
-            rz = rz_new
+        iterations, residual = conjugate_gradients(
+            lambda p: U @ p + U.T @ p - d * p, lambda r, out: P(mg.cycle(r)), x, b.copy(),
+            target, mg.max_iterations)
         capped = residual > target
         relative = residual / norm_b if norm_b else 0.0
         stats = mg.stats

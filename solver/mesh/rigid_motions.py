@@ -56,6 +56,9 @@ class RigidMotions:
         self._rows = np.flatnonzero(gauged)
         _, self._label = np.unique(free_component[self._rows], return_inverse=True)
         self._count = int(self._label.max()) + 1 if len(self._label) else 0
+        # Every free vertex projected: the step's rows are used where they are (no gather
+        # and scatter of the rows, the common case of one unheld mesh).
+        self._every_row = len(self._rows) == len(free_component)
 
     def at(self, X_free: np.ndarray) -> RigidProjection:
         """The projection for a factor built at the free positions ``X_free`` (n_free, dim)."""
@@ -102,24 +105,41 @@ class RigidProjection:
             return step
         label, count, dim = motions._label, motions._count, motions.dim
         out = step.reshape(-1, dim).copy()
-        s = out[motions._rows]
-        s -= (_sums(s, label, count) / self._size[:, None])[label]     # translations
+        s = out if motions._every_row else out[motions._rows]
+        s -= _per_row(_sums(s, label, count) / self._size[:, None], label, count)  # translations
         r = self._r
         if dim == 3:
-            momentum = _sums(np.cross(r, s), label, count)               # (count, 3)
+            momentum = _sums(_cross(r, s), label, count)                  # (count, 3)
             omega = np.einsum("cij,cj->ci", self._inverse_inertia, momentum)
-            s -= np.cross(omega[label], r)
+            s -= _cross(_per_row(omega, label, count), r)
         else:
-            momentum = np.bincount(label, r[:, 0] * s[:, 1] - r[:, 1] * s[:, 0],
-                                   minlength=count)
-            omega = (self._inverse_inertia * momentum)[label]
+            momentum = _sums((r[:, 0] * s[:, 1] - r[:, 1] * s[:, 0])[:, None], label,
+                             count)[:, 0]
+            omega = _per_row(self._inverse_inertia * momentum, label, count)
             s[:, 0] += omega * r[:, 1]
             s[:, 1] -= omega * r[:, 0]
-        out[motions._rows] = s
+        if not motions._every_row:
+            out[motions._rows] = s
         return out.reshape(step.shape)
 
 
 def _sums(values: np.ndarray, label: np.ndarray, count: int) -> np.ndarray:
     """Column sums (count, c) of ``values`` (k, c) per ``label`` (k,)."""
+    if count == 1:
+        return values.sum(axis=0, keepdims=True)
     return np.stack([np.bincount(label, values[:, c], minlength=count)
                      for c in range(values.shape[1])], axis=1)
+
+
+def _per_row(values: np.ndarray, label: np.ndarray, count: int) -> np.ndarray:
+    """``values[label]`` (k, ...) from per-component ``values`` (count, ...); with one
+    component its row, broadcast."""
+    return values[:1] if count == 1 else values[label]
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products (k, 3) of (k, 3) or (1, 3) arrays (``numpy.cross`` without
+    its axis handling)."""
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=1)

@@ -31,29 +31,40 @@ def rigid_basis(X: np.ndarray, dim: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("dim", [3, 2])
-def test_projection_removes_exactly_the_rigid_motions_of_unheld_components(dim):
-    V, F = two_spheres()
+@pytest.mark.parametrize("spheres", ["second held", "both free", "one free"])
+def test_projection_removes_exactly_the_rigid_motions_of_unheld_components(dim, spheres):
+    """Each unheld component loses exactly its rigid motions (one or two of them, all rows
+    or some rows projected); a held one is untouched."""
+    V, F = two_spheres() if spheres != "one free" else icosphere(2)
     X = V[:, :dim] + 0.05 * np.random.default_rng(0).normal(size=(len(V), dim))
-    n = len(V) // 2
+    n = len(V) // 2 if spheres != "one free" else len(V)
     held = np.zeros(len(V), dtype=bool)
-    held[n + 3] = True  # a handle on the second sphere: its motions are not free
+    if spheres == "second held":
+        held[n + 3] = True  # a handle on the second sphere: its motions are not free
     free = np.ones(len(V), dtype=bool)
     motions = RigidMotions(build_topology(F, len(V)), free, held, dim)
     assert motions.active
     project = motions.at(X)
     rng = np.random.default_rng(1)
-    basis = rigid_basis(X[:n], dim)
     v = rng.normal(size=len(V) * dim)
-    v[: n * dim] += basis @ rng.normal(size=basis.shape[1]) * 100.0
+    parts = [slice(0, n)] + ([slice(n, len(V))] if spheres == "both free" else [])
+    for part in parts:
+        rows = slice(part.start * dim, part.stop * dim)
+        v[rows] += rigid_basis(X[part], dim) @ rng.normal(size=3 if dim == 2 else 6) * 100.0
+    given = v.copy()
     p = project(v)
-    # The first component: orthogonal to its rigid motions, and only they were removed.
-    first, removed = p[: n * dim], v[: n * dim] - p[: n * dim]
-    assert np.abs(basis.T @ first).max() < 1e-9 * np.abs(v).max()
-    coefficients = np.linalg.lstsq(basis, removed, rcond=None)[0]
-    assert np.abs(basis @ coefficients - removed).max() < 1e-9 * np.abs(v).max()
-    # The held component is untouched; projecting twice changes nothing.
-    assert np.array_equal(p[n * dim:], v[n * dim:])
-    assert np.allclose(project(p), p, atol=1e-12 * np.abs(v).max())
+    assert np.array_equal(v, given)  # the step given is not changed
+    for part in parts:  # orthogonal to its rigid motions, and only they were removed
+        rows = slice(part.start * dim, part.stop * dim)
+        basis = rigid_basis(X[part], dim)
+        kept, removed = p[rows], v[rows] - p[rows]
+        assert np.abs(basis.T @ kept).max() < 1e-9 * np.abs(v).max()
+        coefficients = np.linalg.lstsq(basis, removed, rcond=None)[0]
+        assert np.abs(basis @ coefficients - removed).max() < 1e-9 * np.abs(v).max()
+        assert np.abs(removed).max() > 1.0  # something was removed
+    if spheres == "second held":  # the held component is untouched
+        assert np.array_equal(p[n * dim:], v[n * dim:])
+    assert np.allclose(project(p), p, atol=1e-12 * np.abs(v).max())  # twice: no change
 
 
 def test_problems_with_handles_on_every_component_have_nothing_to_project():

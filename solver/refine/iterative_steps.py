@@ -6,7 +6,9 @@ step solves the damped matrix ``H + lambda D`` (:func:`solver.refine.damping.dam
 conjugate gradients preconditioned by smoothed-aggregation multigrid (pyamg), to a relative
 residual of the forcing term (Eisenstat and Walker 1996, choice 2: tight where the gradient
 falls fast, loose far from the optimum). No factor and no dense block is formed: the matrix
-(its full symmetric CSR), the multigrid hierarchy and a few vectors.
+(its upper triangle in CSR; the hierarchy keeps its own finest copy), the multigrid hierarchy
+and a few vectors. The loop is the library's one CG
+(:func:`solver.linalg.iterative.conjugate_gradients`, flexible beta, updates in place).
 
 Smoothed aggregation needs the matrix's near-null space: the energy is invariant under rigid
 motions, so per vertex the three translations and the three infinitesimal rotations about
@@ -22,7 +24,7 @@ count iterations, never seconds, so that a run takes the same steps on a loaded 
 an idle one: a setup is priced as :attr:`~solver.refine.steps.StepRules.cg_setup_iterations`
 CG iterations. (A hierarchy reused across steps does as well as a fresh one on these
 matrices: on the noisy 100K-face scan, set up before every solve the four solves take 8, 53,
-31, 62 iterations, by this rule (which never sets up again here) 8, 53, 32, 61
+31, 62 iterations, by this rule (which never sets up again here) 8, 53, 32, 62
 (``python -m bench.gauss_newton_cg policies 0 --policies always rule``); restarting a solve
 with a fresh hierarchy when it ran long cost 42 iterations more at 400K faces, CG's Krylov
 space lost. What grows is the iterations a tight tolerance needs: docs/large-meshes.md.)

@@ -338,8 +338,9 @@ def conjugate_gradients(apply: Callable[[np.ndarray], np.ndarray],
 
     Args:
         apply: ``p -> K p`` for (N,) float64 ``p`` (``K`` symmetric positive semi-definite).
-        precondition: ``(r, out) -> M^-1 r`` (N,) float64, written into ``out`` where that
-            is an array (``None`` the first time), an approximation of ``K^-1`` that may be
+        precondition: ``(r, out) -> M^-1 r`` (N,) float64 (the returned array is used);
+            ``out`` is a spare (N,) float64 array of the loop's that it may write into and
+            return (``None`` the first time). An approximation of ``K^-1`` that may be
             symmetric only to rounding (a single-precision multigrid cycle).
         x: (N,) float64 the start, updated in place (a strided view is fine).
         r: (N,) float64 its residual ``b - K x``, updated in place.

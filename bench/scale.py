@@ -34,6 +34,12 @@ set it.
 
 A child that runs out of its address-space limit is reported as ``out of memory`` (the
 parent survives; the OOM killer is never reached).
+
+While a case runs, its stages and the refinement's iterations are written to stderr as they
+come, with the elapsed seconds and the RSS (a run of hours at 5M faces shows where it is)::
+
+    [bunny level 1 default-iterative]       1.9 s  refine  (RSS 172 MB)
+    [bunny level 1 default-iterative]       4.2 s  refine iteration 1: E 7.787548e-05, ...
 """
 
 from __future__ import annotations
@@ -47,7 +53,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -63,6 +69,9 @@ CACHE = Path(os.environ.get("FFS_SCALE_CACHE", "/tmp/ffs-scale"))
 """Where the subdivided meshes and their forms are cached (outside the repository)."""
 BASE = "nefertiti.obj"
 NOISE = 1e-3
+PROGRESS_MARK = "progress: "
+"""How a child's progress lines on stderr begin (:class:`StageMemory`): the parent forwards
+them as they come (:func:`child`) and leaves them out of an error's last line."""
 CASES = ("exact", "linear", "default", "linear-direct", "linear-iterative",
          "default-direct", "default-iterative")
 """``linear`` and ``default`` choose the linear solver by size (``linear_solver="auto"``);
@@ -95,26 +104,48 @@ def forms_file(level: int, base: str = BASE) -> Path:
 
 class StageMemory:
     """Peak RSS (MB) per stage, sampled by a thread every ``period`` seconds; the stage is
-    the one ``progress`` last named."""
+    the one ``progress`` last named. With a ``log`` (the child's stderr), every new stage
+    and every refinement iteration (``progress.iteration``) is also written there as one
+    line starting with :data:`PROGRESS_MARK`: elapsed seconds, the stage or the
+    iteration's energy, and the RSS, so that a run of hours shows where it is."""
 
-    def __init__(self, period: float = 0.005) -> None:
+    def __init__(self, period: float = 0.005, log: TextIO | None = None) -> None:
         self.stage = "load"
         self.peak: dict[str, float] = {}
+        self._log = log
+        self._start = time.perf_counter()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
         self._thread.start()
 
     def __call__(self, stage: str, fraction: float) -> None:
         self._sample()
+        if stage != self.stage:
+            self._write(f"{stage}")
         self.stage = stage
 
-    def _sample(self) -> None:
+    def iteration(self, detail: dict) -> None:
+        """The refinement's per-iteration hook (``solver.refine.refiner``)."""
+        self._write(f"refine iteration {detail['iteration']}: E {detail['energy']:.6e}, "
+                    f"{detail['factorizations']} factorizations")
+
+    def _write(self, what: str) -> None:
+        if self._log is not None:
+            elapsed = time.perf_counter() - self._start
+            print(f"{PROGRESS_MARK}{elapsed:9.1f} s  {what}  (RSS {self._rss():.0f} MB)",
+                  file=self._log, flush=True)
+
+    @staticmethod
+    def _rss() -> float:
         with open("/proc/self/status") as fh:
             for line in fh:
                 if line.startswith("VmRSS:"):
-                    mb = int(line.split()[1]) / 1024
-                    self.peak[self.stage] = max(self.peak.get(self.stage, 0.0), mb)
-                    return
+                    return int(line.split()[1]) / 1024
+        return 0.0
+
+    def _sample(self) -> None:
+        mb = self._rss()
+        self.peak[self.stage] = max(self.peak.get(self.stage, 0.0), mb)
 
     def _run(self, period: float) -> None:
         while not self._stop.wait(period):
@@ -140,7 +171,7 @@ def run_case(level: int, case: str, base: str = BASE) -> dict:
     """One case in this process; returns its measurements (a JSON-able dict)."""
     from solver import reconstruct
 
-    memory = StageMemory()
+    memory = StageMemory(log=sys.stderr)
     data = np.load(forms_file(level, base))
     faces, edges, lengths = data["faces"], data["edges"], data["lengths"]
     angles = data["angles"] if case == "exact" else data["noisy"]
@@ -213,6 +244,38 @@ def fixed_malloc_thresholds(threshold: int = 128 * 1024) -> bool:
         mallopt(M_TRIM_THRESHOLD, threshold))
 
 
+def run_forwarding_progress(cmd: list[str], env: dict, cwd: Path,
+                            prefix: str) -> tuple[int, str, str]:
+    """Run ``cmd`` to its end; its progress lines (:data:`PROGRESS_MARK`) are written to this
+    process's stderr, after ``prefix``, as they come. Returns the exit status, the whole
+    stdout and the whole stderr (progress lines included)."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env, cwd=cwd)
+    lines: list[str] = []
+
+    def forward() -> None:
+        for line in proc.stderr:
+            lines.append(line)
+            if line.startswith(PROGRESS_MARK):
+                print(prefix + line[len(PROGRESS_MARK):], end="", file=sys.stderr, flush=True)
+
+    reader = threading.Thread(target=forward, daemon=True)
+    reader.start()
+    stdout = proc.stdout.read()
+    returncode = proc.wait()
+    reader.join()
+    return returncode, stdout, "".join(lines)
+
+
+def failure(returncode: int, stderr: str) -> str:
+    """A failed child's error cell: ``out of memory`` where it ran out of its address space,
+    else its last stderr line that is not progress, else its exit status."""
+    if "MemoryError" in stderr or "Cannot allocate" in stderr:
+        return "out of memory"
+    errors = [line for line in stderr.strip().splitlines() if not line.startswith(PROGRESS_MARK)]
+    return (errors[-1:] or [f"exit {returncode}"])[0]
+
+
 def child(level: int, case: str, max_gb: float | None, base: str = BASE,
           tree: Path | None = None, start_tolerance: float | None = None,
           allocator: str | None = None) -> dict:
@@ -230,18 +293,17 @@ def child(level: int, case: str, max_gb: float | None, base: str = BASE,
         env["FFS_SCALE_START_TOLERANCE"] = repr(start_tolerance)
     if allocator is not None:
         env["FFS_SCALE_ALLOCATOR"] = allocator
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=root)
     label = case if tree is None else f"{case} (baseline)"
     if start_tolerance is not None:
         label += f" (start {start_tolerance:g})"
     if allocator == "tuned":
         label += " (fixed malloc thresholds)"
-    if proc.returncode != 0:
-        tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
-        oom = "MemoryError" in proc.stderr or "Cannot allocate" in proc.stderr
+    returncode, stdout, stderr = run_forwarding_progress(
+        cmd, env, root, f"[{Path(base).stem} level {level} {label}] ")
+    if returncode != 0:
         return {"base": Path(base).stem, "level": level, "case": label,
-                "error": "out of memory" if oom else tail[0]}
-    row = json.loads(proc.stdout.strip().splitlines()[-1])
+                "error": failure(returncode, stderr)}
+    row = json.loads(stdout.strip().splitlines()[-1])
     row["case"] = label
     return row
 

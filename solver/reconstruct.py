@@ -312,7 +312,8 @@ def reconstruct_on_cut(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
         if last:
             problem.release_transitions()  # the check's quaternions: rebuilt if used again
         u = system.solve(linear.hard_values, linear.soft_values, guess, tolerance,
-                         overwrite_guess=last)
+                         overwrite_guess=last,
+                         progress=stages.part("solve", 0.0, 0.5 if opts.orthonormalize else 1.0))
         del guess
         factorized = {"backend": system.backend, "analysis": system.analysis}
         linear_solver = system.linear_solver_report()
@@ -355,7 +356,8 @@ def reconstruct_on_cut(faces: ArrayLike, edges: ArrayLike, lengths: ArrayLike,
         stages("solve", 0.5)
         targets = np.swapaxes(rotations, 1, 2).reshape(-1, 3)
         soft_values = np.concatenate([linear.soft_values, targets])
-        u = system2.solve(linear.hard_values, soft_values, u, tolerance)
+        u = system2.solve(linear.hard_values, soft_values, u, tolerance,
+                          progress=stages.part("solve", 0.5))
         if system2.iterative is not None:
             linear_solver = {**system2.linear_solver_report(), "first_solve": linear_solver}
         vertices, frames = problem.unknowns_to_geometry(u, user)

@@ -49,6 +49,20 @@ class Stages:
         if self.progress is not None:
             self.progress(stage, fraction)
 
+    def part(self, stage: str, low: float = 0.0, high: float = 1.0,
+             ) -> Callable[[float], None]:
+        """``fraction -> self(stage, low + fraction * (high - low))``: the progress of a
+        step that spans ``[low, high]`` of ``stage`` (an iterative solve's CG).
+
+        Example:
+            >>> seen = []
+            >>> Stages(lambda stage, fraction: seen.append((stage, fraction))).part(
+            ...     "solve", 0.5)(0.5)
+            >>> seen
+            [('solve', 0.75)]
+        """
+        return lambda fraction: self(stage, low + fraction * (high - low))
+
     def lap(self, stage: str) -> None:
         """Count the time since the last lap (or the start) towards ``stage``."""
         now = time.perf_counter()

@@ -20,6 +20,7 @@ residuals and the answer are float64.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -204,6 +205,63 @@ class IterativeStats:
                 "solve_seconds": round(self.solve_seconds, 4)}
 
 
+def digits_share(start: float, residual: float, target: float) -> float:
+    """The share, 0 to 1, of the digits a CG solve must take off its residual (from
+    ``start`` down to ``target``) that it has taken off at ``residual``:
+    ``log(start / residual) / log(start / target)``; 1 where nothing was to be done.
+
+    Example:
+        >>> digits_share(1.0, 1e-3, 1e-6), digits_share(1.0, 2.0, 1e-6)
+        (0.5, 0.0)
+        >>> digits_share(1e-7, 1e-7, 1e-6)  # at the target from the start
+        1.0
+    """
+    if not start > target > 0:
+        return 1.0
+    if not residual > 0:
+        return 1.0
+    share = math.log(start / residual) / math.log(start / target)
+    return min(max(share, 0.0), 1.0)
+
+
+class SolveProgress:
+    """How far a CG solve of ``columns`` right-hand sides is, for ``progress(fraction)``.
+
+    A column's fraction is the share of the digits its residual must lose that it has lost,
+    ``log(start / residual) / log(start / target)`` (0 to 1; CG's residual falls about
+    geometrically under a good preconditioner, so this is close to the share of its time);
+    the solve's is ``(column + that) / columns``. ``progress`` is called only when the
+    fraction has grown by :attr:`step` or more, or reached 1 (a solve of hundreds of
+    iterations reports ~100 times), and never when it is None.
+
+    Example:
+        >>> seen = []
+        >>> report = SolveProgress(seen.append, columns=2)
+        >>> observe = report.column(1)
+        >>> observe(1.0, 1e-2, 1e-4)    # half the digits of the second column
+        >>> seen
+        [0.75]
+    """
+
+    step = 0.01
+
+    def __init__(self, progress: Callable[[float], None] | None, columns: int) -> None:
+        self._progress = progress
+        self._columns = max(int(columns), 1)
+        self._reported = -1.0
+
+    def column(self, index: int) -> Callable[[float, float, float], None]:
+        """``observe(start, residual, target)`` for the column ``index`` (0-based)."""
+        def observe(start: float, residual: float, target: float) -> None:
+            if self._progress is None:
+                return
+            fraction = (index + digits_share(start, residual, target)) / self._columns
+            if fraction >= self._reported + self.step or (fraction == 1.0 > self._reported):
+                self._reported = fraction
+                self._progress(float(fraction))
+        return observe
+
+
 class IterativeSolver:
     """Smoothed-aggregation multigrid of an SPD matrix; :meth:`solve` runs preconditioned CG.
 
@@ -270,7 +328,8 @@ class IterativeSolver:
 
     def solve(self, rhs: np.ndarray | Callable[[int], np.ndarray],
               guess: np.ndarray | None = None, tolerance: float | None = None,
-              columns: int | None = None) -> np.ndarray:
+              columns: int | None = None,
+              progress: Callable[[float], None] | None = None) -> np.ndarray:
         """Preconditioned CG on each column of ``rhs``, one column after the other.
 
         Args:
@@ -282,6 +341,8 @@ class IterativeSolver:
             tolerance: the relative residual to reach (default ``rules.relative_tolerance``;
                 reported in :attr:`stats`).
             columns: k where ``rhs`` is a function.
+            progress: optional ``progress(fraction)``, 0 to 1, as the columns' CG iterations
+                go (:class:`SolveProgress`: the digits of the residual gained so far).
 
         Returns:
             (N, k) float64 solutions; :attr:`stats` says how many iterations they took (the
@@ -304,9 +365,10 @@ class IterativeSolver:
              else np.asarray(guess, dtype=np.float64).reshape(self.size, k))
         tolerance = self.rules.relative_tolerance if tolerance is None else float(tolerance)
         iterations, worst = 0, 0.0
+        report = SolveProgress(progress, k)
         for column in range(k):
             b_column = np.asarray(column_rhs(column), dtype=np.float64).reshape(self.size)
-            taken = self._column(b_column, x[:, column], tolerance)
+            taken = self._column(b_column, x[:, column], tolerance, report.column(column))
             residual = np.linalg.norm(_residual(self.matrix, b_column, x[:, column]))
             worst = max(worst, float(residual) / (float(np.linalg.norm(b_column)) or 1.0))
             iterations = max(iterations, taken)
@@ -318,21 +380,26 @@ class IterativeSolver:
         self.stats.solve_seconds = time.perf_counter() - start
         return x
 
-    def _column(self, b: np.ndarray, x: np.ndarray, tolerance: float) -> int:
+    def _column(self, b: np.ndarray, x: np.ndarray, tolerance: float,
+                observe: Callable[[float, float, float], None]) -> int:
         """CG on ``K x = b`` (N,) from ``x`` (updated in place, a strided column is fine);
-        returns its iterations."""
+        returns its iterations. ``observe(start, residual, target)`` follows its residual."""
         K = self.matrix
         target = tolerance * (float(np.linalg.norm(b)) or 1.0)
         r = _residual(K, b, x)
-        iterations, _ = conjugate_gradients(K.__matmul__, self._precondition, x, r, target,
-                                            self.rules.max_iterations)
+        start = float(np.linalg.norm(r))
+        iterations, _ = conjugate_gradients(
+            K.__matmul__, self._precondition, x, r, target, self.rules.max_iterations,
+            lambda _, residual: observe(start, residual, target))
         return iterations
 
 
 def conjugate_gradients(apply: Callable[[np.ndarray], np.ndarray],
                         precondition: Callable[[np.ndarray, np.ndarray | None], np.ndarray],
                         x: np.ndarray, r: np.ndarray, target: float,
-                        max_iterations: int) -> tuple[int, float]:
+                        max_iterations: int,
+                        observe: Callable[[int, float], None] | None = None,
+                        ) -> tuple[int, float]:
     """Preconditioned conjugate gradients on ``K x = b`` (the one CG loop of the library:
     Eq. 5's iterative answer and the refinement's Gauss-Newton steps).
 
@@ -347,6 +414,7 @@ def conjugate_gradients(apply: Callable[[np.ndarray], np.ndarray],
         target: stop once ``||r|| <= target`` (the 2-norm of the recursively updated
             residual).
         max_iterations: the cap on iterations.
+        observe: optional ``observe(iterations, ||r||)`` after every iteration (progress).
 
     Returns:
         (iterations, ||r||) when it stopped: at the target, at the cap, or where a direction
@@ -390,6 +458,8 @@ def conjugate_gradients(apply: Callable[[np.ndarray], np.ndarray],
         axpy(r, Kp, -alpha, ROWS_PER_UPDATE)
         iterations += 1
         residual = float(np.linalg.norm(r))
+        if observe is not None:
+            observe(iterations, residual)
         if residual <= target:
             break
         z = precondition(r, z)

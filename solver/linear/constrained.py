@@ -134,7 +134,8 @@ class ConstrainedSystem:
 
     def solve(self, hard_values: np.ndarray, soft_values: np.ndarray,
               guess: np.ndarray | None = None, tolerance: float | None = None,
-              overwrite_guess: bool = False) -> np.ndarray:
+              overwrite_guess: bool = False,
+              progress: Callable[[float], None] | None = None) -> np.ndarray:
         """Solve for new constraint targets (back-substitution only when direct).
 
         Args:
@@ -146,6 +147,9 @@ class ConstrainedSystem:
                 ignored when direct).
             overwrite_guess: the iterative method may use ``guess`` (a float64 (N, 3)
                 array) as its iterate, overwriting it, instead of a copy.
+            progress: optional ``progress(fraction)``, 0 to 1, as the iterative method's CG
+                goes (:class:`solver.linalg.iterative.SolveProgress`; not called when
+                direct).
 
         Returns:
             (N, 3) float64 unknowns, one column per coordinate.
@@ -161,7 +165,7 @@ class ConstrainedSystem:
             # Each coordinate's right-hand side made when its CG starts (N,), not (N, 3).
             u = self.iterative.solve(lambda c: self._rhs(hard_values[:, c:c + 1],
                                                          soft_values[:, c:c + 1])[:, 0],
-                                     start, tolerance, columns=3)
+                                     start, tolerance, columns=3, progress=progress)
             u[self.hard_columns] = hard_values
             return u
         assert self.factor is not None

@@ -55,7 +55,12 @@ import scipy.sparse as sp
 
 from ..linalg.cost import PowerLaw
 from ..linalg.hierarchy import smoothed_aggregation
-from ..linalg.iterative import LinearSolverRules, _multigrid, conjugate_gradients
+from ..linalg.iterative import (
+    LinearSolverRules,
+    _multigrid,
+    conjugate_gradients,
+    digits_share,
+)
 from .steps import StepRules
 
 REFINEMENT_SOLVER_RULES = LinearSolverRules(
@@ -334,6 +339,10 @@ class Multigrid:
         self.setup_iterations = setup_iterations
         self.hierarchy = HIERARCHY_RULES if hierarchy is None else hierarchy
         self.stats = CGStats()
+        self.progress: Callable[[float], None] | None = None
+        """``progress(share)``, 0 to 1, of the digits the solve under way has taken off its
+        residual (:func:`~solver.linalg.iterative.digits_share`), after each CG iteration;
+        set by the refinement for its run (its progress within a Gauss-Newton step)."""
         self._ml: Any = None
         self._cycle: Any = None
         self._baseline: float | None = None  # iterations per decade, first solve on it
@@ -467,9 +476,11 @@ class IterativeOperator:
         x = np.zeros_like(b)
         norm_b = float(np.linalg.norm(b))
         target = self.tolerance * norm_b
+        report = mg.progress
         iterations, residual = conjugate_gradients(
             lambda p: U @ p + U.T @ p - d * p, lambda r, out: P(mg.cycle(r)), x, b.copy(),
-            target, mg.max_iterations)
+            target, mg.max_iterations,
+            None if report is None else lambda _, r: report(digits_share(norm_b, r, target)))
         capped = residual > target
         relative = residual / norm_b if norm_b else 0.0
         stats = mg.stats

@@ -269,7 +269,15 @@ class Refiner:
                  clock: float) -> Refinement:
         """Iterate ``state`` until it stops (:meth:`_iterate`); the :class:`Refinement`."""
         self._paused = None
-        self._iterate(state, budget, _iteration_notifier(progress, budget), clock)
+        notify = _IterationNotifier(progress, budget)
+        if self._multigrid is None:
+            self._iterate(state, budget, notify, clock)
+        else:  # the CG solves report their progress within a step
+            self._multigrid.progress = notify.solving if progress is not None else None
+            try:
+                self._iterate(state, budget, notify, clock)
+            finally:
+                self._multigrid.progress = None
         if state.before is None:  # stopped before a first evaluation: measure the start
             state.measured(self.form_energy.energy(state.X), self.form_energy.report(state.X))
         if state.stop == StopReason.TIME_LIMIT:
@@ -525,26 +533,50 @@ machine its threads cost ~20 ms per dot product (docs/refinement.md), so :meth:`
 limits BLAS to one thread while it iterates."""
 
 
-def _iteration_notifier(progress: Any, budget: Budget) -> Any:
+class _IterationNotifier:
     """``notify(iteration, factorizations, energy, seconds)`` for :meth:`Refiner.run`:
     calls ``progress("refine", fraction)`` and, when ``progress`` has one,
-    ``progress.iteration(detail)``; does nothing without ``progress``."""
-    if progress is None:
-        return lambda *args: None
-    detail_hook = getattr(progress, "iteration", None)
+    ``progress.iteration(detail)``; does nothing without ``progress``. :meth:`solving`
+    reports the progress within a step, as its CG solve goes (the iterative path).
 
-    def notify(iteration: int, factorizations: int, energy: float, seconds: float) -> None:
-        # A refinement's length is unknown: most end after 2-5 iterations, so the fraction
-        # climbs towards 1 as iterations pass (or as the time budget is spent).
-        fraction = iteration / (iteration + 3.0)
-        if budget.seconds:
-            fraction = max(fraction, budget.spent() / budget.seconds)
-        progress("refine", min(fraction, 0.99))
-        if detail_hook is not None:
-            detail_hook({"iteration": iteration, "factorizations": factorizations,
-                         "energy": energy, "seconds": seconds})
+    A refinement's length is unknown: most end after 2-5 iterations, so the fraction
+    climbs towards 1 as iterations pass, ``done / (done + 3)`` with ``done`` the accepted
+    steps plus the share of the solve under way (or as the time budget is spent); it never
+    goes back, and within a step it is reported when it has grown by 0.01 or more."""
 
-    return notify
+    step = 0.01
+
+    def __init__(self, progress: Any, budget: Budget) -> None:
+        self._progress = progress
+        self._budget = budget
+        self._detail = None if progress is None else getattr(progress, "iteration", None)
+        self._iterations = 0
+        self._reported = 0.0
+
+    def __call__(self, iteration: int, factorizations: int, energy: float,
+                 seconds: float) -> None:
+        if self._progress is None:
+            return
+        self._iterations = iteration
+        self._report(float(iteration), 0.0)
+        if self._detail is not None:
+            self._detail({"iteration": iteration, "factorizations": factorizations,
+                          "energy": energy, "seconds": seconds})
+
+    def solving(self, share: float) -> None:
+        """The solve under way has done ``share`` (0 to 1) of its work."""
+        if self._progress is not None:
+            self._report(self._iterations + min(max(share, 0.0), 1.0), self.step)
+
+    def _report(self, done: float, step: float) -> None:
+        fraction = done / (done + 3.0)
+        if self._budget.seconds:
+            fraction = max(fraction, self._budget.spent() / self._budget.seconds)
+        fraction = min(fraction, 0.99)
+        if fraction < self._reported + step or (step and fraction <= self._reported):
+            return
+        self._reported = fraction
+        self._progress("refine", fraction)
 
 
 def refine(vertices: np.ndarray, targets: FormTargets, handles: Handles | None = None, *,
